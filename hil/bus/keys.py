@@ -1,0 +1,142 @@
+"""Every Zenoh key expression of the rig, built in one place.
+
+Layout (``<rig>`` namespaces one bench, so a replay can run beside a live rig)::
+
+    hil/<rig>/run                 RunInfo        run identity and time zero
+    hil/<rig>/truth               Truth
+    hil/<rig>/capture/<sensor>    CaptureTruth   true capture time per measurement
+    hil/<rig>/can/<channel>       CanFrame       raw frames as read by the bridge
+    hil/<rig>/sensor/<sensor>     ImuSample | GnssFix   raw, device-stamped
+    hil/<rig>/timetag/<sensor>    TimeTag
+    hil/<rig>/clock/<sensor>      ClockModel
+    hil/<rig>/synced/<sensor>     ImuSample | GnssFix   re-stamped to rig time of validity
+    hil/<rig>/nav/<estimator>     NavSolution
+    hil/<rig>/fusion/journal      FusionJournal
+    hil/<rig>/status/<service>    ServiceStatus
+    hil/<rig>/event/<source>      Event
+
+The CAN transport that stands in for ``vcan0`` lives outside ``hil/`` (``hilcan/<rig>/<channel>``):
+it carries bus traffic, not rig data, and the bridge already records every frame it reads.
+"""
+
+from __future__ import annotations
+
+import re
+
+from hil.messages import (
+    CanFrame,
+    CaptureTruth,
+    ClockModel,
+    Event,
+    FusionJournal,
+    GnssFix,
+    ImuSample,
+    Message,
+    NavSolution,
+    RunInfo,
+    ServiceStatus,
+    TimeTag,
+    Truth,
+)
+
+_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+# sensor name -> raw/synced message type
+SENSOR_TYPES: dict[str, type[Message]] = {"imu": ImuSample, "gnss": GnssFix}
+
+
+def check_name(what: str, name: str) -> str:
+    """Reject names that would break key expressions (``*``, ``/``, ``$``, empty)."""
+    if not _NAME.match(name):
+        raise ValueError(f"{what} {name!r} is not a valid name: use 1-64 of [A-Za-z0-9_-]")
+    return name
+
+
+class Keys:
+    """Key expressions of one rig."""
+
+    def __init__(self, rig: str) -> None:
+        self.rig = check_name("rig", rig)
+        self.root = f"hil/{rig}"
+
+    def all(self) -> str:
+        return f"{self.root}/**"
+
+    def run(self) -> str:
+        return f"{self.root}/run"
+
+    def truth(self) -> str:
+        return f"{self.root}/truth"
+
+    def capture(self, sensor: str) -> str:
+        return f"{self.root}/capture/{sensor}"
+
+    def can(self, channel: str) -> str:
+        return f"{self.root}/can/{channel}"
+
+    def sensor(self, sensor: str) -> str:
+        return f"{self.root}/sensor/{sensor}"
+
+    def timetag(self, sensor: str) -> str:
+        return f"{self.root}/timetag/{sensor}"
+
+    def clock(self, sensor: str) -> str:
+        return f"{self.root}/clock/{sensor}"
+
+    def synced(self, sensor: str) -> str:
+        return f"{self.root}/synced/{sensor}"
+
+    def nav(self, estimator: str) -> str:
+        return f"{self.root}/nav/{estimator}"
+
+    def journal(self) -> str:
+        return f"{self.root}/fusion/journal"
+
+    def status(self, service: str) -> str:
+        return f"{self.root}/status/{service}"
+
+    def event(self, source: str) -> str:
+        return f"{self.root}/event/{source}"
+
+    def canbus(self, channel: str) -> str:
+        """The transport key of the Zenoh-backed CAN interface (not rig data)."""
+        return f"hilcan/{self.rig}/{channel}"
+
+
+_FIXED: dict[str, type[Message]] = {
+    "run": RunInfo,
+    "truth": Truth,
+    "capture": CaptureTruth,
+    "can": CanFrame,
+    "timetag": TimeTag,
+    "clock": ClockModel,
+    "nav": NavSolution,
+    "fusion": FusionJournal,
+    "status": ServiceStatus,
+    "event": Event,
+}
+
+
+def type_for_key(key: str) -> type[Message] | None:
+    """The contract type a rig key carries, or None for keys outside the contract."""
+    parts = key.split("/")
+    if len(parts) < 3 or parts[0] != "hil":
+        return None
+    kind = parts[2]
+    if kind in ("sensor", "synced"):
+        return SENSOR_TYPES.get(parts[3]) if len(parts) > 3 else None
+    return _FIXED.get(kind)
+
+
+def rig_of_key(key: str) -> str | None:
+    parts = key.split("/")
+    return parts[1] if len(parts) > 1 and parts[0] == "hil" else None
+
+
+def rekey(key: str, rig: str) -> str:
+    """The same key under another rig (replay beside a live rig)."""
+    parts = key.split("/")
+    if len(parts) < 2 or parts[0] != "hil":
+        raise ValueError(f"key {key!r} is not a rig key (hil/<rig>/...)")
+    parts[1] = check_name("rig", rig)
+    return "/".join(parts)

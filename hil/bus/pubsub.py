@@ -1,0 +1,165 @@
+"""Typed publish/subscribe over Zenoh with the rig's accounting built in.
+
+A payload that does not decode is counted (``rejected.<key-kind>.<reason>``) and remembered as
+the service's last error; it is never raised into Zenoh's thread. Sensor streams are declared
+reliable with blocking congestion control, so a slow consumer shows as back-pressure on the
+producer instead of silently lost samples.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+import msgspec
+import zenoh
+
+from hil.messages import Message, decode, encode
+
+M = TypeVar("M", bound=Message)
+
+MAX_PAYLOAD_BYTES = 64 * 1024  # no contract message comes near this; larger is an attack or a bug
+
+
+class Stats:
+    """Thread-safe counters and rate meters that a service publishes in its status."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counters: dict[str, int] = {}
+        self._rate_counts: dict[str, int] = {}
+        self._rate_prev: dict[str, int] = {}
+        self._rate_t = time.monotonic()
+        self.rates_hz: dict[str, float] = {}
+        self.last_error = ""
+
+    def inc(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[name] = self.counters.get(name, 0) + n
+
+    def count_rate(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._rate_counts[name] = self._rate_counts.get(name, 0) + n
+
+    def error(self, counter: str, message: str) -> None:
+        with self._lock:
+            self.counters[counter] = self.counters.get(counter, 0) + 1
+            self.last_error = message[:500]
+
+    def snapshot(self) -> tuple[dict[str, float], dict[str, int], str]:
+        """Rates over the interval since the previous snapshot, counters, last error."""
+        with self._lock:
+            now = time.monotonic()
+            span = max(now - self._rate_t, 1e-6)
+            self.rates_hz = {
+                k: round((v - self._rate_prev.get(k, 0)) / span, 2) for k, v in self._rate_counts.items()
+            }
+            self._rate_prev = dict(self._rate_counts)
+            self._rate_t = now
+            return dict(self.rates_hz), dict(self.counters), self.last_error
+
+
+def _kind(key: str) -> str:
+    """``hil/rig/sensor/imu`` -> ``sensor.imu``: short names for counters."""
+    parts = key.split("/")
+    return ".".join(parts[2:]) if len(parts) > 2 else key
+
+
+class Publisher(Generic[M]):
+    """Publishes one contract type on one key and owns that key's per-publisher ``seq``."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        cls: type[M],
+        stats: Stats | None = None,
+        *,
+        reliable: bool = True,
+        block: bool = True,
+        express: bool = False,
+    ) -> None:
+        self.key = key
+        self.cls = cls
+        self.stats = stats
+        self._seq = 0
+        self._pub = session.declare_publisher(
+            key,
+            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
+            express=express,
+        )
+        self._rate_name = "out." + _kind(key)
+
+    def next_seq(self) -> int:
+        seq = self._seq
+        self._seq += 1
+        return seq
+
+    def put(self, msg: M) -> None:
+        self.put_bytes(encode(msg))
+
+    def put_bytes(self, payload: bytes) -> None:
+        self._pub.put(payload)
+        if self.stats is not None:
+            self.stats.count_rate(self._rate_name)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class Subscriber(Generic[M]):
+    """Decodes one contract type; bad payloads are counted, handler errors are contained."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        cls: type[M],
+        handler: Callable[[M, str], None],
+        stats: Stats,
+    ) -> None:
+        self.cls = cls
+        self.handler = handler
+        self.stats = stats
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        kind = _kind(key)
+        try:
+            raw = sample.payload.to_bytes()
+            if len(raw) > MAX_PAYLOAD_BYTES:
+                self.stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
+                return
+            msg = decode(self.cls, raw)
+        except (msgspec.ValidationError, msgspec.DecodeError) as err:
+            self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {self.cls.__name__}: {err}")
+            return
+        except Exception as err:  # never let a bad sample kill Zenoh's callback thread
+            self.stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
+            return
+        self.stats.count_rate("in." + kind)
+        try:
+            self.handler(msg, key)
+        except Exception as err:
+            self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+def subscribe_raw(
+    session: zenoh.Session, key: str, handler: Callable[[zenoh.Sample], Any], stats: Stats
+) -> zenoh.Subscriber:
+    """Undecoded subscription (the recorder), with handler errors contained and counted."""
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            handler(sample)
+        except Exception as err:
+            stats.error("errors.raw_handler", f"{sample.key_expr}: {type(err).__name__}: {err}")
+
+    return session.declare_subscriber(key, on_sample)

@@ -1,0 +1,235 @@
+"""The wire contract as typed, frozen messages (mirrored by the JSON Schemas in ``schemas/``).
+
+Every message carries a per-publisher ``seq`` (so loss is measured, not guessed) and integer
+nanosecond stamps named ``*_ns``. ``stamp_ns`` is the time of validity on the message's timeline:
+true time for ``Truth``/``CaptureTruth``, rig time for everything else (for a raw sensor message
+before synchronisation: its arrival on the rig clock). Positions and velocities are in the local
+NED frame of the scenario origin. Messages evolve only by appending fields with defaults.
+
+Encoding is JSON (msgspec): ``encode(msg)`` and ``decode(Type, payload)``. Decoding validates
+types, array lengths and ranges; NaN/inf cannot pass (JSON has no NaN; msgspec writes ``null``,
+which a float field rejects).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, TypeVar
+
+import msgspec
+
+Vec3 = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+Quat = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
+Seq = Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)]
+Ns = Annotated[int, msgspec.Meta(ge=-(2**62), le=2**62)]
+Name = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+
+
+class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Base of every contract message."""
+
+    seq: Seq
+    stamp_ns: Ns
+
+
+class RunInfo(Message, frozen=True, kw_only=True):
+    """The run's identity and its time zero, announced by ``world`` at 1 Hz."""
+
+    rig: Name
+    start_epoch_ns: int  # wall-clock (CLOCK_REALTIME) instant that is rig time zero
+    speed: float  # rig seconds per wall second
+    scenario: str
+    scenario_sha256: str
+    seed: int
+    duration_s: float
+    origin_lat_deg: float
+    origin_lon_deg: float
+    origin_alt_m: float
+
+
+class Truth(Message, frozen=True, kw_only=True):
+    """True vehicle state at ``stamp_ns`` (true time)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    pos_ned_m: Vec3
+    vel_ned_mps: Vec3
+    q_nb: Quat
+    f_b_mps2: Vec3
+    w_ib_b_radps: Vec3
+
+
+class ImuSample(Message, frozen=True, kw_only=True):
+    """One IMU interval of ``dt_ns`` ending at the capture instant."""
+
+    sensor: Name = "imu"
+    device_stamp_ns: Ns
+    rx_stamp_ns: Ns
+    dt_ns: Annotated[int, msgspec.Meta(gt=0, le=10**9)]
+    dtheta_b_rad: Vec3
+    dvel_b_mps: Vec3
+    status: int = 0  # built-in-test flags from the device
+
+
+class GnssFix(Message, frozen=True, kw_only=True):
+    """A receiver fix; ``device_stamp_ns`` is its time of validity on the receiver clock."""
+
+    sensor: Name = "gnss"
+    device_stamp_ns: Ns
+    rx_stamp_ns: Ns
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    pos_ned_m: Vec3
+    vel_ned_mps: Vec3
+    pos_sigma_m: Vec3
+    vel_sigma_mps: Vec3
+    fix_type: Annotated[int, msgspec.Meta(ge=0, le=5)]
+    num_sats: Annotated[int, msgspec.Meta(ge=0, le=200)]
+    hdop: float
+
+
+class CanFrame(Message, frozen=True, kw_only=True):
+    """A raw CAN frame as read off the bus; ``stamp_ns`` is the receive stamp on the rig clock."""
+
+    channel: str
+    arbitration_id: Annotated[int, msgspec.Meta(ge=0, le=0x1FFFFFFF)]
+    is_extended_id: bool = False
+    is_fd: bool = False
+    bitrate_switch: bool = False
+    is_error_frame: bool = False
+    data_hex: Annotated[str, msgspec.Meta(pattern=r"^([0-9a-f]{2}){0,64}$")]
+
+
+class TimeTag(Message, frozen=True, kw_only=True):
+    """A time-tag edge: device time of the edge and the rig time it was latched at."""
+
+    sensor: Name
+    kind: Name  # "sync_frame" | "pps"
+    device_stamp_ns: Ns  # the edge on the device clock
+
+
+class CaptureTruth(Message, frozen=True, kw_only=True):
+    """An emulator's true capture time of measurement ``seq`` (same seq as the measurement)."""
+
+    sensor: Name
+    true_stamp_ns: Ns
+
+
+class ClockModel(Message, frozen=True, kw_only=True):
+    """The estimated device->rig mapping: rig = device + offset + drift * (device - ref)."""
+
+    sensor: Name
+    source: Name  # "timetag" | "arrival" | "passthrough"
+    offset_ns: int
+    drift_ppb: float
+    ref_device_ns: Ns
+    residual_rms_ns: float
+    n_samples: int
+    state: Name  # "converging" | "locked" | "step_recovering"
+    steps_detected: int = 0
+
+
+class NavSolution(Message, frozen=True, kw_only=True):
+    """One estimator's solution at rig time ``stamp_ns``.
+
+    ``imu_seq``/``gnss_seq`` name the last synchronised inputs it had consumed, so a recording
+    says exactly which inputs each output saw.
+    """
+
+    estimator: Name
+    pos_ned_m: Vec3
+    vel_ned_mps: Vec3
+    q_nb: Quat
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    pos_sigma_m: Vec3 | None = None
+    vel_sigma_mps: Vec3 | None = None
+    imu_seq: int = -1
+    gnss_seq: int = -1
+
+
+class FusionJournal(Message, frozen=True, kw_only=True):
+    """What the fusion decided over a span of its input: enough to rerun it bit for bit.
+
+    Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the
+    ``"source:seq"`` of inputs that arrived behind the watermark and were not used.
+    """
+
+    watermark_ns: Ns
+    consumed: int
+    dropped: list[str] = []
+
+
+class ServiceStatus(Message, frozen=True, kw_only=True):
+    """A service's health, published at 1 Hz."""
+
+    service: Name
+    state: Name  # "starting" | "running" | "degraded" | "stopping"
+    pid: int
+    uptime_s: float
+    rates_hz: dict[str, float] = {}
+    counters: dict[str, int] = {}
+    last_error: str = ""
+
+
+class Event(Message, frozen=True, kw_only=True):
+    """Something that happened: a fault injected, a service restarted, a recording gap."""
+
+    kind: Name
+    source: Name
+    detail: str = ""
+
+
+CONTRACT_TYPES: tuple[type[Message], ...] = (
+    RunInfo,
+    Truth,
+    ImuSample,
+    GnssFix,
+    CanFrame,
+    TimeTag,
+    CaptureTruth,
+    ClockModel,
+    NavSolution,
+    FusionJournal,
+    ServiceStatus,
+    Event,
+)
+TYPES_BY_NAME: dict[str, type[Message]] = {f"hil.{t.__name__}": t for t in CONTRACT_TYPES}
+
+M = TypeVar("M", bound=Message)
+
+_encoder = msgspec.json.Encoder()
+_decoders: dict[type[Any], msgspec.json.Decoder[Any]] = {}
+
+
+def encode(msg: Message) -> bytes:
+    """JSON bytes of a message."""
+    return _encoder.encode(msg)
+
+
+def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
+    """Decode and validate; raises ``msgspec.ValidationError``/``DecodeError`` on bad input."""
+    dec = _decoders.get(cls)
+    if dec is None:
+        dec = _decoders[cls] = msgspec.json.Decoder(cls)
+    return dec.decode(payload)
+
+
+def schema_name(cls: type[Message]) -> str:
+    """The MCAP schema name of a type: ``hil.<Type>``."""
+    return f"hil.{cls.__name__}"
+
+
+def json_schema(cls: type[Message]) -> dict[str, Any]:
+    """The JSON Schema of a type, self-contained, with ``hil.<Type>`` as its title."""
+    raw = msgspec.json.schema(cls)
+    defs = raw.get("$defs", {})
+    body = dict(defs.pop(cls.__name__))
+    body["title"] = schema_name(cls)
+    out: dict[str, Any] = {"$schema": "https://json-schema.org/draft/2020-12/schema", "$id": schema_name(cls)}
+    out.update(body)
+    if defs:
+        out["$defs"] = defs
+    return out

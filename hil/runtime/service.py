@@ -1,0 +1,196 @@
+"""The thin process shell every rig service shares.
+
+A service opens one Zenoh session, publishes ``ServiceStatus`` at 1 Hz, waits for the run's
+``RunInfo`` (time zero, scenario, speed) from ``world``, runs its loop until SIGTERM/SIGINT, then
+closes cleanly. Everything else -- the numerics -- lives in pure cores the service calls.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+import zenoh
+
+from hil.bus.keys import Keys
+from hil.bus.pubsub import Publisher, Stats, Subscriber
+from hil.bus.session import BusConfig, open_session
+from hil.messages import Event, Message, RunInfo, ServiceStatus
+from hil.runtime.clock import RigClock
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServiceContext:
+    """What a service is handed: built once in ``main()``, passed everywhere else."""
+
+    name: str
+    rig: str
+    session: zenoh.Session
+    stats: Stats = field(default_factory=Stats)
+    stop: threading.Event = field(default_factory=threading.Event)
+    options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def keys(self) -> Keys:
+        return Keys(self.rig)
+
+
+class Service:
+    """Base class: subclasses implement ``run_loop(run, clock)`` and may override ``ready_state``."""
+
+    name = "service"
+
+    def __init__(self, ctx: ServiceContext) -> None:
+        self.ctx = ctx
+        self.stats = ctx.stats
+        self.keys = ctx.keys
+        self.state = "starting"
+        self.clock: RigClock | None = None
+        self.run_info: RunInfo | None = None
+        self._t0 = time.monotonic()
+        self._status_pub = Publisher(ctx.session, self.keys.status(self.name), ServiceStatus, reliable=True)
+        self._event_pub = Publisher(ctx.session, self.keys.event(self.name), Event, stats=self.stats)
+        self._run_event = threading.Event()
+        self._subs: list[Any] = []
+        self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+
+    # -- helpers for subclasses -------------------------------------------------------------
+    def publisher(self, key: str, cls: type[Message], **kw: Any) -> Publisher[Any]:
+        return Publisher(self.ctx.session, key, cls, self.stats, **kw)
+
+    def subscribe(self, key: str, cls: type[Message], handler: Callable[[Any, str], None]) -> None:
+        self._subs.append(Subscriber(self.ctx.session, key, cls, handler, self.stats))
+
+    def rig_now_ns(self) -> int:
+        return self.clock.now_ns() if self.clock else 0
+
+    def emit_event(self, kind: str, detail: str = "") -> None:
+        self._event_pub.put(
+            Event(seq=self._event_pub.next_seq(), stamp_ns=self.rig_now_ns(), kind=kind, source=self.name, detail=detail)
+        )
+
+    def extra_status(self) -> dict[str, int]:
+        """Counters a subclass computes on demand (queue depths, ...)."""
+        return {}
+
+    # -- lifecycle --------------------------------------------------------------------------
+    def _status_loop(self) -> None:
+        seq = 0
+        while not self.ctx.stop.wait(0 if seq == 0 else 1.0):
+            self.publish_status(seq)
+            seq += 1
+        self.state = "stopping"
+        self.publish_status(seq)
+
+    def publish_status(self, seq: int) -> None:
+        rates, counters, last_error = self.stats.snapshot()
+        counters.update(self.extra_status())
+        try:
+            self._status_pub.put(
+                ServiceStatus(
+                    seq=seq,
+                    stamp_ns=self.rig_now_ns(),
+                    service=self.name,
+                    state=self.state,
+                    pid=os.getpid(),
+                    uptime_s=round(time.monotonic() - self._t0, 3),
+                    rates_hz=rates,
+                    counters=counters,
+                    last_error=last_error,
+                )
+            )
+        except Exception as err:  # a closing session must not take the process down
+            log.debug("status publish failed: %s", err)
+
+    def _on_run(self, run: RunInfo, _key: str) -> None:
+        if self.run_info is None:
+            self.run_info = run
+            self.clock = RigClock(run.start_epoch_ns, run.speed)
+            self._run_event.set()
+        elif run.start_epoch_ns != self.run_info.start_epoch_ns:
+            self.stats.error("errors.run_changed", "a different run was announced on this rig; ignored")
+
+    def wait_for_run(self) -> RunInfo | None:
+        """Block until ``world`` announces the run (or stop)."""
+        self.subscribe(self.keys.run(), RunInfo, self._on_run)
+        while not self._run_event.wait(0.1):
+            if self.ctx.stop.is_set():
+                return None
+        return self.run_info
+
+    def needs_run(self) -> bool:
+        return True
+
+    def start(self) -> None:
+        """Run to completion: status thread, wait for the run, the loop, cleanup."""
+        self.state = "waiting_run" if self.needs_run() else "ready"
+        self._status_thread.start()
+        try:
+            self.setup()
+            self.state = "waiting_run" if self.needs_run() else "running"
+            if self.needs_run():
+                run = self.wait_for_run()
+                if run is None:
+                    return
+                self.state = "running"
+                self.run_loop(run, self.clock)  # type: ignore[arg-type]
+            else:
+                self.run_loop(None, None)  # type: ignore[arg-type]
+        finally:
+            self.ctx.stop.set()
+            self.teardown()
+            self._status_thread.join(timeout=2.0)
+
+    def setup(self) -> None:
+        """Declare subscriptions/publishers before the run starts (so nothing is missed)."""
+
+    def run_loop(self, run: RunInfo, clock: RigClock) -> None:
+        """Default: event-driven services just wait for stop."""
+        self.ctx.stop.wait()
+
+    def teardown(self) -> None:
+        """Flush and close outputs."""
+
+
+def install_signal_handlers(stop: threading.Event) -> None:
+    def handler(_signum: int, _frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusConfig | None = None) -> int:
+    """Process entry point shared by ``hil service NAME`` and the per-service console scripts."""
+    logging.basicConfig(level=os.environ.get("HIL_LOG", "WARNING"), format=f"[{cls.name}] %(levelname)s %(message)s")
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    session = open_session(bus)
+    ctx = ServiceContext(name=cls.name, rig=rig, session=session, stop=stop, options=options)
+    try:
+        svc = cls(ctx)
+        svc.start()
+    finally:
+        # Give reliable queues a moment to drain before the session goes (slow machines lose the tail otherwise).
+        time.sleep(0.2)
+        session.close()
+    return 0
+
+
+def options_from_json(text: str | None) -> dict[str, Any]:
+    """Service options as passed by the supervisor (``--options JSON``)."""
+    if not text:
+        return {}
+    value = msgspec.json.decode(text.encode())
+    if not isinstance(value, dict):
+        raise ValueError("--options must be a JSON object")
+    return value
