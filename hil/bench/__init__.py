@@ -48,6 +48,8 @@ def write_section(name: str, body_md: str, command: str, doc: Path = DEFAULT_DOC
 
 def command_line() -> str:
     """The command as the user typed it (``hil bench ...``)."""
-    return "hil " + " ".join(sys.argv[1:]) if sys.argv and sys.argv[0].endswith("hil") else " ".join(
-        ["hil", *sys.argv[1:]]
+    return (
+        "hil " + " ".join(sys.argv[1:])
+        if sys.argv and sys.argv[0].endswith("hil")
+        else " ".join(["hil", *sys.argv[1:]])
     )

@@ -75,7 +75,13 @@ class Service:
 
     def emit_event(self, kind: str, detail: str = "") -> None:
         self._event_pub.put(
-            Event(seq=self._event_pub.next_seq(), stamp_ns=self.rig_now_ns(), kind=kind, source=self.name, detail=detail)
+            Event(
+                seq=self._event_pub.next_seq(),
+                stamp_ns=self.rig_now_ns(),
+                kind=kind,
+                source=self.name,
+                detail=detail,
+            )
         )
 
     def extra_status(self) -> dict[str, int]:
@@ -171,7 +177,9 @@ def install_signal_handlers(stop: threading.Event) -> None:
 
 def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusConfig | None = None) -> int:
     """Process entry point shared by ``hil service NAME`` and the per-service console scripts."""
-    logging.basicConfig(level=os.environ.get("HIL_LOG", "WARNING"), format=f"[{cls.name}] %(levelname)s %(message)s")
+    logging.basicConfig(
+        level=os.environ.get("HIL_LOG", "WARNING"), format=f"[{cls.name}] %(levelname)s %(message)s"
+    )
     stop = threading.Event()
     install_signal_handlers(stop)
     session = open_session(bus)
