@@ -1,0 +1,274 @@
+"""``hil``: the rig's command line. Argument parsing lives here; the work lives in the library.
+
+Errors a user can fix (a bad path, an unknown scenario, a malformed option) end with one line
+saying what and where, and exit code 2 -- never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from datetime import datetime
+from pathlib import Path
+
+from hil import __version__
+
+EXIT_USAGE = 2
+
+
+class UserError(Exception):
+    """An error the user can fix; printed as one line."""
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return v
+
+
+def _default_record_path(scenario: str) -> Path:
+    stem = Path(scenario).stem
+    return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
+
+
+def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) -> None:
+    p.add_argument("--scenario", default="straight_level", help="built-in name or path to a scenario TOML")
+    p.add_argument("--duration", type=_positive, default=default_duration, help="seconds of rig time")
+    p.add_argument(
+        "--record", type=Path, default=None, help="MCAP path (default: recordings/<scenario>-<time>.mcap)"
+    )
+    p.add_argument("--rig", default="bench", help="rig name: namespaces every key as hil/<rig>/...")
+    p.add_argument(
+        "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
+    )
+
+
+def cmd_up(a: argparse.Namespace) -> int:
+    from hil.bus.keys import check_name
+    from hil.nav.scenario import load_scenario
+    from hil.record.info import describe
+    from hil.runtime.supervisor import Supervisor, UpOptions
+
+    check_name("rig", a.rig)
+    scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
+    duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
+    record = a.record or _default_record_path(a.scenario)
+    opts = UpOptions(
+        scenario=a.scenario if not Path(a.scenario).is_file() else str(Path(a.scenario).resolve()),
+        duration_s=duration,
+        speed=a.speed,
+        record=record.resolve(),
+        rig=a.rig,
+        channel=a.channel,
+        can_interface=a.can_interface,
+        fd=a.fd,
+        estimators=[e for e in a.estimators.split(",") if e],
+        live=not a.quiet,
+        log_dir=record.resolve().with_suffix(".logs"),
+        restart=a.restart,
+    )
+    print(
+        f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
+    )
+    print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
+    sup = Supervisor(opts)
+    rc = sup.run()
+    for f in sup.failures:
+        print(f"hil up: FAILED: {f}", file=sys.stderr)
+    if record.exists():
+        print()
+        print(describe(str(record)))
+    else:
+        print(f"hil up: no recording was written at {record}", file=sys.stderr)
+        rc = rc or 1
+    return rc
+
+
+def _describe_can(channel: str, interface: str | None) -> str:
+    """One line saying which CAN transport the IMU and bridge will use."""
+    if interface:
+        return f"{channel} over python-can interface {interface!r} (as requested)"
+    if Path(f"/sys/class/net/{channel}").exists():
+        return f"{channel} over SocketCAN (the kernel has {channel})"
+    return (
+        f"{channel} over the rig's Zenoh CAN transport (hilzenoh): this kernel has no {channel}; "
+        "create one (modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0) to use SocketCAN"
+    )
+
+
+def cmd_sim(a: argparse.Namespace) -> int:
+    from hil.runtime.offline import SimOptions, run_sim
+
+    record = a.record or _default_record_path(a.scenario)
+    res = run_sim(
+        SimOptions(
+            scenario=a.scenario,
+            duration_s=a.duration,
+            record=record,
+            rig=a.rig,
+            estimators=[e for e in a.estimators.split(",") if e],
+            fd=a.fd,
+        )
+    )
+    print(res.summary)
+    if not a.quiet:
+        from hil.record.info import describe
+
+        print()
+        print(describe(str(record)))
+    return 0
+
+
+def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
+    from hil.runtime.registry import service_module
+    from hil.runtime.service import options_from_json, run_service
+
+    mod = service_module(a.name)
+    if a.options is not None:
+        try:
+            opts = options_from_json(a.options)
+        except ValueError as err:
+            raise UserError(f"--options: {err}") from err
+        return run_service(mod.SERVICE, a.rig, opts)
+    return int(mod.main([*(["--rig", a.rig] if a.rig else []), *rest]) or 0)
+
+
+def cmd_info(a: argparse.Namespace) -> int:
+    from hil.record.info import describe, info_json
+
+    print(info_json(a.file) if a.json else describe(a.file, accuracy=not a.no_accuracy))
+    return 0
+
+
+def cmd_schemas(a: argparse.Namespace) -> int:
+    from hil.schemas_io import check_schemas, write_schemas
+
+    if a.write:
+        for p in write_schemas():
+            print(f"wrote {p}")
+        return 0
+    problems = check_schemas()
+    for p in problems:
+        print(p, file=sys.stderr)
+    return 1 if problems else 0
+
+
+def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
+    import importlib
+
+    try:
+        mod = importlib.import_module(f"hil.bench.{a.name}")
+    except ModuleNotFoundError as err:
+        raise UserError(f"no benchmark named {a.name!r}") from err
+    return int(mod.main(rest) or 0)
+
+
+def cmd_rerun(a: argparse.Namespace) -> int:
+    from hil.record.rerun import rerun
+
+    return rerun(a.file, core=a.core, verify=a.verify)
+
+
+def cmd_router(a: argparse.Namespace) -> int:
+    import threading
+
+    from hil.bus.session import BusConfig, open_session
+    from hil.runtime.service import install_signal_handlers
+
+    listen = tuple(x for x in a.listen.split(",") if x)
+    session = open_session(BusConfig(mode="router", listen=listen, connect=()))
+    print(f"hil router: listening on {', '.join(listen)}", flush=True)
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    stop.wait()
+    session.close()
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
+    ap.add_argument("--version", action="version", version=f"hil {__version__}")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    up = sub.add_parser("up", help="run the live rig: every service as its own process")
+    _add_run_args(up, None)
+    up.add_argument("--speed", type=_positive, default=1.0, help="rig clock K times faster than real time")
+    up.add_argument("--channel", default="vcan0", help="CAN channel of the IMU")
+    up.add_argument(
+        "--can-interface",
+        default=None,
+        help="python-can interface (default: socketcan if the channel exists, else hilzenoh)",
+    )
+    up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
+    up.add_argument(
+        "--restart", type=int, default=0, help="restarts allowed per service before the run fails"
+    )
+    up.add_argument("--quiet", action="store_true", help="no live table")
+    up.set_defaults(func=cmd_up)
+
+    sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")
+    _add_run_args(sim, None)
+    sim.add_argument("--fd", action="store_true")
+    sim.add_argument("--quiet", action="store_true")
+    sim.set_defaults(func=cmd_sim)
+
+    svc = sub.add_parser("service", help="run one service alone (what docker compose runs)")
+    svc.add_argument("name")
+    svc.add_argument("--rig", default=None)
+    svc.add_argument("--options", default=None, help="service options as a JSON object")
+    svc.set_defaults(func=cmd_service, passthrough=True)
+
+    info = sub.add_parser("info", help="what a recording holds")
+    info.add_argument("file")
+    info.add_argument("--json", action="store_true")
+    info.add_argument("--no-accuracy", action="store_true")
+    info.set_defaults(func=cmd_info)
+
+    sch = sub.add_parser("schemas", help="check (default) or --write schemas/ from the message types")
+    sch.add_argument("--write", action="store_true")
+    sch.set_defaults(func=cmd_schemas)
+
+    bench = sub.add_parser("bench", help="run a benchmark and write docs/benchmarks.md")
+    bench.add_argument("name")
+    bench.set_defaults(func=cmd_bench, passthrough=True)
+
+    rr = sub.add_parser("rerun", help="recompute a core's outputs from a recording's inputs")
+    rr.add_argument("file")
+    rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
+    rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
+    rr.set_defaults(func=cmd_rerun)
+
+    router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
+    router.add_argument("--listen", default="tcp/0.0.0.0:7447")
+    router.set_defaults(func=cmd_router)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    ap = build_parser()
+    a, rest = ap.parse_known_args(argv)
+    if rest and not getattr(a, "passthrough", False):
+        ap.error(f"unrecognized arguments: {' '.join(rest)}")
+    try:
+        if getattr(a, "passthrough", False):
+            return int(a.func(a, rest) or 0)
+        return int(a.func(a) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except UserError as err:
+        print(f"hil: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except (FileNotFoundError, ValueError, KeyError, OSError) as err:
+        # boundary errors from loaders carry the facts; show them as one line
+        msg = str(err) if not isinstance(err, KeyError) else str(err).strip("'\"")
+        print(f"hil: {type(err).__name__}: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

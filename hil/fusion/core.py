@@ -1,0 +1,222 @@
+"""Fusion core: synchronised inputs in a total order, the shared free INS, estimators side by side.
+
+Pure and deterministic: no I/O, no clock. Inputs arrive in any order; they are released in the
+total order ``(stamp_ns, source rank, seq)`` once they are older than the watermark
+``newest stamp seen - lag_ns`` (so a GNSS fix that arrives late, but within the lag, is still
+fused at its time of validity between the IMU steps around it). An input that arrives behind the
+released watermark is dropped and named in ``take_dropped()`` -- the service journals those, so
+``hil rerun`` feeds exactly the same sequence through ``process()`` and gets every output bit for
+bit.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
+from hil.messages import GnssFix, ImuSample, NavSolution
+from hil.nav.types import NavState
+
+SOURCE_RANK = {"imu": 0, "gnss": 1}
+FREE_INS = "ins"
+MIN_GNSS_FIX_TYPE = 2
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    estimators: tuple[str, ...] = ()
+    lag_ns: int = 200_000_000  # > worst GNSS latency + jitter, so fixes are fused in time order
+    output_every: int = 8  # publish every N-th IMU step (by IMU seq: deterministic under loss)
+    max_future_ns: int = 5_000_000_000  # an input this far ahead of the newest is rejected, not trusted
+
+
+def input_key(msg: ImuSample | GnssFix) -> tuple[int, int, int]:
+    return (msg.stamp_ns, SOURCE_RANK.get(msg.sensor, 9), msg.seq)
+
+
+def input_id(msg: ImuSample | GnssFix) -> str:
+    return f"{msg.sensor}:{msg.seq}"
+
+
+@dataclass
+class FusionCore:
+    init: InitialState
+    config: FusionConfig
+    make_estimator: Callable[[str, InitialState], Estimator] | None = None
+    counters: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        from hil.nav import strapdown
+
+        self._sd = strapdown
+        self._ins = strapdown.strapdown_from_initial(self.init)
+        self._origin = (self.init.origin_lat_rad, self.init.origin_lon_rad, self.init.origin_alt_m)
+        maker = self.make_estimator
+        if maker is None:
+            from hil.estimators.registry import make_estimator
+
+            maker = make_estimator
+        self.estimators: list[Estimator] = [maker(name, self.init) for name in self.config.estimators]
+        self._failed: set[str] = set()
+        self._heap: list[tuple[tuple[int, int, int], ImuSample | GnssFix]] = []
+        self._newest_ns: int | None = None
+        self._last_key: tuple[int, int, int] = (-(2**62), -1, -1)
+        self._dropped: list[str] = []
+        self._out_seq: dict[str, int] = {}
+        self._last_imu_seq = -1
+        self._last_gnss_seq = -1
+        self.consumed = 0
+
+    # -- arrival side (live) ---------------------------------------------------------------
+    def push(self, msg: ImuSample | GnssFix) -> list[NavSolution]:
+        key = input_key(msg)
+        if self._newest_ns is not None and msg.stamp_ns > self._newest_ns + self.config.max_future_ns:
+            self._inc("rejected.future_stamp")
+            self._dropped.append(input_id(msg))
+            return []
+        if key <= self._last_key:
+            self._inc(f"dropped_late.{msg.sensor}")
+            self._dropped.append(input_id(msg))
+            return []
+        heapq.heappush(self._heap, (key, msg))
+        if self._newest_ns is None or msg.stamp_ns > self._newest_ns:
+            self._newest_ns = msg.stamp_ns
+        return self._release(self._newest_ns - self.config.lag_ns)
+
+    def flush(self) -> list[NavSolution]:
+        """End of input: release everything still buffered."""
+        return self._release(2**62)
+
+    def take_dropped(self) -> list[str]:
+        out, self._dropped = self._dropped, []
+        return out
+
+    @property
+    def watermark_ns(self) -> int:
+        return self._last_key[0]
+
+    def _release(self, watermark_ns: int) -> list[NavSolution]:
+        out: list[NavSolution] = []
+        while self._heap and self._heap[0][0][0] <= watermark_ns:
+            key, msg = heapq.heappop(self._heap)
+            if key == self._last_key:  # a duplicate that was buffered twice
+                self._inc(f"dropped_duplicate.{msg.sensor}")
+                self._dropped.append(input_id(msg))
+                continue
+            self._last_key = key
+            out.extend(self.process(msg))
+        return out
+
+    # -- processing side (live after release, and rerun) -----------------------------------
+    def process(self, msg: ImuSample | GnssFix) -> list[NavSolution]:
+        """Consume one input in total order; return the solutions it produced."""
+        self.consumed += 1
+        if isinstance(msg, ImuSample):
+            return self._on_imu(msg)
+        self._on_gnss(msg)
+        return []
+
+    def _on_imu(self, msg: ImuSample) -> list[NavSolution]:
+        dt_s = msg.dt_ns * 1e-9
+        dtheta = np.asarray(msg.dtheta_b_rad, dtype=np.float64)
+        dvel = np.asarray(msg.dvel_b_mps, dtype=np.float64)
+        self._ins = self._sd.strapdown_step(self._ins, dtheta, dvel, dt_s)
+        ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
+        for est in self.estimators:
+            if est.name in self._failed:
+                continue
+            try:
+                est.on_imu(imu, ins_nav)
+            except Exception as err:
+                self._fail(est.name, err)
+        self._last_imu_seq = msg.seq
+        if msg.seq % self.config.output_every:
+            return []
+        out: list[NavSolution] = []
+        for name, get in [(FREE_INS, lambda: ins_nav)] + [
+            (e.name, e.solution) for e in self.estimators if e.name not in self._failed
+        ]:
+            try:
+                out.append(self._solution(name, get(), msg.stamp_ns))
+            except ArithmeticError:
+                # NaN never reaches a published solution: counted, not published
+                self._inc(f"errors.nonfinite.{name}")
+        return out
+
+    def _on_gnss(self, msg: GnssFix) -> None:
+        if msg.fix_type < MIN_GNSS_FIX_TYPE:
+            self._inc("gnss.no_fix")
+            return
+        gnss = GnssInput(
+            stamp_ns=msg.stamp_ns,
+            pos_ned_m=np.asarray(msg.pos_ned_m, dtype=np.float64),
+            vel_ned_mps=np.asarray(msg.vel_ned_mps, dtype=np.float64),
+            pos_sigma_m=np.asarray(msg.pos_sigma_m, dtype=np.float64),
+            vel_sigma_mps=np.asarray(msg.vel_sigma_mps, dtype=np.float64),
+        )
+        ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        for est in self.estimators:
+            if est.name in self._failed:
+                continue
+            try:
+                est.on_gnss(gnss, ins_nav)
+            except Exception as err:
+                self._fail(est.name, err)
+        self._last_gnss_seq = msg.seq
+
+    def _fail(self, name: str, err: Exception) -> None:
+        """An estimator that raises is taken out (and says so); the others go on."""
+        self._failed.add(name)
+        self._inc(f"errors.estimator_failed.{name}")
+        self.last_error = f"estimator {name} failed: {type(err).__name__}: {err}"
+
+    def _solution(self, name: str, nav: NavState, stamp_ns: int) -> NavSolution:
+        from hil.nav.earth import ned_to_lla
+
+        parts = [nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb]
+        if nav.pos_sigma_m is not None:
+            parts.append(nav.pos_sigma_m)
+        if nav.vel_sigma_mps is not None:
+            parts.append(nav.vel_sigma_mps)
+        if not all(np.all(np.isfinite(p)) for p in parts):
+            raise ArithmeticError(f"{name}: non-finite solution")
+        lat, lon, alt = ned_to_lla(nav.pos_ned_m, *self._origin)
+        seq = self._out_seq.get(name, 0)
+        self._out_seq[name] = seq + 1
+        return NavSolution(
+            seq=seq,
+            stamp_ns=stamp_ns,
+            estimator=name,
+            pos_ned_m=[float(v) for v in nav.pos_ned_m],
+            vel_ned_mps=[float(v) for v in nav.vel_ned_mps],
+            q_nb=[float(v) for v in nav.q_nb],
+            lat_deg=float(np.degrees(lat)),
+            lon_deg=float(np.degrees(lon)),
+            alt_m=float(alt),
+            pos_sigma_m=None if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
+            vel_sigma_mps=None if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
+            imu_seq=self._last_imu_seq,
+            gnss_seq=self._last_gnss_seq,
+        )
+
+    def health(self) -> dict[str, int]:
+        out = dict(self.counters)
+        out["buffered"] = len(self._heap)
+        out["consumed"] = self.consumed
+        for est in self.estimators:
+            if est.name in self._failed:
+                continue
+            try:
+                for k, v in est.health().items():
+                    out[f"{est.name}.{k}"] = int(v)
+            except Exception:  # health is advisory
+                pass
+        return out
+
+    def _inc(self, name: str) -> None:
+        self.counters[name] = self.counters.get(name, 0) + 1

@@ -1,0 +1,127 @@
+"""What a recording holds: channels, types, counts, rates, duration, sequence gaps, accuracy."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.record.completeness import Completeness
+from hil.record.mcapio import Session, read_session
+
+
+@dataclass
+class ChannelInfo:
+    topic: str
+    schema: str
+    count: int
+    rate_hz: float
+    first_ns: int
+    last_ns: int
+    missing: int
+    duplicates: int
+
+
+def channel_infos(session: Session) -> list[ChannelInfo]:
+    comp = Completeness()
+    spans: dict[str, list[int]] = {}
+    schemas: dict[str, str] = {}
+    counts: dict[str, int] = {}
+    for r in session.records:
+        comp.see(r.topic, r.sequence)
+        sp = spans.setdefault(r.topic, [r.publish_time_ns, r.publish_time_ns])
+        sp[0] = min(sp[0], r.publish_time_ns)
+        sp[1] = max(sp[1], r.publish_time_ns)
+        schemas.setdefault(r.topic, r.schema)
+        counts[r.topic] = counts.get(r.topic, 0) + 1
+    out = []
+    for topic in sorted(counts):
+        a, b = spans[topic]
+        n = counts[topic]
+        rate = (n - 1) / ((b - a) * 1e-9) if n > 1 and b > a else 0.0
+        tr = comp.topics[topic]
+        out.append(ChannelInfo(topic, schemas[topic], n, rate, a, b, tr.missing, tr.duplicates))
+    return out
+
+
+def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
+    """Horizontal position error of every estimator vs truth (interpolated at the solution stamps)."""
+    truth = [r.decode() for r in session.records if r.topic.endswith("/truth")]
+    if len(truth) < 2:
+        return {}
+    tt = np.array([t.stamp_ns for t in truth], dtype=np.float64)
+    tp = np.array([t.pos_ned_m for t in truth])
+    sols: dict[str, list[tuple[int, list[float]]]] = {}
+    for r in session.records:
+        if "/nav/" in r.topic:
+            m = r.decode()
+            sols.setdefault(m.estimator, []).append((m.stamp_ns, m.pos_ned_m))  # type: ignore[attr-defined]
+    out: dict[str, dict[str, float]] = {}
+    for name, rows in sols.items():
+        t = np.array([s for s, _ in rows], dtype=np.float64)
+        p = np.array([q for _, q in rows])
+        ok = (t >= tt[0]) & (t <= tt[-1])
+        if not ok.any():
+            continue
+        ref = np.column_stack([np.interp(t[ok], tt, tp[:, i]) for i in range(3)])
+        h = np.hypot(*(p[ok, :2] - ref[:, :2]).T)
+        out[name] = {
+            "n": float(ok.sum()),
+            "rms_m": float(np.sqrt(np.mean(h**2))),
+            "p95_m": float(np.percentile(h, 95)),
+            "max_m": float(h.max()),
+            "final_m": float(h[-1]),
+        }
+    return out
+
+
+def describe(path: str, *, accuracy: bool = True) -> str:
+    s = read_session(path)
+    infos = channel_infos(s)
+    t0 = min((c.first_ns for c in infos), default=0)
+    t1 = max((c.last_ns for c in infos), default=0)
+    lines = [f"file:      {path}"]
+    meta = s.metadata.get("hil", {})
+    if meta:
+        lines.append(
+            f"run:       rig={meta.get('rig')} scenario={meta.get('scenario')} seed={meta.get('seed')} "
+            f"speed={meta.get('speed')} executor={meta.get('executor')} version={meta.get('version')}"
+        )
+    lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {len(s.records)}   channels: {len(infos)}")
+    if s.truncated:
+        lines.append(f"TRUNCATED: read up to the last complete chunk ({s.truncation_reason})")
+    comp = s.metadata.get("completeness")
+    if comp:
+        lines.append(f"recorder:  missing={comp.get('missing')} replay_ready={comp.get('replay_ready')}")
+    else:
+        lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
+    lines.append("")
+    lines.append(f"{'topic':<34}{'type':<20}{'count':>8}{'rate Hz':>10}{'gaps':>7}{'dups':>6}")
+    for c in infos:
+        lines.append(
+            f"{c.topic:<34}{c.schema:<20}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}"
+        )
+    if accuracy:
+        errs = estimator_errors(s)
+        if errs:
+            lines.append("")
+            lines.append(f"{'estimator':<12}{'horiz RMS m':>12}{'95% m':>10}{'max m':>10}{'final m':>10}")
+            for name, e in sorted(errs.items()):
+                lines.append(
+                    f"{name:<12}{e['rms_m']:>12.2f}{e['p95_m']:>10.2f}{e['max_m']:>10.2f}{e['final_m']:>10.2f}"
+                )
+    return "\n".join(lines)
+
+
+def info_json(path: str) -> str:
+    s = read_session(path)
+    return json.dumps(
+        {
+            "channels": [c.__dict__ for c in channel_infos(s)],
+            "truncated": s.truncated,
+            "metadata": s.metadata,
+            "errors": estimator_errors(s),
+        },
+        indent=2,
+    )

@@ -1,0 +1,224 @@
+"""MCAP files in the rig's layout: write a session, read it back (also when truncated).
+
+Layout (the contract): one channel per Zenoh key, schema encoding ``jsonschema`` with schema
+name ``hil.<Type>``, message encoding ``json``. ``log_time`` = recorder receive time on the rig
+clock (ns since run start, clamped at 0), ``publish_time`` = the message's own ``stamp_ns``
+(clamped at 0), ``sequence`` = the message's per-publisher ``seq``. Chunks are zstd-compressed and
+flushed at least every second, so a killed recorder leaves a file readable up to its last chunk.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import msgspec
+from mcap.exceptions import McapError
+from mcap.records import Attachment, Channel, Metadata, Schema
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from hil import __version__
+from hil.messages import TYPES_BY_NAME, Message, json_schema, schema_name
+
+PROFILE = "hil"
+_U64_MAX = 2**64 - 1
+
+
+class RecordingError(Exception):
+    """A recording cannot be read or written; the message names the file and the reason."""
+
+
+def _u64(ns: int) -> int:
+    return 0 if ns < 0 else min(ns, _U64_MAX)
+
+
+class SessionWriter:
+    """Writes one session file. Not thread-safe: one writer thread owns it."""
+
+    def __init__(self, path: str | Path, *, chunk_size: int = 512 * 1024) -> None:
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fh: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 - owned until close()
+        except OSError as err:
+            raise RecordingError(f"cannot open {self.path} for writing: {err.strerror}") from err
+        self._writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile=PROFILE, library=f"hil {__version__}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+        self.closed = False
+
+    def _channel(self, topic: str, cls: type[Message]) -> int:
+        chan = self._channels.get(topic)
+        if chan is None:
+            name = schema_name(cls)
+            sid = self._schemas.get(name)
+            if sid is None:
+                data = json.dumps(json_schema(cls), sort_keys=True).encode()
+                sid = self._schemas[name] = self._writer.register_schema(name, "jsonschema", data)
+            chan = self._channels[topic] = self._writer.register_channel(topic, "json", sid)
+        return chan
+
+    def write(
+        self,
+        topic: str,
+        cls: type[Message],
+        payload: bytes,
+        *,
+        log_time_ns: int,
+        publish_time_ns: int,
+        seq: int,
+    ) -> None:
+        chan = self._channel(topic, cls)
+        self._writer.add_message(
+            chan,
+            log_time=_u64(log_time_ns),
+            data=payload,
+            publish_time=_u64(publish_time_ns),
+            sequence=seq & 0xFFFFFFFF,
+        )
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def add_metadata(self, name: str, data: dict[str, Any]) -> None:
+        """Metadata values must be strings in MCAP: non-strings are stored as JSON."""
+        self._writer.add_metadata(
+            name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
+        )
+
+    def add_attachment(
+        self, name: str, data: bytes, media_type: str = "text/plain", log_time_ns: int = 0
+    ) -> None:
+        self._writer.add_attachment(
+            create_time=_u64(log_time_ns),
+            log_time=_u64(log_time_ns),
+            name=name,
+            media_type=media_type,
+            data=data,
+        )
+
+    def flush(self) -> None:
+        """Close the chunk in progress and push it to the OS (a SIGKILL after this loses nothing)."""
+        self._writer.flush()
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self._writer.finish()
+        self._fh.close()
+
+
+@dataclass
+class Record:
+    topic: str
+    schema: str
+    payload: bytes
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+
+    def decode(self) -> Message:
+        cls = TYPES_BY_NAME.get(self.schema)
+        if cls is None:
+            raise RecordingError(
+                f"channel {self.topic!r} has schema {self.schema!r}, not a hil contract type"
+            )
+        return msgspec.json.decode(self.payload, type=cls)
+
+
+@dataclass
+class Session:
+    """Everything a file holds, read in file order (which is the recorder's write order)."""
+
+    path: Path
+    records: list[Record]
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    attachments: dict[str, bytes] = field(default_factory=dict)
+    truncated: bool = False
+    truncation_reason: str = ""
+
+    def topics(self) -> dict[str, str]:
+        out: dict[str, str] = {}
+        for r in self.records:
+            out.setdefault(r.topic, r.schema)
+        return out
+
+    def by_topic(self, topic: str) -> list[Record]:
+        return [r for r in self.records if r.topic == topic]
+
+    def meta(self, name: str, key: str, default: Any = None) -> Any:
+        value = self.metadata.get(name, {}).get(key)
+        if value is None:
+            return default
+        try:
+            return json.loads(value)
+        except ValueError:
+            return value
+
+
+def iter_records(path: str | Path) -> Iterator[tuple[str, Any]]:
+    """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail."""
+    try:
+        fh = open(path, "rb")  # noqa: SIM115
+    except OSError as err:
+        raise RecordingError(f"cannot open recording {path}: {err.strerror}") from err
+    with fh:
+        reader = StreamReader(fh, skip_magic=False, emit_chunks=False)
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, McapMessage):
+                    chan = channels[rec.channel_id]
+                    schema = schemas.get(chan.schema_id)
+                    yield (
+                        "message",
+                        Record(
+                            topic=chan.topic,
+                            schema=schema.name if schema else "",
+                            payload=rec.data,
+                            log_time_ns=rec.log_time,
+                            publish_time_ns=rec.publish_time,
+                            sequence=rec.sequence,
+                        ),
+                    )
+                elif isinstance(rec, Metadata):
+                    yield "metadata", rec
+                elif isinstance(rec, Attachment):
+                    yield "attachment", rec
+        except (McapError, EOFError, ValueError, KeyError, OSError) as err:
+            yield "truncated", f"{type(err).__name__}: {err}"
+        except Exception as err:  # zstd errors on a half-written chunk and similar
+            yield "truncated", f"{type(err).__name__}: {err}"
+
+
+def read_session(path: str | Path) -> Session:
+    """Read a whole recording; a file cut short by a crash reads up to its last complete chunk."""
+    path = Path(path)
+    if not path.is_file():
+        raise RecordingError(f"no recording at {path}")
+    records: list[Record] = []
+    session = Session(path=path, records=records)
+    for kind, rec in iter_records(path):
+        if kind == "message":
+            records.append(rec)
+        elif kind == "metadata":
+            session.metadata[rec.name] = dict(rec.metadata)
+        elif kind == "attachment":
+            session.attachments[rec.name] = rec.data
+        elif kind == "truncated":
+            session.truncated = True
+            session.truncation_reason = rec
+    if not records and session.truncated and not session.metadata:
+        raise RecordingError(f"{path} is not a readable MCAP file ({session.truncation_reason})")
+    return session

@@ -1,0 +1,64 @@
+"""Scenario plumbing between processes: every service rebuilds the run's scenario from RunInfo.
+
+The scenario text travels in ``RunInfo`` so services on other hosts (or containers) need no shared
+file system, and the recording holds the exact text as an attachment.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+from hil.messages import CONTRACT_TYPES, RunInfo, json_schema, schema_name
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def dbc_path() -> Path:
+    return Path(os.environ.get("HIL_DBC") or REPO_ROOT / "schemas" / "imu.dbc")
+
+
+def scenario_from_text(text: str, name: str = "scenario"):  # -> hil.nav.scenario.Scenario
+    """Parse scenario TOML text with the same loader as files."""
+    from hil.nav import scenario as sc
+
+    parse = getattr(sc, "parse_scenario", None) or getattr(sc, "scenario_from_text", None)
+    if parse is not None:
+        return parse(text, name=name) if "name" in parse.__code__.co_varnames else parse(text)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / f"{name}.toml"
+        p.write_text(text)
+        return sc.load_scenario(str(p))
+
+
+def scenario_for_run(run: RunInfo):
+    """The run's scenario with the run's duration applied."""
+    from hil.nav.scenario import scenario_overrides
+
+    s = scenario_from_text(run.scenario_toml, run.scenario)
+    return scenario_overrides(s, duration_s=run.duration_s)
+
+
+def sha256_text(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def run_attachments(run: RunInfo) -> list[tuple[str, bytes, str]]:
+    """What a recording carries besides messages: scenario, DBC, schemas."""
+    import json
+
+    out = [(f"scenario/{run.scenario}.toml", run.scenario_toml.encode(), "application/toml")]
+    dbc = dbc_path()
+    if dbc.is_file():
+        out.append(("can/imu.dbc", dbc.read_bytes(), "text/plain"))
+    for cls in CONTRACT_TYPES:
+        out.append(
+            (
+                f"schemas/{schema_name(cls)}.json",
+                json.dumps(json_schema(cls), indent=2).encode(),
+                "application/schema+json",
+            )
+        )
+    return out

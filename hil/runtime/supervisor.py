@@ -1,0 +1,284 @@
+"""``hil up``: every service as its own OS process, one live table, a clean stop, a summary.
+
+The supervisor opens the rig's embedded Zenoh hub (a peer listening on a free loopback port) and
+hands its endpoint to every child, so the rig needs no router and no set-up. With
+``HIL_ZENOH_MODE=client`` in the environment it uses that router instead.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from hil.bus.keys import Keys
+from hil.bus.pubsub import Stats, Subscriber
+from hil.bus.session import BusConfig, open_session
+from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
+from hil.runtime.clock import RigClock
+from hil.runtime.registry import SERVICES, STOP_STAGES
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class UpOptions:
+    scenario: str = "straight_level"
+    duration_s: float | None = 60.0
+    speed: float = 1.0
+    record: Path | None = None
+    rig: str = "bench"
+    channel: str = "vcan0"
+    can_interface: str | None = None
+    fd: bool = False
+    estimators: list[str] = field(default_factory=list)
+    live: bool = True
+    log_dir: Path | None = None
+    restart: int = 0  # restarts allowed per service (0: a death ends the run)
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+    log_fh: IO[bytes]
+    stopping: bool = False
+    restarts: int = 0
+
+
+class LiveView:
+    """Collects status, truth and solutions for the live table (Zenoh callback side)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.status: dict[str, ServiceStatus] = {}
+        self.run: RunInfo | None = None
+        self.truth: deque[Truth] = deque(maxlen=400)
+        self.errors_m: dict[str, float] = {}
+
+    def on_status(self, st: ServiceStatus, _k: str) -> None:
+        with self.lock:
+            self.status[st.service] = st
+
+    def on_run(self, run: RunInfo, _k: str) -> None:
+        with self.lock:
+            self.run = run
+
+    def on_truth(self, t: Truth, _k: str) -> None:
+        with self.lock:
+            self.truth.append(t)
+
+    def on_nav(self, sol: NavSolution, _k: str) -> None:
+        with self.lock:
+            if not self.truth:
+                return
+            # nearest truth sample in time (truth is 100 Hz, solutions are stamped on the IMU grid)
+            best = min(self.truth, key=lambda t: abs(t.stamp_ns - sol.stamp_ns))
+            if abs(best.stamp_ns - sol.stamp_ns) > 20_000_000:
+                return
+            d = np.subtract(sol.pos_ned_m, best.pos_ned_m)
+            self.errors_m[sol.estimator] = float(np.hypot(d[0], d[1]))
+
+    def table(self, children: dict[str, Child], elapsed_s: float) -> str:
+        with self.lock:
+            lines = [
+                f"hil up  t={elapsed_s:7.1f} s   {'service':<14}{'state':<12}{'in/s':>8}{'out/s':>8}{'rejected':>9}  last error"
+            ]
+            for name in SERVICES:
+                st = self.status.get(name)
+                alive = children[name].proc.poll() is None if name in children else False
+                if st is None:
+                    lines.append(f"{'':22}{name:<14}{'(no status)' if alive else 'DEAD':<12}")
+                    continue
+                rin = sum(v for k, v in st.rates_hz.items() if k.startswith("in."))
+                rout = sum(v for k, v in st.rates_hz.items() if k.startswith("out."))
+                rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
+                state = st.state if alive else "DEAD"
+                lines.append(
+                    f"{'':22}{name:<14}{state:<12}{rin:8.0f}{rout:8.0f}{rej:9d}  {st.last_error[:60]}"
+                )
+            if self.errors_m:
+                errs = "  ".join(f"{k}={v:.1f}m" for k, v in sorted(self.errors_m.items()))
+                lines.append(f"{'':22}horizontal error vs truth: {errs}")
+            return "\n".join(lines)
+
+
+class Supervisor:
+    def __init__(self, opts: UpOptions) -> None:
+        self.opts = opts
+        self.children: dict[str, Child] = {}
+        self.stop = threading.Event()
+        self.failures: list[str] = []
+        self.view = LiveView()
+        env_cfg = BusConfig.from_env()
+        if env_cfg.mode == "client" or os.environ.get("HIL_ZENOH_CONNECT"):
+            self.hub_cfg = env_cfg
+            self.child_bus = env_cfg
+        else:
+            port = free_port()
+            self.hub_cfg = BusConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), connect=())
+            self.child_bus = BusConfig(
+                mode="peer", connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",)
+            )
+
+    def options_for(self, name: str) -> dict[str, Any]:
+        o = self.opts
+        base: dict[str, Any] = {}
+        if name == "world":
+            base = {
+                "scenario": o.scenario,
+                "duration_s": o.duration_s,
+                "speed": o.speed,
+                "wait_for": [n for n in SERVICES if n != "world"],
+            }
+        elif name == "recorder":
+            base = {"path": str(o.record)}
+        elif name in ("imu_emulator", "can_bridge"):
+            base = {"channel": o.channel, "interface": o.can_interface, "fd": o.fd}
+        elif name == "fusion" and o.estimators:
+            base = {"estimators": o.estimators}
+        return base
+
+    def spawn(self, name: str) -> Child:
+        log_dir = self.opts.log_dir or Path("recordings/logs")
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = log_dir / f"{name}.log"
+        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+        env = dict(os.environ)
+        env.update(self.child_bus.to_env())
+        env["HIL_RIG"] = self.opts.rig
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        cmd = [
+            sys.executable,
+            "-m",
+            "hil.cli",
+            "service",
+            name,
+            "--rig",
+            self.opts.rig,
+            "--options",
+            json.dumps(self.options_for(name)),
+        ]
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        child = Child(name, proc, log_path, fh)
+        self.children[name] = child
+        return child
+
+    def run(self) -> int:
+        o = self.opts
+        session = open_session(self.hub_cfg)
+        keys = Keys(o.rig)
+        stats = Stats()
+        subs = [
+            Subscriber(session, keys.status("*"), ServiceStatus, self.view.on_status, stats),
+            Subscriber(session, keys.run(), RunInfo, self.view.on_run, stats),
+            Subscriber(session, keys.truth(), Truth, self.view.on_truth, stats),
+            Subscriber(session, keys.nav("*"), NavSolution, self.view.on_nav, stats),
+        ]
+        prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        for s in prev:
+            signal.signal(s, lambda *_: self.stop.set())
+        t_start = time.monotonic()
+        try:
+            for name in SERVICES:
+                self.spawn(name)
+            self._wait(t_start)
+        finally:
+            self._stop_all()
+            for s, h in prev.items():
+                signal.signal(s, h)
+            for sub in subs:
+                sub.undeclare()
+            session.close()
+        return 1 if self.failures else 0
+
+    def _wait(self, t_start: float) -> None:
+        o = self.opts
+        tty = sys.stdout.isatty()
+        last_print = 0.0
+        printed_lines = 0
+        while not self.stop.wait(0.2):
+            for name, child in list(self.children.items()):
+                rc = child.proc.poll()
+                if rc is not None and not child.stopping:
+                    tail = _tail(child.log_path)
+                    if child.restarts < o.restart:
+                        child.restarts += 1
+                        print(
+                            f"hil up: {name} exited with {rc}; restarting ({child.restarts}/{o.restart})",
+                            flush=True,
+                        )
+                        child.log_fh.close()
+                        restarts = child.restarts
+                        self.spawn(name).restarts = restarts
+                        continue
+                    self.failures.append(
+                        f"{name} exited with code {rc} during the run; last log lines:\n{tail}"
+                    )
+                    print(f"hil up: {name} died (exit {rc}); stopping the rig", flush=True)
+                    return
+            run = self.view.run
+            if run is not None and o.duration_s is not None:
+                clock = RigClock(run.start_epoch_ns, run.speed)
+                if clock.now_ns() >= int((o.duration_s + 0.3) * 1e9):
+                    return
+            if run is None and time.monotonic() - t_start > 120:
+                self.failures.append(
+                    "the run never started: no RunInfo from world within 120 s (see the logs)"
+                )
+                return
+            now = time.monotonic()
+            if o.live and now - last_print >= (1.0 if tty else 5.0):
+                last_print = now
+                text = self.view.table(self.children, now - t_start)
+                if tty and printed_lines:
+                    sys.stdout.write(f"\x1b[{printed_lines}F\x1b[J")
+                sys.stdout.write(text + "\n")
+                sys.stdout.flush()
+                printed_lines = text.count("\n") + 1
+
+    def _stop_all(self) -> None:
+        for stage in STOP_STAGES:
+            procs = [self.children[n] for n in stage if n in self.children]
+            for c in procs:
+                c.stopping = True
+                if c.proc.poll() is None:
+                    c.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + (30.0 if "recorder" in stage else 10.0)
+            for c in procs:
+                try:
+                    c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    c.proc.kill()
+                    c.proc.wait()
+                    self.failures.append(f"{c.name} did not stop within its deadline and was killed")
+                rc = c.proc.returncode
+                if rc not in (0, -signal.SIGTERM) and not any(f.startswith(c.name) for f in self.failures):
+                    self.failures.append(
+                        f"{c.name} exited with code {rc} at stop; see {c.log_path}:\n{_tail(c.log_path)}"
+                    )
+                c.log_fh.close()
+
+
+def _tail(path: Path, n: int = 8) -> str:
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    return "\n".join("    " + ln for ln in lines[-n:])

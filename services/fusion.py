@@ -1,0 +1,123 @@
+"""fusion: every estimator on the same synchronised inputs, each on ``nav/<estimator>``.
+
+Zenoh callbacks only enqueue; one worker thread feeds the pure ``FusionCore`` so its decisions do
+not depend on thread scheduling beyond arrival order, and journals every input it dropped as
+late on ``fusion/journal`` -- with the recorded inputs, that is all ``hil rerun`` needs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import time
+from typing import Any
+
+from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
+from hil.messages import FusionJournal, GnssFix, ImuSample, NavSolution, RunInfo
+from hil.runtime.clock import RigClock
+from hil.runtime.scenario_io import scenario_for_run
+from hil.runtime.service import Service, run_service
+
+JOURNAL_PERIOD_S = 0.5
+
+
+def default_estimators() -> tuple[str, ...]:
+    try:
+        from hil.estimators.registry import DEFAULT_ESTIMATORS
+
+        return tuple(DEFAULT_ESTIMATORS)
+    except ImportError:
+        return ()
+
+
+class Fusion(Service):
+    name = "fusion"
+
+    def setup(self) -> None:
+        self.inbox: queue.SimpleQueue[ImuSample | GnssFix | None] = queue.SimpleQueue()
+        self.subscribe(self.keys.synced("imu"), ImuSample, lambda m, _k: self.inbox.put(m))
+        self.subscribe(self.keys.synced("gnss"), GnssFix, lambda m, _k: self.inbox.put(m))
+        self.core: FusionCore | None = None
+
+    def extra_status(self) -> dict[str, int]:
+        core = self.core
+        out = {"inbox": self.inbox.qsize()}
+        if core is not None:
+            out.update(core.health())
+        return out
+
+    def run_loop(self, run: RunInfo, clock: RigClock) -> None:
+        from hil.nav.trajectory import TruthGenerator
+
+        opts = self.ctx.options
+        names = tuple(opts.get("estimators") or default_estimators())
+        cfg = FusionConfig(
+            estimators=names,
+            lag_ns=int(float(opts.get("lag_s", 0.2)) * 1e9),
+            output_every=int(opts.get("output_every", 8)),
+        )
+        scenario = scenario_for_run(run)
+        self.core = core = FusionCore(TruthGenerator(scenario).initial_state(), cfg)
+        pubs = {n: self.publisher(self.keys.nav(n), NavSolution) for n in (FREE_INS, *names)}
+        journal = self.publisher(self.keys.journal(), FusionJournal)
+        last_journal = time.monotonic()
+        consumed_at_journal = 0
+
+        def emit(sols: list[NavSolution]) -> None:
+            for sol in sols:
+                pubs[sol.estimator].put(sol)
+
+        def write_journal() -> None:
+            nonlocal consumed_at_journal
+            journal.put(
+                FusionJournal(
+                    seq=journal.next_seq(),
+                    stamp_ns=clock.now_ns(),
+                    watermark_ns=core.watermark_ns,
+                    consumed=core.consumed,
+                    dropped=core.take_dropped(),
+                )
+            )
+            consumed_at_journal = core.consumed
+
+        while True:
+            try:
+                msg = self.inbox.get(timeout=0.1)
+            except queue.Empty:
+                msg = None
+                if self.ctx.stop.is_set():
+                    break
+            if msg is not None:
+                emit(core.push(msg))
+            if time.monotonic() - last_journal >= JOURNAL_PERIOD_S:
+                last_journal = time.monotonic()
+                write_journal()
+            if getattr(core, "last_error", ""):
+                self.stats.error("errors.estimator", core.last_error)
+                core.last_error = ""
+        # stop: drain what arrived, release the buffered tail, journal it
+        while True:
+            try:
+                msg = self.inbox.get_nowait()
+            except queue.Empty:
+                break
+            if msg is not None:
+                emit(core.push(msg))
+        emit(core.flush())
+        write_journal()
+        _ = consumed_at_journal
+
+
+SERVICE = Fusion
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="hil service fusion")
+    ap.add_argument("--rig", default="default")
+    ap.add_argument("--estimators", default="", help="comma-separated (default: the registry's defaults)")
+    ap.add_argument("--lag", type=float, default=0.2, help="watermark lag in seconds")
+    a = ap.parse_args(argv)
+    opts: dict[str, Any] = {"lag_s": a.lag}
+    if a.estimators:
+        opts["estimators"] = [e for e in a.estimators.split(",") if e]
+    return run_service(Fusion, a.rig, opts)

@@ -1,0 +1,207 @@
+"""recorder: subscribes ``hil/<rig>/**`` and writes the session to MCAP.
+
+Zenoh's callback only enqueues; one writer thread validates, accounts sequence numbers, writes
+and flushes a chunk at least every second. SIGTERM writes the completeness summary and the index.
+A path that cannot be written is reported in status (the other services keep running).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import zenoh
+
+from hil import __version__
+from hil.bus.keys import type_for_key
+from hil.bus.pubsub import MAX_PAYLOAD_BYTES, subscribe_raw
+from hil.messages import RunInfo, decode
+from hil.record.completeness import Completeness
+from hil.record.mcapio import RecordingError, SessionWriter
+from hil.runtime.clock import wall_ns
+from hil.runtime.service import Service, run_service
+
+FLUSH_PERIOD_S = 1.0
+
+
+class _Stamp(msgspec.Struct):
+    seq: int
+    stamp_ns: int
+
+
+class Recorder(Service):
+    name = "recorder"
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.path = Path(ctx.options.get("path") or "recordings/session.mcap")
+        self.queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
+        self.completeness = Completeness()
+        self.writer: SessionWriter | None = None
+        self._writer_thread = threading.Thread(target=self._write_loop, name="mcap-writer", daemon=True)
+        self._start_epoch_ns: int | None = None
+        self._speed = 1.0
+        self._meta_written = False
+        self._pending: list[tuple[str, bytes, int]] = []
+        self.written = 0
+
+    def needs_run(self) -> bool:
+        return False  # record from boot: statuses before the run starts are evidence too
+
+    def setup(self) -> None:
+        try:
+            self.writer = SessionWriter(self.path)
+        except RecordingError as err:
+            self.state = "degraded"
+            self.stats.error("errors.recording_path", str(err))
+        self._sub = subscribe_raw(self.ctx.session, self.keys.all(), self._on_sample, self.stats)
+        self._writer_thread.start()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self.queue.put((str(sample.key_expr), sample.payload.to_bytes(), wall_ns()))
+
+    def extra_status(self) -> dict[str, int]:
+        return {
+            "written": self.written,
+            "queue_depth": self.queue.qsize(),
+            "missing": self.completeness.total_missing(),
+        }
+
+    def _log_time(self, rx_wall_ns: int) -> int:
+        if self._start_epoch_ns is None:
+            return 0
+        return int((rx_wall_ns - self._start_epoch_ns) * self._speed)
+
+    def _handle(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
+        cls = type_for_key(key)
+        kind = ".".join(key.split("/")[2:3]) or key
+        if cls is None:
+            self.stats.error("rejected.unknown_key", f"{key}: not a contract key")
+            return
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.stats.error(f"rejected.{kind}.oversized", f"{key}: {len(payload)} B")
+            return
+        try:
+            msg = decode(cls, payload)
+        except (msgspec.ValidationError, msgspec.DecodeError) as err:
+            self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
+            return
+        if isinstance(msg, RunInfo) and self._start_epoch_ns is None:
+            self._start_epoch_ns = msg.start_epoch_ns
+            self._speed = msg.speed
+            self._write_run_metadata(msg)
+        self.completeness.see(key, msg.seq)
+        if self.writer is None:
+            return
+        try:
+            self.writer.write(
+                key,
+                cls,
+                payload,
+                log_time_ns=self._log_time(rx_wall_ns),
+                publish_time_ns=msg.stamp_ns,
+                seq=msg.seq,
+            )
+            self.written += 1
+            self.stats.count_rate("in.all")
+        except OSError as err:
+            self._fail(err)
+
+    def _fail(self, err: OSError) -> None:
+        self.state = "degraded"
+        self.stats.error(
+            "errors.write", f"writing {self.path} failed: {err.strerror or err}; recording stopped"
+        )
+        self.writer = None
+
+    def _write_run_metadata(self, run: RunInfo) -> None:
+        if self.writer is None or self._meta_written:
+            return
+        self._meta_written = True
+        from hil.runtime.scenario_io import run_attachments
+
+        self.writer.add_metadata(
+            "hil",
+            {
+                "version": __version__,
+                "rig": run.rig,
+                "scenario": run.scenario,
+                "scenario_sha256": run.scenario_sha256,
+                "seed": run.seed,
+                "start_epoch_ns": run.start_epoch_ns,
+                "speed": run.speed,
+                "duration_s": run.duration_s,
+                "origin_lat_deg": run.origin_lat_deg,
+                "origin_lon_deg": run.origin_lon_deg,
+                "origin_alt_m": run.origin_alt_m,
+                "executor": "live",
+                "time_semantics": "log_time = recorder receive time on the rig clock; "
+                "publish_time = message stamp_ns (time of validity); sequence = per-publisher seq",
+            },
+        )
+        self.writer.add_metadata("config", {"options": json.dumps(self.ctx.options, sort_keys=True)})
+        for name, data, media in run_attachments(run):
+            self.writer.add_attachment(name, data, media)
+
+    def _write_loop(self) -> None:
+        last_flush = time.monotonic()
+        while True:
+            try:
+                item = self.queue.get(timeout=0.2)
+            except queue.Empty:
+                item = ()  # type: ignore[assignment]
+            if item is None:
+                break
+            if item:
+                try:
+                    self._handle(*item)  # type: ignore[misc]
+                except Exception as err:  # one bad record must not stop the recording
+                    self.stats.error("errors.record", f"{type(err).__name__}: {err}")
+            if self.writer is not None and time.monotonic() - last_flush >= FLUSH_PERIOD_S:
+                last_flush = time.monotonic()
+                try:
+                    self.writer.flush()
+                except OSError as err:
+                    self._fail(err)
+
+    def teardown(self) -> None:
+        # Let the last samples arrive, then drain the queue and finish the file.
+        time.sleep(float(self.ctx.options.get("drain_s", 0.5)))
+        self._sub.undeclare()
+        self.queue.put(None)
+        self._writer_thread.join(timeout=30)
+        if self.writer is None:
+            return
+        report = self.completeness.report()
+        missing = self.completeness.total_missing()
+        try:
+            self.writer.add_metadata(
+                "completeness",
+                {
+                    "topics": report,
+                    "messages": self.written,
+                    "missing": missing,
+                    "replay_ready": missing == 0 and self._meta_written,
+                    "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
+                },
+            )
+            self.writer.close()
+        except OSError as err:
+            self._fail(err)
+
+
+SERVICE = Recorder
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="hil service recorder")
+    ap.add_argument("--rig", default="default")
+    ap.add_argument("--path", default="recordings/session.mcap")
+    a = ap.parse_args(argv)
+    return run_service(Recorder, a.rig, {"path": a.path})
