@@ -1,0 +1,276 @@
+"""Compensation scheme (seed 000, Filyashkin & Demyanchuk): ``X̂ = X_INS − F(p)(X_INS − X_GNSS)``.
+
+With ``X_INS = X + ξ1`` and ``X_GNSS = X + ξ2`` the output is ``X̂ = X + [1 − F]ξ1 + F ξ2``: the
+true motion ``X`` passes untouched, ``F`` (low pass) keeps the slow INS error ``ξ1`` and rejects
+the fast GNSS noise ``ξ2``. The filter runs per axis on the six channels
+``[pos N, pos E, pos D, vel N, vel E, vel D]``; its output ``y = F·d`` is the INS error estimate.
+
+Two rates, handled deliberately:
+
+* the filter **input** ``d = X_INS − X_GNSS`` exists only at GNSS epochs (1–10 Hz). It is formed
+  at the GNSS *time of validity* (INS position extrapolated to that instant with the INS
+  velocity) and held until the next epoch;
+* the filter **state** is advanced to every IMU stamp (400 Hz) with the exact ZOH transition for
+  that step (:mod:`hil.estimators.lti`), so the published solution is valid at the IMU stamp.
+  The input change is placed at the GNSS time of validity exactly: if the fix is later than the
+  state, the state is first advanced to it; if it is earlier (the fusion core may deliver it just
+  after the IMU step that straddles it), the state is corrected retroactively with
+  ``x += Γ(t − t_g)(d_new − d_old)``, which is exact for an LTI filter with ZOH input.
+
+Variable structure (the paper's time-scheduled table, restarting when GNSS returns after an
+outage) and its **bumpless transfer**: at each structure switch the new state is chosen so that
+the new filter is in the steady state it would have reached while tracking the straight line
+through the old output ``y`` with the old output slope ``ẏ``:
+
+    y_new = y_old,   ẏ_new = ẏ_old (only if the old structure has relative degree ≥ 2),
+    y_new^(k) = 0 for k ≥ 2,        solved as  O_new x_new = targets − (input feed-through)
+
+where ``O = [C; C A; C A²]`` is the new structure's observability matrix and the feed-through
+terms are evaluated for the ramp input ``u(t) = y + ẏ t``. The output is therefore continuous at
+every switch, and its slope is continuous too when the old structure smooths it (the forcing
+filters, relative degree 2). The slope of the 1/(0.5p+1) start-up stage is
+``(u − y)/0.5 s`` — raw GNSS noise amplified — so it is not carried (slope 0 instead). For the
+forcing filters (``1 − F`` has a double zero) this state is exactly the ramp-tracking steady
+state, so the switch injects no transient at all into a ramp-like INS error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.estimators.lti import (
+    StateSpace,
+    TransferFunction,
+    ZohCache,
+    aperiodic,
+    complementary2,
+    complementary3,
+    forcing3,
+)
+from hil.nav.types import F64, NavState
+
+#: The variable-structure table of seed 000: (time since (re)start of fusion in s, F(p)).
+#: The last numerator (15 p + 1) is reconstructed from the 3 T p + 1 pattern (OCR lost it).
+VS_SCHEDULE: tuple[tuple[float, TransferFunction], ...] = (
+    (0.0, aperiodic(1, 0.5)),
+    (1.5, forcing3(1.0)),
+    (9.0, forcing3(3.0)),
+    (45.0, forcing3(5.0)),
+)
+
+
+def relative_degree(tf: TransferFunction) -> int:
+    """deg(den) − deg(num): how many output derivatives are free of the raw input."""
+    num = np.trim_zeros(np.asarray(tf.num, float), "f")
+    return len(tf.den) - len(num)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One structure of a (possibly variable-structure) compensation filter."""
+
+    start_s: float
+    tf: TransferFunction
+    ss: StateSpace
+
+
+class CompensationCore:
+    """``y = F(p)·d`` on ``n_channels`` independent channels, advanced on integer-ns stamps.
+
+    Pure numerics: no clock, no I/O. ``x`` has shape ``(n, n_channels)``, ``u`` ``(n_channels,)``.
+    The schedule's clock starts at the first input and restarts when an input arrives more than
+    ``restart_after_s`` after the previous one (GNSS back after an outage).
+    """
+
+    def __init__(
+        self,
+        schedule: Sequence[tuple[float, TransferFunction]],
+        n_channels: int,
+        restart_after_s: float | None = None,
+    ) -> None:
+        if not schedule or schedule[0][0] != 0.0:
+            raise ValueError(f"schedule must start at 0 s, got {[s for s, _ in schedule]}")
+        self.stages = tuple(Stage(s, tf, StateSpace.from_tf(tf)) for s, tf in schedule)
+        self._caches = tuple(ZohCache(st.ss) for st in self.stages)
+        self._start_offsets_ns = tuple(round(st.start_s * 1e9) for st in self.stages)
+        self.restart_after_ns = None if restart_after_s is None else round(restart_after_s * 1e9)
+        self.n_channels = n_channels
+        self.stage = 0
+        self.x: F64 = np.zeros((self.stages[0].ss.order, n_channels))
+        self.u: F64 = np.zeros(n_channels)
+        self.t_ns: int | None = None
+        self.t_start_ns: int | None = None
+        self.t_last_input_ns: int | None = None
+        self.restarts = 0
+        self.switches = 0
+
+    # -- propagation ---------------------------------------------------------------------------
+    def _step(self, h_ns: int) -> None:
+        phi, gamma = self._caches[self.stage].get(h_ns)
+        # x+ = Φ(h) x + Γ(h) u   (exact for the held input u)
+        self.x = phi @ self.x + np.outer(gamma, self.u)
+
+    def _next_boundary_ns(self) -> int | None:
+        if self.t_start_ns is None or self.stage + 1 >= len(self.stages):
+            return None
+        return self.t_start_ns + self._start_offsets_ns[self.stage + 1]
+
+    def advance_to(self, t_ns: int) -> None:
+        """Propagate the state to ``t_ns`` with the held input, switching structure on time."""
+        if self.t_ns is None:
+            self.t_ns = t_ns
+            return
+        while t_ns > self.t_ns:
+            boundary = self._next_boundary_ns()
+            t_end = t_ns if boundary is None or boundary > t_ns else boundary
+            if t_end > self.t_ns:
+                self._step(t_end - self.t_ns)
+                self.t_ns = t_end
+            if boundary is not None and t_end == boundary:
+                self.switch_to(self.stage + 1)
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def set_input(self, t_ns: int, d: F64) -> None:
+        """The difference ``d = X_INS − X_GNSS`` valid from ``t_ns`` on (held until the next)."""
+        d = np.asarray(d, dtype=float)
+        restart = (
+            self.t_last_input_ns is not None
+            and self.restart_after_ns is not None
+            and t_ns - self.t_last_input_ns > self.restart_after_ns
+        )
+        if self.t_ns is None or t_ns >= self.t_ns:
+            self.advance_to(t_ns)
+        else:
+            # Input change in the past by δ: x += Γ(δ)(d_new − d_old), exact for LTI + ZOH.
+            _, gamma = self._caches[self.stage].get(self.t_ns - t_ns)
+            self.x = self.x + np.outer(gamma, d - self.u)
+        if self.t_start_ns is None:
+            self.t_start_ns = t_ns
+        elif restart:
+            self.t_start_ns = t_ns
+            self.restarts += 1
+            if len(self.stages) > 1:
+                self.switch_to(0)
+        self.u = d.copy()
+        self.t_last_input_ns = t_ns
+
+    # -- outputs ---------------------------------------------------------------------------------
+    def output(self) -> F64:
+        """``y = C x + D u``: the INS error estimate per channel."""
+        ss = self.stages[self.stage].ss
+        return ss.c @ self.x + ss.d * self.u  # type: ignore[no-any-return]
+
+    def switch_to(self, stage: int) -> None:
+        """Bumpless structure switch (see module docstring for the rule and why)."""
+        old, new = self.stages[self.stage], self.stages[stage]
+        y = self.output()
+        # ẏ = C A x when C B = 0 and D = 0 (relative degree ≥ 2); else not carried (0)
+        ydot = old.ss.c @ old.ss.a @ self.x if relative_degree(old.tf) >= 2 else np.zeros_like(y)
+        n = new.ss.order
+        targets = np.zeros((n, self.n_channels))
+        targets[0] = y
+        if n > 1:
+            targets[1] = ydot
+        # Feed-through of the ramp input u(t) = y + ẏ t into y^(k):
+        #   y^(k) = C A^k x + Σ_{j<k} C A^{k-1-j} B u^(j) + D u^(k),  u^(0) = y, u^(1) = ẏ
+        a, b, c, dd = new.ss.a, new.ss.b, new.ss.c, new.ss.d
+        u_derivs = (y, ydot)
+        cak = [c]
+        for _ in range(n):
+            cak.append(cak[-1] @ a)
+        for k in range(n):
+            feed = dd * u_derivs[k] if k < 2 else np.zeros_like(y)
+            for j in range(min(k, 2)):
+                feed = feed + (cak[k - 1 - j] @ b) * u_derivs[j]
+            targets[k] = targets[k] - feed
+        self.x = np.linalg.solve(new.ss.observability(), targets)
+        self.stage = stage
+        self.switches += 1
+
+
+def seconds_since(t_ns: int, t0_ns: int | None) -> float:
+    return float("nan") if t0_ns is None else (t_ns - t0_ns) * 1e-9
+
+
+class CompensationEstimator:
+    """Live compensation scheme on position and velocity, every axis on its own.
+
+    The corrected solution is ``X̂ = X_INS − y`` at the last IMU stamp; attitude is the free
+    INS's (the scheme estimates no attitude error). No covariance, so sigmas are ``None``.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        init: InitialState,
+        schedule: Sequence[tuple[float, TransferFunction]],
+        restart_after_s: float | None = 3.0,
+    ) -> None:
+        self.name = name
+        self.core = CompensationCore(schedule, 6, restart_after_s)
+        self.core.advance_to(init.stamp_ns)
+        self._ins: NavState | None = None
+        self._ins_stamp_ns = init.stamp_ns
+        self._q0 = np.asarray(init.q_nb, float).copy()
+        self._vel0 = np.asarray(init.vel_ned_mps, float).copy()
+        self._gnss_count = 0
+        self._last_diff_pos_m = 0.0
+
+    def on_imu(self, imu: ImuInput, ins: NavState) -> None:
+        self.core.advance_to(imu.stamp_ns)
+        self._ins = ins
+        self._ins_stamp_ns = imu.stamp_ns
+
+    def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
+        # INS position at the GNSS time of validity: p(t_g) ≈ p(t_imu) + v (t_g − t_imu)
+        dt_s = (gnss.stamp_ns - self._ins_stamp_ns) * 1e-9
+        pos_ins = ins.pos_ned_m + ins.vel_ned_mps * dt_s
+        d = np.concatenate([pos_ins - gnss.pos_ned_m, ins.vel_ned_mps - gnss.vel_ned_mps])
+        self.core.set_input(gnss.stamp_ns, d)
+        self._gnss_count += 1
+        self._last_diff_pos_m = float(np.linalg.norm(d[:3]))
+
+    def solution(self) -> NavState:
+        if self._ins is None:
+            return NavState(np.zeros(3), self._vel0.copy(), self._q0.copy())
+        y = self.core.output()
+        return NavState(self._ins.pos_ned_m - y[:3], self._ins.vel_ned_mps - y[3:], self._ins.q_nb)
+
+    def health(self) -> dict[str, float]:
+        core = self.core
+        return {
+            "gnss_count": float(self._gnss_count),
+            "stage": float(core.stage),
+            "restarts": float(core.restarts),
+            "since_start_s": seconds_since(core.t_ns or 0, core.t_start_ns),
+            "ins_minus_gnss_pos_m": self._last_diff_pos_m,
+        }
+
+
+#: Fixed filters by registry name (classic T = 5 s as in the paper; the higher orders share T).
+def fixed_filter(kind: str, t_s: float = 5.0) -> TransferFunction:
+    """The fixed-structure compensation filters of seed 000 by short name."""
+    if kind == "comp1":
+        return aperiodic(1, t_s)
+    if kind == "comp2":
+        return aperiodic(2, t_s)
+    if kind == "comp3":
+        return aperiodic(3, t_s)
+    if kind == "comp3f":
+        return forcing3(t_s)
+    raise KeyError(f"unknown fixed compensation filter {kind!r}")
+
+
+__all__ = [
+    "VS_SCHEDULE",
+    "CompensationCore",
+    "CompensationEstimator",
+    "complementary2",
+    "complementary3",
+    "fixed_filter",
+    "relative_degree",
+]

@@ -1,0 +1,135 @@
+"""Linear time-invariant building blocks shared by the compensation and complementary filters.
+
+A filter ``F(p) = num(p) / den(p)`` (polynomials in the Laplace variable ``p``, highest power
+first) is realised in controllable canonical state space ``ẋ = A x + B u, y = C x + D u`` and
+discretised **exactly** for whatever step it is advanced by, with a zero-order hold (ZOH):
+
+    Φ(h) = e^{A h}            Γ(h) = ∫_0^h e^{A s} ds · B
+
+Why ZOH: the filter's input is the difference ``X_INS − X_GNSS`` formed at each GNSS epoch
+and *held* until the next one (1–10 Hz), while the filter is advanced at IMU rate (400 Hz) and
+at the GNSS times of validity. For a held input ZOH is not an approximation but the exact
+solution of the continuous filter, for any step length and any mix of step lengths; Tustin
+would warp the frequency axis and forward Euler is unstable for ``h > 2T`` (T = 0.5 s in the
+first variable-structure stage against a 1 s GNSS step). The discretisation is
+``scipy.signal.cont2discrete(..., method="zoh")`` (a matrix exponential of the augmented
+``[[A, B], [0, 0]] h``), cached per (filter, step in integer ns) so the 400 Hz path is one small
+matrix product per step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal
+
+from hil.nav.types import F64
+
+
+@dataclass(frozen=True)
+class TransferFunction:
+    """``F(p) = num(p) / den(p)``, coefficients highest power first, p in 1/s."""
+
+    num: tuple[float, ...]
+    den: tuple[float, ...]
+    label: str = ""
+
+    def dc_gain(self) -> float:
+        """F(0) = num(0) / den(0)."""
+        return float(self.num[-1] / self.den[-1])
+
+    def complement(self) -> TransferFunction:
+        """``1 − F(p) = (den − num) / den``: what the compensation scheme applies to INS error."""
+        den = np.asarray(self.den, dtype=float)
+        num = np.zeros_like(den)
+        num[len(den) - len(self.num) :] = self.num
+        return TransferFunction(tuple(np.trim_zeros(den - num, "f")), self.den, f"1-{self.label}")
+
+    def freq_response(self, w_radps: F64) -> F64:
+        """Complex ``F(jω)``."""
+        s = 1j * np.asarray(w_radps, dtype=float)
+        return np.polyval(self.num, s) / np.polyval(self.den, s)  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True)
+class StateSpace:
+    """``ẋ = A x + B u, y = C x + D u`` for a single-input single-output filter."""
+
+    a: F64  # (n, n)
+    b: F64  # (n,)
+    c: F64  # (n,)
+    d: float
+
+    @staticmethod
+    def from_tf(tf: TransferFunction) -> StateSpace:
+        a, b, c, d = signal.tf2ss(np.asarray(tf.num, float), np.asarray(tf.den, float))
+        return StateSpace(np.asarray(a, float), b[:, 0].copy(), c[0].copy(), float(d[0, 0]))
+
+    @property
+    def order(self) -> int:
+        return int(self.a.shape[0])
+
+    def observability(self) -> F64:
+        """Rows ``C A^k``, k = 0..n−1: maps the state to the output and its derivatives."""
+        rows = [self.c]
+        for _ in range(self.order - 1):
+            rows.append(rows[-1] @ self.a)
+        return np.vstack(rows)
+
+
+def zoh(ss: StateSpace, h_s: float) -> tuple[F64, F64]:
+    """Exact ZOH discretisation over ``h_s``: returns ``(Φ, Γ)`` with ``x+ = Φ x + Γ u``."""
+    n = ss.order
+    ad, bd, _, _, _ = signal.cont2discrete(
+        (ss.a, ss.b.reshape(n, 1), ss.c.reshape(1, n), np.array([[ss.d]])), h_s, method="zoh"
+    )
+    return np.asarray(ad, float), np.asarray(bd, float)[:, 0].copy()
+
+
+@dataclass
+class ZohCache:
+    """``(Φ, Γ)`` per step length in integer ns, so equal steps never recompute ``e^{A h}``."""
+
+    ss: StateSpace
+    max_entries: int = 256
+    _table: dict[int, tuple[F64, F64]] = field(default_factory=dict)
+
+    def get(self, h_ns: int) -> tuple[F64, F64]:
+        hit = self._table.get(h_ns)
+        if hit is None:
+            if len(self._table) >= self.max_entries:
+                # Jittery steps would otherwise grow the table without bound; evicting the
+                # oldest entry costs at worst one recomputation of e^{A h}.
+                self._table.pop(next(iter(self._table)))
+            hit = zoh(self.ss, h_ns * 1e-9)
+            self._table[h_ns] = hit
+        return hit
+
+
+def aperiodic(order: int, t_s: float) -> TransferFunction:
+    """``1 / (T p + 1)^order``: the classic aperiodic (first-order lag) cascade."""
+    den = np.poly1d([t_s, 1.0]) ** order
+    return TransferFunction((1.0,), tuple(float(c) for c in den.coeffs), f"1/({t_s:g}p+1)^{order}")
+
+
+def forcing3(t_s: float) -> TransferFunction:
+    """``(3 T p + 1) / (T p + 1)^3``: the seed-000 third-order filter with forcing.
+
+    ``1 − F = T² p² (T p + 3) / (T p + 1)^3`` has a double zero at p = 0, so constant and
+    linearly growing INS errors are removed in steady state.
+    """
+    den = np.poly1d([t_s, 1.0]) ** 3
+    return TransferFunction(
+        (3.0 * t_s, 1.0), tuple(float(c) for c in den.coeffs), f"({3 * t_s:g}p+1)/({t_s:g}p+1)^3"
+    )
+
+
+def complementary2(r1: float, r2: float) -> TransferFunction:
+    """Seed 003: ``W(s) = (r1 s + r2) / (s² + r1 s + r2)``; ``1 − W = s² / (…)``."""
+    return TransferFunction((r1, r2), (1.0, r1, r2), f"cf2(r1={r1:g},r2={r2:g})")
+
+
+def complementary3(k1: float, k2: float, k3: float) -> TransferFunction:
+    """Seed 003: ``W(s) = (k1 s² + k2 s + k3) / (s³ + k1 s² + k2 s + k3)``; ``1 − W = s³/(…)``."""
+    return TransferFunction((k1, k2, k3), (1.0, k1, k2, k3), f"cf3(k1={k1:g},k2={k2:g},k3={k3:g})")
