@@ -1,0 +1,184 @@
+"""WGS84 Earth model for the NED mechanisation: constants, normal gravity, radii, lla<->ned.
+
+Everything is vectorised over leading axes and pure. Positions are geodetic latitude/longitude
+in radians and ellipsoidal height in metres; ``ned`` is the local tangent plane (North-East-Down)
+at the scenario origin, computed exactly through ECEF so that ``ned_to_lla(lla_to_ned(x)) == x``
+to round-off whatever the distance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+F64 = NDArray[np.float64]
+
+# WGS84 defining constants (NIMA TR8350.2)
+A_M = 6378137.0  # semi-major axis
+F = 1.0 / 298.257223563  # flattening
+OMEGA_IE_RADPS = 7.292115e-5  # Earth rotation rate
+GM_M3PS2 = 3.986004418e14
+B_M = A_M * (1.0 - F)  # semi-minor axis
+E2 = F * (2.0 - F)  # first eccentricity squared
+EP2 = E2 / (1.0 - E2)  # second eccentricity squared
+
+# Somigliana normal gravity (NIMA TR8350.2 eq. 4-1)
+GAMMA_E_MPS2 = 9.7803253359  # at the equator
+GAMMA_P_MPS2 = 9.8321849378  # at the poles
+_K_SOMIGLIANA = (B_M * GAMMA_P_MPS2) / (A_M * GAMMA_E_MPS2) - 1.0
+_M_RATIO = OMEGA_IE_RADPS**2 * A_M**2 * B_M / GM_M3PS2
+
+
+def mat_vec(c: ArrayLike, v: ArrayLike) -> F64:
+    """C v over leading axes with plain elementwise products.
+
+    Deliberately not ``@``/einsum: BLAS picks kernels by array size, and the rig needs the same
+    bits for a sample whether it is computed alone or in a batch of thousands.
+    """
+    c = np.asarray(c, dtype=float)
+    v = np.asarray(v, dtype=float)
+    return c[..., :, 0] * v[..., None, 0] + c[..., :, 1] * v[..., None, 1] + c[..., :, 2] * v[..., None, 2]
+
+
+def cross(a: ArrayLike, b: ArrayLike) -> F64:
+    """a × b over leading axes, elementwise (batch-size independent)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def radii_of_curvature(lat_rad: ArrayLike) -> tuple[F64, F64]:
+    """Meridian radius R_M and transverse (prime-vertical) radius R_N, both in metres.
+
+    R_N = a / sqrt(1 - e² sin²L),  R_M = a (1 - e²) / (1 - e² sin²L)^(3/2)
+    """
+    s2 = np.sin(np.asarray(lat_rad, dtype=float)) ** 2
+    w = 1.0 - E2 * s2
+    r_n = A_M / np.sqrt(w)
+    r_m = A_M * (1.0 - E2) / (w * np.sqrt(w))
+    return r_m, r_n
+
+
+def normal_gravity(lat_rad: ArrayLike, alt_m: ArrayLike) -> F64:
+    """Magnitude of normal gravity (gravitation + centrifugal), m/s², pointing down in NED.
+
+    Somigliana on the ellipsoid, then the second-order free-air expansion in height
+    (NIMA TR8350.2 eq. 4-3): γ_h = γ [1 − 2/a (1 + f + m − 2 f sin²L) h + 3 h²/a²].
+    """
+    s2 = np.sin(np.asarray(lat_rad, dtype=float)) ** 2
+    h = np.asarray(alt_m, dtype=float)
+    g0 = GAMMA_E_MPS2 * (1.0 + _K_SOMIGLIANA * s2) / np.sqrt(1.0 - E2 * s2)
+    return g0 * (1.0 - 2.0 / A_M * (1.0 + F + _M_RATIO - 2.0 * F * s2) * h + 3.0 * h**2 / A_M**2)
+
+
+def earth_rate_ned(lat_rad: ArrayLike) -> F64:
+    """ω_ie in NED, rad/s, shape (..., 3): [Ω cos L, 0, −Ω sin L]."""
+    lat = np.asarray(lat_rad, dtype=float)
+    return np.stack(
+        [OMEGA_IE_RADPS * np.cos(lat), np.zeros_like(lat), -OMEGA_IE_RADPS * np.sin(lat)], axis=-1
+    )
+
+
+def transport_rate_ned(lat_rad: ArrayLike, alt_m: ArrayLike, vel_ned_mps: ArrayLike) -> F64:
+    """ω_en in NED, rad/s, (..., 3): [vE/(R_N+h), −vN/(R_M+h), −vE tan L/(R_N+h)]."""
+    lat = np.asarray(lat_rad, dtype=float)
+    h = np.asarray(alt_m, dtype=float)
+    v = np.asarray(vel_ned_mps, dtype=float)
+    r_m, r_n = radii_of_curvature(lat)
+    return np.stack(
+        [
+            v[..., 1] / (r_n + h),
+            -v[..., 0] / (r_m + h),
+            -v[..., 1] * np.tan(lat) / (r_n + h),
+        ],
+        axis=-1,
+    )
+
+
+def lla_to_ecef(lat_rad: ArrayLike, lon_rad: ArrayLike, alt_m: ArrayLike) -> F64:
+    """Geodetic to ECEF, metres, (..., 3)."""
+    lat = np.asarray(lat_rad, dtype=float)
+    lon = np.asarray(lon_rad, dtype=float)
+    h = np.asarray(alt_m, dtype=float)
+    _, r_n = radii_of_curvature(lat)
+    cl = np.cos(lat)
+    return np.stack(
+        [
+            (r_n + h) * cl * np.cos(lon),
+            (r_n + h) * cl * np.sin(lon),
+            (r_n * (1.0 - E2) + h) * np.sin(lat),
+        ],
+        axis=-1,
+    )
+
+
+def ecef_to_lla(xyz_m: ArrayLike) -> tuple[F64, F64, F64]:
+    """ECEF to geodetic (lat rad, lon rad, height m); Bowring start + 2 Newton-like refinements.
+
+    Sub-millimetre for any height from the Earth's centre region out to orbit altitudes.
+    """
+    p_xyz = np.asarray(xyz_m, dtype=float)
+    x, y, z = p_xyz[..., 0], p_xyz[..., 1], p_xyz[..., 2]
+    lon = np.arctan2(y, x)
+    p = np.hypot(x, y)
+    # Bowring's parametric-latitude start, then iterate L = atan(z / (p (1 - e² R_N/(R_N+h))))
+    beta = np.arctan2(z * A_M, p * B_M)
+    lat = np.arctan2(z + EP2 * B_M * np.sin(beta) ** 3, p - E2 * A_M * np.cos(beta) ** 3)
+    for _ in range(2):
+        _, r_n = radii_of_curvature(lat)
+        h = p * np.cos(lat) + z * np.sin(lat) - A_M**2 / r_n
+        lat = np.arctan2(z, p * (1.0 - E2 * r_n / (r_n + h)))
+    _, r_n = radii_of_curvature(lat)
+    h = p * np.cos(lat) + z * np.sin(lat) - A_M**2 / r_n
+    return lat, lon, h
+
+
+def dcm_ecef_to_ned(lat_rad: float, lon_rad: float) -> F64:
+    """C_en: rotates ECEF vectors into the NED frame at (lat, lon)."""
+    sl, cl = np.sin(lat_rad), np.cos(lat_rad)
+    so, co = np.sin(lon_rad), np.cos(lon_rad)
+    return np.array(
+        [
+            [-sl * co, -sl * so, cl],
+            [-so, co, 0.0],
+            [-cl * co, -cl * so, -sl],
+        ]
+    )
+
+
+def lla_to_ned(
+    lat_rad: ArrayLike,
+    lon_rad: ArrayLike,
+    alt_m: ArrayLike,
+    origin_lat_rad: float,
+    origin_lon_rad: float,
+    origin_alt_m: float,
+) -> F64:
+    """Tangent-plane NED position (..., 3) of points relative to the origin."""
+    d = lla_to_ecef(lat_rad, lon_rad, alt_m) - lla_to_ecef(origin_lat_rad, origin_lon_rad, origin_alt_m)
+    return mat_vec(dcm_ecef_to_ned(origin_lat_rad, origin_lon_rad), d)
+
+
+def ned_to_lla(
+    pos_ned_m: ArrayLike, origin_lat_rad: float, origin_lon_rad: float, origin_alt_m: float
+) -> tuple[F64, F64, F64]:
+    """Inverse of :func:`lla_to_ned`."""
+    ned = np.asarray(pos_ned_m, dtype=float)
+    xyz = mat_vec(dcm_ecef_to_ned(origin_lat_rad, origin_lon_rad).T, ned) + lla_to_ecef(
+        origin_lat_rad, origin_lon_rad, origin_alt_m
+    )
+    return ecef_to_lla(xyz)
+
+
+def schuler_period_s(lat_rad: float = 0.0, alt_m: float = 0.0) -> float:
+    """2π sqrt(R/g) with R the geometric mean radius at the latitude: the INS error period."""
+    r_m, r_n = radii_of_curvature(lat_rad)
+    r = float(np.sqrt(r_m * r_n)) + alt_m
+    return float(2.0 * np.pi * np.sqrt(r / normal_gravity(lat_rad, alt_m)))

@@ -1,0 +1,459 @@
+"""Scenarios: the declarative TOML that says where, how the vehicle moves, with which sensors,
+and which faults happen when. The file format is documented in ``docs/scenario-format.md``.
+
+A :class:`Scenario` is frozen and carries the exact text it came from (``source_text``, with its
+``sha256``) so a recording can embed it and a replay rebuilds the very same truth and noise.
+:func:`scenario_overrides` re-emits the text with the overrides applied, so that stays true.
+
+Errors: :class:`ScenarioError` (a ``ValueError``) for anything the file says that cannot be used;
+its message names the key and the value.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from hil.nav.sensor_specs import ImuParams, SpecError, resolve_imu_params
+
+Vec3 = tuple[float, float, float]
+
+#: Top-level tables reserved for other parts of the rig: parsed as TOML, kept raw in
+#: ``Scenario.extra_tables``, not interpreted here. Any other unknown key is an error.
+RESERVED_TABLES = frozenset({"clock"})
+SEGMENT_KINDS = ("hold", "accelerate", "turn", "coordinated_turn", "climb", "rates")
+EVENT_KINDS = ("gnss_outage", "gnss_jump", "gnss_pulse", "gnss_velocity_glitch", "gnss_latency")
+DEFAULT_SCENARIO = "straight_level"
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used; the message says which key and why."""
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """IMU rate and error model: the preset, the user's overrides (user units) and the SI result."""
+
+    rate_hz: int
+    preset: str
+    overrides: Mapping[str, Any]
+    params: ImuParams
+
+
+@dataclass(frozen=True)
+class GnssConfig:
+    """GNSS receiver model. Sigmas are 1σ of the white component, per NED axis."""
+
+    rate_hz: float = 1.0
+    pos_sigma_m: Vec3 = (20.0, 20.0, 20.0)
+    vel_sigma_mps: Vec3 = (0.2, 0.2, 0.2)
+    latency_s: float = 0.0  # output time − time of validity, before jitter
+    jitter_s: float = 0.0  # extra latency, uniform in [0, jitter_s)
+    slow_amplitude_m: Vec3 = (0.0, 0.0, 0.0)  # slow (geometry) error amplitude per axis
+    slow_period_s: float = 2.5 * 5064.0  # 2–3 Schuler periods
+    lever_arm_b_m: Vec3 = (0.0, 0.0, 0.0)  # antenna position in body axes from the IMU
+    num_sats: int = 10
+    hdop: float = 0.9
+
+
+@dataclass(frozen=True)
+class ScenarioEvent:
+    """A timed fault. ``t_end_s`` None means from ``t_start_s`` to the end of the run."""
+
+    kind: str
+    t_start_s: float
+    t_end_s: float | None
+    params: Mapping[str, Any]
+
+    def active(self, t_s: float) -> bool:
+        return self.t_start_s <= t_s and (self.t_end_s is None or t_s < self.t_end_s)
+
+
+@dataclass(frozen=True)
+class MotionSegment:
+    """One entry of the motion profile as written (``kind`` + its parameters, user units)."""
+
+    kind: str
+    params: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    seed: int
+    duration_s: float
+    origin_lat_deg: float
+    origin_lon_deg: float
+    origin_alt_m: float
+    imu: ImuConfig
+    gnss: GnssConfig
+    events: tuple[ScenarioEvent, ...]
+    source_text: str
+    sha256: str
+    # appended fields (defaults keep the constructor compatible)
+    description: str = ""
+    initial_euler_deg: Vec3 = (0.0, 0.0, 0.0)  # roll, pitch, yaw
+    initial_vel_body_mps: Vec3 = (0.0, 0.0, 0.0)
+    segments: tuple[MotionSegment, ...] = ()
+    extra_tables: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+
+# ---------------------------------------------------------------------------------------------
+# parsing
+
+
+def _num(where: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ScenarioError(f"{where} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _vec3(where: str, v: Any) -> Vec3:
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        x = _num(where, v)
+        return (x, x, x)
+    if not isinstance(v, list) or len(v) != 3:
+        raise ScenarioError(f"{where} must be a number or a list of 3 numbers, got {v!r}")
+    return (_num(where, v[0]), _num(where, v[1]), _num(where, v[2]))
+
+
+def _check_keys(where: str, table: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+
+
+_TOP_KEYS = {
+    "name",
+    "description",
+    "seed",
+    "duration_s",
+    "origin",
+    "initial",
+    "imu",
+    "gnss",
+    "segment",
+    "event",
+}
+_GNSS_KEYS = {
+    "rate_hz",
+    "pos_sigma_m",
+    "vel_sigma_mps",
+    "latency_s",
+    "jitter_s",
+    "slow_amplitude_m",
+    "slow_period_s",
+    "lever_arm_b_m",
+    "num_sats",
+    "hdop",
+}
+_SEGMENT_KEYS: dict[str, set[str]] = {
+    "hold": {"duration_s"},
+    "accelerate": {"duration_s", "accel_mps2", "to_speed_mps"},
+    "turn": {"duration_s", "angle_deg", "yaw_rate_dps", "transition_s"},
+    "coordinated_turn": {"duration_s", "angle_deg", "yaw_rate_dps", "roll_rate_dps"},
+    "climb": {"duration_s", "pitch_deg", "pitch_rate_dps"},
+    "rates": {"duration_s", "euler_rate_dps", "accel_body_mps2"},
+}
+_EVENT_KEYS: dict[str, set[str]] = {
+    "gnss_outage": set(),
+    "gnss_jump": {"offset_ned_m"},
+    "gnss_pulse": {"amplitude_m", "tau_s", "direction_ned"},
+    "gnss_velocity_glitch": {"offset_ned_mps"},
+    "gnss_latency": {"latency_s", "jitter_s"},
+}
+
+
+def _parse_segment(i: int, raw: Mapping[str, Any]) -> MotionSegment:
+    where = f"segment[{i}]"
+    kind = raw.get("kind")
+    if kind not in _SEGMENT_KEYS:
+        raise ScenarioError(f"{where}.kind must be one of {SEGMENT_KINDS}, got {kind!r}")
+    _check_keys(where, raw, _SEGMENT_KEYS[kind] | {"kind"})
+    params: dict[str, Any] = {}
+    for k, v in raw.items():
+        if k == "kind":
+            continue
+        params[k] = (
+            _vec3(f"{where}.{k}", v)
+            if k in ("euler_rate_dps", "accel_body_mps2")
+            else (_num(f"{where}.{k}", v))
+        )
+    if "duration_s" in params and params["duration_s"] < 0:
+        raise ScenarioError(f"{where}.duration_s must be >= 0, got {params['duration_s']}")
+    need_one = {
+        "turn": ("duration_s", "angle_deg"),
+        "coordinated_turn": ("duration_s", "angle_deg"),
+        "accelerate": ("duration_s", "to_speed_mps"),
+    }
+    if kind in need_one and sum(k in params for k in need_one[kind]) != 1:
+        raise ScenarioError(f"{where} ({kind}) needs exactly one of {need_one[kind]}")
+    if kind in ("hold", "climb", "rates") and "duration_s" not in params:
+        raise ScenarioError(f"{where} ({kind}) needs duration_s")
+    if kind in ("turn", "coordinated_turn") and "yaw_rate_dps" not in params:
+        raise ScenarioError(f"{where} ({kind}) needs yaw_rate_dps")
+    if kind == "accelerate" and "accel_mps2" not in params:
+        raise ScenarioError(f"{where} (accelerate) needs accel_mps2")
+    if kind == "climb" and "pitch_deg" not in params:
+        raise ScenarioError(f"{where} (climb) needs pitch_deg")
+    return MotionSegment(kind, MappingProxyType(params))
+
+
+def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
+    where = f"event[{i}]"
+    kind = raw.get("kind")
+    if kind not in _EVENT_KEYS:
+        raise ScenarioError(f"{where}.kind must be one of {EVENT_KINDS}, got {kind!r}")
+    _check_keys(where, raw, _EVENT_KEYS[kind] | {"kind", "t_start_s", "t_end_s"})
+    if "t_start_s" not in raw:
+        raise ScenarioError(f"{where} ({kind}) needs t_start_s")
+    t0 = _num(f"{where}.t_start_s", raw["t_start_s"])
+    t1 = _num(f"{where}.t_end_s", raw["t_end_s"]) if "t_end_s" in raw else None
+    params: dict[str, Any] = {}
+    if kind == "gnss_outage" and t1 is None:
+        raise ScenarioError(f"{where} (gnss_outage) needs t_end_s")
+    if kind == "gnss_jump":
+        params["offset_ned_m"] = _vec3(f"{where}.offset_ned_m", raw.get("offset_ned_m"))
+    if kind == "gnss_velocity_glitch":
+        params["offset_ned_mps"] = _vec3(f"{where}.offset_ned_mps", raw.get("offset_ned_mps"))
+        if t1 is None:
+            raise ScenarioError(f"{where} (gnss_velocity_glitch) needs t_end_s")
+    if kind == "gnss_pulse":
+        a = _num(f"{where}.amplitude_m", raw.get("amplitude_m"))
+        tau = _num(f"{where}.tau_s", raw.get("tau_s"))
+        d = _vec3(f"{where}.direction_ned", raw.get("direction_ned", [1.0, 0.0, 0.0]))
+        n = math.sqrt(sum(x * x for x in d))
+        if n == 0 or tau <= 0:
+            raise ScenarioError(f"{where} (gnss_pulse) needs tau_s > 0 and a non-zero direction")
+        if t1 is not None:
+            raise ScenarioError(f"{where} (gnss_pulse) takes tau_s, not t_end_s")
+        t1 = t0 + tau
+        params.update(amplitude_m=a, tau_s=tau, offset_ned_m=tuple(a * x / n for x in d))
+    if kind == "gnss_latency":
+        params["latency_s"] = _num(f"{where}.latency_s", raw.get("latency_s"))
+        if "jitter_s" in raw:
+            params["jitter_s"] = _num(f"{where}.jitter_s", raw["jitter_s"])
+        if t1 is not None:
+            raise ScenarioError(f"{where} (gnss_latency) applies from t_start_s on; drop t_end_s")
+    if t1 is not None and t1 <= t0:
+        raise ScenarioError(f"{where}: t_end_s {t1} must be after t_start_s {t0}")
+    return ScenarioEvent(kind, t0, t1, MappingProxyType(params))
+
+
+def _profile_duration(segments: tuple[MotionSegment, ...], v0: float) -> float:
+    """Sum of segment durations (accelerate-to-speed needs the speed, tracked along)."""
+    total, v = 0.0, v0
+    for s in segments:
+        p = s.params
+        if s.kind == "accelerate":
+            d = (
+                p["duration_s"]
+                if "duration_s" in p
+                else abs(p["to_speed_mps"] - v) / max(abs(p["accel_mps2"]), 1e-12)
+            )
+            v = p.get("to_speed_mps", v + p["accel_mps2"] * d)
+            total += d
+        elif "duration_s" in p:
+            total += p["duration_s"]
+        else:  # turns given by angle
+            w = abs(p["yaw_rate_dps"])
+            total += abs(p["angle_deg"]) / w + (p.get("transition_s", 1.0) if s.kind == "turn" else 0.0)
+            if s.kind == "coordinated_turn":
+                bank = math.degrees(math.atan(v * math.radians(w) / 9.80665))
+                total += bank / p.get("roll_rate_dps", 10.0)
+    return total
+
+
+def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
+    """Build a Scenario from TOML text (the one parser; :func:`load_scenario` reads a file)."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ScenarioError(f"scenario {default_name!r} is not valid TOML: {err}") from err
+    extra = {k: doc[k] for k in doc if k in RESERVED_TABLES}
+    _check_keys("scenario", {k: v for k, v in doc.items() if k not in RESERVED_TABLES}, _TOP_KEYS)
+    name = str(doc.get("name", default_name))
+    seed = doc.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ScenarioError(f"seed must be a non-negative integer, got {seed!r}")
+
+    origin = doc.get("origin", {})
+    _check_keys("origin", origin, {"lat_deg", "lon_deg", "alt_m"})
+    lat = _num("origin.lat_deg", origin.get("lat_deg", 0.0))
+    lon = _num("origin.lon_deg", origin.get("lon_deg", 0.0))
+    alt = _num("origin.alt_m", origin.get("alt_m", 0.0))
+    if abs(lat) >= 89.0:
+        raise ScenarioError(f"origin.lat_deg {lat} too close to a pole for the NED mechanisation")
+
+    init = doc.get("initial", {})
+    _check_keys("initial", init, {"attitude_deg", "speed_mps", "velocity_body_mps"})
+    euler = _vec3("initial.attitude_deg", init.get("attitude_deg", [0.0, 0.0, 0.0]))
+    if "speed_mps" in init and "velocity_body_mps" in init:
+        raise ScenarioError("initial: give speed_mps or velocity_body_mps, not both")
+    vb = (
+        (_num("initial.speed_mps", init["speed_mps"]), 0.0, 0.0)
+        if "speed_mps" in init
+        else (_vec3("initial.velocity_body_mps", init.get("velocity_body_mps", [0.0, 0.0, 0.0])))
+    )
+
+    imu_t = dict(doc.get("imu", {}))
+    preset = str(imu_t.pop("preset", "ideal"))
+    rate = imu_t.pop("rate_hz", 400)
+    if isinstance(rate, bool) or not isinstance(rate, int) or not 100 <= rate <= 2000:
+        raise ScenarioError(f"imu.rate_hz must be an integer in [100, 2000], got {rate!r}")
+    try:
+        params = resolve_imu_params(preset, imu_t)
+    except SpecError as err:
+        raise ScenarioError(f"imu: {err}") from err
+    imu = ImuConfig(int(rate), preset, MappingProxyType(imu_t), params)
+
+    g = doc.get("gnss", {})
+    _check_keys("gnss", g, _GNSS_KEYS)
+    gd = GnssConfig()
+    gnss = GnssConfig(
+        rate_hz=_num("gnss.rate_hz", g.get("rate_hz", gd.rate_hz)),
+        pos_sigma_m=_vec3("gnss.pos_sigma_m", g.get("pos_sigma_m", list(gd.pos_sigma_m))),
+        vel_sigma_mps=_vec3("gnss.vel_sigma_mps", g.get("vel_sigma_mps", list(gd.vel_sigma_mps))),
+        latency_s=_num("gnss.latency_s", g.get("latency_s", gd.latency_s)),
+        jitter_s=_num("gnss.jitter_s", g.get("jitter_s", gd.jitter_s)),
+        slow_amplitude_m=_vec3("gnss.slow_amplitude_m", g.get("slow_amplitude_m", list(gd.slow_amplitude_m))),
+        slow_period_s=_num("gnss.slow_period_s", g.get("slow_period_s", gd.slow_period_s)),
+        lever_arm_b_m=_vec3("gnss.lever_arm_b_m", g.get("lever_arm_b_m", list(gd.lever_arm_b_m))),
+        num_sats=int(_num("gnss.num_sats", g.get("num_sats", gd.num_sats))),
+        hdop=_num("gnss.hdop", g.get("hdop", gd.hdop)),
+    )
+    if not 1.0 <= gnss.rate_hz <= 10.0:
+        raise ScenarioError(f"gnss.rate_hz must be in [1, 10], got {gnss.rate_hz}")
+    if gnss.latency_s < 0 or gnss.jitter_s < 0 or gnss.slow_period_s <= 0:
+        raise ScenarioError("gnss.latency_s and jitter_s must be >= 0, slow_period_s > 0")
+
+    segments = tuple(_parse_segment(i, s) for i, s in enumerate(doc.get("segment", [])))
+    events = tuple(_parse_event(i, e) for i, e in enumerate(doc.get("event", [])))
+    if "duration_s" in doc:
+        duration = _num("duration_s", doc["duration_s"])
+    else:
+        duration = _profile_duration(segments, math.hypot(*vb))
+    if duration <= 0:
+        raise ScenarioError(f"duration_s must be > 0, got {duration}")
+
+    return Scenario(
+        name=name,
+        seed=seed,
+        duration_s=duration,
+        origin_lat_deg=lat,
+        origin_lon_deg=lon,
+        origin_alt_m=alt,
+        imu=imu,
+        gnss=gnss,
+        events=events,
+        source_text=text,
+        sha256=hashlib.sha256(text.encode()).hexdigest(),
+        description=str(doc.get("description", "")),
+        initial_euler_deg=euler,
+        initial_vel_body_mps=vb,
+        segments=segments,
+        extra_tables=MappingProxyType(extra),
+    )
+
+
+def builtin_scenarios() -> list[str]:
+    """Names of the scenarios shipped in ``hil/scenarios``."""
+    root = resources.files("hil") / "scenarios"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scenario(name_or_path: str) -> Scenario:
+    """A bare name ("straight_level") is a built-in; anything else is a path to a TOML file."""
+    if "/" not in name_or_path and not name_or_path.endswith(".toml"):
+        res = resources.files("hil") / "scenarios" / f"{name_or_path}.toml"
+        if not res.is_file():
+            raise ScenarioError(f"no built-in scenario {name_or_path!r}; built-ins: {builtin_scenarios()}")
+        return parse_scenario(res.read_text(encoding="utf-8"), name_or_path)
+    path = Path(name_or_path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ScenarioError(f"cannot read scenario file {str(path)!r}: {err}") from err
+    return parse_scenario(text, path.stem)
+
+
+# ---------------------------------------------------------------------------------------------
+# overrides: edit the parsed document and re-emit TOML, so source_text stays the truth
+
+_OVERRIDE_KEYS = {
+    "name": ("name",),
+    "seed": ("seed",),
+    "duration_s": ("duration_s",),
+    "imu_rate_hz": ("imu", "rate_hz"),
+    "imu_preset": ("imu", "preset"),
+    "gnss_rate_hz": ("gnss", "rate_hz"),
+}
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else "nan"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, Mapping):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_toml(doc: Mapping[str, Any], header: str = "") -> str:
+    """Minimal TOML writer for scenario documents (scalars, arrays, tables, arrays of tables)."""
+    lines = [f"# {line}" for line in header.splitlines()]
+    scalars = {
+        k: v
+        for k, v in doc.items()
+        if not isinstance(v, Mapping | list)
+        or (isinstance(v, list) and not (v and all(isinstance(x, Mapping) for x in v)))
+    }
+    lines += [f"{k} = {_toml_value(v)}" for k, v in scalars.items()]
+    for k, v in doc.items():
+        if isinstance(v, Mapping):
+            lines += ["", f"[{k}]"]
+            lines += [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items()]
+        elif isinstance(v, list) and v and all(isinstance(x, Mapping) for x in v):
+            for item in v:
+                lines += ["", f"[[{k}]]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def scenario_overrides(s: Scenario, **kw: Any) -> Scenario:
+    """A copy of ``s`` with top-level settings replaced; keys: name, seed, duration_s,
+    imu_rate_hz, imu_preset, gnss_rate_hz, and ``imu_<user key>`` for any IMU spec key
+    (e.g. ``imu_gyro_arw_dprh=0.1``). The new ``source_text`` is the re-emitted TOML."""
+    if not kw:
+        return s
+    doc = tomllib.loads(s.source_text)
+    for k, v in kw.items():
+        if k in _OVERRIDE_KEYS:
+            path = _OVERRIDE_KEYS[k]
+        elif k.startswith("imu_"):
+            path = ("imu", k[4:])
+        else:
+            raise ScenarioError(f"cannot override {k!r}; allowed: {sorted(_OVERRIDE_KEYS)} or imu_*")
+        tbl = doc
+        for p in path[:-1]:
+            tbl = tbl.setdefault(p, {})
+        tbl[path[-1]] = v
+    text = dump_toml(
+        doc,
+        header=f"{s.name} (sha256 {s.sha256[:12]}) with overrides "
+        + ", ".join(f"{k}={v!r}" for k, v in sorted(kw.items())),
+    )
+    return parse_scenario(text, s.name)

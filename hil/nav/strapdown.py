@@ -1,0 +1,280 @@
+"""Strapdown INS mechanisation in NED: the free inertial solution every estimator corrects.
+
+Per IMU interval k (increments Δθ_k, Δv_k over dt), after Savage (1998) and Shin (2005):
+
+    attitude   φ_k = Δθ_k + 1/12 Δθ_{k−1} × Δθ_k                          (coning)
+               q_nb,k = q(−ζ_k) ⊗ q_nb,k−1 ⊗ q(φ_k),  ζ_k = ω_in^n(k−½) dt
+    velocity   Δv_sf^b = Δv_k + ½ Δθ_k × Δv_k + 1/12 (Δθ_{k−1} × Δv_k + Δv_{k−1} × Δθ_k)
+                                                                          (rotation + sculling)
+               v_k = v_{k−1} + [I − ½ ζ×] C_nb,k−1 Δv_sf^b + [g_n − (2 ω_ie + ω_en) × v]_{k−½} dt
+    position   h_k = h − v̄_D dt,  L_k = L + v̄_N dt/(R_M + h̄),  λ_k = λ + v̄_E dt/((R_N + h̄) cos L̄)
+
+Mid-interval (k−½) quantities come from a first-order prediction of velocity and position, so
+no older state than k−1 is needed. WGS84 normal gravity, Earth rate and transport rate come from
+:mod:`hil.nav.earth` (the same model the truth generator uses).
+
+The numerics are plain Python floats: one core, :func:`_step`, is shared by
+:func:`strapdown_step` (one interval, for the live services) and :func:`strapdown_run` (a whole
+array, for the offline executor), so both give bit-identical results.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hil.estimators.base import InitialState
+from hil.nav.earth import (
+    _K_SOMIGLIANA,
+    _M_RATIO,
+    A_M,
+    E2,
+    GAMMA_E_MPS2,
+    OMEGA_IE_RADPS,
+    F,
+    lla_to_ned,
+)
+from hil.nav.types import F64, NavState
+
+
+@dataclass
+class StrapdownState:
+    """INS state after an interval; ``prev_*`` are the last increments (coning/sculling memory)."""
+
+    lat_rad: float
+    lon_rad: float
+    alt_m: float
+    vel_ned_mps: F64  # (3,)
+    q_nb: F64  # (4,) [w, x, y, z], body -> NED
+    prev_dtheta_b_rad: F64 = field(default_factory=lambda: np.zeros(3))
+    prev_dvel_b_mps: F64 = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass(frozen=True)
+class StrapdownTrack:
+    """The solution after each recorded step of :func:`strapdown_run`, (m,) / (m, 3) / (m, 4)."""
+
+    step: F64  # index of the interval after which the row was taken (1-based)
+    lat_rad: F64
+    lon_rad: F64
+    alt_m: F64
+    vel_ned_mps: F64
+    q_nb: F64
+
+
+_State = tuple[float, ...]  # lat, lon, h, vn, ve, vd, qw, qx, qy, qz, pθx, pθy, pθz, pvx, pvy, pvz
+
+
+def _gravity(lat: float, h: float) -> float:
+    s2 = math.sin(lat) ** 2
+    g0 = GAMMA_E_MPS2 * (1.0 + _K_SOMIGLIANA * s2) / math.sqrt(1.0 - E2 * s2)
+    return g0 * (1.0 - 2.0 / A_M * (1.0 + F + _M_RATIO - 2.0 * F * s2) * h + 3.0 * h * h / (A_M * A_M))
+
+
+def _radii(lat: float) -> tuple[float, float]:
+    w = 1.0 - E2 * math.sin(lat) ** 2
+    sw = math.sqrt(w)
+    return A_M * (1.0 - E2) / (w * sw), A_M / sw
+
+
+def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-16:
+        c, k = 1.0 - a2 / 8.0, 0.5 - a2 / 48.0
+    else:
+        a = math.sqrt(a2)
+        c, k = math.cos(0.5 * a), math.sin(0.5 * a) / a
+    return c, k * x, k * y, k * z
+
+
+def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz: float, dt: float) -> _State:
+    """One interval; see the module docstring for the equations. Pure floats for speed."""
+    lat, lon, h, vn, ve, vd, qw, qx, qy, qz, px, py, pz, pux, puy, puz = st
+    # C_nb,k−1
+    c00 = qw * qw + qx * qx - qy * qy - qz * qz
+    c01 = 2.0 * (qx * qy - qw * qz)
+    c02 = 2.0 * (qx * qz + qw * qy)
+    c10 = 2.0 * (qx * qy + qw * qz)
+    c11 = qw * qw - qx * qx + qy * qy - qz * qz
+    c12 = 2.0 * (qy * qz - qw * qx)
+    c20 = 2.0 * (qx * qz - qw * qy)
+    c21 = 2.0 * (qy * qz + qw * qx)
+    c22 = qw * qw - qx * qx - qy * qy + qz * qz
+
+    # Δv_sf^b = Δv + ½ Δθ×Δv + 1/12 (Δθ_{k−1}×Δv + Δv_{k−1}×Δθ)
+    sx = ux + 0.5 * (ty * uz - tz * uy) + (py * uz - pz * uy + puy * tz - puz * ty) / 12.0
+    sy = uy + 0.5 * (tz * ux - tx * uz) + (pz * ux - px * uz + puz * tx - pux * tz) / 12.0
+    sz = uz + 0.5 * (tx * uy - ty * ux) + (px * uy - py * ux + pux * ty - puy * tx) / 12.0
+    fn = c00 * sx + c01 * sy + c02 * sz
+    fe = c10 * sx + c11 * sy + c12 * sz
+    fd = c20 * sx + c21 * sy + c22 * sz
+
+    # first-order prediction to mid-interval
+    r_m, r_n = _radii(lat)
+    sl, cl = math.sin(lat), math.cos(lat)
+    g = _gravity(lat, h)
+    wie_n, wie_d = OMEGA_IE_RADPS * cl, -OMEGA_IE_RADPS * sl
+    wen_n, wen_e, wen_d = ve / (r_n + h), -vn / (r_m + h), -ve * sl / cl / (r_n + h)
+    # Coriolis (2ω_ie + ω_en) × v with ω_ie,E = 0
+    ox, oy, oz = 2.0 * wie_n + wen_n, wen_e, 2.0 * wie_d + wen_d
+    an = fn / dt - (oy * vd - oz * ve)
+    ae = fe / dt - (oz * vn - ox * vd)
+    ad = fd / dt - (ox * ve - oy * vn) + g
+    vn_m, ve_m, vd_m = vn + 0.5 * dt * an, ve + 0.5 * dt * ae, vd + 0.5 * dt * ad
+    lat_m = lat + 0.5 * dt * vn_m / (r_m + h)
+    h_m = h - 0.5 * dt * vd_m
+
+    # mid-interval Earth quantities
+    r_m, r_n = _radii(lat_m)
+    sl, cl = math.sin(lat_m), math.cos(lat_m)
+    g = _gravity(lat_m, h_m)
+    wie_n, wie_d = OMEGA_IE_RADPS * cl, -OMEGA_IE_RADPS * sl
+    wen_n, wen_e, wen_d = ve_m / (r_n + h_m), -vn_m / (r_m + h_m), -ve_m * sl / cl / (r_n + h_m)
+    zx, zy, zz = (wie_n + wen_n) * dt, wen_e * dt, (wie_d + wen_d) * dt
+    ox, oy, oz = 2.0 * wie_n + wen_n, wen_e, 2.0 * wie_d + wen_d
+
+    # v_k = v + [I − ½ζ×] f + [g − (2ω_ie + ω_en) × v_mid] dt
+    vn_k = vn + fn - 0.5 * (zy * fd - zz * fe) + (-(oy * vd_m - oz * ve_m)) * dt
+    ve_k = ve + fe - 0.5 * (zz * fn - zx * fd) + (-(oz * vn_m - ox * vd_m)) * dt
+    vd_k = vd + fd - 0.5 * (zx * fe - zy * fn) + (g - (ox * ve_m - oy * vn_m)) * dt
+
+    # position, trapezoidal velocity, radii at the mid latitude/height
+    h_k = h - 0.5 * (vd + vd_k) * dt
+    h_bar = 0.5 * (h + h_k)
+    lat_k = lat + 0.5 * (vn + vn_k) * dt / (r_m + h_bar)
+    lat_bar = 0.5 * (lat + lat_k)
+    _, r_nb = _radii(lat_bar)
+    lon_k = lon + 0.5 * (ve + ve_k) * dt / ((r_nb + h_bar) * math.cos(lat_bar))
+
+    # attitude: ζ from the mid-interval velocity now known
+    vn_b, ve_b = 0.5 * (vn + vn_k), 0.5 * (ve + ve_k)
+    r_m, r_n = _radii(lat_bar)
+    sl, cl = math.sin(lat_bar), math.cos(lat_bar)
+    zx = (OMEGA_IE_RADPS * cl + ve_b / (r_n + h_bar)) * dt
+    zy = (-vn_b / (r_m + h_bar)) * dt
+    zz = (-OMEGA_IE_RADPS * sl - ve_b * sl / cl / (r_n + h_bar)) * dt
+    # φ = Δθ + 1/12 Δθ_{k−1} × Δθ
+    fx = tx + (py * tz - pz * ty) / 12.0
+    fy = ty + (pz * tx - px * tz) / 12.0
+    fz = tz + (px * ty - py * tx) / 12.0
+    bw, bx, by, bz = _rotvec_quat(fx, fy, fz)
+    nw, nx, ny, nz = _rotvec_quat(-zx, -zy, -zz)
+    # q ⊗ q_bb
+    aw = qw * bw - qx * bx - qy * by - qz * bz
+    ax = qw * bx + qx * bw + qy * bz - qz * by
+    ay = qw * by - qx * bz + qy * bw + qz * bx
+    az = qw * bz + qx * by - qy * bx + qz * bw
+    # q_nn ⊗ (…)
+    rw = nw * aw - nx * ax - ny * ay - nz * az
+    rx = nw * ax + nx * aw + ny * az - nz * ay
+    ry = nw * ay - nx * az + ny * aw + nz * ax
+    rz = nw * az + nx * ay - ny * ax + nz * aw
+    inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    if rw < 0.0:
+        inv = -inv
+    return (
+        lat_k,
+        lon_k,
+        h_k,
+        vn_k,
+        ve_k,
+        vd_k,
+        rw * inv,
+        rx * inv,
+        ry * inv,
+        rz * inv,
+        tx,
+        ty,
+        tz,
+        ux,
+        uy,
+        uz,
+    )
+
+
+def _pack(s: StrapdownState) -> _State:
+    v, q, p, u = s.vel_ned_mps, s.q_nb, s.prev_dtheta_b_rad, s.prev_dvel_b_mps
+    return (
+        float(s.lat_rad),
+        float(s.lon_rad),
+        float(s.alt_m),
+        float(v[0]),
+        float(v[1]),
+        float(v[2]),
+        float(q[0]),
+        float(q[1]),
+        float(q[2]),
+        float(q[3]),
+        float(p[0]),
+        float(p[1]),
+        float(p[2]),
+        float(u[0]),
+        float(u[1]),
+        float(u[2]),
+    )
+
+
+def _unpack(t: _State) -> StrapdownState:
+    return StrapdownState(
+        t[0], t[1], t[2], np.array(t[3:6]), np.array(t[6:10]), np.array(t[10:13]), np.array(t[13:16])
+    )
+
+
+def strapdown_step(s: StrapdownState, dtheta_b_rad: Any, dvel_b_mps: Any, dt_s: float) -> StrapdownState:
+    """Advance by one IMU interval (increments (3,), interval dt_s). Pure: ``s`` is not changed."""
+    th = [float(x) for x in dtheta_b_rad]
+    dv = [float(x) for x in dvel_b_mps]
+    return _unpack(_step(_pack(s), th[0], th[1], th[2], dv[0], dv[1], dv[2], float(dt_s)))
+
+
+def strapdown_run(
+    s: StrapdownState, dtheta_b_rad: F64, dvel_b_mps: F64, dt_s: float, record_every: int = 1
+) -> tuple[StrapdownState, StrapdownTrack]:
+    """Run many intervals ((n, 3) increments); record the solution every ``record_every`` steps.
+
+    Same numbers as calling :func:`strapdown_step` n times.
+    """
+    th = np.asarray(dtheta_b_rad, dtype=float).tolist()
+    dv = np.asarray(dvel_b_mps, dtype=float).tolist()
+    st = _pack(s)
+    dt = float(dt_s)
+    rows: list[_State] = []
+    idx: list[int] = []
+    step = _step
+    for k in range(len(th)):
+        a, b = th[k], dv[k]
+        st = step(st, a[0], a[1], a[2], b[0], b[1], b[2], dt)
+        if (k + 1) % record_every == 0:
+            rows.append(st)
+            idx.append(k + 1)
+    arr = np.array(rows, dtype=float).reshape(-1, 16)
+    track = StrapdownTrack(
+        np.array(idx, dtype=float), arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3:6], arr[:, 6:10]
+    )
+    return _unpack(st), track
+
+
+def strapdown_from_initial(init: InitialState) -> StrapdownState:
+    """The INS aligned to the rig's initial state (no increment memory yet)."""
+    return StrapdownState(
+        init.lat_rad,
+        init.lon_rad,
+        init.alt_m,
+        np.asarray(init.vel_ned_mps, dtype=float).copy(),
+        np.asarray(init.q_nb, dtype=float).copy(),
+    )
+
+
+def to_nav_state(s: StrapdownState, origin: InitialState | tuple[float, float, float]) -> NavState:
+    """NavState with NED position relative to the origin (an InitialState or (lat, lon, alt))."""
+    if isinstance(origin, InitialState):
+        o = (origin.origin_lat_rad, origin.origin_lon_rad, origin.origin_alt_m)
+    else:
+        o = origin
+    pos = lla_to_ned(s.lat_rad, s.lon_rad, s.alt_m, o[0], o[1], o[2])
+    return NavState(
+        pos_ned_m=np.asarray(pos, dtype=float), vel_ned_mps=s.vel_ned_mps.copy(), q_nb=s.q_nb.copy()
+    )

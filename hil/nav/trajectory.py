@@ -1,0 +1,356 @@
+"""Truth generator: the scenario's motion profile turned into position, velocity, attitude and
+the ideal specific force and angular rate on WGS84.
+
+Kinematics (as in gnss-ins-sim motion definitions): each primitive segment holds the Euler
+angle accelerations and the body-frame acceleration constant, so within a segment
+
+    e(τ) = e0 + ė0 τ + ½ ë τ²,    v_b(τ) = v_b0 + a_b τ,    v_n = C_nb(e) v_b
+
+are closed-form, and so are ω_nb^b (Euler kinematics) and v̇_n = C_nb (ω_nb^b × v_b + a_b).
+Position (lat, lon, h) integrates v_n with RK4 on knots ≤ 0.5 s that never straddle a segment
+boundary, and is read between knots by cubic Hermite interpolation using the exact derivative.
+The ideal IMU then follows from the NED mechanisation equations, read backwards:
+
+    f_n = v̇_n + (2 ω_ie^n + ω_en^n) × v_n − g_n,     f_b = C_bn f_n
+    ω_ib^b = ω_nb^b + C_bn (ω_ie^n + ω_en^n)
+
+with the same Earth model as the strapdown (:mod:`hil.nav.earth`), so integrating the ideal
+increments reproduces the truth. Every sample is an elementwise function of its own time, so
+results do not depend on how callers batch their requests.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.estimators.base import InitialState
+from hil.nav.attitude import euler_rates_to_body_rate, euler_to_dcm, euler_to_quat, quat_normalise
+from hil.nav.earth import (
+    cross,
+    earth_rate_ned,
+    lla_to_ned,
+    mat_vec,
+    normal_gravity,
+    radii_of_curvature,
+    transport_rate_ned,
+)
+from hil.nav.scenario import MotionSegment, Scenario
+from hil.nav.types import F64, I64, TruthBatch
+
+KNOT_MAX_S = 0.5
+G_COORD_MPS2 = 9.80665  # gravity used to size the bank of a coordinated turn
+_GL2 = 1.0 / math.sqrt(3.0)  # 2-point Gauss–Legendre nodes ±1/√3, weights 1
+
+
+@dataclass(frozen=True)
+class Primitive:
+    """A segment with constant Euler acceleration and body acceleration; SI, radians."""
+
+    t0_s: float
+    duration_s: float
+    euler0_rad: tuple[float, float, float]
+    euler_rate0_radps: tuple[float, float, float]
+    euler_acc_radps2: tuple[float, float, float]
+    vel_body0_mps: tuple[float, float, float]
+    accel_body_mps2: tuple[float, float, float]
+
+
+def _add(a: tuple[float, ...], b: tuple[float, ...], k: float = 1.0) -> tuple[float, float, float]:
+    return (a[0] + k * b[0], a[1] + k * b[1], a[2] + k * b[2])
+
+
+def compile_profile(
+    segments: tuple[MotionSegment, ...],
+    euler0_rad: tuple[float, float, float],
+    vel_body0_mps: tuple[float, float, float],
+    duration_s: float,
+) -> tuple[Primitive, ...]:
+    """Expand user segments (turns with roll-in/out, climbs with pitch transitions, …) into
+    primitives, then cut or pad with a hold so they cover exactly [0, duration_s]."""
+    prims: list[Primitive] = []
+    t = 0.0
+    e = euler0_rad
+    vb = vel_body0_mps
+    zero = (0.0, 0.0, 0.0)
+
+    def emit(
+        dur: float,
+        de0: tuple[float, float, float],
+        dde: tuple[float, float, float],
+        ab: tuple[float, float, float] = zero,
+    ) -> None:
+        nonlocal t, e, vb
+        if dur <= 0.0:
+            return
+        prims.append(Primitive(t, dur, e, de0, dde, vb, ab))
+        e = _add(_add(e, de0, dur), dde, 0.5 * dur * dur)
+        vb = _add(vb, ab, dur)
+        t += dur
+
+    for seg in segments:
+        p = seg.params
+        if seg.kind == "hold":
+            emit(p["duration_s"], zero, zero)
+        elif seg.kind == "accelerate":
+            a = p["accel_mps2"]
+            if "to_speed_mps" in p:
+                dv = p["to_speed_mps"] - vb[0]
+                a = math.copysign(abs(a), dv) if dv != 0 else 0.0
+                dur = abs(dv) / abs(a) if a else 0.0
+            else:
+                dur = p["duration_s"]
+            emit(dur, zero, zero, (a, 0.0, 0.0))
+        elif seg.kind == "rates":
+            emit(
+                p["duration_s"],
+                tuple(math.radians(x) for x in p["euler_rate_dps"]),  # type: ignore[arg-type]
+                zero,
+                p.get("accel_body_mps2", zero),
+            )
+        elif seg.kind == "turn":
+            # flat (car-like) turn; the yaw rate ramps over transition_s so lateral accel is continuous
+            w = math.radians(p["yaw_rate_dps"])
+            tr = p.get("transition_s", 1.0)
+            hold = (
+                math.radians(abs(p["angle_deg"])) / abs(w) - tr
+                if "angle_deg" in p
+                else p["duration_s"] - 2.0 * tr
+            )
+            if "angle_deg" in p and p["angle_deg"] < 0:
+                w = -abs(w)
+            if hold < 0:
+                raise ValueError(f"turn too short for transition_s={tr}: {dict(p)}")
+            if tr > 0:
+                emit(tr, zero, (0.0, 0.0, w / tr))
+            emit(hold, (0.0, 0.0, w), zero)
+            if tr > 0:
+                emit(tr, (0.0, 0.0, w), (0.0, 0.0, -w / tr))
+        elif seg.kind == "coordinated_turn":
+            # bank φ = atan(v ω / g); roll in at roll_rate while the yaw rate ramps 0 → ω
+            w = math.radians(p["yaw_rate_dps"])
+            if "angle_deg" in p and p["angle_deg"] < 0:
+                w = -abs(w)
+            v = math.hypot(*vb)
+            bank = math.atan(v * w / G_COORD_MPS2)
+            rr = math.radians(p.get("roll_rate_dps", 10.0))
+            tr = abs(bank) / rr if rr > 0 else 0.0
+            hold = (
+                math.radians(abs(p["angle_deg"])) / abs(w) - tr
+                if "angle_deg" in p
+                else p["duration_s"] - 2.0 * tr
+            )
+            if hold < 0:
+                raise ValueError(f"coordinated turn too short for its roll-in: {dict(p)}")
+            if tr > 0:
+                emit(tr, (bank / tr, 0.0, 0.0), (0.0, 0.0, w / tr))
+            emit(hold, (0.0, 0.0, w), zero)
+            if tr > 0:
+                emit(tr, (-bank / tr, 0.0, w), (0.0, 0.0, -w / tr))
+        elif seg.kind == "climb":
+            gam = math.radians(p["pitch_deg"])
+            rate = math.radians(p.get("pitch_rate_dps", 2.0))
+            tp = abs(gam - e[1]) / rate if rate > 0 else 0.0
+            hold = p["duration_s"] - 2.0 * tp
+            if hold < 0:
+                raise ValueError(f"climb shorter than its pitch transitions: {dict(p)}")
+            back = e[1]
+            if tp > 0:
+                emit(tp, (0.0, (gam - e[1]) / tp, 0.0), zero)
+            emit(hold, zero, zero)
+            if tp > 0:
+                emit(tp, (0.0, (back - gam) / tp, 0.0), zero)
+        else:  # pragma: no cover - the parser rejects unknown kinds
+            raise ValueError(seg.kind)
+    if t < duration_s:
+        emit(duration_s - t, zero, zero)
+    return tuple(pr for pr in prims if pr.t0_s < duration_s)
+
+
+class TruthGenerator:
+    """Truth for one scenario; ``sample`` is a pure function of time (any order of calls)."""
+
+    def __init__(self, scenario: Scenario) -> None:
+        self.scenario = scenario
+        self.origin_lat_rad = math.radians(scenario.origin_lat_deg)
+        self.origin_lon_rad = math.radians(scenario.origin_lon_deg)
+        self.origin_alt_m = scenario.origin_alt_m
+        self.duration_ns = round(scenario.duration_s * 1e9)
+        self.primitives = compile_profile(
+            scenario.segments,
+            tuple(math.radians(x) for x in scenario.initial_euler_deg),  # type: ignore[arg-type]
+            scenario.initial_vel_body_mps,
+            scenario.duration_s,
+        )
+        pr = self.primitives
+        self._t0 = np.array([p.t0_s for p in pr])
+        self._e0 = np.array([p.euler0_rad for p in pr])
+        self._de0 = np.array([p.euler_rate0_radps for p in pr])
+        self._dde = np.array([p.euler_acc_radps2 for p in pr])
+        self._vb0 = np.array([p.vel_body0_mps for p in pr])
+        self._ab = np.array([p.accel_body_mps2 for p in pr])
+        self._build_position_knots()
+
+    # -- kinematics ------------------------------------------------------------------------
+
+    def _kinematics(self, t_s: F64, seg: I64 | None = None) -> tuple[F64, F64, F64, F64, F64]:
+        """Euler angles, C_nb, ω_nb^b, v_n, v̇_n at times t_s (within segment ``seg``)."""
+        if seg is None:
+            seg = np.clip(np.searchsorted(self._t0, t_s, side="right") - 1, 0, len(self._t0) - 1)
+        tau = (t_s - self._t0[seg])[:, None]
+        de0, dde = self._de0[seg], self._dde[seg]
+        euler = self._e0[seg] + de0 * tau + 0.5 * dde * tau * tau
+        euler_rate = de0 + dde * tau
+        vb = self._vb0[seg] + self._ab[seg] * tau
+        c_nb = euler_to_dcm(euler)
+        w_nb_b = euler_rates_to_body_rate(euler, euler_rate)
+        v_n = mat_vec(c_nb, vb)
+        vdot_n = mat_vec(c_nb, cross(w_nb_b, vb) + self._ab[seg])
+        return euler, c_nb, w_nb_b, v_n, vdot_n
+
+    @staticmethod
+    def _pos_rate(lat: float, h: float, v: F64) -> tuple[float, float, float]:
+        r_m, r_n = radii_of_curvature(lat)
+        return (float(v[0] / (r_m + h)), float(v[1] / ((r_n + h) * math.cos(lat))), float(-v[2]))
+
+    def _build_position_knots(self) -> None:
+        """RK4 of (lat, lon, h) over knots; the velocities at all stage times come in one call."""
+        knots: list[F64] = []
+        for p in self.primitives:
+            n = max(1, math.ceil(p.duration_s / KNOT_MAX_S))
+            knots.append(p.t0_s + p.duration_s * np.arange(n) / n)
+        end = self.primitives[-1].t0_s + self.primitives[-1].duration_s
+        t_k = np.concatenate([*knots, [end]])
+        seg_k = np.searchsorted(self._t0, t_k, side="right") - 1
+        seg_k = np.clip(seg_k, 0, len(self._t0) - 1)
+        seg_iv = seg_k[:-1]  # each knot interval lies in the segment of its left knot
+        h_k = np.diff(t_k)
+        v_a = self._kinematics(t_k[:-1], seg_iv)[3]
+        v_m = self._kinematics(t_k[:-1] + 0.5 * h_k, seg_iv)[3]
+        v_b = self._kinematics(t_k[1:], seg_iv)[3]  # right end, still inside the left segment
+        m = len(t_k)
+        y = np.empty((m, 3))
+        y[0] = (self.origin_lat_rad, self.origin_lon_rad, self.origin_alt_m)
+        lat, lon, h = y[0]
+        for i in range(m - 1):
+            dt = h_k[i]
+            k1 = self._pos_rate(lat, h, v_a[i])
+            k2 = self._pos_rate(lat + 0.5 * dt * k1[0], h + 0.5 * dt * k1[2], v_m[i])
+            k3 = self._pos_rate(lat + 0.5 * dt * k2[0], h + 0.5 * dt * k2[2], v_m[i])
+            k4 = self._pos_rate(lat + dt * k3[0], h + dt * k3[2], v_b[i])
+            lat += dt / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+            lon += dt / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+            h += dt / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+            y[i + 1] = (lat, lon, h)
+        # exact derivatives at each knot, on both sides (velocity is continuous, so one set)
+        r_m, r_n = radii_of_curvature(y[:, 0])
+        v_all = np.concatenate([v_a, v_b[-1:]])
+        dy = np.stack(
+            [v_all[:, 0] / (r_m + y[:, 2]), v_all[:, 1] / ((r_n + y[:, 2]) * np.cos(y[:, 0])), -v_all[:, 2]],
+            axis=-1,
+        )
+        self._knot_t, self._knot_y, self._knot_dy = t_k, y, dy
+
+    def _position(self, t_s: F64) -> F64:
+        """(lat, lon, h) by cubic Hermite between knots, (n, 3)."""
+        j = np.clip(np.searchsorted(self._knot_t, t_s, side="right") - 1, 0, len(self._knot_t) - 2)
+        t0, t1 = self._knot_t[j], self._knot_t[j + 1]
+        hh = (t1 - t0)[:, None]
+        s = ((t_s - t0) / (t1 - t0))[:, None]
+        s2, s3 = s * s, s * s * s
+        h00 = 2 * s3 - 3 * s2 + 1
+        h10 = s3 - 2 * s2 + s
+        h01 = -2 * s3 + 3 * s2
+        h11 = s3 - s2
+        return (
+            h00 * self._knot_y[j]
+            + h10 * hh * self._knot_dy[j]
+            + h01 * self._knot_y[j + 1]
+            + h11 * hh * self._knot_dy[j + 1]
+        )
+
+    def _inertial(self, t_s: F64, seg: I64 | None = None) -> tuple[F64, F64, F64, F64, F64, F64]:
+        """(lat, lon, h), v_n, Euler angles, f_b, ω_ib^b, C_nb at times t_s (seconds)."""
+        euler, c_nb, w_nb_b, v_n, vdot_n = self._kinematics(t_s, seg)
+        lla = self._position(t_s)
+        lat, h = lla[:, 0], lla[:, 2]
+        w_ie = earth_rate_ned(lat)
+        w_en = transport_rate_ned(lat, h, v_n)
+        g = normal_gravity(lat, h)
+        # f_n = v̇_n + (2ω_ie + ω_en) × v_n − g_n
+        f_n = vdot_n + cross(2.0 * w_ie + w_en, v_n)
+        f_n[:, 2] -= g
+        c_bn = np.swapaxes(c_nb, -1, -2)
+        f_b = mat_vec(c_bn, f_n)
+        w_ib_b = w_nb_b + mat_vec(c_bn, w_ie + w_en)
+        return lla, v_n, euler, f_b, w_ib_b, c_nb
+
+    # -- public ------------------------------------------------------------------------------
+
+    def sample(self, t_ns: I64) -> TruthBatch:
+        """Truth at true times ``t_ns`` (int64 ns since run start, within [0, duration])."""
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        t_s = t_ns.astype(np.float64) * 1e-9
+        lla, v_n, euler, f_b, w_ib_b, _ = self._inertial(t_s)
+        pos = lla_to_ned(
+            lla[:, 0], lla[:, 1], lla[:, 2], self.origin_lat_rad, self.origin_lon_rad, self.origin_alt_m
+        )
+        return TruthBatch(
+            t_ns=t_ns,
+            lat_rad=lla[:, 0],
+            lon_rad=lla[:, 1],
+            alt_m=lla[:, 2],
+            pos_ned_m=pos,
+            vel_ned_mps=v_n,
+            q_nb=quat_normalise(euler_to_quat(euler)),
+            f_b_mps2=f_b,
+            w_ib_b_radps=w_ib_b,
+        )
+
+    def increments(self, t_start_ns: I64, t_end_ns: I64) -> tuple[F64, F64]:
+        """Ideal delta-angle and delta-velocity ∫ω_ib^b dt, ∫f_b dt over [start, end], (n, 3).
+
+        2-point Gauss–Legendre per piece; intervals that straddle a segment boundary (where
+        f and ω may step) are split there, so a step is integrated exactly.
+        """
+        a = np.asarray(t_start_ns, dtype=np.int64).astype(np.float64) * 1e-9
+        b = np.asarray(t_end_ns, dtype=np.int64).astype(np.float64) * 1e-9
+        dth, dv = self._gauss(a, b)
+        bounds = self._t0[1:]
+        cnt = np.searchsorted(bounds, b, side="left") - np.searchsorted(bounds, a, side="right")
+        for k in np.flatnonzero(cnt > 0):
+            inner = bounds[(bounds > a[k]) & (bounds < b[k])]
+            edges = np.concatenate([[a[k]], inner, [b[k]]])
+            th, v = self._gauss(edges[:-1], edges[1:])
+            dth[k], dv[k] = th.sum(axis=0), v.sum(axis=0)
+        return dth, dv
+
+    def _gauss(self, a: F64, b: F64) -> tuple[F64, F64]:
+        mid, half = 0.5 * (a + b), 0.5 * (b - a)
+        # evaluate each node inside the piece's own segment (the piece never straddles one)
+        seg = np.clip(np.searchsorted(self._t0, mid, side="right") - 1, 0, len(self._t0) - 1)
+        out_th = np.zeros((len(a), 3))
+        out_v = np.zeros((len(a), 3))
+        for sgn in (-1.0, 1.0):
+            t = mid + sgn * _GL2 * half
+            _, _, _, f_b, w_ib_b, _ = self._inertial(t, seg)
+            out_th += w_ib_b * half[:, None]
+            out_v += f_b * half[:, None]
+        return out_th, out_v
+
+    def initial_state(self) -> InitialState:
+        """Truth at t = 0: the perfect alignment."""
+        tb = self.sample(np.array([0], dtype=np.int64))
+        return InitialState(
+            stamp_ns=0,
+            lat_rad=float(tb.lat_rad[0]),
+            lon_rad=float(tb.lon_rad[0]),
+            alt_m=float(tb.alt_m[0]),
+            origin_lat_rad=self.origin_lat_rad,
+            origin_lon_rad=self.origin_lon_rad,
+            origin_alt_m=self.origin_alt_m,
+            vel_ned_mps=tb.vel_ned_mps[0].copy(),
+            q_nb=tb.q_nb[0].copy(),
+        )
