@@ -38,13 +38,20 @@ def open_can_bus(
     *,
     fd: bool = False,
     rig: str = "default",
+    session: Any = None,
     **kwargs: Any,
 ) -> tuple[can.BusABC, str]:
-    """Open the bus; return it and a one-line description of the transport chosen."""
+    """Open the bus; return it and a one-line description of the transport chosen.
+
+    ``session``: a service's open Zenoh session, reused by ``hilzenoh`` (ignored otherwise).
+    Extra keyword arguments go to ``can.Bus``.
+    """
     iface = resolve_interface(channel, interface)
     kw: dict[str, Any] = dict(kwargs)
     if iface == "hilzenoh":
         kw.setdefault("rig", rig)
+        if session is not None:
+            kw["session"] = session
     try:
         bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)
     except (can.CanError, OSError, ValueError, ImportError) as err:

@@ -441,6 +441,18 @@ class ImuFrameAssembler:
         self.last_sample_count: int | None = None
         self._unwrap = DeviceTimeUnwrapper()
         self._sync_unwrap = DeviceTimeUnwrapper()
+        # Every rejected frame or detected gap bumps ``problems`` and says what it was, so a
+        # caller can surface it (status last_error) by comparing one int per frame.
+        self.problems = 0
+        self.last_problem: tuple[str, str] = ("", "")
+
+    def _problem(self, kind: str, msg: can.Message, detail: str) -> None:
+        self.counters[kind] += 1
+        self.problems += 1
+        self.last_problem = (
+            kind,
+            f"CAN 0x{msg.arbitration_id:X} [{len(msg.data)}] {msg.data.hex()}: {detail}",
+        )
 
     def _sample(self, values: dict[str, float | int], status: int, rx: float) -> DecodedSample:
         g = (values["GyroSatX"], values["GyroSatY"], values["GyroSatZ"])
@@ -463,43 +475,45 @@ class ImuFrameAssembler:
         c = self.counters
         c["frames"] += 1
         if msg.is_error_frame:
-            c["error_frame"] += 1
+            self._problem("error_frame", msg, "error frame on the bus")
             return []
         if msg.is_remote_frame:
-            c["remote_frame"] += 1
+            self._problem("remote_frame", msg, "remote frames are not part of the protocol")
             return []
         lay = None if msg.is_extended_id else self._layouts.get(msg.arbitration_id)
         if lay is None:
-            c["unknown_id"] += 1
+            self._problem("unknown_id", msg, "identifier not in the DBC")
             return []
         data = msg.data
         if len(data) != lay.length:
-            c["bad_dlc"] += 1
+            self._problem("bad_dlc", msg, f"{lay.name} has {lay.length} bytes")
             return []
         ctr = data[1] & 0x0F  # the DBC check pins the counter to bits 8..11
         if ctr >= COUNTER_MODULO:
-            c["bad_counter"] += 1
+            self._problem("bad_counter", msg, f"counter {ctr} is invalid (0..14)")
             return []
-        if data[lay.crc_byte] != p01_crc(lay.frame_id, data, lay.e2e_length, lay.crc_byte):
-            c["bad_crc"] += 1
+        crc = p01_crc(lay.frame_id, data, lay.e2e_length, lay.crc_byte)
+        if data[lay.crc_byte] != crc:
+            self._problem("bad_crc", msg, f"E2E CRC 0x{data[lay.crc_byte]:02X}, expected 0x{crc:02X}")
             return []
         fid = lay.frame_id
         last = self._last_ctr.get(fid)
         if last is not None:
             delta = counter_delta(ctr, last)
             if delta == 0:
-                c["repeated"] += 1
+                self._problem("repeated", msg, f"{lay.name} counter {ctr} repeated")
                 return []
             if delta != 1:
-                c["counter_jump"] += 1
                 c["lost_frames"] += delta - 1
+                self._problem("counter_jump", msg, f"{lay.name} counter {last} -> {ctr}: {delta - 1} lost")
         self._last_ctr[fid] = ctr
         rx = float(msg.timestamp)
         word = int.from_bytes(data, "little")
         role = lay.role
         if role == "sample_part":
             if self._group_words and ctr != self._group_ctr:
-                c["incomplete_sample"] += 1
+                got = ", ".join(self._layouts[i].name for i in self._group_words)
+                self._problem("incomplete_sample", msg, f"sample {self._group_ctr} dropped, had only {got}")
                 self._group_words.clear()
             self._group_ctr = ctr
             self._group_words[fid] = word

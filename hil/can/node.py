@@ -1,0 +1,189 @@
+"""The IMU emulator's CAN side: samples -> DBC frames -> bus, robust to a full or failing bus.
+
+A real IMU never stops because its CAN controller is busy: it retries briefly, then drops the
+frame and flags it. ``ImuCanNode`` does the same: a ``can.CanOperationError`` (SocketCAN's
+``ENOBUFS`` "transmit buffer full", a bus-off, a closed Zenoh session) is retried with a short
+exponential back-off and, failing that, counted and dropped; the caller gets ``False`` and keeps
+its cadence. The receiver then sees an incomplete sample or a counter jump, both counted there.
+
+The node also meters the bus load it causes (time the frames occupy the wire, worst-case
+stuffing, over the last second) against the configured bit rates: 1 Mbit/s classic; FD 1 Mbit/s
+arbitration / 5 Mbit/s data.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+
+import can
+
+from hil.bus.pubsub import Stats
+from hil.can.busload import FD_DATA_BITRATE, NOMINAL_BITRATE, frame_bits
+from hil.can.codec import EncodeError, ImuCanCodec
+from hil.runtime.clock import monotonic_s
+
+log = logging.getLogger(__name__)
+
+_COUNTERS = (
+    "tx_frames",
+    "tx_samples",
+    "tx_syncs",
+    "tx_retries",
+    "tx_buffer_full",
+    "tx_bus_error",
+    "tx_dropped_frames",
+    "tx_dropped_samples",
+    "tx_encode_errors",
+    "tx_saturated_samples",
+)
+
+
+class ImuCanNode:
+    """Send IMU samples and sync frames through ``codec`` onto ``bus``.
+
+    ``stats`` (the service's) receives ``can.tx.*`` counters and the last error text.
+    ``retries``/``backoff_s``: attempts after the first failure, first back-off (doubling).
+    ``now``: a monotonic clock in seconds (injected so tests and replay need no wall clock).
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        codec: ImuCanCodec,
+        stats: Stats | None = None,
+        *,
+        retries: int = 3,
+        backoff_s: float = 0.0005,
+        send_timeout_s: float = 0.005,
+        nominal_bitrate: float = NOMINAL_BITRATE,
+        data_bitrate: float = FD_DATA_BITRATE,
+        now: Callable[[], float] = monotonic_s,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self.bus = bus
+        self.codec = codec
+        self.stats = stats
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self.send_timeout_s = send_timeout_s
+        self.nominal_bitrate = nominal_bitrate
+        self.data_bitrate = data_bitrate
+        self._now = now
+        self._sleep = sleep
+        self._counts: dict[str, int] = dict.fromkeys(_COUNTERS, 0)
+        self._busy: deque[tuple[float, float]] = deque()
+        self._busy_sum = 0.0
+        self._busy_cache: dict[tuple[int, bool, bool], float] = {}
+
+    # -- public API ----------------------------------------------------------------------
+    def send_sample(
+        self,
+        device_stamp_ns: int,
+        dtheta_b_rad: Sequence[float],
+        dvel_b_mps: Sequence[float],
+        status: int = 0,
+    ) -> bool:
+        """Encode and send one sample; False if it could not be encoded or a frame was dropped."""
+        try:
+            frames = self.codec.encode_sample(
+                device_stamp_ns=device_stamp_ns,
+                dtheta_b_rad=dtheta_b_rad,
+                dvel_b_mps=dvel_b_mps,
+                status=status,
+            )
+        except (EncodeError, TypeError, ValueError) as err:
+            self._count("tx_encode_errors", f"sample not encodable: {err}")
+            return False
+        if self.codec.saturated_samples > self._counts["tx_saturated_samples"]:
+            self._counts["tx_saturated_samples"] = self.codec.saturated_samples
+        ok = True
+        for frame in frames:
+            ok = self._send(frame) and ok
+        if ok:
+            self._counts["tx_samples"] += 1
+        else:
+            self._count("tx_dropped_samples")
+        return ok
+
+    def send_sync(self, device_stamp_ns: int) -> bool:
+        """Send the time-tag frame of a sync edge at ``device_stamp_ns`` (device clock)."""
+        try:
+            frame = self.codec.encode_sync(device_stamp_ns)
+        except (EncodeError, TypeError, ValueError) as err:
+            self._count("tx_encode_errors", f"sync not encodable: {err}")
+            return False
+        ok = self._send(frame)
+        if ok:
+            self._counts["tx_syncs"] += 1
+        return ok
+
+    def bus_load(self) -> float:
+        """Fraction of the last second the bus was occupied by this node's frames (0..1+)."""
+        self._trim(self._now())
+        return self._busy_sum
+
+    def counters(self) -> dict[str, int]:
+        """Counters for the service status (``bus_load_permille`` included)."""
+        out = dict(self._counts)
+        out["bus_load_permille"] = round(self.bus_load() * 1000)
+        return out
+
+    # -- internals -----------------------------------------------------------------------
+    def _count(self, name: str, message: str | None = None) -> None:
+        self._counts[name] += 1
+        if self.stats is not None:
+            if message:
+                self.stats.error(f"can.{name.replace('_', '.', 1)}", message)
+            else:
+                self.stats.inc(f"can.{name.replace('_', '.', 1)}")
+
+    def _send(self, frame: can.Message) -> bool:
+        delay = self.backoff_s
+        for attempt in range(self.retries + 1):
+            try:
+                self.bus.send(frame, timeout=self.send_timeout_s)
+            except can.CanOperationError as err:
+                full = err.error_code == errno.ENOBUFS or "buffer" in str(err).lower()
+                self._count(
+                    "tx_buffer_full" if full else "tx_bus_error", f"send 0x{frame.arbitration_id:X}: {err}"
+                )
+                if attempt < self.retries:
+                    self._counts["tx_retries"] += 1
+                    self._sleep(delay)
+                    delay *= 2
+                continue
+            except can.CanError as err:  # any other python-can failure: same policy
+                self._count("tx_bus_error", f"send 0x{frame.arbitration_id:X}: {err}")
+                if attempt < self.retries:
+                    self._counts["tx_retries"] += 1
+                    self._sleep(delay)
+                    delay *= 2
+                continue
+            self._counts["tx_frames"] += 1
+            self._account(frame)
+            return True
+        self._count("tx_dropped_frames")
+        return False
+
+    def _account(self, frame: can.Message) -> None:
+        key = (len(frame.data), bool(frame.is_fd), bool(frame.bitrate_switch))
+        busy = self._busy_cache.get(key)
+        if busy is None:
+            bits = frame_bits(key[0], fd=key[1], brs=key[2], extended=False)
+            busy = self._busy_cache[key] = bits.seconds(self.nominal_bitrate, self.data_bitrate)
+        now = self._now()
+        self._busy.append((now, busy))
+        self._busy_sum += busy
+        self._trim(now)
+
+    def _trim(self, now: float) -> None:
+        horizon = now - 1.0
+        q = self._busy
+        while q and q[0][0] < horizon:
+            self._busy_sum -= q.popleft()[1]
+        if not q:
+            self._busy_sum = 0.0
