@@ -58,6 +58,9 @@ class Fusion(Service):
         )
         scenario = scenario_for_run(run)
         self.core = core = FusionCore(TruthGenerator(scenario).initial_state(), cfg)
+        from hil.record.rerun import FUSION_CONFIG_EVENT, fusion_config_detail
+
+        self.emit_event(FUSION_CONFIG_EVENT, fusion_config_detail(cfg))
         pubs = {n: self.publisher(self.keys.nav(n), NavSolution) for n in (FREE_INS, *names)}
         journal = self.publisher(self.keys.journal(), FusionJournal)
         last_journal = time.monotonic()

@@ -76,11 +76,11 @@ class FusionCore:
         key = input_key(msg)
         if self._newest_ns is not None and msg.stamp_ns > self._newest_ns + self.config.max_future_ns:
             self._inc("rejected.future_stamp")
-            self._dropped.append(input_id(msg))
+            self._dropped.append("future:" + input_id(msg))
             return []
         if key <= self._last_key:
             self._inc(f"dropped_late.{msg.sensor}")
-            self._dropped.append(input_id(msg))
+            self._dropped.append("late:" + input_id(msg))
             return []
         heapq.heappush(self._heap, (key, msg))
         if self._newest_ns is None or msg.stamp_ns > self._newest_ns:
@@ -105,7 +105,7 @@ class FusionCore:
             key, msg = heapq.heappop(self._heap)
             if key == self._last_key:  # a duplicate that was buffered twice
                 self._inc(f"dropped_duplicate.{msg.sensor}")
-                self._dropped.append(input_id(msg))
+                self._dropped.append("dup:" + input_id(msg))
                 continue
             self._last_key = key
             out.extend(self.process(msg))

@@ -152,6 +152,9 @@ class Session:
     def by_topic(self, topic: str) -> list[Record]:
         return [r for r in self.records if r.topic == topic]
 
+    def by_topic_prefix(self, prefix: str) -> list[Record]:
+        return [r for r in self.records if r.topic.startswith(prefix)]
+
     def meta(self, name: str, key: str, default: Any = None) -> Any:
         value = self.metadata.get(name, {}).get(key)
         if value is None:

@@ -1,0 +1,30 @@
+# Two commands do all set-up on a fresh machine:
+#   make run    -> creates .venv, installs the locked dependencies, runs the rig (hil up) for 60 s
+#   make test   -> same set-up, then the whole test suite
+PYTHON ?= python3
+VENV   ?= .venv
+ARGS   ?=
+
+.PHONY: run test sim lint clean
+
+$(VENV)/.installed: pyproject.toml requirements.lock
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q --disable-pip-version-check -r requirements.lock
+	$(VENV)/bin/python -m pip install -q --disable-pip-version-check --no-deps -e .
+	touch $@
+
+run: $(VENV)/.installed
+	$(VENV)/bin/hil up $(ARGS)
+
+sim: $(VENV)/.installed
+	$(VENV)/bin/hil sim $(ARGS)
+
+test: $(VENV)/.installed
+	$(VENV)/bin/python -m pytest $(ARGS)
+
+lint: $(VENV)/.installed
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/hil schemas
+
+clean:
+	rm -rf $(VENV) recordings .pytest_cache

@@ -1,0 +1,413 @@
+"""``hil sim``: the live rig's cores wired in one process on a virtual clock, as fast as possible.
+
+Same physics, same DBC codec and frame assembler (so the wire's quantisation is identical to the
+live rig), same time-sync and fusion cores, same MCAP layout. Transport is modelled: a CAN sample
+arrives after its frames' wire time, a GNSS fix at its output time. Messages are written in
+arrival (log time) order, window by window, so a one-hour session never sits in memory.
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil import __version__
+from hil.bus.keys import Keys
+from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
+from hil.messages import (
+    CanFrame,
+    CaptureTruth,
+    ClockModel,
+    Event,
+    FusionJournal,
+    GnssFix,
+    ImuSample,
+    Message,
+    RunInfo,
+    TimeTag,
+    Truth,
+    encode,
+)
+from hil.record.mcapio import SessionWriter
+from hil.runtime.scenario_io import run_attachments, scenario_for_run, sha256_text
+from hil.timesync.core import TimeSyncCore
+
+CAN_FRAME_TIME_NS = 135_000  # ~ one 8-byte classic frame at 1 Mbit/s with stuffing
+TRUTH_RATE_HZ = 100.0
+WINDOW_NS = 1_000_000_000
+
+
+@dataclass
+class SimOptions:
+    scenario: str = "straight_level"
+    duration_s: float | None = None
+    record: Path = Path("recordings/sim.mcap")
+    rig: str = "sim"
+    estimators: list[str] = field(default_factory=list)
+    fd: bool = False
+    lag_s: float = 0.2
+    output_every: int = 8
+    progress: bool = False
+
+
+@dataclass
+class SimResult:
+    path: Path
+    messages: int
+    duration_s: float
+    wall_s: float
+
+    @property
+    def summary(self) -> str:
+        x = self.duration_s / self.wall_s if self.wall_s > 0 else float("inf")
+        return (
+            f"hil sim: {self.duration_s:g} s of rig time in {self.wall_s:.1f} s ({x:.1f}x real time), "
+            f"{self.messages} messages -> {self.path}"
+        )
+
+
+class _Pubs:
+    """Per-publisher seq counters, as the live services keep them."""
+
+    def __init__(self) -> None:
+        self.seq: dict[str, int] = {}
+
+    def next(self, key: str) -> int:
+        s = self.seq.get(key, 0)
+        self.seq[key] = s + 1
+        return s
+
+
+def run_sim(opts: SimOptions) -> SimResult:
+    from hil.can.codec import ImuCanCodec, ImuFrameAssembler
+    from hil.nav.scenario import load_scenario
+    from hil.nav.trajectory import TruthGenerator
+    from hil.sensors.clock import device_clock_for
+    from hil.sensors.gnss import GnssEmulatorCore
+    from hil.sensors.imu import ImuEmulatorCore, sensor_rng
+    from services.fusion import default_estimators
+
+    t_wall = time.monotonic()
+    base = load_scenario(opts.scenario)
+    duration_s = float(opts.duration_s if opts.duration_s is not None else base.duration_s)
+    keys = Keys(opts.rig)
+    run = RunInfo(
+        seq=0,
+        stamp_ns=0,
+        rig=opts.rig,
+        start_epoch_ns=0,
+        speed=0.0 + 1.0,
+        scenario=base.name,
+        scenario_sha256=sha256_text(base.source_text),
+        seed=base.seed,
+        duration_s=duration_s,
+        origin_lat_deg=base.origin_lat_deg,
+        origin_lon_deg=base.origin_lon_deg,
+        origin_alt_m=base.origin_alt_m,
+        scenario_toml=base.source_text,
+    )
+    s = scenario_for_run(run)
+    truth = TruthGenerator(s)
+    imu_core = ImuEmulatorCore(s, truth, sensor_rng(s.seed, "imu"))
+    gnss_core = GnssEmulatorCore(s, truth, sensor_rng(s.seed, "gnss"))
+    imu_clock = device_clock_for(s, "imu")
+    gnss_clock = device_clock_for(s, "gnss")
+    codec = ImuCanCodec.from_dbc(fd=opts.fd)
+    assembler = ImuFrameAssembler(ImuCanCodec.from_dbc(fd=opts.fd))
+    sync = TimeSyncCore()
+    names = tuple(opts.estimators) or default_estimators()
+    cfg = FusionConfig(estimators=names, lag_ns=int(opts.lag_s * 1e9), output_every=opts.output_every)
+    fusion = FusionCore(truth.initial_state(), cfg)
+
+    w = SessionWriter(opts.record)
+    w.add_metadata(
+        "hil",
+        {
+            "version": __version__,
+            "rig": opts.rig,
+            "scenario": s.name,
+            "scenario_sha256": run.scenario_sha256,
+            "seed": s.seed,
+            "start_epoch_ns": 0,
+            "speed": 0,
+            "duration_s": duration_s,
+            "origin_lat_deg": s.origin_lat_deg,
+            "origin_lon_deg": s.origin_lon_deg,
+            "origin_alt_m": s.origin_alt_m,
+            "executor": "sim",
+        },
+    )
+    for name, data, media in run_attachments(run):
+        w.add_attachment(name, data, media)
+    pubs = _Pubs()
+    n_written = 0
+
+    def put(out: list[tuple[int, int, str, Message]], t_log: int, key: str, msg: Message) -> None:
+        out.append((t_log, len(out), key, msg))
+
+    def flush(out: list[tuple[int, int, str, Message]]) -> None:
+        nonlocal n_written
+        out.sort(key=lambda r: (r[0], r[1]))
+        for t_log, _i, key, msg in out:
+            w.write(key, type(msg), encode(msg), log_time_ns=t_log, publish_time_ns=msg.stamp_ns, seq=msg.seq)
+        n_written += len(out)
+        out.clear()
+
+    from hil.record.rerun import FUSION_CONFIG_EVENT, fusion_config_detail
+
+    out: list[tuple[int, int, str, Message]] = []
+    put(out, 0, keys.run(), run)
+    put(
+        out,
+        0,
+        keys.event("fusion"),
+        Event(
+            seq=pubs.next(keys.event("fusion")),
+            stamp_ns=0,
+            kind=FUSION_CONFIG_EVENT,
+            source="fusion",
+            detail=fusion_config_detail(cfg),
+        ),
+    )
+    rate_hz = float(s.imu.rate_hz)
+    dt_ns = int(round(1e9 / rate_hz))
+    n_imu = int(round(duration_s * rate_hz))
+    end_ns = int(duration_s * 1e9)
+    truth_dt = int(round(1e9 / TRUTH_RATE_HZ))
+    k_imu = 0
+    k_truth = 0
+    next_pps = 1_000_000_000
+    next_clock = 1_000_000_000
+    next_journal = 500_000_000
+    gnss_pending: list[tuple[int, int, Any, int]] = []
+    gnss_counter = 0
+    t_win = 0
+    channel = "vcan0"
+    imu_rx_prev_dev: int | None = None
+    while t_win < end_ns + WINDOW_NS:
+        t_end = min(t_win + WINDOW_NS, end_ns + 1)
+        arrivals: list[tuple[int, int, ImuSample | GnssFix]] = []  # (rx, order, synced msg)
+        # truth
+        n_t = max(0, min((t_end - 1) // truth_dt + 1, end_ns // truth_dt + 1) - k_truth)
+        if n_t:
+            tt = np.arange(k_truth, k_truth + n_t, dtype=np.int64) * truth_dt
+            b = truth.sample(tt)
+            for i in range(n_t):
+                put(
+                    out,
+                    int(tt[i]),
+                    keys.truth(),
+                    Truth(
+                        seq=pubs.next(keys.truth()),
+                        stamp_ns=int(tt[i]),
+                        lat_deg=float(np.degrees(b.lat_rad[i])),
+                        lon_deg=float(np.degrees(b.lon_rad[i])),
+                        alt_m=float(b.alt_m[i]),
+                        pos_ned_m=b.pos_ned_m[i].tolist(),
+                        vel_ned_mps=b.vel_ned_mps[i].tolist(),
+                        q_nb=b.q_nb[i].tolist(),
+                        f_b_mps2=b.f_b_mps2[i].tolist(),
+                        w_ib_b_radps=b.w_ib_b_radps[i].tolist(),
+                    ),
+                )
+            k_truth += n_t
+        # IMU: physics -> wire -> assembler -> raw sample -> synced sample
+        n_i = max(0, min(n_imu, (t_end - 1) // dt_ns) - k_imu)
+        if n_i:
+            batch = imu_core.next_batch(n_i)
+            for i in range(n_i):
+                t_true = int(batch.t_ns[i])
+                dev = imu_clock.device_ns(t_true)
+                frames = codec.encode_sample(
+                    device_stamp_ns=dev, dtheta_b_rad=batch.dtheta_b_rad[i], dvel_b_mps=batch.dvel_b_mps[i]
+                )
+                k = k_imu + i
+                if (k + 1) % int(round(rate_hz)) == 0:
+                    frames.append(codec.encode_sync(dev))
+                put(
+                    out,
+                    t_true,
+                    keys.capture("imu"),
+                    CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true),
+                )
+                for j, fr in enumerate(frames):
+                    rx = t_true + (j + 1) * CAN_FRAME_TIME_NS
+                    fr.timestamp = rx * 1e-9
+                    put(
+                        out,
+                        rx,
+                        keys.can(channel),
+                        CanFrame(
+                            seq=pubs.next(keys.can(channel)),
+                            stamp_ns=rx,
+                            channel=channel,
+                            arbitration_id=fr.arbitration_id,
+                            is_extended_id=fr.is_extended_id,
+                            is_fd=fr.is_fd,
+                            bitrate_switch=fr.bitrate_switch,
+                            data_hex=bytes(fr.data).hex(),
+                        ),
+                    )
+                    for item in assembler.feed(fr):
+                        if hasattr(item, "dtheta_b_rad"):
+                            dtn = (
+                                dt_ns
+                                if imu_rx_prev_dev is None
+                                else max(1, item.device_stamp_ns - imu_rx_prev_dev)
+                            )
+                            imu_rx_prev_dev = item.device_stamp_ns
+                            raw = ImuSample(
+                                seq=pubs.next(keys.sensor("imu")),
+                                stamp_ns=rx,
+                                device_stamp_ns=item.device_stamp_ns,
+                                rx_stamp_ns=rx,
+                                dt_ns=dtn,
+                                dtheta_b_rad=list(item.dtheta_b_rad),
+                                dvel_b_mps=list(item.dvel_b_mps),
+                                status=item.status,
+                            )
+                            put(out, rx, keys.sensor("imu"), raw)
+                            sync.on_arrival("imu", raw.device_stamp_ns, rx)
+                            synced = ImuSample(
+                                **{**_fields(raw), "stamp_ns": sync.restamp("imu", raw.device_stamp_ns)}
+                            )
+                            put(out, rx, keys.synced("imu"), synced)
+                            arrivals.append((rx, len(arrivals), synced))
+                        else:
+                            put(
+                                out,
+                                rx,
+                                keys.timetag("imu"),
+                                TimeTag(
+                                    seq=pubs.next(keys.timetag("imu")),
+                                    stamp_ns=rx,
+                                    sensor="imu",
+                                    kind="sync_frame",
+                                    device_stamp_ns=item.device_stamp_ns,
+                                ),
+                            )
+                            sync.on_timetag("imu", item.device_stamp_ns, rx)
+            k_imu += n_i
+        # GNSS: fixes come out at their output time (validity + latency)
+        gb = gnss_core.next_batch(min(t_end - 1, end_ns))
+        for i in range(len(gb.t_valid_ns)):
+            heapq.heappush(gnss_pending, (int(gb.t_output_ns[i]), gnss_counter, gb, i))
+            gnss_counter += 1
+        while gnss_pending and gnss_pending[0][0] < t_end:
+            t_out, _c, gb_i, i = heapq.heappop(gnss_pending)
+            t_valid = int(gb_i.t_valid_ns[i])
+            seq = pubs.next(keys.sensor("gnss"))
+            raw = GnssFix(
+                seq=seq,
+                stamp_ns=t_out,
+                device_stamp_ns=gnss_clock.device_ns(t_valid),
+                rx_stamp_ns=t_out,
+                lat_deg=float(gb_i.lat_deg[i]),
+                lon_deg=float(gb_i.lon_deg[i]),
+                alt_m=float(gb_i.alt_m[i]),
+                pos_ned_m=np.asarray(gb_i.pos_ned_m[i], float).tolist(),
+                vel_ned_mps=np.asarray(gb_i.vel_ned_mps[i], float).tolist(),
+                pos_sigma_m=np.asarray(gb_i.pos_sigma_m[i], float).tolist(),
+                vel_sigma_mps=np.asarray(gb_i.vel_sigma_mps[i], float).tolist(),
+                fix_type=int(gb_i.fix_type[i]),
+                num_sats=int(gb_i.num_sats[i]),
+                hdop=float(gb_i.hdop[i]),
+            )
+            put(out, t_out, keys.sensor("gnss"), raw)
+            put(
+                out,
+                t_out,
+                keys.capture("gnss"),
+                CaptureTruth(seq=seq, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid),
+            )
+            sync.on_arrival("gnss", raw.device_stamp_ns, t_out)
+            synced = GnssFix(**{**_fields(raw), "stamp_ns": sync.restamp("gnss", raw.device_stamp_ns)})
+            put(out, t_out, keys.synced("gnss"), synced)
+            arrivals.append((t_out, len(arrivals), synced))
+        while next_pps < t_end and next_pps <= end_ns:
+            put(
+                out,
+                next_pps,
+                keys.timetag("gnss"),
+                TimeTag(
+                    seq=pubs.next(keys.timetag("gnss")),
+                    stamp_ns=next_pps,
+                    sensor="gnss",
+                    kind="pps",
+                    device_stamp_ns=gnss_clock.device_ns(next_pps),
+                ),
+            )
+            sync.on_timetag("gnss", gnss_clock.device_ns(next_pps), next_pps)
+            next_pps += 1_000_000_000
+        # fusion consumes in arrival order, exactly like the live service's inbox
+        arrivals.sort(key=lambda a: (a[0], a[1]))
+        for rx, _o, msg in arrivals:
+            while next_journal <= rx:
+                put(
+                    out,
+                    next_journal,
+                    keys.journal(),
+                    FusionJournal(
+                        seq=pubs.next(keys.journal()),
+                        stamp_ns=next_journal,
+                        watermark_ns=fusion.watermark_ns,
+                        consumed=fusion.consumed,
+                        dropped=fusion.take_dropped(),
+                    ),
+                )
+                next_journal += 500_000_000
+            for sol in fusion.push(msg):
+                put(out, rx, keys.nav(sol.estimator), sol)
+        while next_clock < t_end and next_clock <= end_ns:
+            for m in list(sync.mappings.values()):
+                put(
+                    out,
+                    next_clock,
+                    keys.clock(m.sensor),
+                    ClockModel(
+                        seq=pubs.next(keys.clock(m.sensor)),
+                        stamp_ns=next_clock,
+                        sensor=m.sensor,
+                        source=m.source,
+                        offset_ns=m.offset_ns,
+                        drift_ppb=m.drift_ppb,
+                        ref_device_ns=m.ref_device_ns,
+                        residual_rms_ns=m.residual_rms_ns,
+                        n_samples=m.n_samples,
+                        state=m.state,
+                        steps_detected=m.steps_detected,
+                    ),
+                )
+            next_clock += 1_000_000_000
+        t_win += WINDOW_NS
+        if t_win > end_ns:
+            t_last = end_ns + 1
+            for sol in fusion.flush():
+                put(out, t_last, keys.nav(sol.estimator), sol)
+            put(
+                out,
+                t_last,
+                keys.journal(),
+                FusionJournal(
+                    seq=pubs.next(keys.journal()),
+                    stamp_ns=t_last,
+                    watermark_ns=fusion.watermark_ns,
+                    consumed=fusion.consumed,
+                    dropped=fusion.take_dropped(),
+                ),
+            )
+        flush(out)
+        w.flush()
+    w.add_metadata("completeness", {"messages": n_written, "missing": 0, "replay_ready": True, "topics": {}})
+    w.close()
+    _ = FREE_INS
+    return SimResult(opts.record, n_written, duration_s, time.monotonic() - t_wall)
+
+
+def _fields(m: Message) -> dict[str, Any]:
+    return {f: getattr(m, f) for f in m.__struct_fields__}
