@@ -9,13 +9,15 @@ Two rates, handled deliberately:
 
 * the filter **input** ``d = X_INS − X_GNSS`` exists only at GNSS epochs (1–10 Hz). It is formed
   at the GNSS *time of validity* (INS position extrapolated to that instant with the INS
-  velocity) and held until the next epoch;
+  velocity) and continued until the next epoch as a ramp: position channels with the
+  INS-minus-GNSS velocity difference as slope (the INS position error rate), velocity channels
+  held. Holding the position difference would lag a drifting INS error by half a GNSS interval;
 * the filter **state** is advanced to every IMU stamp (400 Hz) with the exact ZOH transition for
   that step (:mod:`hil.estimators.lti`), so the published solution is valid at the IMU stamp.
   The input change is placed at the GNSS time of validity exactly: if the fix is later than the
   state, the state is first advanced to it; if it is earlier (the fusion core may deliver it just
   after the IMU step that straddles it), the state is corrected retroactively with
-  ``x += Γ(t − t_g)(d_new − d_old)``, which is exact for an LTI filter with ZOH input.
+  ``x += Γ0(δ)(d_new − d_old(t_g)) + Γ1(δ)(s_new − s_old)``, exact for an LTI filter.
 
 Variable structure (the paper's time-scheduled table, restarting when GNSS returns after an
 outage) and its **bumpless transfer**: at each structure switch the new state is chosen so that
@@ -102,6 +104,7 @@ class CompensationCore:
         self.stage = 0
         self.x: F64 = np.zeros((self.stages[0].ss.order, n_channels))
         self.u: F64 = np.zeros(n_channels)
+        self.slope: F64 = np.zeros(n_channels)
         self.t_ns: int | None = None
         self.t_start_ns: int | None = None
         self.t_last_input_ns: int | None = None
@@ -110,9 +113,10 @@ class CompensationCore:
 
     # -- propagation ---------------------------------------------------------------------------
     def _step(self, h_ns: int) -> None:
-        phi, gamma = self._caches[self.stage].get(h_ns)
-        # x+ = Φ(h) x + Γ(h) u   (exact for the held input u)
-        self.x = phi @ self.x + np.outer(gamma, self.u)
+        phi, gamma0, gamma1 = self._caches[self.stage].get(h_ns)
+        # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ)
+        self.x = phi @ self.x + np.outer(gamma0, self.u) + np.outer(gamma1, self.slope)
+        self.u = self.u + self.slope * (h_ns * 1e-9)
 
     def _next_boundary_ns(self) -> int | None:
         if self.t_start_ns is None or self.stage + 1 >= len(self.stages):
@@ -134,9 +138,13 @@ class CompensationCore:
                 self.switch_to(self.stage + 1)
 
     # -- inputs ----------------------------------------------------------------------------------
-    def set_input(self, t_ns: int, d: F64) -> None:
-        """The difference ``d = X_INS − X_GNSS`` valid from ``t_ns`` on (held until the next)."""
+    def set_input(self, t_ns: int, d: F64, slope: F64 | None = None) -> None:
+        """The difference ``d = X_INS − X_GNSS`` at ``t_ns``, continued as ``d + slope (t − t_ns)``.
+
+        ``slope`` (per second) defaults to 0 (zero-order hold).
+        """
         d = np.asarray(d, dtype=float)
+        s = np.zeros_like(d) if slope is None else np.asarray(slope, dtype=float)
         restart = (
             self.t_last_input_ns is not None
             and self.restart_after_ns is not None
@@ -145,9 +153,13 @@ class CompensationCore:
         if self.t_ns is None or t_ns >= self.t_ns:
             self.advance_to(t_ns)
         else:
-            # Input change in the past by δ: x += Γ(δ)(d_new − d_old), exact for LTI + ZOH.
-            _, gamma = self._caches[self.stage].get(self.t_ns - t_ns)
-            self.x = self.x + np.outer(gamma, d - self.u)
+            # Input change in the past by δ: the input since t_g was u_old(t_g) + s_old τ and
+            # should have been d + s τ, so x += Γ0(δ)(d − u_old(t_g)) + Γ1(δ)(s − s_old).
+            delta_ns = self.t_ns - t_ns
+            _, gamma0, gamma1 = self._caches[self.stage].get(delta_ns)
+            u_old_at_tg = self.u - self.slope * (delta_ns * 1e-9)
+            self.x = self.x + np.outer(gamma0, d - u_old_at_tg) + np.outer(gamma1, s - self.slope)
+            d = d + s * (delta_ns * 1e-9)
         if self.t_start_ns is None:
             self.t_start_ns = t_ns
         elif restart:
@@ -156,6 +168,7 @@ class CompensationCore:
             if len(self.stages) > 1:
                 self.switch_to(0)
         self.u = d.copy()
+        self.slope = s.copy()
         self.t_last_input_ns = t_ns
 
     # -- outputs ---------------------------------------------------------------------------------
@@ -229,8 +242,11 @@ class CompensationEstimator:
         # INS position at the GNSS time of validity: p(t_g) ≈ p(t_imu) + v (t_g − t_imu)
         dt_s = (gnss.stamp_ns - self._ins_stamp_ns) * 1e-9
         pos_ins = ins.pos_ned_m + ins.vel_ned_mps * dt_s
-        d = np.concatenate([pos_ins - gnss.pos_ned_m, ins.vel_ned_mps - gnss.vel_ned_mps])
-        self.core.set_input(gnss.stamp_ns, d)
+        dv = ins.vel_ned_mps - gnss.vel_ned_mps
+        d = np.concatenate([pos_ins - gnss.pos_ned_m, dv])
+        # Between fixes the position difference drifts at the velocity difference (the INS
+        # position error rate): continue it as a ramp rather than holding it.
+        self.core.set_input(gnss.stamp_ns, d, np.concatenate([dv, np.zeros(3)]))
         self._gnss_count += 1
         self._last_diff_pos_m = float(np.linalg.norm(d[:3]))
 

@@ -6,15 +6,19 @@ discretised **exactly** for whatever step it is advanced by, with a zero-order h
 
     Φ(h) = e^{A h}            Γ(h) = ∫_0^h e^{A s} ds · B
 
-Why ZOH: the filter's input is the difference ``X_INS − X_GNSS`` formed at each GNSS epoch
-and *held* until the next one (1–10 Hz), while the filter is advanced at IMU rate (400 Hz) and
-at the GNSS times of validity. For a held input ZOH is not an approximation but the exact
-solution of the continuous filter, for any step length and any mix of step lengths; Tustin
-would warp the frequency axis and forward Euler is unstable for ``h > 2T`` (T = 0.5 s in the
-first variable-structure stage against a 1 s GNSS step). The discretisation is
-``scipy.signal.cont2discrete(..., method="zoh")`` (a matrix exponential of the augmented
-``[[A, B], [0, 0]] h``), cached per (filter, step in integer ns) so the 400 Hz path is one small
-matrix product per step.
+Why a hold-exact discretisation: the filter's input is the difference ``X_INS − X_GNSS``
+formed at each GNSS epoch (1–10 Hz) and continued until the next one, while the filter is
+advanced at IMU rate (400 Hz) and at the GNSS times of validity. Between fixes the input is a
+known function of time — a ramp ``d_k + s_k (t − t_k)`` whose slope is the INS-minus-GNSS
+velocity difference for the position channels (0 for velocity channels) — and for such an
+input the matrix exponential of the augmented system is not an approximation but the exact
+solution of the continuous filter, for any step length and any mix of step lengths. A plain
+ZOH (``scipy.signal.cont2discrete(method="zoh")``, which gives the same ``Φ`` and ``Γ0``)
+would delay a drifting INS error by half a GNSS interval (an error of rate·Δt/2: 30 m for the
+seed-000 INS drifting at 60 m/s with 1 Hz GNSS); Tustin would warp the frequency axis and
+forward Euler is unstable for ``h > 2T`` (T = 0.5 s in the first variable-structure stage
+against a 1 s GNSS step). Discretisations are cached per (filter, step in integer ns), so the
+400 Hz path is one small matrix product per step.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import signal
+from scipy.linalg import expm
 
 from hil.nav.types import F64
 
@@ -87,22 +92,37 @@ def zoh(ss: StateSpace, h_s: float) -> tuple[F64, F64]:
     return np.asarray(ad, float), np.asarray(bd, float)[:, 0].copy()
 
 
+def ramp_hold(ss: StateSpace, h_s: float) -> tuple[F64, F64, F64]:
+    """Exact discretisation for a ramp input ``u(τ) = u0 + s τ`` over ``h_s``.
+
+    ``x+ = Φ x + Γ0 u0 + Γ1 s`` from ``expm([[A, B, 0], [0, 0, 1], [0, 0, 0]] h)`` (the input
+    and its slope appended as states). ``Γ0`` equals the ZOH ``Γ`` of ``cont2discrete``.
+    """
+    n = ss.order
+    m = np.zeros((n + 2, n + 2))
+    m[:n, :n] = ss.a
+    m[:n, n] = ss.b
+    m[n, n + 1] = 1.0
+    e = expm(m * h_s)
+    return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
+
+
 @dataclass
 class ZohCache:
-    """``(Φ, Γ)`` per step length in integer ns, so equal steps never recompute ``e^{A h}``."""
+    """``(Φ, Γ0, Γ1)`` per step length in integer ns, so equal steps never recompute ``e^{A h}``."""
 
     ss: StateSpace
     max_entries: int = 256
-    _table: dict[int, tuple[F64, F64]] = field(default_factory=dict)
+    _table: dict[int, tuple[F64, F64, F64]] = field(default_factory=dict)
 
-    def get(self, h_ns: int) -> tuple[F64, F64]:
+    def get(self, h_ns: int) -> tuple[F64, F64, F64]:
         hit = self._table.get(h_ns)
         if hit is None:
             if len(self._table) >= self.max_entries:
                 # Jittery steps would otherwise grow the table without bound; evicting the
                 # oldest entry costs at worst one recomputation of e^{A h}.
                 self._table.pop(next(iter(self._table)))
-            hit = zoh(self.ss, h_ns * 1e-9)
+            hit = ramp_hold(self.ss, h_ns * 1e-9)
             self._table[h_ns] = hit
         return hit
 

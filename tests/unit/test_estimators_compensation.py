@@ -8,7 +8,7 @@ import pytest
 from hil.estimators.base import GnssInput, ImuInput, InitialState
 from hil.estimators.compensation import VS_SCHEDULE, CompensationCore, fixed_filter
 from hil.estimators.complementary import ComplementaryFilter, pulse_peak_error, static_error
-from hil.estimators.lti import StateSpace, aperiodic, complementary2, complementary3, forcing3, zoh
+from hil.estimators.lti import StateSpace, aperiodic, complementary2, complementary3, forcing3, ramp_hold, zoh
 from hil.estimators.registry import DEFAULT_ESTIMATORS, ESTIMATORS, make_estimator
 from hil.nav.types import NavState
 
@@ -58,9 +58,22 @@ def test_zoh_is_exact_for_first_order_lag() -> None:
     assert phi[0, 0] == pytest.approx(np.exp(-2.0))
     c = StateSpace.from_tf(aperiodic(1, 0.5)).c[0]
     assert c * gamma[0] == pytest.approx(1.0 - np.exp(-2.0))
+    ss3 = StateSpace.from_tf(forcing3(3.0))
+    phi3, g3 = zoh(ss3, 0.7)
+    phi_r, g0, _ = ramp_hold(ss3, 0.7)
+    np.testing.assert_allclose(phi_r, phi3, atol=1e-14)
+    np.testing.assert_allclose(g0, g3, atol=1e-14)
 
 
-def _run_core(schedule, err_fn, t_end_s: float, dt_s: float = 0.01, gnss_dt_s: float = 1.0):
+def test_ramp_hold_removes_the_half_interval_lag() -> None:
+    rate = 2.0
+    classic = _run_core(((0.0, fixed_filter("comp1")),), lambda t: rate * t, 120.0, slope_fn=lambda t: rate)
+    forcing = _run_core(((0.0, fixed_filter("comp3f")),), lambda t: rate * t, 300.0, slope_fn=lambda t: rate)
+    assert classic[-1] == pytest.approx(5.0 * rate, rel=1e-9)  # 1 − F = Tp/(Tp+1): T·rate
+    assert abs(forcing[-1]) < 1e-9  # double zero: the ramp is removed exactly
+
+
+def _run_core(schedule, err_fn, t_end_s: float, dt_s: float = 0.01, gnss_dt_s: float = 1.0, slope_fn=None):
     core = CompensationCore(schedule, 1)
     core.advance_to(0)
     every = round(gnss_dt_s / dt_s)
@@ -69,7 +82,8 @@ def _run_core(schedule, err_fn, t_end_s: float, dt_s: float = 0.01, gnss_dt_s: f
         t_ns = round(k * dt_s * 1e9)
         core.advance_to(t_ns)
         if k % every == 0:
-            core.set_input(t_ns, np.array([err_fn(k * dt_s)]))
+            slope = None if slope_fn is None else np.array([slope_fn(k * dt_s)])
+            core.set_input(t_ns, np.array([err_fn(k * dt_s)]), slope)
         out[k] = err_fn(k * dt_s) - core.output()[0]  # residual error [1 − F] ξ1
     return out
 
