@@ -1,0 +1,238 @@
+"""Loosely coupled 15-state error-state EKF, closed loop on the strapdown (registry ``ekf15``).
+
+Error state (NED, true = estimate − error for p, v; biases true = estimate + error)::
+
+    δx = [δp (3, m), δv (3, m/s), φ (3, rad), δb_a (3, m/s²), δb_g (3, rad/s)]
+
+with ``C_nb,est = (I − [φ×]) C_nb,true``. Linearised dynamics (Earth-rate coupling kept, the
+small gravity and Coriolis error terms dropped — they matter for hours, not for a UAV flight):
+
+    δṗ = δv
+    δv̇ = [f_n×] φ + C_nb δb_a + w_a           (f_n: specific force in NED)
+    φ̇  = −[ω_ie×] φ − C_nb δb_g − w_g
+    δḃ = −δb / τ + w_b                          (first-order Gauss–Markov bias)
+
+Rates, deliberately: the strapdown (:mod:`hil.nav.strapdown`, shared with the free INS) runs
+at every IMU step with the bias estimates removed from the increments; the covariance is
+propagated every ``cov_every`` IMU steps (default 4, i.e. 100 Hz at 400 Hz) with
+``Φ = I + F Δ + (F Δ)²/2`` and ``Q_d = Q_c Δ`` using the mean specific force of the block — at
+10 ms the neglected terms are O((FΔ)³) ~ 1e-9 — and always flushed before a GNSS update.
+
+GNSS position and velocity are fused at their time of validity: the fusion core delivers a fix
+between the IMU steps around it, so the INS is extrapolated over that sub-interval with its
+velocity (``p(t_g) = p + v (t_g − t_k)``). Each of position and velocity passes an innovation
+gate (normalised innovation squared ``yᵀ S⁻¹ y`` against ``gate_chi2``, χ²(3) 99.9 % by default)
+before the sequential update
+
+    S = H P H' + R;  K = P H' S⁻¹;  δx = K y;  P = (I − K H) P (I − K H)' + K R K'
+
+after which δx is fed back into the strapdown and the biases and reset to zero. After
+``max_rejects`` consecutive rejections the fix is accepted anyway (with the covariance
+inflated), so a filter that diverged does not lock itself out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
+from hil.nav.earth import OMEGA_IE_RADPS, radii_of_curvature
+from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.types import F64, NavState
+
+_DEG = math.pi / 180.0
+_RTH = 60.0  # sqrt(3600 s/h)
+
+
+def skew(v: F64) -> F64:
+    """``[v×]`` such that ``[v×] w = v × w``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
+    """Joseph-form update; returns ``(δx, P+, NIS)`` for innovation ``y`` (m,), ``H`` (m, n)."""
+    ph = p @ h.T
+    s = h @ ph + r  # S = H P H' + R
+    s_inv = np.linalg.inv(s)
+    nis = float(y @ s_inv @ y)
+    k = ph @ s_inv  # K = P H' S⁻¹
+    ikh = np.eye(p.shape[0]) - k @ h
+    p_new = ikh @ p @ ikh.T + k @ r @ k.T  # P = (I − K H) P (I − K H)' + K R K'
+    return k @ y, 0.5 * (p_new + p_new.T), nis
+
+
+class Ekf15:
+    """The 3-D error-state EKF as an :class:`~hil.estimators.base.Estimator`.
+
+    Default noise figures are the rig's ``tactical`` IMU preset (HG1700 class).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        init: InitialState,
+        accel_vrw_mps_rts: float = 0.03 / _RTH,
+        gyro_arw_rad_rts: float = 0.125 * _DEG / _RTH,
+        accel_bias_sigma_mps2: float = 50e-6 * 9.80665,
+        gyro_bias_sigma_radps: float = 0.35 * _DEG / 3600.0,
+        bias_corr_s: float = 300.0,
+        p0_pos_m: float = 3.0,
+        p0_vel_mps: float = 0.3,
+        p0_tilt_rad: float = 2e-3,
+        p0_yaw_rad: float = 1e-2,
+        cov_every: int = 4,
+        gate_chi2: float = 16.27,
+        max_rejects: int = 10,
+    ) -> None:
+        self.name = name
+        self._init = init
+        self.ins = strapdown_from_initial(init)
+        self.b_a = np.zeros(3)
+        self.b_g = np.zeros(3)
+        self.p = np.diag(
+            np.square(
+                [p0_pos_m] * 3
+                + [p0_vel_mps] * 3
+                + [p0_tilt_rad, p0_tilt_rad, p0_yaw_rad]
+                + [accel_bias_sigma_mps2] * 3
+                + [gyro_bias_sigma_radps] * 3
+            )
+        )
+        self._qc = np.diag(
+            [0.0] * 3
+            + [accel_vrw_mps_rts**2] * 3
+            + [gyro_arw_rad_rts**2] * 3
+            + [2 * accel_bias_sigma_mps2**2 / bias_corr_s] * 3
+            + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
+        )
+        self._tau = bias_corr_s
+        self.cov_every = int(cov_every)
+        self.gate_chi2 = gate_chi2
+        self.max_rejects = max_rejects
+        self._pending_dt = 0.0
+        self._pending_dv_b = np.zeros(3)
+        self._pending_n = 0
+        self._stamp_ns = init.stamp_ns
+        self._nav = to_nav_state(self.ins, init)
+        self._nav_dirty = False
+        self._nis_pos = 0.0
+        self._nis_vel = 0.0
+        self._rejects = 0
+        self._consecutive = 0
+        self._fused = 0
+
+    # -- propagation ---------------------------------------------------------------------------
+    def on_imu(self, imu: ImuInput, ins: NavState) -> None:
+        dt = imu.dt_s
+        dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
+        dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
+        self.ins = strapdown_step(self.ins, dth, dv, dt)
+        self._pending_dt += dt
+        self._pending_dv_b += dv
+        self._pending_n += 1
+        self._stamp_ns = imu.stamp_ns
+        self._nav_dirty = True
+        if self._pending_n >= self.cov_every:
+            self._propagate_covariance()
+
+    def _propagate_covariance(self) -> None:
+        if self._pending_n == 0:
+            return
+        dt = self._pending_dt
+        c_nb = quat_to_dcm(self.ins.q_nb)
+        f_n = c_nb @ (self._pending_dv_b / dt)
+        w_ie = np.array(
+            [OMEGA_IE_RADPS * math.cos(self.ins.lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(self.ins.lat_rad)]
+        )
+        f = np.zeros((15, 15))
+        f[0:3, 3:6] = np.eye(3)  # δṗ = δv
+        f[3:6, 6:9] = skew(f_n)  # δv̇ = [f_n×] φ + C δb_a
+        f[3:6, 9:12] = c_nb
+        f[6:9, 6:9] = -skew(w_ie)  # φ̇ = −[ω_ie×] φ − C δb_g
+        f[6:9, 12:15] = -c_nb
+        f[9:15, 9:15] = -np.eye(6) / self._tau
+        fd = f * dt
+        phi = np.eye(15) + fd + 0.5 * fd @ fd  # Φ = I + FΔ + (FΔ)²/2
+        self.p = phi @ self.p @ phi.T + self._qc * dt  # P = Φ P Φ' + Q_c Δ
+        self._pending_dt = 0.0
+        self._pending_dv_b = np.zeros(3)
+        self._pending_n = 0
+
+    # -- GNSS fusion -----------------------------------------------------------------------------
+    def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
+        self._propagate_covariance()
+        nav = self._current_nav()
+        lag_s = (gnss.stamp_ns - self._stamp_ns) * 1e-9
+        pos_tov = nav.pos_ned_m + nav.vel_ned_mps * lag_s  # INS at the GNSS time of validity
+        h_pos = np.hstack([np.eye(3), np.zeros((3, 12))])
+        h_vel = np.hstack([np.zeros((3, 3)), np.eye(3), np.zeros((3, 9))])
+        dx = np.zeros(15)
+        for h, y, sig, kind in (
+            (h_pos, pos_tov - gnss.pos_ned_m, gnss.pos_sigma_m, "pos"),
+            (h_vel, nav.vel_ned_mps - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
+        ):
+            r = np.diag(np.square(np.asarray(sig, float)))
+            y = y - h @ dx  # sequential: innovation against the already-updated error state
+            s = h @ self.p @ h.T + r
+            nis = float(y @ np.linalg.solve(s, y))
+            if kind == "pos":
+                self._nis_pos = nis
+            else:
+                self._nis_vel = nis
+            if nis > self.gate_chi2:
+                self._rejects += 1
+                self._consecutive += 1
+                if self._consecutive <= self.max_rejects:
+                    continue
+                # Locked out: trust the measurement again, with the covariance opened up.
+                idx = np.nonzero(h.any(axis=0))[0]
+                self.p[idx, idx] += y * y
+            else:
+                self._consecutive = 0
+            ddx, self.p, _ = kf_update(self.p, y, h, r)
+            dx = dx + ddx
+            self._fused += 1
+        self._inject(dx)
+
+    def _inject(self, dx: F64) -> None:
+        """Closed loop: feed δx back into the strapdown and biases, then δx ← 0."""
+        if not np.any(dx):
+            return
+        s = self.ins
+        r_m, r_n = radii_of_curvature(s.lat_rad)
+        lat = s.lat_rad - dx[0] / (float(r_m) + s.alt_m)
+        lon = s.lon_rad - dx[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
+        alt = s.alt_m + dx[2]  # δp_D = −δh
+        vel = s.vel_ned_mps - dx[3:6]
+        # C_true = (I + [φ×]) C_est: rotate the NED side by +φ
+        q = quat_normalise(quat_multiply(quat_from_rotvec(dx[6:9]), s.q_nb))
+        self.ins = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
+        self.b_a = self.b_a + dx[9:12]
+        self.b_g = self.b_g + dx[12:15]
+        self._nav_dirty = True
+
+    # -- outputs ---------------------------------------------------------------------------------
+    def _current_nav(self) -> NavState:
+        if self._nav_dirty:
+            self._nav = to_nav_state(self.ins, self._init)
+            self._nav_dirty = False
+        return self._nav
+
+    def solution(self) -> NavState:
+        nav = self._current_nav()
+        d = np.diag(self.p)
+        return NavState(nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, np.sqrt(d[0:3]), np.sqrt(d[3:6]))
+
+    def health(self) -> dict[str, float]:
+        return {
+            "nis_pos": self._nis_pos,
+            "nis_vel": self._nis_vel,
+            "gnss_rejected": float(self._rejects),
+            "gnss_fused": float(self._fused),
+            "accel_bias_norm_mps2": float(np.linalg.norm(self.b_a)),
+            "gyro_bias_norm_radps": float(np.linalg.norm(self.b_g)),
+        }
