@@ -80,6 +80,8 @@ class Ekf15:
         accel_bias_sigma_mps2: float = 50e-6 * 9.80665,
         gyro_bias_sigma_radps: float = 0.35 * _DEG / 3600.0,
         bias_corr_s: float = 300.0,
+        p0_accel_bias_mps2: float = 1e-3 * 9.80665,
+        p0_gyro_bias_radps: float = 1.0 * _DEG / 3600.0,
         p0_pos_m: float = 3.0,
         p0_vel_mps: float = 0.3,
         p0_tilt_rad: float = 2e-3,
@@ -98,8 +100,8 @@ class Ekf15:
                 [p0_pos_m] * 3
                 + [p0_vel_mps] * 3
                 + [p0_tilt_rad, p0_tilt_rad, p0_yaw_rad]
-                + [accel_bias_sigma_mps2] * 3
-                + [gyro_bias_sigma_radps] * 3
+                + [p0_accel_bias_mps2] * 3  # turn-on bias, the preset's 1 mg
+                + [p0_gyro_bias_radps] * 3  # and 1 deg/h
             )
         )
         self._qc = np.diag(
