@@ -170,7 +170,9 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
 def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.record.rerun import rerun
 
-    return rerun(a.file, core=a.core, verify=a.verify)
+    rc, lines = rerun(a.file, core=a.core, verify=a.verify)
+    print("\n".join(lines))
+    return rc
 
 
 def cmd_router(a: argparse.Namespace) -> int:

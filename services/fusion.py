@@ -33,11 +33,17 @@ def default_estimators() -> tuple[str, ...]:
 class Fusion(Service):
     name = "fusion"
 
-    def setup(self) -> None:
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
         self.inbox: queue.SimpleQueue[ImuSample | GnssFix | None] = queue.SimpleQueue()
+        self.core: FusionCore | None = None
+
+    def setup(self) -> None:
+        import hil.estimators.registry
+        import hil.nav.trajectory  # noqa: F401
+
         self.subscribe(self.keys.synced("imu"), ImuSample, lambda m, _k: self.inbox.put(m))
         self.subscribe(self.keys.synced("gnss"), GnssFix, lambda m, _k: self.inbox.put(m))
-        self.core: FusionCore | None = None
 
     def extra_status(self) -> dict[str, int]:
         core = self.core

@@ -22,11 +22,16 @@ from hil.sensors.clock import device_clock_for
 class GnssEmulator(Service):
     name = "gnss_emulator"
 
+    def setup(self) -> None:
+        # Import the numerics before reporting ready: a late start would burst samples at time zero.
+        import hil.nav.trajectory
+        import hil.sensors.gnss
+        import hil.sensors.imu  # noqa: F401
+
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
+        from hil.nav.trajectory import TruthGenerator
         from hil.sensors.gnss import GnssEmulatorCore
         from hil.sensors.imu import sensor_rng
-
-        from hil.nav.trajectory import TruthGenerator
 
         s = scenario_for_run(run)
         core = GnssEmulatorCore(s, TruthGenerator(s), sensor_rng(s.seed, "gnss"))

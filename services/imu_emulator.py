@@ -23,13 +23,20 @@ MAX_BATCH = 200  # samples generated at once when catching up (sped-up clock, sl
 class ImuEmulator(Service):
     name = "imu_emulator"
 
+    def setup(self) -> None:
+        # Import the numerics before reporting ready: a late start would burst samples at time zero.
+        import hil.can.bus
+        import hil.can.codec
+        import hil.can.node
+        import hil.nav.trajectory
+        import hil.sensors.imu  # noqa: F401
+
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
         from hil.can.bus import open_can_bus
-        from hil.can.node import ImuCanNode
-        from hil.sensors.imu import ImuEmulatorCore, sensor_rng
-
         from hil.can.codec import ImuCanCodec
+        from hil.can.node import ImuCanNode
         from hil.nav.trajectory import TruthGenerator
+        from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
         opts = self.ctx.options
         s = scenario_for_run(run)
@@ -44,9 +51,9 @@ class ImuEmulator(Service):
         self._node = node
         cap_pub = self.publisher(self.keys.capture("imu"), CaptureTruth)
         rate_hz = float(s.imu.rate_hz)
-        dt_ns = int(round(1e9 / rate_hz))
-        n_total = int(round(run.duration_s * rate_hz))
-        sync_every = max(1, int(round(rate_hz)))  # one sync/time-tag frame per second
+        dt_ns = round(1e9 / rate_hz)
+        n_total = round(run.duration_s * rate_hz)
+        sync_every = max(1, round(rate_hz))  # one sync/time-tag frame per second
         k = 0  # samples sent; sample k ends at (k+1)*dt
         try:
             while k < n_total and not self.ctx.stop.is_set():

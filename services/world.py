@@ -32,7 +32,7 @@ class World(Service):
         self.speed = float(opts.get("speed", 1.0))
         self.wait_for: set[str] = set(opts.get("wait_for", []))
         self.wait_timeout_s = float(opts.get("wait_timeout_s", 60.0))
-        self.lead_s = float(opts.get("lead_s", 0.5))
+        self.lead_s = float(opts.get("lead_s", 1.0))
         self._ready: set[str] = set()
         self._ready_event = threading.Event()
 
@@ -40,6 +40,7 @@ class World(Service):
         return False
 
     def setup(self) -> None:
+        import hil.nav.trajectory  # noqa: F401 - before time zero
         from hil.nav.scenario import load_scenario
 
         name = self.ctx.options.get("scenario") or "straight_level"
@@ -91,7 +92,7 @@ class World(Service):
 
         truth = TruthGenerator(scenario_for_run(run))
         threading.Thread(target=self._announce_loop, args=(run, clock), name="announce", daemon=True).start()
-        dt_ns = int(round(1e9 / self.truth_rate_hz))
+        dt_ns = round(1e9 / self.truth_rate_hz)
         n_total = int(self.duration_s * 1e9) // dt_ns + 1
         k = 0
         while k < n_total and not self.ctx.stop.is_set():

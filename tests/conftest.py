@@ -41,7 +41,11 @@ def hil_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "hil.cli", *args]
 
 
-def run_hil(*args: str, timeout: float = 300, cwd: Path | None = None, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+def run_hil(
+    *args: str, timeout: float = 300, cwd: Path | None = None, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
     e = dict(os.environ)
     e.update(env or {})
-    return subprocess.run(hil_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=cwd or REPO, env=e)
+    return subprocess.run(
+        hil_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=cwd or REPO, env=e
+    )

@@ -32,6 +32,7 @@ class FusionConfig:
     lag_ns: int = 200_000_000  # > worst GNSS latency + jitter, so fixes are fused in time order
     output_every: int = 8  # publish every N-th IMU step (by IMU seq: deterministic under loss)
     max_future_ns: int = 5_000_000_000  # an input this far ahead of the newest is rejected, not trusted
+    max_buffered: int = 20_000  # bound on the reorder buffer (e.g. GNSS during an IMU outage)
 
 
 def input_key(msg: ImuSample | GnssFix) -> tuple[int, int, int]:
@@ -60,8 +61,15 @@ class FusionCore:
             from hil.estimators.registry import make_estimator
 
             maker = make_estimator
-        self.estimators: list[Estimator] = [maker(name, self.init) for name in self.config.estimators]
         self._failed: set[str] = set()
+        self.last_error = ""
+        self.estimators: list[Estimator] = []
+        for name in self.config.estimators:
+            try:
+                self.estimators.append(maker(name, self.init))
+            except Exception as err:  # one broken estimator must not take the others down
+                self._inc(f"errors.estimator_init.{name}")
+                self.last_error = f"estimator {name} could not start: {type(err).__name__}: {err}"
         self._heap: list[tuple[tuple[int, int, int], ImuSample | GnssFix]] = []
         self._newest_ns: int | None = None
         self._last_key: tuple[int, int, int] = (-(2**62), -1, -1)
@@ -83,8 +91,15 @@ class FusionCore:
             self._dropped.append("late:" + input_id(msg))
             return []
         heapq.heappush(self._heap, (key, msg))
-        if self._newest_ns is None or msg.stamp_ns > self._newest_ns:
+        # The IMU is the fusion's clock: only its progress moves the watermark, so a GNSS fix that
+        # arrives before the IMU samples around its time of validity waits for them.
+        if msg.sensor == "imu" and (self._newest_ns is None or msg.stamp_ns > self._newest_ns):
             self._newest_ns = msg.stamp_ns
+        if self._newest_ns is None:
+            return []
+        if len(self._heap) > self.config.max_buffered:
+            self._inc("released_on_overflow")
+            return self._release(self._heap[0][0][0])
         return self._release(self._newest_ns - self.config.lag_ns)
 
     def flush(self) -> list[NavSolution]:

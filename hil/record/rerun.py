@@ -9,7 +9,6 @@ field, both values).
 from __future__ import annotations
 
 import json
-import sys
 from collections import Counter
 from dataclasses import dataclass
 
@@ -23,7 +22,9 @@ FUSION_CONFIG_EVENT = "fusion_config"
 
 
 def fusion_config_detail(cfg: FusionConfig) -> str:
-    return json.dumps({"estimators": list(cfg.estimators), "lag_ns": cfg.lag_ns, "output_every": cfg.output_every})
+    return json.dumps(
+        {"estimators": list(cfg.estimators), "lag_ns": cfg.lag_ns, "output_every": cfg.output_every}
+    )
 
 
 def fusion_config_from(session: Session) -> FusionConfig:
@@ -34,9 +35,13 @@ def fusion_config_from(session: Session) -> FusionConfig:
             if ev.kind == FUSION_CONFIG_EVENT:
                 d = json.loads(ev.detail)
                 return FusionConfig(
-                    estimators=tuple(d["estimators"]), lag_ns=int(d["lag_ns"]), output_every=int(d["output_every"])
+                    estimators=tuple(d["estimators"]),
+                    lag_ns=int(d["lag_ns"]),
+                    output_every=int(d["output_every"]),
                 )
-    raise RecordingError(f"{session.path}: no '{FUSION_CONFIG_EVENT}' event: the fusion did not run in this session")
+    raise RecordingError(
+        f"{session.path}: no '{FUSION_CONFIG_EVENT}' event: the fusion did not run in this session"
+    )
 
 
 def run_info_from(session: Session) -> RunInfo:
@@ -120,21 +125,19 @@ def rerun_fusion(session: Session) -> RerunResult:
     return RerunResult(out, recorded, len(keep), sum(dropped.values()))
 
 
-def rerun(path: str, *, core: str = "fusion", verify: bool = False) -> int:
+def rerun(path: str, *, core: str = "fusion", verify: bool = False) -> tuple[int, list[str]]:
+    """Exit code and report lines for ``hil rerun``."""
     session = read_session(path)
     if core != "fusion":
-        print(f"hil rerun: core {core!r} is not rerunnable yet", file=sys.stderr)
-        return 2
+        return 2, [f"hil rerun: core {core!r} is not rerunnable yet"]
     res = rerun_fusion(session)
-    print(
+    lines = [
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "
         f"{len(res.recomputed)} outputs recomputed, {len(res.recorded)} recorded"
-    )
+    ]
     if not verify:
-        return 0
+        return 0, lines
     diff = res.first_difference()
     if diff:
-        print(f"VERIFY FAILED: {diff}")
-        return 1
-    print(f"VERIFY OK: all {len(res.recorded)} recorded outputs are bit-identical")
-    return 0
+        return 1, [*lines, f"VERIFY FAILED: {diff}"]
+    return 0, [*lines, f"VERIFY OK: all {len(res.recorded)} recorded outputs are bit-identical"]

@@ -175,10 +175,10 @@ def run_sim(opts: SimOptions) -> SimResult:
         ),
     )
     rate_hz = float(s.imu.rate_hz)
-    dt_ns = int(round(1e9 / rate_hz))
-    n_imu = int(round(duration_s * rate_hz))
+    dt_ns = round(1e9 / rate_hz)
+    n_imu = round(duration_s * rate_hz)
     end_ns = int(duration_s * 1e9)
-    truth_dt = int(round(1e9 / TRUTH_RATE_HZ))
+    truth_dt = round(1e9 / TRUTH_RATE_HZ)
     k_imu = 0
     k_truth = 0
     next_pps = 1_000_000_000
@@ -227,7 +227,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                     device_stamp_ns=dev, dtheta_b_rad=batch.dtheta_b_rad[i], dvel_b_mps=batch.dvel_b_mps[i]
                 )
                 k = k_imu + i
-                if (k + 1) % int(round(rate_hz)) == 0:
+                if (k + 1) % round(rate_hz) == 0:
                     frames.append(codec.encode_sync(dev))
                 put(
                     out,

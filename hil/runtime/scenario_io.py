@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from pathlib import Path
 
 from hil.messages import CONTRACT_TYPES, RunInfo, json_schema, schema_name
@@ -21,16 +20,10 @@ def dbc_path() -> Path:
 
 
 def scenario_from_text(text: str, name: str = "scenario"):  # -> hil.nav.scenario.Scenario
-    """Parse scenario TOML text with the same loader as files."""
-    from hil.nav import scenario as sc
+    """Parse scenario TOML text with the same parser as files."""
+    from hil.nav.scenario import parse_scenario
 
-    parse = getattr(sc, "parse_scenario", None) or getattr(sc, "scenario_from_text", None)
-    if parse is not None:
-        return parse(text, name=name) if "name" in parse.__code__.co_varnames else parse(text)
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / f"{name}.toml"
-        p.write_text(text)
-        return sc.load_scenario(str(p))
+    return parse_scenario(text, default_name=name)
 
 
 def scenario_for_run(run: RunInfo):

@@ -138,7 +138,7 @@ class Service:
 
     def start(self) -> None:
         """Run to completion: status thread, wait for the run, the loop, cleanup."""
-        self.state = "waiting_run" if self.needs_run() else "ready"
+        self.state = "starting"  # world waits for "waiting_run": only after setup() is a service ready
         self._status_thread.start()
         try:
             self.setup()
@@ -188,7 +188,7 @@ def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusC
         svc = cls(ctx)
         svc.start()
     finally:
-        # Give reliable queues a moment to drain before the session goes (slow machines lose the tail otherwise).
+        # Let reliable queues drain before the session goes (slow machines lose the tail otherwise).
         time.sleep(0.2)
         session.close()
     return 0

@@ -98,7 +98,8 @@ class LiveView:
     def table(self, children: dict[str, Child], elapsed_s: float) -> str:
         with self.lock:
             lines = [
-                f"hil up  t={elapsed_s:7.1f} s   {'service':<14}{'state':<12}{'in/s':>8}{'out/s':>8}{'rejected':>9}  last error"
+                f"hil up  t={elapsed_s:7.1f} s   {'service':<14}{'state':<12}{'in/s':>8}{'out/s':>8}"
+                f"{'rejected':>9}  last error"
             ]
             for name in SERVICES:
                 st = self.status.get(name)

@@ -27,16 +27,29 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
     endpoint = f"tcp/127.0.0.1:{port}"
     hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
     statuses: dict[str, ServiceStatus] = {}
-    hub.declare_subscriber(f"hil/{RIG}/status/*", lambda s: statuses.__setitem__(
-        str(s.key_expr).rsplit("/", 1)[1], decode(ServiceStatus, s.payload.to_bytes())))
-    env = dict(os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0")
+    hub.declare_subscriber(
+        f"hil/{RIG}/status/*",
+        lambda s: statuses.__setitem__(
+            str(s.key_expr).rsplit("/", 1)[1], decode(ServiceStatus, s.payload.to_bytes())
+        ),
+    )
+    env = dict(
+        os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
+    )
     out = tmp_path / "fuzz.mcap"
-    proc = subprocess.Popen(hil_cmd("up", "--duration", "12", "--record", str(out), "--quiet", "--rig", RIG),
-                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        hil_cmd("up", "--duration", "12", "--record", str(out), "--quiet", "--rig", RIG),
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 90
-        while time.monotonic() < deadline and statuses.get("imu_emulator", None) is None or (
-            statuses.get("imu_emulator") and statuses["imu_emulator"].state != "running"):
+        while (time.monotonic() < deadline and statuses.get("imu_emulator") is None) or (
+            statuses.get("imu_emulator") and statuses["imu_emulator"].state != "running"
+        ):
             time.sleep(0.2)
             if time.monotonic() > deadline:
                 break
@@ -44,8 +57,16 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
         time.sleep(1.0)
         k = Keys(RIG)
         rng = np.random.default_rng(7)
-        targets = [k.sensor("imu"), k.sensor("gnss"), k.synced("imu"), k.synced("gnss"), k.timetag("imu"),
-                   k.timetag("gnss"), k.run(), k.canbus("vcan0")]
+        targets = [
+            k.sensor("imu"),
+            k.sensor("gnss"),
+            k.synced("imu"),
+            k.synced("gnss"),
+            k.timetag("imu"),
+            k.timetag("gnss"),
+            k.run(),
+            k.canbus("vcan0"),
+        ]
         for key in targets:
             pub = hub.declare_publisher(key)
             for n in (0, 1, 7, 64, 300, 70_000):
@@ -53,7 +74,10 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
             pub.put(b'{"seq": 1, "stamp_ns": "x"}')
             pub.put(b"\xff" * 16)
         time.sleep(3.0)
-        rejected = {name: sum(v for c, v in st.counters.items() if c.startswith("rejected")) for name, st in statuses.items()}
+        rejected = {
+            name: sum(v for c, v in st.counters.items() if c.startswith("rejected"))
+            for name, st in statuses.items()
+        }
         for svc in ("timesync", "fusion", "recorder", "can_bridge"):
             assert rejected.get(svc, 0) > 0, (svc, statuses.get(svc))
         assert all(st.state in ("running", "waiting_run") for st in statuses.values()), statuses

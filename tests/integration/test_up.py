@@ -4,11 +4,7 @@ session and a real python-can bus; the recording is checked with the mcap reader
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import jsonschema
@@ -23,19 +19,37 @@ from tests.conftest import REPO, hil_cmd
 pytestmark = pytest.mark.slow
 
 ALL_SERVICES = {"world", "imu_emulator", "can_bridge", "gnss_emulator", "timesync", "fusion", "recorder"}
-REQUIRED_TYPES = {"hil.RunInfo", "hil.Truth", "hil.ImuSample", "hil.GnssFix", "hil.CanFrame", "hil.TimeTag",
-                  "hil.ClockModel", "hil.NavSolution", "hil.ServiceStatus", "hil.CaptureTruth", "hil.FusionJournal"}
+REQUIRED_TYPES = {
+    "hil.RunInfo",
+    "hil.Truth",
+    "hil.ImuSample",
+    "hil.GnssFix",
+    "hil.CanFrame",
+    "hil.TimeTag",
+    "hil.ClockModel",
+    "hil.NavSolution",
+    "hil.ServiceStatus",
+    "hil.CaptureTruth",
+    "hil.FusionJournal",
+}
 
 
 @pytest.fixture(scope="module")
 def up_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.CompletedProcess[str]]:
     out = tmp_path_factory.mktemp("up") / "up.mcap"
-    proc = subprocess.run(hil_cmd("up", "--duration", "10", "--record", str(out), "--quiet", "--rig", "itest"),
-                          capture_output=True, text=True, timeout=240, cwd=REPO)
+    proc = subprocess.run(
+        hil_cmd("up", "--duration", "10", "--record", str(out), "--quiet", "--rig", "itest"),
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=REPO,
+    )
     return out, proc
 
 
-def test_up_exits_zero_and_prints_a_summary(up_recording: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
+def test_up_exits_zero_and_prints_a_summary(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
     path, proc = up_recording
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert path.is_file()
@@ -43,7 +57,9 @@ def test_up_exits_zero_and_prints_a_summary(up_recording: tuple[Path, subprocess
     assert "CAN vcan0" in proc.stdout  # says which CAN transport in one line
 
 
-def test_recording_holds_every_contract_type_valid_against_schemas(up_recording: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
+def test_recording_holds_every_contract_type_valid_against_schemas(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
     path, _ = up_recording
     s = read_session(path)
     assert not s.truncated
@@ -52,10 +68,12 @@ def test_recording_holds_every_contract_type_valid_against_schemas(up_recording:
     for r in s.records:
         seen.add(r.schema)
         jsonschema.validate(json.loads(r.payload), schemas[r.schema])
-    assert REQUIRED_TYPES <= seen, REQUIRED_TYPES - seen
+    assert seen >= REQUIRED_TYPES, REQUIRED_TYPES - seen
 
 
-def test_recording_is_complete_no_gaps_and_imu_at_rate(up_recording: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
+def test_recording_is_complete_no_gaps_and_imu_at_rate(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
     path, _ = up_recording
     s = read_session(path)
     comp = s.metadata["completeness"]
@@ -64,7 +82,7 @@ def test_recording_is_complete_no_gaps_and_imu_at_rate(up_recording: tuple[Path,
     imu = s.by_topic("hil/itest/sensor/imu")
     assert len(imu) >= 0.99 * 400 * 10
     statuses = {decode(ServiceStatus, r.payload).service for r in s.by_topic_prefix("hil/itest/status/")}
-    assert ALL_SERVICES <= statuses
+    assert statuses >= ALL_SERVICES
     # each synced IMU sample keeps its raw seq
     assert {r.sequence for r in s.by_topic("hil/itest/synced/imu")} == {r.sequence for r in imu}
 
@@ -80,8 +98,12 @@ def test_fused_solution_tracks_truth(up_recording: tuple[Path, subprocess.Comple
     assert np.isfinite([e["rms_m"] for e in errs.values()]).all()
 
 
-def test_rerun_verify_reproduces_the_live_fusion_bit_for_bit(up_recording: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
+def test_rerun_verify_reproduces_the_live_fusion_bit_for_bit(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
     path, _ = up_recording
-    proc = subprocess.run(hil_cmd("rerun", str(path), "--verify"), capture_output=True, text=True, timeout=240, cwd=REPO)
+    proc = subprocess.run(
+        hil_cmd("rerun", str(path), "--verify"), capture_output=True, text=True, timeout=240, cwd=REPO
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "VERIFY OK" in proc.stdout

@@ -32,27 +32,58 @@ class Recorder:
         return {}
 
 
-INIT = InitialState(stamp_ns=0, lat_rad=0.87, lon_rad=0.53, alt_m=100.0, origin_lat_rad=0.87,
-                    origin_lon_rad=0.53, origin_alt_m=100.0, vel_ned_mps=np.zeros(3),
-                    q_nb=np.array([1.0, 0.0, 0.0, 0.0]))
+INIT = InitialState(
+    stamp_ns=0,
+    lat_rad=0.87,
+    lon_rad=0.53,
+    alt_m=100.0,
+    origin_lat_rad=0.87,
+    origin_lon_rad=0.53,
+    origin_alt_m=100.0,
+    vel_ned_mps=np.zeros(3),
+    q_nb=np.array([1.0, 0.0, 0.0, 0.0]),
+)
 
 
 def _imu(seq: int, dt_ns: int = 2_500_000) -> ImuSample:
     t = (seq + 1) * dt_ns
     # a level, static IMU: specific force -g on z
-    return ImuSample(seq=seq, stamp_ns=t, device_stamp_ns=t, rx_stamp_ns=t, dt_ns=dt_ns,
-                     dtheta_b_rad=[0.0, 0.0, 0.0], dvel_b_mps=[0.0, 0.0, -9.81 * dt_ns * 1e-9])
+    return ImuSample(
+        seq=seq,
+        stamp_ns=t,
+        device_stamp_ns=t,
+        rx_stamp_ns=t,
+        dt_ns=dt_ns,
+        dtheta_b_rad=[0.0, 0.0, 0.0],
+        dvel_b_mps=[0.0, 0.0, -9.81 * dt_ns * 1e-9],
+    )
 
 
 def _gnss(seq: int, t_ns: int) -> GnssFix:
-    return GnssFix(seq=seq, stamp_ns=t_ns, device_stamp_ns=t_ns, rx_stamp_ns=t_ns + 100_000_000, lat_deg=0,
-                   lon_deg=0, alt_m=0, pos_ned_m=[0, 0, 0], vel_ned_mps=[0, 0, 0], pos_sigma_m=[20, 20, 30],
-                   vel_sigma_mps=[0.2] * 3, fix_type=3, num_sats=9, hdop=1.0)
+    return GnssFix(
+        seq=seq,
+        stamp_ns=t_ns,
+        device_stamp_ns=t_ns,
+        rx_stamp_ns=t_ns + 100_000_000,
+        lat_deg=0,
+        lon_deg=0,
+        alt_m=0,
+        pos_ned_m=[0, 0, 0],
+        vel_ned_mps=[0, 0, 0],
+        pos_sigma_m=[20, 20, 30],
+        vel_sigma_mps=[0.2] * 3,
+        fix_type=3,
+        num_sats=9,
+        hdop=1.0,
+    )
 
 
 def _core(lag_ns: int = 50_000_000, every: int = 1) -> FusionCore:
-    return FusionCore(INIT, FusionConfig(estimators=("rec",), lag_ns=lag_ns, output_every=every),
-                      make_estimator=lambda n, i: Recorder(n, i))  # type: ignore[arg-type,return-value]
+    return FusionCore(
+        INIT,
+        FusionConfig(estimators=("rec",), lag_ns=lag_ns, output_every=every),
+        make_estimator=lambda n, i: Recorder(n, i),
+    )  # type: ignore[arg-type,return-value]
 
 
 def test_gnss_arriving_late_within_the_lag_is_fused_at_its_time_of_validity() -> None:
@@ -99,7 +130,12 @@ def test_rerun_path_reproduces_live_outputs_bit_for_bit_under_jittered_arrival(s
     inputs = [_imu(s) for s in range(400)] + [_gnss(g, g * 100_000_000 + 5_000_000) for g in range(10)]
     # arrival = validity + latency (GNSS ~100 ms, with some far-late outliers) + jitter
     arrival = [
-        m.stamp_ns + (int(rng.integers(80, 400)) * 1_000_000 if isinstance(m, GnssFix) else int(rng.integers(0, 3_000_000)))
+        m.stamp_ns
+        + (
+            int(rng.integers(80, 400)) * 1_000_000
+            if isinstance(m, GnssFix)
+            else int(rng.integers(0, 3_000_000))
+        )
         for m in inputs
     ]
     order = np.argsort(arrival, kind="stable")

@@ -21,12 +21,21 @@ def test_every_contract_type_has_a_schema_file_named_hil_type() -> None:
     names = {p.name for p in SCHEMAS_DIR.glob("hil.*.json")}
     assert names == {f"hil.{t.__name__}.json" for t in CONTRACT_TYPES}
     for t in CONTRACT_TYPES:
-        assert json.loads((SCHEMAS_DIR / f"hil.{t.__name__}.json").read_text())["title"] == f"hil.{t.__name__}"
+        assert (
+            json.loads((SCHEMAS_DIR / f"hil.{t.__name__}.json").read_text())["title"] == f"hil.{t.__name__}"
+        )
 
 
 def _imu(**kw: object) -> ImuSample:
-    base = dict(seq=3, stamp_ns=2_500_000, device_stamp_ns=2_500_000, rx_stamp_ns=2_600_000, dt_ns=2_500_000,
-                dtheta_b_rad=[1e-5, -2e-5, 3e-6], dvel_b_mps=[0.01, 0.0, -0.0245])
+    base = dict(
+        seq=3,
+        stamp_ns=2_500_000,
+        device_stamp_ns=2_500_000,
+        rx_stamp_ns=2_600_000,
+        dt_ns=2_500_000,
+        dtheta_b_rad=[1e-5, -2e-5, 3e-6],
+        dvel_b_mps=[0.01, 0.0, -0.0245],
+    )
     base.update(kw)
     return ImuSample(**base)  # type: ignore[arg-type]
 
@@ -43,12 +52,30 @@ def test_round_trip_is_exact_and_valid_against_the_schema() -> None:
     [
         (b"\x00\xff garbage", "not JSON"),
         (b'{"seq": 1}', "missing fields"),
-        (b'{"seq": -1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0]}', "negative seq"),
-        (b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0], "dvel_b_mps": [0,0,0]}', "short vector"),
-        (b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,null,0], "dvel_b_mps": [0,0,0]}', "NaN (null)"),
-        (b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 0, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0]}', "zero interval"),
-        (b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0], "x": 1}', "unknown field"),
-        (b'{"seq": 1, "stamp_ns": 1e30, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0]}', "float stamp"),
+        (
+            b'{"seq": -1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0]}',
+            "negative seq",
+        ),
+        (
+            b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0], "dvel_b_mps": [0,0,0]}',
+            "short vector",
+        ),
+        (
+            b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,null,0], "dvel_b_mps": [0,0,0]}',
+            "NaN (null)",
+        ),
+        (
+            b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 0, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0]}',
+            "zero interval",
+        ),
+        (
+            b'{"seq": 1, "stamp_ns": 0, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0], "x": 1}',
+            "unknown field",
+        ),
+        (
+            b'{"seq": 1, "stamp_ns": 1e30, "device_stamp_ns": 0, "rx_stamp_ns": 0, "dt_ns": 1, "dtheta_b_rad": [0,0,0], "dvel_b_mps": [0,0,0]}',
+            "float stamp",
+        ),
     ],
 )
 def test_bad_payloads_are_rejected_with_a_validation_error(payload: bytes, reason: str) -> None:
@@ -63,10 +90,32 @@ def test_nan_cannot_travel_it_is_encoded_as_null_and_rejected() -> None:
 
 
 def test_schema_and_codec_agree_on_optional_fields() -> None:
-    sol = NavSolution(seq=0, stamp_ns=0, estimator="ekf15", pos_ned_m=[0, 0, 0], vel_ned_mps=[0, 0, 0],
-                      q_nb=[1, 0, 0, 0], lat_deg=50.0, lon_deg=30.0, alt_m=200.0)
+    sol = NavSolution(
+        seq=0,
+        stamp_ns=0,
+        estimator="ekf15",
+        pos_ned_m=[0, 0, 0],
+        vel_ned_mps=[0, 0, 0],
+        q_nb=[1, 0, 0, 0],
+        lat_deg=50.0,
+        lon_deg=30.0,
+        alt_m=200.0,
+    )
     jsonschema.validate(json.loads(encode(sol)), json_schema(NavSolution))
-    fix = GnssFix(seq=0, stamp_ns=0, device_stamp_ns=0, rx_stamp_ns=0, lat_deg=0, lon_deg=0, alt_m=0,
-                  pos_ned_m=[0, 0, 0], vel_ned_mps=[0, 0, 0], pos_sigma_m=[20, 20, 30], vel_sigma_mps=[0.2] * 3,
-                  fix_type=3, num_sats=9, hdop=0.9)
+    fix = GnssFix(
+        seq=0,
+        stamp_ns=0,
+        device_stamp_ns=0,
+        rx_stamp_ns=0,
+        lat_deg=0,
+        lon_deg=0,
+        alt_m=0,
+        pos_ned_m=[0, 0, 0],
+        vel_ned_mps=[0, 0, 0],
+        pos_sigma_m=[20, 20, 30],
+        vel_sigma_mps=[0.2] * 3,
+        fix_type=3,
+        num_sats=9,
+        hdop=0.9,
+    )
     jsonschema.validate(json.loads(encode(fix)), json_schema(GnssFix))
