@@ -44,7 +44,9 @@ class RunInfo(Message, frozen=True, kw_only=True):
     origin_lat_deg: float
     origin_lon_deg: float
     origin_alt_m: float
-    scenario_toml: Annotated[str, msgspec.Meta(max_length=32768)] = ""  # so every host builds the same scenario
+    scenario_toml: Annotated[str, msgspec.Meta(max_length=32768)] = (
+        ""  # so every host builds the same scenario
+    )
 
 
 class Truth(Message, frozen=True, kw_only=True):
