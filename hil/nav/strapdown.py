@@ -112,50 +112,45 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     fe = c10 * sx + c11 * sy + c12 * sz
     fd = c20 * sx + c21 * sy + c22 * sz
 
-    # first-order prediction to mid-interval
-    r_m, r_n = _radii(lat)
-    sl, cl = math.sin(lat), math.cos(lat)
-    g = _gravity(lat, h)
-    wie_n, wie_d = OMEGA_IE_RADPS * cl, -OMEGA_IE_RADPS * sl
-    wen_n, wen_e, wen_d = ve / (r_n + h), -vn / (r_m + h), -ve * sl / cl / (r_n + h)
-    # Coriolis (2ω_ie + ω_en) × v with ω_ie,E = 0
-    ox, oy, oz = 2.0 * wie_n + wen_n, wen_e, 2.0 * wie_d + wen_d
-    an = fn / dt - (oy * vd - oz * ve)
-    ae = fe / dt - (oz * vn - ox * vd)
-    ad = fd / dt - (ox * ve - oy * vn) + g
-    vn_m, ve_m, vd_m = vn + 0.5 * dt * an, ve + 0.5 * dt * ae, vd + 0.5 * dt * ad
-    lat_m = lat + 0.5 * dt * vn_m / (r_m + h)
+    # first-order prediction to mid-interval with the full g and Coriolis/centripetal terms:
+    # cheaper shortcuts here (constant g, no v²/R) leave a ~1e-9 m/s² vertical bias that the
+    # unstable vertical channel grows to centimetres in an hour
+    r_m0, r_n0 = _radii(lat)
+    o_n = 2.0 * OMEGA_IE_RADPS * math.cos(lat) + ve / (r_n0 + h)
+    o_e = -vn / (r_m0 + h)
+    o_d = -2.0 * OMEGA_IE_RADPS * math.sin(lat) - ve * math.tan(lat) / (r_n0 + h)
+    vn_m = vn + 0.5 * (fn - (o_e * vd - o_d * ve) * dt)
+    ve_m = ve + 0.5 * (fe - (o_d * vn - o_n * vd) * dt)
+    vd_m = vd + 0.5 * (fd + (_gravity(lat, h) - (o_n * ve - o_e * vn)) * dt)
+    lat_m = lat + 0.5 * dt * vn_m / (r_m0 + h)
     h_m = h - 0.5 * dt * vd_m
 
-    # mid-interval Earth quantities
+    # mid-interval Earth quantities: radii, gravity, ω_ie, ω_en
     r_m, r_n = _radii(lat_m)
     sl, cl = math.sin(lat_m), math.cos(lat_m)
+    tl = sl / cl
     g = _gravity(lat_m, h_m)
+    rmh, rnh = r_m + h_m, r_n + h_m
     wie_n, wie_d = OMEGA_IE_RADPS * cl, -OMEGA_IE_RADPS * sl
-    wen_n, wen_e, wen_d = ve_m / (r_n + h_m), -vn_m / (r_m + h_m), -ve_m * sl / cl / (r_n + h_m)
+    wen_n, wen_e, wen_d = ve_m / rnh, -vn_m / rmh, -ve_m * tl / rnh
     zx, zy, zz = (wie_n + wen_n) * dt, wen_e * dt, (wie_d + wen_d) * dt
     ox, oy, oz = 2.0 * wie_n + wen_n, wen_e, 2.0 * wie_d + wen_d
 
     # v_k = v + [I − ½ζ×] f + [g − (2ω_ie + ω_en) × v_mid] dt
-    vn_k = vn + fn - 0.5 * (zy * fd - zz * fe) + (-(oy * vd_m - oz * ve_m)) * dt
-    ve_k = ve + fe - 0.5 * (zz * fn - zx * fd) + (-(oz * vn_m - ox * vd_m)) * dt
+    vn_k = vn + fn - 0.5 * (zy * fd - zz * fe) - (oy * vd_m - oz * ve_m) * dt
+    ve_k = ve + fe - 0.5 * (zz * fn - zx * fd) - (oz * vn_m - ox * vd_m) * dt
     vd_k = vd + fd - 0.5 * (zx * fe - zy * fn) + (g - (ox * ve_m - oy * vn_m)) * dt
 
-    # position, trapezoidal velocity, radii at the mid latitude/height
-    h_k = h - 0.5 * (vd + vd_k) * dt
-    h_bar = 0.5 * (h + h_k)
-    lat_k = lat + 0.5 * (vn + vn_k) * dt / (r_m + h_bar)
-    lat_bar = 0.5 * (lat + lat_k)
-    _, r_nb = _radii(lat_bar)
-    lon_k = lon + 0.5 * (ve + ve_k) * dt / ((r_nb + h_bar) * math.cos(lat_bar))
-
-    # attitude: ζ from the mid-interval velocity now known
+    # position: trapezoidal velocity, radii at mid-interval
     vn_b, ve_b = 0.5 * (vn + vn_k), 0.5 * (ve + ve_k)
-    r_m, r_n = _radii(lat_bar)
-    sl, cl = math.sin(lat_bar), math.cos(lat_bar)
-    zx = (OMEGA_IE_RADPS * cl + ve_b / (r_n + h_bar)) * dt
-    zy = (-vn_b / (r_m + h_bar)) * dt
-    zz = (-OMEGA_IE_RADPS * sl - ve_b * sl / cl / (r_n + h_bar)) * dt
+    h_k = h - 0.5 * (vd + vd_k) * dt
+    lat_k = lat + vn_b * dt / rmh
+    lon_k = lon + ve_b * dt / (rnh * cl)
+
+    # attitude: n-frame rotation ζ over the interval from the mean velocity
+    zx = (wie_n + ve_b / rnh) * dt
+    zy = (-vn_b / rmh) * dt
+    zz = (wie_d - ve_b * tl / rnh) * dt
     # φ = Δθ + 1/12 Δθ_{k−1} × Δθ
     fx = tx + (py * tz - pz * ty) / 12.0
     fy = ty + (pz * tx - px * tz) / 12.0
@@ -231,11 +226,19 @@ def strapdown_step(s: StrapdownState, dtheta_b_rad: Any, dvel_b_mps: Any, dt_s: 
 
 
 def strapdown_run(
-    s: StrapdownState, dtheta_b_rad: F64, dvel_b_mps: F64, dt_s: float, record_every: int = 1
+    s: StrapdownState,
+    dtheta_b_rad: F64,
+    dvel_b_mps: F64,
+    dt_s: float,
+    record_every: int = 1,
+    vertical_hold: bool = False,
 ) -> tuple[StrapdownState, StrapdownTrack]:
     """Run many intervals ((n, 3) increments); record the solution every ``record_every`` steps.
 
-    Same numbers as calling :func:`strapdown_step` n times.
+    Same numbers as calling :func:`strapdown_step` n times. ``vertical_hold`` pins height and
+    v_D to their initial values after every step — a perfect altimeter, for long free-INS tests
+    of level motion: the free vertical channel diverges with an e-folding time √(R/2g) ≈ 9.5 min
+    and, after a few Schuler periods, drags the horizontal channels with it.
     """
     th = np.asarray(dtheta_b_rad, dtype=float).tolist()
     dv = np.asarray(dvel_b_mps, dtype=float).tolist()
@@ -244,9 +247,12 @@ def strapdown_run(
     rows: list[_State] = []
     idx: list[int] = []
     step = _step
+    h0 = st[2]
     for k in range(len(th)):
         a, b = th[k], dv[k]
         st = step(st, a[0], a[1], a[2], b[0], b[1], b[2], dt)
+        if vertical_hold:
+            st = (st[0], st[1], h0, st[3], st[4], 0.0, *st[6:])
         if (k + 1) % record_every == 0:
             rows.append(st)
             idx.append(k + 1)

@@ -1,0 +1,57 @@
+"""WGS84 model and attitude maths against published values and exact identities."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hil.nav import attitude as att
+from hil.nav import earth
+
+
+def test_normal_gravity_matches_wgs84_published_values() -> None:
+    # NIMA TR8350.2: γ_e = 9.7803253359, γ_p = 9.8321849378 m/s²; free-air ≈ −3.086e-6 /m
+    assert math.isclose(float(earth.normal_gravity(0.0, 0.0)), 9.7803253359, abs_tol=1e-9)
+    assert math.isclose(float(earth.normal_gravity(math.pi / 2, 0.0)), 9.8321849378, abs_tol=1e-9)
+    grad = float(earth.normal_gravity(0.8, 1000.0) - earth.normal_gravity(0.8, 0.0)) / 1000.0
+    assert math.isclose(grad, -3.086e-6, rel_tol=0.01)
+
+
+def test_schuler_period_is_84_4_minutes() -> None:
+    assert math.isclose(earth.schuler_period_s(math.radians(50.45)) / 60.0, 84.4, rel_tol=0.002)
+
+
+def test_lla_ned_round_trip_far_from_origin() -> None:
+    o = (math.radians(50.45), math.radians(30.52), 300.0)
+    ned = np.array([[150e3, -80e3, 2e3], [0.0, 0.0, 0.0], [-3e3, 4e3, -500.0]])
+    lat, lon, alt = earth.ned_to_lla(ned, *o)
+    back = earth.lla_to_ned(lat, lon, alt, *o)
+    assert np.max(np.abs(back - ned)) < 1e-6
+    # one arc-minute of latitude ≈ (R_M + h) × 2.909e-4 rad ≈ 1854 m north
+    d = earth.lla_to_ned(o[0] + math.radians(1 / 60), o[1], o[2], *o)
+    r_m, _ = earth.radii_of_curvature(o[0])
+    assert math.isclose(d[0], (float(r_m) + 300.0) * math.radians(1 / 60), rel_tol=1e-5)
+
+
+def test_quaternion_euler_dcm_agree() -> None:
+    rng = np.random.default_rng(7)
+    e = rng.uniform([-3, -1.4, -3], [3, 1.4, 3], (100, 3))
+    q = att.euler_to_quat(e)
+    assert np.allclose(att.quat_to_dcm(q), att.euler_to_dcm(e), atol=1e-12)
+    assert np.allclose(att.quat_to_euler(q), e, atol=1e-9)
+    assert np.allclose(
+        att.quat_normalise(att.dcm_to_quat(att.euler_to_dcm(e))), att.quat_normalise(q), atol=1e-12
+    )
+
+
+def test_rotvec_composition_and_small_angles() -> None:
+    phi = np.array([[1e-9, -2e-9, 3e-9], [0.3, -0.2, 0.1], [0.0, 0.0, math.pi / 2]])
+    q = att.quat_from_rotvec(phi)
+    assert np.allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-15)
+    assert np.allclose(att.quat_to_rotvec(q), phi, atol=1e-15)
+    # 90° about z takes body x to NED east
+    assert np.allclose(att.rotate(q[2], [1.0, 0.0, 0.0]), [0.0, 1.0, 0.0], atol=1e-15)
+    # two half-rotations about one axis compose to the whole
+    half = att.quat_from_rotvec(phi[1] / 2)
+    assert np.allclose(att.quat_multiply(half, half), q[1], atol=1e-15)

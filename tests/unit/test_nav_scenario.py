@@ -1,0 +1,90 @@
+"""Scenario files: the built-ins load, errors name the key, overrides keep source_text honest."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+
+from hil.nav.scenario import (
+    DEFAULT_SCENARIO,
+    ScenarioError,
+    builtin_scenarios,
+    load_scenario,
+    parse_scenario,
+    scenario_overrides,
+)
+from hil.nav.sensor_specs import DEG, UG_MPS2
+
+MINIMAL = """
+name = "mini"
+seed = 9
+[initial]
+speed_mps = 10.0
+[[segment]]
+kind = "hold"
+duration_s = 20.0
+"""
+
+
+def test_builtins_load_and_include_the_required_set() -> None:
+    names = builtin_scenarios()
+    for required in ("static", "straight_level", "long_flight", "uav_survey", "car_drive"):
+        assert required in names
+    for n in names:
+        s = load_scenario(n)
+        assert s.name == n
+        assert s.sha256 == hashlib.sha256(s.source_text.encode()).hexdigest()
+    s = load_scenario(DEFAULT_SCENARIO)
+    assert (s.duration_s, s.initial_vel_body_mps[0], s.imu.rate_hz) == (3600.0, 50.0, 400)
+    assert 4500 <= load_scenario("long_flight").duration_s <= 5500
+    assert any(e.kind == "gnss_outage" for e in load_scenario("car_drive").events)
+
+
+def test_user_units_are_converted() -> None:
+    s = parse_scenario(
+        MINIMAL + '[imu]\npreset = "ideal"\ngyro_bias_instability_dph = 3.6\naccel_bias_ug = [100, 0, 0]\n'
+    )
+    assert s.imu.params.gyro_bias_instability_radps[0] == pytest.approx(3.6 * DEG / 3600)
+    assert s.imu.params.accel_bias_mps2 == pytest.approx((100 * UG_MPS2, 0.0, 0.0))
+    assert s.duration_s == 20.0  # from the profile when duration_s is absent
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        ("speedo = 3\n", "speedo"),
+        ('[imu]\npreset = "nope"\n', "nope"),
+        ("[imu]\ngyro_arw = 0.1\n", "gyro_arw"),
+        ('[[event]]\nkind = "gnss_outage"\nt_start_s = 5.0\n', "t_end_s"),
+        ('[[segment]]\nkind = "spin"\nduration_s = 1\n', "spin"),
+        ("[gnss]\nrate_hz = 50.0\n", "rate_hz"),
+    ],
+)
+def test_bad_files_name_the_key(extra: str, fragment: str) -> None:
+    with pytest.raises(ScenarioError, match=fragment):
+        parse_scenario(MINIMAL + extra)
+
+
+def test_reserved_clock_table_is_kept_raw() -> None:
+    s = parse_scenario(MINIMAL + "[clock]\nimu_drift_ppm = 20.0\n")
+    assert s.extra_tables["clock"] == {"imu_drift_ppm": 20.0}
+
+
+def test_pulse_event_ends_after_tau() -> None:
+    s = load_scenario("uav_survey")
+    (pulse,) = [e for e in s.events if e.kind == "gnss_pulse"]
+    assert pulse.t_end_s == pulse.t_start_s + 1.0
+    assert pulse.params["offset_ned_m"] == pytest.approx((50.0, 0.0, 0.0))
+
+
+def test_overrides_rewrite_source_text_that_reloads_to_the_same_scenario() -> None:
+    s = load_scenario("car_drive")
+    o = scenario_overrides(s, duration_s=60.0, imu_rate_hz=1000, gnss_rate_hz=5.0, imu_gyro_arw_dprh=0.5)
+    assert (o.duration_s, o.imu.rate_hz, o.gnss.rate_hz) == (60.0, 1000, 5.0)
+    assert o.sha256 != s.sha256
+    again = parse_scenario(o.source_text, o.name)
+    assert again == o
+    assert o.events == s.events and o.segments == s.segments
+    with pytest.raises(ScenarioError):
+        scenario_overrides(s, colour="red")
