@@ -14,8 +14,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import shlex
-import tempfile
 import sys
+import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
