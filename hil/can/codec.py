@@ -23,9 +23,10 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import can
 import cantools
@@ -120,9 +121,33 @@ class FrameLayout:
     crc_byte: int = 0
     by_name: dict[str, SignalField] = field(default_factory=dict)
 
-    def decode_word(self, word: int) -> dict[str, float | int]:
-        """Data signals (CRC/counter excluded) from the frame as a little-endian integer."""
-        return {f.name: f.value(f.extract(word)) for f in self.fields}
+    # word (the frame as a little-endian int) -> {signal: value}, CRC/counter excluded
+    decode_word: Callable[[int], dict[str, float | int]] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.decode_word = _compile_decoder(self.name, self.fields)
+
+
+def _compile_decoder(name: str, fields: list[SignalField]) -> Any:
+    """Generate ``word -> {signal: value}`` for one frame as straight-line Python.
+
+    The bridge decodes every frame at up to 8 kHz; a loop over field objects with method calls
+    costs several µs per frame, the generated expression a fraction of that. The source holds
+    only numbers parsed by cantools and signal names as ``repr`` string literals.
+    """
+    items = []
+    for f in fields:
+        raw = f"((word >> {f.start}) & {f.mask:#x})"
+        if f.signed:
+            sign = 1 << (f.length - 1)
+            raw = f"(({raw} ^ {sign:#x}) - {sign:#x})"
+        if not f.is_integer:
+            raw = f"{raw} * {f.scale!r}" + (f" + {f.offset!r}" if f.offset else "")
+        items.append(f"{f.name!r}: {raw}")
+    src = "def decode_word(word):\n    return {" + ", ".join(items) + "}\n"
+    scope: dict[str, Any] = {}
+    exec(compile(src, f"<dbc:{name}>", "exec"), scope)
+    return scope["decode_word"]
 
 
 def _attr(msg: cantools.database.can.Message, name: str, default: object) -> object:

@@ -11,6 +11,8 @@ final XOR, over ``[DataID low byte, DataID high byte, data bytes except the CRC 
 
 from __future__ import annotations
 
+import struct
+
 POLY = 0x1D
 COUNTER_MODULO = 15  # profile 1: counter 0..14, 15 never sent
 
@@ -26,6 +28,9 @@ def _make_table() -> tuple[int, ...]:
 
 
 _TABLE = _make_table()
+# Two bytes per step: for a 16-bit big-endian word w = b0 << 8 | b1 and register r,
+# r' = T[T[r ^ b0] ^ b1] = T16[(r << 8) ^ w]. Halves the Python-level loop (64 KiB, ~20 ms once).
+_TABLE16 = tuple(_TABLE[_TABLE[x >> 8] ^ (x & 0xFF)] for x in range(1 << 16))
 
 
 def crc8_j1850_raw(data: bytes | bytearray | memoryview, start: int = 0x00) -> int:
@@ -37,16 +42,28 @@ def crc8_j1850_raw(data: bytes | bytearray | memoryview, start: int = 0x00) -> i
     return crc
 
 
+_WORDS: dict[int, struct.Struct] = {}
+
+
 def p01_crc(
     data_id: int, payload: bytes | bytearray | memoryview, data_length: int, crc_byte: int = 0
 ) -> int:
     """Profile-1 CRC of ``payload[:data_length]`` (the CRC byte itself excluded)."""
     table = _TABLE
-    crc = table[data_id & 0xFF]  # register 0x00 ^ id_lo
-    crc = table[crc ^ ((data_id >> 8) & 0xFF)]
-    for i in range(data_length):
-        if i != crc_byte:
-            crc = table[crc ^ payload[i]]
+    crc = table[table[data_id & 0xFF] ^ ((data_id >> 8) & 0xFF)]
+    if crc_byte == 0:
+        body = payload[1:data_length]
+    else:
+        body = bytes(payload[:crc_byte]) + bytes(payload[crc_byte + 1 : data_length])
+    n = len(body) >> 1
+    unpack = _WORDS.get(n)
+    if unpack is None:
+        unpack = _WORDS[n] = struct.Struct(f">{n}H")
+    table16 = _TABLE16
+    for word in unpack.unpack_from(body):
+        crc = table16[(crc << 8) ^ word]
+    if len(body) & 1:
+        crc = table[crc ^ body[-1]]
     return crc
 
 

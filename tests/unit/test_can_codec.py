@@ -201,3 +201,16 @@ def test_hil_dbc_env_override(monkeypatch: pytest.MonkeyPatch) -> None:
     assert str(default_dbc_path()) == "/somewhere/x.dbc"
     monkeypatch.delenv("HIL_DBC")
     assert default_dbc_path().name == "imu.dbc" and default_dbc_path().exists()
+
+
+@pytest.mark.parametrize("crc_byte", [0, 3])
+@pytest.mark.parametrize("length", [5, 8, 30])
+def test_profile1_crc_fast_path_equals_bitwise_definition(crc_byte: int, length: int) -> None:
+    data = bytearray(range(40, 72))
+    for data_id in (0x100, 0x1234):
+        covered = (
+            bytes([data_id & 0xFF, data_id >> 8])
+            + bytes(data[:crc_byte])
+            + bytes(data[crc_byte + 1 : length])
+        )
+        assert e2e.p01_crc(data_id, data, length, crc_byte) == e2e.crc8_j1850_raw(covered, 0x00)
