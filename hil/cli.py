@@ -77,6 +77,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
     sup = Supervisor(opts)
     rc = sup.run()
+    if sup.cpu_table():
+        print(sup.cpu_table())
     for f in sup.failures:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
     if record.exists():

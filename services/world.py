@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -61,11 +62,16 @@ class World(Service):
                 self._ready_event.set()
 
     def run_loop(self, _run: Any, _clock: Any) -> None:
-        if self.wait_for and not self._ready_event.wait(self.wait_timeout_s):
-            missing = sorted(self.wait_for - self._ready)
-            self.stats.error(
-                "errors.wait_for", f"started without {missing}: no status within {self.wait_timeout_s} s"
-            )
+        deadline = time.monotonic() + self.wait_timeout_s
+        while self.wait_for and not self._ready_event.wait(0.1):
+            if self.ctx.stop.is_set():
+                return
+            if time.monotonic() > deadline:
+                missing = sorted(self.wait_for - self._ready)
+                self.stats.error(
+                    "errors.wait_for", f"started without {missing}: no status in {self.wait_timeout_s} s"
+                )
+                break
         if self.ctx.stop.is_set():
             return
         s = self.scenario

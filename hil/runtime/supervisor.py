@@ -30,6 +30,16 @@ from hil.runtime.clock import RigClock
 from hil.runtime.registry import SERVICES, STOP_STAGES
 
 
+def proc_cpu_seconds(pid: int) -> float | None:
+    """user + system CPU seconds of a live process (Linux /proc); None where unavailable."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -127,6 +137,10 @@ class Supervisor:
         self.stop = threading.Event()
         self.failures: list[str] = []
         self.view = LiveView()
+        self.cpu_s: dict[str, float] = {}  # per service, sampled just before the stop
+        self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
+        self._cpu_base: dict[str, float] = {}
+        self._cpu_base_t = time.monotonic()
         env_cfg = BusConfig.from_env()
         if env_cfg.mode == "client" or os.environ.get("HIL_ZENOH_CONNECT"):
             self.hub_cfg = env_cfg
@@ -195,7 +209,7 @@ class Supervisor:
         prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         for s in prev:
             signal.signal(s, lambda *_: self.stop.set())
-        t_start = time.monotonic()
+        t_start = self._t_start = time.monotonic()
         try:
             for name in SERVICES:
                 self.spawn(name)
@@ -235,6 +249,10 @@ class Supervisor:
                     print(f"hil up: {name} died (exit {rc}); stopping the rig", flush=True)
                     return
             run = self.view.run
+            if run is not None and not self._cpu_base:
+                self._cpu_base_t = time.monotonic()
+                for name, c in self.children.items():
+                    self._cpu_base[name] = proc_cpu_seconds(c.proc.pid) or 0.0
             if run is not None and o.duration_s is not None:
                 clock = RigClock(run.start_epoch_ns, run.speed)
                 if clock.now_ns() >= int((o.duration_s + 0.3) * 1e9):
@@ -254,7 +272,25 @@ class Supervisor:
                 sys.stdout.flush()
                 printed_lines = text.count("\n") + 1
 
+    def _sample_cpu(self) -> None:
+        """CPU seconds each service spent since time zero (start-up imports excluded)."""
+        self.cpu_window_s = time.monotonic() - self._cpu_base_t
+        for name, c in self.children.items():
+            cpu = proc_cpu_seconds(c.proc.pid)
+            if cpu is not None:
+                self.cpu_s[name] = cpu - self._cpu_base.get(name, 0.0)
+
+    def cpu_table(self) -> str:
+        if not self.cpu_s or self.cpu_window_s <= 0:
+            return ""
+        rows = [f"CPU over {self.cpu_window_s:.1f} s of wall time (share of one core):"]
+        for name, cpu in sorted(self.cpu_s.items(), key=lambda kv: -kv[1]):
+            rows.append(f"  {name:<14}{cpu:8.2f} s  {100 * cpu / self.cpu_window_s:6.1f} %")
+        return "\n".join(rows)
+
     def _stop_all(self) -> None:
+        if self.children and not self.cpu_s:
+            self._sample_cpu()
         for stage in STOP_STAGES:
             procs = [self.children[n] for n in stage if n in self.children]
             for c in procs:
