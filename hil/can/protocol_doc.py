@@ -182,6 +182,15 @@ status frame every {status_every} samples and a 1 Hz sync frame included. Nomina
 
 Classic CAN tops out near 1.8 kHz on an empty bus; above ~1 kHz, or on a shared bus, use FD.
 
+## A device under test on the same bus
+
+`hil.can.dut.DutNavDecoder` decodes a real navigation box's frames with the user's own DBC and
+a mapping (TOML: `estimator`, `complete_on`, `max_age_ms`, `[fields]` NavSolution field <-
+`"Message.Signal"`, optional `[scale]` for unit or sign conventions) into a `NavSolution` named
+after the box, so it sits on `hil/<rig>/nav/<name>` beside the rig's estimators. The mapping
+format is documented in that module's docstring; bad frames and missing or stale fields are
+counted, never raised.
+
 ## Transports
 
 `hil.can.bus.open_can_bus(channel, interface=None, fd=...)` picks SocketCAN when the kernel has
