@@ -3,6 +3,18 @@
 Zenoh's callback only enqueues; one writer thread validates, accounts sequence numbers, writes
 and flushes a chunk at least every second. SIGTERM writes the completeness summary and the index.
 A path that cannot be written is reported in status (the other services keep running).
+
+Loss is measured twice, because each measure sees what the other cannot:
+
+- per-publisher ``seq`` gaps (``hil.record.completeness``) see every loss between a publisher and
+  the file, whatever transport the publisher used;
+- the subscription is a Zenoh *advanced* subscriber with heartbeat recovery, whose sample-miss
+  listener reports samples Zenoh itself knows it did not deliver (from publishers declared as
+  ``AdvancedPublisher`` with miss detection), including a lost *last* sample, which no seq gap
+  can show.
+
+Both go into status every second (``missing``, ``zenoh_missed``) and into the file's
+``completeness`` metadata at a clean stop, with ``replay_ready`` true only when both are zero.
 """
 
 from __future__ import annotations
@@ -17,10 +29,11 @@ from typing import Any
 
 import msgspec
 import zenoh
+import zenoh.ext as zext
 
 from hil import __version__
 from hil.bus.keys import type_for_key
-from hil.bus.pubsub import MAX_PAYLOAD_BYTES, subscribe_raw
+from hil.bus.pubsub import MAX_PAYLOAD_BYTES
 from hil.messages import RunInfo, decode
 from hil.record.completeness import Completeness
 from hil.record.mcapio import RecordingError, SessionWriter
@@ -50,6 +63,27 @@ class Recorder(Service):
         self._meta_written = False
         self._pending: list[tuple[str, bytes, int]] = []
         self.written = 0
+        self.bytes_written = 0
+        self.zenoh_missed: dict[str, int] = {}
+        self._miss_lock = threading.Lock()
+        self._peak_queue = 0
+        self._write_failed = False
+
+    # The base class sets ``state`` to "running" after setup(); a recorder that cannot write must
+    # keep saying "degraded" for as long as it lives, so the state is derived, not assigned.
+    @property
+    def state(self) -> str:
+        base = self.__dict__.get("_state", "starting")
+        if self.__dict__.get("_degraded", False) and base == "running":
+            return "degraded"
+        return base
+
+    @state.setter
+    def state(self, value: str) -> None:
+        if value == "degraded":
+            self.__dict__["_degraded"] = True
+            value = "running"
+        self.__dict__["_state"] = value
 
     def needs_run(self) -> bool:
         return False  # record from boot: statuses before the run starts are evidence too
@@ -60,17 +94,51 @@ class Recorder(Service):
         except RecordingError as err:
             self.state = "degraded"
             self.stats.error("errors.recording_path", str(err))
-        self._sub = subscribe_raw(self.ctx.session, self.keys.all(), self._on_sample, self.stats)
+        self._sub = zext.declare_advanced_subscriber(
+            self.ctx.session,
+            self.keys.all(),
+            self._on_sample,
+            recovery=zext.RecoveryConfig(heartbeat=True),
+            subscriber_detection=True,
+        )
+        self._miss = self._sub.sample_miss_listener(self._on_miss)
         self._writer_thread.start()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self.queue.put((str(sample.key_expr), sample.payload.to_bytes(), wall_ns()))
+        # Zenoh's thread: stamp and enqueue only; never raise into Zenoh.
+        try:
+            self.queue.put((str(sample.key_expr), sample.payload.to_bytes(), wall_ns()))
+        except Exception as err:
+            self.stats.error("errors.enqueue", f"{type(err).__name__}: {err}")
+
+    def _on_miss(self, miss: zext.Miss) -> None:
+        """Zenoh says ``miss.nb`` samples of one advanced publisher never reached us."""
+        source = str(miss.source)
+        with self._miss_lock:
+            self.zenoh_missed[source] = self.zenoh_missed.get(source, 0) + int(miss.nb)
+        self.stats.error("zenoh_missed_events", f"Zenoh sample miss: {miss.nb} samples from {source}")
+
+    def total_zenoh_missed(self) -> int:
+        with self._miss_lock:
+            return sum(self.zenoh_missed.values())
 
     def extra_status(self) -> dict[str, int]:
+        depth = self.queue.qsize()
+        self._peak_queue = max(self._peak_queue, depth)
+        totals = {"gaps": 0, "duplicates": 0, "out_of_order": 0}
+        for tr in list(self.completeness.topics.values()):
+            totals["gaps"] += tr.gaps
+            totals["duplicates"] += tr.duplicates
+            totals["out_of_order"] += tr.out_of_order
         return {
             "written": self.written,
-            "queue_depth": self.queue.qsize(),
+            "bytes_written": self.bytes_written,
+            "queue_depth": depth,
+            "queue_peak": self._peak_queue,
             "missing": self.completeness.total_missing(),
+            "zenoh_missed": self.total_zenoh_missed(),
+            "recording": 0 if self.writer is None else 1,
+            **totals,
         }
 
     def _log_time(self, rx_wall_ns: int) -> int:
@@ -109,16 +177,25 @@ class Recorder(Service):
                 seq=msg.seq,
             )
             self.written += 1
+            self.bytes_written += len(payload)
             self.stats.count_rate("in.all")
         except OSError as err:
             self._fail(err)
 
     def _fail(self, err: OSError) -> None:
+        """A write error (disk full, file removed, I/O error): say so in status, stop writing.
+
+        The process stays up, so the rest of the rig keeps running and the supervisor's table and
+        the status key keep showing *why* nothing is being recorded.
+        """
         self.state = "degraded"
+        self._write_failed = True
         self.stats.error(
             "errors.write", f"writing {self.path} failed: {err.strerror or err}; recording stopped"
         )
-        self.writer = None
+        writer, self.writer = self.writer, None
+        if writer is not None:
+            writer.abandon()
 
     def _write_run_metadata(self, run: RunInfo) -> None:
         if self.writer is None or self._meta_written:
@@ -173,27 +250,39 @@ class Recorder(Service):
     def teardown(self) -> None:
         # Let the last samples arrive, then drain the queue and finish the file.
         time.sleep(float(self.ctx.options.get("drain_s", 0.5)))
-        self._sub.undeclare()
+        try:
+            self._miss.undeclare()
+            self._sub.undeclare()
+        except Exception as err:  # a session already closing must not cost us the summary
+            self.stats.error("errors.undeclare", f"{type(err).__name__}: {err}")
         self.queue.put(None)
         self._writer_thread.join(timeout=30)
         if self.writer is None:
             return
-        report = self.completeness.report()
-        missing = self.completeness.total_missing()
         try:
-            self.writer.add_metadata(
-                "completeness",
-                {
-                    "topics": report,
-                    "messages": self.written,
-                    "missing": missing,
-                    "replay_ready": missing == 0 and self._meta_written,
-                    "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
-                },
-            )
+            self.writer.add_metadata("completeness", self.completeness_summary())
             self.writer.close()
         except OSError as err:
             self._fail(err)
+
+    def completeness_summary(self) -> dict[str, Any]:
+        """What the file is worth: per-topic seq accounting, Zenoh misses, rejects, the verdict."""
+        missing = self.completeness.total_missing()
+        zmissed = self.total_zenoh_missed()
+        with self._miss_lock:
+            by_source = dict(self.zenoh_missed)
+        return {
+            "topics": self.completeness.report(),
+            "messages": self.written,
+            "bytes": self.bytes_written,
+            "missing": missing,
+            "zenoh_missed": zmissed,
+            "zenoh_missed_by_source": by_source,
+            "queue_peak": self._peak_queue,
+            "replay_ready": missing == 0 and zmissed == 0 and self._meta_written,
+            "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
+            "method": "seq gaps per publisher + zenoh.ext advanced subscriber sample-miss listener",
+        }
 
 
 SERVICE = Recorder

@@ -9,6 +9,7 @@ flushed at least every second, so a killed recorder leaves a file readable up to
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -29,8 +30,12 @@ PROFILE = "hil"
 _U64_MAX = 2**64 - 1
 
 
-class RecordingError(Exception):
-    """A recording cannot be read or written; the message names the file and the reason."""
+class RecordingError(ValueError):
+    """A recording cannot be read or written; the message names the file and the reason.
+
+    A ``ValueError`` so every CLI boundary that already turns bad input into one line and exit
+    code 2 treats a corrupt, truncated or non-MCAP file the same way.
+    """
 
 
 def _u64(ns: int) -> int:
@@ -105,6 +110,19 @@ class SessionWriter:
     def flush(self) -> None:
         """Close the chunk in progress and push it to the OS (a SIGKILL after this loses nothing)."""
         self._writer.flush()
+
+    def abandon(self) -> None:
+        """Give up on a file that can no longer be written (disk full): close, never raise.
+
+        What was flushed before stays readable up to its last complete chunk.
+        """
+        self.closed = True
+        with contextlib.suppress(OSError):
+            self._fh.close()
+
+    def tell(self) -> int:
+        """Bytes handed to the OS so far (for size-based splitting)."""
+        return self._fh.tell()
 
     def close(self) -> None:
         if self.closed:
