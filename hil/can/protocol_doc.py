@@ -201,8 +201,9 @@ the same `can.Bus` calls either way.
 
 The SocketCAN path is proven by the vcan tier (`pytest -m vcan`), inside user-mode-linux when the
 host kernel has no CAN: on its one slow vCPU it sustains, with no lost sample, classic CAN at
-100 samples/s (~400 frames/s) and CAN FD at 200 samples/s; host rates and timing come from the
-benchmarks, not from UML.
+200 samples/s (~800 frames/s) and CAN FD at 400 samples/s (emitter and receiver in separate
+processes; receive-spacing jitter there is milliseconds, a property of UML, not of the
+protocol). Host rates and timing come from the benchmarks, not from UML.
 """
 
 
