@@ -177,6 +177,12 @@ def cmd_rerun(a: argparse.Namespace) -> int:
     return rc
 
 
+def cmd_replay(a: argparse.Namespace) -> int:
+    from services.replayer import run
+
+    return run(a)
+
+
 def cmd_router(a: argparse.Namespace) -> int:
     import threading
 
@@ -245,6 +251,12 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
     rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
     rr.set_defaults(func=cmd_rerun)
+
+    from services.replayer import add_args as add_replay_args
+
+    rp = sub.add_parser("replay", help="republish a recording onto Zenoh (and its CAN frames onto a bus)")
+    add_replay_args(rp)
+    rp.set_defaults(func=cmd_replay)
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
     router.add_argument("--listen", default="tcp/0.0.0.0:7447")

@@ -14,6 +14,7 @@ from typing import Any
 
 from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import FusionJournal, GnssFix, ImuSample, NavSolution, RunInfo
+from hil.record.lockstep import ack_key, encode_ack
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
@@ -69,6 +70,9 @@ class Fusion(Service):
         self.emit_event(FUSION_CONFIG_EVENT, fusion_config_detail(cfg))
         pubs = {n: self.publisher(self.keys.nav(n), NavSolution) for n in (FREE_INS, *names)}
         journal = self.publisher(self.keys.journal(), FusionJournal)
+        # lockstep replay: say how many inputs were pushed (hil/record/lockstep.py)
+        ack = self.ctx.session.declare_publisher(ack_key(self.ctx.rig))
+        pushed = 0
         last_journal = time.monotonic()
         consumed_at_journal = 0
 
@@ -98,9 +102,12 @@ class Fusion(Service):
                     break
             if msg is not None:
                 emit(core.push(msg))
+                pushed += 1
+                ack.put(encode_ack(pushed))
             if time.monotonic() - last_journal >= JOURNAL_PERIOD_S:
                 last_journal = time.monotonic()
                 write_journal()
+                ack.put(encode_ack(pushed))
             if getattr(core, "last_error", ""):
                 self.stats.error("errors.estimator", core.last_error)
                 core.last_error = ""

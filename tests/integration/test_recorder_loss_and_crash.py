@@ -31,7 +31,9 @@ class Hub:
 
     def __init__(self) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.session: zenoh.Session = open_session(BusConfig(mode="peer", listen=(self.endpoint,), connect=()))
+        self.session: zenoh.Session = open_session(
+            BusConfig(mode="peer", listen=(self.endpoint,), connect=())
+        )
         self.status: dict[str, ServiceStatus] = {}
         self._sub = self.session.declare_subscriber(f"hil/{RIG}/status/*", self._on_status)
 
