@@ -1,0 +1,80 @@
+"""python-can reads a rig recording: ``can.LogReader("session.mcap")`` yields its CAN frames.
+
+Registered under python-can's ``can.io.message_reader`` entry point for the ``.mcap`` suffix, so
+python-can's own tools work on a recording unchanged, e.g. ``python -m can.player -i virtual
+session.mcap`` plays the recorded frames onto any bus with their recorded spacing, and
+``python -m can.logconvert session.mcap out.asc`` converts them.
+
+Which frames: every ``hil.CanFrame`` message (the bridge's ``hil/<rig>/can/<channel>`` topics),
+in file order. ``timestamp`` is the frame's receive stamp on the rig clock (``stamp_ns`` / 1e9,
+seconds since run start); ``channel`` is the recorded channel name. A crashed recording is read
+up to its last complete chunk, like every other reader of the rig's files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+from can.io.generic import MessageReader
+
+from hil.messages import CanFrame, decode
+from hil.record.mcapio import RecordingError, iter_records
+
+CAN_SCHEMA = "hil.CanFrame"
+
+
+def can_message(frame: CanFrame) -> can.Message:
+    """The python-can view of one recorded frame."""
+    return can.Message(
+        timestamp=frame.stamp_ns * 1e-9,
+        arbitration_id=frame.arbitration_id,
+        is_extended_id=frame.is_extended_id,
+        is_fd=frame.is_fd,
+        bitrate_switch=frame.bitrate_switch,
+        is_error_frame=frame.is_error_frame,
+        is_rx=True,
+        channel=frame.channel,
+        data=bytes.fromhex(frame.data_hex),
+    )
+
+
+class McapReader(MessageReader):
+    """Iterates the ``hil.CanFrame`` messages of an MCAP recording as ``can.Message``.
+
+    ``channel``: only frames recorded from this CAN channel (default: all).
+    Raises ``RecordingError`` (a ``ValueError``) when the file is not a readable recording.
+    """
+
+    def __init__(self, file: Any, channel: str | None = None, **kwargs: Any) -> None:
+        if not isinstance(file, str | Path):
+            raise TypeError("McapReader reads a file path (MCAP needs random access to its chunks)")
+        self.path = Path(file)
+        if not self.path.is_file():
+            raise RecordingError(f"no recording at {self.path}")
+        self.channel = channel
+        self.truncated = ""
+        self._stopped = False
+
+    def __iter__(self) -> Iterator[can.Message]:
+        seen_any = False
+        for kind, rec in iter_records(self.path):
+            if self._stopped:
+                return
+            if kind == "truncated":
+                if not seen_any:
+                    raise RecordingError(f"{self.path} is not a readable MCAP recording ({rec})")
+                self.truncated = str(rec)
+                return
+            seen_any = True
+            if kind != "message" or rec.schema != CAN_SCHEMA:
+                continue
+            frame = decode(CanFrame, rec.payload)
+            if self.channel is not None and frame.channel != self.channel:
+                continue
+            yield can_message(frame)
+
+    def stop(self) -> None:
+        self._stopped = True
