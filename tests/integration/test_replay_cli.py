@@ -1,0 +1,124 @@
+"""``hil replay`` as a user runs it: selection, another rig, step, loop, Ctrl-C, and bad files
+given to ``hil info/replay/rerun`` (one line, exit 2, no traceback)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from hil.record.mcapio import read_session
+from tests.conftest import REPO, hil_cmd, run_hil
+from tests.replay.helpers import GOLDEN, Hub
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture
+def hub() -> Iterator[Hub]:
+    h = Hub()
+    try:
+        yield h
+    finally:
+        h.close()
+
+
+def bad_files(tmp: Path) -> dict[str, Path]:
+    data = GOLDEN.read_bytes()
+    out = {
+        "garbage": b"this is not an mcap file\n" * 10,
+        "empty": b"",
+        "magic_only": data[:8],
+        "cut_in_header": data[:40],
+    }
+    paths = {}
+    for name, blob in out.items():
+        p = tmp / f"{name}.mcap"
+        p.write_bytes(blob)
+        paths[name] = p
+    paths["missing"] = tmp / "missing.mcap"
+    return paths
+
+
+@pytest.mark.parametrize("cmd", [["info"], ["replay", "--afap"], ["rerun", "--verify"]])
+def test_a_bad_file_exits_2_with_one_line(tmp_path: Path, cmd: list[str]) -> None:
+    for name, path in bad_files(tmp_path).items():
+        proc = run_hil(cmd[0], str(path), *cmd[1:], timeout=60)
+        assert proc.returncode == 2, (name, proc.stdout, proc.stderr)
+        assert "Traceback" not in proc.stderr, (name, proc.stderr)
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and str(path) in lines[0], (name, proc.stderr)
+
+
+def test_a_truncated_file_replays_up_to_its_last_chunk(tmp_path: Path, hub: Hub) -> None:
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(GOLDEN.read_bytes()[: GOLDEN.stat().st_size // 2])
+    hub.collect("hil/cut/truth")
+    proc = hub.run("replay", str(cut), "--afap", "--rig", "cut", "--topics", "/truth$")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "truncated" in proc.stdout
+    time.sleep(0.5)
+    assert 0 < len(hub.samples) < 401
+
+
+def test_time_window_topic_filter_and_rig_rekey(hub: Hub) -> None:
+    # GIVEN the recorded truth between 1 s and 2 s after the first message
+    s = read_session(GOLDEN)
+    t0 = s.records[0].log_time_ns
+    want = [r.payload for r in s.records if r.topic.endswith("/truth") and 1e9 <= r.log_time_ns - t0 <= 2e9]
+    hub.collect("hil/**")
+    # WHEN it is replayed under rig "other", truth only, 1..2 s
+    proc = hub.run(
+        "replay", str(GOLDEN), "--afap", "--rig", "other", "--topics", "/truth$", "--start", "1", "--end", "2"
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    time.sleep(0.5)
+    # THEN exactly those payloads arrive, byte for byte, on hil/other/truth and nowhere else
+    assert {k for k, _ in hub.samples} == {"hil/other/truth"}
+    assert [p for _, p in hub.samples] == want and len(want) == 101
+
+
+def test_original_timing_and_rate(hub: Hub) -> None:
+    hub.collect("hil/timed/truth")
+    t = time.monotonic()
+    proc = hub.run(
+        "replay", str(GOLDEN), "--rig", "timed", "--topics", "/truth$", "--end", "2", "--rate", "2"
+    )
+    took = time.monotonic() - t
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    stamps = [json.loads(p)["stamp_ns"] for _, p in hub.samples]
+    assert len(stamps) == 201
+    assert 1.0 <= took < 1.0 + 3.0  # 2 s of recording at rate 2 (+ start-up)
+
+
+def test_step_sends_one_message_per_enter(hub: Hub) -> None:
+    hub.collect("hil/stepper/**")
+    p = subprocess.run(
+        hil_cmd("replay", str(GOLDEN), "--rig", "stepper", "--topics", "/truth$", "--step"),
+        input="\n\n\nq\n",
+        cwd=REPO,
+        env=hub.env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    time.sleep(0.5)
+    assert [json.loads(b)["seq"] for _, b in hub.samples] == [0, 1, 2]
+
+
+def test_loop_runs_until_ctrl_c_and_stops_cleanly(hub: Hub) -> None:
+    hub.collect("hil/looper/run")
+    proc = hub.spawn("replay", str(GOLDEN), "--rig", "looper", "--topics", "/run$", "--afap", "--loop")
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 130, out
+    assert "Traceback" not in out and "replay:" in out
+    n_run = sum(1 for r in read_session(GOLDEN).records if r.topic.endswith("/run"))
+    assert len(hub.samples) > 2 * n_run  # it went round more than twice
