@@ -70,7 +70,13 @@ def cmd_up(a: argparse.Namespace) -> int:
         live=not a.quiet,
         log_dir=record.resolve().with_suffix(".logs"),
         restart=a.restart,
+        dut_mapping=str(Path(a.dut).resolve()) if a.dut else None,
+        dut_emulator=a.dut_emulator,
     )
+    if a.dut_emulator and not a.dut:
+        raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
+    if a.dut and not Path(a.dut).is_file():
+        raise UserError(f"--dut {a.dut}: no such mapping file")
     print(
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
@@ -184,14 +190,33 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
 
 def cmd_router(a: argparse.Namespace) -> int:
+    import json
     import threading
+
+    import zenoh
 
     from hil.bus.session import BusConfig, open_session
     from hil.runtime.service import install_signal_handlers
 
-    listen = tuple(x for x in a.listen.split(",") if x)
-    session = open_session(BusConfig(mode="router", listen=listen, connect=()))
-    print(f"hil router: listening on {', '.join(listen)}", flush=True)
+    if a.config:
+        # a zenohd-style json5 file (deploy/zenoh/router*.json5): its listen endpoints, TLS and
+        # access control apply as written; --listen, if given, replaces the listen endpoints.
+        if not Path(a.config).is_file():
+            raise UserError(f"--config {a.config}: no such file")
+        try:
+            conf = zenoh.Config.from_file(a.config)
+            conf.insert_json5("mode", json.dumps("router"))
+            if a.listen:
+                conf.insert_json5("listen/endpoints", json.dumps(a.listen.split(",")))
+            session = zenoh.open(conf)
+        except Exception as err:
+            raise UserError(f"--config {a.config}: zenoh refused it: {err}") from err
+        listen = a.listen or f"as in {a.config}"
+    else:
+        endpoints = tuple(x for x in (a.listen or "tcp/0.0.0.0:7447").split(",") if x)
+        session = open_session(BusConfig(mode="router", listen=endpoints, connect=()))
+        listen = ", ".join(endpoints)
+    print(f"hil router: listening on {listen}", flush=True)
     stop = threading.Event()
     install_signal_handlers(stop)
     stop.wait()
@@ -218,6 +243,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--restart", type=int, default=0, help="restarts allowed per service before the run fails"
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
+    up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
+    up.add_argument("--dut-emulator", action="store_true", help="also run an emulated unit for --dut")
     up.set_defaults(func=cmd_up)
 
     sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")
@@ -259,7 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp.set_defaults(func=cmd_replay)
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
-    router.add_argument("--listen", default="tcp/0.0.0.0:7447")
+    router.add_argument(
+        "--listen", default=None, help="endpoints, comma-separated (default tcp/0.0.0.0:7447 or --config's)"
+    )
+    router.add_argument("--config", default=None, help="a zenoh json5 config file (TLS, access control)")
     router.set_defaults(func=cmd_router)
     return ap
 

@@ -16,9 +16,14 @@ SERVICES: dict[str, str] = {
     "world": "services.world",
 }
 
+# Started only on request (`hil up --dut-emulator`), but runnable alone like any service.
+OPTIONAL_SERVICES: dict[str, str] = {
+    "dut_emulator": "services.dut_emulator",
+}
+
 # Stop order: producers first, consumers after they drained, recorder last.
 STOP_STAGES: tuple[tuple[str, ...], ...] = (
-    ("world", "imu_emulator", "gnss_emulator"),
+    ("world", "imu_emulator", "gnss_emulator", "dut_emulator"),
     ("can_bridge",),
     ("timesync",),
     ("fusion",),
@@ -28,10 +33,11 @@ STOP_STAGES: tuple[tuple[str, ...], ...] = (
 
 class UnknownServiceError(KeyError):
     def __str__(self) -> str:
-        return f"unknown service {self.args[0]!r}; known: {', '.join(SERVICES)}"
+        return f"unknown service {self.args[0]!r}; known: {', '.join([*SERVICES, *OPTIONAL_SERVICES])}"
 
 
 def service_module(name: str) -> ModuleType:
-    if name not in SERVICES:
+    module = SERVICES.get(name) or OPTIONAL_SERVICES.get(name)
+    if module is None:
         raise UnknownServiceError(name)
-    return importlib.import_module(SERVICES[name])
+    return importlib.import_module(module)

@@ -60,6 +60,8 @@ class UpOptions:
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
+    dut_mapping: str | None = None  # a device under test on the IMU's CAN bus (can_bridge decodes it)
+    dut_emulator: bool = False  # start the emulated unit (services/dut_emulator.py) too
 
 
 @dataclass
@@ -111,7 +113,7 @@ class LiveView:
                 f"hil up  t={elapsed_s:7.1f} s   {'service':<14}{'state':<12}{'in/s':>8}{'out/s':>8}"
                 f"{'rejected':>9}  last error"
             ]
-            for name in SERVICES:
+            for name in children or SERVICES:
                 st = self.status.get(name)
                 alive = children[name].proc.poll() is None if name in children else False
                 if st is None:
@@ -152,6 +154,12 @@ class Supervisor:
                 mode="peer", connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",)
             )
 
+    def service_names(self) -> list[str]:
+        names = list(SERVICES)
+        if self.opts.dut_emulator:
+            names.insert(names.index("world"), "dut_emulator")
+        return names
+
     def options_for(self, name: str) -> dict[str, Any]:
         o = self.opts
         base: dict[str, Any] = {}
@@ -160,12 +168,14 @@ class Supervisor:
                 "scenario": o.scenario,
                 "duration_s": o.duration_s,
                 "speed": o.speed,
-                "wait_for": [n for n in SERVICES if n != "world"],
+                "wait_for": [n for n in self.service_names() if n != "world"],
             }
         elif name == "recorder":
             base = {"path": str(o.record)}
-        elif name in ("imu_emulator", "can_bridge"):
+        elif name in ("imu_emulator", "can_bridge", "dut_emulator"):
             base = {"channel": o.channel, "interface": o.can_interface, "fd": o.fd}
+            if name != "imu_emulator" and o.dut_mapping:
+                base["dut_mapping"] = o.dut_mapping
         elif name == "fusion" and o.estimators:
             base = {"estimators": o.estimators}
         return base
@@ -211,7 +221,7 @@ class Supervisor:
             signal.signal(s, lambda *_: self.stop.set())
         t_start = self._t_start = time.monotonic()
         try:
-            for name in SERVICES:
+            for name in self.service_names():
                 self.spawn(name)
             self._wait(t_start)
         finally:
