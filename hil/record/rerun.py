@@ -59,6 +59,7 @@ class RerunResult:
     recorded: dict[tuple[str, int], bytes]
     inputs_used: int
     inputs_dropped: int
+    live_consumed: int = -1  # the last journal's count of inputs the live fusion consumed
 
     def first_difference(self) -> str | None:
         seen = 0
@@ -96,6 +97,7 @@ def rerun_fusion(session: Session) -> RerunResult:
     inputs: list[ImuSample | GnssFix] = []
     dropped: Counter[str] = Counter()
     recorded: dict[tuple[str, int], bytes] = {}
+    live_consumed = -1
     for r in session.records:
         if "/synced/" in r.topic:
             m = r.decode()
@@ -104,6 +106,7 @@ def rerun_fusion(session: Session) -> RerunResult:
         elif r.topic.endswith("/fusion/journal"):
             j = r.decode()
             assert isinstance(j, FusionJournal)
+            live_consumed = max(live_consumed, j.consumed)
             dropped.update(d.split(":", 1)[1] if d.count(":") > 1 else d for d in j.dropped)
         elif "/nav/" in r.topic:
             est = r.topic.rsplit("/", 1)[1]
@@ -122,7 +125,7 @@ def rerun_fusion(session: Session) -> RerunResult:
     out: list[NavSolution] = []
     for m in keep:
         out.extend(core.process(m))
-    return RerunResult(out, recorded, len(keep), sum(dropped.values()))
+    return RerunResult(out, recorded, len(keep), sum(dropped.values()), live_consumed)
 
 
 def rerun(path: str, *, core: str = "fusion", verify: bool = False) -> tuple[int, list[str]]:
@@ -135,6 +138,17 @@ def rerun(path: str, *, core: str = "fusion", verify: bool = False) -> tuple[int
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "
         f"{len(res.recomputed)} outputs recomputed, {len(res.recorded)} recorded"
     ]
+    if session.truncated:
+        lines.append(
+            "note: the file is truncated (its recorder did not finish it); "
+            "rerun covers it up to its last complete chunk"
+        )
+    elif res.live_consumed >= 0 and res.live_consumed != res.inputs_used:
+        lines.append(
+            f"note: the live fusion journaled {res.live_consumed} consumed inputs, the recording holds "
+            f"{res.inputs_used} of them: inputs were lost between the fusion and the recorder "
+            "(see hil info for seq gaps on synced/*)"
+        )
     if not verify:
         return 0, lines
     diff = res.first_difference()
