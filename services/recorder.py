@@ -15,6 +15,11 @@ Loss is measured twice, because each measure sees what the other cannot:
 
 Both go into status every second (``missing``, ``zenoh_missed``) and into the file's
 ``completeness`` metadata at a clean stop, with ``replay_ready`` true only when both are zero.
+
+Optional splitting (options ``split_mb``, ``split_s``): at a flush boundary the current file is
+finished (summary, index, completeness so far) and the next part ``<stem>_0001.mcap`` opened with
+the same run metadata and attachments, so every part is a self-contained recording. No message
+is lost across a split: the writer thread rotates between two messages.
 """
 
 from __future__ import annotations
@@ -60,7 +65,12 @@ class Recorder(Service):
         self._writer_thread = threading.Thread(target=self._write_loop, name="mcap-writer", daemon=True)
         self._start_epoch_ns: int | None = None
         self._speed = 1.0
-        self._meta_written = False
+        self._meta_written = False  # the current part holds the run's metadata
+        self._run: RunInfo | None = None
+        self.part = 0
+        self._part_t0 = time.monotonic()
+        self.split_bytes = int(float(ctx.options.get("split_mb") or 0) * 1e6)
+        self.split_s = float(ctx.options.get("split_s") or 0)
         self._pending: list[tuple[str, bytes, int]] = []
         self.written = 0
         self.bytes_written = 0
@@ -163,6 +173,8 @@ class Recorder(Service):
         if isinstance(msg, RunInfo) and self._start_epoch_ns is None:
             self._start_epoch_ns = msg.start_epoch_ns
             self._speed = msg.speed
+            self._run = msg
+            self._part_t0 = time.monotonic()
             self._write_run_metadata(msg)
         self.completeness.see(key, msg.seq)
         if self.writer is None:
@@ -191,7 +203,7 @@ class Recorder(Service):
         self.state = "degraded"
         self._write_failed = True
         self.stats.error(
-            "errors.write", f"writing {self.path} failed: {err.strerror or err}; recording stopped"
+            "errors.write", f"writing {self.part_path()} failed: {err.strerror or err}; recording stopped"
         )
         writer, self.writer = self.writer, None
         if writer is not None:
@@ -226,6 +238,37 @@ class Recorder(Service):
         for name, data, media in run_attachments(run):
             self.writer.add_attachment(name, data, media)
 
+    def part_path(self, part: int | None = None) -> Path:
+        """Part 0 is the requested path; later parts are ``<stem>_0001<suffix>``, ..."""
+        k = self.part if part is None else part
+        return self.path if k == 0 else self.path.with_name(f"{self.path.stem}_{k:04d}{self.path.suffix}")
+
+    def _due_split(self) -> bool:
+        if self.writer is None or self._run is None:
+            return False  # the first part runs from boot to at least the run's start
+        if self.split_bytes and self.writer.tell() >= self.split_bytes:
+            return True
+        return bool(self.split_s) and time.monotonic() - self._part_t0 >= self.split_s
+
+    def _rotate(self) -> None:
+        """Finish the current part and open the next one (same metadata and attachments)."""
+        assert self.writer is not None
+        self.writer.add_metadata("completeness", {**self.completeness_summary(), "part": self.part})
+        self.writer.close()
+        self.part += 1
+        self._part_t0 = time.monotonic()
+        self._meta_written = False
+        try:
+            self.writer = SessionWriter(self.part_path())
+        except RecordingError as err:
+            self.writer = None
+            self.state = "degraded"
+            self.stats.error("errors.recording_path", str(err))
+            return
+        self.writer.add_metadata("part", {"index": self.part, "previous": self.part_path(self.part - 1).name})
+        if self._run is not None:
+            self._write_run_metadata(self._run)
+
     def _write_loop(self) -> None:
         last_flush = time.monotonic()
         while True:
@@ -244,6 +287,8 @@ class Recorder(Service):
                 last_flush = time.monotonic()
                 try:
                     self.writer.flush()
+                    if self._due_split():
+                        self._rotate()
                 except OSError as err:
                     self._fail(err)
 
@@ -260,7 +305,7 @@ class Recorder(Service):
         if self.writer is None:
             return
         try:
-            self.writer.add_metadata("completeness", self.completeness_summary())
+            self.writer.add_metadata("completeness", {**self.completeness_summary(), "part": self.part})
             self.writer.close()
         except OSError as err:
             self._fail(err)
@@ -279,7 +324,8 @@ class Recorder(Service):
             "zenoh_missed": zmissed,
             "zenoh_missed_by_source": by_source,
             "queue_peak": self._peak_queue,
-            "replay_ready": missing == 0 and zmissed == 0 and self._meta_written,
+            "replay_ready": missing == 0 and zmissed == 0 and self._run is not None,
+            "parts": self.part + 1,
             "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
             "method": "seq gaps per publisher + zenoh.ext advanced subscriber sample-miss listener",
         }
@@ -292,5 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="hil service recorder")
     ap.add_argument("--rig", default="default")
     ap.add_argument("--path", default="recordings/session.mcap")
+    ap.add_argument("--split-mb", type=float, default=0.0, help="start a new part after this many MB")
+    ap.add_argument("--split-s", type=float, default=0.0, help="start a new part after this many seconds")
     a = ap.parse_args(argv)
-    return run_service(Recorder, a.rig, {"path": a.path})
+    return run_service(Recorder, a.rig, {"path": a.path, "split_mb": a.split_mb, "split_s": a.split_s})

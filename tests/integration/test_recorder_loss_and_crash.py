@@ -68,8 +68,8 @@ def hub() -> Iterator[Hub]:
         h.session.close()
 
 
-def start_recorder(hub: Hub, path: str) -> subprocess.Popen[bytes]:
-    opts = json.dumps({"path": path, "drain_s": 0.3})
+def start_recorder(hub: Hub, path: str, **extra: float) -> subprocess.Popen[bytes]:
+    opts = json.dumps({"path": path, "drain_s": 0.3, **extra})
     proc = subprocess.Popen(
         hil_cmd("service", "recorder", "--rig", RIG, "--options", opts),
         cwd=REPO,
@@ -240,3 +240,33 @@ def test_full_disk_is_reported_in_status_and_the_process_keeps_serving(hub: Hub)
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=30)
     assert proc.returncode == 0
+
+
+def test_split_by_duration_loses_nothing_and_every_part_stands_alone(hub: Hub, tmp_path: Path) -> None:
+    # GIVEN a recorder that starts a new part every second
+    path = tmp_path / "split.mcap"
+    proc = start_recorder(hub, str(path), split_s=1.0)
+    k = Keys(RIG)
+    Publisher(hub.session, k.run(), RunInfo).put(run_info(0))
+    pub = Publisher(hub.session, k.sensor("imu"), ImuSample)
+    # WHEN 3.5 s of 400 Hz IMU traffic flow, then SIGTERM
+    t0 = time.monotonic()
+    i = 0
+    while time.monotonic() - t0 < 3.5:
+        pub.put(imu(i))
+        i += 1
+        time.sleep(0.0025)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=60)
+    # THEN there are several finished parts, each with the run metadata, and together every sample
+    parts = sorted(tmp_path.glob("split*.mcap"))
+    assert len(parts) >= 3, parts
+    seqs: list[int] = []
+    for n, part in enumerate(parts):
+        s = read_session(part)
+        assert not s.truncated and "hil" in s.metadata and "completeness" in s.metadata, part
+        assert json.loads(s.metadata["completeness"]["part"]) == n
+        assert any(name.startswith("scenario/") for name in s.attachments)
+        seqs += [r.sequence for r in s.by_topic(k.sensor("imu"))]
+    assert seqs == list(range(i))
