@@ -89,7 +89,10 @@ def run(a: argparse.Namespace) -> int:
         sys.stderr.write(f"hil replay: {err}" + "\n")
         return EXIT_USAGE
     stop = threading.Event()
-    prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    # Ctrl-C sets the stop event (checked between messages and while pacing); in --step mode it
+    # must also interrupt the blocking read of the Enter key, so there it stays KeyboardInterrupt.
+    sigs = (signal.SIGTERM,) if a.step else (signal.SIGINT, signal.SIGTERM)
+    prev = {s: signal.getsignal(s) for s in sigs}
     for s in prev:
         signal.signal(s, lambda *_: stop.set())
     session = open_session()
@@ -101,6 +104,9 @@ def run(a: argparse.Namespace) -> int:
             bus, desc = open_can_bus(a.can, a.can_interface, rig=a.rig or "default", session=session)
             sys.stderr.write(f"hil replay: CAN frames -> {desc}" + "\n")
         stats = replay(a.file, opts, session, can_bus=bus, stop=stop)
+    except KeyboardInterrupt:
+        sys.stderr.write("hil replay: stopped\n")
+        return EXIT_STOPPED
     except (ReplayError, RecordingError) as err:
         sys.stderr.write(f"hil replay: {err}" + "\n")
         return EXIT_FAILED if isinstance(err, ReplayError) else EXIT_USAGE
