@@ -6,9 +6,11 @@ reassembles samples (``hil.can.codec.ImuFrameAssembler``) and publishes:
 
 - ``hil/<rig>/can/<channel>``  every frame read, ``stamp_ns`` = its receive stamp on rig time;
 - ``hil/<rig>/sensor/imu``     each complete sample: ``stamp_ns = rx_stamp_ns`` = receive stamp
-  of the frame that completed it, ``device_stamp_ns`` from the frame, ``dt_ns`` from the
-  difference of consecutive device stamps (nominal ``1e9 / rate_hz`` for the first one or after a
-  gap longer than a second);
+  of the frame that completed it, ``device_stamp_ns`` from the frame, ``seq`` = the device's
+  sample index (from the status frame's ``SampleCount``, so a lost sample is a seq gap and the
+  emulator's capture truth pairs exactly), ``dt_ns`` from the difference of consecutive device
+  stamps per sample index (nominal ``1e9 / rate_hz`` for the first one or across a clock step;
+  see ``hil.timesync.sample_index``);
 - ``hil/<rig>/timetag/imu``    ``TimeTag(kind="sync_frame")`` per sync frame: the edge on the device
   clock paired with the frame's receive stamp, the time-tag the synchronisation service needs.
 
@@ -29,9 +31,10 @@ import can
 
 from hil.can.bus import open_can_bus
 from hil.can.codec import DecodedSample, ImuCanCodec, ImuFrameAssembler
-from hil.messages import CanFrame, ImuSample, RunInfo, TimeTag
+from hil.messages import CanFrame, ImuSample, NavSolution, RunInfo, TimeTag
 from hil.runtime.clock import RigClock
 from hil.runtime.service import Service, run_service
+from hil.timesync.sample_index import ImuSampleIndexer
 
 DEFAULT_RATE_HZ = 400.0
 
@@ -69,7 +72,9 @@ class CanBridge(Service):
         self.pub_tag = self.publisher(self.keys.timetag("imu"), TimeTag)
         self.publish_raw = bool(opts.get("publish_raw", True))
         self._seen_problems = 0
-        self._prev_device_ns: int | None = None
+        self._indexer = ImuSampleIndexer(self.nominal_dt_ns)
+        self._seen_status = 0
+        self._seen_lost = 0
         self.emit_event("can_transport", self.transport)
 
     def extra_status(self) -> dict[str, int]:
@@ -78,6 +83,7 @@ class CanBridge(Service):
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
         start, speed = run.start_epoch_ns, run.speed
+        self._setup_dut(run)
         stop = self.ctx.stop
         while not stop.is_set():
             try:
@@ -88,6 +94,33 @@ class CanBridge(Service):
                 continue
             if msg is not None:
                 self.handle(msg, start, speed)
+
+    def _setup_dut(self, run: RunInfo) -> None:
+        """A device under test on the same bus: its frames become ``nav/<name>`` (option dut_mapping)."""
+        self.dut = None
+        mapping = self.ctx.options.get("dut_mapping")
+        if not mapping:
+            return
+        from hil.can.dut import DutNavDecoder
+        from hil.can.dut_emulator import load_dut
+
+        try:
+            db, m = load_dut(mapping)
+            self.dut = DutNavDecoder(db, m, run.origin_lat_deg, run.origin_lon_deg, run.origin_alt_m)
+        except (ValueError, OSError) as err:
+            self.stats.error("errors.dut_config", f"device under test disabled: {err}")
+            return
+        self._dut_ids = frozenset(msg.frame_id for msg in db.messages)
+        self.pub_dut = self.publisher(self.keys.nav(m.estimator), NavSolution)
+
+    def _handle_dut(self, msg: can.Message, rx_ns: int) -> None:
+        dut = self.dut
+        before = sum(v for k, v in dut.counters.items() if k not in ("frames", "solutions"))
+        sol = dut.feed(msg, rx_ns)
+        if sum(v for k, v in dut.counters.items() if k not in ("frames", "solutions")) != before:
+            self.stats.error("rejected.dut", dut.last_error)
+        if sol is not None:
+            self.pub_dut.put(sol)
 
     def handle(self, msg: can.Message, start_epoch_ns: int, speed: float) -> None:
         """Per-frame work: raw frame out, assembler step, decoded outputs out."""
@@ -106,6 +139,9 @@ class CanBridge(Service):
                     data_hex=bytes(msg.data[:64]).hex(),
                 )
             )
+        if getattr(self, "dut", None) is not None and msg.arbitration_id in self._dut_ids:
+            self._handle_dut(msg, rx_ns)
+            return
         out = self.assembler.feed(msg)
         asm = self.assembler
         if asm.problems != self._seen_problems:
@@ -127,14 +163,14 @@ class CanBridge(Service):
                 )
 
     def _publish_sample(self, s: DecodedSample, rx_ns: int) -> None:
-        prev = self._prev_device_ns
-        dt = s.device_stamp_ns - prev if prev is not None else 0
-        if not 0 < dt <= 1_000_000_000:
-            dt = self.nominal_dt_ns
-        self._prev_device_ns = s.device_stamp_ns
+        c = self.assembler.counters
+        n_status, n_lost = c["status"], c["lost_frames"] + c["incomplete_sample"]
+        count = self.assembler.last_sample_count if n_status != self._seen_status else None
+        idx, dt = self._indexer.next(s.device_stamp_ns, count, n_lost != self._seen_lost)
+        self._seen_status, self._seen_lost = n_status, n_lost
         self.pub_imu.put(
             ImuSample(
-                seq=self.pub_imu.next_seq(),
+                seq=idx,
                 stamp_ns=rx_ns,
                 device_stamp_ns=s.device_stamp_ns,
                 rx_stamp_ns=rx_ns,
@@ -164,6 +200,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--rate-hz", type=float, default=DEFAULT_RATE_HZ, help="nominal IMU rate for dt_ns")
     p.add_argument("--dbc", default=None, help="DBC path (default: schemas/imu.dbc or $HIL_DBC)")
     p.add_argument("--no-raw", action="store_true", help="do not publish raw CanFrame messages")
+    p.add_argument("--dut-mapping", default=None, help="a device-under-test mapping TOML (see examples/dut)")
     return p.parse_args(argv)
 
 
@@ -176,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         "rate_hz": args.rate_hz,
         "dbc": args.dbc,
         "publish_raw": not args.no_raw,
+        "dut_mapping": args.dut_mapping,
     }
     return run_service(CanBridge, args.rig, options)
 

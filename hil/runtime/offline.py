@@ -1,8 +1,12 @@
 """``hil sim``: the live rig's cores wired in one process on a virtual clock, as fast as possible.
 
 Same physics, same DBC codec and frame assembler (so the wire's quantisation is identical to the
-live rig), same time-sync and fusion cores, same MCAP layout. Transport is modelled: a CAN sample
-arrives after its frames' wire time, a GNSS fix at its output time. Messages are written in
+live rig), same time-sync and fusion cores, same MCAP layout. Devices stamp on their own clocks
+(``hil.sensors.clock``: offset, drift, wander, jitter, tick, steps). Transport is modelled: a CAN
+burst leaves at capture and each frame arrives after the bus latency, an exponential extra delay
+(``[clock.imu] transport_*``) and its wire time, first in first out; the sync frame goes first
+at its edge and carries the kernel-stamp latch jitter; a GNSS fix arrives at its output time
+(validity + latency + jitter), the PPS is latched with its latch jitter. Messages are written in
 arrival (log time) order, window by window, so a one-hour session never sits in memory.
 """
 
@@ -14,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from hil import __version__
@@ -35,9 +40,10 @@ from hil.messages import (
 )
 from hil.record.mcapio import SessionWriter
 from hil.runtime.scenario_io import run_attachments, scenario_for_run, sha256_text
+from hil.sensors.clock import CAN_FRAME_TIME_NS
 from hil.timesync.core import TimeSyncCore
 
-CAN_FRAME_TIME_NS = 135_000  # ~ one 8-byte classic frame at 1 Mbit/s with stuffing
+__all__ = ["CAN_FRAME_TIME_NS", "SimOptions", "SimResult", "run_sim"]
 TRUTH_RATE_HZ = 100.0
 WINDOW_NS = 1_000_000_000
 
@@ -87,9 +93,11 @@ def run_sim(opts: SimOptions) -> SimResult:
     from hil.can.codec import ImuCanCodec, ImuFrameAssembler
     from hil.nav.scenario import load_scenario
     from hil.nav.trajectory import TruthGenerator
-    from hil.sensors.clock import device_clock_for
+    from hil.sensors.clock import clock_config_for, device_clock_for
     from hil.sensors.gnss import GnssEmulatorCore
     from hil.sensors.imu import ImuEmulatorCore, sensor_rng
+    from hil.timesync.config import sync_configs_for
+    from hil.timesync.sample_index import ImuSampleIndexer
     from services.fusion import default_estimators
 
     t_wall = time.monotonic()
@@ -119,7 +127,11 @@ def run_sim(opts: SimOptions) -> SimResult:
     gnss_clock = device_clock_for(s, "gnss")
     codec = ImuCanCodec.from_dbc(fd=opts.fd)
     assembler = ImuFrameAssembler(ImuCanCodec.from_dbc(fd=opts.fd))
-    sync = TimeSyncCore()
+    sync: TimeSyncCore[ImuSample | GnssFix] = TimeSyncCore(sync_configs_for(s))
+    imu_cc = clock_config_for(s, "imu")
+    can_rng = sensor_rng(s.seed, "imu.transport")
+    can_latency_ns = round(imu_cc.transport_latency_s * 1e9)
+    can_jitter_ns = imu_cc.transport_jitter_s * 1e9
     names = tuple(opts.estimators) or default_estimators()
     cfg = FusionConfig(estimators=names, lag_ns=int(opts.lag_s * 1e9), output_every=opts.output_every)
     fusion = FusionCore(truth.initial_state(), cfg)
@@ -188,7 +200,9 @@ def run_sim(opts: SimOptions) -> SimResult:
     gnss_counter = 0
     t_win = 0
     channel = "vcan0"
-    imu_rx_prev_dev: int | None = None
+    indexer = ImuSampleIndexer(dt_ns)
+    seen_status = seen_lost = 0
+    can_last_rx = -(2**62)
     while t_win < end_ns + WINDOW_NS:
         t_end = min(t_win + WINDOW_NS, end_ns + 1)
         arrivals: list[tuple[int, int, ImuSample | GnssFix]] = []  # (rx, order, synced msg)
@@ -220,23 +234,33 @@ def run_sim(opts: SimOptions) -> SimResult:
         n_i = max(0, min(n_imu, (t_end - 1) // dt_ns) - k_imu)
         if n_i:
             batch = imu_core.next_batch(n_i)
+            extra = can_rng.exponential(can_jitter_ns, n_i) if can_jitter_ns > 0 else np.zeros(n_i)
             for i in range(n_i):
                 t_true = int(batch.t_ns[i])
                 dev = imu_clock.device_ns(t_true)
-                frames = codec.encode_sample(
+                k = k_imu + i
+                frames = []
+                # the sync edge is this sample's capture; its frame goes first, kernel-stamped
+                sync_first = (k + 1) % round(rate_hz) == 0
+                if sync_first:
+                    frames.append(codec.encode_sync(dev))
+                frames += codec.encode_sample(
                     device_stamp_ns=dev, dtheta_b_rad=batch.dtheta_b_rad[i], dvel_b_mps=batch.dvel_b_mps[i]
                 )
-                k = k_imu + i
-                if (k + 1) % round(rate_hz) == 0:
-                    frames.append(codec.encode_sync(dev))
                 put(
                     out,
                     t_true,
                     keys.capture("imu"),
                     CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true),
                 )
+                t_burst = t_true + can_latency_ns + round(float(extra[i]))
                 for j, fr in enumerate(frames):
-                    rx = t_true + (j + 1) * CAN_FRAME_TIME_NS
+                    if j == 0 and sync_first:
+                        nominal = imu_clock.latch_ns(t_true) + can_latency_ns + CAN_FRAME_TIME_NS
+                    else:
+                        nominal = t_burst + (j + 1) * CAN_FRAME_TIME_NS
+                    rx = max(nominal, can_last_rx + CAN_FRAME_TIME_NS)  # the bus is FIFO
+                    can_last_rx = rx
                     fr.timestamp = rx * 1e-9
                     put(
                         out,
@@ -255,14 +279,13 @@ def run_sim(opts: SimOptions) -> SimResult:
                     )
                     for item in assembler.feed(fr):
                         if hasattr(item, "dtheta_b_rad"):
-                            dtn = (
-                                dt_ns
-                                if imu_rx_prev_dev is None
-                                else max(1, item.device_stamp_ns - imu_rx_prev_dev)
-                            )
-                            imu_rx_prev_dev = item.device_stamp_ns
+                            c = assembler.counters
+                            n_status, n_lost = c["status"], c["lost_frames"] + c["incomplete_sample"]
+                            count = assembler.last_sample_count if n_status != seen_status else None
+                            idx, dtn = indexer.next(item.device_stamp_ns, count, n_lost != seen_lost)
+                            seen_status, seen_lost = n_status, n_lost
                             raw = ImuSample(
-                                seq=pubs.next(keys.sensor("imu")),
+                                seq=idx,
                                 stamp_ns=rx,
                                 device_stamp_ns=item.device_stamp_ns,
                                 rx_stamp_ns=rx,
@@ -272,12 +295,10 @@ def run_sim(opts: SimOptions) -> SimResult:
                                 status=item.status,
                             )
                             put(out, rx, keys.sensor("imu"), raw)
-                            sync.on_arrival("imu", raw.device_stamp_ns, rx)
-                            synced = ImuSample(
-                                **{**_fields(raw), "stamp_ns": sync.restamp("imu", raw.device_stamp_ns)}
-                            )
-                            put(out, rx, keys.synced("imu"), synced)
-                            arrivals.append((rx, len(arrivals), synced))
+                            for m, t_rig in sync.on_measurement("imu", raw.device_stamp_ns, rx, raw):
+                                synced = msgspec.structs.replace(m, stamp_ns=t_rig)
+                                put(out, rx, keys.synced(m.sensor), synced)
+                                arrivals.append((rx, len(arrivals), synced))
                         else:
                             put(
                                 out,
@@ -298,8 +319,33 @@ def run_sim(opts: SimOptions) -> SimResult:
         for i in range(len(gb.t_valid_ns)):
             heapq.heappush(gnss_pending, (int(gb.t_output_ns[i]), gnss_counter, gb, i))
             gnss_counter += 1
+        gnss_events: list[tuple[int, int, Any]] = []  # (rig time, order, fix index or None)
         while gnss_pending and gnss_pending[0][0] < t_end:
             t_out, _c, gb_i, i = heapq.heappop(gnss_pending)
+            gnss_events.append((t_out, len(gnss_events), (gb_i, i)))
+        while next_pps < t_end and next_pps <= end_ns:
+            gnss_events.append((gnss_clock.latch_ns(next_pps), len(gnss_events), next_pps))
+            next_pps += 1_000_000_000
+        gnss_events.sort(key=lambda e: (e[0], e[1]))
+        for t_ev, _o, ev in gnss_events:
+            if isinstance(ev, int):  # a PPS edge at true time ev, latched at t_ev
+                dev_edge = gnss_clock.device_ns(ev)
+                put(
+                    out,
+                    t_ev,
+                    keys.timetag("gnss"),
+                    TimeTag(
+                        seq=pubs.next(keys.timetag("gnss")),
+                        stamp_ns=t_ev,
+                        sensor="gnss",
+                        kind="pps",
+                        device_stamp_ns=dev_edge,
+                    ),
+                )
+                sync.on_timetag("gnss", dev_edge, t_ev)
+                continue
+            gb_i, i = ev
+            t_out = t_ev
             t_valid = int(gb_i.t_valid_ns[i])
             seq = pubs.next(keys.sensor("gnss"))
             raw = GnssFix(
@@ -325,25 +371,10 @@ def run_sim(opts: SimOptions) -> SimResult:
                 keys.capture("gnss"),
                 CaptureTruth(seq=seq, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid),
             )
-            sync.on_arrival("gnss", raw.device_stamp_ns, t_out)
-            synced = GnssFix(**{**_fields(raw), "stamp_ns": sync.restamp("gnss", raw.device_stamp_ns)})
-            put(out, t_out, keys.synced("gnss"), synced)
-            arrivals.append((t_out, len(arrivals), synced))
-        while next_pps < t_end and next_pps <= end_ns:
-            put(
-                out,
-                next_pps,
-                keys.timetag("gnss"),
-                TimeTag(
-                    seq=pubs.next(keys.timetag("gnss")),
-                    stamp_ns=next_pps,
-                    sensor="gnss",
-                    kind="pps",
-                    device_stamp_ns=gnss_clock.device_ns(next_pps),
-                ),
-            )
-            sync.on_timetag("gnss", gnss_clock.device_ns(next_pps), next_pps)
-            next_pps += 1_000_000_000
+            for m, t_rig in sync.on_measurement("gnss", raw.device_stamp_ns, t_out, raw):
+                synced = msgspec.structs.replace(m, stamp_ns=t_rig)
+                put(out, t_out, keys.synced(m.sensor), synced)
+                arrivals.append((t_out, len(arrivals), synced))
         # fusion consumes in arrival order, exactly like the live service's inbox
         arrivals.sort(key=lambda a: (a[0], a[1]))
         for rx, _o, msg in arrivals:
@@ -387,6 +418,11 @@ def run_sim(opts: SimOptions) -> SimResult:
         t_win += WINDOW_NS
         if t_win > end_ns:
             t_last = end_ns + 1
+            for m, t_rig in sync.flush():  # measurements still held at the end of input
+                synced = msgspec.structs.replace(m, stamp_ns=t_rig)
+                put(out, t_last, keys.synced(m.sensor), synced)
+                for sol in fusion.push(synced):
+                    put(out, t_last, keys.nav(sol.estimator), sol)
             for sol in fusion.flush():
                 put(out, t_last, keys.nav(sol.estimator), sol)
             put(

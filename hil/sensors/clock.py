@@ -1,23 +1,326 @@
-"""Device clocks: how a sensor's own clock reads true time.
+"""Device clocks: how a sensor's own clock reads true time, and how its data reaches the rig.
 
-The foundation's devices share the rig clock (identity); the time-tag issue adds offset, drift,
-drift wander, jitter, quantisation and steps from the scenario's ``[clock.<sensor>]`` table.
+Three timelines (docs/architecture.md): *true* time (the scenario's), *device* time (each
+sensor's own oscillator) and *rig* time (the fusion computer's). In this rig the rig clock is the
+reference the emulators pace on, so rig time == true time and a re-stamped measurement's error is
+simply ``rig stamp - true capture time``.
+
+A device stamp of the true instant ``t`` (ns)::
+
+    device(t) = floor_q( t + offset + drift·t + wander(t) + Σ steps(t_k <= t) + jitter(t) )
+
+- ``offset_s``: device time at true zero (a device powered up before the run);
+- ``drift_ppm``: oscillator frequency error, device runs fast by that many parts per million;
+- ``drift_rw_ppm_per_sqrt_s``: random walk of that frequency (knots every second, integrated),
+  so a constant-drift fit is not exactly right over long windows;
+- ``jitter_s``: white stamp jitter, 1σ Gaussian, a pure function of the true instant (a hash of
+  it), so the sync edge and the sample captured at the same instant carry the same stamp, and
+  a stamp does not depend on the order the emulator asks for them;
+- ``quantum_s``: the device counter's tick (stamps are floored to it);
+- ``steps``: clock steps (a device reset, a re-sync) ``{t_s, step_s}``.
+
+Time tags: ``latch_jitter_s`` is the rig-side latch jitter of the tag edge, 1σ (the GNSS PPS is
+latched on the rig clock; the IMU's sync frame by the kernel's receive stamp, a few µs, as
+python-can#1881 measures with ``candump -H``), independent of the data path's jitter;
+``tag_latency_s`` is the calibrated edge -> latch delay the synchronisation compensates (for the
+IMU: the sync frame's wire time plus the bus latency).
+Transport (modelled by ``hil sim``; live it is the real bus): ``transport_latency_s`` plus an
+exponential extra delay of mean ``transport_jitter_s`` per CAN burst; ``min_delay_s`` is the
+known minimum measurement -> arrival delay that the arrival-only estimator adds back (what
+PX4 calls ``EKF2_GPS_DELAY`` for a receiver). ``timetag = false`` tells timesync to ignore the
+sensor's time tags and synchronise from arrival times alone; ``sync = "off"`` keeps raw arrival
+stamps (the no-synchronisation baseline).
+
+All of it comes from the scenario's ``[clock.<sensor>]`` table (reserved in
+``hil.nav.scenario``); absent keys take the modest defaults of :data:`DEFAULT_CLOCKS`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
+
+import numpy as np
+
+from hil.nav.scenario import Scenario, ScenarioError
+
+CAN_FRAME_TIME_NS = 135_000  # ~ one 8-byte classic frame at 1 Mbit/s with stuffing
+IMU_FRAMES_PER_SAMPLE = 4  # classic CAN: AxisX, AxisY, AxisZ, Time (the last completes the sample)
+_M64 = (1 << 64) - 1
+
+
+@dataclass(frozen=True)
+class ClockStep:
+    """The device clock jumps by ``step_s`` at true time ``t_s`` (a reset or a re-sync)."""
+
+    t_s: float
+    step_s: float
+
+
+@dataclass(frozen=True)
+class DeviceClockConfig:
+    """One sensor's clock, time-tag and transport parameters (SI units, see module docstring)."""
+
+    offset_s: float = 0.0
+    drift_ppm: float = 0.0
+    drift_rw_ppm_per_sqrt_s: float = 0.0
+    jitter_s: float = 0.0
+    quantum_s: float = 0.0
+    steps: tuple[ClockStep, ...] = ()
+    timetag: bool = True
+    sync: str = ""  # "timetag" | "arrival" | "off"; empty: "timetag" if timetag else "arrival"
+    latch_jitter_s: float = 0.0
+    tag_latency_s: float | None = None  # None: derived from the transport (see resolved())
+    transport_latency_s: float = 0.0
+    transport_jitter_s: float = 0.0
+    min_delay_s: float | None = None  # None: derived (IMU: frames' wire time; GNSS: its latency)
+
+    @property
+    def is_ideal(self) -> bool:
+        return not (
+            self.offset_s or self.drift_ppm or self.drift_rw_ppm_per_sqrt_s or self.jitter_s
+        ) and not (self.quantum_s or self.steps)
+
+
+#: Realistic but modest defaults: an IMU whose counter started 7.1 ms before the run and runs
+#: 20 ppm fast (a plain crystal), and a GNSS receiver disciplined to GPS time (tiny drift,
+#: 20 ns stamp noise) with a 1.5 ms offset to the rig clock; PPS latched with 1 µs jitter, the
+#: sync frame's kernel stamp with 5 µs; CAN data: 20 µs + exponential 10 µs beyond wire time.
+DEFAULT_CLOCKS: Mapping[str, DeviceClockConfig] = {
+    "imu": DeviceClockConfig(
+        offset_s=0.0071,
+        drift_ppm=20.0,
+        drift_rw_ppm_per_sqrt_s=0.005,
+        jitter_s=0.5e-6,
+        quantum_s=1e-6,
+        latch_jitter_s=5e-6,
+        transport_latency_s=20e-6,
+        transport_jitter_s=10e-6,
+    ),
+    "gnss": DeviceClockConfig(
+        offset_s=0.0015, drift_ppm=0.02, jitter_s=20e-9, quantum_s=1e-9, latch_jitter_s=1e-6
+    ),
+}
+
+_KEYS = {
+    "offset_s",
+    "drift_ppm",
+    "drift_rw_ppm_per_sqrt_s",
+    "jitter_s",
+    "quantum_s",
+    "steps",
+    "timetag",
+    "sync",
+    "latch_jitter_s",
+    "tag_latency_s",
+    "transport_latency_s",
+    "transport_jitter_s",
+    "min_delay_s",
+}
+
+
+def _num(where: str, v: Any, lo: float | None = None) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ScenarioError(f"{where} must be a finite number, got {v!r}")
+    if lo is not None and v < lo:
+        raise ScenarioError(f"{where} must be >= {lo}, got {v!r}")
+    return float(v)
+
+
+def parse_clock_table(sensor: str, table: Mapping[str, Any], base: DeviceClockConfig) -> DeviceClockConfig:
+    """``[clock.<sensor>]`` over ``base``; raises ScenarioError naming the key and the value."""
+    where = f"clock.{sensor}"
+    unknown = set(table) - _KEYS
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(_KEYS)}")
+    kw: dict[str, Any] = {}
+    for k, v in table.items():
+        if k == "timetag":
+            if not isinstance(v, bool):
+                raise ScenarioError(f"{where}.timetag must be true or false, got {v!r}")
+            kw[k] = v
+        elif k == "sync":
+            if v not in ("timetag", "arrival", "off"):
+                raise ScenarioError(f'{where}.sync must be "timetag", "arrival" or "off", got {v!r}')
+            kw[k] = v
+        elif k == "steps":
+            if not isinstance(v, list) or not all(isinstance(s, Mapping) for s in v):
+                raise ScenarioError(f"{where}.steps must be an array of {{t_s, step_s}} tables")
+            steps = []
+            for i, s in enumerate(v):
+                if set(s) != {"t_s", "step_s"}:
+                    raise ScenarioError(f"{where}.steps[{i}] needs exactly t_s and step_s, got {sorted(s)}")
+                steps.append(
+                    ClockStep(_num(f"{where}.steps[{i}].t_s", s["t_s"], 0.0), _num("step_s", s["step_s"]))
+                )
+            kw[k] = tuple(sorted(steps, key=lambda s: s.t_s))
+        elif k in ("offset_s", "drift_ppm"):
+            kw[k] = _num(f"{where}.{k}", v)
+        else:
+            kw[k] = _num(f"{where}.{k}", v, 0.0)
+    cfg = replace(base, **kw)
+    if abs(cfg.drift_ppm) > 1000:
+        raise ScenarioError(f"{where}.drift_ppm={cfg.drift_ppm} is beyond any oscillator (|x| <= 1000)")
+    # Device time is sent as unsigned ns (the IMU's DBC): it must never go below zero.
+    level = cfg.offset_s
+    for s in cfg.steps:
+        level += s.step_s
+        if s.t_s + level < 0:
+            raise ScenarioError(f"{where}: step at t_s={s.t_s} takes device time below zero")
+    return cfg
+
+
+def clock_config_for(scenario: Scenario, sensor: str) -> DeviceClockConfig:
+    """The resolved clock config of ``sensor``: defaults, then ``[clock.<sensor>]``, then derived
+    latencies (``tag_latency_s``, ``min_delay_s``) filled in."""
+    tables = scenario.extra_tables.get("clock", {})
+    if not isinstance(tables, Mapping):
+        raise ScenarioError("[clock] must be a table of [clock.<sensor>] tables")
+    raw = tables.get(sensor, {})
+    if not isinstance(raw, Mapping):
+        raise ScenarioError(f"clock.{sensor} must be a table")
+    cfg = parse_clock_table(sensor, raw, DEFAULT_CLOCKS.get(sensor, DeviceClockConfig()))
+    frame_s = CAN_FRAME_TIME_NS * 1e-9
+    if cfg.tag_latency_s is None:
+        # the IMU's sync frame goes first at its edge and is stamped by the kernel on receipt:
+        # one frame's wire time plus the bus latency; the PPS is latched at its edge
+        tag = cfg.transport_latency_s + frame_s if sensor == "imu" else 0.0
+        cfg = replace(cfg, tag_latency_s=tag)
+    if cfg.min_delay_s is None:
+        if sensor == "imu":
+            md = cfg.transport_latency_s + IMU_FRAMES_PER_SAMPLE * frame_s
+        elif sensor == "gnss":
+            md = float(scenario.gnss.latency_s)
+        else:
+            md = cfg.transport_latency_s
+        cfg = replace(cfg, min_delay_s=md)
+    return cfg
+
+
+# ---------------------------------------------------------------------------------------------
+# the clock itself
+
+
+def _mix64(z: int) -> int:
+    """splitmix64 finaliser: a well-mixed 64-bit hash of ``z`` (the jitter is a function of time)."""
+    z = (z + 0x9E3779B97F4A7C15) & _M64
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _M64
+    return z ^ (z >> 31)
+
+
+def _gauss_of(key: int, t_ns: int) -> float:
+    """A standard normal draw that depends only on (key, t_ns): Box-Muller on two hashes."""
+    h1 = _mix64((key ^ (t_ns & _M64)) & _M64)
+    h2 = _mix64(h1)
+    u1 = ((h1 >> 11) + 0.5) * 2.0**-53
+    u2 = (h2 >> 11) * 2.0**-53
+    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+def _mix64_array(z: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _gauss_array(key: int, t_ns: np.ndarray) -> np.ndarray:
+    h1 = _mix64_array(np.uint64(key) ^ t_ns.astype(np.int64).view(np.uint64))
+    h2 = _mix64_array(h1)
+    u1 = ((h1 >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
+    u2 = (h2 >> np.uint64(11)).astype(np.float64) * 2.0**-53
+    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
 
 
 @dataclass
-class IdealClock:
-    """A device clock that reads true time exactly."""
+class DeviceClock:
+    """A device clock as a pure function of true time (plus lazily drawn, seeded wander knots).
+
+    ``rng`` is used only at construction and for the wander knots, drawn in knot order, so the
+    clock reads the same whatever order (or batch size) the emulator asks in.
+    """
+
+    cfg: DeviceClockConfig
+    rng: np.random.Generator
+    _knots_ppm: np.ndarray = field(init=False, repr=False)  # wander of interval [k, k+1) s
+    _cum_ppm_s: np.ndarray = field(init=False, repr=False)  # ∫ wander up to k s
+    _key_stamp: int = field(init=False, repr=False)
+    _key_latch: int = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        keys = self.rng.integers(0, 2**63, size=2, dtype=np.int64)
+        self._key_stamp, self._key_latch = int(keys[0]), int(keys[1])
+        self._knots_ppm = np.zeros(1)
+        self._cum_ppm_s = np.zeros(1)
+        self._offset_ns = round(self.cfg.offset_s * 1e9)
+        self._q_ns = max(1, round(self.cfg.quantum_s * 1e9))
+        self._steps = [(round(s.t_s * 1e9), round(s.step_s * 1e9)) for s in self.cfg.steps]
+
+    def _extend(self, k_max: int) -> None:
+        """Draw wander knots up to second ``k_max`` (chunks of 1024, always in knot order)."""
+        n = len(self._knots_ppm)
+        if k_max < n:
+            return
+        m = ((k_max - n) // 1024 + 1) * 1024
+        rw = self.cfg.drift_rw_ppm_per_sqrt_s
+        inc = self.rng.standard_normal(m) * rw if rw else np.zeros(m)
+        knots = self._knots_ppm[-1] + np.cumsum(inc)
+        cum = self._cum_ppm_s[-1] + self._knots_ppm[-1] + np.concatenate(([0.0], np.cumsum(knots[:-1])))
+        self._knots_ppm = np.concatenate((self._knots_ppm, knots))
+        self._cum_ppm_s = np.concatenate((self._cum_ppm_s, cum))
+
+    def _wander_ns(self, true_ns: int) -> float:
+        if not self.cfg.drift_rw_ppm_per_sqrt_s:
+            return 0.0
+        t_s = max(0.0, true_ns * 1e-9)
+        k = int(t_s)
+        self._extend(k)
+        # ppm·s = µs
+        return 1e3 * (float(self._cum_ppm_s[k]) + float(self._knots_ppm[k]) * (t_s - k))
 
     def device_ns(self, true_ns: int) -> int:
-        return int(true_ns)
+        """The device stamp of true instant ``true_ns``."""
+        t = int(true_ns)
+        frac = self.cfg.drift_ppm * 1e-6 * t + self._wander_ns(t)
+        if self.cfg.jitter_s:
+            frac += self.cfg.jitter_s * 1e9 * _gauss_of(self._key_stamp, t)
+        dev = t + self._offset_ns + math.floor(frac)
+        for t_k, step in self._steps:
+            if t >= t_k:
+                dev += step
+        return (dev // self._q_ns) * self._q_ns
+
+    def device_ns_array(self, true_ns: np.ndarray) -> np.ndarray:
+        """Vectorised :meth:`device_ns` (identical results), for benches and tests."""
+        t = np.asarray(true_ns, dtype=np.int64)
+        frac = self.cfg.drift_ppm * 1e-6 * t.astype(np.float64)
+        if self.cfg.drift_rw_ppm_per_sqrt_s and len(t):
+            t_s = np.maximum(0.0, t * 1e-9)
+            k = t_s.astype(np.int64)
+            self._extend(int(k.max()))
+            frac = frac + 1e3 * (self._cum_ppm_s[k] + self._knots_ppm[k] * (t_s - k))
+        if self.cfg.jitter_s:
+            frac = frac + self.cfg.jitter_s * 1e9 * _gauss_array(self._key_stamp, t)
+        dev = t + self._offset_ns + np.floor(frac).astype(np.int64)
+        for t_k, step in self._steps:
+            dev = dev + np.where(t >= t_k, step, 0)
+        return (dev // self._q_ns) * self._q_ns
+
+    def latch_ns(self, true_ns: int) -> int:
+        """The rig clock's latch of a time-tag edge at true instant ``true_ns`` (latch jitter)."""
+        t = int(true_ns)
+        if not self.cfg.latch_jitter_s:
+            return t
+        return t + round(self.cfg.latch_jitter_s * 1e9 * _gauss_of(self._key_latch, t))
 
 
-def device_clock_for(scenario: Any, sensor: str) -> IdealClock:
-    """The clock model of ``sensor`` in ``scenario`` (ideal until clock tables are configured)."""
-    return IdealClock()
+def device_clock_for(scenario: Scenario, sensor: str) -> DeviceClock:
+    """The clock model of ``sensor`` in ``scenario`` (defaults + ``[clock.<sensor>]``), seeded
+    from the scenario seed and ``"<sensor>.clock"`` so each device has its own stream."""
+    from hil.sensors.imu import sensor_rng
+
+    return DeviceClock(clock_config_for(scenario, sensor), sensor_rng(scenario.seed, f"{sensor}.clock"))

@@ -1,17 +1,77 @@
 """Time-tag synchronisation core: device clock -> rig clock, per sensor. Pure: no I/O, no clock.
 
-The mapping is ``rig = device + offset + drift * (device - ref)``. The foundation's estimator is
-``passthrough`` (devices share the rig clock); the time-tag issue adds estimators fitted on time
-tags and on arrival times behind the same interface.
+The mapping is ``rig = device + offset + drift * (device - ref)`` (``ClockMapping``). Each sensor
+has one of three sources (``SyncConfig.source``):
+
+``timetag``  a 2-state Kalman filter (offset, drift) on time-tag pairs (edge on the device clock,
+             rig latch minus the calibrated tag latency), with an innovation gate. Until the
+             first tag the arrival estimate stands in.
+``arrival``  no tags: a one-way-delay lower bound (TICSync's convex hull). Arrival minus device
+             stamp is ``offset + delay``, delay >= its minimum, so the lower convex hull of those
+             points over a sliding window is the mapping plus the minimum delay; the hull edge
+             that spans the window's middle gives offset and drift, and the known minimum delay
+             (``min_delay_ns``, like PX4's ``EKF2_GPS_DELAY``) is taken off.
+``off``      no synchronisation: a measurement keeps its raw arrival stamp (the "sync off"
+             baseline of the navigation comparison).
+
+The arrival hull runs for every sensor, also with tags: its residuals watch for clock steps.
+A device step of Δ moves every later point by -Δ: a forward step puts points *below* the lower
+bound (impossible for a one-way delay: declared after ``step_confirm`` such points in a row), a
+backward step lifts the floor (declared when every residual over ``step_window_ns`` -- longer
+than any plausible transport stall -- is above what jitter of the observed scale explains).
+Measurements whose residual is suspicious are *held* (FIFO) until the question is settled, so
+samples around a step are re-stamped with the mapping that fits them, never with the stale one.
+After a step the hull restarts on the new points, the Kalman filter re-initialises on the next
+tag (its drift kept), and the state reads ``step_recovering`` until then.
+
+Why a hull and a Kalman filter, not one filter: tags carry a small, symmetric latch noise, for
+which least squares (the KF) is optimal; arrivals carry a one-sided, heavy-tailed delay, for
+which the minimum (the hull) is the efficient estimator and a mean would be biased by the mean
+delay.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
+from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+
+SOURCES = ("timetag", "arrival", "off")
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    """Per-sensor synchronisation settings (ns unless named otherwise)."""
+
+    source: str = "timetag"  # "timetag" | "arrival" | "off"
+    tag_latency_ns: int = 0  # calibrated mean edge -> latch delay of a time tag
+    min_delay_ns: int = 0  # known minimum capture -> arrival delay of a measurement
+    tag_sigma_ns: float = 10_000.0  # 1σ latch noise of a tag (KF measurement noise)
+    drift_rw_ppb_per_sqrt_s: float = 50.0  # KF process noise: frequency random walk
+    phase_noise_ns_per_sqrt_s: float = 200.0  # KF process noise: white frequency (phase walk)
+    tag_gate_ns: int = 1_000_000  # a tag innovation beyond max(6σ, this) is an outlier
+    hull_window_ns: int = 20_000_000_000  # arrival points kept for the hull
+    hull_block_ns: int = 100_000_000  # one point (the minimum) per block of device time
+    min_span_ns: int = 2_000_000_000  # hull drift is trusted once the window spans this
+    step_window_ns: int = 500_000_000  # backward-step test: every residual this long is high
+    step_confirm: int = 3  # forward-step test: this many impossible arrivals in a row
+    step_floor_ns: int = 500_000  # smallest residual treated as a step indication
+    max_drift_ppm: float = 500.0  # a hull slope beyond this is not a clock
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"sync source {self.source!r} is not one of {SOURCES}")
 
 
 @dataclass
 class ClockMapping:
+    """The published estimate: ``rig = device + offset + drift * (device - ref)``."""
+
     sensor: str
     source: str = "passthrough"
     offset_ns: int = 0
@@ -19,33 +79,403 @@ class ClockMapping:
     ref_device_ns: int = 0
     residual_rms_ns: float = 0.0
     n_samples: int = 0
-    state: str = "locked"
+    state: str = "converging"
     steps_detected: int = 0
 
     def to_rig(self, device_ns: int) -> int:
-        return (
-            device_ns + self.offset_ns + int(round(self.drift_ppb * 1e-9 * (device_ns - self.ref_device_ns)))
-        )
+        return device_ns + self.offset_ns + round(self.drift_ppb * 1e-9 * (device_ns - self.ref_device_ns))
+
+
+# ---------------------------------------------------------------------------------------------
+# time tags: offset + drift Kalman filter
 
 
 @dataclass
-class TimeSyncCore:
-    """One mapping per sensor; fed time tags and measurement arrivals, asked to re-stamp."""
+class TagFilter:
+    """x = [θ (rig - device at ``ref``, ns), f (drift, ppb = ns/s)]; P its covariance.
 
-    mappings: dict[str, ClockMapping] = field(default_factory=dict)
+    Predict over Δ s (device):  θ += f Δ;  Q = q_f [[Δ³/3, Δ²/2], [Δ²/2, Δ]] + q_θ [[Δ, 0], [0, 0]]
+    Update with z = latch - tag_latency - device:  ν = z - θ;  S = P00 + R;  K = P[:,0] / S
+    """
+
+    cfg: SyncConfig
+    ref_ns: int = 0
+    theta_ns: float = 0.0
+    f_ppb: float = 0.0
+    p: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # P00, P01, P11
+    n: int = 0
+    outliers_in_row: int = 0
+    last_outlier_nu: float = 0.0
+    res_sq: deque[float] = field(default_factory=lambda: deque(maxlen=30))
+
+    @property
+    def initialised(self) -> bool:
+        return self.n > 0
+
+    def reset(self, f_ppb: float, f_sigma_ppb: float) -> None:
+        self.n = 0
+        self.f_ppb = f_ppb
+        self.p = [0.0, 0.0, f_sigma_ppb**2]
+        self.outliers_in_row = 0
+
+    def _predict(self, device_ns: int) -> None:
+        d = (device_ns - self.ref_ns) * 1e-9
+        self.theta_ns += self.f_ppb * d
+        self.ref_ns = device_ns
+        ad = abs(d)
+        qf = self.cfg.drift_rw_ppb_per_sqrt_s**2
+        qt = self.cfg.phase_noise_ns_per_sqrt_s**2
+        p00, p01, p11 = self.p
+        p00 = p00 + 2 * d * p01 + d * d * p11 + qf * ad**3 / 3 + qt * ad
+        p01 = p01 + d * p11 + qf * ad * ad / 2
+        p11 = p11 + qf * ad
+        self.p = [p00, p01, p11]
+
+    def update(self, device_ns: int, z_ns: float) -> str:
+        """One tag; returns ``"init"``, ``"ok"``, ``"outlier"`` or ``"step"``."""
+        r = self.cfg.tag_sigma_ns**2
+        if not self.initialised:
+            self.ref_ns, self.theta_ns = device_ns, z_ns
+            self.p = [r, 0.0, self.p[2]]
+            self.n = 1
+            return "init"
+        self._predict(device_ns)
+        p00, p01, p11 = self.p
+        nu = z_ns - self.theta_ns
+        s = p00 + r
+        gate = max(6.0 * math.sqrt(s), float(self.cfg.tag_gate_ns))
+        if abs(nu) > gate:
+            # Two outliers in a row that agree with each other: the clock stepped.
+            consistent = self.outliers_in_row > 0 and abs(nu - self.last_outlier_nu) < gate
+            self.outliers_in_row += 1
+            self.last_outlier_nu = nu
+            if consistent:
+                self.reset(self.f_ppb, math.sqrt(p11))
+                self.update(device_ns, z_ns)
+                return "step"
+            return "outlier"
+        self.outliers_in_row = 0
+        k0, k1 = p00 / s, p01 / s
+        self.theta_ns += k0 * nu
+        self.f_ppb += k1 * nu
+        # P = (I - K H) P
+        self.p = [p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01]
+        self.n += 1
+        self.res_sq.append(nu * nu)
+        return "ok"
+
+    def mapping_terms(self) -> tuple[int, float, int]:
+        return round(self.theta_ns), self.f_ppb, self.ref_ns
+
+
+# ---------------------------------------------------------------------------------------------
+# arrivals: one-way-delay lower bound
+
+
+def _cross(o: tuple[int, int], a: tuple[int, int], b: tuple[int, int]) -> int:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
+def lower_hull(points: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Lower convex hull (Andrew's monotone chain) of points sorted by x."""
+    hull: list[tuple[int, int]] = []
+    for p in points:
+        while len(hull) >= 2 and _cross(hull[-2], hull[-1], p) <= 0:
+            hull.pop()
+        hull.append(p)
+    return hull
+
+
+@dataclass
+class ArrivalHull:
+    """Points (x = device ns, y = arrival - device ns), one minimum per block, in a window.
+
+    ``line()`` -> (x0, y0, slope): y(x) = y0 + slope (x - x0) is the lower bound of offset+delay.
+    """
+
+    cfg: SyncConfig
+    prior_slope: float = 0.0
+    blocks: deque[tuple[int, int]] = field(default_factory=deque)  # closed blocks' minima
+    cur_block: int | None = None
+    cur_min: tuple[int, int] | None = None
+    _line: tuple[int, float, float] | None = None
+    n: int = 0
+
+    def reset(self, prior_slope: float) -> None:
+        self.prior_slope = prior_slope
+        self.blocks.clear()
+        self.cur_block = None
+        self.cur_min = None
+        self._line = None
+
+    def add(self, x: int, y: int) -> None:
+        self.n += 1
+        b = x // self.cfg.hull_block_ns
+        if self.cur_block is None or b != self.cur_block:
+            if self.cur_min is not None:
+                self.blocks.append(self.cur_min)
+                while self.blocks and self.blocks[0][0] < x - self.cfg.hull_window_ns:
+                    self.blocks.popleft()
+            self.cur_block, self.cur_min = b, (x, y)
+            self._fit()
+        elif self.cur_min is None or y < self.cur_min[1]:
+            self.cur_min = (x, y)
+            if not self.blocks:  # the first block: keep the offset current while it fills
+                self._fit()
+
+    def _fit(self) -> None:
+        pts = sorted([*self.blocks, *([self.cur_min] if self.cur_min is not None else [])])
+        if not pts:
+            self._line = None
+            return
+        span = pts[-1][0] - pts[0][0]
+        if span < self.cfg.min_span_ns or len(pts) < 2:
+            # too short to trust a slope: the prior slope through the lowest point
+            s = self.prior_slope
+            x0, y0 = min(pts, key=lambda p: p[1] - s * (p[0] - pts[0][0]))
+            self._line = (x0, float(y0), s)
+            return
+        hull = lower_hull(pts)
+        xm = (pts[0][0] + pts[-1][0]) // 2
+        for a, b in itertools.pairwise(hull):
+            if a[0] <= xm <= b[0]:
+                break
+        else:
+            a, b = hull[0], hull[-1]
+        s = (b[1] - a[1]) / (b[0] - a[0]) if b[0] != a[0] else self.prior_slope
+        lim = self.cfg.max_drift_ppm * 1e-6
+        s = min(max(s, -lim), lim)
+        self._line = (a[0], float(a[1]), s)
+
+    def line(self) -> tuple[int, float, float] | None:
+        return self._line
+
+    def at(self, x: int) -> float | None:
+        if self._line is None:
+            return None
+        x0, y0, s = self._line
+        return y0 + s * (x - x0)
+
+    @property
+    def span_ns(self) -> int:
+        pts = [*self.blocks, *([self.cur_min] if self.cur_min is not None else [])]
+        return (max(p[0] for p in pts) - min(p[0] for p in pts)) if pts else 0
+
+
+# ---------------------------------------------------------------------------------------------
+# one sensor
+
+
+@dataclass
+class _Held(Generic[T]):
+    item: T
+    device_ns: int
+    rx_ns: int
+    resid: float
+
+
+@dataclass
+class SensorSync(Generic[T]):
+    """Tags, arrivals, step watch and the hold queue of one sensor."""
+
+    sensor: str
+    cfg: SyncConfig
+    kf: TagFilter = field(init=False)
+    hull: ArrivalHull = field(init=False)
+    mapping: ClockMapping = field(init=False)
+    held: deque[_Held[T]] = field(default_factory=deque)
+    jitter_ns: float = 0.0  # running scale of arrival residuals (mean excess delay)
+    delta_ns: float = 0.0  # hull floor minus the tag mapping: the learned minimum delay
+    recovering: bool = False
+    n_arrivals: int = 0
+    since_reset: int = 0  # arrivals since the start or the last step
+
+    def __post_init__(self) -> None:
+        self.kf = TagFilter(self.cfg)
+        self.kf.reset(0.0, 100_000.0)
+        self.hull = ArrivalHull(self.cfg)
+        self.mapping = ClockMapping(self.sensor, source=self.cfg.source)
+        self.delta_ns = float(self.cfg.min_delay_ns)
+        self.jitter_ns = float(self.cfg.step_floor_ns) / 4
+
+    # -- tags ---------------------------------------------------------------------------------
+    def on_timetag(self, device_ns: int, rig_latch_ns: int) -> None:
+        if self.cfg.source != "timetag":
+            return
+        if not self.kf.initialised:
+            line = self.hull.line()
+            if line is not None and self.hull.span_ns >= self.cfg.min_span_ns:
+                # the hull's drift is a better prior than none (rig-device slope, in ppb)
+                self.kf.reset(line[2] * 1e9, 5_000.0)
+        verdict = self.kf.update(device_ns, float(rig_latch_ns - self.cfg.tag_latency_ns - device_ns))
+        if verdict == "step":
+            self._declare_step()
+            self.recovering = False
+        elif verdict == "init":
+            self.recovering = False
+        self._refresh()
+
+    # -- arrivals -----------------------------------------------------------------------------
+    def on_measurement(self, device_ns: int, rx_ns: int, item: T) -> list[tuple[T, int]]:
+        self.n_arrivals += 1
+        if self.cfg.source == "off":
+            self.mapping.n_samples = self.n_arrivals
+            return [(item, rx_ns)]
+        y = rx_ns - device_ns
+        floor = self.hull.at(device_ns)
+        resid = 0.0 if floor is None else y - floor
+        self.held.append(_Held(item, device_ns, rx_ns, resid))
+        # No step test until the floor and the jitter scale are known (after start or a step).
+        warm = self.since_reset >= 4 * self.cfg.step_confirm and self.hull.span_ns >= self.cfg.step_window_ns
+        if floor is None or not warm:
+            return self._release_all()
+        # Thresholds scale with the observed excess delay J (mean of an exponential-like tail):
+        # one residual above 6 J happens 0.25 % of the time; a whole window of them, never.
+        thr_up = max(float(self.cfg.step_floor_ns), 6.0 * self.jitter_ns)
+        thr_down = max(float(self.cfg.step_floor_ns), self.jitter_ns)
+        held = self.held
+        if resid < -thr_down:
+            # below the lower bound, impossible for a one-way delay: a forward step once
+            # ``step_confirm`` arrive in a row
+            if not all(h.resid < -thr_down for h in held):
+                return self._release_all()
+            if len(held) >= self.cfg.step_confirm:
+                return self._step_and_release()
+            return []
+        if resid > thr_up:
+            # the floor itself moved up (a backward step) once a whole window sits above it;
+            # a window longer than any plausible transport stall
+            if not all(h.resid > thr_up for h in held):
+                return self._release_all()
+            if (
+                held[-1].device_ns - held[0].device_ns >= self.cfg.step_window_ns
+                and len(held) >= self.cfg.step_confirm
+            ):
+                return self._step_and_release()
+            return []
+        return self._release_all()
+
+    def _step_and_release(self) -> list[tuple[T, int]]:
+        pts = [(h.device_ns, h.rx_ns - h.device_ns) for h in self.held]
+        self._declare_step()
+        for x, y in pts:
+            self.hull.add(x, y)
+        for h in self.held:
+            h.resid = 0.0
+        return self._release_all()
+
+    def _declare_step(self) -> None:
+        """Forget what the old clock said: hull restarts (slope kept), KF waits for a tag."""
+        line = self.hull.line()
+        slope = line[2] if line is not None else 0.0
+        if self.cfg.source == "timetag" and self.kf.initialised:
+            self.kf.reset(self.kf.f_ppb, math.sqrt(max(self.kf.p[2], 1.0)))
+            slope = self.kf.f_ppb * 1e-9
+        self.hull.reset(slope)
+        self.since_reset = 0
+        self.mapping.steps_detected += 1
+        self.recovering = True
+
+    def _release_all(self) -> list[tuple[T, int]]:
+        out: list[tuple[T, int]] = []
+        learn = (
+            self.cfg.source == "timetag" and self.kf.initialised and self.kf.n >= 3 and not self.recovering
+        )
+        for h in self.held:
+            self.hull.add(h.device_ns, h.rx_ns - h.device_ns)
+            self.since_reset += 1
+            # jitter scale: a running mean of the (clipped) excess delay, cumulative at first
+            r = min(max(h.resid, 0.0), 10.0 * self.jitter_ns + self.cfg.step_floor_ns)
+            self.jitter_ns += (r - self.jitter_ns) / min(256.0, float(self.n_arrivals))
+        self._refresh()
+        for h in self.held:
+            out.append((h.item, self.mapping.to_rig(h.device_ns)))
+        if learn and self.held:
+            h = self.held[-1]
+            floor = self.hull.at(h.device_ns)
+            if floor is not None:
+                tag_off = self.mapping.to_rig(h.device_ns) - h.device_ns
+                self.delta_ns += (floor - tag_off - self.delta_ns) / 64.0
+        self.held.clear()
+        self.mapping.n_samples = self.n_arrivals
+        return out
+
+    def flush(self) -> list[tuple[T, int]]:
+        return self._release_all() if self.held else []
+
+    # -- the published mapping ------------------------------------------------------------------
+    def _refresh(self) -> None:
+        m = self.mapping
+        if self.cfg.source == "timetag" and self.kf.initialised and not self.recovering:
+            m.offset_ns, m.drift_ppb, m.ref_device_ns = self.kf.mapping_terms()
+            m.source = "timetag"
+            m.residual_rms_ns = (
+                math.sqrt(sum(self.kf.res_sq) / len(self.kf.res_sq)) if self.kf.res_sq else 0.0
+            )
+            m.state = "locked" if self.kf.n >= 3 else "converging"
+            return
+        line = self.hull.line()
+        if line is None:
+            return
+        x0, y0, s = line
+        delay = self.delta_ns if self.cfg.source == "timetag" else float(self.cfg.min_delay_ns)
+        m.offset_ns = round(y0 - delay)
+        m.drift_ppb = s * 1e9
+        m.ref_device_ns = x0
+        m.source = "arrival"
+        m.residual_rms_ns = self.jitter_ns
+        if self.recovering:
+            m.state = "step_recovering"
+            if self.cfg.source == "arrival" and self.hull.span_ns >= self.cfg.min_span_ns:
+                self.recovering = False
+                m.state = "locked"
+        else:
+            m.state = "locked" if self.hull.span_ns >= self.cfg.min_span_ns else "converging"
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class TimeSyncCore(Generic[T]):
+    """One :class:`SensorSync` per sensor; fed time tags and measurements, releases re-stamps.
+
+    ``on_measurement`` returns ``(item, rig time of validity)`` pairs in arrival order; usually the
+    measurement just given, sometimes none (held while a step is being decided) or several.
+    """
+
+    def __init__(self, configs: Mapping[str, SyncConfig] | None = None, default: SyncConfig | None = None):
+        self.configs = dict(configs or {})
+        self.default = default or SyncConfig()
+        self.sensors: dict[str, SensorSync[T]] = {}
+
+    def sensor(self, sensor: str) -> SensorSync[T]:
+        s = self.sensors.get(sensor)
+        if s is None:
+            s = self.sensors[sensor] = SensorSync(sensor, self.configs.get(sensor, self.default))
+        return s
+
+    @property
+    def mappings(self) -> dict[str, ClockMapping]:
+        return {k: s.mapping for k, s in self.sensors.items()}
 
     def mapping(self, sensor: str) -> ClockMapping:
-        m = self.mappings.get(sensor)
-        if m is None:
-            m = self.mappings[sensor] = ClockMapping(sensor)
-        return m
+        return self.sensor(sensor).mapping
 
     def on_timetag(self, sensor: str, device_ns: int, rig_latch_ns: int) -> None:
-        self.mapping(sensor).n_samples += 1
+        """A time-tag edge: ``device_ns`` on the device clock, latched at ``rig_latch_ns``."""
+        self.sensor(sensor).on_timetag(int(device_ns), int(rig_latch_ns))
 
-    def on_arrival(self, sensor: str, device_ns: int, rx_rig_ns: int) -> None:
-        """A measurement's device stamp and its arrival on the rig clock (one-way delay >= 0)."""
+    def on_measurement(self, sensor: str, device_ns: int, rx_rig_ns: int, item: T) -> list[tuple[T, int]]:
+        """A measurement stamped ``device_ns`` that arrived at ``rx_rig_ns`` (rig clock)."""
+        return self.sensor(sensor).on_measurement(int(device_ns), int(rx_rig_ns), item)
+
+    def flush(self) -> list[tuple[T, int]]:
+        """Release every held measurement (end of input)."""
+        out: list[tuple[T, int]] = []
+        for s in self.sensors.values():
+            out.extend(s.flush())
+        return out
 
     def restamp(self, sensor: str, device_ns: int) -> int:
-        """Rig time of validity of a measurement stamped ``device_ns`` by ``sensor``."""
-        return self.mapping(sensor).to_rig(device_ns)
+        """Rig time of validity of ``device_ns`` under the current mapping (no hold, no update)."""
+        return self.sensor(sensor).mapping.to_rig(int(device_ns))

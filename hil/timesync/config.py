@@ -1,0 +1,31 @@
+"""Per-sensor synchronisation settings from a scenario's ``[clock.<sensor>]`` tables.
+
+The clock table describes the device (``hil.sensors.clock``) and what the rig knows about it: its
+calibrated tag latency, its minimum transport delay, whether its time tags are used. This module
+turns the latter into :class:`hil.timesync.core.SyncConfig`, so the live service and ``hil sim``
+configure the same core the same way.
+"""
+
+from __future__ import annotations
+
+from hil.nav.scenario import Scenario
+from hil.sensors.clock import clock_config_for
+from hil.timesync.core import SyncConfig
+
+SYNCED_SENSORS = ("imu", "gnss")
+
+
+def sync_config_for(scenario: Scenario, sensor: str) -> SyncConfig:
+    """The SyncConfig of one sensor: source, tag latency and minimum delay from the clock table."""
+    c = clock_config_for(scenario, sensor)
+    source = c.sync or ("timetag" if c.timetag else "arrival")
+    return SyncConfig(
+        source=source,
+        tag_latency_ns=round((c.tag_latency_s or 0.0) * 1e9),
+        min_delay_ns=round((c.min_delay_s or 0.0) * 1e9),
+        tag_sigma_ns=max(1_000.0, c.latch_jitter_s * 1e9 * 2),
+    )
+
+
+def sync_configs_for(scenario: Scenario) -> dict[str, SyncConfig]:
+    return {s: sync_config_for(scenario, s) for s in SYNCED_SENSORS}
