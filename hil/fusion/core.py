@@ -70,7 +70,8 @@ class FusionCore:
             except Exception as err:  # one broken estimator must not take the others down
                 self._inc(f"errors.estimator_init.{name}")
                 self.last_error = f"estimator {name} could not start: {type(err).__name__}: {err}"
-        self._heap: list[tuple[tuple[int, int, int], ImuSample | GnssFix]] = []
+        self._heap: list[tuple[tuple[int, int, int], int, ImuSample | GnssFix]] = []
+        self._arrivals = 0  # tie-break for identical keys: first arrival first, never compare messages
         self._newest_ns: int | None = None
         self._last_key: tuple[int, int, int] = (-(2**62), -1, -1)
         self._dropped: list[str] = []
@@ -90,7 +91,8 @@ class FusionCore:
             self._inc(f"dropped_late.{msg.sensor}")
             self._dropped.append("late:" + input_id(msg))
             return []
-        heapq.heappush(self._heap, (key, msg))
+        heapq.heappush(self._heap, (key, self._arrivals, msg))
+        self._arrivals += 1
         # The IMU is the fusion's clock: only its progress moves the watermark, so a GNSS fix that
         # arrives before the IMU samples around its time of validity waits for them.
         if msg.sensor == "imu" and (self._newest_ns is None or msg.stamp_ns > self._newest_ns):
@@ -117,7 +119,7 @@ class FusionCore:
     def _release(self, watermark_ns: int) -> list[NavSolution]:
         out: list[NavSolution] = []
         while self._heap and self._heap[0][0][0] <= watermark_ns:
-            key, msg = heapq.heappop(self._heap)
+            key, _arrival, msg = heapq.heappop(self._heap)
             if key == self._last_key:  # a duplicate that was buffered twice
                 self._inc(f"dropped_duplicate.{msg.sensor}")
                 self._dropped.append("dup:" + input_id(msg))
