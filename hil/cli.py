@@ -183,6 +183,19 @@ def cmd_rerun(a: argparse.Namespace) -> int:
     return rc
 
 
+def cmd_report(a: argparse.Namespace) -> int:
+    from hil.progress import Progress
+    from hil.report.build import build_report
+
+    out = a.out or Path(a.file).with_suffix(".report")
+    with Progress("report", total=100.0, unit="%", enabled=False if a.no_progress else None) as bar:
+        res = build_report(a.file, out, progress=lambda f, stage: bar.update(100 * f, stage=stage))
+    for note in res.notes:
+        print(f"hil report: note: {note}", file=sys.stderr)
+    print(f"hil report: {res.html_path} ({len(res.pngs)} figures, {res.timings_s['total']:.1f} s)")
+    return 0
+
+
 def cmd_replay(a: argparse.Namespace) -> int:
     from services.replayer import run
 
@@ -278,6 +291,14 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
     rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
     rr.set_defaults(func=cmd_rerun)
+
+    rep = sub.add_parser(
+        "report", help="an HTML report (and PNGs) of a recording: accuracy, faults, sync, loss, CAN"
+    )
+    rep.add_argument("file")
+    rep.add_argument("--out", type=Path, default=None, help="output directory (default: FILE.report/)")
+    rep.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rep.set_defaults(func=cmd_report)
 
     from services.replayer import add_args as add_replay_args
 
