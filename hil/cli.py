@@ -196,6 +196,25 @@ def cmd_report(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_monitor(a: argparse.Namespace) -> int:
+    import threading
+
+    from hil.bus.keys import check_name
+    from hil.bus.session import BusConfig, open_session
+    from hil.monitor import MonitorOptions, run_monitor
+    from hil.runtime.service import install_signal_handlers
+
+    check_name("rig", a.rig)
+    session = open_session(BusConfig.from_env())
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    try:
+        opts = MonitorOptions(rig=a.rig, duration_s=a.duration, interval_s=a.interval, once=a.once)
+        return run_monitor(session, opts, stop)
+    finally:
+        session.close()
+
+
 def cmd_replay(a: argparse.Namespace) -> int:
     from services.replayer import run
 
@@ -299,6 +318,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", type=Path, default=None, help="output directory (default: FILE.report/)")
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=cmd_report)
+
+    mon = sub.add_parser("monitor", help="attach to a running rig (another terminal or host): the live table")
+    mon.add_argument("--rig", default="bench", help="the rig to watch (hil/<rig>/...)")
+    mon.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
+    mon.add_argument("--interval", type=_positive, default=1.0, help="seconds between redraws")
+    mon.add_argument("--once", action="store_true", help="print one table once statuses arrive, then exit")
+    mon.set_defaults(func=cmd_monitor)
 
     from services.replayer import add_args as add_replay_args
 

@@ -75,18 +75,28 @@ class Child:
 
 
 class LiveView:
-    """Collects status, truth and solutions for the live table (Zenoh callback side)."""
+    """Status, truth and solutions of one rig, and the compact table ``hil up`` and ``hil monitor`` draw.
+
+    Fed by Zenoh callbacks (``on_*``); ``table()`` renders under the lock. ``alive`` (service ->
+    process alive) comes from the supervisor; a remote monitor has no processes and judges a
+    service by the age of its last status instead (``STALE_S``).
+    """
+
+    STALE_S = 3.0
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.status: dict[str, ServiceStatus] = {}
+        self.status_seen: dict[str, float] = {}  # service -> monotonic time of its last status
         self.run: RunInfo | None = None
         self.truth: deque[Truth] = deque(maxlen=400)
         self.errors_m: dict[str, float] = {}
+        self.nav_seen: dict[str, float] = {}
 
     def on_status(self, st: ServiceStatus, _k: str) -> None:
         with self.lock:
             self.status[st.service] = st
+            self.status_seen[st.service] = time.monotonic()
 
     def on_run(self, run: RunInfo, _k: str) -> None:
         with self.lock:
@@ -98,6 +108,7 @@ class LiveView:
 
     def on_nav(self, sol: NavSolution, _k: str) -> None:
         with self.lock:
+            self.nav_seen[sol.estimator] = time.monotonic()
             if not self.truth:
                 return
             # nearest truth sample in time (truth is 100 Hz, solutions are stamped on the IMU grid)
@@ -107,29 +118,67 @@ class LiveView:
             d = np.subtract(sol.pos_ned_m, best.pos_ned_m)
             self.errors_m[sol.estimator] = float(np.hypot(d[0], d[1]))
 
-    def table(self, children: dict[str, Child], elapsed_s: float) -> str:
+    def table(
+        self,
+        elapsed_s: float,
+        alive: dict[str, bool] | None = None,
+        *,
+        title: str = "hil up",
+        now: float | None = None,
+    ) -> str:
+        """The live table: one row per service, then the current error of every estimator."""
+        now = time.monotonic() if now is None else now
         with self.lock:
-            lines = [
-                f"hil up  t={elapsed_s:7.1f} s   {'service':<14}{'state':<12}{'in/s':>8}{'out/s':>8}"
-                f"{'rejected':>9}  last error"
-            ]
-            for name in children or SERVICES:
+            run = self.run
+            head = f"{title}  t={elapsed_s:7.1f} s"
+            if run is not None:
+                head += f"  rig {run.rig}  scenario {run.scenario}  speed {run.speed:g}x"
+            cols = f"{'in/s':>8}{'out/s':>8}{'rejected':>9}{'errors':>7}"
+            lines = [head, f"  {'service':<14}{'state':<12}{cols}  last error"]
+            names = list(SERVICES) + sorted(n for n in self.status if n not in SERVICES)
+            for name in names:
                 st = self.status.get(name)
-                alive = children[name].proc.poll() is None if name in children else False
+                age = now - self.status_seen.get(name, -1e9)
+                is_alive = alive.get(name, False) if alive is not None else age < self.STALE_S
                 if st is None:
-                    lines.append(f"{'':22}{name:<14}{'(no status)' if alive else 'DEAD':<12}")
+                    state = "(no status)" if alive is None or is_alive else "DEAD"
+                    lines.append(f"  {name:<14}{state:<12}")
                     continue
                 rin = sum(v for k, v in st.rates_hz.items() if k.startswith("in."))
                 rout = sum(v for k, v in st.rates_hz.items() if k.startswith("out."))
                 rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
-                state = st.state if alive else "DEAD"
+                errs = sum(v for k, v in st.counters.items() if "error" in k)
+                if alive is not None and not is_alive:
+                    state = "DEAD"
+                elif alive is None and not is_alive:
+                    state = f"stale {age:.0f}s" if age < 1e8 else "stale"
+                else:
+                    state = st.state
                 lines.append(
-                    f"{'':22}{name:<14}{state:<12}{rin:8.0f}{rout:8.0f}{rej:9d}  {st.last_error[:60]}"
+                    f"  {name:<14}{state:<12}{rin:8.0f}{rout:8.0f}{rej:9d}{errs:7d}  {st.last_error[:60]}"
                 )
             if self.errors_m:
-                errs = "  ".join(f"{k}={v:.1f}m" for k, v in sorted(self.errors_m.items()))
-                lines.append(f"{'':22}horizontal error vs truth: {errs}")
+                errs_txt = "  ".join(f"{k} {v:.1f}" for k, v in sorted(self.errors_m.items()))
+                lines.append(f"  horizontal error vs truth [m]: {errs_txt}")
+            elif self.nav_seen:
+                lines.append(f"  estimators: {', '.join(sorted(self.nav_seen))} (no truth to compare with)")
             return "\n".join(lines)
+
+
+class TableDrawer:
+    """Redraws a multi-line table in place on a TTY; appends it (less often) otherwise."""
+
+    def __init__(self, out: IO[str] | None = None) -> None:
+        self.out = out or sys.stdout
+        self.tty = self.out.isatty()
+        self.lines = 0
+
+    def draw(self, text: str) -> None:
+        if self.tty and self.lines:
+            self.out.write(f"\x1b[{self.lines}F\x1b[J")
+        self.out.write(text + "\n")
+        self.out.flush()
+        self.lines = text.count("\n") + 1
 
 
 class Supervisor:
@@ -235,9 +284,9 @@ class Supervisor:
 
     def _wait(self, t_start: float) -> None:
         o = self.opts
-        tty = sys.stdout.isatty()
+        drawer = TableDrawer()
+        tty = drawer.tty
         last_print = 0.0
-        printed_lines = 0
         while not self.stop.wait(0.2):
             for name, child in list(self.children.items()):
                 rc = child.proc.poll()
@@ -275,12 +324,8 @@ class Supervisor:
             now = time.monotonic()
             if o.live and now - last_print >= (1.0 if tty else 5.0):
                 last_print = now
-                text = self.view.table(self.children, now - t_start)
-                if tty and printed_lines:
-                    sys.stdout.write(f"\x1b[{printed_lines}F\x1b[J")
-                sys.stdout.write(text + "\n")
-                sys.stdout.flush()
-                printed_lines = text.count("\n") + 1
+                alive = {n: c.proc.poll() is None for n, c in self.children.items()}
+                drawer.draw(self.view.table(now - t_start, alive))
 
     def _sample_cpu(self) -> None:
         """CPU seconds each service spent since time zero (start-up imports excluded)."""

@@ -1,0 +1,156 @@
+"""``hil monitor`` attaches to a running rig from another process and draws ``hil up``'s table.
+
+GIVEN a rig stand-in on a real Zenoh hub publishing run, status, truth and solutions
+WHEN ``hil monitor --rig R --once`` runs as its own process, connected only through the env
+THEN it prints every service's row, the rig's identity and each estimator's current error; and
+a rig that is not there gives exit 1 and one line saying so.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import threading
+from pathlib import Path
+
+from hil.bus.keys import Keys
+from hil.bus.pubsub import Publisher
+from hil.bus.session import BusConfig, open_session
+from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
+from hil.runtime.supervisor import LiveView
+from tests.conftest import REPO, free_port, hil_cmd
+
+RIG = "monrig"
+
+
+def _fake_rig(endpoint: str, stop: threading.Event) -> None:
+    s = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
+    k = Keys(RIG)
+    run = Publisher(s, k.run(), RunInfo)
+    status = {n: Publisher(s, k.status(n), ServiceStatus) for n in ("world", "fusion")}
+    truth = Publisher(s, k.truth(), Truth)
+    nav = Publisher(s, k.nav("ekf15"), NavSolution)
+    t = 0
+    try:
+        while not stop.wait(0.05):
+            t += 50_000_000
+            run.put(
+                RunInfo(
+                    seq=run.next_seq(),
+                    stamp_ns=t,
+                    rig=RIG,
+                    start_epoch_ns=0,
+                    speed=1.0,
+                    scenario="fake",
+                    scenario_sha256="x",
+                    seed=0,
+                    duration_s=60,
+                    origin_lat_deg=0,
+                    origin_lon_deg=0,
+                    origin_alt_m=0,
+                )
+            )
+            for name, p in status.items():
+                p.put(
+                    ServiceStatus(
+                        seq=p.next_seq(),
+                        stamp_ns=t,
+                        service=name,
+                        state="running",
+                        pid=1,
+                        uptime_s=t * 1e-9,
+                        rates_hz={"in.x": 400.0, "out.y": 50.0},
+                        counters={"rejected.late": 3},
+                        last_error="late input" if name == "fusion" else "",
+                    )
+                )
+            truth.put(
+                Truth(
+                    seq=truth.next_seq(),
+                    stamp_ns=t,
+                    lat_deg=0,
+                    lon_deg=0,
+                    alt_m=0,
+                    pos_ned_m=[0.0, 0.0, 0.0],
+                    vel_ned_mps=[0.0, 0.0, 0.0],
+                    q_nb=[1.0, 0.0, 0.0, 0.0],
+                    f_b_mps2=[0.0, 0.0, 0.0],
+                    w_ib_b_radps=[0.0, 0.0, 0.0],
+                )
+            )
+            nav.put(
+                NavSolution(
+                    seq=nav.next_seq(),
+                    stamp_ns=t,
+                    estimator="ekf15",
+                    pos_ned_m=[3.0, 4.0, 0.0],
+                    vel_ned_mps=[0.0, 0.0, 0.0],
+                    q_nb=[1.0, 0.0, 0.0, 0.0],
+                    lat_deg=0,
+                    lon_deg=0,
+                    alt_m=0,
+                )
+            )
+    finally:
+        s.close()
+
+
+def _env(endpoint: str) -> dict[str, str]:
+    return dict(
+        os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
+    )
+
+
+def test_monitor_attaches_and_draws_the_table(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stop = threading.Event()
+    th = threading.Thread(target=_fake_rig, args=(endpoint, stop), daemon=True)
+    th.start()
+    try:
+        r = subprocess.run(
+            hil_cmd("monitor", "--rig", RIG, "--once", "--interval", "1.5", "--duration", "40"),
+            cwd=REPO,
+            env=_env(endpoint),
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        stop.set()
+        th.join(timeout=10)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert f"hil monitor {RIG}" in out and "scenario fake" in out
+    rows = {ln.split()[0]: ln for ln in out.splitlines() if ln.startswith("  ") and ln.split()}
+    assert "running" in rows["fusion"] and "late input" in rows["fusion"]
+    assert rows["fusion"].split()[2:5] == ["400", "50", "3"]
+    assert "(no status)" in rows["recorder"]  # a service that never reported
+    assert "ekf15 5.0" in out  # |(3, 4)| m against truth
+
+
+def test_monitor_without_a_rig_says_so() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    r = subprocess.run(
+        hil_cmd("monitor", "--rig", "nobody", "--duration", "2"),
+        cwd=REPO,
+        env=_env(endpoint),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1
+    assert "no status from rig 'nobody'" in r.stdout
+
+
+def test_liveview_marks_stale_and_dead_services() -> None:
+    v = LiveView()
+    st = ServiceStatus(seq=0, stamp_ns=0, service="fusion", state="running", pid=1, uptime_s=1.0)
+    v.on_status(st, "")
+    seen = v.status_seen["fusion"]
+    remote = v.table(1.0, now=seen + 10.0)
+    assert "stale 10s" in remote
+    local = v.table(1.0, {"fusion": False}, now=seen)
+    assert "DEAD" in next(ln for ln in local.splitlines() if "fusion" in ln)
+    assert "running" in next(
+        ln for ln in v.table(1.0, {"fusion": True}, now=seen).splitlines() if "fusion" in ln
+    )
