@@ -109,19 +109,28 @@ def _describe_can(channel: str, interface: str | None) -> str:
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
+    from hil.progress import Progress
     from hil.runtime.offline import SimOptions, run_sim
 
     record = a.record or _default_record_path(a.scenario)
-    res = run_sim(
-        SimOptions(
-            scenario=a.scenario,
-            duration_s=a.duration,
-            record=record,
-            rig=a.rig,
-            estimators=[e for e in a.estimators.split(",") if e],
-            fd=a.fd,
+    bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
+
+    def on_progress(done_s: float, total_s: float) -> None:
+        bar.total = total_s
+        bar.update(done_s)
+
+    with bar:
+        res = run_sim(
+            SimOptions(
+                scenario=a.scenario,
+                duration_s=a.duration,
+                record=record,
+                rig=a.rig,
+                estimators=[e for e in a.estimators.split(",") if e],
+                fd=a.fd,
+                on_progress=on_progress,
+            )
         )
-    )
     print(res.summary)
     if not a.quiet:
         from hil.record.info import describe
@@ -176,9 +185,16 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
 
 
 def cmd_rerun(a: argparse.Namespace) -> int:
+    from hil.progress import Progress
     from hil.record.rerun import rerun
 
-    rc, lines = rerun(a.file, core=a.core, verify=a.verify)
+    with Progress("rerun", unit="inputs") as bar:
+
+        def on_progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done)
+
+        rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress)
     print("\n".join(lines))
     return rc
 

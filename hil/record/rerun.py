@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from collections import Counter
 from dataclasses import dataclass
+from typing import Any
 
 import msgspec
 
@@ -88,7 +89,7 @@ class RerunResult:
         return None
 
 
-def rerun_fusion(session: Session) -> RerunResult:
+def rerun_fusion(session: Session, on_progress: Any = None) -> RerunResult:
     from hil.nav.trajectory import TruthGenerator
     from hil.runtime.scenario_io import scenario_for_run
 
@@ -123,17 +124,21 @@ def rerun_fusion(session: Session) -> RerunResult:
         keep.append(m)
     core = FusionCore(TruthGenerator(scenario_for_run(run)).initial_state(), cfg)
     out: list[NavSolution] = []
-    for m in keep:
+    for i, m in enumerate(keep):
         out.extend(core.process(m))
+        if on_progress is not None and i % 4096 == 0:
+            on_progress(i, len(keep))  # callable(inputs_done, inputs_total)
     return RerunResult(out, recorded, len(keep), sum(dropped.values()), live_consumed)
 
 
-def rerun(path: str, *, core: str = "fusion", verify: bool = False) -> tuple[int, list[str]]:
+def rerun(
+    path: str, *, core: str = "fusion", verify: bool = False, on_progress: Any = None
+) -> tuple[int, list[str]]:
     """Exit code and report lines for ``hil rerun``."""
     session = read_session(path)
     if core != "fusion":
         return 2, [f"hil rerun: core {core!r} is not rerunnable yet"]
-    res = rerun_fusion(session)
+    res = rerun_fusion(session, on_progress)
     lines = [
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "
         f"{len(res.recomputed)} outputs recomputed, {len(res.recorded)} recorded"

@@ -59,6 +59,7 @@ class SimOptions:
     lag_s: float = 0.2
     output_every: int = 8
     progress: bool = False
+    on_progress: Any = None  # callable(rig_s_done, rig_s_total), called once per simulated second
 
 
 @dataclass
@@ -439,6 +440,8 @@ def run_sim(opts: SimOptions) -> SimResult:
             )
         flush(out)
         w.flush()
+        if opts.on_progress is not None:
+            opts.on_progress(min(t_win, end_ns) * 1e-9, duration_s)
     w.add_metadata("completeness", {"messages": n_written, "missing": 0, "replay_ready": True, "topics": {}})
     w.close()
     _ = FREE_INS
