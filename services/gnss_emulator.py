@@ -61,7 +61,7 @@ class GnssEmulator(Service):
                 pps_pub.put(
                     TimeTag(
                         seq=pps_pub.next_seq(),
-                        stamp_ns=t_edge,  # latched on the rig clock at the edge
+                        stamp_ns=dev_clock.latch_ns(t_edge),  # latched on the rig clock (latch jitter)
                         sensor="gnss",
                         kind="pps",
                         device_stamp_ns=dev_clock.device_ns(t_edge),

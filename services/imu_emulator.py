@@ -72,12 +72,12 @@ class ImuEmulator(Service):
                         i = 0
                     t_true = int(batch.t_ns[i])
                     dev = dev_clock.device_ns(t_true)
+                    if (k + 1) % sync_every == 0:
+                        node.send_sync(dev)  # the sync edge is this capture: its frame goes first
                     node.send_sample(dev, batch.dtheta_b_rad[i], batch.dvel_b_mps[i])
                     cap_pub.put(CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true))
                     i += 1
                     k += 1
-                    if k % sync_every == 0:
-                        node.send_sync(dev)
             self.ctx.stop.wait()
         finally:
             bus.shutdown()

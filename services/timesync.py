@@ -1,12 +1,19 @@
 """timesync: re-stamps every raw measurement to rig time of validity and publishes clock models.
 
 A re-stamped measurement on ``synced/<sensor>`` keeps the ``seq`` of its raw original, so the
-recording pairs every synced message with its raw one and its true capture time.
+recording pairs every synced message with its raw one and its true capture time. The estimator
+is ``hil.timesync.core.TimeSyncCore``, configured per sensor from the scenario's
+``[clock.<sensor>]`` tables (``hil.timesync.config``): time tags or arrival times only, the
+calibrated tag latency and minimum delay. The core may hold a few measurements while it decides
+whether the device clock stepped; held ones are released by the next measurement, or here when
+a sensor has gone quiet (so the end of a run loses nothing).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import threading
 from typing import Any
 
@@ -15,15 +22,19 @@ import msgspec
 from hil.bus.keys import SENSOR_TYPES
 from hil.messages import ClockModel, GnssFix, ImuSample, RunInfo, TimeTag
 from hil.runtime.clock import RigClock
+from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
+from hil.timesync.config import sync_configs_for
 from hil.timesync.core import TimeSyncCore
+
+IDLE_FLUSH_S = 0.2  # release held measurements of a sensor silent this long
 
 
 class TimeSync(Service):
     name = "timesync"
 
     def setup(self) -> None:
-        self.core = TimeSyncCore()
+        self.core: TimeSyncCore[ImuSample | GnssFix] = TimeSyncCore()
         self.lock = threading.Lock()
         self.synced_pubs = {s: self.publisher(self.keys.synced(s), cls) for s, cls in SENSOR_TYPES.items()}
         self.clock_pubs: dict[str, Any] = {}
@@ -36,20 +47,44 @@ class TimeSync(Service):
             self.core.on_timetag(tag.sensor, tag.device_stamp_ns, tag.stamp_ns)
 
     def _on_measurement(self, msg: ImuSample | GnssFix, _key: str) -> None:
-        with self.lock:
-            self.core.on_arrival(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns)
-            t = self.core.restamp(msg.sensor, msg.device_stamp_ns)
-        pub = self.synced_pubs.get(msg.sensor)
-        if pub is None:
+        if msg.sensor not in self.synced_pubs:
             self.stats.error("rejected.sensor.unknown", f"no synced channel for sensor {msg.sensor!r}")
             return
-        pub.put(msgspec.structs.replace(msg, stamp_ns=t))
+        with self.lock:
+            released = self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns, msg)
+            self._publish(released)
+
+    def _publish(self, released: list[tuple[ImuSample | GnssFix, int]]) -> None:
+        # under self.lock: held measurements go out in their arrival order
+        for m, t in released:
+            self.synced_pubs[m.sensor].put(msgspec.structs.replace(m, stamp_ns=t))
+
+    def extra_status(self) -> dict[str, int]:
+        core = getattr(self, "core", None)
+        if core is None:
+            return {}
+        with self.lock:
+            return {f"steps_detected.{k}": m.steps_detected for k, m in core.mappings.items()}
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
+        configs = sync_configs_for(scenario_for_run(run))
+        with self.lock:
+            fresh: TimeSyncCore[ImuSample | GnssFix] = TimeSyncCore(configs)
+            self._publish(self.core.flush())  # anything seen before the run was announced
+            self.core = fresh
         seq: dict[str, int] = {}
-        while not self.ctx.stop.wait(1.0):
+        seen: dict[str, int] = {}
+        tick = 0
+        while not self.ctx.stop.wait(IDLE_FLUSH_S):
+            tick += 1
             with self.lock:
-                maps = list(self.core.mappings.values())
+                for name, s in self.core.sensors.items():
+                    if s.held and seen.get(name) == s.n_arrivals:
+                        self._publish(s.flush())
+                    seen[name] = s.n_arrivals
+                maps = [dataclasses.replace(m) for m in self.core.mappings.values()]
+            if tick % round(1.0 / IDLE_FLUSH_S):
+                continue
             for m in maps:
                 pub = self.clock_pubs.get(m.sensor)
                 if pub is None:
@@ -70,6 +105,11 @@ class TimeSync(Service):
                         steps_detected=m.steps_detected,
                     )
                 )
+
+    def teardown(self) -> None:
+        # the session may already be closing: nothing more to say then
+        with self.lock, contextlib.suppress(Exception):
+            self._publish(self.core.flush())
 
 
 SERVICE = TimeSync
