@@ -288,7 +288,7 @@ class DeviceClock:
         frac = self.cfg.drift_ppm * 1e-6 * t + self._wander_ns(t)
         if self.cfg.jitter_s:
             frac += self.cfg.jitter_s * 1e9 * _gauss_of(self._key_stamp, t)
-        dev = t + self._offset_ns + math.floor(frac)
+        dev = t + self._offset_ns + math.floor(frac + 1e-6)  # 1e-6: float fuzz, not a tick
         for t_k, step in self._steps:
             if t >= t_k:
                 dev += step
@@ -305,7 +305,7 @@ class DeviceClock:
             frac = frac + 1e3 * (self._cum_ppm_s[k] + self._knots_ppm[k] * (t_s - k))
         if self.cfg.jitter_s:
             frac = frac + self.cfg.jitter_s * 1e9 * _gauss_array(self._key_stamp, t)
-        dev = t + self._offset_ns + np.floor(frac).astype(np.int64)
+        dev = t + self._offset_ns + np.floor(frac + 1e-6).astype(np.int64)
         for t_k, step in self._steps:
             dev = dev + np.where(t >= t_k, step, 0)
         return (dev // self._q_ns) * self._q_ns
