@@ -54,7 +54,6 @@ class Fusion(Service):
         return out
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
-        from hil.nav.trajectory import TruthGenerator
 
         opts = self.ctx.options
         names = tuple(opts.get("estimators") or default_estimators())
@@ -64,7 +63,7 @@ class Fusion(Service):
             output_every=int(opts.get("output_every", 8)),
         )
         scenario = scenario_for_run(run)
-        self.core = core = FusionCore(TruthGenerator(scenario).initial_state(), cfg)
+        self.core = core = FusionCore.for_scenario(scenario, cfg)
         from hil.record.rerun import FUSION_CONFIG_EVENT, fusion_config_detail
 
         self.emit_event(FUSION_CONFIG_EVENT, fusion_config_detail(cfg))

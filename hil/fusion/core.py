@@ -14,6 +14,7 @@ from __future__ import annotations
 import heapq
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +50,16 @@ class FusionCore:
     config: FusionConfig
     make_estimator: Callable[[str, InitialState], Estimator] | None = None
     counters: dict[str, int] = field(default_factory=dict)
+    params: dict[str, dict[str, Any]] = field(default_factory=dict)  # per estimator, e.g. from tuning
+
+    @classmethod
+    def for_scenario(cls, scenario: Any, config: FusionConfig) -> FusionCore:
+        """The one way live, sim and rerun build the core: truth alignment, IMU-derived tuning."""
+        from hil.estimators.tuning import params_for
+        from hil.nav.trajectory import TruthGenerator
+
+        init = TruthGenerator(scenario).initial_state()
+        return cls(init, config, params=params_for(scenario.imu.params))
 
     def __post_init__(self) -> None:
         from hil.nav import strapdown
@@ -60,7 +71,8 @@ class FusionCore:
         if maker is None:
             from hil.estimators.registry import make_estimator
 
-            maker = make_estimator
+            def maker(name: str, init: InitialState) -> Estimator:
+                return make_estimator(name, init, self.params.get(name))
         self._failed: set[str] = set()
         self.last_error = ""
         self.estimators: list[Estimator] = []

@@ -15,7 +15,7 @@ from typing import Any
 
 import msgspec
 
-from hil.fusion.core import FusionConfig, FusionCore, input_id, input_key
+from hil.fusion.core import FREE_INS, FusionConfig, FusionCore, input_id, input_key
 from hil.messages import Event, FusionJournal, GnssFix, ImuSample, NavSolution, RunInfo, encode
 from hil.record.mcapio import RecordingError, Session, read_session
 
@@ -90,11 +90,11 @@ class RerunResult:
 
 
 def rerun_fusion(session: Session, on_progress: Any = None) -> RerunResult:
-    from hil.nav.trajectory import TruthGenerator
     from hil.runtime.scenario_io import scenario_for_run
 
     run = run_info_from(session)
     cfg = fusion_config_from(session)
+    produced = {FREE_INS, *cfg.estimators}
     inputs: list[ImuSample | GnssFix] = []
     dropped: Counter[str] = Counter()
     recorded: dict[tuple[str, int], bytes] = {}
@@ -111,7 +111,8 @@ def rerun_fusion(session: Session, on_progress: Any = None) -> RerunResult:
             dropped.update(d.split(":", 1)[1] if d.count(":") > 1 else d for d in j.dropped)
         elif "/nav/" in r.topic:
             est = r.topic.rsplit("/", 1)[1]
-            recorded[(est, r.sequence)] = r.payload
+            if est in produced:  # nav/<dut> and other non-fusion solutions are not the core's
+                recorded[(est, r.sequence)] = r.payload
     # an input recorded n times and journaled as dropped d times was consumed max(n - d, 0) times (0 or 1)
     present: Counter[str] = Counter(input_id(m) for m in inputs)
     keep: list[ImuSample | GnssFix] = []
@@ -122,7 +123,7 @@ def rerun_fusion(session: Session, on_progress: Any = None) -> RerunResult:
             continue
         used.add(i)
         keep.append(m)
-    core = FusionCore(TruthGenerator(scenario_for_run(run)).initial_state(), cfg)
+    core = FusionCore.for_scenario(scenario_for_run(run), cfg)
     out: list[NavSolution] = []
     for i, m in enumerate(keep):
         out.extend(core.process(m))

@@ -135,7 +135,7 @@ def run_sim(opts: SimOptions) -> SimResult:
     can_jitter_ns = imu_cc.transport_jitter_s * 1e9
     names = tuple(opts.estimators) or default_estimators()
     cfg = FusionConfig(estimators=names, lag_ns=int(opts.lag_s * 1e9), output_every=opts.output_every)
-    fusion = FusionCore(truth.initial_state(), cfg)
+    fusion = FusionCore.for_scenario(s, cfg)
 
     w = SessionWriter(opts.record)
     w.add_metadata(

@@ -1,0 +1,43 @@
+"""Estimator tuning from the IMU the scenario declares: a filter told the truth about its sensor.
+
+The rig knows the IMU's error budget (the scenario's preset and overrides), as an integrator
+knows the datasheet. ekf15's priors and process noise come from it, so the same filter is
+consistent on a consumer MEMS part (0.5 deg/s turn-on bias) and on a tactical one (1 deg/h).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from hil.nav.sensor_specs import ImuParams
+
+
+def _rss_max(*vecs: tuple[float, float, float]) -> float:
+    """Largest per-axis root-sum-square of several per-axis sigmas/offsets."""
+    return max(math.sqrt(sum(v[i] ** 2 for v in vecs)) for i in range(3))
+
+
+def ekf15_params(imu: ImuParams) -> dict[str, Any]:
+    """Priors and noise of ekf15 from the IMU's datasheet figures (SI).
+
+    Turn-on bias (fixed + random) sets the bias priors; bias instability and its correlation time
+    the Gauss-Markov bias noise; ARW/VRW the white noise. Floors keep an ideal IMU's filter from
+    becoming overconfident (zero noise would freeze its gains).
+    """
+    gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
+    accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2)
+    return {
+        "accel_vrw_mps_rts": max(max(imu.accel_vrw_mps_rts), 1e-4),
+        "gyro_arw_rad_rts": max(max(imu.gyro_arw_rad_rts), 1e-6),
+        "accel_bias_sigma_mps2": max(max(imu.accel_bias_instability_mps2), 1e-5),
+        "gyro_bias_sigma_radps": max(max(imu.gyro_bias_instability_radps), 1e-7),
+        "bias_corr_s": float(imu.gyro_bias_corr_s),
+        "p0_accel_bias_mps2": max(accel_p0, 1e-4),
+        "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
+    }
+
+
+def params_for(imu: ImuParams) -> dict[str, dict[str, Any]]:
+    """Per-estimator construction parameters for a rig with this IMU."""
+    return {"ekf15": ekf15_params(imu)}
