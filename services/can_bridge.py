@@ -32,6 +32,7 @@ import can
 from hil.can.bus import open_can_bus
 from hil.can.codec import DecodedSample, ImuCanCodec, ImuFrameAssembler
 from hil.messages import CanFrame, ImuSample, NavSolution, RunInfo, TimeTag
+from hil.runtime.builders import can_frame_msg
 from hil.runtime.clock import RigClock
 from hil.runtime.service import Service, run_service
 from hil.timesync.sample_index import ImuSampleIndexer
@@ -126,19 +127,7 @@ class CanBridge(Service):
         """Per-frame work: raw frame out, assembler step, decoded outputs out."""
         rx_ns = epoch_s_to_rig_ns(msg.timestamp, start_epoch_ns, speed)
         if self.publish_raw:
-            self.pub_can.put(
-                CanFrame(
-                    seq=self.pub_can.next_seq(),
-                    stamp_ns=rx_ns,
-                    channel=self.channel,
-                    arbitration_id=msg.arbitration_id & 0x1FFFFFFF,
-                    is_extended_id=bool(msg.is_extended_id),
-                    is_fd=bool(msg.is_fd),
-                    bitrate_switch=bool(msg.bitrate_switch),
-                    is_error_frame=bool(msg.is_error_frame),
-                    data_hex=bytes(msg.data[:64]).hex(),
-                )
-            )
+            self.pub_can.put(can_frame_msg(self.pub_can.next_seq(), rx_ns, self.channel, msg))
         if getattr(self, "dut", None) is not None and msg.arbitration_id in self._dut_ids:
             self._handle_dut(msg, rx_ns)
             return

@@ -10,9 +10,8 @@ import argparse
 import heapq
 from typing import Any
 
-import numpy as np
-
 from hil.messages import CaptureTruth, GnssFix, RunInfo, TimeTag
+from hil.runtime.builders import gnss_fix_msg
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
@@ -80,24 +79,7 @@ class GnssEmulator(Service):
         seq = fix_pub.next_seq()
         t_valid = int(b.t_valid_ns[i])
         rx = clock.now_ns()
-        fix_pub.put(
-            GnssFix(
-                seq=seq,
-                stamp_ns=rx,
-                device_stamp_ns=dev_clock.device_ns(t_valid),
-                rx_stamp_ns=rx,
-                lat_deg=float(b.lat_deg[i]),
-                lon_deg=float(b.lon_deg[i]),
-                alt_m=float(b.alt_m[i]),
-                pos_ned_m=np.asarray(b.pos_ned_m[i], dtype=float).tolist(),
-                vel_ned_mps=np.asarray(b.vel_ned_mps[i], dtype=float).tolist(),
-                pos_sigma_m=np.asarray(b.pos_sigma_m[i], dtype=float).tolist(),
-                vel_sigma_mps=np.asarray(b.vel_sigma_mps[i], dtype=float).tolist(),
-                fix_type=int(b.fix_type[i]),
-                num_sats=int(b.num_sats[i]),
-                hdop=float(b.hdop[i]),
-            )
-        )
+        fix_pub.put(gnss_fix_msg(seq, rx, dev_clock.device_ns(t_valid), b, i))
         cap_pub.put(CaptureTruth(seq=seq, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid))
 
 

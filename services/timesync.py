@@ -21,6 +21,7 @@ import msgspec
 
 from hil.bus.keys import SENSOR_TYPES
 from hil.messages import ClockModel, GnssFix, ImuSample, RunInfo, TimeTag
+from hil.runtime.builders import clock_model_msg
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
@@ -90,21 +91,7 @@ class TimeSync(Service):
                 if pub is None:
                     pub = self.clock_pubs[m.sensor] = self.publisher(self.keys.clock(m.sensor), ClockModel)
                 seq[m.sensor] = seq.get(m.sensor, -1) + 1
-                pub.put(
-                    ClockModel(
-                        seq=seq[m.sensor],
-                        stamp_ns=clock.now_ns(),
-                        sensor=m.sensor,
-                        source=m.source,
-                        offset_ns=m.offset_ns,
-                        drift_ppb=m.drift_ppb,
-                        ref_device_ns=m.ref_device_ns,
-                        residual_rms_ns=m.residual_rms_ns,
-                        n_samples=m.n_samples,
-                        state=m.state,
-                        steps_detected=m.steps_detected,
-                    )
-                )
+                pub.put(clock_model_msg(seq[m.sensor], clock.now_ns(), m))
 
     def teardown(self) -> None:
         # the session may already be closing: nothing more to say then

@@ -4,6 +4,12 @@ Every emulator derives truth itself from the scenario in ``RunInfo``; world's ``
 the reference the recording and the live view compare estimates against. With ``wait_for`` it
 holds time zero back until those services report ``waiting_run``, so nothing starts before the
 recorder listens.
+
+Restarted by ``hil up`` (option ``resume_run``: the RunInfo it had announced), world announces
+the *same* run again -- same time zero, same scenario -- and resumes truth at the current rig
+time with ``seq`` = truth sample index, so a restart never starts a second run nor re-sends the
+past. ``imu_rate_hz`` overrides the scenario's IMU rate (the override travels in the scenario
+text of RunInfo, so every service and a replay see the same rate).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from hil.messages import RunInfo, ServiceStatus, Truth
+from hil.runtime.builders import truth_msg
 from hil.runtime.clock import RigClock, wall_ns
 from hil.runtime.scenario_io import scenario_for_run, sha256_text
 from hil.runtime.service import Service, run_service
@@ -44,8 +51,12 @@ class World(Service):
         import hil.nav.trajectory  # noqa: F401 - before time zero
         from hil.nav.scenario import load_scenario
 
+        from hil.nav.scenario import scenario_overrides
+
         name = self.ctx.options.get("scenario") or "straight_level"
         self.scenario = load_scenario(name)
+        if self.ctx.options.get("imu_rate_hz"):
+            self.scenario = scenario_overrides(self.scenario, imu_rate_hz=int(self.ctx.options["imu_rate_hz"]))
         if self.ctx.options.get("duration_s") is not None:
             self.duration_s = float(self.ctx.options["duration_s"])
         else:
@@ -62,6 +73,11 @@ class World(Service):
                 self._ready_event.set()
 
     def run_loop(self, _run: Any, _clock: Any) -> None:
+        resume = self.ctx.options.get("resume_run")
+        if resume:
+            self.run_pub._seq = int(resume.get("seq", 0)) + 1  # continue the announcements' seq
+            self._run_truth(RunInfo(**resume))
+            return
         deadline = time.monotonic() + self.wait_timeout_s
         while self.wait_for and not self._ready_event.wait(0.1):
             if self.ctx.stop.is_set():
@@ -91,16 +107,22 @@ class World(Service):
             origin_alt_m=s.origin_alt_m,
             scenario_toml=s.source_text,
         )
+        self._run_truth(run)
+
+    def _run_truth(self, run: RunInfo) -> None:
+        """Announce ``run`` at 1 Hz and publish truth from the current rig time to the end."""
         self.run_info = run
-        self.clock = clock = RigClock(start, self.speed)
+        self.clock = clock = RigClock(run.start_epoch_ns, run.speed)
         self.state = "running"
         from hil.nav.trajectory import TruthGenerator
 
         truth = TruthGenerator(scenario_for_run(run))
         threading.Thread(target=self._announce_loop, args=(run, clock), name="announce", daemon=True).start()
         dt_ns = round(1e9 / self.truth_rate_hz)
-        n_total = int(self.duration_s * 1e9) // dt_ns + 1
-        k = 0
+        n_total = int(run.duration_s * 1e9) // dt_ns + 1
+        k = max(0, clock.now_ns() // dt_ns) if self.ctx.options.get("resume_run") else 0
+        if k:
+            self.emit_event("resumed", f"world restarted: same run, truth resumes at sample {k}")
         while k < n_total and not self.ctx.stop.is_set():
             n = min(TRUTH_BATCH, n_total - k)
             t_last = (k + n - 1) * dt_ns
@@ -110,20 +132,7 @@ class World(Service):
             t = np.arange(k, k + n, dtype=np.int64) * dt_ns
             b = truth.sample(t)
             for i in range(n):
-                self.truth_pub.put(
-                    Truth(
-                        seq=self.truth_pub.next_seq(),
-                        stamp_ns=int(t[i]),
-                        lat_deg=float(np.degrees(b.lat_rad[i])),
-                        lon_deg=float(np.degrees(b.lon_rad[i])),
-                        alt_m=float(b.alt_m[i]),
-                        pos_ned_m=b.pos_ned_m[i].tolist(),
-                        vel_ned_mps=b.vel_ned_mps[i].tolist(),
-                        q_nb=b.q_nb[i].tolist(),
-                        f_b_mps2=b.f_b_mps2[i].tolist(),
-                        w_ib_b_radps=b.w_ib_b_radps[i].tolist(),
-                    )
-                )
+                self.truth_pub.put(truth_msg(self.truth_pub.next_seq(), int(t[i]), b, i))
             k += n
         self.ctx.stop.wait()
 

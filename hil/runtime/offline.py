@@ -25,9 +25,7 @@ from hil import __version__
 from hil.bus.keys import Keys
 from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import (
-    CanFrame,
     CaptureTruth,
-    ClockModel,
     Event,
     FusionJournal,
     GnssFix,
@@ -35,10 +33,10 @@ from hil.messages import (
     Message,
     RunInfo,
     TimeTag,
-    Truth,
     encode,
 )
 from hil.record.mcapio import SessionWriter
+from hil.runtime.builders import can_frame_msg, clock_model_msg, gnss_fix_msg, truth_msg
 from hil.runtime.scenario_io import run_attachments, scenario_for_run, sha256_text
 from hil.sensors.clock import CAN_FRAME_TIME_NS
 from hil.timesync.core import TimeSyncCore
@@ -217,18 +215,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                     out,
                     int(tt[i]),
                     keys.truth(),
-                    Truth(
-                        seq=pubs.next(keys.truth()),
-                        stamp_ns=int(tt[i]),
-                        lat_deg=float(np.degrees(b.lat_rad[i])),
-                        lon_deg=float(np.degrees(b.lon_rad[i])),
-                        alt_m=float(b.alt_m[i]),
-                        pos_ned_m=b.pos_ned_m[i].tolist(),
-                        vel_ned_mps=b.vel_ned_mps[i].tolist(),
-                        q_nb=b.q_nb[i].tolist(),
-                        f_b_mps2=b.f_b_mps2[i].tolist(),
-                        w_ib_b_radps=b.w_ib_b_radps[i].tolist(),
-                    ),
+                    truth_msg(pubs.next(keys.truth()), int(tt[i]), b, i),
                 )
             k_truth += n_t
         # IMU: physics -> wire -> assembler -> raw sample -> synced sample
@@ -267,16 +254,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                         out,
                         rx,
                         keys.can(channel),
-                        CanFrame(
-                            seq=pubs.next(keys.can(channel)),
-                            stamp_ns=rx,
-                            channel=channel,
-                            arbitration_id=fr.arbitration_id,
-                            is_extended_id=fr.is_extended_id,
-                            is_fd=fr.is_fd,
-                            bitrate_switch=fr.bitrate_switch,
-                            data_hex=bytes(fr.data).hex(),
-                        ),
+                        can_frame_msg(pubs.next(keys.can(channel)), rx, channel, fr),
                     )
                     for item in assembler.feed(fr):
                         if hasattr(item, "dtheta_b_rad"):
@@ -349,22 +327,7 @@ def run_sim(opts: SimOptions) -> SimResult:
             t_out = t_ev
             t_valid = int(gb_i.t_valid_ns[i])
             seq = pubs.next(keys.sensor("gnss"))
-            raw = GnssFix(
-                seq=seq,
-                stamp_ns=t_out,
-                device_stamp_ns=gnss_clock.device_ns(t_valid),
-                rx_stamp_ns=t_out,
-                lat_deg=float(gb_i.lat_deg[i]),
-                lon_deg=float(gb_i.lon_deg[i]),
-                alt_m=float(gb_i.alt_m[i]),
-                pos_ned_m=np.asarray(gb_i.pos_ned_m[i], float).tolist(),
-                vel_ned_mps=np.asarray(gb_i.vel_ned_mps[i], float).tolist(),
-                pos_sigma_m=np.asarray(gb_i.pos_sigma_m[i], float).tolist(),
-                vel_sigma_mps=np.asarray(gb_i.vel_sigma_mps[i], float).tolist(),
-                fix_type=int(gb_i.fix_type[i]),
-                num_sats=int(gb_i.num_sats[i]),
-                hdop=float(gb_i.hdop[i]),
-            )
+            raw = gnss_fix_msg(seq, t_out, gnss_clock.device_ns(t_valid), gb_i, i)
             put(out, t_out, keys.sensor("gnss"), raw)
             put(
                 out,
@@ -401,19 +364,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                     out,
                     next_clock,
                     keys.clock(m.sensor),
-                    ClockModel(
-                        seq=pubs.next(keys.clock(m.sensor)),
-                        stamp_ns=next_clock,
-                        sensor=m.sensor,
-                        source=m.source,
-                        offset_ns=m.offset_ns,
-                        drift_ppb=m.drift_ppb,
-                        ref_device_ns=m.ref_device_ns,
-                        residual_rms_ns=m.residual_rms_ns,
-                        n_samples=m.n_samples,
-                        state=m.state,
-                        steps_detected=m.steps_detected,
-                    ),
+                    clock_model_msg(pubs.next(keys.clock(m.sensor)), next_clock, m),
                 )
             next_clock += 1_000_000_000
         t_win += WINDOW_NS
