@@ -137,8 +137,12 @@ def rerun(
 ) -> tuple[int, list[str]]:
     """Exit code and report lines for ``hil rerun``."""
     session = read_session(path)
+    if core == "timesync":
+        from hil.record.rerun_timesync import rerun_timesync_report
+
+        return rerun_timesync_report(session, verify)
     if core != "fusion":
-        return 2, [f"hil rerun: core {core!r} is not rerunnable yet"]
+        return 2, [f"hil rerun: core {core!r} is not rerunnable (fusion, timesync)"]
     res = rerun_fusion(session, on_progress)
     lines = [
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "

@@ -42,3 +42,9 @@ def test_cli_rerun_verify_on_the_golden_file_exits_zero() -> None:
     proc = run_hil("rerun", str(GOLDEN), "--verify", timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "VERIFY OK" in proc.stdout
+
+
+def test_timesync_rerun_verify_reproduces_every_restamp_of_the_golden_recording() -> None:
+    rc, lines = rerun(str(GOLDEN), core="timesync", verify=True)
+    assert rc == 0, "\n".join([*lines, HOW_TO_UPDATE])
+    assert "VERIFY OK" in lines[-1]
