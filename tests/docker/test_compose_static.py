@@ -126,6 +126,8 @@ def test_nothing_deserialises_with_pickle_or_eval() -> None:
                 and isinstance(node.func, ast.Name)
                 and node.func.id in ("eval", "exec")
             ):
+                if node.func.id == "exec" and path.relative_to(REPO).as_posix() in EXEC_ALLOWED:
+                    continue
                 bad.append(f"{path}:{node.lineno} {node.func.id}()")
             elif (
                 isinstance(node, ast.Attribute)
