@@ -1,0 +1,189 @@
+"""The secure router profile (deploy/zenoh/router-secure.json5): mutual TLS + access control.
+
+Certificates are made with openssl at test time (throwaway, in tmp). A rig service (CN hil-service)
+publishes into the rig; a client without a certificate, with one from another CA, over plain TCP,
+or with a valid certificate outside the publish ACL (CN hil-monitor) cannot.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.docker import _engine
+
+pytestmark = [pytest.mark.docker, pytest.mark.timeout(180)]
+
+REPO = Path(__file__).resolve().parents[2]
+KEY = "hil/bench/truth"
+
+
+def _ssl(*args: str, cwd: Path) -> None:
+    r = subprocess.run(["openssl", *args], cwd=cwd, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+
+
+def _ca(d: Path, name: str) -> None:
+    _ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", f"/CN={name}",
+         "-keyout", f"{name}.key", "-out", f"{name}.pem", cwd=d)  # fmt: skip
+
+
+def _leaf(d: Path, name: str, cn: str, ca: str, san: str) -> None:
+    (d / f"{name}.ext").write_text(f"subjectAltName={san}\nextendedKeyUsage=serverAuth,clientAuth\n")
+    _ssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={cn}", "-keyout", f"{name}.key",
+         "-out", f"{name}.csr", cwd=d)  # fmt: skip
+    _ssl("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key", "-CAcreateserial",
+         "-days", "2", "-extfile", f"{name}.ext", "-out", f"{name}.pem", cwd=d)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if shutil.which("openssl") is None:
+        _engine.unavailable("openssl is not installed")
+    d = tmp_path_factory.mktemp("tls")
+    _ca(d, "ca")
+    _ca(d, "rogue-ca")
+    _leaf(d, "router", "router", "ca", "DNS:localhost,IP:127.0.0.1")
+    _leaf(d, "service", "hil-service", "ca", "DNS:hil-service")
+    _leaf(d, "service2", "hil-service", "ca", "DNS:hil-service")
+    _leaf(d, "monitor", "hil-monitor", "ca", "DNS:hil-monitor")
+    _leaf(d, "rogue", "hil-service", "rogue-ca", "DNS:hil-service")
+    return d
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def secure_router(pki: Path) -> tuple[int, Path]:
+    text = (REPO / "deploy/zenoh/router-secure.json5").read_text().replace("/etc/hil/tls/", f"{pki}/")
+    conf = pki / "router-secure.json5"
+    conf.write_text(text)
+    port = _free_port()
+    log = open(pki / "router.log", "wb")  # noqa: SIM115
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "hil.cli",
+            "router",
+            "--config",
+            str(conf),
+            "--listen",
+            f"tls/127.0.0.1:{port}",
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        cwd=REPO,
+    )
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        assert proc.poll() is None, (pki / "router.log").read_text()
+        time.sleep(0.2)
+    yield port, pki
+    proc.terminate()
+    proc.wait(10)
+    log.close()
+
+
+def _open(port: int, pki: Path, cert: str | None, ca: str = "ca", proto: str = "tls") -> Any:
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("connect/endpoints", json.dumps([f"{proto}/localhost:{port}"]))
+    if proto == "tls":
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(pki / f"{ca}.pem")))
+        if cert:
+            c.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(pki / f"{cert}.key")))
+            c.insert_json5("transport/link/tls/connect_certificate", json.dumps(str(pki / f"{cert}.pem")))
+            c.insert_json5("transport/link/tls/enable_mtls", "true")
+    return zenoh.open(c)
+
+
+def _delivered(port: int, pki: Path, publisher: str, n: int = 20) -> int:
+    """How many of ``n`` puts by ``publisher`` reach a rig service subscribed to the key."""
+    got: list[bytes] = []
+    done = threading.Event()
+    sub_s = _open(port, pki, "service2")
+    sub = sub_s.declare_subscriber(KEY, lambda s: (got.append(s.payload.to_bytes()), done.set()))
+    pub_s = _open(port, pki, publisher)
+    try:
+        time.sleep(1.0)  # declarations propagate through the router
+        for i in range(n):
+            pub_s.put(KEY, json.dumps({"seq": i}))
+            time.sleep(0.02)
+        done.wait(2.0)
+        time.sleep(0.5)
+        return len(got)
+    finally:
+        sub.undeclare()
+        pub_s.close()
+        sub_s.close()
+
+
+def test_rig_service_publishes_into_the_rig(secure_router: tuple[int, Path]) -> None:
+    port, pki = secure_router
+    assert _delivered(port, pki, "service") == 20
+
+
+def test_certificate_outside_the_acl_cannot_publish(secure_router: tuple[int, Path]) -> None:
+    port, pki = secure_router
+    assert _delivered(port, pki, "monitor") == 0
+
+
+def test_monitor_may_observe_but_not_publish(secure_router: tuple[int, Path]) -> None:
+    port, pki = secure_router
+    got: list[bytes] = []
+    mon = _open(port, pki, "monitor")
+    sub = mon.declare_subscriber(KEY, lambda s: got.append(s.payload.to_bytes()))
+    svc = _open(port, pki, "service")
+    try:
+        time.sleep(1.0)
+        for i in range(10):
+            svc.put(KEY, json.dumps({"seq": i}))
+            time.sleep(0.02)
+        time.sleep(1.0)
+    finally:
+        sub.undeclare()
+        svc.close()
+        mon.close()
+    assert len(got) == 10
+
+
+@pytest.mark.parametrize(
+    ("cert", "ca", "proto", "why"),
+    [
+        (None, "ca", "tls", "no client certificate"),
+        ("rogue", "ca", "tls", "certificate from another CA"),
+        (None, "ca", "tcp", "plain TCP"),
+    ],
+)
+def test_client_without_a_rig_certificate_cannot_join(
+    secure_router: tuple[int, Path], cert: str | None, ca: str, proto: str, why: str
+) -> None:
+    port, pki = secure_router
+    try:
+        s = _open(port, pki, cert, ca=ca, proto=proto)
+    except Exception:
+        return  # refused at the handshake: the expected outcome
+    try:
+        assert not list(s.info.routers_zid()), f"{why}: the router accepted the session"
+    finally:
+        s.close()
