@@ -34,6 +34,7 @@ class FusionConfig:
     output_every: int = 8  # publish every N-th IMU step (by IMU seq: deterministic under loss)
     max_future_ns: int = 5_000_000_000  # an input this far ahead of the newest is rejected, not trusted
     max_buffered: int = 20_000  # bound on the reorder buffer (e.g. GNSS during an IMU outage)
+    gap_confirm_inputs: int = 40  # consecutive consistent "future" IMU inputs that prove a real gap
 
 
 def input_key(msg: ImuSample | GnssFix) -> tuple[int, int, int]:
@@ -53,13 +54,37 @@ class FusionCore:
     params: dict[str, dict[str, Any]] = field(default_factory=dict)  # per estimator, e.g. from tuning
 
     @classmethod
-    def for_scenario(cls, scenario: Any, config: FusionConfig) -> FusionCore:
-        """The one way live, sim and rerun build the core: truth alignment, IMU-derived tuning."""
+    def for_scenario(cls, scenario: Any, config: FusionConfig, align_ns: int = 0) -> FusionCore:
+        """The one way live, sim and rerun build the core: truth alignment, IMU-derived tuning.
+
+        ``align_ns`` > 0 aligns from the truth at that rig time instead of at zero: what a fusion
+        restarted mid-run does (services/fusion.py), the rig's equivalent of an in-flight
+        re-alignment. Its outputs then differ from an uninterrupted run's, and say so in an event.
+        """
         from hil.estimators.tuning import params_for
         from hil.nav.trajectory import TruthGenerator
 
-        init = TruthGenerator(scenario).initial_state()
+        truth = TruthGenerator(scenario)
+        init = truth.initial_state()
+        if align_ns > 0:
+            from dataclasses import replace as dc_replace
+
+            tb = truth.sample(np.array([align_ns], dtype=np.int64))
+            init = dc_replace(
+                init,
+                stamp_ns=int(align_ns),
+                lat_rad=float(tb.lat_rad[0]),
+                lon_rad=float(tb.lon_rad[0]),
+                alt_m=float(tb.alt_m[0]),
+                vel_ned_mps=tb.vel_ned_mps[0].copy(),
+                q_nb=tb.q_nb[0].copy(),
+            )
         return cls(init, config, params=params_for(scenario.imu.params))
+
+    def start_output_seq(self, seq: int) -> None:
+        """Number outputs from ``seq`` on (a restarted fusion must not reuse an earlier seq)."""
+        for name in (FREE_INS, *self.config.estimators):
+            self._out_seq[name] = max(self._out_seq.get(name, 0), int(seq))
 
     def __post_init__(self) -> None:
         from hil.nav import strapdown
@@ -73,6 +98,7 @@ class FusionCore:
 
             def maker(name: str, init: InitialState) -> Estimator:
                 return make_estimator(name, init, self.params.get(name))
+
         self._failed: set[str] = set()
         self.last_error = ""
         self.estimators: list[Estimator] = []
@@ -84,6 +110,8 @@ class FusionCore:
                 self.last_error = f"estimator {name} could not start: {type(err).__name__}: {err}"
         self._heap: list[tuple[tuple[int, int, int], int, ImuSample | GnssFix]] = []
         self._arrivals = 0  # tie-break for identical keys: first arrival first, never compare messages
+        self._future_lead_ns: int | None = None
+        self._future_run = 0
         self._newest_ns: int | None = None
         self._last_key: tuple[int, int, int] = (-(2**62), -1, -1)
         self._dropped: list[str] = []
@@ -96,9 +124,19 @@ class FusionCore:
     def push(self, msg: ImuSample | GnssFix) -> list[NavSolution]:
         key = input_key(msg)
         if self._newest_ns is not None and msg.stamp_ns > self._newest_ns + self.config.max_future_ns:
-            self._inc("rejected.future_stamp")
-            self._dropped.append("future:" + input_id(msg))
-            return []
+            # One wild stamp is rejected; a run of consistent ones is a real gap in the input (a
+            # router outage, a paused replay): accept it, or the fusion would refuse input forever.
+            lead = self._future_lead_ns
+            if lead is None or not lead <= msg.stamp_ns <= lead + self.config.max_future_ns:
+                self._future_lead_ns, self._future_run = msg.stamp_ns, 0
+            self._future_run += 1
+            if msg.sensor != "imu" or self._future_run < self.config.gap_confirm_inputs:
+                self._inc("rejected.future_stamp")
+                self._dropped.append("future:" + input_id(msg))
+                return []
+            self._inc("input_gaps")
+            self._newest_ns = msg.stamp_ns
+        self._future_lead_ns, self._future_run = None, 0
         if key <= self._last_key:
             self._inc(f"dropped_late.{msg.sensor}")
             self._dropped.append("late:" + input_id(msg))

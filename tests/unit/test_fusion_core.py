@@ -150,3 +150,21 @@ def test_rerun_path_reproduces_live_outputs_bit_for_bit_under_jittered_arrival(s
     rerun_out = [o for m in kept for o in rerun.process(m)]
     assert [encode(o) for o in rerun_out] == [encode(o) for o in live_out]
     assert len(live_out) > 0
+
+
+def test_a_real_gap_in_the_input_is_accepted_after_consistent_evidence_not_forever_refused() -> None:
+    """A router outage: IMU stamps jump 20 s. One wild stamp is rejected; a consistent run of
+    them is a gap, and the fusion carries on (it used to journal every later input as future)."""
+    core = _core(lag_ns=20_000_000)
+    for s in range(100):
+        core.push(_imu(s))
+    wild = _imu(100_000)  # 250 s ahead, alone
+    core.push(wild)
+    assert core.take_dropped() == ["future:imu:100000"]
+    out = []
+    for s in range(8100, 8300):  # 20 s later, 200 consistent samples
+        out += core.push(_imu(s))
+    dropped = core.take_dropped()
+    assert len(dropped) == core.config.gap_confirm_inputs - 1
+    assert core.counters["input_gaps"] == 1
+    assert out and out[-1].stamp_ns > 20_000_000_000
