@@ -93,7 +93,14 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         lines.append(f"TRUNCATED: read up to the last complete chunk ({s.truncation_reason})")
     comp = s.metadata.get("completeness")
     if comp:
-        lines.append(f"recorder:  missing={comp.get('missing')} replay_ready={comp.get('replay_ready')}")
+        extra = ""
+        if "zenoh_missed" in comp:
+            extra += f" zenoh_missed={comp.get('zenoh_missed')}"
+        if comp.get("parts") not in (None, "1"):
+            extra += f" split part={comp.get('part')}"
+        lines.append(
+            f"recorder:  missing={comp.get('missing')}{extra} replay_ready={comp.get('replay_ready')}"
+        )
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
     lines.append("")
