@@ -72,7 +72,12 @@ def cmd_up(a: argparse.Namespace) -> int:
         restart=a.restart,
         dut_mapping=str(Path(a.dut).resolve()) if a.dut else None,
         dut_emulator=a.dut_emulator,
+        imu_rate_hz=a.imu_rate,
     )
+    if a.imu_rate is not None:
+        from hil.nav.scenario import scenario_overrides
+
+        scenario_overrides(scenario, imu_rate_hz=a.imu_rate)  # reject a bad rate here, with one line
     if a.dut_emulator and not a.dut:
         raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
     if a.dut and not Path(a.dut).is_file():
@@ -85,11 +90,16 @@ def cmd_up(a: argparse.Namespace) -> int:
     rc = sup.run()
     if sup.cpu_table():
         print(sup.cpu_table())
+    for line in sup.restart_log:
+        print(f"hil up: restart: {line}")
     for f in sup.failures:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
     if record.exists():
         print()
         print(describe(str(record)))
+        for part in sup.record_parts:
+            state = "present" if part.exists() else "MISSING"
+            print(f"hil up: a restarted recorder continued in {part} ({state})")
     else:
         print(f"hil up: no recording was written at {record}", file=sys.stderr)
         rc = rc or 1
@@ -272,6 +282,49 @@ def cmd_router(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fault(a: argparse.Namespace) -> int:
+    """Send one ``hil.FaultCommand`` to a running rig (Zenoh from the environment, like monitor)."""
+    import time
+
+    from hil.bus.keys import Keys, check_name
+    from hil.bus.session import BusConfig, open_session
+    from hil.faults import FaultError, check_fault
+    from hil.messages import FaultCommand, encode
+
+    check_name("rig", a.rig)
+    params: dict[str, float] = {}
+    for item in a.param:
+        key, sep, value = item.partition("=")
+        try:
+            params[key] = float(value)
+        except ValueError:
+            raise UserError(f"--param {item!r}: expected NAME=NUMBER") from None
+        if not sep:
+            raise UserError(f"--param {item!r}: expected NAME=NUMBER")
+    try:
+        check_fault(a.kind, a.target, params)
+    except FaultError as err:
+        raise UserError(str(err)) from None
+    cmd = FaultCommand(
+        seq=time.time_ns() & (2**62 - 1),  # commands come from many short-lived senders: no counter
+        stamp_ns=0,
+        kind=a.kind,
+        target=a.target,
+        params=params,
+        duration_s=a.duration,
+    )
+    session = open_session(BusConfig.from_env())
+    try:
+        pub = session.declare_publisher(Keys(a.rig).control("fault"))
+        time.sleep(a.wait)  # let the session find the rig's subscribers before the one put
+        pub.put(encode(cmd))
+        time.sleep(0.2)
+    finally:
+        session.close()
+    print(f"hil fault: sent {a.kind} to rig {a.rig!r}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
     ap.add_argument("--version", action="version", version=f"hil {__version__}")
@@ -289,6 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
     up.add_argument(
         "--restart", type=int, default=0, help="restarts allowed per service before the run fails"
+    )
+    up.add_argument(
+        "--imu-rate", type=int, default=None, help="IMU rate in Hz (overrides the scenario's; 100-2000)"
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
@@ -347,6 +403,17 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("replay", help="republish a recording onto Zenoh (and its CAN frames onto a bus)")
     add_replay_args(rp)
     rp.set_defaults(func=cmd_replay)
+
+    from hil.faults import FAULT_KINDS
+
+    flt = sub.add_parser("fault", help="inject a fault into a running rig (recorded as events)")
+    flt.add_argument("kind", choices=sorted(FAULT_KINDS))
+    flt.add_argument("--rig", default="bench", help="the rig (hil/<rig>/control/fault)")
+    flt.add_argument("--target", default="", help="kill_service: the service; clock_step: imu or gnss")
+    flt.add_argument("--duration", type=float, default=0.0, help="seconds (0: to the end / instantaneous)")
+    flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
+    flt.add_argument("--wait", type=float, default=1.0, help="seconds to connect before sending")
+    flt.set_defaults(func=cmd_fault)
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
     router.add_argument(

@@ -185,6 +185,22 @@ class Event(Message, frozen=True, kw_only=True):
     detail: str = ""
 
 
+class FaultCommand(Message, frozen=True, kw_only=True):
+    """A fault to inject now, sent on ``hil/<rig>/control/fault`` (``hil fault``).
+
+    ``kind`` names the fault (``hil.faults.FAULT_KINDS``: which service applies it and which
+    ``params`` it takes, SI units); ``target`` a service (``kill_service``) or a sensor
+    (``clock_step``); ``duration_s`` 0 means until the end of the run (or instantaneous). The
+    service that applies it publishes a ``fault_start`` ``Event`` (and ``fault_end``), so the
+    recording holds both the command and its effect.
+    """
+
+    kind: Name
+    target: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{0,64}$")] = ""
+    params: Annotated[dict[Name, float], msgspec.Meta(max_length=16)] = {}
+    duration_s: Annotated[float, msgspec.Meta(ge=0.0, le=1e6)] = 0.0
+
+
 CONTRACT_TYPES: tuple[type[Message], ...] = (
     RunInfo,
     Truth,
@@ -198,6 +214,7 @@ CONTRACT_TYPES: tuple[type[Message], ...] = (
     FusionJournal,
     ServiceStatus,
     Event,
+    FaultCommand,
 )
 TYPES_BY_NAME: dict[str, type[Message]] = {f"hil.{t.__name__}": t for t in CONTRACT_TYPES}
 

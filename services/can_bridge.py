@@ -63,6 +63,7 @@ class CanBridge(Service):
         self.fd = bool(opts.get("fd", False))
         rate = float(opts.get("rate_hz") or DEFAULT_RATE_HZ)
         self.nominal_dt_ns = max(1, round(1e9 / rate))
+        self._rate_given = bool(opts.get("rate_hz"))
         self.codec = ImuCanCodec.from_dbc(opts.get("dbc"), fd=self.fd)
         self.assembler = ImuFrameAssembler(self.codec)
         self.bus, self.transport = open_can_bus(
@@ -84,6 +85,15 @@ class CanBridge(Service):
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
         start, speed = run.start_epoch_ns, run.speed
+        if not self._rate_given:
+            # the run's scenario says the IMU rate (hil up --imu-rate changes it): nominal dt from it
+            from hil.runtime.scenario_io import scenario_for_run
+
+            try:
+                self.nominal_dt_ns = max(1, round(1e9 / scenario_for_run(run).imu.rate_hz))
+                self._indexer = ImuSampleIndexer(self.nominal_dt_ns)
+            except ValueError as err:
+                self.stats.error("errors.scenario", f"IMU rate from the run's scenario: {err}")
         self._setup_dut(run)
         stop = self.ctx.stop
         while not stop.is_set():

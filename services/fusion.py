@@ -3,6 +3,14 @@
 Zenoh callbacks only enqueue; one worker thread feeds the pure ``FusionCore`` so its decisions do
 not depend on thread scheduling beyond arrival order, and journals every input it dropped as
 late on ``fusion/journal`` -- with the recorded inputs, that is all ``hil rerun`` needs.
+
+A fusion restarted mid-run (option ``resume`` from ``hil up --restart``) re-aligns: it waits for
+its first IMU input and builds every estimator from the run's truth at that input's stamp (an
+in-flight re-alignment; the rig knows truth, a real unit would use its last good solution), then
+numbers its outputs after ``imu_seq // output_every + 1`` so no seq repeats one from before the
+death. It says so in a ``realigned`` event. ``hil rerun --verify`` reproduces runs without a
+fusion restart; after one, the outputs of the second process are not those of an uninterrupted
+run by design, and rerun reports the first difference.
 """
 
 from __future__ import annotations
@@ -63,7 +71,30 @@ class Fusion(Service):
             output_every=int(opts.get("output_every", 8)),
         )
         scenario = scenario_for_run(run)
-        self.core = core = FusionCore.for_scenario(scenario, cfg)
+        first: ImuSample | GnssFix | None = None
+        held: list[ImuSample | GnssFix] = []
+        if opts.get("resume"):
+            while first is None and not self.ctx.stop.is_set():
+                try:
+                    m = self.inbox.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+                if m is not None:
+                    held.append(m)
+                    if m.sensor == "imu":
+                        first = m
+            if first is None:
+                return
+        align_ns = first.stamp_ns if first is not None else 0
+        self.core = core = FusionCore.for_scenario(scenario, cfg, align_ns=align_ns)
+        if first is not None:
+            core.start_output_seq(first.seq // cfg.output_every + 1)
+            held = [m for m in held if m.stamp_ns >= align_ns]  # nothing from before the alignment
+            self.emit_event(
+                "realigned",
+                f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.3f} s "
+                f"(imu seq {first.seq}); outputs numbered from {first.seq // cfg.output_every + 1}",
+            )
         from hil.record.rerun import FUSION_CONFIG_EVENT, fusion_config_detail
 
         self.emit_event(FUSION_CONFIG_EVENT, fusion_config_detail(cfg))
@@ -94,7 +125,7 @@ class Fusion(Service):
 
         while True:
             try:
-                msg = self.inbox.get(timeout=0.1)
+                msg = held.pop(0) if held else self.inbox.get(timeout=0.1)
             except queue.Empty:
                 msg = None
                 if self.ctx.stop.is_set():

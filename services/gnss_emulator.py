@@ -2,26 +2,81 @@
 
 The fix's time of validity is stamped on the receiver clock (``device_stamp_ns``); its true
 capture time goes to ``capture/gnss`` so synchronisation error is measurable from a recording.
+
+``seq`` of a fix (and of its capture truth) is the receiver's output index: the number of epochs
+it output before this one in the scenario, omitted outage epochs not counted (so an outage is not
+a seq gap). It is computed from the scenario, not counted by the process, so a restarted
+receiver (option ``resume``, or a start more than ``RESUME_AFTER_S`` into the run) skips the
+epochs of the time it was dead -- a seq gap, honest loss -- and never reuses a seq. The PPS
+``seq`` is the PPS second minus one, for the same reason.
 """
 
 from __future__ import annotations
 
 import argparse
 import heapq
+import threading
 from typing import Any
 
-from hil.messages import CaptureTruth, GnssFix, RunInfo, TimeTag
+from hil.faults import GNSS_FAULTS, FaultError, FaultTimeline, check_fault, fault_detail
+from hil.messages import CaptureTruth, FaultCommand, GnssFix, RunInfo, TimeTag
 from hil.runtime.builders import gnss_fix_msg
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
 from hil.sensors.clock import device_clock_for
 
+RESUME_AFTER_S = 2.0
+
 
 class GnssEmulator(Service):
+    """Faults: the scenario's timed GNSS events are applied by the core (hil/sensors/gnss.py) and
+    announced here as ``fault_start``/``fault_end`` events when rig time passes their edges;
+    commanded ones (``control/fault``) become scenario-like events from the current rig time on."""
+
     name = "gnss_emulator"
 
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self._commands: list[FaultCommand] = []
+        self._cmd_lock = threading.Lock()
+
+    def _on_fault(self, cmd: FaultCommand, _key: str) -> None:
+        if not (cmd.kind in GNSS_FAULTS or (cmd.kind == "clock_step" and cmd.target == "gnss")):
+            return
+        try:
+            check_fault(cmd.kind, cmd.target, cmd.params)
+        except FaultError as err:
+            self.stats.error("rejected.control.fault", str(err))
+            return
+        with self._cmd_lock:
+            self._commands.append(cmd)
+
+    def _take_commands(self, core: Any, dev_clock: Any, timeline: FaultTimeline, now: int) -> None:
+        from hil.nav.scenario import ScenarioEvent
+
+        with self._cmd_lock:
+            cmds, self._commands = self._commands, []
+        for cmd in cmds:
+            p = cmd.params
+            if cmd.kind == "clock_step":
+                dev_clock.add_step(now, round(p["step_s"] * 1e9))
+                self.emit_event("fault_start", fault_detail(cmd.kind, now, None, p, "command"))
+                continue
+            params: dict[str, Any] = {}
+            if cmd.kind == "gnss_jump":
+                params["offset_ned_m"] = (p.get("n_m", 0.0), p.get("e_m", 0.0), p.get("d_m", 0.0))
+            elif cmd.kind == "gnss_velocity_glitch":
+                params["offset_ned_mps"] = (p.get("n_mps", 0.0), p.get("e_mps", 0.0), p.get("d_mps", 0.0))
+            elif cmd.kind == "gnss_latency":
+                params.update(p)
+            t0 = now / 1e9
+            t1 = t0 + cmd.duration_s if cmd.duration_s > 0 and cmd.kind != "gnss_latency" else None
+            core._events = (*core._events, ScenarioEvent(cmd.kind, t0, t1, params))
+            timeline.add(cmd.kind, now, cmd.duration_s if t1 is not None else 0.0, params)
+
     def setup(self) -> None:
+        self.subscribe(self.keys.control("fault"), FaultCommand, self._on_fault)
         # Import the numerics before reporting ready: a late start would burst samples at time zero.
         import hil.nav.trajectory
         import hil.sensors.gnss
@@ -44,8 +99,23 @@ class GnssEmulator(Service):
         next_pps_s = 1
         t_pulled = -1
         counter = 0
+        timeline = FaultTimeline.from_scenario(s.events, GNSS_FAULTS)
+        now = clock.now_ns()
+        if self.ctx.options.get("resume") or now > RESUME_AFTER_S * 1e9:
+            # skip what was due while dead; the core still draws its noise (same stream after)
+            t_pulled = min(now, end_ns)
+            skipped = len(core.next_batch(t_pulled).t_valid_ns)
+            fix_pub._seq = skipped
+            next_pps_s = now // 1_000_000_000 + 1
+            self.emit_event(
+                "resumed", f"gnss_emulator restarted at t={now / 1e9:.3f} s: resumes at fix seq {skipped}"
+            )
         while not self.ctx.stop.is_set():
             now = clock.now_ns()
+            if self._commands:
+                self._take_commands(core, dev_clock, timeline, now)
+            for edge, f in timeline.edges(now):
+                self.emit_event(edge, fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin))
             if t_pulled < min(now, end_ns):
                 t_pulled = min(now, end_ns)
                 b = core.next_batch(t_pulled)
@@ -59,7 +129,7 @@ class GnssEmulator(Service):
                 t_edge = next_pps_s * 1_000_000_000
                 pps_pub.put(
                     TimeTag(
-                        seq=pps_pub.next_seq(),
+                        seq=next_pps_s - 1,  # the PPS second: a restart never reuses a seq
                         stamp_ns=dev_clock.latch_ns(t_edge),  # latched on the rig clock (latch jitter)
                         sensor="gnss",
                         kind="pps",

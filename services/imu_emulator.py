@@ -3,14 +3,25 @@
 The physics (truth -> sensor errors -> increments) is ``hil.sensors.imu.ImuEmulatorCore``; the
 wire (DBC codec, counters, CRC, back-off, bus load) is ``hil.can.node.ImuCanNode``. This module
 only paces them on the rig clock. Every sample's true capture time goes to ``capture/imu``.
+
+Restarted mid-run (option ``resume``, or the run already more than ``RESUME_AFTER_S`` old), the
+device resumes at the sample index of the current rig time -- not at 0, which would burst the
+whole past onto the bus. The codec's SampleCount starts at that index and the first sample
+carries a status frame, so the bridge's ``seq`` (the device sample index) continues without
+colliding with the samples sent before the restart; the samples of the dead time are a seq gap.
+Calibration errors (turn-on bias, scale factor, misalignment) are drawn from the scenario seed
+and so survive the restart; the noise after it is a fresh stream (a power-cycled device).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import threading
+from typing import Any
 
-from hil.messages import CaptureTruth, RunInfo
+from hil.faults import IMU_FAULTS, FaultError, ImuFaults, check_fault, fault_detail
+from hil.messages import CaptureTruth, FaultCommand, RunInfo
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
@@ -18,12 +29,32 @@ from hil.sensors.clock import device_clock_for
 
 log = logging.getLogger(__name__)
 GENERATE_AHEAD_S = 0.1  # physics computed this far ahead of the wire
+RESUME_AFTER_S = 2.0  # a start this late into the run is a restart: resume, do not burst the past
 
 
 class ImuEmulator(Service):
     name = "imu_emulator"
 
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self._commands: list[FaultCommand] = []
+        self._cmd_lock = threading.Lock()
+
+    def _on_fault(self, cmd: FaultCommand, _key: str) -> None:
+        """Run-time faults (hil fault): queued here, applied by the sample loop at its next sample."""
+        ours = cmd.kind in IMU_FAULTS or (cmd.kind == "clock_step" and cmd.target == "imu")
+        if not ours:
+            return
+        try:
+            check_fault(cmd.kind, cmd.target, cmd.params)
+        except FaultError as err:
+            self.stats.error("rejected.control.fault", str(err))
+            return
+        with self._cmd_lock:
+            self._commands.append(cmd)
+
     def setup(self) -> None:
+        self.subscribe(self.keys.control("fault"), FaultCommand, self._on_fault)
         # Import the numerics before reporting ready: a late start would burst samples at time zero.
         import hil.can.bus
         import hil.can.codec
@@ -55,11 +86,20 @@ class ImuEmulator(Service):
         n_total = round(run.duration_s * rate_hz)
         sync_every = max(1, round(rate_hz))  # one sync/time-tag frame per second
         k = 0  # samples sent; sample k ends at (k+1)*dt
+        now = clock.now_ns()
+        if opts.get("resume") or now > RESUME_AFTER_S * 1e9:
+            k = min(max(0, now // dt_ns), n_total)
+            core.count = k  # next_batch starts at the interval ending at (k+1)*dt
+            node.codec.samples_encoded = k  # SampleCount = device sample index
+            self.emit_event(
+                "resumed", f"imu_emulator restarted: resumes at sample {k} (t={k * dt_ns / 1e9:.3f} s)"
+            )
         # The physics runs ahead in blocks (its output does not depend on block size); only the
         # wire is paced sample by sample, so the per-sample cost is the CAN send alone.
         ahead = max(1, int(rate_hz * GENERATE_AHEAD_S))
         batch = None
         i = 0
+        faults = ImuFaults(s.seed, s.events)
         try:
             while k < n_total and not self.ctx.stop.is_set():
                 due = min(clock.now_ns() // dt_ns, n_total) - k
@@ -71,16 +111,35 @@ class ImuEmulator(Service):
                         batch = core.next_batch(min(ahead, n_total - k))
                         i = 0
                     t_true = int(batch.t_ns[i])
+                    if self._commands:
+                        self._take_commands(faults, dev_clock, t_true)
+                    for edge, f in faults.timeline.edges(t_true):
+                        self.emit_event(edge, fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin))
+                    act = faults.apply(k, t_true, batch.dtheta_b_rad[i], batch.dvel_b_mps[i])
                     dev = dev_clock.device_ns(t_true)
-                    if (k + 1) % sync_every == 0:
+                    if act.corrupt_frames:
+                        node.corrupt_next(act.corrupt_frames)
+                    if act.send and (k + 1) % sync_every == 0:
                         node.send_sync(dev)  # the sync edge is this capture: its frame goes first
-                    node.send_sample(dev, batch.dtheta_b_rad[i], batch.dvel_b_mps[i])
+                    node.send_sample(dev, act.dtheta_b_rad, act.dvel_b_mps, drop=not act.send)
+                    if not act.send:
+                        self.stats.inc(f"fault.imu_samples_not_sent.{act.reason}")
                     cap_pub.put(CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true))
                     i += 1
                     k += 1
             self.ctx.stop.wait()
         finally:
             bus.shutdown()
+
+    def _take_commands(self, faults: ImuFaults, dev_clock: Any, t_ns: int) -> None:
+        with self._cmd_lock:
+            cmds, self._commands = self._commands, []
+        for cmd in cmds:
+            if cmd.kind == "clock_step":
+                dev_clock.add_step(t_ns, round(cmd.params["step_s"] * 1e9))
+                self.emit_event("fault_start", fault_detail(cmd.kind, t_ns, None, cmd.params, "command"))
+                continue
+            faults.timeline.add(cmd.kind, t_ns, cmd.duration_s, dict(cmd.params))
 
     def extra_status(self) -> dict[str, int]:
         node = getattr(self, "_node", None)

@@ -49,14 +49,14 @@ class World(Service):
 
     def setup(self) -> None:
         import hil.nav.trajectory  # noqa: F401 - before time zero
-        from hil.nav.scenario import load_scenario
-
-        from hil.nav.scenario import scenario_overrides
+        from hil.nav.scenario import load_scenario, scenario_overrides
 
         name = self.ctx.options.get("scenario") or "straight_level"
         self.scenario = load_scenario(name)
         if self.ctx.options.get("imu_rate_hz"):
-            self.scenario = scenario_overrides(self.scenario, imu_rate_hz=int(self.ctx.options["imu_rate_hz"]))
+            self.scenario = scenario_overrides(
+                self.scenario, imu_rate_hz=int(self.ctx.options["imu_rate_hz"])
+            )
         if self.ctx.options.get("duration_s") is not None:
             self.duration_s = float(self.ctx.options["duration_s"])
         else:
@@ -132,7 +132,7 @@ class World(Service):
             t = np.arange(k, k + n, dtype=np.int64) * dt_ns
             b = truth.sample(t)
             for i in range(n):
-                self.truth_pub.put(truth_msg(self.truth_pub.next_seq(), int(t[i]), b, i))
+                self.truth_pub.put(truth_msg(k + i, int(t[i]), b, i))  # seq = sample index: restart-safe
             k += n
         self.ctx.stop.wait()
 

@@ -14,6 +14,7 @@ Layout (``<rig>`` namespaces one bench, so a replay can run beside a live rig)::
     hil/<rig>/fusion/journal      FusionJournal
     hil/<rig>/status/<service>    ServiceStatus
     hil/<rig>/event/<source>      Event
+    hil/<rig>/control/fault       FaultCommand   run-time fault injection (``hil fault``)
 
 The CAN transport that stands in for ``vcan0`` lives outside ``hil/`` (``hilcan/<rig>/<channel>``):
 it carries bus traffic, not rig data, and the bridge already records every frame it reads.
@@ -28,6 +29,7 @@ from hil.messages import (
     CaptureTruth,
     ClockModel,
     Event,
+    FaultCommand,
     FusionJournal,
     GnssFix,
     ImuSample,
@@ -98,6 +100,10 @@ class Keys:
     def event(self, source: str) -> str:
         return f"{self.root}/event/{source}"
 
+    def control(self, name: str) -> str:
+        """Commands to the rig (``control/fault``): recorded like everything under ``hil/<rig>``."""
+        return f"{self.root}/control/{name}"
+
     def canbus(self, channel: str) -> str:
         """The transport key of the Zenoh-backed CAN interface (not rig data)."""
         return f"hilcan/{self.rig}/{channel}"
@@ -114,6 +120,7 @@ _FIXED: dict[str, type[Message]] = {
     "fusion": FusionJournal,
     "status": ServiceStatus,
     "event": Event,
+    "control": FaultCommand,
 }
 
 

@@ -39,6 +39,8 @@ _COUNTERS = (
     "tx_dropped_samples",
     "tx_encode_errors",
     "tx_saturated_samples",
+    "tx_corrupted_frames",
+    "tx_fault_dropped_samples",
 )
 
 
@@ -78,6 +80,12 @@ class ImuCanNode:
         self._busy: deque[tuple[float, float]] = deque()
         self._busy_sum = 0.0
         self._busy_cache: dict[tuple[int, bool, bool], float] = {}
+        self._corrupt = 0
+
+    def corrupt_next(self, frames: int) -> None:
+        """A burst error: the next ``frames`` frames go out with a flipped data byte, so the
+        receiver's E2E CRC rejects them (fault ``can_burst_error``, hil/faults.py)."""
+        self._corrupt += max(0, int(frames))
 
     # -- public API ----------------------------------------------------------------------
     def send_sample(
@@ -86,8 +94,14 @@ class ImuCanNode:
         dtheta_b_rad: Sequence[float],
         dvel_b_mps: Sequence[float],
         status: int = 0,
+        *,
+        drop: bool = False,
     ) -> bool:
-        """Encode and send one sample; False if it could not be encoded or a frame was dropped."""
+        """Encode and send one sample; False if it could not be encoded or a frame was dropped.
+
+        ``drop``: encode (the device's counters and SampleCount advance) but do not transmit --
+        an injected frame loss or bus-off, which the receiver sees as counter jumps.
+        """
         try:
             frames = self.codec.encode_sample(
                 device_stamp_ns=device_stamp_ns,
@@ -100,6 +114,9 @@ class ImuCanNode:
             return False
         if self.codec.saturated_samples > self._counts["tx_saturated_samples"]:
             self._counts["tx_saturated_samples"] = self.codec.saturated_samples
+        if drop:
+            self._counts["tx_fault_dropped_samples"] += 1
+            return False
         ok = True
         for frame in frames:
             ok = self._send(frame) and ok
@@ -142,6 +159,12 @@ class ImuCanNode:
                 self.stats.inc(f"can.{name.replace('_', '.', 1)}")
 
     def _send(self, frame: can.Message) -> bool:
+        if self._corrupt > 0:
+            self._corrupt -= 1
+            self._counts["tx_corrupted_frames"] += 1
+            data = bytearray(frame.data)
+            data[min(2, len(data) - 1)] ^= 0x5A
+            frame.data = data
         delay = self.backoff_s
         for attempt in range(self.retries + 1):
             try:

@@ -29,7 +29,21 @@ Vec3 = tuple[float, float, float]
 #: ``Scenario.extra_tables``, not interpreted here. Any other unknown key is an error.
 RESERVED_TABLES = frozenset({"clock"})
 SEGMENT_KINDS = ("hold", "accelerate", "turn", "coordinated_turn", "climb", "rates")
-EVENT_KINDS = ("gnss_outage", "gnss_jump", "gnss_pulse", "gnss_velocity_glitch", "gnss_latency")
+EVENT_KINDS = (
+    "gnss_outage",
+    "gnss_jump",
+    "gnss_pulse",
+    "gnss_velocity_glitch",
+    "gnss_latency",
+    # applied by the IMU emulator / its CAN node, the device clocks and the supervisor (hil/faults.py)
+    "imu_frame_loss",
+    "imu_stuck",
+    "imu_saturated",
+    "can_burst_error",
+    "can_bus_off",
+    "clock_step",
+    "kill_service",
+)
 DEFAULT_SCENARIO = "straight_level"
 
 
@@ -168,6 +182,13 @@ _EVENT_KEYS: dict[str, set[str]] = {
     "gnss_pulse": {"amplitude_m", "tau_s", "direction_ned"},
     "gnss_velocity_glitch": {"offset_ned_mps"},
     "gnss_latency": {"latency_s", "jitter_s"},
+    "imu_frame_loss": {"percent"},
+    "imu_stuck": set(),
+    "imu_saturated": set(),
+    "can_burst_error": {"frames"},
+    "can_bus_off": set(),
+    "clock_step": {"sensor", "step_s"},
+    "kill_service": {"service"},
 }
 
 
@@ -242,6 +263,26 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
             params["jitter_s"] = _num(f"{where}.jitter_s", raw["jitter_s"])
         if t1 is not None:
             raise ScenarioError(f"{where} (gnss_latency) applies from t_start_s on; drop t_end_s")
+    if kind in ("imu_stuck", "imu_saturated", "can_bus_off") and t1 is None:
+        raise ScenarioError(f"{where} ({kind}) needs t_end_s")
+    if kind == "imu_frame_loss":
+        pct = _num(f"{where}.percent", raw.get("percent", 100.0))
+        if not 0.0 <= pct <= 100.0:
+            raise ScenarioError(f"{where}.percent must be in [0, 100], got {pct}")
+        params["percent"] = pct
+    if kind == "can_burst_error":
+        frames = _num(f"{where}.frames", raw.get("frames", 8))
+        if frames < 1 or t1 is not None:
+            raise ScenarioError(f"{where} (can_burst_error) takes frames >= 1 and no t_end_s")
+        params["frames"] = int(frames)
+    if kind == "clock_step":
+        if raw.get("sensor") not in ("imu", "gnss") or t1 is not None:
+            raise ScenarioError(f"{where} (clock_step) needs sensor = imu or gnss, step_s, no t_end_s")
+        params.update(sensor=raw["sensor"], step_s=_num(f"{where}.step_s", raw.get("step_s")))
+    if kind == "kill_service":
+        if not isinstance(raw.get("service"), str) or t1 is not None:
+            raise ScenarioError(f'{where} (kill_service) needs service = "<name>" and no t_end_s')
+        params["service"] = raw["service"]
     if t1 is not None and t1 <= t0:
         raise ScenarioError(f"{where}: t_end_s {t1} must be after t_start_s {t0}")
     return ScenarioEvent(kind, t0, t1, MappingProxyType(params))

@@ -23,9 +23,9 @@ from typing import IO, Any
 import numpy as np
 
 from hil.bus.keys import Keys
-from hil.bus.pubsub import Stats, Subscriber
+from hil.bus.pubsub import Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
-from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
+from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
 from hil.runtime.clock import RigClock
 from hil.runtime.registry import SERVICES, STOP_STAGES
 
@@ -60,6 +60,7 @@ class UpOptions:
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
+    imu_rate_hz: int | None = None  # override the scenario's IMU rate (soak/load benches)
     dut_mapping: str | None = None  # a device under test on the IMU's CAN bus (can_bridge decodes it)
     dut_emulator: bool = False  # start the emulated unit (services/dut_emulator.py) too
 
@@ -181,12 +182,34 @@ class TableDrawer:
         self.lines = text.count("\n") + 1
 
 
+def restart_part_path(record: Path, part: int) -> Path:
+    """Where a recorder restarted for the ``part``-th time writes: ``<stem>.part<N>.mcap``.
+
+    Why not the same path: the killed recorder's file is readable up to its last flushed chunk
+    (docs/recording.md); reopening it for writing would destroy that.
+    """
+    return record.with_name(f"{record.stem}.part{part}{record.suffix or '.mcap'}")
+
+
 class Supervisor:
+    """Starts the services, restarts dead ones (``--restart N`` per service), stops them in order.
+
+    Every death, restart and the final give-up is published as ``hil.Event`` on
+    ``hil/<rig>/event/supervisor`` (so the recording holds it) and printed. A restarted service is
+    told so (option ``resume``): emulators and world rejoin at the current rig time, fusion
+    re-aligns, the recorder writes ``<stem>.part<N>.mcap``.
+    """
+
     def __init__(self, opts: UpOptions) -> None:
         self.opts = opts
         self.children: dict[str, Child] = {}
         self.stop = threading.Event()
         self.failures: list[str] = []
+        self.restart_log: list[str] = []  # one line per restart, for the summary
+        self.record_parts: list[Path] = []  # extra files written by restarted recorders
+        self._event_pub: Publisher[Event] | None = None
+        self._kills: list[tuple[int, str, str]] = []  # (rig ns, service, origin): kill_service faults
+        self._kill_lock = threading.Lock()
         self.view = LiveView()
         self.cpu_s: dict[str, float] = {}  # per service, sampled just before the stop
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
@@ -209,7 +232,7 @@ class Supervisor:
             names.insert(names.index("world"), "dut_emulator")
         return names
 
-    def options_for(self, name: str) -> dict[str, Any]:
+    def options_for(self, name: str, restarts: int = 0) -> dict[str, Any]:
         o = self.opts
         base: dict[str, Any] = {}
         if name == "world":
@@ -219,17 +242,78 @@ class Supervisor:
                 "speed": o.speed,
                 "wait_for": [n for n in self.service_names() if n != "world"],
             }
+            if o.imu_rate_hz:
+                base["imu_rate_hz"] = int(o.imu_rate_hz)
+            run = self.view.run
+            if restarts and run is not None:
+                # the same run again: time zero and scenario as announced, not a new run
+                base["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
         elif name == "recorder":
-            base = {"path": str(o.record)}
+            path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
+            base = {"path": str(path)}
         elif name in ("imu_emulator", "can_bridge", "dut_emulator"):
             base = {"channel": o.channel, "interface": o.can_interface, "fd": o.fd}
             if name != "imu_emulator" and o.dut_mapping:
                 base["dut_mapping"] = o.dut_mapping
         elif name == "fusion" and o.estimators:
             base = {"estimators": o.estimators}
+        if restarts:
+            base["resume"] = restarts
         return base
 
-    def spawn(self, name: str) -> Child:
+    def emit(self, kind: str, source: str, detail: str) -> None:
+        """An ``hil.Event`` from the supervisor (recorded like any other rig traffic)."""
+        pub = self._event_pub
+        if pub is None:
+            return
+        run = self.view.run
+        stamp = RigClock(run.start_epoch_ns, run.speed).now_ns() if run is not None else 0
+        try:
+            pub.put(
+                Event(seq=pub.next_seq(), stamp_ns=max(stamp, 0), kind=kind, source=source, detail=detail)
+            )
+        except Exception as err:  # the hub closing must not hide the failure itself
+            print(f"hil up: could not publish event {kind}: {err}", file=sys.stderr, flush=True)
+
+    def _schedule_scenario_kills(self) -> None:
+        """Timed ``kill_service`` events of the scenario (hil/faults.py), executed at their rig time."""
+        from hil.nav.scenario import ScenarioError, load_scenario
+
+        try:
+            events = load_scenario(self.opts.scenario).events
+        except ScenarioError:
+            return  # world reports the scenario error itself
+        for ev in events:
+            if ev.kind == "kill_service":
+                self._kills.append((round(ev.t_start_s * 1e9), str(ev.params["service"]), "scenario"))
+
+    def _on_fault(self, cmd: FaultCommand, _key: str) -> None:
+        """``hil fault kill_service --target S``: SIGKILL that service's process now."""
+        if cmd.kind != "kill_service":
+            return
+        with self._kill_lock:
+            self._kills.append((0, cmd.target, "command"))
+
+    def _do_kills(self) -> None:
+        run = self.view.run
+        if not self._kills or run is None:
+            return
+        now = RigClock(run.start_epoch_ns, run.speed).now_ns()
+        with self._kill_lock:
+            due = [k for k in self._kills if k[0] <= now]
+            self._kills = [k for k in self._kills if k[0] > now]
+        for t_ns, name, origin in due:
+            child = self.children.get(name)
+            detail = json.dumps({"kind": "kill_service", "origin": origin, "target": name, "t_s": now / 1e9})
+            if child is None or child.proc.poll() is not None:
+                self.emit("fault_rejected", "supervisor", detail + f" (no running service {name!r})")
+                continue
+            self.emit("fault_start", "supervisor", detail)
+            print(f"hil up: fault kill_service: SIGKILL {name} (pid {child.proc.pid}, {origin})", flush=True)
+            child.proc.kill()
+            _ = t_ns
+
+    def spawn(self, name: str, restarts: int = 0) -> Child:
         log_dir = self.opts.log_dir or Path("recordings/logs")
         log_dir.mkdir(parents=True, exist_ok=True)
         log_path = log_dir / f"{name}.log"
@@ -247,10 +331,13 @@ class Supervisor:
             "--rig",
             self.opts.rig,
             "--options",
-            json.dumps(self.options_for(name)),
+            json.dumps(self.options_for(name, restarts)),
         ]
+        if restarts:
+            fh.write(f"\n--- hil up: restart {restarts} of {name} ---\n".encode())
+            fh.flush()
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-        child = Child(name, proc, log_path, fh)
+        child = Child(name, proc, log_path, fh, restarts=restarts)
         self.children[name] = child
         return child
 
@@ -265,6 +352,9 @@ class Supervisor:
             Subscriber(session, keys.truth(), Truth, self.view.on_truth, stats),
             Subscriber(session, keys.nav("*"), NavSolution, self.view.on_nav, stats),
         ]
+        self._event_pub = Publisher(session, keys.event("supervisor"), Event, stats)
+        subs.append(Subscriber(session, keys.control("fault"), FaultCommand, self._on_fault, stats))
+        self._schedule_scenario_kills()
         prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         for s in prev:
             signal.signal(s, lambda *_: self.stop.set())
@@ -279,6 +369,7 @@ class Supervisor:
                 signal.signal(s, h)
             for sub in subs:
                 sub.undeclare()
+            self._event_pub = None
             session.close()
         return 1 if self.failures else 0
 
@@ -288,24 +379,33 @@ class Supervisor:
         tty = drawer.tty
         last_print = 0.0
         while not self.stop.wait(0.2):
+            self._do_kills()
             for name, child in list(self.children.items()):
                 rc = child.proc.poll()
                 if rc is not None and not child.stopping:
                     tail = _tail(child.log_path)
+                    how = f"killed by signal {-rc}" if rc < 0 else f"exit code {rc}"
                     if child.restarts < o.restart:
-                        child.restarts += 1
-                        print(
-                            f"hil up: {name} exited with {rc}; restarting ({child.restarts}/{o.restart})",
-                            flush=True,
-                        )
+                        n = child.restarts + 1
                         child.log_fh.close()
-                        restarts = child.restarts
-                        self.spawn(name).restarts = restarts
+                        new = self.spawn(name, n)
+                        line = f"{name} died ({how}); restarted ({n}/{o.restart}) as pid {new.proc.pid}"
+                        if name == "recorder" and o.record is not None:
+                            part = restart_part_path(o.record, n)
+                            self.record_parts.append(part)
+                            line += f", recording continues in {part}"
+                        self.restart_log.append(line)
+                        print(f"hil up: {line}", flush=True)
+                        self.emit("service_restarted", name, line)
                         continue
-                    self.failures.append(
-                        f"{name} exited with code {rc} during the run; last log lines:\n{tail}"
+                    reason = (
+                        f"{name} died ({how}) after {child.restarts} restart(s) of {o.restart} allowed"
+                        if o.restart
+                        else f"{name} died ({how}) during the run (--restart 0)"
                     )
-                    print(f"hil up: {name} died (exit {rc}); stopping the rig", flush=True)
+                    self.failures.append(f"{reason}; last log lines:\n{tail}")
+                    print(f"hil up: {reason}; stopping the rig", flush=True)
+                    self.emit("run_failed", name, reason)
                     return
             run = self.view.run
             if run is not None and not self._cpu_base:

@@ -310,6 +310,10 @@ class DeviceClock:
             dev = dev + np.where(t >= t_k, step, 0)
         return (dev // self._q_ns) * self._q_ns
 
+    def add_step(self, t_ns: int, step_ns: int) -> None:
+        """A clock step from now on (a commanded ``clock_step`` fault)."""
+        self._steps = sorted([*self._steps, (int(t_ns), int(step_ns))])
+
     def latch_ns(self, true_ns: int) -> int:
         """The rig clock's latch of a time-tag edge at true instant ``true_ns`` (latch jitter)."""
         t = int(true_ns)
@@ -323,4 +327,13 @@ def device_clock_for(scenario: Scenario, sensor: str) -> DeviceClock:
     from the scenario seed and ``"<sensor>.clock"`` so each device has its own stream."""
     from hil.sensors.imu import sensor_rng
 
-    return DeviceClock(clock_config_for(scenario, sensor), sensor_rng(scenario.seed, f"{sensor}.clock"))
+    cfg = clock_config_for(scenario, sensor)
+    # timed ``clock_step`` events ([[event]], hil/faults.py) are steps like [clock.<sensor>] steps
+    extra = [
+        ClockStep(float(ev.t_start_s), float(ev.params["step_s"]))
+        for ev in scenario.events
+        if ev.kind == "clock_step" and ev.params.get("sensor") == sensor
+    ]
+    if extra:
+        cfg = replace(cfg, steps=tuple(sorted([*cfg.steps, *extra], key=lambda s: s.t_s)))
+    return DeviceClock(cfg, sensor_rng(scenario.seed, f"{sensor}.clock"))

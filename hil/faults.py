@@ -1,0 +1,196 @@
+"""Fault injection: which fault each service applies, and the IMU/CAN faults as a pure core.
+
+Faults reach a service two ways, and both are recorded:
+
+- **timed**, from the scenario's ``[[event]]`` table (``docs/scenario-format.md``): applied at the
+  sample/epoch whose true time falls in the window, so a replay of the scenario applies them
+  identically (decisions depend only on the scenario seed and the sample index, never on
+  wall-clock timing);
+- **commanded** at run time, as ``hil.FaultCommand`` on ``hil/<rig>/control/fault``
+  (``hil fault --rig R KIND ...``), applied from the current rig time.
+
+The service that applies a fault publishes ``hil.Event`` ``fault_start``/``fault_end`` on
+``hil/<rig>/event/<service>`` with the fault as JSON in ``detail``.
+
+:class:`ImuFaults` is the IMU emulator's part (no I/O, no clock): per sample it says whether
+the sample is lost (``imu_frame_loss``, ``can_bus_off``), what to send instead (``imu_stuck``,
+``imu_saturated``) and how many frames to corrupt on the wire (``can_burst_error``: the bridge
+rejects them on CRC).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+# kind -> (the service that applies it, params it takes)
+FAULT_KINDS: dict[str, tuple[str, frozenset[str]]] = {
+    "gnss_outage": ("gnss_emulator", frozenset()),
+    "gnss_jump": ("gnss_emulator", frozenset({"n_m", "e_m", "d_m"})),
+    "gnss_velocity_glitch": ("gnss_emulator", frozenset({"n_mps", "e_mps", "d_mps"})),
+    "gnss_latency": ("gnss_emulator", frozenset({"latency_s", "jitter_s"})),
+    "imu_frame_loss": ("imu_emulator", frozenset({"percent"})),
+    "imu_stuck": ("imu_emulator", frozenset()),
+    "imu_saturated": ("imu_emulator", frozenset()),
+    "can_burst_error": ("imu_emulator", frozenset({"frames"})),
+    "can_bus_off": ("imu_emulator", frozenset()),
+    "clock_step": ("<target>_emulator", frozenset({"step_s"})),  # target: imu | gnss
+    "kill_service": ("supervisor", frozenset()),  # target: a service name
+}
+IMU_FAULTS = frozenset(k for k, (svc, _) in FAULT_KINDS.items() if svc == "imu_emulator")
+GNSS_FAULTS = frozenset(k for k, (svc, _) in FAULT_KINDS.items() if svc == "gnss_emulator")
+SATURATE_DTHETA_RAD = 10.0  # per sample: far beyond the DBC's full scale (0.42 rad)
+SATURATE_DVEL_MPS = 1000.0  # per sample: far beyond the DBC's full scale (8.4 m/s)
+
+
+class FaultError(ValueError):
+    """A fault command that cannot be applied; the message says which field and why."""
+
+
+def check_fault(kind: str, target: str, params: Mapping[str, float]) -> None:
+    """Validate a command before it is sent (``hil fault``) or applied (the services)."""
+    if kind not in FAULT_KINDS:
+        raise FaultError(f"unknown fault kind {kind!r}; known: {sorted(FAULT_KINDS)}")
+    allowed = FAULT_KINDS[kind][1]
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        raise FaultError(f"{kind}: unknown param(s) {unknown}; allowed: {sorted(allowed)}")
+    if not all(np.isfinite(v) for v in params.values()):
+        raise FaultError(f"{kind}: params must be finite numbers, got {dict(params)}")
+    if kind == "clock_step" and target not in ("imu", "gnss"):
+        raise FaultError("clock_step needs --target imu or --target gnss")
+    if kind == "clock_step" and "step_s" not in params:
+        raise FaultError("clock_step needs step_s")
+    if kind == "kill_service" and not target:
+        raise FaultError("kill_service needs --target SERVICE")
+    if kind == "imu_frame_loss" and not 0.0 <= params.get("percent", 100.0) <= 100.0:
+        raise FaultError("imu_frame_loss: percent must be in [0, 100]")
+    if kind == "gnss_latency" and "latency_s" not in params:
+        raise FaultError("gnss_latency needs latency_s")
+
+
+def fault_detail(kind: str, t0_ns: int, t1_ns: int | None, params: Mapping[str, Any], origin: str) -> str:
+    """The ``detail`` of a fault Event: JSON, so a report or a test can read it back."""
+    return json.dumps(
+        {
+            "kind": kind,
+            "origin": origin,
+            "t_start_s": t0_ns / 1e9,
+            "t_end_s": None if t1_ns is None else t1_ns / 1e9,
+            "params": {k: v for k, v in params.items() if isinstance(v, int | float | str)},
+        },
+        sort_keys=True,
+    )
+
+
+def _unit_hash(seed: int, k: int) -> float:
+    """A uniform number in [0, 1) from (seed, k): splitmix64, so loss is order-free and replayable."""
+    m = (1 << 64) - 1
+    z = (seed * 0x9E3779B97F4A7C15 + k * 0xBF58476D1CE4E5B9 + 0x94D049BB133111EB) & m
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & m
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & m
+    return ((z ^ (z >> 31)) >> 11) / float(1 << 53)
+
+
+@dataclass
+class Fault:
+    """One fault window ``[t0_ns, t1_ns)`` (``t1_ns`` None: to the end)."""
+
+    kind: str
+    t0_ns: int
+    t1_ns: int | None
+    params: Mapping[str, Any]
+    origin: str  # "scenario" | "command"
+    started: bool = False
+    ended: bool = False
+
+    def active(self, t_ns: int) -> bool:
+        return self.t0_ns <= t_ns and (self.t1_ns is None or t_ns < self.t1_ns)
+
+
+@dataclass
+class FaultTimeline:
+    """Faults with start/end edges announced once each, as the run's time passes them."""
+
+    faults: list[Fault] = field(default_factory=list)
+
+    @classmethod
+    def from_scenario(cls, events: Iterable[Any], kinds: frozenset[str]) -> FaultTimeline:
+        out = cls()
+        for ev in events:
+            if ev.kind in kinds:
+                t1 = None if ev.t_end_s is None else round(ev.t_end_s * 1e9)
+                out.faults.append(Fault(ev.kind, round(ev.t_start_s * 1e9), t1, dict(ev.params), "scenario"))
+        return out
+
+    def add(self, kind: str, t0_ns: int, duration_s: float, params: Mapping[str, Any]) -> Fault:
+        t1 = t0_ns + round(duration_s * 1e9) if duration_s > 0 else None
+        f = Fault(kind, t0_ns, t1, dict(params), "command")
+        self.faults.append(f)
+        return f
+
+    def edges(self, t_ns: int) -> list[tuple[str, Fault]]:
+        """``("fault_start" | "fault_end", fault)`` for every edge at or before ``t_ns`` not yet said."""
+        out: list[tuple[str, Fault]] = []
+        for f in self.faults:
+            if not f.started and t_ns >= f.t0_ns:
+                f.started = True
+                out.append(("fault_start", f))
+            if f.started and not f.ended and f.t1_ns is not None and t_ns >= f.t1_ns:
+                f.ended = True
+                out.append(("fault_end", f))
+        return out
+
+
+@dataclass
+class ImuAction:
+    """What to do with one IMU sample."""
+
+    send: bool
+    dtheta_b_rad: np.ndarray
+    dvel_b_mps: np.ndarray
+    corrupt_frames: int = 0  # corrupt this many of the next frames on the wire (CRC fails)
+    reason: str = ""  # why not sent
+
+
+class ImuFaults:
+    """The IMU emulator's faults, applied per sample (index ``k``, true capture time ``t_ns``)."""
+
+    def __init__(self, seed: int, events: Iterable[Any] = ()) -> None:
+        self.seed = int(seed)
+        self.timeline = FaultTimeline.from_scenario(events, IMU_FAULTS)
+        self._stuck: tuple[np.ndarray, np.ndarray] | None = None
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+
+    def apply(self, k: int, t_ns: int, dtheta: np.ndarray, dvel: np.ndarray) -> ImuAction:
+        act = ImuAction(True, dtheta, dvel)
+        stuck = False
+        for f in self.timeline.faults:
+            if not f.active(t_ns):
+                continue
+            if f.kind == "can_bus_off":
+                act.send, act.reason = False, "bus_off"
+            elif f.kind == "imu_frame_loss":
+                if _unit_hash(self.seed, k) < float(f.params.get("percent", 100.0)) / 100.0:
+                    act.send, act.reason = False, "frame_loss"
+            elif f.kind == "imu_stuck":
+                stuck = True
+            elif f.kind == "imu_saturated":
+                # beyond full scale on every axis (keeping the sign): the codec clamps and flags
+                act.dtheta_b_rad = np.where(dtheta >= 0, 1.0, -1.0) * SATURATE_DTHETA_RAD
+                act.dvel_b_mps = np.where(dvel >= 0, 1.0, -1.0) * SATURATE_DVEL_MPS
+            elif f.kind == "can_burst_error" and f.t0_ns <= t_ns and not f.params.get("_done"):
+                act.corrupt_frames += int(f.params.get("frames", 8))
+                f.params = {**f.params, "_done": 1}  # type: ignore[misc]
+        if stuck:
+            if self._stuck is None:
+                self._stuck = self._last if self._last is not None else (dtheta, dvel)
+            act.dtheta_b_rad, act.dvel_b_mps = self._stuck
+        else:
+            self._stuck = None
+            self._last = (dtheta, dvel)
+        return act

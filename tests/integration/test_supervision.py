@@ -1,0 +1,133 @@
+"""Supervision for real: `hil up --restart N` with services SIGKILLed mid-run (real processes, real
+Zenoh). A killed service is restarted and rejoins the run at the current rig time, the restart is
+an `hil.Event` in the recording, a killed recorder continues in `<stem>.part1.mcap`, and a service
+that keeps dying ends the run non-zero with the reason."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from hil.bus.session import BusConfig, open_session
+from hil.messages import Event, ServiceStatus, decode
+from hil.record.mcapio import read_session
+from tests.conftest import REPO, free_port, hil_cmd
+
+pytestmark = pytest.mark.slow
+
+
+class Rig:
+    """`hil up` on its own hub; service pids come from their own ServiceStatus messages."""
+
+    def __init__(self, rig: str, out: Path, *args: str) -> None:
+        self.rig = rig
+        self.endpoint = endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
+        self.status: dict[str, ServiceStatus] = {}
+        self.lock = threading.Lock()
+        self.hub.declare_subscriber(f"hil/{rig}/status/*", self._on_status)
+        env = dict(
+            os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
+        )
+        self.proc = subprocess.Popen(
+            hil_cmd("up", "--record", str(out), "--quiet", "--rig", rig, *args),
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    def _on_status(self, sample: object) -> None:
+        st = decode(ServiceStatus, sample.payload.to_bytes())  # type: ignore[attr-defined]
+        with self.lock:
+            self.status[st.service] = st
+
+    def running_pid(self, service: str, not_pid: int = -1, timeout: float = 90.0) -> int:
+        """Pid of ``service`` once it reports running (and is not ``not_pid``)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                st = self.status.get(service)
+            if st is not None and st.state == "running" and st.pid != not_pid:
+                return st.pid
+            assert self.proc.poll() is None, self.proc.communicate()
+            time.sleep(0.1)
+        raise AssertionError(f"{service} never ran (pid != {not_pid}): {self.status.get(service)}")
+
+    def finish(self, timeout: float = 120.0) -> tuple[int, str, str]:
+        try:
+            out, err = self.proc.communicate(timeout=timeout)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+            self.hub.close()
+        return self.proc.returncode, out, err
+
+
+def _events(*paths: Path) -> list[Event]:
+    out: list[Event] = []
+    for p in paths:
+        s = read_session(p)
+        out += [decode(Event, r.payload) for r in s.records if r.schema == "hil.Event"]
+    return out
+
+
+def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path: Path) -> None:
+    # GIVEN a 14 s run that allows one restart per service
+    out = tmp_path / "s.mcap"
+    rig = Rig("suprig", out, "--duration", "14", "--restart", "1")
+    # WHEN the GNSS receiver and the fusion are SIGKILLed early, the recorder later
+    killed = {svc: rig.running_pid(svc) for svc in ("gnss_emulator", "fusion")}
+    for pid in killed.values():
+        os.kill(pid, signal.SIGKILL)
+    for svc, pid in killed.items():
+        rig.running_pid(svc, not_pid=pid)
+    time.sleep(3.0)
+    os.kill(rig.running_pid("recorder"), signal.SIGKILL)
+    rc, stdout, stderr = rig.finish()
+    # THEN the run completes, says what happened, and the recorder went on in a new part
+    assert rc == 0, stdout[-3000:] + stderr[-3000:]
+    assert "gnss_emulator died (killed by signal 9); restarted (1/1)" in stdout
+    part = tmp_path / "s.part1.mcap"
+    assert f"recording continues in {part}" in stdout and part.is_file()
+    first = read_session(out)
+    assert first.truncated  # the killed recorder's file reads up to its last flushed chunk
+    events = _events(out, part)
+    restarted = {e.source for e in events if e.kind == "service_restarted"}
+    assert {"gnss_emulator", "fusion"} <= restarted, events
+    kinds = {(e.source, e.kind) for e in events}
+    assert ("gnss_emulator", "resumed") in kinds and ("fusion", "realigned") in kinds, kinds
+    # seqs of the restarted publishers never repeat one from before the kill
+    both = [read_session(out), read_session(part)]
+    for topic in ("sensor/gnss", "capture/gnss", "nav/ekf15", "nav/ins", "truth", "sensor/imu"):
+        seqs = [r.sequence for s in both for r in s.by_topic(f"hil/suprig/{topic}")]
+        dups = [k for k, n in Counter(seqs).items() if n > 1]
+        assert seqs and not dups, (topic, dups[:10])
+    # the restarted fusion publishes finite solutions on the same run
+    assert len(both[1].by_topic("hil/suprig/nav/ekf15")) > 50
+    # no service log holds a traceback
+    for log in (tmp_path / "s.logs").glob("*.log"):
+        assert "Traceback" not in log.read_text(errors="replace"), log
+
+
+def test_a_service_that_keeps_dying_ends_the_run_non_zero_with_the_reason(tmp_path: Path) -> None:
+    out = tmp_path / "d.mcap"
+    rig = Rig("dierig", out, "--duration", "40", "--restart", "1")
+    pid = rig.running_pid("imu_emulator")
+    os.kill(pid, signal.SIGKILL)
+    os.kill(rig.running_pid("imu_emulator", not_pid=pid), signal.SIGKILL)
+    t0 = time.monotonic()
+    rc, _stdout, stderr = rig.finish()
+    assert time.monotonic() - t0 < 35.0  # ended by the failure, not by --duration
+    assert rc != 0
+    assert "imu_emulator died (killed by signal 9) after 1 restart(s) of 1 allowed" in stderr, stderr[-2000:]
+    kinds = {(e.source, e.kind) for e in _events(out)}
+    assert ("imu_emulator", "service_restarted") in kinds and ("imu_emulator", "run_failed") in kinds
