@@ -14,12 +14,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import queue
 import threading
 from typing import Any
 
 import msgspec
 
 from hil.bus.keys import SENSOR_TYPES
+from hil.bus.pubsub import DispatchSubscriber
 from hil.messages import ClockModel, GnssFix, ImuSample, RunInfo, TimeTag
 from hil.runtime.builders import clock_model_msg
 from hil.runtime.clock import RigClock
@@ -37,11 +39,42 @@ class TimeSync(Service):
     def setup(self) -> None:
         self.core: TimeSyncCore[ImuSample | GnssFix] = TimeSyncCore()
         self.lock = threading.Lock()
+        self.inbox: queue.SimpleQueue[ImuSample | GnssFix | TimeTag | None] = queue.SimpleQueue()
+        self._worker = threading.Thread(target=self._work, name="timesync", daemon=True)
+        self._worker.start()
         self.synced_pubs = {s: self.publisher(self.keys.synced(s), cls) for s, cls in SENSOR_TYPES.items()}
         self.clock_pubs: dict[str, Any] = {}
-        self.subscribe(self.keys.sensor("imu"), ImuSample, self._on_measurement)
-        self.subscribe(self.keys.sensor("gnss"), GnssFix, self._on_measurement)
-        self.subscribe(self.keys.timetag("*"), TimeTag, self._on_timetag)
+        # One subscription per sensor for its measurements *and* its time tags, so the core sees
+        # them in publication order (the recorder's order): `hil rerun --core timesync` relies on it.
+        for sensor, cls in SENSOR_TYPES.items():
+            self._subs.append(
+                DispatchSubscriber(
+                    self.ctx.session,
+                    f"{self.keys.root}/*/{sensor}",
+                    {"sensor": (cls, self._enqueue), "timetag": (TimeTag, self._enqueue)},
+                    self.stats,
+                )
+            )
+
+    def _enqueue(self, msg: ImuSample | GnssFix | TimeTag, _key: str) -> None:
+        # Zenoh's callback thread only enqueues: this subscription also matches our own
+        # synced/<sensor> and clock/<sensor> outputs, and publishing from inside the callback
+        # could wait on the very queue that callback drains.
+        self.inbox.put(msg)
+
+    def _work(self) -> None:
+        """One thread consumes the inbox in arrival order (= publication order per sensor)."""
+        while True:
+            msg = self.inbox.get()
+            if msg is None:
+                return
+            try:
+                if isinstance(msg, TimeTag):
+                    self._on_timetag(msg, "")
+                else:
+                    self._on_measurement(msg, "")
+            except Exception as err:  # a bad measurement must not stop re-stamping
+                self.stats.error("errors.timesync", f"{type(err).__name__}: {err}")
 
     def _on_timetag(self, tag: TimeTag, _key: str) -> None:
         with self.lock:
@@ -94,6 +127,8 @@ class TimeSync(Service):
                 pub.put(clock_model_msg(seq[m.sensor], clock.now_ns(), m))
 
     def teardown(self) -> None:
+        self.inbox.put(None)  # what arrived before the stop is still re-stamped
+        self._worker.join(timeout=5.0)
         # the session may already be closing: nothing more to say then
         with self.lock, contextlib.suppress(Exception):
             self._publish(self.core.flush())

@@ -151,6 +151,56 @@ class Subscriber(Generic[M]):
         self._sub.undeclare()
 
 
+class DispatchSubscriber:
+    """One subscription, several contract types told apart by the key's kind (``hil/<rig>/<kind>/...``).
+
+    One Zenoh subscriber means one callback thread: the samples of different keys from the same
+    publisher session are handled in the order they were published -- the order the recorder
+    sees -- which separate subscribers (one thread each) do not guarantee. Kinds not listed are
+    ignored without decoding.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        routes: dict[str, tuple[type[Message], Callable[[Any, str], None]]],
+        stats: Stats,
+    ) -> None:
+        self.routes = routes
+        self.stats = stats
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        parts = key.split("/")
+        route = self.routes.get(parts[2]) if len(parts) > 2 else None
+        if route is None:
+            return
+        cls, handler = route
+        kind = _kind(key)
+        try:
+            raw = sample.payload.to_bytes()
+            if len(raw) > MAX_PAYLOAD_BYTES:
+                self.stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
+                return
+            msg = decode(cls, raw)
+        except (msgspec.ValidationError, msgspec.DecodeError) as err:
+            self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
+            return
+        except Exception as err:
+            self.stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
+            return
+        self.stats.count_rate("in." + kind)
+        try:
+            handler(msg, key)
+        except Exception as err:
+            self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
 def subscribe_raw(
     session: zenoh.Session, key: str, handler: Callable[[zenoh.Sample], Any], stats: Stats
 ) -> zenoh.Subscriber:

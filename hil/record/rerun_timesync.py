@@ -8,15 +8,11 @@ Zenoh link per peer pair is FIFO). Feeding them in file order through a fresh
 recomputed ``synced/<sensor>`` message (the raw one with its ``stamp_ns`` replaced) is compared
 byte for byte with the recorded one, by (sensor, seq).
 
-Limit on live sessions (measured, ``hil up`` on straight_level): zenoh-python runs each
-subscriber's callback on its own thread (``handlers.Callback(indirect=True)``), and the timesync
-service declares separate subscribers for ``sensor/<s>`` and ``timetag/*``, so a PPS edge and a
-fix published back to back can reach its core in the other order than the one the recorder (one
-subscriber, one thread) wrote. The re-stamp of that one measurement then differs by the tag's
-correction and verify names it (e.g. ``synced/gnss seq 19: field 'stamp_ns' differs``). Making
-live sessions exact needs the service to consume each sensor's inputs through one subscription
-(``hil/<rig>/*/<sensor>``) or to journal the order, as the fusion journals its drops. ``hil sim``
-sessions are exact (one thread, file order is consumption order).
+Live sessions: the timesync service consumes each sensor's measurements and time tags through
+one subscription (``hil/<rig>/*/<sensor>``, one callback thread), so it sees them in publication
+order, as the recorder does. (With separate subscribers, zenoh-python's one thread per callback
+let a PPS edge and a fix published back to back reach the core in the other order: verify then
+named e.g. ``synced/gnss seq 19: field 'stamp_ns' differs``.)
 
 Also not covered: a measurement the live service released by its *idle* flush (a sensor silent for
 ``IDLE_FLUSH_S`` while the core held samples around a suspected clock step) was stamped with the

@@ -114,11 +114,16 @@ def test_rerun_verify_reproduces_the_live_fusion_bit_for_bit(
     up_recording: tuple[Path, subprocess.CompletedProcess[str]],
 ) -> None:
     path, _ = up_recording
-    proc = subprocess.run(
-        hil_cmd("rerun", str(path), "--verify"), capture_output=True, text=True, timeout=240, cwd=REPO
-    )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "VERIFY OK" in proc.stdout
+    for core in ("fusion", "timesync"):
+        proc = subprocess.run(
+            hil_cmd("rerun", str(path), "--core", core, "--verify"),
+            capture_output=True,
+            text=True,
+            timeout=240,
+            cwd=REPO,
+        )
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        assert "VERIFY OK" in proc.stdout
 
 
 def test_device_under_test_is_decoded_and_scored_like_an_estimator(
