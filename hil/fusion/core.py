@@ -12,6 +12,7 @@ bit.
 from __future__ import annotations
 
 import heapq
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +35,30 @@ class FusionConfig:
     output_every: int = 8  # publish every N-th IMU step (by IMU seq: deterministic under loss)
     max_future_ns: int = 5_000_000_000  # an input this far ahead of the newest is rejected, not trusted
     max_buffered: int = 20_000  # bound on the reorder buffer (e.g. GNSS during an IMU outage)
+    # plausibility bounds: a value beyond these is not a measurement, it is a fault or an attack;
+    # one such input would poison the shared free INS (and every estimator) for the whole run
+    max_dtheta_rad: float = 1.0  # per IMU interval (~57 deg: far beyond any DBC full scale)
+    max_dvel_mps: float = 100.0  # per IMU interval
+    max_pos_m: float = 2.0e7  # NED distance from the origin (Earth's half circumference)
+    max_vel_mps: float = 2000.0
     gap_confirm_inputs: int = 40  # consecutive consistent "future" IMU inputs that prove a real gap
+
+
+def implausible(msg: ImuSample | GnssFix, cfg: FusionConfig) -> str:
+    """Why an input cannot be a measurement ("" if it can): non-finite or absurd values."""
+    if isinstance(msg, ImuSample):
+        if not all(math.isfinite(v) and abs(v) <= cfg.max_dtheta_rad for v in msg.dtheta_b_rad):
+            return "dtheta"
+        if not all(math.isfinite(v) and abs(v) <= cfg.max_dvel_mps for v in msg.dvel_b_mps):
+            return "dvel"
+        return ""
+    if not all(math.isfinite(v) and abs(v) <= cfg.max_pos_m for v in msg.pos_ned_m):
+        return "pos"
+    if not all(math.isfinite(v) and abs(v) <= cfg.max_vel_mps for v in msg.vel_ned_mps):
+        return "vel"
+    if not all(math.isfinite(v) and 0.0 < v < 1e6 for v in (*msg.pos_sigma_m, *msg.vel_sigma_mps)):
+        return "sigma"
+    return ""
 
 
 def input_key(msg: ImuSample | GnssFix) -> tuple[int, int, int]:
@@ -123,6 +147,11 @@ class FusionCore:
     # -- arrival side (live) ---------------------------------------------------------------
     def push(self, msg: ImuSample | GnssFix) -> list[NavSolution]:
         key = input_key(msg)
+        why = implausible(msg, self.config)
+        if why:
+            self._inc(f"rejected.implausible.{msg.sensor}.{why}")
+            self._dropped.append("implausible:" + input_id(msg))
+            return []
         if self._newest_ns is not None and msg.stamp_ns > self._newest_ns + self.config.max_future_ns:
             # One wild stamp is rejected; a run of consistent ones is a real gap in the input (a
             # router outage, a paused replay): accept it, or the fusion would refuse input forever.
