@@ -91,7 +91,14 @@ class Service:
     # -- lifecycle --------------------------------------------------------------------------
     def _status_loop(self) -> None:
         seq = 0
+        supervisor = int(os.environ.get("HIL_SUPERVISOR_PID", "0") or 0)
         while not self.ctx.stop.wait(0 if seq == 0 else 1.0):
+            if supervisor and os.getppid() != supervisor:
+                # `hil up` is gone (killed with SIGKILL, say): an orphaned service stops itself
+                # rather than run on, unsupervised and unrecorded.
+                self.stats.error("errors.orphaned", f"supervisor {supervisor} is gone; stopping")
+                self.ctx.stop.set()
+                break
             self.publish_status(seq)
             seq += 1
         self.state = "stopping"

@@ -321,6 +321,7 @@ class Supervisor:
         env = dict(os.environ)
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
+        env["HIL_SUPERVISOR_PID"] = str(os.getpid())  # children stop themselves if we vanish
         env.setdefault("PYTHONUNBUFFERED", "1")
         cmd = [
             sys.executable,
