@@ -28,6 +28,7 @@ from hil.runtime.scenario_io import scenario_for_run
 from hil.runtime.service import Service, run_service
 
 JOURNAL_PERIOD_S = 0.5
+STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 
 
 def default_estimators() -> tuple[str, ...]:
@@ -123,13 +124,11 @@ class Fusion(Service):
             )
             consumed_at_journal = core.consumed
 
-        while True:
+        while not self.ctx.stop.is_set():
             try:
                 msg = held.pop(0) if held else self.inbox.get(timeout=0.1)
             except queue.Empty:
                 msg = None
-                if self.ctx.stop.is_set():
-                    break
             if msg is not None:
                 emit(core.push(msg))
                 pushed += 1
@@ -141,10 +140,13 @@ class Fusion(Service):
             if getattr(core, "last_error", ""):
                 self.stats.error("errors.estimator", core.last_error)
                 core.last_error = ""
-        # stop: drain what arrived, release the buffered tail, journal it
-        while True:
+        # stop: drain what had arrived (bounded: a fusion behind a backlog must still stop on
+        # time), release the buffered tail, journal it. Inputs left unconsumed are not journaled
+        # as dropped: rerun simply computes a few outputs more than were published.
+        drain_until = time.monotonic() + STOP_DRAIN_S
+        while time.monotonic() < drain_until:
             try:
-                msg = self.inbox.get_nowait()
+                msg = held.pop(0) if held else self.inbox.get_nowait()
             except queue.Empty:
                 break
             if msg is not None:

@@ -189,8 +189,13 @@ def test_rig_across_hosts_survives_a_router_restart(tmp_path: Path) -> None:
 
     after: dict[str, int] = {}
     with open(rig.record, "rb") as fh:
-        for _s, ch, msg in make_reader(fh).iter_messages(log_time_order=False):
-            if msg.log_time > (t_restart + 1.0) * 1e9:
+        reader = make_reader(fh)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        # log_time is the rig clock (ns since the run's time zero), not the wall clock
+        start_epoch_ns = int(json.loads(meta["hil"]["start_epoch_ns"]))
+        restart_rig_ns = int((t_restart + 1.0) * 1e9) - start_epoch_ns
+        for _s, ch, msg in reader.iter_messages(log_time_order=False):
+            if msg.log_time > restart_rig_ns:
                 kind = ch.topic.split("/")[2]
                 after[kind] = after.get(kind, 0) + 1
     for kind in ("truth", "sensor", "can", "nav", "status"):
