@@ -9,6 +9,7 @@ p99, and the CPU share of every service over the run.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -44,6 +45,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     rig = "benchrig"
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as d:
         rec = Path(d) / "bench.mcap"
         sup = Supervisor(
@@ -97,7 +99,8 @@ def main(argv: list[str]) -> int:
         "which is what makes the fusion deterministic and GNSS fused at its time of validity.",
     ]
     lines.append(
-        "Measured while other work shared the machine's two cores; the tail (p99, max) is sensitive to that."
+        f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores; the tail "
+        "(p99, max) is sensitive to other work on the machine. The first second holds the start-up transient."
     )
     body = "\n".join(lines)
     print(body)
