@@ -18,6 +18,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import socket
 import struct
 import subprocess
@@ -231,7 +232,8 @@ def check_page(
     if exe is None:
         raise BrowserError("no chromium on PATH (Debian: apt-get install -y chromium)")
     report = PageReport()
-    with tempfile.TemporaryDirectory(prefix="hil-chromium-") as profile:
+    # Chromium's helper processes may still be writing the profile as the main one exits.
+    with tempfile.TemporaryDirectory(prefix="hil-chromium-", ignore_cleanup_errors=True) as profile:
         proc = subprocess.Popen(
             [
                 exe,
@@ -243,6 +245,7 @@ def check_page(
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
+            start_new_session=True,  # its own process group: the helpers go with it
         )
         try:
             url = _devtools_url(proc, timeout_s)
@@ -272,11 +275,13 @@ def check_page(
             finally:
                 ws.close()
         finally:
-            proc.terminate()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
             try:
                 proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
     return report
 
