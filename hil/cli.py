@@ -12,22 +12,13 @@ from datetime import datetime
 from pathlib import Path
 
 from hil import __version__
+from hil.runtime.argtypes import positive_float
 
 EXIT_USAGE = 2
 
 
 class UserError(Exception):
     """An error the user can fix; printed as one line."""
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
 
 
 def _default_record_path(scenario: str) -> Path:
@@ -37,7 +28,7 @@ def _default_record_path(scenario: str) -> Path:
 
 def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) -> None:
     p.add_argument("--scenario", default="straight_level", help="built-in name or path to a scenario TOML")
-    p.add_argument("--duration", type=_positive, default=default_duration, help="seconds of rig time")
+    p.add_argument("--duration", type=positive_float, default=default_duration, help="seconds of rig time")
     p.add_argument(
         "--record", type=Path, default=None, help="MCAP path (default: recordings/<scenario>-<time>.mcap)"
     )
@@ -332,7 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     up = sub.add_parser("up", help="run the live rig: every service as its own process")
     _add_run_args(up, None)
-    up.add_argument("--speed", type=_positive, default=1.0, help="rig clock K times faster than real time")
+    up.add_argument(
+        "--speed", type=positive_float, default=1.0, help="rig clock K times faster than real time"
+    )
     up.add_argument("--channel", default="vcan0", help="CAN channel of the IMU")
     up.add_argument(
         "--can-interface",
@@ -393,8 +386,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     mon = sub.add_parser("monitor", help="attach to a running rig (another terminal or host): the live table")
     mon.add_argument("--rig", default="bench", help="the rig to watch (hil/<rig>/...)")
-    mon.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
-    mon.add_argument("--interval", type=_positive, default=1.0, help="seconds between redraws")
+    mon.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
+    mon.add_argument("--interval", type=positive_float, default=1.0, help="seconds between redraws")
     mon.add_argument("--once", action="store_true", help="print one table once statuses arrive, then exit")
     mon.set_defaults(func=cmd_monitor)
 

@@ -13,26 +13,20 @@ import sys
 import threading
 from typing import Any
 
+from hil.runtime.argtypes import positive_float
+
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_STOPPED = 130
-
-
-def _rate(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
     """The replay options (shared by ``hil replay`` and ``python -m services.replayer``)."""
     p.add_argument("file", help="an MCAP recording")
     timing = p.add_mutually_exclusive_group()
-    timing.add_argument("--rate", type=_rate, default=1.0, help="K times the recorded speed (default 1)")
+    timing.add_argument(
+        "--rate", type=positive_float, default=1.0, help="K times the recorded speed (default 1)"
+    )
     timing.add_argument("--afap", action="store_true", help="as fast as possible (no timing)")
     timing.add_argument("--step", action="store_true", help="send one message per Enter (canplayer -i)")
     p.add_argument("--start", type=float, default=None, help="seconds after the first message")
