@@ -182,7 +182,17 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
         mod = importlib.import_module(f"hil.bench.{a.name}")
     except ModuleNotFoundError as err:
         raise UserError(f"no benchmark named {a.name!r}") from err
-    return int(mod.main(rest) or 0)
+    from hil.progress import elapsed_progress
+
+    # Benches that run the rig for --duration seconds know their length; the others show time.
+    total = None
+    if "--duration" in rest and rest.index("--duration") + 1 < len(rest):
+        try:
+            total = float(rest[rest.index("--duration") + 1])
+        except ValueError:
+            total = None
+    with elapsed_progress(f"hil bench {a.name}", total):
+        return int(mod.main(rest) or 0)
 
 
 def cmd_rerun(a: argparse.Namespace) -> int:

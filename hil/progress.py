@@ -15,8 +15,11 @@ Pass ``enabled=True/False`` to override the TTY test (tests pass a ``StringIO`` 
 
 from __future__ import annotations
 
+import contextlib
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from types import TracebackType
 from typing import TextIO
 
@@ -113,3 +116,28 @@ class Progress:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def elapsed_progress(
+    label: str, total_s: float | None = None, *, stream: TextIO | None = None, enabled: bool | None = None
+) -> Iterator[Progress]:
+    """A bar that advances with wall time, for work that reports no progress of its own (benches
+    that run the rig for a set duration); with no total it shows the elapsed time."""
+    bar = Progress(label, total_s, unit="s", stream=stream, enabled=enabled)
+    stop = threading.Event()
+
+    def tick() -> None:
+        t0 = time.monotonic()
+        while not stop.wait(0.5):
+            t = time.monotonic() - t0
+            bar.update(min(t, total_s) if total_s else t)
+
+    th = threading.Thread(target=tick, name="progress", daemon=True)
+    th.start()
+    try:
+        yield bar
+    finally:
+        stop.set()
+        th.join(timeout=1.0)
+        bar.close()
