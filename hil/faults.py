@@ -21,6 +21,7 @@ rejects them on CRC).
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -71,6 +72,37 @@ def check_fault(kind: str, target: str, params: Mapping[str, float]) -> None:
         raise FaultError("imu_frame_loss: percent must be in [0, 100]")
     if kind == "gnss_latency" and "latency_s" not in params:
         raise FaultError("gnss_latency needs latency_s")
+
+
+class CommandInbox:
+    """Run-time fault commands addressed to one device: checked on arrival (a bad one is counted,
+    never raised), queued from Zenoh's thread, taken by the device's own loop at its next step."""
+
+    def __init__(self, kinds: Iterable[str], target: str, stats: Any) -> None:
+        self.kinds = frozenset(kinds)
+        self.target = target
+        self.stats = stats
+        self._lock = threading.Lock()
+        self._pending: list[Any] = []
+
+    def on_command(self, cmd: Any, _key: str = "") -> None:
+        if not (cmd.kind in self.kinds or (cmd.kind == "clock_step" and cmd.target == self.target)):
+            return
+        try:
+            check_fault(cmd.kind, cmd.target, cmd.params)
+        except FaultError as err:
+            self.stats.error("rejected.control.fault", str(err))
+            return
+        with self._lock:
+            self._pending.append(cmd)
+
+    def __bool__(self) -> bool:
+        return bool(self._pending)
+
+    def take(self) -> list[Any]:
+        with self._lock:
+            out, self._pending = self._pending, []
+        return out
 
 
 def fault_detail(kind: str, t0_ns: int, t1_ns: int | None, params: Mapping[str, Any], origin: str) -> str:

@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import argparse
 import heapq
-import threading
 from typing import Any
 
-from hil.faults import GNSS_FAULTS, FaultError, FaultTimeline, check_fault, fault_detail
+from hil.faults import GNSS_FAULTS, CommandInbox, FaultTimeline, fault_detail
 from hil.messages import CaptureTruth, FaultCommand, GnssFix, RunInfo, TimeTag
 from hil.runtime.builders import gnss_fix_msg
 from hil.runtime.clock import RigClock
@@ -38,25 +37,12 @@ class GnssEmulator(Service):
 
     def __init__(self, ctx: Any) -> None:
         super().__init__(ctx)
-        self._commands: list[FaultCommand] = []
-        self._cmd_lock = threading.Lock()
-
-    def _on_fault(self, cmd: FaultCommand, _key: str) -> None:
-        if not (cmd.kind in GNSS_FAULTS or (cmd.kind == "clock_step" and cmd.target == "gnss")):
-            return
-        try:
-            check_fault(cmd.kind, cmd.target, cmd.params)
-        except FaultError as err:
-            self.stats.error("rejected.control.fault", str(err))
-            return
-        with self._cmd_lock:
-            self._commands.append(cmd)
+        self._commands = CommandInbox(GNSS_FAULTS, "gnss", self.stats)
 
     def _take_commands(self, core: Any, dev_clock: Any, timeline: FaultTimeline, now: int) -> None:
         from hil.nav.scenario import ScenarioEvent
 
-        with self._cmd_lock:
-            cmds, self._commands = self._commands, []
+        cmds = self._commands.take()
         for cmd in cmds:
             p = cmd.params
             if cmd.kind == "clock_step":
@@ -76,7 +62,7 @@ class GnssEmulator(Service):
             timeline.add(cmd.kind, now, cmd.duration_s if t1 is not None else 0.0, params)
 
     def setup(self) -> None:
-        self.subscribe(self.keys.control("fault"), FaultCommand, self._on_fault)
+        self.subscribe(self.keys.control("fault"), FaultCommand, self._commands.on_command)
         # Import the numerics before reporting ready: a late start would burst samples at time zero.
         import hil.nav.trajectory
         import hil.sensors.gnss

@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import argparse
 import logging
-import threading
 from typing import Any
 
-from hil.faults import IMU_FAULTS, FaultError, ImuFaults, check_fault, fault_detail
+from hil.faults import IMU_FAULTS, CommandInbox, ImuFaults, fault_detail
 from hil.messages import CaptureTruth, FaultCommand, RunInfo
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
@@ -37,24 +36,10 @@ class ImuEmulator(Service):
 
     def __init__(self, ctx: Any) -> None:
         super().__init__(ctx)
-        self._commands: list[FaultCommand] = []
-        self._cmd_lock = threading.Lock()
-
-    def _on_fault(self, cmd: FaultCommand, _key: str) -> None:
-        """Run-time faults (hil fault): queued here, applied by the sample loop at its next sample."""
-        ours = cmd.kind in IMU_FAULTS or (cmd.kind == "clock_step" and cmd.target == "imu")
-        if not ours:
-            return
-        try:
-            check_fault(cmd.kind, cmd.target, cmd.params)
-        except FaultError as err:
-            self.stats.error("rejected.control.fault", str(err))
-            return
-        with self._cmd_lock:
-            self._commands.append(cmd)
+        self._commands = CommandInbox(IMU_FAULTS, "imu", self.stats)
 
     def setup(self) -> None:
-        self.subscribe(self.keys.control("fault"), FaultCommand, self._on_fault)
+        self.subscribe(self.keys.control("fault"), FaultCommand, self._commands.on_command)
         # Import the numerics before reporting ready: a late start would burst samples at time zero.
         import hil.can.bus
         import hil.can.codec
@@ -132,8 +117,7 @@ class ImuEmulator(Service):
             bus.shutdown()
 
     def _take_commands(self, faults: ImuFaults, dev_clock: Any, t_ns: int) -> None:
-        with self._cmd_lock:
-            cmds, self._commands = self._commands, []
+        cmds = self._commands.take()
         for cmd in cmds:
             if cmd.kind == "clock_step":
                 dev_clock.add_step(t_ns, round(cmd.params["step_s"] * 1e9))

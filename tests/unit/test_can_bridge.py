@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
-from collections.abc import Iterator
 
 import can
 import pytest
@@ -21,22 +19,6 @@ from hil.runtime.service import ServiceContext
 from services.can_bridge import SERVICE, CanBridge, epoch_s_to_rig_ns
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture
-def hub(monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    session = open_session(BusConfig(listen=(endpoint,), connect=()))
-    monkeypatch.setenv("HIL_ZENOH_CONNECT", endpoint)
-    monkeypatch.setenv("HIL_ZENOH_MODE", "peer")
-    yield endpoint
-    session.close()
-
-
 def test_rig_time_mapping_keeps_the_stamps_precision() -> None:
     start = 1_795_000_000_123_456_789
     ts = 1_795_000_001.5
@@ -46,7 +28,7 @@ def test_rig_time_mapping_keeps_the_stamps_precision() -> None:
 
 
 @pytest.mark.parametrize("fd", [False, True], ids=["classic", "fd"])
-def test_bridge_decodes_counts_and_publishes(hub: str, fd: bool) -> None:
+def test_bridge_decodes_counts_and_publishes(zenoh_hub: str, fd: bool) -> None:
     rig = f"t-bridge-{int(fd)}"
     keys = Keys(rig)
     svc_session = open_session(BusConfig.from_env())

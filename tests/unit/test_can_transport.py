@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import errno
 import itertools
-import socket
 import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
 
 import can
 import pytest
@@ -20,24 +18,6 @@ from hil.can.busload import frame_bits, sample_load
 from hil.can.codec import ImuCanCodec
 from hil.can.node import ImuCanNode
 from hil.can.zenoh_bus import pack_frame, unpack_frame
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture
-def hub(monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
-    """A Zenoh peer listening on a free loopback port; every bus in the test connects to it."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    session = open_session(BusConfig(listen=(endpoint,), connect=()))
-    monkeypatch.setenv("HIL_ZENOH_CONNECT", endpoint)
-    monkeypatch.setenv("HIL_ZENOH_MODE", "peer")
-    yield endpoint
-    session.close()
-
 
 CHILD = textwrap.dedent(
     """
@@ -59,7 +39,7 @@ CHILD = textwrap.dedent(
 )
 
 
-def test_zenoh_can_bus_between_two_processes(hub: str) -> None:
+def test_zenoh_can_bus_between_two_processes(zenoh_hub: str) -> None:
     n = 2000
     rig = "t-canbus"
     child = subprocess.Popen(
@@ -95,7 +75,7 @@ def test_zenoh_can_bus_between_two_processes(hub: str) -> None:
     assert all(b >= a for a, b in itertools.pairwise(stamps))
 
 
-def test_classic_bus_refuses_fd_and_filters_apply(hub: str) -> None:
+def test_classic_bus_refuses_fd_and_filters_apply(zenoh_hub: str) -> None:
     rig = "t-canbus2"
     a = can.Bus(interface="hilzenoh", channel="can1", rig=rig, fd=True)
     b = can.Bus(
@@ -124,7 +104,7 @@ def test_classic_bus_refuses_fd_and_filters_apply(hub: str) -> None:
         a.send(can.Message(arbitration_id=1, data=b""))
 
 
-def test_malformed_payload_is_counted_not_raised(hub: str) -> None:
+def test_malformed_payload_is_counted_not_raised(zenoh_hub: str) -> None:
     bus = can.Bus(interface="hilzenoh", channel="vcan9", rig="t-canbus3")
     stray = open_session(BusConfig.from_env())  # a stray publisher writing garbage on the key
     try:
