@@ -113,15 +113,7 @@ class Fusion(Service):
 
         def write_journal() -> None:
             nonlocal consumed_at_journal
-            journal.put(
-                FusionJournal(
-                    seq=journal.next_seq(),
-                    stamp_ns=clock.now_ns(),
-                    watermark_ns=core.watermark_ns,
-                    consumed=core.consumed,
-                    dropped=core.take_dropped(),
-                )
-            )
+            journal.put(core.journal(journal.next_seq(), clock.now_ns()))
             consumed_at_journal = core.consumed
 
         while not self.ctx.stop.is_set():

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
-from hil.messages import GnssFix, ImuSample, NavSolution
+from hil.messages import FusionJournal, GnssFix, ImuSample, NavSolution
 from hil.nav.types import NavState
 
 SOURCE_RANK = {"imu": 0, "gnss": 1}
@@ -186,6 +186,16 @@ class FusionCore:
     def flush(self) -> list[NavSolution]:
         """End of input: release everything still buffered."""
         return self._release(2**62)
+
+    def journal(self, seq: int, stamp_ns: int) -> FusionJournal:
+        """What was decided since the last journal: the live service and hil sim publish this."""
+        return FusionJournal(
+            seq=seq,
+            stamp_ns=stamp_ns,
+            watermark_ns=self.watermark_ns,
+            consumed=self.consumed,
+            dropped=self.take_dropped(),
+        )
 
     def take_dropped(self) -> list[str]:
         out, self._dropped = self._dropped, []

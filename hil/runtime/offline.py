@@ -27,7 +27,6 @@ from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import (
     CaptureTruth,
     Event,
-    FusionJournal,
     GnssFix,
     ImuSample,
     Message,
@@ -347,13 +346,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                     out,
                     next_journal,
                     keys.journal(),
-                    FusionJournal(
-                        seq=pubs.next(keys.journal()),
-                        stamp_ns=next_journal,
-                        watermark_ns=fusion.watermark_ns,
-                        consumed=fusion.consumed,
-                        dropped=fusion.take_dropped(),
-                    ),
+                    fusion.journal(pubs.next(keys.journal()), next_journal),
                 )
                 next_journal += 500_000_000
             for sol in fusion.push(msg):
@@ -381,13 +374,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                 out,
                 t_last,
                 keys.journal(),
-                FusionJournal(
-                    seq=pubs.next(keys.journal()),
-                    stamp_ns=t_last,
-                    watermark_ns=fusion.watermark_ns,
-                    consumed=fusion.consumed,
-                    dropped=fusion.take_dropped(),
-                ),
+                fusion.journal(pubs.next(keys.journal()), t_last),
             )
         flush(out)
         w.flush()
