@@ -15,7 +15,13 @@ The service that applies a fault publishes ``hil.Event`` ``fault_start``/``fault
 :class:`ImuFaults` is the IMU emulator's part (no I/O, no clock): per sample it says whether
 the sample is lost (``imu_frame_loss``, ``can_bus_off``), what to send instead (``imu_stuck``,
 ``imu_saturated``) and how many frames to corrupt on the wire (``can_burst_error``: the bridge
-rejects them on CRC).
+rejects them on CRC); :class:`FrameCorruptor` does the corrupting. The live emulator and ``hil
+sim`` both call these two, so a fault has one implementation whichever executor runs it.
+:func:`device_timeline` is what each emulator announces: its own kinds plus the timed
+``clock_step`` of its sensor (the step itself is applied by ``hil.sensors.clock``).
+
+``SIM_NOT_APPLICABLE`` names the faults ``hil sim`` cannot apply (one process, nothing to kill):
+it says so and records ``fault_ignored`` rather than dropping them silently.
 """
 
 from __future__ import annotations
@@ -44,6 +50,14 @@ FAULT_KINDS: dict[str, tuple[str, frozenset[str]]] = {
 }
 IMU_FAULTS = frozenset(k for k, (svc, _) in FAULT_KINDS.items() if svc == "imu_emulator")
 GNSS_FAULTS = frozenset(k for k, (svc, _) in FAULT_KINDS.items() if svc == "gnss_emulator")
+# Announced by the emulator on its timeline: its run-time kinds plus the scenario-only ones it owns
+# (the seed paper's GNSS pulse has no run-time form: a jump with a duration does the same).
+DEVICE_TIMED_KINDS: dict[str, frozenset[str]] = {
+    "imu": IMU_FAULTS | {"clock_step"},
+    "gnss": GNSS_FAULTS | {"gnss_pulse", "clock_step"},
+}
+# Timed faults with no meaning in `hil sim` (one process on a virtual clock): said and recorded.
+SIM_NOT_APPLICABLE = frozenset({"kill_service"})
 SATURATE_DTHETA_RAD = 10.0  # per sample: far beyond the DBC's full scale (0.42 rad)
 SATURATE_DVEL_MPS = 1000.0  # per sample: far beyond the DBC's full scale (8.4 m/s)
 
@@ -139,6 +153,7 @@ class Fault:
     origin: str  # "scenario" | "command"
     started: bool = False
     ended: bool = False
+    fired: bool = False  # a one-shot fault (can_burst_error) has been applied
 
     def active(self, t_ns: int) -> bool:
         return self.t0_ns <= t_ns and (self.t1_ns is None or t_ns < self.t1_ns)
@@ -151,9 +166,14 @@ class FaultTimeline:
     faults: list[Fault] = field(default_factory=list)
 
     @classmethod
-    def from_scenario(cls, events: Iterable[Any], kinds: frozenset[str]) -> FaultTimeline:
+    def from_scenario(
+        cls, events: Iterable[Any], kinds: frozenset[str], sensor: str | None = None
+    ) -> FaultTimeline:
+        """The scenario's ``[[event]]``s of ``kinds``; a ``clock_step`` only if it is ``sensor``'s."""
         out = cls()
         for ev in events:
+            if ev.kind == "clock_step" and ev.params.get("sensor") != sensor:
+                continue
             if ev.kind in kinds:
                 t1 = None if ev.t_end_s is None else round(ev.t_end_s * 1e9)
                 out.faults.append(Fault(ev.kind, round(ev.t_start_s * 1e9), t1, dict(ev.params), "scenario"))
@@ -166,16 +186,55 @@ class FaultTimeline:
         return f
 
     def edges(self, t_ns: int) -> list[tuple[str, Fault]]:
-        """``("fault_start" | "fault_end", fault)`` for every edge at or before ``t_ns`` not yet said."""
-        out: list[tuple[str, Fault]] = []
-        for f in self.faults:
+        """``("fault_start" | "fault_end", fault)`` for every edge at or before ``t_ns`` not yet said,
+        in the order of their edge times (so events numbered in this order are also time-ordered)."""
+        out: list[tuple[int, int, str, Fault]] = []
+        for i, f in enumerate(self.faults):
             if not f.started and t_ns >= f.t0_ns:
                 f.started = True
-                out.append(("fault_start", f))
+                out.append((f.t0_ns, i, "fault_start", f))
             if f.started and not f.ended and f.t1_ns is not None and t_ns >= f.t1_ns:
                 f.ended = True
-                out.append(("fault_end", f))
-        return out
+                out.append((f.t1_ns, i, "fault_end", f))
+        out.sort(key=lambda e: (e[0], e[1]))
+        return [(edge, f) for _t, _i, edge, f in out]
+
+
+def device_timeline(events: Iterable[Any], sensor: str) -> FaultTimeline:
+    """The timed faults the ``sensor``'s emulator announces as ``fault_start``/``fault_end``."""
+    return FaultTimeline.from_scenario(events, DEVICE_TIMED_KINDS[sensor], sensor)
+
+
+def edge_time_ns(edge: str, f: Fault) -> int:
+    """When an edge happens: a fault's start, or its end."""
+    return f.t0_ns if edge == "fault_start" or f.t1_ns is None else f.t1_ns
+
+
+class FrameCorruptor:
+    """``can_burst_error`` on the wire: the next ``n`` frames sent get one data byte flipped, so the
+    receiver's E2E CRC rejects each of them (a burst of bit errors the controller did not catch).
+
+    One object per transmitter, fed every frame that actually goes on the bus (a dropped sample's
+    frames never reach the wire, so they do not use up the burst). Pure: no I/O, no clock.
+    """
+
+    def __init__(self) -> None:
+        self.pending = 0
+        self.corrupted = 0
+
+    def arm(self, frames: int) -> None:
+        self.pending += max(0, int(frames))
+
+    def __call__(self, frame: Any) -> bool:
+        """Corrupt ``frame`` (a ``can.Message``) in place if the burst is still going; True if so."""
+        if self.pending <= 0:
+            return False
+        self.pending -= 1
+        self.corrupted += 1
+        data = bytearray(frame.data)
+        data[min(2, len(data) - 1)] ^= 0x5A
+        frame.data = data
+        return True
 
 
 @dataclass
@@ -194,7 +253,7 @@ class ImuFaults:
 
     def __init__(self, seed: int, events: Iterable[Any] = ()) -> None:
         self.seed = int(seed)
-        self.timeline = FaultTimeline.from_scenario(events, IMU_FAULTS)
+        self.timeline = device_timeline(events, "imu")
         self._stuck: tuple[np.ndarray, np.ndarray] | None = None
         self._last: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -215,9 +274,9 @@ class ImuFaults:
                 # beyond full scale on every axis (keeping the sign): the codec clamps and flags
                 act.dtheta_b_rad = np.where(dtheta >= 0, 1.0, -1.0) * SATURATE_DTHETA_RAD
                 act.dvel_b_mps = np.where(dvel >= 0, 1.0, -1.0) * SATURATE_DVEL_MPS
-            elif f.kind == "can_burst_error" and f.t0_ns <= t_ns and not f.params.get("_done"):
+            elif f.kind == "can_burst_error" and not f.fired:
                 act.corrupt_frames += int(f.params.get("frames", 8))
-                f.params = {**f.params, "_done": 1}  # type: ignore[misc]
+                f.fired = True
         if stuck:
             if self._stuck is None:
                 self._stuck = self._last if self._last is not None else (dtheta, dvel)

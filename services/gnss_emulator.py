@@ -17,7 +17,7 @@ import argparse
 import heapq
 from typing import Any
 
-from hil.faults import GNSS_FAULTS, CommandInbox, FaultTimeline, fault_detail
+from hil.faults import GNSS_FAULTS, CommandInbox, FaultTimeline, device_timeline, fault_detail
 from hil.messages import CaptureTruth, FaultCommand, GnssFix, RunInfo, TimeTag
 from hil.runtime.builders import gnss_fix_msg
 from hil.runtime.clock import RigClock
@@ -85,7 +85,7 @@ class GnssEmulator(Service):
         next_pps_s = 1
         t_pulled = -1
         counter = 0
-        timeline = FaultTimeline.from_scenario(s.events, GNSS_FAULTS)
+        timeline = device_timeline(s.events, "gnss")  # what hil sim announces too
         now = clock.now_ns()
         if self.ctx.options.get("resume") or now > RESUME_AFTER_S * 1e9:
             # skip what was due while dead; the core still draws its noise (same stream after)

@@ -24,6 +24,7 @@ import can
 from hil.bus.pubsub import Stats
 from hil.can.busload import FD_DATA_BITRATE, NOMINAL_BITRATE, frame_bits
 from hil.can.codec import EncodeError, ImuCanCodec
+from hil.faults import FrameCorruptor
 from hil.runtime.clock import monotonic_s
 
 log = logging.getLogger(__name__)
@@ -80,12 +81,13 @@ class ImuCanNode:
         self._busy: deque[tuple[float, float]] = deque()
         self._busy_sum = 0.0
         self._busy_cache: dict[tuple[int, bool, bool], float] = {}
-        self._corrupt = 0
+        self._corruptor = FrameCorruptor()
 
     def corrupt_next(self, frames: int) -> None:
         """A burst error: the next ``frames`` frames go out with a flipped data byte, so the
-        receiver's E2E CRC rejects them (fault ``can_burst_error``, hil/faults.py)."""
-        self._corrupt += max(0, int(frames))
+        receiver's E2E CRC rejects them (fault ``can_burst_error``; the corruption itself is
+        ``hil.faults.FrameCorruptor``, which ``hil sim`` applies too)."""
+        self._corruptor.arm(frames)
 
     # -- public API ----------------------------------------------------------------------
     def send_sample(
@@ -159,12 +161,8 @@ class ImuCanNode:
                 self.stats.inc(f"can.{name.replace('_', '.', 1)}")
 
     def _send(self, frame: can.Message) -> bool:
-        if self._corrupt > 0:
-            self._corrupt -= 1
+        if self._corruptor(frame):
             self._counts["tx_corrupted_frames"] += 1
-            data = bytearray(frame.data)
-            data[min(2, len(data) - 1)] ^= 0x5A
-            frame.data = data
         delay = self.backoff_s
         for attempt in range(self.retries + 1):
             try:

@@ -1,0 +1,80 @@
+"""The fault core both executors call (live emulators and `hil sim`): decisions depend only on the
+scenario seed, the sample index and time, so a run and its replay lose the same samples."""
+
+from __future__ import annotations
+
+import can
+import numpy as np
+
+from hil.can.codec import ImuCanCodec, ImuFrameAssembler
+from hil.faults import FrameCorruptor, ImuFaults, device_timeline, edge_time_ns
+from hil.nav.scenario import ScenarioEvent
+
+DT_NS = 2_500_000
+
+
+def _ev(kind: str, t0: float, t1: float | None = None, **params: object) -> ScenarioEvent:
+    return ScenarioEvent(kind, t0, t1, params)
+
+
+def _lost(seed: int, events: list[ScenarioEvent], n: int = 2000) -> list[int]:
+    f = ImuFaults(seed, events)
+    z = np.zeros(3)
+    return [k for k in range(n) if not f.apply(k, (k + 1) * DT_NS, z, z).send]
+
+
+def test_frame_loss_is_a_function_of_seed_and_sample_index() -> None:
+    ev = [_ev("imu_frame_loss", 0.0, 10.0, percent=20.0)]
+    a, b, c = _lost(3, ev), _lost(3, ev), _lost(4, ev)
+    assert a == b and a != c
+    assert abs(len(a) / 2000 - 0.20) < 0.03 and abs(len(c) / 2000 - 0.20) < 0.03
+
+
+def test_burst_error_fires_once_and_leaves_its_params_alone() -> None:
+    f = ImuFaults(1, [_ev("can_burst_error", 0.01, frames=8)])
+    z = np.zeros(3)
+    acts = [f.apply(k, (k + 1) * DT_NS, z, z).corrupt_frames for k in range(20)]
+    assert acts.count(8) == 1 and sum(acts) == 8 and acts.index(8) == 3  # sample 3 ends at 10 ms
+    assert dict(f.timeline.faults[0].params) == {"frames": 8}  # so fault_end/reports read it clean
+
+
+def test_corruptor_flips_exactly_n_frames_and_the_assembler_rejects_them_on_crc() -> None:
+    codec = ImuCanCodec.from_dbc()
+    asm = ImuFrameAssembler(ImuCanCodec.from_dbc())
+    bad = FrameCorruptor()
+    bad.arm(5)
+    hit = []
+    for k in range(4):
+        for fr in codec.encode_sample(
+            device_stamp_ns=k * DT_NS, dtheta_b_rad=[0.0] * 3, dvel_b_mps=[0.0] * 3
+        ):
+            hit.append(bad(fr))
+            asm.feed(fr)
+    assert sum(hit) == 5 and hit[:5] == [True] * 5 and bad.corrupted == 5 and bad.pending == 0
+    assert asm.counters["bad_crc"] == 5
+    assert not bad(can.Message(arbitration_id=1, data=b"\x00" * 8))  # the burst is over
+
+
+def test_each_device_announces_its_own_clock_step_and_gnss_the_pulse() -> None:
+    events = [
+        _ev("clock_step", 2.0, sensor="imu", step_s=0.1),
+        _ev("clock_step", 1.0, sensor="gnss", step_s=0.2),
+        _ev("gnss_pulse", 3.0, 4.0, amplitude_m=50.0, tau_s=1.0),
+        _ev("imu_stuck", 0.5, 0.7),
+        _ev("kill_service", 1.0, service="fusion"),
+    ]
+    imu = device_timeline(events, "imu")
+    gnss = device_timeline(events, "gnss")
+    assert [(f.kind, f.params.get("sensor")) for f in imu.faults] == [
+        ("clock_step", "imu"),
+        ("imu_stuck", None),
+    ]
+    assert [f.kind for f in gnss.faults] == ["clock_step", "gnss_pulse"]
+    # edges come out in time order whatever the file order, each once
+    edges = imu.edges(10_000_000_000)
+    assert [(e, f.kind, edge_time_ns(e, f)) for e, f in edges] == [
+        ("fault_start", "imu_stuck", 500_000_000),
+        ("fault_end", "imu_stuck", 700_000_000),
+        ("fault_start", "clock_step", 2_000_000_000),
+    ]
+    assert imu.edges(20_000_000_000) == []
