@@ -8,12 +8,24 @@ burst leaves at capture and each frame arrives after the bus latency, an exponen
 at its edge and carries the kernel-stamp latch jitter; a GNSS fix arrives at its output time
 (validity + latency + jitter), the PPS is latched with its latch jitter. Messages are written in
 arrival (log time) order, window by window, so a one-hour session never sits in memory.
+
+Timed faults (the scenario's ``[[event]]``) go through the code the live emulators run: the GNSS
+ones through ``GnssEmulatorCore``, clock steps through ``hil.sensors.clock``, the IMU/CAN ones
+(frame loss, stuck, saturated, burst errors, bus-off) through ``hil.faults.ImuFaults`` and
+``FrameCorruptor``, so the wire carries what the live bus would and the frame assembler counts
+what the live ``can_bridge`` counts. Each is announced as ``fault_start``/``fault_end`` on
+``event/<emulator>`` as live. ``kill_service`` has no meaning in one process: a warning line and a
+``fault_ignored`` event on ``event/sim`` say so. ``status/imu_emulator`` and ``status/can_bridge``
+carry those cores' counters once per rig second (pid 0: nothing here depends on the host).
+Everything is seeded by the scenario, so the same scenario gives the same file, byte for byte.
 """
 
 from __future__ import annotations
 
 import heapq
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,6 +35,14 @@ import numpy as np
 
 from hil import __version__
 from hil.bus.keys import Keys
+from hil.faults import (
+    SIM_NOT_APPLICABLE,
+    FrameCorruptor,
+    ImuFaults,
+    device_timeline,
+    edge_time_ns,
+    fault_detail,
+)
 from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import (
     CaptureTruth,
@@ -31,6 +51,7 @@ from hil.messages import (
     ImuSample,
     Message,
     RunInfo,
+    ServiceStatus,
     TimeTag,
     encode,
 )
@@ -57,6 +78,7 @@ class SimOptions:
     output_every: int = 8
     progress: bool = False
     on_progress: Any = None  # callable(rig_s_done, rig_s_total), called once per simulated second
+    on_warning: Callable[[str], None] | None = None  # default: "hil sim: warning: ..." on stderr
 
 
 @dataclass
@@ -65,6 +87,7 @@ class SimResult:
     messages: int
     duration_s: float
     wall_s: float
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def summary(self) -> str:
@@ -171,6 +194,22 @@ def run_sim(opts: SimOptions) -> SimResult:
     from hil.record.rerun import FUSION_CONFIG_EVENT, fusion_config_detail
 
     out: list[tuple[int, int, str, Message]] = []
+
+    def event(t_ns: int, source: str, kind: str, detail: str) -> None:
+        key = keys.event(source)
+        put(out, t_ns, key, Event(seq=pubs.next(key), stamp_ns=t_ns, kind=kind, source=source, detail=detail))
+
+    imu_faults = ImuFaults(s.seed, s.events)  # the live imu_emulator's fault core
+    corruptor = FrameCorruptor()  # ... and its CAN node's burst corruption
+    gnss_timeline = device_timeline(s.events, "gnss")  # the live gnss_emulator's announcements
+    not_sent: dict[str, int] = {}
+    warnings, ignored = not_applicable_faults(s.events, duration_s)
+    for line in warnings:
+        if opts.on_warning is not None:
+            opts.on_warning(line)
+        else:
+            sys.stderr.write(f"hil sim: warning: {line}\n")
+            sys.stderr.flush()
     put(out, 0, keys.run(), run)
     put(
         out,
@@ -204,6 +243,9 @@ def run_sim(opts: SimOptions) -> SimResult:
     while t_win < end_ns + WINDOW_NS:
         t_end = min(t_win + WINDOW_NS, end_ns + 1)
         arrivals: list[tuple[int, int, ImuSample | GnssFix]] = []  # (rx, order, synced msg)
+        while ignored and ignored[0][0] < t_end:
+            t_ig, detail = ignored.pop(0)
+            event(t_ig, "sim", "fault_ignored", detail)
         # truth
         n_t = max(0, min((t_end - 1) // truth_dt + 1, end_ns // truth_dt + 1) - k_truth)
         if n_t:
@@ -226,14 +268,27 @@ def run_sim(opts: SimOptions) -> SimResult:
                 t_true = int(batch.t_ns[i])
                 dev = imu_clock.device_ns(t_true)
                 k = k_imu + i
+                # faults exactly as services/imu_emulator.py applies them, sample by sample
+                for edge, f in imu_faults.timeline.edges(t_true):
+                    detail = fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin)
+                    event(t_true, "imu_emulator", edge, detail)
+                act = imu_faults.apply(k, t_true, batch.dtheta_b_rad[i], batch.dvel_b_mps[i])
+                corruptor.arm(act.corrupt_frames)
                 frames = []
                 # the sync edge is this sample's capture; its frame goes first, kernel-stamped
-                sync_first = (k + 1) % round(rate_hz) == 0
+                sync_first = act.send and (k + 1) % round(rate_hz) == 0
                 if sync_first:
                     frames.append(codec.encode_sync(dev))
-                frames += codec.encode_sample(
-                    device_stamp_ns=dev, dtheta_b_rad=batch.dtheta_b_rad[i], dvel_b_mps=batch.dvel_b_mps[i]
+                # encoded even when not sent: the device's counters and SampleCount advance (live too)
+                sample_frames = codec.encode_sample(
+                    device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
                 )
+                if act.send:
+                    frames += sample_frames
+                else:
+                    not_sent[act.reason] = not_sent.get(act.reason, 0) + 1
+                for fr in frames:
+                    corruptor(fr)
                 put(
                     out,
                     t_true,
@@ -292,6 +347,14 @@ def run_sim(opts: SimOptions) -> SimResult:
                             )
                             sync.on_timetag("imu", item.device_stamp_ns, rx)
             k_imu += n_i
+        # GNSS: the core applies the timed faults; the emulator announces their edges
+        for edge, f in gnss_timeline.edges(min(t_end - 1, end_ns)):
+            event(
+                edge_time_ns(edge, f),
+                "gnss_emulator",
+                edge,
+                fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin),
+            )
         # GNSS: fixes come out at their output time (validity + latency)
         gb = gnss_core.next_batch(min(t_end - 1, end_ns))
         for i in range(len(gb.t_valid_ns)):
@@ -360,6 +423,19 @@ def run_sim(opts: SimOptions) -> SimResult:
                     clock_model_msg(pubs.next(keys.clock(m.sensor)), next_clock, m),
                 )
             next_clock += 1_000_000_000
+        # the fault-relevant counters of the emulator and the bridge cores, as of this window's end
+        imu_counters = {f"fault.imu_samples_not_sent.{r}": n for r, n in sorted(not_sent.items())}
+        imu_counters.update(
+            tx_fault_dropped_samples=sum(not_sent.values()),
+            tx_corrupted_frames=corruptor.corrupted,
+            tx_saturated_samples=codec.saturated_samples,
+        )
+        bridge_counters = {f"can.{k}": v for k, v in assembler.counters.items()}
+        for svc, counters in (("imu_emulator", imu_counters), ("can_bridge", bridge_counters)):
+            if t_end == end_ns:  # the 1 ns window of the last sample follows: it reports
+                break
+            key = keys.status(svc)
+            put(out, t_end, key, sim_status(pubs.next(key), t_end, svc, counters))
         t_win += WINDOW_NS
         if t_win > end_ns:
             t_last = end_ns + 1
@@ -383,7 +459,41 @@ def run_sim(opts: SimOptions) -> SimResult:
     w.add_metadata("completeness", {"messages": n_written, "missing": 0, "replay_ready": True, "topics": {}})
     w.close()
     _ = FREE_INS
-    return SimResult(opts.record, n_written, duration_s, time.monotonic() - t_wall)
+    return SimResult(opts.record, n_written, duration_s, time.monotonic() - t_wall, warnings)
+
+
+def not_applicable_faults(events: Any, duration_s: float) -> tuple[list[str], list[tuple[int, str]]]:
+    """The scenario's timed faults ``hil sim`` cannot apply: warning lines, and (t_ns, detail) of
+    the ``fault_ignored`` events that record them (only those inside the run, as live)."""
+    lines: list[str] = []
+    ignored: list[tuple[int, str]] = []
+    for ev in events:
+        if ev.kind not in SIM_NOT_APPLICABLE or ev.t_start_s > duration_s:
+            continue
+        t0 = round(ev.t_start_s * 1e9)
+        target = ev.params.get("service", "")
+        lines.append(
+            f"{ev.kind} of {target!r} at t={ev.t_start_s:g} s is not applied: hil sim runs every core "
+            "in one process, there is no service to kill (use hil up; recorded as event fault_ignored)"
+        )
+        params = {"service": target, "reason": "offline"}
+        ignored.append((t0, fault_detail(ev.kind, t0, None, params, "scenario")))
+    ignored.sort()
+    return lines, ignored
+
+
+def sim_status(seq: int, t_ns: int, service: str, counters: dict[str, int]) -> ServiceStatus:
+    """A core's counters as its live service would report them; nothing host-dependent (pid 0,
+    uptime in rig time, no rates), so the file stays a pure function of the scenario."""
+    return ServiceStatus(
+        seq=seq,
+        stamp_ns=t_ns,
+        service=service,
+        state="running",
+        pid=0,
+        uptime_s=t_ns / 1e9,
+        counters=counters,
+    )
 
 
 def _fields(m: Message) -> dict[str, Any]:
