@@ -199,11 +199,11 @@ def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.progress import Progress
     from hil.record.rerun import rerun
 
-    with Progress("rerun", unit="inputs") as bar:
+    with Progress("rerun", unit="MB read") as bar:
 
         def on_progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done)
+            bar.total = total / 1e6
+            bar.update(done / 1e6)
 
         rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress)
     print("\n".join(lines))

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import json
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -183,18 +184,32 @@ class Session:
             return value
 
 
-def iter_records(path: str | Path) -> Iterator[tuple[str, Any]]:
-    """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail."""
+PROGRESS_EVERY = 8192  # records between two progress callbacks of ``iter_records``
+
+
+def iter_records(
+    path: str | Path, on_progress: Callable[[int, int], None] | None = None
+) -> Iterator[tuple[str, Any]]:
+    """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail.
+
+    ``on_progress(bytes_read, file_bytes)`` is called every ``PROGRESS_EVERY`` records: a one-hour
+    file is read for minutes, and the byte position is the only total known before the end.
+    """
     try:
         fh = open(path, "rb")  # noqa: SIM115
+        size = os.fstat(fh.fileno()).st_size
     except OSError as err:
         raise RecordingError(f"cannot open recording {path}: {err.strerror}") from err
     with fh:
         reader = StreamReader(fh, skip_magic=False, emit_chunks=False)
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
+        n = 0
         try:
             for rec in reader.records:
+                n += 1
+                if on_progress is not None and n % PROGRESS_EVERY == 0:
+                    on_progress(fh.tell(), size)
                 if isinstance(rec, Schema):
                     schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
@@ -221,6 +236,43 @@ def iter_records(path: str | Path) -> Iterator[tuple[str, Any]]:
             yield "truncated", f"{type(err).__name__}: {err}"
         except Exception as err:  # zstd errors on a half-written chunk and similar
             yield "truncated", f"{type(err).__name__}: {err}"
+
+
+class SessionStream:
+    """A recording read once, message by message, in file order, without holding it in memory.
+
+    What ``read_session`` gives, for files too big to hold (a one-hour session is ~12 million
+    messages, several GB as Python objects): iterate it for the ``Record``s; ``metadata``,
+    ``truncated`` and ``truncation_reason`` are filled as the reading goes and are complete once
+    the iteration has ended. An unreadable file raises ``RecordingError`` like ``read_session``.
+    Iterating again reads the file again.
+    """
+
+    def __init__(self, path: str | Path, on_progress: Callable[[int, int], None] | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise RecordingError(f"no recording at {self.path}")
+        self.on_progress = on_progress
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.truncated = False
+        self.truncation_reason = ""
+
+    def __iter__(self) -> Iterator[Record]:
+        self.metadata = {}
+        self.truncated = False
+        self.truncation_reason = ""
+        n = 0
+        for kind, rec in iter_records(self.path, self.on_progress):
+            if kind == "message":
+                n += 1
+                yield rec
+            elif kind == "metadata":
+                self.metadata[rec.name] = dict(rec.metadata)
+            elif kind == "truncated":
+                self.truncated = True
+                self.truncation_reason = rec
+        if not n and self.truncated and not self.metadata:
+            raise RecordingError(f"{self.path} is not a readable MCAP file ({self.truncation_reason})")
 
 
 def read_session(path: str | Path) -> Session:

@@ -21,96 +21,147 @@ mapping of that wall-clock moment, which a recording cannot tell; verify then na
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import msgspec
 
-from hil.messages import GnssFix, ImuSample, TimeTag, decode, encode
-from hil.record.mcapio import Session
-from hil.record.rerun import run_info_from
+from hil.messages import GnssFix, ImuSample, RunInfo, TimeTag, decode, encode
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream
+from hil.record.rerun import Matcher
 
 _RAW = {"hil.ImuSample": ImuSample, "hil.GnssFix": GnssFix}
 
 
 @dataclass
 class TimesyncRerun:
-    recomputed: dict[tuple[str, int], bytes]
-    recorded: dict[tuple[str, int], bytes]
-    order: list[tuple[str, int]]  # recorded outputs in file order (the first difference is the first here)
     measurements: int
     timetags: int
+    n_recomputed: int
+    n_recorded: int
+    difference: str | None
 
     def first_difference(self) -> str | None:
-        if not self.recorded:
-            return "the recording holds no synced/<sensor> outputs to compare"
-        for key in self.order:
-            sensor, seq = key
-            mine = self.recomputed.get(key)
-            theirs = self.recorded[key]
-            if mine is None:
-                n = sum(1 for k in self.recorded if k not in self.recomputed)
-                return f"synced/{sensor} seq {seq}: recorded but not recomputed ({n} such outputs)"
-            if mine != theirs:
-                a, b = msgspec.json.decode(theirs), msgspec.json.decode(mine)
-                for f in b:
-                    if a.get(f) != b.get(f):
-                        return (
-                            f"synced/{sensor} seq {seq}: field {f!r} differs: "
-                            f"recorded {a.get(f)!r}, recomputed {b.get(f)!r}"
-                        )
-                return f"synced/{sensor} seq {seq}: payload bytes differ"
-        return None
+        return self.difference
 
 
-def rerun_timesync(session: Session) -> TimesyncRerun:
+def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
+    sensor, seq = key
+    a, b = msgspec.json.decode(recorded), msgspec.json.decode(mine)
+    for f in b:
+        if a.get(f) != b.get(f):
+            return (
+                f"synced/{sensor} seq {seq}: field {f!r} differs: "
+                f"recorded {a.get(f)!r}, recomputed {b.get(f)!r}"
+            )
+    return f"synced/{sensor} seq {seq}: payload bytes differ"
+
+
+HORIZON_NS = 60_000_000_000  # log time a re-stamp waits for its recorded copy before it is let go
+
+
+def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -> TimesyncRerun:
+    """Feed time tags and raw measurements, in file order, through a fresh ``TimeSyncCore``.
+
+    Streams: the records before the run's ``RunInfo`` (which configures the core) are held until
+    it comes; after that only re-stamps waiting for their recorded copy (or the other way round)
+    are held (``Matcher``), and a re-stamp nobody recorded is let go after ``HORIZON_NS`` of log
+    time. A recorded copy that comes even later is reported as a difference, never skipped.
+    """
     from hil.runtime.scenario_io import scenario_for_run
     from hil.timesync.config import sync_configs_for
     from hil.timesync.core import TimeSyncCore
 
-    run = run_info_from(session)
-    core: TimeSyncCore[ImuSample | GnssFix] = TimeSyncCore(sync_configs_for(scenario_for_run(run)))
-    recomputed: dict[tuple[str, int], bytes] = {}
-    recorded: dict[tuple[str, int], bytes] = {}
-    order: list[tuple[str, int]] = []
-    n_meas = n_tags = 0
+    core: TimeSyncCore[ImuSample | GnssFix] | None = None
+    held: list[Record] = []
+    matcher = Matcher(_synced_difference, "recorded", HORIZON_NS)
+    late: list[tuple[int, tuple[str, int]]] = []  # recorded after their re-stamp was let go
+    counts = {"meas": 0, "tags": 0, "out": 0, "order": 0}
+    now_ns = 0
 
     def keep(released: list[tuple[ImuSample | GnssFix, int]]) -> None:
         for m, t in released:
-            recomputed[(m.sensor, m.seq)] = encode(msgspec.structs.replace(m, stamp_ns=t))
+            matcher.recomputed((m.sensor, m.seq), encode(msgspec.structs.replace(m, stamp_ns=t)), -1, now_ns)
+            counts["out"] += 1
 
-    for r in session.records:
+    def handle(r: Record) -> None:
+        assert core is not None
         parts = r.topic.split("/")
         if len(parts) != 4:
-            continue
+            return
         kind, sensor = parts[2], parts[3]
         if kind == "timetag":
             tag = decode(TimeTag, r.payload)
             core.on_timetag(tag.sensor, tag.device_stamp_ns, tag.stamp_ns)
-            n_tags += 1
+            counts["tags"] += 1
         elif kind == "sensor" and r.schema in _RAW:
             raw = decode(_RAW[r.schema], r.payload)
             keep(core.on_measurement(raw.sensor, raw.device_stamp_ns, raw.rx_stamp_ns, raw))
-            n_meas += 1
+            counts["meas"] += 1
         elif kind == "synced" and r.schema in _RAW:
             key = (sensor, r.sequence)
-            if key not in recorded:
-                order.append(key)
-            recorded[key] = r.payload
+            counts["order"] += 1
+            if key in matcher.released:
+                late.append((counts["order"], key))
+            matcher.recorded(key, r.payload, counts["order"])
+        matcher.release_before(now_ns)
+
+    for r in records:
+        now_ns = r.log_time_ns
+        if core is None:
+            if r.topic.endswith("/run"):
+                run = decode(RunInfo, r.payload)
+                core = TimeSyncCore(sync_configs_for(scenario_for_run(run)))
+                for h in held:
+                    handle(h)
+                held.clear()
+            else:
+                held.append(r)
+                continue
+        handle(r)
+    if core is None:
+        raise RecordingError(f"{name}: no RunInfo (hil/<rig>/run): not a rig session")
     keep(core.flush())
-    return TimesyncRerun(recomputed, recorded, order, n_meas, n_tags)
+    # the first difference in file order, among differing, missing and too-late recorded outputs
+    candidates: list[tuple[int, str]] = [matcher.first] if matcher.first is not None else []
+    if matcher.recorded_pending:
+        order, (sensor, seq) = min((v[0], k) for k, v in matcher.recorded_pending.items())
+        n = len(matcher.recorded_pending)
+        text = f"synced/{sensor} seq {seq}: recorded but not recomputed ({n} such outputs)"
+        candidates.append((order, text))
+    if late:
+        order, (sensor, seq) = late[0]
+        candidates.append(
+            (
+                order,
+                f"synced/{sensor} seq {seq}: recorded more than {HORIZON_NS / 1e9:g} s of log time after "
+                f"its measurement was re-stamped ({len(late)} such outputs)",
+            )
+        )
+    diff = min(candidates)[1] if candidates else None
+    if diff is None and matcher.n_recorded == 0:
+        diff = "the recording holds no synced/<sensor> outputs to compare"
+    return TimesyncRerun(counts["meas"], counts["tags"], counts["out"], matcher.n_recorded, diff)
 
 
-def rerun_timesync_report(session: Session, verify: bool) -> tuple[int, list[str]]:
-    res = rerun_timesync(session)
+def rerun_timesync(session: Session) -> TimesyncRerun:
+    return rerun_timesync_records(session.records, str(session.path))
+
+
+def rerun_timesync_report(
+    path: str, verify: bool, on_progress: Callable[[int, int], None] | None = None
+) -> tuple[int, list[str]]:
+    stream = SessionStream(path, on_progress)
+    res = rerun_timesync_records(stream, path)
     lines = [
         f"rerun timesync: {res.measurements} raw measurements, {res.timetags} time tags, "
-        f"{len(res.recomputed)} re-stamps recomputed, {len(res.recorded)} recorded"
+        f"{res.n_recomputed} re-stamps recomputed, {res.n_recorded} recorded"
     ]
-    if session.truncated:
+    if stream.truncated:
         lines.append("note: the file is truncated; rerun covers it up to its last complete chunk")
     if not verify:
         return 0, lines
     diff = res.first_difference()
     if diff:
         return 1, [*lines, f"VERIFY FAILED: {diff}"]
-    return 0, [*lines, f"VERIFY OK: all {len(res.recorded)} recorded re-stamps are bit-identical"]
+    return 0, [*lines, f"VERIFY OK: all {res.n_recorded} recorded re-stamps are bit-identical"]
