@@ -8,6 +8,8 @@ to round-off whatever the distance.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -162,8 +164,9 @@ def lla_to_ned(
     origin_alt_m: float,
 ) -> F64:
     """Tangent-plane NED position (..., 3) of points relative to the origin."""
-    d = lla_to_ecef(lat_rad, lon_rad, alt_m) - lla_to_ecef(origin_lat_rad, origin_lon_rad, origin_alt_m)
-    return mat_vec(dcm_ecef_to_ned(origin_lat_rad, origin_lon_rad), d)
+    o_ecef, c_en = _origin_frame(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
+    d = lla_to_ecef(lat_rad, lon_rad, alt_m) - o_ecef
+    return mat_vec(c_en, d)
 
 
 def ned_to_lla(
@@ -171,10 +174,23 @@ def ned_to_lla(
 ) -> tuple[F64, F64, F64]:
     """Inverse of :func:`lla_to_ned`."""
     ned = np.asarray(pos_ned_m, dtype=float)
-    xyz = mat_vec(dcm_ecef_to_ned(origin_lat_rad, origin_lon_rad).T, ned) + lla_to_ecef(
-        origin_lat_rad, origin_lon_rad, origin_alt_m
-    )
+    o_ecef, c_en = _origin_frame(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
+    xyz = mat_vec(c_en.T, ned) + o_ecef
     return ecef_to_lla(xyz)
+
+
+@lru_cache(maxsize=64)
+def _origin_frame(lat_rad: float, lon_rad: float, alt_m: float) -> tuple[F64, F64]:
+    """The origin's ECEF position and C_en, computed once per origin (read-only, shared).
+
+    A run has one origin but converts at IMU rate; the values are exactly what each call
+    computed before, so caching them changes no bit of any output.
+    """
+    o_ecef = lla_to_ecef(lat_rad, lon_rad, alt_m)
+    c_en = dcm_ecef_to_ned(lat_rad, lon_rad)
+    o_ecef.flags.writeable = False
+    c_en.flags.writeable = False
+    return o_ecef, c_en
 
 
 def schuler_period_s(lat_rad: float = 0.0, alt_m: float = 0.0) -> float:
