@@ -200,10 +200,12 @@ class ArrivalHull:
     cur_min: tuple[int, int] | None = None
     _line: tuple[int, float, float] | None = None
     n: int = 0
+    _unordered: bool = False  # a block went back in device time since the last reset
 
     def reset(self, prior_slope: float) -> None:
         self.prior_slope = prior_slope
         self.blocks.clear()
+        self._unordered = False
         self.cur_block = None
         self.cur_min = None
         self._line = None
@@ -213,6 +215,8 @@ class ArrivalHull:
         b = x // self.cfg.hull_block_ns
         if self.cur_block is None or b != self.cur_block:
             if self.cur_min is not None:
+                if self.blocks and self.cur_min[0] < self.blocks[-1][0]:
+                    self._unordered = True
                 self.blocks.append(self.cur_min)
                 while self.blocks and self.blocks[0][0] < x - self.cfg.hull_window_ns:
                     self.blocks.popleft()
@@ -258,8 +262,15 @@ class ArrivalHull:
 
     @property
     def span_ns(self) -> int:
-        pts = [*self.blocks, *([self.cur_min] if self.cur_min is not None else [])]
-        return (max(p[0] for p in pts) - min(p[0] for p in pts)) if pts else 0
+        # Asked for on every arrival: blocks normally arrive in device-time order (a clock step
+        # resets the hull), so the extremes are the two ends; a full scan only when they did not.
+        if self.blocks and self._unordered:
+            xs = [p[0] for p in self.blocks]
+        else:
+            xs = [p[0] for p in (self.blocks[0], self.blocks[-1])] if self.blocks else []
+        if self.cur_min is not None:
+            xs.append(self.cur_min[0])
+        return (max(xs) - min(xs)) if xs else 0
 
 
 # ---------------------------------------------------------------------------------------------
