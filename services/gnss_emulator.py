@@ -102,7 +102,7 @@ class GnssEmulator(Service):
                 self._take_commands(core, dev_clock, timeline, now)
             for edge, f in timeline.edges(now):
                 self.emit_event(edge, fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin))
-            if t_pulled < min(now, end_ns):
+            if t_pulled < min(now, end_ns) and core.has_due(min(now, end_ns)):
                 t_pulled = min(now, end_ns)
                 b = core.next_batch(t_pulled)
                 for i in range(len(b.t_valid_ns)):

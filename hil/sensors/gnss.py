@@ -87,6 +87,10 @@ class GnssEmulatorCore:
                     jit[on] = ev.params["jitter_s"]
         return dpos, dvel, out, lat, jit
 
+    def has_due(self, until_t_valid_ns: int) -> bool:
+        """Whether :meth:`next_batch` would return an epoch: lets a polling caller skip empty work."""
+        return min(int(until_t_valid_ns), self.truth.duration_ns) // self.period_ns >= self.next_epoch
+
     def next_batch(self, until_t_valid_ns: int) -> GnssBatch:
         """All epochs not yet returned with validity ≤ ``until_t_valid_ns`` (and ≤ duration)."""
         last = min(int(until_t_valid_ns), self.truth.duration_ns) // self.period_ns
