@@ -58,6 +58,7 @@ DEVICE_TIMED_KINDS: dict[str, frozenset[str]] = {
 }
 # Timed faults with no meaning in `hil sim` (one process on a virtual clock): said and recorded.
 SIM_NOT_APPLICABLE = frozenset({"kill_service"})
+MAX_BURST_FRAMES = 100_000  # ~1 min of the 400 Hz IMU's frames; longer is a bus-off, say so
 SATURATE_DTHETA_RAD = 10.0  # per sample: far beyond the DBC's full scale (0.42 rad)
 SATURATE_DVEL_MPS = 1000.0  # per sample: far beyond the DBC's full scale (8.4 m/s)
 
@@ -86,11 +87,20 @@ def check_fault(kind: str, target: str, params: Mapping[str, float]) -> None:
         raise FaultError("imu_frame_loss: percent must be in [0, 100]")
     if kind == "gnss_latency" and "latency_s" not in params:
         raise FaultError("gnss_latency needs latency_s")
+    if kind == "gnss_latency" and min(params.get("latency_s", 0.0), params.get("jitter_s", 0.0)) < 0:
+        raise FaultError(
+            "gnss_latency: latency_s and jitter_s must be >= 0 (a fix cannot leave before it is valid)"
+        )
+    if kind == "can_burst_error" and not 1 <= params.get("frames", 8) <= MAX_BURST_FRAMES:
+        raise FaultError(f"can_burst_error: frames must be in [1, {MAX_BURST_FRAMES}]")
 
 
 class CommandInbox:
     """Run-time fault commands addressed to one device: checked on arrival (a bad one is counted,
-    never raised), queued from Zenoh's thread, taken by the device's own loop at its next step."""
+    never raised), queued from Zenoh's thread, taken by the device's own loop at its next step.
+
+    A command no service would take (an unknown kind, a ``clock_step`` for no sensor) is counted
+    by every inbox that sees it, so it never vanishes without a trace in some status."""
 
     def __init__(self, kinds: Iterable[str], target: str, stats: Any) -> None:
         self.kinds = frozenset(kinds)
@@ -100,15 +110,20 @@ class CommandInbox:
         self._pending: list[Any] = []
 
     def on_command(self, cmd: Any, _key: str = "") -> None:
-        if not (cmd.kind in self.kinds or (cmd.kind == "clock_step" and cmd.target == self.target)):
+        mine = cmd.kind in self.kinds or (cmd.kind == "clock_step" and cmd.target == self.target)
+        nobodys = cmd.kind not in FAULT_KINDS or (
+            cmd.kind == "clock_step" and cmd.target not in DEVICE_TIMED_KINDS
+        )
+        if not (mine or nobodys):
             return
         try:
             check_fault(cmd.kind, cmd.target, cmd.params)
         except FaultError as err:
             self.stats.error("rejected.control.fault", str(err))
             return
-        with self._lock:
-            self._pending.append(cmd)
+        if mine:
+            with self._lock:
+                self._pending.append(cmd)
 
     def __bool__(self) -> bool:
         return bool(self._pending)

@@ -261,6 +261,8 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         params["latency_s"] = _num(f"{where}.latency_s", raw.get("latency_s"))
         if "jitter_s" in raw:
             params["jitter_s"] = _num(f"{where}.jitter_s", raw["jitter_s"])
+        if min(params["latency_s"], params.get("jitter_s", 0.0)) < 0:
+            raise ScenarioError(f"{where} (gnss_latency): latency_s and jitter_s must be >= 0")
         if t1 is not None:
             raise ScenarioError(f"{where} (gnss_latency) applies from t_start_s on; drop t_end_s")
     if kind in ("imu_stuck", "imu_saturated", "can_bus_off") and t1 is None:
@@ -272,8 +274,8 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         params["percent"] = pct
     if kind == "can_burst_error":
         frames = _num(f"{where}.frames", raw.get("frames", 8))
-        if frames < 1 or t1 is not None:
-            raise ScenarioError(f"{where} (can_burst_error) takes frames >= 1 and no t_end_s")
+        if not 1 <= frames <= 100_000 or t1 is not None:
+            raise ScenarioError(f"{where} (can_burst_error) takes frames in [1, 100000] and no t_end_s")
         params["frames"] = int(frames)
     if kind == "clock_step":
         if raw.get("sensor") not in ("imu", "gnss") or t1 is not None:

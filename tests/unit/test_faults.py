@@ -3,12 +3,26 @@ scenario seed, the sample index and time, so a run and its replay lose the same 
 
 from __future__ import annotations
 
+import re
+
 import can
 import numpy as np
+import pytest
 
+from hil.bus.pubsub import Stats
 from hil.can.codec import ImuCanCodec, ImuFrameAssembler
-from hil.faults import FrameCorruptor, ImuFaults, device_timeline, edge_time_ns
-from hil.nav.scenario import ScenarioEvent
+from hil.faults import (
+    CommandInbox,
+    FaultError,
+    FrameCorruptor,
+    ImuFaults,
+    check_fault,
+    device_timeline,
+    edge_time_ns,
+)
+from hil.messages import FaultCommand
+from hil.nav.scenario import ScenarioError, ScenarioEvent, load_scenario
+from hil.runtime.scenario_io import scenario_from_text
 
 DT_NS = 2_500_000
 
@@ -78,3 +92,37 @@ def test_each_device_announces_its_own_clock_step_and_gnss_the_pulse() -> None:
         ("fault_start", "clock_step", 2_000_000_000),
     ]
     assert imu.edges(20_000_000_000) == []
+
+
+def test_bad_fault_commands_are_refused_with_a_reason_and_counted_not_raised() -> None:
+    bad = [
+        ("bogus", "", {}, "unknown fault kind"),
+        ("imu_stuck", "", {"percent": 3.0}, "unknown param"),
+        ("imu_frame_loss", "", {"percent": 140.0}, "percent must be in [0, 100]"),
+        ("gnss_jump", "", {"n_m": float("nan")}, "finite"),
+        ("gnss_latency", "", {"jitter_s": 0.1}, "needs latency_s"),
+        ("gnss_latency", "", {"latency_s": -0.2}, "must be >= 0"),
+        ("can_burst_error", "", {"frames": 0.0}, "frames must be in"),
+        ("clock_step", "fusion", {"step_s": 0.1}, "--target imu or --target gnss"),
+        ("kill_service", "", {}, "needs --target"),
+    ]
+    for kind, target, params, why in bad:
+        with pytest.raises(FaultError, match=re.escape(why)):
+            check_fault(kind, target, params)
+    stats = Stats()
+    inbox = CommandInbox({"gnss_latency"}, "gnss", stats)
+    inbox.on_command(FaultCommand(seq=0, stamp_ns=0, kind="gnss_latency", params={"latency_s": -1.0}))
+    _rates, counters, last = stats.snapshot()
+    assert counters == {"rejected.control.fault": 1} and "must be >= 0" in last and not inbox
+    # addressed to nobody: counted by every inbox that sees it; another device's command: not ours
+    for kind, target in (("bogus", ""), ("clock_step", "fusion"), ("imu_stuck", ""), ("clock_step", "imu")):
+        inbox.on_command(FaultCommand(seq=1, stamp_ns=0, kind=kind, target=target, params={"step_s": 1.0}))
+    _rates, counters, last = stats.snapshot()
+    assert counters == {"rejected.control.fault": 3} and "--target imu or --target gnss" in last and not inbox
+    base = load_scenario("straight_level").source_text
+    for event, why in (
+        ('kind = "gnss_latency"\nt_start_s = 1\nlatency_s = -0.1', "must be >= 0"),
+        ('kind = "can_burst_error"\nt_start_s = 1\nframes = 1e9', "frames in [1, 100000]"),
+    ):
+        with pytest.raises(ScenarioError, match=re.escape(why)):
+            scenario_from_text(base + "\n[[event]]\n" + event + "\n", "bad")
