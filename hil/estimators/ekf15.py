@@ -65,6 +65,27 @@ def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
     return k @ y, 0.5 * (p_new + p_new.T), nis
 
 
+def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float, bias_corr_s: float) -> F64:
+    """The 15 × 15 ``F`` of the error state (module docstring), at attitude ``c_nb``, specific
+    force ``f_n`` (NED) and latitude ``lat_rad``. A plain function so a peer filter (the ekf
+    bench's filterpy run) can be stepped with exactly the model this filter uses."""
+    w_ie = np.array([OMEGA_IE_RADPS * math.cos(lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(lat_rad)])
+    f = np.zeros((15, 15))
+    f[0:3, 3:6] = np.eye(3)  # δṗ = δv
+    f[3:6, 6:9] = skew(f_n)  # δv̇ = [f_n×] φ + C δb_a
+    f[3:6, 9:12] = c_nb
+    f[6:9, 6:9] = -skew(w_ie)  # φ̇ = −[ω_ie×] φ − C δb_g
+    f[6:9, 12:15] = -c_nb
+    f[9:15, 9:15] = -np.eye(6) / bias_corr_s
+    return f
+
+
+def transition(f: F64, dt_s: float) -> F64:
+    """``Φ = I + F Δ + (F Δ)²/2``: at Δ = 10 ms the neglected terms are O((FΔ)³) ~ 1e-9."""
+    fd = f * dt_s
+    return np.eye(f.shape[0]) + fd + 0.5 * fd @ fd
+
+
 class Ekf15:
     """The 3-D error-state EKF as an :class:`~hil.estimators.base.Estimator`.
 
@@ -146,23 +167,20 @@ class Ekf15:
             return
         dt = self._pending_dt
         c_nb = quat_to_dcm(self.ins.q_nb)
-        f_n = c_nb @ (self._pending_dv_b / dt)
-        w_ie = np.array(
-            [OMEGA_IE_RADPS * math.cos(self.ins.lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(self.ins.lat_rad)]
-        )
-        f = np.zeros((15, 15))
-        f[0:3, 3:6] = np.eye(3)  # δṗ = δv
-        f[3:6, 6:9] = skew(f_n)  # δv̇ = [f_n×] φ + C δb_a
-        f[3:6, 9:12] = c_nb
-        f[6:9, 6:9] = -skew(w_ie)  # φ̇ = −[ω_ie×] φ − C δb_g
-        f[6:9, 12:15] = -c_nb
-        f[9:15, 9:15] = -np.eye(6) / self._tau
-        fd = f * dt
-        phi = np.eye(15) + fd + 0.5 * fd @ fd  # Φ = I + FΔ + (FΔ)²/2
-        self.p = phi @ self.p @ phi.T + self._qc * dt  # P = Φ P Φ' + Q_c Δ
+        f = error_dynamics(c_nb, c_nb @ (self._pending_dv_b / dt), self.ins.lat_rad, self._tau)
+        self._predict(transition(f, dt), self._qc * dt)  # Q_d = Q_c Δ
         self._pending_dt = 0.0
         self._pending_dv_b = np.zeros(3)
         self._pending_n = 0
+
+    def _predict(self, phi: F64, qd: F64) -> None:
+        """``P = Φ P Φ' + Q_d`` (the error state itself is zero between fixes: closed loop)."""
+        self.p = phi @ self.p @ phi.T + qd
+
+    def _update(self, y: F64, h: F64, r: F64) -> F64:
+        """One measurement update of ``P`` for innovation ``y``; returns the error-state increment."""
+        ddx, self.p, _ = kf_update(self.p, y, h, r)
+        return ddx
 
     # -- GNSS fusion -----------------------------------------------------------------------------
     def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
@@ -195,8 +213,7 @@ class Ekf15:
                 self.p[idx, idx] += y * y
             else:
                 self._consecutive = 0
-            ddx, self.p, _ = kf_update(self.p, y, h, r)
-            dx = dx + ddx
+            dx = dx + self._update(y, h, r)
             self._fused += 1
         self._inject(dx)
 
