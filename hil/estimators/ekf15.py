@@ -29,6 +29,16 @@ before the sequential update
 after which δx is fed back into the strapdown and the biases and reset to zero. After
 ``max_rejects`` consecutive rejections the fix is accepted anyway (with the covariance
 inflated), so a filter that diverged does not lock itself out.
+
+GNSS slow error (optional, ``gnss_slow_sigma_m`` > 0; 21 states). A fix reports the σ of its
+white noise; a receiver's slow geometry error (the seed-000 model: a sine per axis, period of
+a few Schuler periods) is common to every fix. Folded into R it would be averaged away and the
+filter would claim a position it cannot know. As states ``[δs (3), δṡ (3)]`` with
+``δs̈ = −ω² δs`` (no process noise), prior σ² on ``s`` and (σω)² on ``ṡ``, the measurement is
+``z = p + s + w`` (velocity: ``v + ṡ + w``), the filter carries ``ŝ, ṡ̂`` (rotated exactly
+between updates, corrected like the other states), and its position covariance keeps what GNSS
+cannot separate. Off by default (the live fusion tunes from the IMU only); the default path is
+numerically the 15-state filter.
 """
 
 from __future__ import annotations
@@ -86,6 +96,17 @@ def transition(f: F64, dt_s: float) -> F64:
     return np.eye(f.shape[0]) + fd + 0.5 * fd @ fd
 
 
+def slow_augmented(f: F64, w_radps: float) -> F64:
+    """``F`` with the GNSS slow-error states appended: ``δs̈ = −ω² δs`` per axis (a sine of
+    angular frequency ω, the emulator's geometry component, which has no process noise)."""
+    n = f.shape[0]
+    out = np.zeros((n + 6, n + 6))
+    out[:n, :n] = f
+    out[n : n + 3, n + 3 : n + 6] = np.eye(3)
+    out[n + 3 : n + 6, n : n + 3] = -(w_radps**2) * np.eye(3)
+    return out
+
+
 class Ekf15:
     """The 3-D error-state EKF as an :class:`~hil.estimators.base.Estimator`.
 
@@ -110,6 +131,8 @@ class Ekf15:
         cov_every: int = 4,
         gate_chi2: float = 16.27,
         max_rejects: int = 10,
+        gnss_slow_sigma_m: float = 0.0,
+        gnss_slow_period_s: float = 12660.0,
     ) -> None:
         self.name = name
         self._init = init
@@ -133,6 +156,21 @@ class Ekf15:
             + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
         )
         self._tau = bias_corr_s
+        # Optional GNSS slow-error states (see the module docstring): [δs (3), δṡ (3)].
+        self._slow_w = 2.0 * math.pi / gnss_slow_period_s if gnss_slow_sigma_m > 0.0 else 0.0
+        self.n = 21 if self._slow_w else 15
+        self.s_hat = np.zeros(3)  # estimated slow error of the GNSS position, m
+        self.sd_hat = np.zeros(3)  # and its rate, m/s
+        if self._slow_w:
+            sig, w = gnss_slow_sigma_m, self._slow_w
+            p0 = np.zeros((21, 21))
+            p0[:15, :15] = self.p
+            p0[15:18, 15:18] = np.eye(3) * sig**2  # a sine of RMS σ: s and ṡ/ω uncorrelated, both σ²
+            p0[18:21, 18:21] = np.eye(3) * (sig * w) ** 2
+            self.p = p0
+            qc = np.zeros((21, 21))
+            qc[:15, :15] = self._qc
+            self._qc = qc  # the sine has no process noise
         self.cov_every = int(cov_every)
         self.gate_chi2 = gate_chi2
         self.max_rejects = max_rejects
@@ -168,6 +206,13 @@ class Ekf15:
         dt = self._pending_dt
         c_nb = quat_to_dcm(self.ins.q_nb)
         f = error_dynamics(c_nb, c_nb @ (self._pending_dv_b / dt), self.ins.lat_rad, self._tau)
+        if self._slow_w:
+            f = slow_augmented(f, self._slow_w)
+            c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
+            self.s_hat, self.sd_hat = (
+                c * self.s_hat + s / self._slow_w * self.sd_hat,
+                -s * self._slow_w * self.s_hat + c * self.sd_hat,
+            )
         self._predict(transition(f, dt), self._qc * dt)  # Q_d = Q_c Δ
         self._pending_dt = 0.0
         self._pending_dv_b = np.zeros(3)
@@ -188,12 +233,17 @@ class Ekf15:
         nav = self._current_nav()
         lag_s = (gnss.stamp_ns - self._stamp_ns) * 1e-9
         pos_tov = nav.pos_ned_m + nav.vel_ned_mps * lag_s  # INS at the GNSS time of validity
-        h_pos = np.hstack([np.eye(3), np.zeros((3, 12))])
-        h_vel = np.hstack([np.zeros((3, 3)), np.eye(3), np.zeros((3, 9))])
-        dx = np.zeros(15)
+        h_pos = np.zeros((3, self.n))
+        h_pos[:, 0:3] = np.eye(3)
+        h_vel = np.zeros((3, self.n))
+        h_vel[:, 3:6] = np.eye(3)
+        if self._slow_w:  # z = truth + s + w: predicted z = INS + ŝ, so y = δp + δs − w
+            h_pos[:, 15:18] = np.eye(3)
+            h_vel[:, 18:21] = np.eye(3)
+        dx = np.zeros(self.n)
         for h, y, sig, kind in (
-            (h_pos, pos_tov - gnss.pos_ned_m, gnss.pos_sigma_m, "pos"),
-            (h_vel, nav.vel_ned_mps - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
+            (h_pos, pos_tov + self.s_hat - gnss.pos_ned_m, gnss.pos_sigma_m, "pos"),
+            (h_vel, nav.vel_ned_mps + self.sd_hat - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
         ):
             r = np.diag(np.square(np.asarray(sig, float)))
             y = y - h @ dx  # sequential: innovation against the already-updated error state
@@ -209,7 +259,7 @@ class Ekf15:
                 if self._consecutive <= self.max_rejects:
                     continue
                 # Locked out: trust the measurement again, with the covariance opened up.
-                idx = np.nonzero(h.any(axis=0))[0]
+                idx = np.nonzero(h[:, :15].any(axis=0))[0]
                 self.p[idx, idx] += y * y
             else:
                 self._consecutive = 0
@@ -232,6 +282,9 @@ class Ekf15:
         self.ins = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
         self.b_a = self.b_a + dx[9:12]
         self.b_g = self.b_g + dx[12:15]
+        if self._slow_w:
+            self.s_hat = self.s_hat - dx[15:18]
+            self.sd_hat = self.sd_hat - dx[18:21]
         self._nav_dirty = True
 
     # -- outputs ---------------------------------------------------------------------------------

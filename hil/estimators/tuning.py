@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from hil.nav.scenario import GnssConfig
 from hil.nav.sensor_specs import ImuParams
 
 
@@ -38,6 +39,22 @@ def ekf15_params(imu: ImuParams) -> dict[str, Any]:
     }
 
 
-def params_for(imu: ImuParams) -> dict[str, dict[str, Any]]:
-    """Per-estimator construction parameters for a rig with this IMU."""
-    return {"ekf15": ekf15_params(imu)}
+def ekf15_gnss_params(gnss: GnssConfig) -> dict[str, Any]:
+    """The GNSS slow (geometry) error as ekf15 states, when the receiver model has one.
+
+    A fix reports the σ of its white noise only; the slow component is common to every fix, so
+    a filter that folds it into R averages it away and claims a position it cannot know. As
+    states (a sine per axis: RMS amplitude/√2, the model's period) it stays in the covariance.
+    """
+    amp = max(gnss.slow_amplitude_m)
+    if amp <= 0.0:
+        return {}
+    return {"gnss_slow_sigma_m": amp / math.sqrt(2.0), "gnss_slow_period_s": float(gnss.slow_period_s)}
+
+
+def params_for(imu: ImuParams, gnss: GnssConfig | None = None) -> dict[str, dict[str, Any]]:
+    """Per-estimator construction parameters for a rig with this IMU (and GNSS receiver model)."""
+    ekf = ekf15_params(imu)
+    if gnss is not None:
+        ekf |= ekf15_gnss_params(gnss)
+    return {"ekf15": ekf}
