@@ -23,6 +23,31 @@ Seq = Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)]
 Ns = Annotated[int, msgspec.Meta(ge=-(2**62), le=2**62)]
 Name = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
 
+#: A publisher's own counter (``hil.bus.pubsub.Publisher.next_seq``) is numbered within its
+#: process's *restart generation*: ``seq = generation * 2**32 + n``, generation 0 for the first
+#: start and N after ``hil up --restart`` restarted the service N times. So a restarted service never
+#: reuses a seq, and a reader tells a restart (a new generation, counted from 0 again) from loss (a
+#: gap within one generation): ``hil.record.completeness``. Seqs the rig derives from time or a
+#: device index (truth, IMU sample, GNSS epoch, PPS second, fusion output) carry no generation: a
+#: restart leaves a gap there -- the data nobody delivered while the process was dead.
+SEQ_GENERATION_SHIFT = 32
+_SEQ_IN_GENERATION = (1 << SEQ_GENERATION_SHIFT) - 1
+
+
+def generation_seq(generation: int, n: int) -> int:
+    """The ``n``-th seq of a publisher counter in restart ``generation``."""
+    return (generation << SEQ_GENERATION_SHIFT) | (n & _SEQ_IN_GENERATION)
+
+
+def seq_generation(seq: int) -> int:
+    """The restart generation a seq was published in (0 for derived seqs)."""
+    return seq >> SEQ_GENERATION_SHIFT
+
+
+def seq_in_generation(seq: int) -> int:
+    """A seq's number within its generation."""
+    return seq & _SEQ_IN_GENERATION
+
 
 class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Base of every contract message."""

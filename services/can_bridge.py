@@ -74,7 +74,9 @@ class CanBridge(Service):
         self.pub_tag = self.publisher(self.keys.timetag("imu"), TimeTag)
         self.publish_raw = bool(opts.get("publish_raw", True))
         self._seen_problems = 0
-        self._indexer = ImuSampleIndexer(self.nominal_dt_ns)
+        # restarted (option resume): the stream is running, wait for a SampleCount (sample_index.py)
+        self._joined_late = bool(opts.get("resume"))
+        self._indexer = ImuSampleIndexer(self.nominal_dt_ns, wait_for_count=self._joined_late)
         self._seen_status = 0
         self._seen_lost = 0
         self.emit_event("can_transport", self.transport)
@@ -91,7 +93,7 @@ class CanBridge(Service):
 
             try:
                 self.nominal_dt_ns = max(1, round(1e9 / scenario_for_run(run).imu.rate_hz))
-                self._indexer = ImuSampleIndexer(self.nominal_dt_ns)
+                self._indexer = ImuSampleIndexer(self.nominal_dt_ns, wait_for_count=self._joined_late)
             except ValueError as err:
                 self.stats.error("errors.scenario", f"IMU rate from the run's scenario: {err}")
         self._setup_dut(run)
@@ -165,8 +167,12 @@ class CanBridge(Service):
         c = self.assembler.counters
         n_status, n_lost = c["status"], c["lost_frames"] + c["incomplete_sample"]
         count = self.assembler.last_sample_count if n_status != self._seen_status else None
-        idx, dt = self._indexer.next(s.device_stamp_ns, count, n_lost != self._seen_lost)
+        step = self._indexer.next(s.device_stamp_ns, count, n_lost != self._seen_lost)
         self._seen_status, self._seen_lost = n_status, n_lost
+        if step is None:  # restarted mid-stream, no SampleCount yet: its seq would be a guess
+            self.stats.inc("dropped.can.unindexed_samples")
+            return
+        idx, dt = step
         self.pub_imu.put(
             ImuSample(
                 seq=idx,

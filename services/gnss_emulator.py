@@ -38,6 +38,9 @@ class GnssEmulator(Service):
     def __init__(self, ctx: Any) -> None:
         super().__init__(ctx)
         self._commands = CommandInbox(GNSS_FAULTS, "gnss", self.stats)
+        # seq of the next fix: the output index, derived from the scenario (not the publisher's
+        # restart-generation counter), so synced/gnss and the fusion's gnss_seq keep their meaning
+        self._fix_index = 0
 
     def _take_commands(self, core: Any, dev_clock: Any, timeline: FaultTimeline, now: int) -> None:
         from hil.nav.scenario import ScenarioEvent
@@ -91,7 +94,7 @@ class GnssEmulator(Service):
             # skip what was due while dead; the core still draws its noise (same stream after)
             t_pulled = min(now, end_ns)
             skipped = len(core.next_batch(t_pulled).t_valid_ns)
-            fix_pub._seq = skipped
+            self._fix_index = skipped
             next_pps_s = now // 1_000_000_000 + 1
             self.emit_event(
                 "resumed", f"gnss_emulator restarted at t={now / 1e9:.3f} s: resumes at fix seq {skipped}"
@@ -132,7 +135,8 @@ class GnssEmulator(Service):
     def _publish_fix(
         self, fix_pub: Any, cap_pub: Any, b: Any, i: int, dev_clock: Any, clock: RigClock
     ) -> None:
-        seq = fix_pub.next_seq()
+        seq = self._fix_index
+        self._fix_index += 1
         t_valid = int(b.t_valid_ns[i])
         rx = clock.now_ns()
         fix_pub.put(gnss_fix_msg(seq, rx, dev_clock.device_ns(t_valid), b, i))

@@ -106,7 +106,6 @@ class TimeSync(Service):
             fresh: TimeSyncCore[ImuSample | GnssFix] = TimeSyncCore(configs)
             self._publish(self.core.flush())  # anything seen before the run was announced
             self.core = fresh
-        seq: dict[str, int] = {}
         seen: dict[str, int] = {}
         tick = 0
         while not self.ctx.stop.wait(IDLE_FLUSH_S):
@@ -123,8 +122,8 @@ class TimeSync(Service):
                 pub = self.clock_pubs.get(m.sensor)
                 if pub is None:
                     pub = self.clock_pubs[m.sensor] = self.publisher(self.keys.clock(m.sensor), ClockModel)
-                seq[m.sensor] = seq.get(m.sensor, -1) + 1
-                pub.put(clock_model_msg(seq[m.sensor], clock.now_ns(), m))
+                # the publisher's counter: in this process's restart generation (service.py)
+                pub.put(clock_model_msg(pub.next_seq(), clock.now_ns(), m))
 
     def teardown(self) -> None:
         self.inbox.put(None)  # what arrived before the stop is still re-stamped

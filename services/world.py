@@ -75,7 +75,7 @@ class World(Service):
     def run_loop(self, _run: Any, _clock: Any) -> None:
         resume = self.ctx.options.get("resume_run")
         if resume:
-            self.run_pub._seq = int(resume.get("seq", 0)) + 1  # continue the announcements' seq
+            # the announcements' seq continues in this process's restart generation (service.py)
             self._run_truth(RunInfo(**resume))
             return
         deadline = time.monotonic() + self.wait_timeout_s

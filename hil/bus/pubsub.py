@@ -16,7 +16,7 @@ from typing import Any, Generic, TypeVar
 import msgspec
 import zenoh
 
-from hil.messages import Message, decode, encode
+from hil.messages import Message, decode, encode, generation_seq
 
 M = TypeVar("M", bound=Message)
 
@@ -68,7 +68,12 @@ def _kind(key: str) -> str:
 
 
 class Publisher(Generic[M]):
-    """Publishes one contract type on one key and owns that key's per-publisher ``seq``."""
+    """Publishes one contract type on one key and owns that key's per-publisher ``seq``.
+
+    ``generation``: the process's restart generation (``hil.runtime.service.restart_generation``);
+    ``next_seq`` counts within it (``hil.messages.generation_seq``), so a restarted service's
+    counters continue above everything it published before instead of repeating 0, 1, 2, ...
+    """
 
     def __init__(
         self,
@@ -80,10 +85,12 @@ class Publisher(Generic[M]):
         reliable: bool = True,
         block: bool = True,
         express: bool = False,
+        generation: int = 0,
     ) -> None:
         self.key = key
         self.cls = cls
         self.stats = stats
+        self.generation = generation
         self._seq = 0
         self._pub = session.declare_publisher(
             key,
@@ -94,7 +101,7 @@ class Publisher(Generic[M]):
         self._rate_name = "out." + _kind(key)
 
     def next_seq(self) -> int:
-        seq = self._seq
+        seq = generation_seq(self.generation, self._seq)
         self._seq += 1
         return seq
 

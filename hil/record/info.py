@@ -5,10 +5,28 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 
+import msgspec
 import numpy as np
 
 from hil.record.completeness import Completeness
-from hil.record.mcapio import Session, read_session
+from hil.record.mcapio import Record, Session, read_session
+
+
+class _Seq(msgspec.Struct):
+    seq: int
+
+
+_SEQ = msgspec.json.Decoder(_Seq)
+
+
+def record_seq(r: Record) -> int:
+    """The message's own ``seq``. MCAP's ``sequence`` field holds only its low 32 bits, which
+    drops the restart generation (``hil.messages.SEQ_GENERATION_SHIFT``): a restarted publisher
+    would read as repeating its seqs. ~1 us per message; a payload without one falls back."""
+    try:
+        return _SEQ.decode(r.payload).seq
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return r.sequence
 
 
 @dataclass
@@ -21,6 +39,7 @@ class ChannelInfo:
     last_ns: int
     missing: int
     duplicates: int
+    restarts: int = 0
 
 
 def channel_infos(session: Session) -> list[ChannelInfo]:
@@ -29,7 +48,7 @@ def channel_infos(session: Session) -> list[ChannelInfo]:
     schemas: dict[str, str] = {}
     counts: dict[str, int] = {}
     for r in session.records:
-        comp.see(r.topic, r.sequence)
+        comp.see(r.topic, record_seq(r))
         sp = spans.setdefault(r.topic, [r.publish_time_ns, r.publish_time_ns])
         sp[0] = min(sp[0], r.publish_time_ns)
         sp[1] = max(sp[1], r.publish_time_ns)
@@ -41,7 +60,7 @@ def channel_infos(session: Session) -> list[ChannelInfo]:
         n = counts[topic]
         rate = (n - 1) / ((b - a) * 1e-9) if n > 1 and b > a else 0.0
         tr = comp.topics[topic]
-        out.append(ChannelInfo(topic, schemas[topic], n, rate, a, b, tr.missing, tr.duplicates))
+        out.append(ChannelInfo(topic, schemas[topic], n, rate, a, b, tr.missing, tr.duplicates, tr.restarts))
     return out
 
 
@@ -103,11 +122,20 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         )
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
+    restarted = [c for c in infos if c.restarts]
+    if restarted:
+        # a restart is its own fact, not loss: the publisher counts again in a new generation
+        names = ", ".join(
+            f"{c.topic.split('/', 2)[-1]}" + (f" x{c.restarts}" if c.restarts > 1 else "") for c in restarted
+        )
+        lines.append(f"restarts:  {len(restarted)} publisher(s) restarted during the recording: {names}")
     lines.append("")
-    lines.append(f"{'topic':<34}{'type':<20}{'count':>8}{'rate Hz':>10}{'gaps':>7}{'dups':>6}")
+    rst = f"{'restarts':>9}" if restarted else ""
+    lines.append(f"{'topic':<34}{'type':<20}{'count':>8}{'rate Hz':>10}{'gaps':>7}{'dups':>6}{rst}")
     for c in infos:
+        rst = f"{c.restarts:>9}" if restarted else ""
         lines.append(
-            f"{c.topic:<34}{c.schema:<20}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}"
+            f"{c.topic:<34}{c.schema:<20}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}{rst}"
         )
     if accuracy:
         errs = estimator_errors(s)

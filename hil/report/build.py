@@ -263,6 +263,7 @@ def build_report(path: str | Path, out_dir: str | Path, progress: ProgressFn | N
     # topics
     if d.topics:
         rows = []
+        restarted = [t for t in d.topics if t.restarts]
         for t in d.topics:
             row = [
                 html.escape(t.topic),
@@ -274,16 +275,21 @@ def build_report(path: str | Path, out_dir: str | Path, progress: ProgressFn | N
                 str(t.duplicates),
                 str(t.undecodable),
             ]
+            if restarted:
+                row.append(str(t.restarts))
             rows.append(row)
-        body = _table(
-            ["topic", "type", "count", "rate Hz", "missing", "loss %", "duplicates", "undecodable"], rows
-        )
+        head = ["topic", "type", "count", "rate Hz", "missing", "loss %", "duplicates", "undecodable"]
+        body = _table(head + (["restarts"] if restarted else []), rows)
         lossy = [t.topic for t in d.topics if t.missing or t.undecodable]
         if lossy:
             body = _note(f"loss on {len(lossy)} topic(s): {', '.join(lossy[:8])}") + body
+        if restarted:
+            names = ", ".join(t.topic for t in restarted[:8])
+            body = _note(f"{len(restarted)} publisher(s) restarted during the recording: {names}") + body
         body += (
             '<p class="small">Rate from the recorder receive times; missing from gaps in each publisher\'s '
-            "<code>seq</code>.</p>"
+            "<code>seq</code>; a restarted service counts again in a new generation "
+            "(a restart, not loss: see <code>hil.record.completeness</code>).</p>"
         )
         sections.append(_Section("topics", "Message rates and loss", body))
     # services

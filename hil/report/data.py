@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 import msgspec
 import numpy as np
 
-from hil.messages import Event, RunInfo, ServiceStatus
+from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus
 from hil.report.scan import Batch, Channel, scan
 
 F64 = np.ndarray  # float64 arrays; shapes in the field comments
@@ -88,6 +88,7 @@ class TopicStats:
     missing: int
     duplicates: int
     undecodable: int = 0
+    restarts: int = 0  # the publisher counted again in a new restart generation
 
     @property
     def rate_hz(self) -> float:
@@ -190,7 +191,12 @@ class _Collector:
         self.schema.setdefault(topic, schema)
         if not b.sequences.size:
             return
-        self.seqs.setdefault(topic, []).append(b.sequences)
+        if schema in _COUNTER_SCHEMAS:
+            # numbered by the publisher's own counter: the restart generation lives above the 32
+            # bits of MCAP's sequence field, so the seq comes from the payload
+            self.seqs.setdefault(topic, []).append(_payload_seqs(b))
+        else:
+            self.seqs.setdefault(topic, []).append(b.sequences)
         lt = self.times.setdefault(topic, [int(b.log_times[0]), int(b.log_times[0])])
         lt[0] = min(lt[0], int(b.log_times.min()))
         lt[1] = max(lt[1], int(b.log_times.max()))
@@ -233,15 +239,60 @@ class _Collector:
             )
 
 
-_WANTED_SCHEMAS = {
-    "hil.Truth",
-    "hil.NavSolution",
-    "hil.CaptureTruth",
+# Types some publisher numbers with its own counter (hil.bus.pubsub.Publisher.next_seq), whose
+# seqs carry a restart generation (hil.messages.SEQ_GENERATION_SHIFT).
+_COUNTER_SCHEMAS = {
     "hil.CanFrame",
     "hil.Event",
     "hil.ServiceStatus",
     "hil.RunInfo",
+    "hil.ClockModel",
+    "hil.FusionJournal",
+    "hil.TimeTag",
 }
+_WANTED_SCHEMAS = {
+    "hil.Truth",
+    "hil.NavSolution",
+    "hil.CaptureTruth",
+    *_COUNTER_SCHEMAS,
+}
+
+
+class _Seq(msgspec.Struct):
+    seq: int
+
+
+_SEQS = msgspec.json.Decoder(list[_Seq])
+_SEQ = msgspec.json.Decoder(_Seq)
+
+
+def _payload_seqs(b: Batch) -> np.ndarray:
+    """The messages' own seqs (one decode call per batch); MCAP's field where a payload has none.
+    Undecodable payloads are counted where the batch is decoded for its content, not here."""
+    try:
+        return np.array([r.seq for r in _SEQS.decode(b"[" + b",".join(b.payloads) + b"]")], np.int64)
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        out = np.asarray(b.sequences, np.int64).copy()
+        for i, payload in enumerate(b.payloads):
+            with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+                out[i] = _SEQ.decode(payload).seq
+        return out
+
+
+def seq_accounting(seqs: np.ndarray) -> tuple[int, int, int]:
+    """(missing, duplicates, restarts) of one publisher's seqs, each restart generation a stream
+    of its own (as ``hil.record.completeness`` counts them while recording)."""
+    if not seqs.size:
+        return 0, 0, 0
+    gens = seqs >> SEQ_GENERATION_SHIFT
+    missing = 0
+    uniq_total = 0
+    kinds = np.unique(gens)
+    for g in kinds:
+        uniq = np.unique(seqs[gens == g])
+        uniq_total += uniq.size
+        missing += int(uniq[-1] - uniq[0] + 1 - uniq.size)
+    return missing, int(seqs.size - uniq_total), int(kinds.size - 1)
 
 
 def _wanted(ch: Channel) -> bool:
@@ -343,8 +394,7 @@ def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None
         d.status_load[svc] = (a[:, 0], a[:, 1])
     for topic in sorted(col.seqs):
         seqs = np.concatenate(col.seqs[topic])
-        uniq = np.unique(seqs)
-        missing = int(uniq[-1] - uniq[0] + 1 - uniq.size) if uniq.size else 0
+        missing, duplicates, restarts = seq_accounting(seqs)
         first, last = col.times[topic]
         d.topics.append(
             TopicStats(
@@ -354,8 +404,9 @@ def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None
                 int(first),
                 int(last),
                 missing,
-                int(seqs.size - uniq.size),
+                duplicates,
                 col.undecodable.get(topic, 0),
+                restarts,
             )
         )
     return d

@@ -315,7 +315,9 @@ def run_sim(opts: SimOptions) -> SimResult:
                             c = assembler.counters
                             n_status, n_lost = c["status"], c["lost_frames"] + c["incomplete_sample"]
                             count = assembler.last_sample_count if n_status != seen_status else None
-                            idx, dtn = indexer.next(item.device_stamp_ns, count, n_lost != seen_lost)
+                            step = indexer.next(item.device_stamp_ns, count, n_lost != seen_lost)
+                            assert step is not None  # the sim's bridge listens from the first frame
+                            idx, dtn = step
                             seen_status, seen_lost = n_status, n_lost
                             raw = ImuSample(
                                 seq=idx,

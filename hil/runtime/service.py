@@ -3,6 +3,11 @@
 A service opens one Zenoh session, publishes ``ServiceStatus`` at 1 Hz, waits for the run's
 ``RunInfo`` (time zero, scenario, speed) from ``world``, runs its loop until SIGTERM/SIGINT, then
 closes cleanly. Everything else -- the numerics -- lives in pure cores the service calls.
+
+Every publisher a service makes here counts its ``seq`` within the process's restart generation
+(``restart_generation``: ``hil up --restart`` passes the restart number as option ``resume``), so
+a restarted service's status, events, frames and clock models never repeat a seq of its previous
+life, and the recording's completeness reports the restart as one (``hil.record.completeness``).
 """
 
 from __future__ import annotations
@@ -26,6 +31,18 @@ from hil.messages import Event, Message, RunInfo, ServiceStatus
 from hil.runtime.clock import RigClock
 
 log = logging.getLogger(__name__)
+
+
+def restart_generation(options: dict[str, Any]) -> int:
+    """Which life of the service this process is: 0 at first start, N after the supervisor's N-th
+    restart (it passes option ``resume`` = N). Anything else (``true`` from a hand-written
+    ``--options``, garbage) counts as 1 or 0: never an exception, never a negative generation."""
+    value = options.get("resume", 0)
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, int) and 0 <= value < 2**30:
+        return value
+    return 0
 
 
 @dataclass
@@ -57,14 +74,20 @@ class Service:
         self.clock: RigClock | None = None
         self.run_info: RunInfo | None = None
         self._t0 = time.monotonic()
-        self._status_pub = Publisher(ctx.session, self.keys.status(self.name), ServiceStatus, reliable=True)
-        self._event_pub = Publisher(ctx.session, self.keys.event(self.name), Event, stats=self.stats)
+        self.generation = restart_generation(ctx.options)
+        self._status_pub = Publisher(
+            ctx.session, self.keys.status(self.name), ServiceStatus, reliable=True, generation=self.generation
+        )
+        self._event_pub = Publisher(
+            ctx.session, self.keys.event(self.name), Event, stats=self.stats, generation=self.generation
+        )
         self._run_event = threading.Event()
         self._subs: list[Any] = []
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
 
     # -- helpers for subclasses -------------------------------------------------------------
     def publisher(self, key: str, cls: type[Message], **kw: Any) -> Publisher[Any]:
+        kw.setdefault("generation", self.generation)
         return Publisher(self.ctx.session, key, cls, self.stats, **kw)
 
     def subscribe(self, key: str, cls: type[Message], handler: Callable[[Any, str], None]) -> None:
@@ -90,19 +113,19 @@ class Service:
 
     # -- lifecycle --------------------------------------------------------------------------
     def _status_loop(self) -> None:
-        seq = 0
+        first = True
         supervisor = int(os.environ.get("HIL_SUPERVISOR_PID", "0") or 0)
-        while not self.ctx.stop.wait(0 if seq == 0 else 1.0):
+        while not self.ctx.stop.wait(0 if first else 1.0):
+            first = False
             if supervisor and os.getppid() != supervisor:
                 # `hil up` is gone (killed with SIGKILL, say): an orphaned service stops itself
                 # rather than run on, unsupervised and unrecorded.
                 self.stats.error("errors.orphaned", f"supervisor {supervisor} is gone; stopping")
                 self.ctx.stop.set()
                 break
-            self.publish_status(seq)
-            seq += 1
+            self.publish_status(self._status_pub.next_seq())
         self.state = "stopping"
-        self.publish_status(seq)
+        self.publish_status(self._status_pub.next_seq())
 
     def publish_status(self, seq: int) -> None:
         rates, counters, last_error = self.stats.snapshot()
@@ -167,8 +190,15 @@ class Service:
         """Declare subscriptions/publishers before the run starts (so nothing is missed)."""
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
-        """Default: event-driven services just wait for stop."""
-        self.ctx.stop.wait()
+        """Default: event-driven services just wait for stop.
+
+        With a timeout, in a loop: Python runs signal handlers in the main thread only, and a
+        SIGTERM the kernel hands to another thread (Zenoh's, the writer's) does not interrupt a
+        main thread blocked in an untimed wait -- the service then never stopped (seen on the
+        recorder: SIGTERM right after SIGCONT, until the supervisor's SIGKILL).
+        """
+        while not self.ctx.stop.wait(0.5):
+            pass
 
     def teardown(self) -> None:
         """Flush and close outputs."""

@@ -6,6 +6,12 @@ seq gap and every sample still pairs exactly with its true capture time. The DBC
 carries ``SampleCount`` (the index of the sample that follows it, modulo 2^32, sent every 40th
 sample and on a status change); between status frames the index advances by one per sample, or,
 after the assembler reported lost frames, by the device-time gap in nominal periods.
+
+A receiver that joins a running stream (a restarted ``can_bridge``) does not know the index until
+the next status frame: numbering from 0 would reuse the seqs of samples published before its
+restart and pair them with the wrong capture truth. With ``wait_for_count`` it returns None for
+those samples (at most ``status_every`` - 1 of them, 0.1 s at 400 Hz), which the caller counts and
+drops.
 """
 
 from __future__ import annotations
@@ -22,11 +28,15 @@ class ImuSampleIndexer:
     nominal_dt_ns: int
     index: int | None = None
     prev_device_ns: int | None = None
+    wait_for_count: bool = False  # joined mid-stream: no index before the first SampleCount
 
-    def next(self, device_ns: int, sample_count: int | None, lost: bool) -> tuple[int, int]:
+    def next(self, device_ns: int, sample_count: int | None, lost: bool) -> tuple[int, int] | None:
         """``sample_count``: SampleCount of a status frame received since the previous sample
-        (it names this sample), else None; ``lost``: frames were lost since the previous one."""
+        (it names this sample), else None; ``lost``: frames were lost since the previous one.
+        None: the index is not known yet (``wait_for_count`` and no SampleCount seen)."""
         prev_i, prev_d = self.index, self.prev_device_ns
+        if prev_i is None and sample_count is None and self.wait_for_count:
+            return None
         if sample_count is not None:
             if prev_i is None:
                 idx = sample_count

@@ -131,3 +131,54 @@ def test_a_service_that_keeps_dying_ends_the_run_non_zero_with_the_reason(tmp_pa
     assert "imu_emulator died (killed by signal 9) after 1 restart(s) of 1 allowed" in stderr, stderr[-2000:]
     kinds = {(e.source, e.kind) for e in _events(out)}
     assert ("imu_emulator", "service_restarted") in kinds and ("imu_emulator", "run_failed") in kinds
+
+
+def test_a_restart_reads_as_a_restart_in_the_completeness_and_the_downtime_as_loss(tmp_path: Path) -> None:
+    # GIVEN a run allowing one restart, in which the bridge and timesync have published for a while
+    out = tmp_path / "g.mcap"
+    rig = Rig("genrig", out, "--duration", "14", "--restart", "1")
+    pids = {svc: rig.running_pid(svc) for svc in ("can_bridge", "timesync")}
+    time.sleep(3.0)
+    # WHEN both are SIGKILLed (the recorder keeps recording) and come back
+    for pid in pids.values():
+        os.kill(pid, signal.SIGKILL)
+    for svc, pid in pids.items():
+        rig.running_pid(svc, not_pid=pid)
+    rc, stdout, stderr = rig.finish()
+    assert rc == 0, stdout[-3000:] + stderr[-3000:]
+    s = read_session(out)
+    topics = s.meta("completeness", "topics")
+    # THEN each of their publishers reads as restarted once, in a second generation counted from
+    # 0 again: no duplicates, no disorder and no loss charged to the restart itself
+    bridge_pubs = ("status/can_bridge", "event/can_bridge", "can/vcan0", "timetag/imu")
+    timesync_pubs = ("status/timesync", "clock/imu", "clock/gnss")
+    restarted = {f"hil/genrig/{t}" for t in (*bridge_pubs, *timesync_pubs)}
+    assert {k for k, v in topics.items() if v["restarts"]} == restarted, topics
+    for key in restarted:
+        tr = topics[key]
+        assert (tr["restarts"], tr["generation"], tr["duplicates"], tr["out_of_order"]) == (1, 1, 0, 0), (
+            key,
+            tr,
+        )
+        assert [g["generation"] for g in tr["generations"]] == [0, 1] and tr["missing"] == 0, (key, tr)
+    assert not [k for k, v in topics.items() if v["duplicates"]], topics
+    # ... while what nobody delivered during the downtime is loss: one gap in the IMU samples the
+    # dead bridge did not decode (a few seconds at 400 Hz) and in the fixes timesync did not re-stamp,
+    # and the restarted bridge reused no sample seq (it waits for the device's SampleCount)
+    imu = topics["hil/genrig/sensor/imu"]
+    assert (imu["restarts"], imu["gaps"], imu["duplicates"], imu["out_of_order"]) == (0, 1, 0, 0), imu
+    ((a, b),) = imu["gap_ranges"]
+    assert 100 < imu["missing"] == b - a + 1 < 8 * 400 and a > 2 * 400, imu
+    gnss = topics["hil/genrig/synced/gnss"]
+    assert gnss["restarts"] == 0 and gnss["gaps"] >= 1 and gnss["missing"] > 0, gnss
+    assert s.meta("completeness", "replay_ready") is False  # data was lost: honest
+    bridge = [decode(ServiceStatus, r.payload) for r in s.by_topic("hil/genrig/status/can_bridge")]
+    assert bridge[-1].counters.get("dropped.can.unindexed_samples", 0) < 40
+    # the restarts are on record, and hil info says so instead of showing duplicates
+    kinds = {(e.source, e.kind) for e in _events(out)}
+    assert ("can_bridge", "service_restarted") in kinds and ("timesync", "service_restarted") in kinds
+    info = subprocess.run(hil_cmd("info", str(out)), cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert info.returncode == 0, info.stderr
+    assert "restarts:  7 publisher(s) restarted during the recording" in info.stdout, info.stdout
+    rows = [ln.split() for ln in info.stdout.splitlines() if ln.startswith("hil/genrig/")]
+    assert rows and all(r[5] == "0" for r in rows), info.stdout  # the dups column

@@ -51,3 +51,52 @@ def test_lockstep_ack_round_trips_and_rejects_garbage() -> None:
     assert decode_ack(encode_ack(12345)) == 12345
     for bad in (b"", b"-1", b"1e3", b"x", b"9" * 30, b"\xff"):
         assert decode_ack(bad) is None
+
+
+def test_a_restarted_publisher_is_a_new_generation_not_loss_duplicates_or_disorder() -> None:
+    from hil.messages import generation_seq
+
+    t = SeqTracker()
+    for n in range(50):  # first process: 0..49; it dies after 49 (whatever it sent last arrived)
+        t.see(generation_seq(0, n))
+    for n in range(3, 40):  # restarted: its first three were published before we were routed
+        t.see(generation_seq(1, n))
+    assert (t.restarts, t.missing, t.duplicates, t.out_of_order, t.gaps) == (1, 0, 0, 0, 0)
+    assert t.generation == 1 and t.last == generation_seq(1, 39)
+    # loss inside the new generation is loss, counted and named in that generation's numbers
+    t.see(generation_seq(1, 45))
+    s = t.summary()
+    assert (t.missing, t.gap_ranges) == (5, [(generation_seq(1, 40), generation_seq(1, 44))])
+    assert s["generations"] == [
+        {"generation": 0, "first": 0, "last": 49, "count": 50, "missing": 0},
+        {"generation": 1, "first": 3, "last": 45, "count": 38, "missing": 5},
+    ]
+    # a straggler of the dead process arriving late is out of order, not a new restart
+    t.see(generation_seq(0, 20))
+    assert (t.restarts, t.out_of_order, t.duplicates) == (1, 1, 0)
+
+
+def test_derived_seqs_keep_showing_the_downtime_as_a_gap() -> None:
+    # IMU samples are numbered by the device's sample index: a restart is a gap, data lost
+    t = SeqTracker()
+    for k in [*range(0, 1000), *range(1400, 1500)]:
+        t.see(k)
+    assert (t.restarts, t.missing, t.gap_ranges) == (0, 400, [(1000, 1399)])
+    c = Completeness()
+    for n in (0, 1, 2):
+        c.see("hil/r/status/fusion", n)
+    c.see("hil/r/status/fusion", 1 << 32)
+    assert c.restarts() == {"hil/r/status/fusion": 1} and c.total_missing() == 0
+
+
+def test_the_report_counts_a_restart_as_the_recorder_does() -> None:
+    import numpy as np
+
+    from hil.messages import generation_seq
+    from hil.report.data import seq_accounting
+
+    seqs = [*range(0, 50), *range(52, 60), *(generation_seq(1, n) for n in range(0, 30)), 55]
+    t = SeqTracker()
+    for s in seqs:
+        t.see(s)
+    assert seq_accounting(np.array(seqs, np.int64)) == (t.missing, 1, t.restarts) == (2, 1, 1)

@@ -94,6 +94,15 @@ def test_sample_index_follows_sample_count_and_shows_loss_as_a_gap() -> None:
     assert ix.next(2_002_500_000, (2**32) + 6 - 2**32, False)[0] == 6
 
 
+def test_a_receiver_that_joined_mid_stream_waits_for_the_sample_count() -> None:
+    # a restarted bridge: numbering from 0 would reuse the seqs of samples sent before its restart
+    ix = ImuSampleIndexer(2_500_000, wait_for_count=True)
+    assert ix.next(9_000_000_000, None, False) is None
+    assert ix.next(9_002_500_000, None, False) is None
+    assert ix.next(9_005_000_000, 3602, False) == (3602, 2_500_000)
+    assert ix.next(9_007_500_000, None, False) == (3603, 2_500_000)
+
+
 def test_sim_recording_pairs_every_synced_measurement_with_capture_truth(tmp_path: Path) -> None:
     from hil.record.mcapio import read_session
     from hil.runtime.offline import SimOptions, run_sim
