@@ -8,11 +8,15 @@ Loss is measured twice, because each measure sees what the other cannot:
 
 - per-publisher ``seq`` gaps (``hil.record.completeness``) see every loss between a publisher and
   the file, whatever transport the publisher used;
-- with option ``zenoh_advanced`` the subscription is a Zenoh *advanced* subscriber with
-  heartbeat recovery, whose sample-miss listener reports samples Zenoh itself knows it did not
-  deliver (from publishers declared as ``AdvancedPublisher`` with miss detection), including a
-  lost *last* sample, which no seq gap can show. It is off by default: through a router it lost
-  samples a plain subscriber received (see ``setup``).
+- Zenoh's own sample-miss detection (option ``zenoh_advanced``, default on): the subscription is
+  a ``zenoh.ext`` advanced subscriber with heartbeat recovery. The rig's publishers are advanced
+  publishers with miss detection and a small cache (``hil.bus.pubsub.declare_publisher``), so a
+  gap in a publisher's sequence is first recovered from its cache and what cannot be recovered
+  is reported by the sample-miss listener -- a lost *last* sample included, which no seq gap can
+  show. Samples that carry no Zenoh sequence number (a plain publisher: not the rig's) are
+  counted as ``zenoh_unsequenced``: Zenoh cannot see their misses, and through a router the
+  advanced subscriber can even drop them (``hil/bus/pubsub.py`` says why); their seq still can.
+  ``zenoh_advanced: false`` subscribes plainly.
 
 Both go into status every second (``missing``, ``zenoh_missed``) and into the file's
 ``completeness`` metadata at a clean stop, with ``replay_ready`` true only when both are zero.
@@ -42,7 +46,7 @@ from hil.bus.keys import type_for_key
 from hil.bus.pubsub import MAX_PAYLOAD_BYTES
 from hil.messages import RunInfo, decode
 from hil.record.completeness import Completeness
-from hil.record.mcapio import RecordingError, SessionWriter
+from hil.record.mcapio import RecordingError, SessionWriter, split_part_path
 from hil.runtime.clock import wall_ns
 from hil.runtime.service import Service, run_service
 
@@ -75,10 +79,18 @@ class Recorder(Service):
         self._pending: list[tuple[str, bytes, int]] = []
         self.written = 0
         self.bytes_written = 0
-        self.zenoh_missed: dict[str, int] = {}
+        self.zenoh_missed: dict[str, int] = {}  # per key (or publisher id, if its key is unknown)
+        self.zenoh_unsequenced = 0
+        self._source_key: dict[str, str] = {}  # Zenoh publisher id -> its key, to name a miss
+        self._keys_sourced: set[str] = set()
+        self._advanced = bool(ctx.options.get("zenoh_advanced", True))
+        self._miss: zext.SampleMissListener[None] | None = None
         self._miss_lock = threading.Lock()
         self._peak_queue = 0
         self._write_failed = False
+        self._last_rx = time.monotonic()  # when the last sample came in (the stop waits for quiet)
+        self._abort = threading.Event()  # the stop deadline passed: the writer stops
+        self.unwritten_at_stop = 0
 
     # The base class sets ``state`` to "running" after setup(); a recorder that cannot write must
     # keep saying "degraded" for as long as it lives, so the state is derived, not assigned.
@@ -105,36 +117,46 @@ class Recorder(Service):
         except RecordingError as err:
             self.state = "degraded"
             self.stats.error("errors.recording_path", str(err))
-        if self.ctx.options.get("zenoh_advanced", False):
+        if self._advanced:
+            # The callback only enqueues (an unbounded SimpleQueue): nothing between Zenoh and the
+            # writer thread can drop. Heartbeat recovery: a gap in a publisher's sequence is
+            # queried from its cache before it is reported as missed.
             self._sub = zext.declare_advanced_subscriber(
                 self.ctx.session,
                 self.keys.all(),
                 self._on_sample,
-                recovery=zext.RecoveryConfig(heartbeat=True),
+                recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
             self._miss = self._sub.sample_miss_listener(self._on_miss)
         else:
-            # Default: a plain subscriber. Measured with zenoh 1.10.2 through a router (`hil up`
-            # with HIL_ZENOH_MODE=client, 20 s): the advanced subscriber lost 207 samples that a
-            # plain one received in full, and the rig's publishers are plain publishers, so its
-            # miss listener had nothing to report. Seq gaps are the loss measure.
             self._sub = self.ctx.session.declare_subscriber(self.keys.all(), self._on_sample)
         self._writer_thread.start()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Zenoh's thread: stamp and enqueue only; never raise into Zenoh.
         try:
-            self.queue.put((str(sample.key_expr), sample.payload.to_bytes(), wall_ns()))
+            key = str(sample.key_expr)
+            self.queue.put((key, sample.payload.to_bytes(), wall_ns()))
+            self._last_rx = time.monotonic()
+            if self._advanced:
+                info = sample.source_info
+                if info is None:
+                    self.zenoh_unsequenced += 1
+                elif info.source_sn == 0 or key not in self._keys_sourced:
+                    # a publisher's first sample (or the first we saw): remember its key for misses
+                    self._source_key[str(info.source_id)] = key
+                    self._keys_sourced.add(key)
         except Exception as err:
             self.stats.error("errors.enqueue", f"{type(err).__name__}: {err}")
 
     def _on_miss(self, miss: zext.Miss) -> None:
-        """Zenoh says ``miss.nb`` samples of one advanced publisher never reached us."""
+        """Zenoh says ``miss.nb`` samples of one advanced publisher never reached us (nor its cache)."""
         source = str(miss.source)
+        key = self._source_key.get(source, source)
         with self._miss_lock:
-            self.zenoh_missed[source] = self.zenoh_missed.get(source, 0) + int(miss.nb)
-        self.stats.error("zenoh_missed_events", f"Zenoh sample miss: {miss.nb} samples from {source}")
+            self.zenoh_missed[key] = self.zenoh_missed.get(key, 0) + int(miss.nb)
+        self.stats.error("zenoh_missed_events", f"Zenoh sample miss: {miss.nb} samples of {key}")
 
     def total_zenoh_missed(self) -> int:
         with self._miss_lock:
@@ -155,6 +177,7 @@ class Recorder(Service):
             "queue_peak": self._peak_queue,
             "missing": self.completeness.total_missing(),
             "zenoh_missed": self.total_zenoh_missed(),
+            "zenoh_unsequenced": self.zenoh_unsequenced,
             "recording": 0 if self.writer is None else 1,
             **totals,
         }
@@ -248,8 +271,7 @@ class Recorder(Service):
 
     def part_path(self, part: int | None = None) -> Path:
         """Part 0 is the requested path; later parts are ``<stem>_0001<suffix>``, ..."""
-        k = self.part if part is None else part
-        return self.path if k == 0 else self.path.with_name(f"{self.path.stem}_{k:04d}{self.path.suffix}")
+        return split_part_path(self.path, self.part if part is None else part)
 
     def _due_split(self) -> bool:
         if self.writer is None or self._run is None:
@@ -279,7 +301,7 @@ class Recorder(Service):
 
     def _write_loop(self) -> None:
         last_flush = time.monotonic()
-        while True:
+        while not self._abort.is_set():
             try:
                 item = self.queue.get(timeout=0.2)
             except queue.Empty:
@@ -301,15 +323,38 @@ class Recorder(Service):
                     self._fail(err)
 
     def teardown(self) -> None:
-        # Let the last samples arrive, then drain the queue and finish the file.
-        time.sleep(float(self.ctx.options.get("drain_s", 0.5)))
+        """Let the last samples arrive, write every one of them, then finish the file.
+
+        Why not a fixed pause: under load the recorder can be seconds behind a burst (samples in
+        Zenoh's buffers and in the queue), and whatever is dropped at the stop is the *tail* of
+        every stream, which no seq gap shows. So: wait until nothing has arrived for ``drain_s``
+        (at most ``drain_max_s``), then let the writer empty the queue (at most
+        ``stop_timeout_s``, inside the supervisor's 30 s); what is still queued then is counted
+        (``unwritten_at_stop`` in status and summary, ``replay_ready`` false), never silent.
+        """
+        opts = self.ctx.options
+        quiet_s = float(opts.get("drain_s", 0.5))
+        give_up = time.monotonic() + float(opts.get("drain_max_s", 5.0))
+        time.sleep(quiet_s)
+        while time.monotonic() - self._last_rx < quiet_s and time.monotonic() < give_up:
+            time.sleep(0.05)
         try:
-            self._miss.undeclare()
+            if self._miss is not None:
+                self._miss.undeclare()
             self._sub.undeclare()
         except Exception as err:  # a session already closing must not cost us the summary
             self.stats.error("errors.undeclare", f"{type(err).__name__}: {err}")
         self.queue.put(None)
-        self._writer_thread.join(timeout=30)
+        self._writer_thread.join(timeout=float(opts.get("stop_timeout_s", 20.0)))
+        if self._writer_thread.is_alive():
+            self._abort.set()  # the writer stops after the message in hand
+            self._writer_thread.join(timeout=5.0)
+            self.unwritten_at_stop = max(0, self.queue.qsize() - 1)  # the None sentinel is not a message
+            self.stats.error(
+                "errors.stop_timeout",
+                f"{self.unwritten_at_stop} received messages were still queued at the stop deadline "
+                "and were not written",
+            )
         if self.writer is None:
             return
         try:
@@ -330,17 +375,19 @@ class Recorder(Service):
             "bytes": self.bytes_written,
             "missing": missing,
             "zenoh_missed": zmissed,
-            "zenoh_missed_by_source": by_source,
+            "zenoh_missed_by_key": by_source,
+            "zenoh_unsequenced": self.zenoh_unsequenced,
+            "zenoh_miss_detection": self._advanced,
             "queue_peak": self._peak_queue,
-            "replay_ready": missing == 0 and zmissed == 0 and self._run is not None,
+            "unwritten_at_stop": self.unwritten_at_stop,
+            "replay_ready": missing == 0
+            and zmissed == 0
+            and not self.unwritten_at_stop
+            and self._run is not None,
             "parts": self.part + 1,
             "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
             "method": "seq gaps per publisher"
-            + (
-                " + zenoh.ext advanced subscriber sample-miss listener"
-                if self.ctx.options.get("zenoh_advanced")
-                else ""
-            ),
+            + (" + zenoh.ext advanced subscriber sample-miss listener" if self._advanced else ""),
         }
 
 
@@ -353,5 +400,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--path", default="recordings/session.mcap")
     ap.add_argument("--split-mb", type=float, default=0.0, help="start a new part after this many MB")
     ap.add_argument("--split-s", type=float, default=0.0, help="start a new part after this many seconds")
+    ap.add_argument(
+        "--no-zenoh-miss-detection", action="store_true", help="a plain Zenoh subscriber (seq gaps only)"
+    )
     a = ap.parse_args(argv)
-    return run_service(Recorder, a.rig, {"path": a.path, "split_mb": a.split_mb, "split_s": a.split_s})
+    opts = {
+        "path": a.path,
+        "split_mb": a.split_mb,
+        "split_s": a.split_s,
+        "zenoh_advanced": not a.no_zenoh_miss_detection,
+    }
+    return run_service(Recorder, a.rig, opts)

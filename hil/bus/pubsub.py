@@ -4,10 +4,22 @@ A payload that does not decode is counted (``rejected.<key-kind>.<reason>``) and
 the service's last error; it is never raised into Zenoh's thread. Sensor streams are declared
 reliable with blocking congestion control, so a slow consumer shows as back-pressure on the
 producer instead of silently lost samples.
+
+Publishers are Zenoh *advanced* publishers with sample-miss detection (``declare_publisher``):
+each sample carries the publisher's id and a sequence number, a sporadic heartbeat carries the
+last one, and a small cache lets an advanced subscriber (the recorder) recover what it missed,
+so Zenoh itself can say what never arrived -- a lost last sample included. It also keeps the
+recorder's advanced subscriber from dropping samples: without a sequence number, a sample
+routed through a router carries only the router's timestamp, and zenoh-ext's advanced subscriber
+delivers timestamped samples of one timestamp source in increasing order only, silently dropping
+any that two router links interleave (zenoh-ext ``advanced_subscriber.rs``, ``handle_sample``:
+measured, 19 of 9000 samples from three plain publishers lost through a router, 0 of 9000 from
+advanced ones). ``HIL_ZENOH_MISS_DETECTION=0`` declares plain publishers instead.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -15,12 +27,53 @@ from typing import Any, Generic, TypeVar
 
 import msgspec
 import zenoh
+import zenoh.ext as zext
 
 from hil.messages import Message, decode, encode, generation_seq
 
 M = TypeVar("M", bound=Message)
 
 MAX_PAYLOAD_BYTES = 64 * 1024  # no contract message comes near this; larger is an attack or a bug
+
+MISS_DETECTION_ENV = "HIL_ZENOH_MISS_DETECTION"
+MISS_CACHE_SAMPLES = 256  # per publisher: 0.64 s of the 400 Hz IMU stream, ~64 kB
+MISS_HEARTBEAT_S = 1.0  # sporadic: sent only when the last seq changed since the previous one
+
+
+def miss_detection_enabled() -> bool:
+    """Whether publishers get sample-miss detection (``HIL_ZENOH_MISS_DETECTION``, default on)."""
+    return os.environ.get(MISS_DETECTION_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def declare_publisher(
+    session: zenoh.Session,
+    key: str,
+    *,
+    reliable: bool = True,
+    block: bool = True,
+    express: bool = False,
+    miss_detection: bool | None = None,
+) -> zenoh.Publisher | zext.AdvancedPublisher:
+    """A Zenoh publisher for rig traffic: advanced, with miss detection, unless turned off.
+
+    ``miss_detection`` None follows ``HIL_ZENOH_MISS_DETECTION``. Measured cost per put with a
+    256-sample cache: ~0.1 us of CPU over a plain publisher's ~1.2 us.
+    """
+    reliability = zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT
+    congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+    if not (miss_detection_enabled() if miss_detection is None else miss_detection):
+        return session.declare_publisher(
+            key, reliability=reliability, congestion_control=congestion, express=express
+        )
+    return zext.declare_advanced_publisher(
+        session,
+        key,
+        reliability=reliability,
+        congestion_control=congestion,
+        express=express,
+        cache=zext.CacheConfig(MISS_CACHE_SAMPLES),
+        sample_miss_detection=zext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=MISS_HEARTBEAT_S),
+    )
 
 
 class Stats:
@@ -85,6 +138,7 @@ class Publisher(Generic[M]):
         reliable: bool = True,
         block: bool = True,
         express: bool = False,
+        miss_detection: bool | None = None,
         generation: int = 0,
     ) -> None:
         self.key = key
@@ -92,11 +146,8 @@ class Publisher(Generic[M]):
         self.stats = stats
         self.generation = generation
         self._seq = 0
-        self._pub = session.declare_publisher(
-            key,
-            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
-            express=express,
+        self._pub = declare_publisher(
+            session, key, reliable=reliable, block=block, express=express, miss_detection=miss_detection
         )
         self._rate_name = "out." + _kind(key)
 

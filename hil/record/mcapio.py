@@ -39,6 +39,19 @@ class RecordingError(ValueError):
     """
 
 
+def split_part_path(path: Path, part: int) -> Path:
+    """Where a split recording's part ``part`` goes: part 0 is ``path``, then ``<stem>_0001<suffix>``, ..."""
+    return path if part == 0 else path.with_name(f"{path.stem}_{part:04d}{path.suffix}")
+
+
+def split_parts(path: Path) -> list[Path]:
+    """The further parts of a recording split by size or duration (``<stem>_0001.mcap``, ...), in order."""
+    parts: list[Path] = []
+    while split_part_path(path, len(parts) + 1).is_file():
+        parts.append(split_part_path(path, len(parts) + 1))
+    return parts
+
+
 def _u64(ns: int) -> int:
     return 0 if ns < 0 else min(ns, _U64_MAX)
 
@@ -246,13 +259,24 @@ class SessionStream:
     ``truncated`` and ``truncation_reason`` are filled as the reading goes and are complete once
     the iteration has ended. An unreadable file raises ``RecordingError`` like ``read_session``.
     Iterating again reads the file again.
+
+    ``follow_parts``: a recording split by size or duration (``<stem>_0001.mcap``, ...) is read on
+    through its parts, in order -- the recorder rotates between two messages, so the parts end
+    to end are the session's one sequence of messages.
     """
 
-    def __init__(self, path: str | Path, on_progress: Callable[[int, int], None] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        on_progress: Callable[[int, int], None] | None = None,
+        *,
+        follow_parts: bool = False,
+    ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise RecordingError(f"no recording at {self.path}")
         self.on_progress = on_progress
+        self.paths = [self.path, *(split_parts(self.path) if follow_parts else [])]
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False
         self.truncation_reason = ""
@@ -261,18 +285,27 @@ class SessionStream:
         self.metadata = {}
         self.truncated = False
         self.truncation_reason = ""
-        n = 0
-        for kind, rec in iter_records(self.path, self.on_progress):
-            if kind == "message":
-                n += 1
-                yield rec
-            elif kind == "metadata":
-                self.metadata[rec.name] = dict(rec.metadata)
-            elif kind == "truncated":
-                self.truncated = True
-                self.truncation_reason = rec
-        if not n and self.truncated and not self.metadata:
-            raise RecordingError(f"{self.path} is not a readable MCAP file ({self.truncation_reason})")
+        sizes = [p.stat().st_size for p in self.paths]
+        for k, path in enumerate(self.paths):
+            n = 0
+            for kind, rec in iter_records(path, self._progress(sum(sizes[:k]), sum(sizes))):
+                if kind == "message":
+                    n += 1
+                    yield rec
+                elif kind == "metadata":
+                    self.metadata[rec.name] = dict(rec.metadata)
+                elif kind == "truncated":
+                    self.truncated = True
+                    self.truncation_reason = f"{path.name}: {rec}"
+            if not n and self.truncated and not self.metadata:
+                raise RecordingError(f"{path} is not a readable MCAP file ({self.truncation_reason})")
+
+    def _progress(self, before: int, total: int) -> Callable[[int, int], None] | None:
+        """Progress over all parts: a part's byte position plus the parts before it."""
+        report = self.on_progress
+        if report is None:
+            return None
+        return lambda done, _size: report(before + done, total)
 
 
 def read_session(path: str | Path) -> Session:

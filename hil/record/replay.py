@@ -38,8 +38,10 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import zenoh
+import zenoh.ext as zext
 
 from hil.bus.keys import rekey
+from hil.bus.pubsub import declare_publisher
 from hil.record.lockstep import ack_key, decode_ack
 from hil.record.mcapio import Record, RecordingError, iter_records
 
@@ -297,20 +299,19 @@ def replay(
     sel = Selector(opts)
     pacer = Pacer(opts.rate, opts.afap or opts.step, stop)
     stats = ReplayStats()
-    pubs: dict[str, zenoh.Publisher] = {}
+    pubs: dict[str, zenoh.Publisher | zext.AdvancedPublisher] = {}
     dropped = journaled_drops(path) if opts.lockstep else set()
     gate: LockstepGate | None = None
     target_rig: str | None = opts.rig
     progress = Progress(progress_out or sys.stderr, recorded_span_ns(path), opts.progress)
     ask = step_input or input
 
-    def publisher(topic: str) -> zenoh.Publisher:
+    def publisher(topic: str) -> zenoh.Publisher | zext.AdvancedPublisher:
         pub = pubs.get(topic)
         if pub is None:
             key = rekey(topic, opts.rig) if opts.rig and topic.startswith("hil/") else topic
-            pub = pubs[topic] = session.declare_publisher(
-                key, reliability=zenoh.Reliability.RELIABLE, congestion_control=zenoh.CongestionControl.BLOCK
-            )
+            # as the rig's own publishers: reliable, blocking, with Zenoh sample-miss detection
+            pub = pubs[topic] = declare_publisher(session, key)
         return pub
 
     t_start = time.monotonic()
