@@ -42,6 +42,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.nav.scenario import load_scenario
     from hil.record.info import describe
+    from hil.record.mcapio import split_parts
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
@@ -64,6 +65,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         dut_mapping=str(Path(a.dut).resolve()) if a.dut else None,
         dut_emulator=a.dut_emulator,
         imu_rate_hz=a.imu_rate,
+        split_mb=a.split_mb or 0.0,
+        split_s=a.split_s or 0.0,
+        zenoh_miss_detection=not a.no_zenoh_miss_detection,
     )
     if a.imu_rate is not None:
         from hil.nav.scenario import scenario_overrides
@@ -88,6 +92,10 @@ def cmd_up(a: argparse.Namespace) -> int:
     if record.exists():
         print()
         print(describe(str(record)))
+        splits = split_parts(record)
+        if splits:
+            names = ", ".join(map(str, splits))
+            print(f"hil up: the recording continues in {len(splits)} more part(s): {names}")
         for part in sup.record_parts:
             state = "present" if part.exists() else "MISSING"
             print(f"hil up: a restarted recorder continued in {part} ({state})")
@@ -288,6 +296,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
     import time
 
     from hil.bus.keys import Keys, check_name
+    from hil.bus.pubsub import declare_publisher
     from hil.bus.session import BusConfig, open_session
     from hil.faults import FaultError, check_fault
     from hil.messages import FaultCommand, encode
@@ -316,7 +325,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
     )
     session = open_session(BusConfig.from_env())
     try:
-        pub = session.declare_publisher(Keys(a.rig).control("fault"))
+        pub = declare_publisher(session, Keys(a.rig).control("fault"))  # as every rig publisher
         time.sleep(a.wait)  # let the session find the rig's subscribers before the one put
         pub.put(encode(cmd))
         time.sleep(0.2)
@@ -352,6 +361,23 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
     up.add_argument("--dut-emulator", action="store_true", help="also run an emulated unit for --dut")
+    up.add_argument(
+        "--split-mb",
+        type=positive_float,
+        default=None,
+        help="start a new recording part (<stem>_0001.mcap, ...) after this many MB",
+    )
+    up.add_argument(
+        "--split-s",
+        type=positive_float,
+        default=None,
+        help="start a new recording part after this many seconds",
+    )
+    up.add_argument(
+        "--no-zenoh-miss-detection",
+        action="store_true",
+        help="plain Zenoh publishers and a plain recorder subscriber (seq gaps remain the loss measure)",
+    )
     up.set_defaults(func=cmd_up)
 
     sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")

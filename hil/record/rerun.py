@@ -336,12 +336,12 @@ def rerun_fusion_file(
     Returns the result, the stream (truncation, metadata) and a note ("" or why the whole file
     was needed).
     """
-    stream = SessionStream(path, on_progress)
+    stream = SessionStream(path, on_progress, follow_parts=True)
     window_ns = None if window_s is None else round(window_s * 1e9)
     try:
         return rerun_fusion_records(stream, window_ns=window_ns, name=str(path)), stream, ""
     except OutOfWindow as why:
-        stream = SessionStream(path, on_progress)
+        stream = SessionStream(path, on_progress, follow_parts=True)
         res = rerun_fusion_records(stream, window_ns=None, name=str(path))
         note = f"{why} (out of order by more than {window_s:g} s): reran with the whole file in memory"
         return res, stream, note
@@ -368,6 +368,8 @@ def rerun(
     ]
     if note:
         lines.append(f"note: {note}")
+    if len(stream.paths) > 1:
+        lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
     if stream.truncated:
         lines.append(
             "note: the file is truncated (its recorder did not finish it); "

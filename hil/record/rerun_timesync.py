@@ -151,12 +151,14 @@ def rerun_timesync(session: Session) -> TimesyncRerun:
 def rerun_timesync_report(
     path: str, verify: bool, on_progress: Callable[[int, int], None] | None = None
 ) -> tuple[int, list[str]]:
-    stream = SessionStream(path, on_progress)
+    stream = SessionStream(path, on_progress, follow_parts=True)
     res = rerun_timesync_records(stream, path)
     lines = [
         f"rerun timesync: {res.measurements} raw measurements, {res.timetags} time tags, "
         f"{res.n_recomputed} re-stamps recomputed, {res.n_recorded} recorded"
     ]
+    if len(stream.paths) > 1:
+        lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
     if stream.truncated:
         lines.append("note: the file is truncated; rerun covers it up to its last complete chunk")
     if not verify:

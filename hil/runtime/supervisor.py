@@ -23,7 +23,7 @@ from typing import IO, Any
 import numpy as np
 
 from hil.bus.keys import Keys
-from hil.bus.pubsub import Publisher, Stats, Subscriber
+from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
 from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
 from hil.runtime.clock import RigClock
@@ -63,6 +63,9 @@ class UpOptions:
     imu_rate_hz: int | None = None  # override the scenario's IMU rate (soak/load benches)
     dut_mapping: str | None = None  # a device under test on the IMU's CAN bus (can_bridge decodes it)
     dut_emulator: bool = False  # start the emulated unit (services/dut_emulator.py) too
+    split_mb: float = 0.0  # the recorder starts a new part after this many MB (0: one file)
+    split_s: float = 0.0  # ... or after this many seconds
+    zenoh_miss_detection: bool = True  # advanced publishers + the recorder's sample-miss listener
 
 
 @dataclass
@@ -250,7 +253,11 @@ class Supervisor:
                 base["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
         elif name == "recorder":
             path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
-            base = {"path": str(path)}
+            base = {"path": str(path), "zenoh_advanced": o.zenoh_miss_detection}
+            if o.split_mb:
+                base["split_mb"] = o.split_mb
+            if o.split_s:
+                base["split_s"] = o.split_s
         elif name in ("imu_emulator", "can_bridge", "dut_emulator"):
             base = {"channel": o.channel, "interface": o.can_interface, "fd": o.fd}
             if name != "imu_emulator" and o.dut_mapping:
@@ -322,6 +329,8 @@ class Supervisor:
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
         env["HIL_SUPERVISOR_PID"] = str(os.getpid())  # children stop themselves if we vanish
+        if not self.opts.zenoh_miss_detection:
+            env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
         env.setdefault("PYTHONUNBUFFERED", "1")
         cmd = [
             sys.executable,
@@ -353,7 +362,9 @@ class Supervisor:
             Subscriber(session, keys.truth(), Truth, self.view.on_truth, stats),
             Subscriber(session, keys.nav("*"), NavSolution, self.view.on_nav, stats),
         ]
-        self._event_pub = Publisher(session, keys.event("supervisor"), Event, stats)
+        self._event_pub = Publisher(
+            session, keys.event("supervisor"), Event, stats, miss_detection=o.zenoh_miss_detection
+        )
         subs.append(Subscriber(session, keys.control("fault"), FaultCommand, self._on_fault, stats))
         self._schedule_scenario_kills()
         prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
