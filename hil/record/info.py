@@ -115,6 +115,9 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         extra = ""
         if "zenoh_missed" in comp:
             extra += f" zenoh_missed={comp.get('zenoh_missed')}"
+        for what in ("zenoh_unsequenced", "unwritten_at_stop"):  # shown when they say something
+            if comp.get(what) not in (None, "0"):
+                extra += f" {what}={comp.get(what)}"
         if comp.get("parts") not in (None, "1"):
             extra += f" split part={comp.get('part')}"
         lines.append(
