@@ -312,7 +312,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
         if not sep:
             raise UserError(f"--param {item!r}: expected NAME=NUMBER")
     try:
-        check_fault(a.kind, a.target, params)
+        check_fault(a.kind, a.target, params, a.duration)
     except FaultError as err:
         raise UserError(str(err)) from None
     cmd = FaultCommand(

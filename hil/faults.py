@@ -27,6 +27,7 @@ it says so and records ``fault_ignored`` rather than dropping them silently.
 from __future__ import annotations
 
 import json
+import math
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -67,8 +68,15 @@ class FaultError(ValueError):
     """A fault command that cannot be applied; the message says which field and why."""
 
 
-def check_fault(kind: str, target: str, params: Mapping[str, float]) -> None:
+MAX_DURATION_S = 1e6  # what hil.FaultCommand.duration_s accepts on the wire
+
+
+def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s: float = 0.0) -> None:
     """Validate a command before it is sent (``hil fault``) or applied (the services)."""
+    if not (math.isfinite(duration_s) and 0.0 <= duration_s <= MAX_DURATION_S):
+        raise FaultError(
+            f"duration must be in [0, {MAX_DURATION_S:g}] s (0: to the end / now), got {duration_s}"
+        )
     if kind not in FAULT_KINDS:
         raise FaultError(f"unknown fault kind {kind!r}; known: {sorted(FAULT_KINDS)}")
     allowed = FAULT_KINDS[kind][1]

@@ -109,6 +109,9 @@ def test_bad_fault_commands_are_refused_with_a_reason_and_counted_not_raised() -
     for kind, target, params, why in bad:
         with pytest.raises(FaultError, match=re.escape(why)):
             check_fault(kind, target, params)
+    for duration in (-1.0, float("inf"), 2e6):
+        with pytest.raises(FaultError, match="duration must be in"):
+            check_fault("imu_stuck", "", {}, duration)
     stats = Stats()
     inbox = CommandInbox({"gnss_latency"}, "gnss", stats)
     inbox.on_command(FaultCommand(seq=0, stamp_ns=0, kind="gnss_latency", params={"latency_s": -1.0}))
