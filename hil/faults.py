@@ -14,8 +14,9 @@ The service that applies a fault publishes ``hil.Event`` ``fault_start``/``fault
 
 :class:`ImuFaults` is the IMU emulator's part (no I/O, no clock): per sample it says whether
 the sample is lost (``imu_frame_loss``, ``can_bus_off``), what to send instead (``imu_stuck``,
-``imu_saturated``) and how many frames to corrupt on the wire (``can_burst_error``: the bridge
-rejects them on CRC); :class:`FrameCorruptor` does the corrupting. The live emulator and ``hil
+``imu_saturated``), how many frames to corrupt on the wire (``can_burst_error``: the bridge
+rejects them on CRC) and how long to hold its frames (``can_latency``); :class:`FrameCorruptor`
+does the corrupting, :class:`DelayLine` the holding (in order, seeded jitter). The live emulator and ``hil
 sim`` both call these two, so a fault has one implementation whichever executor runs it.
 :func:`device_timeline` is what each emulator announces: its own kinds plus the timed
 ``clock_step`` of its sensor (the step itself is applied by ``hil.sensors.clock``).
@@ -29,9 +30,10 @@ from __future__ import annotations
 import json
 import math
 import threading
+from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -46,6 +48,7 @@ FAULT_KINDS: dict[str, tuple[str, frozenset[str]]] = {
     "imu_saturated": ("imu_emulator", frozenset()),
     "can_burst_error": ("imu_emulator", frozenset({"frames"})),
     "can_bus_off": ("imu_emulator", frozenset()),
+    "can_latency": ("imu_emulator", frozenset({"latency_s", "jitter_s"})),
     "clock_step": ("<target>_emulator", frozenset({"step_s"})),  # target: imu | gnss
     "kill_service": ("supervisor", frozenset()),  # target: a service name
 }
@@ -62,12 +65,16 @@ SIM_NOT_APPLICABLE = frozenset({"kill_service"})
 MAX_BURST_FRAMES = 100_000  # ~1 min of the 400 Hz IMU's frames; longer is a bus-off, say so
 SATURATE_DTHETA_RAD = 10.0  # per sample: far beyond the DBC's full scale (0.42 rad)
 SATURATE_DVEL_MPS = 1000.0  # per sample: far beyond the DBC's full scale (8.4 m/s)
+# can_latency: beyond this a "latency" is an outage (and 10 s of held frames at 2 kHz is already
+# 80 000 frames in the emulator's memory); refused rather than silently buffered
+MAX_TRANSPORT_DELAY_S = 10.0
 
 
 class FaultError(ValueError):
     """A fault command that cannot be applied; the message says which field and why."""
 
 
+T = TypeVar("T")
 MAX_DURATION_S = 1e6  # what hil.FaultCommand.duration_s accepts on the wire
 
 
@@ -101,6 +108,28 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
         )
     if kind == "can_burst_error" and not 1 <= params.get("frames", 8) <= MAX_BURST_FRAMES:
         raise FaultError(f"can_burst_error: frames must be in [1, {MAX_BURST_FRAMES}]")
+    if kind == "can_latency":
+        if "latency_s" not in params:
+            raise FaultError("can_latency needs latency_s")
+        problem = transport_delay_problem(params["latency_s"], params.get("jitter_s", 0.0))
+        if problem:
+            raise FaultError(f"can_latency: {problem}")
+
+
+def transport_delay_problem(latency_s: float, jitter_s: float) -> str | None:
+    """Why a ``can_latency`` (latency, jitter) pair cannot be applied, or None; shared by the
+    scenario loader and :func:`check_fault` so both refuse the same values with the same words."""
+    if latency_s < 0 or jitter_s < 0:
+        return (
+            "latency_s and jitter_s must be >= 0 (a frame cannot leave before its capture), "
+            f"got {latency_s}, {jitter_s}"
+        )
+    if latency_s + jitter_s > MAX_TRANSPORT_DELAY_S:
+        return (
+            f"latency_s + jitter_s must be <= {MAX_TRANSPORT_DELAY_S:g} s (longer is an outage: use "
+            f"can_bus_off), got {latency_s + jitter_s:g} s"
+        )
+    return None
 
 
 class CommandInbox:
@@ -260,6 +289,58 @@ class FrameCorruptor:
         return True
 
 
+class DelayLine(Generic[T]):
+    """``can_latency`` on the wire: a sample's frames leave ``latency + jitter·U`` after their
+    capture (U uniform in [0, 1) from a seeded generator), never before the previous sample's.
+
+    Why the max with the previous release: one CAN node's frames go through one transmit queue
+    and the bus does not reorder them, so jitter delays a frame but cannot let it overtake an
+    earlier one; a sample drawn early simply waits behind the one before it (its delay is then
+    above ``latency + jitter``, never below ``latency``). Once the window ends (latency 0) the
+    held frames drain in order and the next sample leaves at its capture again.
+
+    Pure: no clock, no I/O. The caller says when it is (``due(now)``); the live emulator pushes
+    each sample's frames and sends what is due, ``hil sim`` uses the same release times, so a
+    scenario's delays are the same ones whichever executor runs it (same seed, same draws).
+    """
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.last_release_ns = -(2**62)
+        self._held: deque[tuple[int, T]] = deque()
+        self.delayed = 0  # items pushed with a non-zero latency or jitter
+
+    def release_ns(self, capture_ns: int, latency_ns: int, jitter_ns: int) -> int:
+        """When an item captured at ``capture_ns`` leaves; draws from the generator only when
+        ``jitter_ns`` > 0, so samples outside a jitter window never shift the stream."""
+        extra = round(jitter_ns * float(self.rng.random())) if jitter_ns > 0 else 0
+        if latency_ns or jitter_ns:
+            self.delayed += 1
+        t = max(self.last_release_ns, capture_ns + latency_ns + extra)
+        self.last_release_ns = t
+        return t
+
+    def push(self, capture_ns: int, latency_ns: int, jitter_ns: int, item: T) -> int:
+        """Hold ``item`` until its release time (returned)."""
+        t = self.release_ns(capture_ns, latency_ns, jitter_ns)
+        self._held.append((t, item))
+        return t
+
+    def due(self, now_ns: int) -> list[T]:
+        """The held items whose release time is at or before ``now_ns``, in order."""
+        out: list[T] = []
+        q = self._held
+        while q and q[0][0] <= now_ns:
+            out.append(q.popleft()[1])
+        return out
+
+    def next_release_ns(self) -> int | None:
+        return self._held[0][0] if self._held else None
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+
 @dataclass
 class ImuAction:
     """What to do with one IMU sample."""
@@ -269,6 +350,8 @@ class ImuAction:
     dvel_b_mps: np.ndarray
     corrupt_frames: int = 0  # corrupt this many of the next frames on the wire (CRC fails)
     reason: str = ""  # why not sent
+    latency_ns: int = 0  # can_latency: hold the sample's frames this long after capture ...
+    jitter_ns: int = 0  # ... plus up to this much more (DelayLine draws it)
 
 
 class ImuFaults:
@@ -297,6 +380,9 @@ class ImuFaults:
                 # beyond full scale on every axis (keeping the sign): the codec clamps and flags
                 act.dtheta_b_rad = np.where(dtheta >= 0, 1.0, -1.0) * SATURATE_DTHETA_RAD
                 act.dvel_b_mps = np.where(dvel >= 0, 1.0, -1.0) * SATURATE_DVEL_MPS
+            elif f.kind == "can_latency":  # overlapping windows add up
+                act.latency_ns += round(float(f.params.get("latency_s", 0.0)) * 1e9)
+                act.jitter_ns += round(float(f.params.get("jitter_s", 0.0)) * 1e9)
             elif f.kind == "can_burst_error" and not f.fired:
                 act.corrupt_frames += int(f.params.get("frames", 8))
                 f.fired = True

@@ -19,7 +19,7 @@ import argparse
 import logging
 from typing import Any
 
-from hil.faults import IMU_FAULTS, CommandInbox, ImuFaults, fault_detail
+from hil.faults import IMU_FAULTS, CommandInbox, DelayLine, ImuFaults, fault_detail
 from hil.messages import CaptureTruth, FaultCommand, RunInfo
 from hil.runtime.clock import RigClock
 from hil.runtime.scenario_io import scenario_for_run
@@ -85,11 +85,20 @@ class ImuEmulator(Service):
         batch = None
         i = 0
         faults = ImuFaults(s.seed, s.events)
+        # can_latency: every sample's frames go through the delay line (released at once when no
+        # window is active); the sync frame does not -- it is the time tag (see below)
+        delay: DelayLine[list[Any]] = DelayLine(sensor_rng(s.seed, "imu.can_latency"))
+        self._delay = delay
         try:
             while k < n_total and not self.ctx.stop.is_set():
-                due = min(clock.now_ns() // dt_ns, n_total) - k
+                now = clock.now_ns()
+                for frames in delay.due(now):
+                    node.send_frames(frames)
+                due = min(now // dt_ns, n_total) - k
                 if due <= 0:
-                    clock.sleep_until((k + 1) * dt_ns, self.ctx.stop)
+                    wake = (k + 1) * dt_ns
+                    held = delay.next_release_ns()
+                    clock.sleep_until(wake if held is None else min(wake, held), self.ctx.stop)
                     continue
                 for _ in range(due):
                     if batch is None or i >= len(batch.t_ns):
@@ -105,13 +114,24 @@ class ImuEmulator(Service):
                     if act.corrupt_frames:
                         node.corrupt_next(act.corrupt_frames)
                     if act.send and (k + 1) % sync_every == 0:
-                        node.send_sync(dev)  # the sync edge is this capture: its frame goes first
-                    node.send_sample(dev, act.dtheta_b_rad, act.dvel_b_mps, drop=not act.send)
+                        # the sync edge is this capture: its frame goes first and is never held
+                        # by can_latency -- it is the time tag the rig's sync measures the
+                        # transport against, so a held data path shows as late arrivals
+                        node.send_sync(dev)
+                    frames = node.encode_sample(dev, act.dtheta_b_rad, act.dvel_b_mps, drop=not act.send)
+                    if frames is not None:
+                        delay.push(t_true, act.latency_ns, act.jitter_ns, frames)
+                        for ready in delay.due(now):  # no can_latency: this sample, now
+                            node.send_frames(ready)
                     if not act.send:
                         self.stats.inc(f"fault.imu_samples_not_sent.{act.reason}")
                     cap_pub.put(CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true))
                     i += 1
                     k += 1
+            while delay and not self.ctx.stop.is_set():  # the last samples' held frames
+                clock.sleep_until(delay.next_release_ns() or 0, self.ctx.stop)
+                for frames in delay.due(clock.now_ns()):
+                    node.send_frames(frames)
             self.ctx.stop.wait()
         finally:
             bus.shutdown()
@@ -131,6 +151,9 @@ class ImuEmulator(Service):
             return {}
         out = dict(node.counters())
         out["bus_load_permille"] = int(node.bus_load() * 1000)
+        delay = getattr(self, "_delay", None)
+        if delay is not None and delay.delayed:
+            out["fault.can_latency.delayed_samples"] = delay.delayed  # pushed with latency/jitter
         return out
 
 

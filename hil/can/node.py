@@ -104,6 +104,21 @@ class ImuCanNode:
         ``drop``: encode (the device's counters and SampleCount advance) but do not transmit --
         an injected frame loss or bus-off, which the receiver sees as counter jumps.
         """
+        frames = self.encode_sample(device_stamp_ns, dtheta_b_rad, dvel_b_mps, status, drop=drop)
+        return frames is not None and self.send_frames(frames)
+
+    def encode_sample(
+        self,
+        device_stamp_ns: int,
+        dtheta_b_rad: Sequence[float],
+        dvel_b_mps: Sequence[float],
+        status: int = 0,
+        *,
+        drop: bool = False,
+    ) -> list[can.Message] | None:
+        """The sample's frames, to send now or later (``send_frames``); None if it could not be
+        encoded or is ``drop``ped. Split from sending so a ``can_latency`` fault can hold the
+        frames after the device stamped and counted them, as a slow transmit path would."""
         try:
             frames = self.codec.encode_sample(
                 device_stamp_ns=device_stamp_ns,
@@ -113,12 +128,16 @@ class ImuCanNode:
             )
         except (EncodeError, TypeError, ValueError) as err:
             self._count("tx_encode_errors", f"sample not encodable: {err}")
-            return False
+            return None
         if self.codec.saturated_samples > self._counts["tx_saturated_samples"]:
             self._counts["tx_saturated_samples"] = self.codec.saturated_samples
         if drop:
             self._counts["tx_fault_dropped_samples"] += 1
-            return False
+            return None
+        return list(frames)
+
+    def send_frames(self, frames: Sequence[can.Message]) -> bool:
+        """Send one sample's encoded frames; False (and counted) if a frame was dropped."""
         ok = True
         for frame in frames:
             ok = self._send(frame) and ok

@@ -41,6 +41,7 @@ EVENT_KINDS = (
     "imu_saturated",
     "can_burst_error",
     "can_bus_off",
+    "can_latency",
     "clock_step",
     "kill_service",
 )
@@ -187,6 +188,7 @@ _EVENT_KEYS: dict[str, set[str]] = {
     "imu_saturated": set(),
     "can_burst_error": {"frames"},
     "can_bus_off": set(),
+    "can_latency": {"latency_s", "jitter_s"},
     "clock_step": {"sensor", "step_s"},
     "kill_service": {"service"},
 }
@@ -277,6 +279,14 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         if not 1 <= frames <= 100_000 or t1 is not None:
             raise ScenarioError(f"{where} (can_burst_error) takes frames in [1, 100000] and no t_end_s")
         params["frames"] = int(frames)
+    if kind == "can_latency":  # t_end_s optional: to the end of the run
+        from hil.faults import transport_delay_problem
+
+        params["latency_s"] = _num(f"{where}.latency_s", raw.get("latency_s"))
+        params["jitter_s"] = _num(f"{where}.jitter_s", raw.get("jitter_s", 0.0))
+        problem = transport_delay_problem(params["latency_s"], params["jitter_s"])
+        if problem:
+            raise ScenarioError(f"{where} (can_latency): {problem}")
     if kind == "clock_step":
         if raw.get("sensor") not in ("imu", "gnss") or t1 is not None:
             raise ScenarioError(f"{where} (clock_step) needs sensor = imu or gnss, step_s, no t_end_s")

@@ -23,6 +23,7 @@ Everything is seeded by the scenario, so the same scenario gives the same file, 
 from __future__ import annotations
 
 import heapq
+import itertools
 import sys
 import time
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from hil import __version__
 from hil.bus.keys import Keys
 from hil.faults import (
     SIM_NOT_APPLICABLE,
+    DelayLine,
     FrameCorruptor,
     ImuFaults,
     device_timeline,
@@ -240,6 +242,59 @@ def run_sim(opts: SimOptions) -> SimResult:
     indexer = ImuSampleIndexer(dt_ns)
     seen_status = seen_lost = 0
     can_last_rx = -(2**62)
+    # frames that left the emulator, not yet on the bus: (time left, order, nominal rx, frame)
+    wire: list[tuple[int, int, int, Any]] = []
+    wire_order = itertools.count()
+    can_delay: DelayLine[None] = DelayLine(sensor_rng(s.seed, "imu.can_latency"))  # as live
+    arrivals: list[tuple[int, int, ImuSample | GnssFix]] = []
+
+    def bus_deliver(t_now: int, last_rx: int) -> int:
+        """Frames that left the emulator at or before ``t_now``, in the order they left, onto
+        the FIFO bus and into the bridge's assembler and the time sync (as rx stamps them)."""
+        nonlocal seen_status, seen_lost
+        while wire and wire[0][0] <= t_now:
+            _t_emit, _o, nominal, fr = heapq.heappop(wire)
+            corruptor(fr)  # on the wire, in wire order, as the live node's _send does
+            rx = max(nominal, last_rx + CAN_FRAME_TIME_NS)  # the bus is FIFO
+            last_rx = rx
+            fr.timestamp = rx * 1e-9
+            put(out, rx, keys.can(channel), can_frame_msg(pubs.next(keys.can(channel)), rx, channel, fr))
+            for item in assembler.feed(fr):
+                if hasattr(item, "dtheta_b_rad"):
+                    c = assembler.counters
+                    n_status, n_lost = c["status"], c["lost_frames"] + c["incomplete_sample"]
+                    count = assembler.last_sample_count if n_status != seen_status else None
+                    step = indexer.next(item.device_stamp_ns, count, n_lost != seen_lost)
+                    assert step is not None  # the sim's bridge listens from the first frame
+                    idx, dtn = step
+                    seen_status, seen_lost = n_status, n_lost
+                    raw = ImuSample(
+                        seq=idx,
+                        stamp_ns=rx,
+                        device_stamp_ns=item.device_stamp_ns,
+                        rx_stamp_ns=rx,
+                        dt_ns=dtn,
+                        dtheta_b_rad=list(item.dtheta_b_rad),
+                        dvel_b_mps=list(item.dvel_b_mps),
+                        status=item.status,
+                    )
+                    put(out, rx, keys.sensor("imu"), raw)
+                    for m, t_rig in sync.on_measurement("imu", raw.device_stamp_ns, rx, raw):
+                        synced = msgspec.structs.replace(m, stamp_ns=t_rig)
+                        put(out, rx, keys.synced(m.sensor), synced)
+                        arrivals.append((rx, len(arrivals), synced))
+                else:
+                    tag = TimeTag(
+                        seq=pubs.next(keys.timetag("imu")),
+                        stamp_ns=rx,
+                        sensor="imu",
+                        kind="sync_frame",
+                        device_stamp_ns=item.device_stamp_ns,
+                    )
+                    put(out, rx, keys.timetag("imu"), tag)
+                    sync.on_timetag("imu", item.device_stamp_ns, rx)
+        return last_rx
+
     while t_win < end_ns + WINDOW_NS:
         t_end = min(t_win + WINDOW_NS, end_ns + 1)
         arrivals: list[tuple[int, int, ImuSample | GnssFix]] = []  # (rx, order, synced msg)
@@ -274,80 +329,35 @@ def run_sim(opts: SimOptions) -> SimResult:
                     event(t_true, "imu_emulator", edge, detail)
                 act = imu_faults.apply(k, t_true, batch.dtheta_b_rad[i], batch.dvel_b_mps[i])
                 corruptor.arm(act.corrupt_frames)
-                frames = []
-                # the sync edge is this sample's capture; its frame goes first, kernel-stamped
+                # the sync edge is this sample's capture; its frame goes first, kernel-stamped,
+                # and is never held by can_latency (the live emulator sends it at once too)
                 sync_first = act.send and (k + 1) % round(rate_hz) == 0
                 if sync_first:
-                    frames.append(codec.encode_sync(dev))
+                    t_sync = imu_clock.latch_ns(t_true) + can_latency_ns + CAN_FRAME_TIME_NS
+                    heapq.heappush(wire, (t_true, next(wire_order), t_sync, codec.encode_sync(dev)))
                 # encoded even when not sent: the device's counters and SampleCount advance (live too)
                 sample_frames = codec.encode_sample(
                     device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
                 )
                 if act.send:
-                    frames += sample_frames
+                    # leaves the emulator when the live DelayLine would release it (at capture
+                    # unless can_latency holds it), then the bus latency and extra delay
+                    t_emit = can_delay.release_ns(t_true, act.latency_ns, act.jitter_ns)
+                    t_burst = t_emit + can_latency_ns + round(float(extra[i]))
+                    for j, fr in enumerate(sample_frames, start=1 if sync_first else 0):
+                        nominal = t_burst + (j + 1) * CAN_FRAME_TIME_NS
+                        heapq.heappush(wire, (t_emit, next(wire_order), nominal, fr))
                 else:
                     not_sent[act.reason] = not_sent.get(act.reason, 0) + 1
-                for fr in frames:
-                    corruptor(fr)
                 put(
                     out,
                     t_true,
                     keys.capture("imu"),
                     CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true),
                 )
-                t_burst = t_true + can_latency_ns + round(float(extra[i]))
-                for j, fr in enumerate(frames):
-                    if j == 0 and sync_first:
-                        nominal = imu_clock.latch_ns(t_true) + can_latency_ns + CAN_FRAME_TIME_NS
-                    else:
-                        nominal = t_burst + (j + 1) * CAN_FRAME_TIME_NS
-                    rx = max(nominal, can_last_rx + CAN_FRAME_TIME_NS)  # the bus is FIFO
-                    can_last_rx = rx
-                    fr.timestamp = rx * 1e-9
-                    put(
-                        out,
-                        rx,
-                        keys.can(channel),
-                        can_frame_msg(pubs.next(keys.can(channel)), rx, channel, fr),
-                    )
-                    for item in assembler.feed(fr):
-                        if hasattr(item, "dtheta_b_rad"):
-                            c = assembler.counters
-                            n_status, n_lost = c["status"], c["lost_frames"] + c["incomplete_sample"]
-                            count = assembler.last_sample_count if n_status != seen_status else None
-                            step = indexer.next(item.device_stamp_ns, count, n_lost != seen_lost)
-                            assert step is not None  # the sim's bridge listens from the first frame
-                            idx, dtn = step
-                            seen_status, seen_lost = n_status, n_lost
-                            raw = ImuSample(
-                                seq=idx,
-                                stamp_ns=rx,
-                                device_stamp_ns=item.device_stamp_ns,
-                                rx_stamp_ns=rx,
-                                dt_ns=dtn,
-                                dtheta_b_rad=list(item.dtheta_b_rad),
-                                dvel_b_mps=list(item.dvel_b_mps),
-                                status=item.status,
-                            )
-                            put(out, rx, keys.sensor("imu"), raw)
-                            for m, t_rig in sync.on_measurement("imu", raw.device_stamp_ns, rx, raw):
-                                synced = msgspec.structs.replace(m, stamp_ns=t_rig)
-                                put(out, rx, keys.synced(m.sensor), synced)
-                                arrivals.append((rx, len(arrivals), synced))
-                        else:
-                            put(
-                                out,
-                                rx,
-                                keys.timetag("imu"),
-                                TimeTag(
-                                    seq=pubs.next(keys.timetag("imu")),
-                                    stamp_ns=rx,
-                                    sensor="imu",
-                                    kind="sync_frame",
-                                    device_stamp_ns=item.device_stamp_ns,
-                                ),
-                            )
-                            sync.on_timetag("imu", item.device_stamp_ns, rx)
+                # what has left the emulator by now is on the bus, in the order it left
+                can_last_rx = bus_deliver(t_true, can_last_rx)
+            can_last_rx = bus_deliver(t_end - 1, can_last_rx)
             k_imu += n_i
         # GNSS: the core applies the timed faults; the emulator announces their edges
         for edge, f in gnss_timeline.edges(min(t_end - 1, end_ns)):
@@ -432,6 +442,8 @@ def run_sim(opts: SimOptions) -> SimResult:
             tx_corrupted_frames=corruptor.corrupted,
             tx_saturated_samples=codec.saturated_samples,
         )
+        if can_delay.delayed:  # as the live emulator reports it (absent when never delayed)
+            imu_counters["fault.can_latency.delayed_samples"] = can_delay.delayed
         bridge_counters = {f"can.{k}": v for k, v in assembler.counters.items()}
         for svc, counters in (("imu_emulator", imu_counters), ("can_bridge", bridge_counters)):
             if t_end == end_ns:  # the 1 ns window of the last sample follows: it reports
