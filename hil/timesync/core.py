@@ -14,7 +14,8 @@ has one of three sources (``SyncConfig.source``):
 ``off``      no synchronisation: a measurement keeps its raw arrival stamp (the "sync off"
              baseline of the navigation comparison).
 
-The arrival hull runs for every sensor, also with tags: its residuals watch for clock steps.
+The arrival hull runs for every sensor, also with tags. Without tags (and before the first tag,
+or while a step is being recovered) its residuals watch for clock steps:
 A device step of Δ moves every later point by -Δ: a forward step puts points *below* the lower
 bound (impossible for a one-way delay: declared after ``step_confirm`` such points in a row), a
 backward step lifts the floor (declared when every residual over ``step_window_ns`` -- longer
@@ -23,6 +24,18 @@ Measurements whose residual is suspicious are *held* (FIFO) until the question i
 samples around a step are re-stamped with the mapping that fits them, never with the stale one.
 After a step the hull restarts on the new points, the Kalman filter re-initialises on the next
 tag (its drift kept), and the state reads ``step_recovering`` until then.
+
+With tags ruling (source ``timetag``, filter initialised, not recovering) arrivals alone never
+declare a step: arrival minus device time is offset *plus transport delay*, so a lifted or lowered
+delay floor (a slow gateway, a congested bus: the ``can_latency`` fault) reads exactly like a
+device step, while a tag measures the device clock itself. There the arrival residual is taken
+against the tag mapping plus the learned minimum delay, and a run of suspicious residuals (the
+same tests as above) is only a *suspicion*: a step is declared when a tag innovation outside the
+gate agrees with it (whichever comes first), or by the filter's own two consistent outliers.
+A tag that fits dismisses the suspicion. Nothing is held: the stamp comes from the tag mapping,
+which added transport delay does not move, and holding until the next tag (1 s for the IMU) would
+outlast what the fusion accepts (a 0.2 s watermark). The price of a real step is the samples
+between it and the confirming tag (at most one tag period), stamped with the old mapping.
 
 Why a hull and a Kalman filter, not one filter: tags carry a small, symmetric latch noise, for
 which least squares (the KF) is optimal; arrivals carry a one-sided, heavy-tailed delay, for
@@ -283,6 +296,7 @@ class _Held(Generic[T]):
     device_ns: int
     rx_ns: int
     resid: float
+    count_jitter: bool = True  # False: part of a suspicious run, kept out of the jitter scale
 
 
 @dataclass
@@ -300,6 +314,13 @@ class SensorSync(Generic[T]):
     recovering: bool = False
     n_arrivals: int = 0
     since_reset: int = 0  # arrivals since the start or the last step
+    # tag-ruled step watch: the current run of same-side suspicious arrival residuals
+    run_side: int = 0  # +1 above the floor (backward step?), -1 below (forward step?), 0 none
+    run_first_ns: int = 0  # device time of the run's first arrival
+    run_n: int = 0
+    run_last_ns: int = 0  # device time of its latest
+    run_min_ns: float = 0.0  # lowest residual of the run: ≈ -Δ of a step Δ (+ the least excess)
+    last_tag: tuple[int, float] | None = None  # (device, z) of the last tag
 
     def __post_init__(self) -> None:
         self.kf = TagFilter(self.cfg)
@@ -318,13 +339,68 @@ class SensorSync(Generic[T]):
             if line is not None and self.hull.span_ns >= self.cfg.min_span_ns:
                 # the hull's drift is a better prior than none (rig-device slope, in ppb)
                 self.kf.reset(line[2] * 1e9, 5_000.0)
-        verdict = self.kf.update(device_ns, float(rig_latch_ns - self.cfg.tag_latency_ns - device_ns))
-        if verdict == "step":
-            self._declare_step()
-            self.recovering = False
+        ruled = self._tag_ruled()
+        z = float(rig_latch_ns - self.cfg.tag_latency_ns - device_ns)
+        self.last_tag = (device_ns, z)
+        verdict = self.kf.update(device_ns, z)
+        if verdict == "outlier" and ruled and self._run_confirms(self.kf.last_outlier_nu):
+            # arrivals already saw a jump of this size: tag and arrivals agree, the clock stepped
+            self._tag_step()
+        elif verdict == "step":
+            self._tag_step()
         elif verdict == "init":
             self.recovering = False
+            self._end_run()
+        elif verdict == "ok" and ruled:
+            self._end_run()  # the tag fits: whatever the arrivals did was the transport
         self._refresh()
+
+    def _tag_ruled(self) -> bool:
+        """Tags decide steps and stamps: a locked-on filter that no step has invalidated."""
+        return self.cfg.source == "timetag" and self.kf.initialised and not self.recovering
+
+    def _tag_step(self) -> None:
+        """A step confirmed by a tag: forget the old clock and restart the filter on that tag."""
+        self._declare_step()
+        if self.last_tag is not None:
+            self.kf.update(*self.last_tag)  # "init": this tag is on the new clock already
+        self.recovering = not self.kf.initialised
+
+    def _end_run(self) -> None:
+        self.run_side, self.run_n = 0, 0
+
+    def _run_established(self) -> bool:
+        """The arrival tests of the arrival-only watch, applied to the current run."""
+        if self.run_side < 0:
+            return self.run_n >= self.cfg.step_confirm
+        if self.run_side > 0:
+            return (
+                self.run_n >= self.cfg.step_confirm
+                and self.run_last_ns - self.run_first_ns >= self.cfg.step_window_ns
+            )
+        return False
+
+    def _run_confirms(self, nu_ns: float) -> bool:
+        """Does a tag innovation ``nu`` (≈ -Δ after a step Δ) match the arrivals' run?
+
+        After a step Δ every arrival residual is ``excess - Δ``, so the run's lowest residual is
+        -Δ plus the least excess delay seen; the tolerance covers that excess and the tag gate.
+        """
+        if not self._run_established() or (nu_ns > 0) != (self.run_side > 0):
+            return False
+        tol = max(float(self.cfg.tag_gate_ns), 2.0 * self._thresholds()[0])
+        return abs(nu_ns - self.run_min_ns) < tol
+
+    def _thresholds(self) -> tuple[float, float]:
+        """(up, down): residual scale that counts as suspicious, from the excess-delay scale J.
+
+        One residual above 6 J happens 0.25 % of the time for an exponential-like tail; a whole
+        window of them, never. Below the floor any residual beyond J (and the floor) is suspect.
+        """
+        return (
+            max(float(self.cfg.step_floor_ns), 6.0 * self.jitter_ns),
+            max(float(self.cfg.step_floor_ns), self.jitter_ns),
+        )
 
     # -- arrivals -----------------------------------------------------------------------------
     def on_measurement(self, device_ns: int, rx_ns: int, item: T) -> list[tuple[T, int]]:
@@ -333,6 +409,8 @@ class SensorSync(Generic[T]):
             self.mapping.n_samples = self.n_arrivals
             return [(item, rx_ns)]
         y = rx_ns - device_ns
+        if self._tag_ruled():
+            return self._on_tag_ruled(device_ns, rx_ns, y, item)
         floor = self.hull.at(device_ns)
         resid = 0.0 if floor is None else y - floor
         self.held.append(_Held(item, device_ns, rx_ns, resid))
@@ -340,10 +418,7 @@ class SensorSync(Generic[T]):
         warm = self.since_reset >= 4 * self.cfg.step_confirm and self.hull.span_ns >= self.cfg.step_window_ns
         if floor is None or not warm:
             return self._release_all()
-        # Thresholds scale with the observed excess delay J (mean of an exponential-like tail):
-        # one residual above 6 J happens 0.25 % of the time; a whole window of them, never.
-        thr_up = max(float(self.cfg.step_floor_ns), 6.0 * self.jitter_ns)
-        thr_down = max(float(self.cfg.step_floor_ns), self.jitter_ns)
+        thr_up, thr_down = self._thresholds()
         held = self.held
         if resid < -thr_down:
             # below the lower bound, impossible for a one-way delay: a forward step once
@@ -366,6 +441,27 @@ class SensorSync(Generic[T]):
             return []
         return self._release_all()
 
+    def _on_tag_ruled(self, device_ns: int, rx_ns: int, y: int, item: T) -> list[tuple[T, int]]:
+        """Stamp from the tag mapping at once; arrivals only feed the hull and the step suspicion."""
+        resid = y - (self.mapping.to_rig(device_ns) - device_ns) - self.delta_ns
+        thr_up, thr_down = self._thresholds()
+        side = 1 if resid > thr_up else -1 if resid < -thr_down else 0
+        if side == 0:
+            self._end_run()
+        elif side != self.run_side:
+            self.run_side, self.run_first_ns, self.run_n, self.run_min_ns = side, device_ns, 1, resid
+        else:
+            self.run_n += 1
+            self.run_min_ns = min(self.run_min_ns, resid)
+        self.run_last_ns = device_ns
+        self.held.append(_Held(item, device_ns, rx_ns, resid, count_jitter=side == 0))
+        if side != 0 and self.kf.outliers_in_row > 0 and self._run_confirms(self.kf.last_outlier_nu):
+            # the last tag was already off by this much: arrivals confirm the tag, the clock stepped
+            self._tag_step()
+            for h in self.held:
+                h.resid, h.count_jitter = 0.0, False
+        return self._release_all()
+
     def _step_and_release(self) -> list[tuple[T, int]]:
         pts = [(h.device_ns, h.rx_ns - h.device_ns) for h in self.held]
         self._declare_step()
@@ -384,6 +480,7 @@ class SensorSync(Generic[T]):
             slope = self.kf.f_ppb * 1e-9
         self.hull.reset(slope)
         self.since_reset = 0
+        self._end_run()
         self.mapping.steps_detected += 1
         self.recovering = True
 
@@ -395,6 +492,8 @@ class SensorSync(Generic[T]):
         for h in self.held:
             self.hull.add(h.device_ns, h.rx_ns - h.device_ns)
             self.since_reset += 1
+            if not h.count_jitter:
+                continue
             # jitter scale: a running mean of the (clipped) excess delay, cumulative at first
             r = min(max(h.resid, 0.0), 10.0 * self.jitter_ns + self.cfg.step_floor_ns)
             self.jitter_ns += (r - self.jitter_ns) / min(256.0, float(self.n_arrivals))

@@ -4,6 +4,7 @@ hil sim recording."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -76,6 +77,46 @@ def test_off_keeps_arrival_stamps_and_held_items_come_back_in_order() -> None:
         out += [k for k, _ in core2.on_measurement("imu", t + 5_000_000, rx, i)]
     out += [k for k, _ in core2.flush()]
     assert out == list(range(4000)) and core2.mapping("imu").steps_detected == 0
+
+
+def _imu_stream(
+    core: TimeSyncCore[int], n: int, delay_ns: Callable[[int], int], step_at: int = -1, step_ns: int = 0
+) -> list[tuple[int, int]]:
+    """400 Hz samples and a tag every 400th (not delayed); returns (index, stamp - true capture)."""
+    out: list[tuple[int, int]] = []
+    for i in range(n):
+        t = 1_000_000_000 + i * 2_500_000  # true capture = rig time
+        dev = t - 7_000_000 + (step_ns if 0 <= step_at <= i else 0)
+        if i % 400 == 0:
+            core.on_timetag("imu", dev, t + 5_000)  # edge latched 5 µs late (the tag latency)
+        rx = t + 600_000 + delay_ns(i) + (i * 7919 % 100) * 1_000  # min delay + fault + 0-99 µs
+        out += [(k, s - (1_000_000_000 + k * 2_500_000)) for k, s in core.on_measurement("imu", dev, rx, i)]
+    return out
+
+
+def test_added_transport_delay_with_tags_is_no_step_and_moves_no_stamp() -> None:
+    # can_latency at core level: 50 ms more delay for 4 s; tags (1 Hz) not delayed
+    cfg = SyncConfig(tag_latency_ns=5_000, min_delay_ns=600_000)
+    core: TimeSyncCore[int] = TimeSyncCore({"imu": cfg})
+    out = _imu_stream(core, 12 * 400, lambda i: 50_000_000 if 2000 <= i < 3600 else 0)
+    assert [k for k, _ in out] == list(range(12 * 400))  # each released as it came: nothing held
+    assert max(abs(e) for _, e in out[400:]) < 2_000  # the tag mapping: µs, not the 50 ms
+    m = core.mapping("imu")
+    assert m.steps_detected == 0 and m.state == "locked" and m.source == "timetag"
+
+
+@pytest.mark.parametrize("step_ns", [-250_000_000, 40_000_000])
+def test_with_tags_a_real_step_is_confirmed_by_the_next_tag(step_ns: int) -> None:
+    # the same arrival signature as a delay change, but the tag agrees: a step, declared at the
+    # first tag after it (or, for a tag just before the arrivals settle, when they do)
+    core: TimeSyncCore[int] = TimeSyncCore({"imu": SyncConfig(tag_latency_ns=5_000, min_delay_ns=600_000)})
+    step_at = 2000 + 100  # 0.25 s after a tag: the next one is 0.75 s later
+    out = _imu_stream(core, 12 * 400, lambda i: 0, step_at=step_at, step_ns=step_ns)
+    assert [k for k, _ in out] == list(range(12 * 400))
+    bad = [k for k, e in out if abs(e) > 2_000]
+    assert bad and min(bad) == step_at and max(bad) < 2400  # mis-stamped only until the next tag
+    m = core.mapping("imu")
+    assert m.steps_detected == 1 and m.state == "locked" and m.source == "timetag"
 
 
 def test_lower_hull() -> None:
