@@ -205,7 +205,7 @@ def measure(duration_s: float, repeats: int, seed: int = 4) -> dict[str, Any]:
 
     e = last["ours"]
     c_nb = quat_to_dcm(e.ins.q_nb)
-    phi = transition(error_dynamics(c_nb, np.array([0.0, 0.0, -9.81]), e.ins.lat_rad, e._tau), 0.01)
+    phi = transition(error_dynamics(c_nb, np.array([0.0, 0.0, -9.81]), e.ins.lat_rad), 0.01)
     alg = algebra_costs(e.p, phi, e._qc * 0.01)
     return {
         "stream": stream,

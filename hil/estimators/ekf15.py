@@ -10,7 +10,16 @@ small gravity and Coriolis error terms dropped — they matter for hours, not fo
     δṗ = δv
     δv̇ = [f_n×] φ + C_nb δb_a + w_a           (f_n: specific force in NED)
     φ̇  = −[ω_ie×] φ − C_nb δb_g − w_g
-    δḃ = −δb / τ + w_b                          (first-order Gauss–Markov bias)
+    δḃ = w_b                                    (random constant + random walk)
+
+The IMU's bias is a turn-on constant (drawn once, the preset's 1 mg / 1 °/h) plus a slow
+Gauss–Markov wander (instability σ, correlation time τ). The estimate is held between updates,
+so the error state must not decay: a first-order Gauss–Markov ``δḃ = −δb/τ`` on the *error*
+with a held estimate tells the filter the turn-on error fades in a few τ, and its bias
+covariance shrinks to σ² in unobserved directions with no measurement at all (over-confident
+after every turn, where tilt and horizontal accelerometer bias get separated). Here the bias
+error is a random constant with a random walk of spectral density ``2σ²/τ`` (the wander's
+variance over one correlation time), which never claims more than the data gave.
 
 Rates, deliberately: the strapdown (:mod:`hil.nav.strapdown`, shared with the free INS) runs
 at every IMU step with the bias estimates removed from the increments; the covariance is
@@ -75,7 +84,7 @@ def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
     return k @ y, 0.5 * (p_new + p_new.T), nis
 
 
-def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float, bias_corr_s: float) -> F64:
+def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
     """The 15 × 15 ``F`` of the error state (module docstring), at attitude ``c_nb``, specific
     force ``f_n`` (NED) and latitude ``lat_rad``. A plain function so a peer filter (the ekf
     bench's filterpy run) can be stepped with exactly the model this filter uses."""
@@ -86,8 +95,7 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float, bias_corr_s: float) -> F
     f[3:6, 9:12] = c_nb
     f[6:9, 6:9] = -skew(w_ie)  # φ̇ = −[ω_ie×] φ − C δb_g
     f[6:9, 12:15] = -c_nb
-    f[9:15, 9:15] = -np.eye(6) / bias_corr_s
-    return f
+    return f  # δḃ = w_b: the bias rows are zero
 
 
 def transition(f: F64, dt_s: float) -> F64:
@@ -155,7 +163,6 @@ class Ekf15:
             + [2 * accel_bias_sigma_mps2**2 / bias_corr_s] * 3
             + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
         )
-        self._tau = bias_corr_s
         # Optional GNSS slow-error states (see the module docstring): [δs (3), δṡ (3)].
         self._slow_w = 2.0 * math.pi / gnss_slow_period_s if gnss_slow_sigma_m > 0.0 else 0.0
         self.n = 21 if self._slow_w else 15
@@ -205,7 +212,7 @@ class Ekf15:
             return
         dt = self._pending_dt
         c_nb = quat_to_dcm(self.ins.q_nb)
-        f = error_dynamics(c_nb, c_nb @ (self._pending_dv_b / dt), self.ins.lat_rad, self._tau)
+        f = error_dynamics(c_nb, c_nb @ (self._pending_dv_b / dt), self.ins.lat_rad)
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)

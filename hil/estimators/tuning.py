@@ -23,7 +23,8 @@ def ekf15_params(imu: ImuParams) -> dict[str, Any]:
     """Priors and noise of ekf15 from the IMU's datasheet figures (SI).
 
     Turn-on bias (fixed + random) sets the bias priors; bias instability and its correlation time
-    the Gauss-Markov bias noise; ARW/VRW the white noise. Floors keep an ideal IMU's filter from
+    the bias random walk (2σ²/τ: the wander's variance over one correlation time, see ekf15);
+    ARW/VRW the white noise. Floors keep an ideal IMU's filter from
     becoming overconfident (zero noise would freeze its gains).
     """
     gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
