@@ -475,10 +475,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--nees-duration", type=float, default=320.0, help="seconds of scenario per NEES run (default 320)"
     )
+    ap.add_argument(
+        "--nees-ablation", action="store_true", help="also the NEES ablation sets (R inflated; clean IMU)"
+    )
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
-    rep = run_all(rng, not args.no_uav, {"nees_runs": args.nees_runs, "nees_duration_s": args.nees_duration})
+    uav_kw = {
+        "nees_runs": args.nees_runs,
+        "nees_duration_s": args.nees_duration,
+        "ablation": args.nees_ablation,
+    }
+    rep = run_all(rng, not args.no_uav, uav_kw)
     md = rep.markdown() + f"\n\nRNG seed {args.seed}."
     print(md)
     if not args.no_write:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -69,3 +70,22 @@ def test_ekf15_with_slow_states_keeps_the_slow_error_in_its_covariance() -> None
         assert rms(horiz(e)) < 0.25 * SEED_GNSS_POS_SIGMA_M
     # and its NEES over the run is the lower one (the 15-state's position part is inflated)
     assert np.mean(r["nees"]["ekf15s"][late]) < np.mean(r["nees"]["ekf15"][late])
+
+
+def test_after_turn_marks_turns_and_the_next_30_s() -> None:
+    from hil.bench.seeds_uav import after_turn
+
+    t = np.arange(0.0, 100.0, 1.0)
+    rate = np.where((t >= 10) & (t < 20), 0.2, 1e-4)
+    m = after_turn(t, rate)
+    assert not m[:10].any() and m[10:50].all() and not m[50:].any()
+
+
+def test_ablation_scenario_removes_only_what_ekf15_does_not_model() -> None:
+    a = uav_scenario(50.0, 4, "seed")
+    b = uav_scenario(50.0, 4, "seed_clean")
+    assert b.gnss.lever_arm_b_m == (0.0, 0.0, 0.0) and a.gnss.lever_arm_b_m != b.gnss.lever_arm_b_m
+    assert max(b.imu.params.gyro_scale_factor_sigma) == 0.0 < max(a.imu.params.gyro_scale_factor_sigma)
+    assert b.imu.params.accel_misalignment_sigma_rad == 0.0
+    assert b.imu.params.gyro_arw_rad_rts == a.imu.params.gyro_arw_rad_rts  # the modelled noise stays
+    assert b.gnss == replace(a.gnss, lever_arm_b_m=(0.0, 0.0, 0.0))
