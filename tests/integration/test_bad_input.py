@@ -111,6 +111,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
             time.sleep(0.5)
         for reason in reasons:
             assert fusion.get(reason, 0) >= 1, (reason, [c for c in fusion if "drop" in c or "rej" in c])
+
         def rejected_by_service() -> dict[str, int]:
             return {
                 name: sum(v for c, v in st.counters.items() if c.startswith("rejected"))

@@ -34,7 +34,9 @@ def _alive(pid: int) -> bool:
 
 def test_services_stop_themselves_when_the_supervisor_is_killed(tmp_path: Path) -> None:
     sup = subprocess.Popen(
-        hil_cmd("up", "--duration", "60", "--record", str(tmp_path / "o.mcap"), "--quiet", "--rig", "orphans"),
+        hil_cmd(
+            "up", "--duration", "60", "--record", str(tmp_path / "o.mcap"), "--quiet", "--rig", "orphans"
+        ),
         cwd=REPO,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
