@@ -32,7 +32,7 @@ import can
 from hil.can.bus import open_can_bus
 from hil.can.codec import DecodedSample, ImuCanCodec, ImuFrameAssembler
 from hil.messages import CanFrame, ImuSample, NavSolution, RunInfo, TimeTag
-from hil.runtime.builders import can_frame_msg
+from hil.runtime.builders import can_frame_msg, imu_sample_msg
 from hil.runtime.clock import RigClock
 from hil.runtime.service import Service, run_service
 from hil.timesync.sample_index import ImuSampleIndexer
@@ -173,18 +173,7 @@ class CanBridge(Service):
             self.stats.inc("dropped.can.unindexed_samples")
             return
         idx, dt = step
-        self.pub_imu.put(
-            ImuSample(
-                seq=idx,
-                stamp_ns=rx_ns,
-                device_stamp_ns=s.device_stamp_ns,
-                rx_stamp_ns=rx_ns,
-                dt_ns=dt,
-                dtheta_b_rad=list(s.dtheta_b_rad),
-                dvel_b_mps=list(s.dvel_b_mps),
-                status=s.status,
-            )
-        )
+        self.pub_imu.put(imu_sample_msg(idx, rx_ns, dt, s))
         self.stats.count_rate("in.can.imu_samples")
 
     def teardown(self) -> None:

@@ -8,7 +8,7 @@ from typing import Any
 import can
 import numpy as np
 
-from hil.messages import CanFrame, ClockModel, GnssFix, Truth
+from hil.messages import CanFrame, ClockModel, GnssFix, ImuSample, Truth
 
 
 def truth_msg(seq: int, t_ns: int, b: Any, i: int) -> Truth:
@@ -76,4 +76,18 @@ def can_frame_msg(seq: int, rx_ns: int, channel: str, msg: can.Message) -> CanFr
         bitrate_switch=bool(msg.bitrate_switch),
         is_error_frame=bool(msg.is_error_frame),
         data_hex=bytes(msg.data[:64]).hex(),
+    )
+
+
+def imu_sample_msg(seq: int, rx_ns: int, dt_ns: int, s: Any) -> ImuSample:
+    """``sensor/imu`` from a reassembled CAN sample (``hil.can.codec.DecodedSample``), stamped on arrival."""
+    return ImuSample(
+        seq=seq,
+        stamp_ns=rx_ns,
+        device_stamp_ns=s.device_stamp_ns,
+        rx_stamp_ns=rx_ns,
+        dt_ns=dt_ns,
+        dtheta_b_rad=list(s.dtheta_b_rad),
+        dvel_b_mps=list(s.dvel_b_mps),
+        status=s.status,
     )

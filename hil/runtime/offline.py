@@ -58,7 +58,7 @@ from hil.messages import (
     encode,
 )
 from hil.record.mcapio import SessionWriter
-from hil.runtime.builders import can_frame_msg, clock_model_msg, gnss_fix_msg, truth_msg
+from hil.runtime.builders import can_frame_msg, clock_model_msg, gnss_fix_msg, imu_sample_msg, truth_msg
 from hil.runtime.scenario_io import run_attachments, scenario_for_run, sha256_text
 from hil.sensors.clock import CAN_FRAME_TIME_NS
 from hil.timesync.core import TimeSyncCore
@@ -268,16 +268,7 @@ def run_sim(opts: SimOptions) -> SimResult:
                     assert step is not None  # the sim's bridge listens from the first frame
                     idx, dtn = step
                     seen_status, seen_lost = n_status, n_lost
-                    raw = ImuSample(
-                        seq=idx,
-                        stamp_ns=rx,
-                        device_stamp_ns=item.device_stamp_ns,
-                        rx_stamp_ns=rx,
-                        dt_ns=dtn,
-                        dtheta_b_rad=list(item.dtheta_b_rad),
-                        dvel_b_mps=list(item.dvel_b_mps),
-                        status=item.status,
-                    )
+                    raw = imu_sample_msg(idx, rx, dtn, item)
                     put(out, rx, keys.sensor("imu"), raw)
                     for m, t_rig in sync.on_measurement("imu", raw.device_stamp_ns, rx, raw):
                         synced = msgspec.structs.replace(m, stamp_ns=t_rig)
