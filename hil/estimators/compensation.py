@@ -53,6 +53,7 @@ from hil.estimators.lti import (
     complementary3,
     forcing3,
 )
+from hil.nav.portable import dot, mm, mv, norm, solve
 from hil.nav.types import F64, NavState
 
 #: The variable-structure table of seed 000: (time since (re)start of fusion in s, F(p)).
@@ -117,7 +118,7 @@ class CompensationCore:
         # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ)
         # column × row by broadcasting: what np.outer computes, without its per-call overhead
         # (this runs per channel set at IMU rate)
-        self.x = phi @ self.x + gamma0[:, None] * self.u[None, :] + gamma1[:, None] * self.slope[None, :]
+        self.x = mm(phi, self.x) + gamma0[:, None] * self.u[None, :] + gamma1[:, None] * self.slope[None, :]
         self.u = self.u + self.slope * (h_ns * 1e-9)
 
     def _next_boundary_ns(self) -> int | None:
@@ -177,14 +178,15 @@ class CompensationCore:
     def output(self) -> F64:
         """``y = C x + D u``: the INS error estimate per channel."""
         ss = self.stages[self.stage].ss
-        return ss.c @ self.x + ss.d * self.u  # type: ignore[no-any-return]
+        return mv(self.x.T, ss.c) + ss.d * self.u
 
     def switch_to(self, stage: int) -> None:
         """Bumpless structure switch (see module docstring for the rule and why)."""
         old, new = self.stages[self.stage], self.stages[stage]
         y = self.output()
         # ẏ = C A x when C B = 0 and D = 0 (relative degree ≥ 2); else not carried (0)
-        ydot = old.ss.c @ old.ss.a @ self.x if relative_degree(old.tf) >= 2 else np.zeros_like(y)
+        ca = mv(old.ss.a.T, old.ss.c)  # row C A
+        ydot = mv(self.x.T, ca) if relative_degree(old.tf) >= 2 else np.zeros_like(y)
         n = new.ss.order
         targets = np.zeros((n, self.n_channels))
         targets[0] = y
@@ -196,13 +198,13 @@ class CompensationCore:
         u_derivs = (y, ydot)
         cak = [c]
         for _ in range(n):
-            cak.append(cak[-1] @ a)
+            cak.append(mv(a.T, cak[-1]))
         for k in range(n):
             feed = dd * u_derivs[k] if k < 2 else np.zeros_like(y)
             for j in range(min(k, 2)):
-                feed = feed + (cak[k - 1 - j] @ b) * u_derivs[j]
+                feed = feed + dot(cak[k - 1 - j], b) * u_derivs[j]
             targets[k] = targets[k] - feed
-        self.x = np.linalg.solve(new.ss.observability(), targets)
+        self.x = solve(new.ss.observability(), targets)
         self.stage = stage
         self.switches += 1
 
@@ -250,7 +252,7 @@ class CompensationEstimator:
         # position error rate): continue it as a ramp rather than holding it.
         self.core.set_input(gnss.stamp_ns, d, np.concatenate([dv, np.zeros(3)]))
         self._gnss_count += 1
-        self._last_diff_pos_m = float(np.linalg.norm(d[:3]))
+        self._last_diff_pos_m = norm(d[:3])
 
     def solution(self) -> NavState:
         if self._ins is None:

@@ -60,6 +60,7 @@ import numpy as np
 from hil.estimators.base import GnssInput, ImuInput, InitialState
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
 from hil.nav.earth import OMEGA_IE_RADPS, radii_of_curvature
+from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
 from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
 from hil.nav.types import F64, NavState
 
@@ -74,14 +75,14 @@ def skew(v: F64) -> F64:
 
 def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
     """Joseph-form update; returns ``(δx, P+, NIS)`` for innovation ``y`` (m,), ``H`` (m, n)."""
-    ph = p @ h.T
-    s = h @ ph + r  # S = H P H' + R
-    s_inv = np.linalg.inv(s)
-    nis = float(y @ s_inv @ y)
-    k = ph @ s_inv  # K = P H' S⁻¹
-    ikh = np.eye(p.shape[0]) - k @ h
-    p_new = ikh @ p @ ikh.T + k @ r @ k.T  # P = (I − K H) P (I − K H)' + K R K'
-    return k @ y, 0.5 * (p_new + p_new.T), nis
+    ph = mmt(p, h)
+    s = mm(h, ph) + r  # S = H P H' + R
+    s_inv = inv(s)
+    nis = dot(y, mv(s_inv, y))
+    k = mm(ph, s_inv)  # K = P H' S⁻¹
+    ikh = np.eye(p.shape[0]) - mm(k, h)
+    p_new = mmt(mm(ikh, p), ikh) + mmt(mm(k, r), k)  # P = (I − K H) P (I − K H)' + K R K'
+    return mv(k, y), 0.5 * (p_new + p_new.T), nis
 
 
 def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
@@ -101,7 +102,7 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
 def transition(f: F64, dt_s: float) -> F64:
     """``Φ = I + F Δ + (F Δ)²/2``: at Δ = 10 ms the neglected terms are O((FΔ)³) ~ 1e-9."""
     fd = f * dt_s
-    return np.eye(f.shape[0]) + fd + 0.5 * fd @ fd
+    return np.eye(f.shape[0]) + fd + 0.5 * mm(fd, fd)
 
 
 def slow_augmented(f: F64, w_radps: float) -> F64:
@@ -212,7 +213,7 @@ class Ekf15:
             return
         dt = self._pending_dt
         c_nb = quat_to_dcm(self.ins.q_nb)
-        f = error_dynamics(c_nb, c_nb @ (self._pending_dv_b / dt), self.ins.lat_rad)
+        f = error_dynamics(c_nb, mv(c_nb, self._pending_dv_b / dt), self.ins.lat_rad)
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
@@ -227,7 +228,7 @@ class Ekf15:
 
     def _predict(self, phi: F64, qd: F64) -> None:
         """``P = Φ P Φ' + Q_d`` (the error state itself is zero between fixes: closed loop)."""
-        self.p = phi @ self.p @ phi.T + qd
+        self.p = mmt(mm(phi, self.p), phi) + qd
 
     def _update(self, y: F64, h: F64, r: F64) -> F64:
         """One measurement update of ``P`` for innovation ``y``; returns the error-state increment."""
@@ -253,9 +254,9 @@ class Ekf15:
             (h_vel, nav.vel_ned_mps + self.sd_hat - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
         ):
             r = np.diag(np.square(np.asarray(sig, float)))
-            y = y - h @ dx  # sequential: innovation against the already-updated error state
-            s = h @ self.p @ h.T + r
-            nis = float(y @ np.linalg.solve(s, y))
+            y = y - mv(h, dx)  # sequential: innovation against the already-updated error state
+            s = mmt(mm(h, self.p), h) + r
+            nis = dot(y, solve(s, y))
             if kind == "pos":
                 self._nis_pos = nis
             else:
@@ -312,6 +313,6 @@ class Ekf15:
             "nis_vel": self._nis_vel,
             "gnss_rejected": float(self._rejects),
             "gnss_fused": float(self._fused),
-            "accel_bias_norm_mps2": float(np.linalg.norm(self.b_a)),
-            "gyro_bias_norm_radps": float(np.linalg.norm(self.b_g)),
+            "accel_bias_norm_mps2": norm(self.b_a),
+            "gyro_bias_norm_radps": norm(self.b_g),
         }

@@ -17,8 +17,10 @@ ZOH (``scipy.signal.cont2discrete(method="zoh")``, which gives the same ``Φ`` a
 would delay a drifting INS error by half a GNSS interval (an error of rate·Δt/2: 30 m for the
 seed-000 INS drifting at 60 m/s with 1 Hz GNSS); Tustin would warp the frequency axis and
 forward Euler is unstable for ``h > 2T`` (T = 0.5 s in the first variable-structure stage
-against a 1 s GNSS step). Discretisations are cached per (filter, step in integer ns), so the
-400 Hz path is one small matrix product per step.
+against a 1 s GNSS step). The matrix exponential is :func:`hil.nav.portable.expm` (scaling and
+squaring of a Taylor series in plain arithmetic), not scipy's, whose BLAS calls round
+differently on different CPUs. Discretisations are cached per (filter, step in integer ns), so
+the 400 Hz path is one small matrix product per step.
 """
 
 from __future__ import annotations
@@ -27,8 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import signal
-from scipy.linalg import expm
 
+from hil.nav.portable import expm, mv
 from hil.nav.types import F64
 
 
@@ -79,7 +81,7 @@ class StateSpace:
         """Rows ``C A^k``, k = 0..n−1: maps the state to the output and its derivatives."""
         rows = [self.c]
         for _ in range(self.order - 1):
-            rows.append(rows[-1] @ self.a)
+            rows.append(mv(self.a.T, rows[-1]))  # row C A^k
         return np.vstack(rows)
 
 
@@ -103,24 +105,8 @@ def ramp_hold(ss: StateSpace, h_s: float) -> tuple[F64, F64, F64]:
     m[:n, :n] = ss.a
     m[:n, n] = ss.b
     m[n, n + 1] = 1.0
-    e = _expm(m * h_s)
+    e = expm(m * h_s)  # portable: a replay on another machine gets the same Φ, Γ bit for bit
     return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
-
-
-def _expm(m: F64) -> F64:
-    """``e^M``: a Taylor series where ``|M|`` is small (the IMU-rate steps: ~12 µs instead of
-    scipy's ~4 ms Padé set-up), scipy's ``expm`` otherwise. Both are accurate to rounding; the
-    series stops when a term no longer changes the sum, so it is deterministic for a given M."""
-    if np.abs(m).sum(axis=0).max() > 0.1:
-        return expm(m)
-    out = np.eye(m.shape[0])
-    term = np.eye(m.shape[0])
-    for k in range(1, 30):
-        term = term @ m / k
-        if not np.any(np.abs(term) > np.abs(out) * 1e-18):
-            break
-        out = out + term
-    return out
 
 
 @dataclass

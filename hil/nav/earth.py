@@ -13,6 +13,8 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hil.nav.portable import atan2
+
 F64 = NDArray[np.float64]
 
 # WGS84 defining constants (NIMA TR8350.2)
@@ -128,15 +130,18 @@ def ecef_to_lla(xyz_m: ArrayLike) -> tuple[F64, F64, F64]:
     """
     p_xyz = np.asarray(xyz_m, dtype=float)
     x, y, z = p_xyz[..., 0], p_xyz[..., 1], p_xyz[..., 2]
-    lon = np.arctan2(y, x)
+    # math's atan2, not numpy's: every estimator's published lat/lon comes through here, and
+    # numpy's arctan2 differs in the last bit between AVX-512 and AVX2 machines (hil.nav.portable)
+    lon = atan2(y, x)
     p = np.hypot(x, y)
     # Bowring's parametric-latitude start, then iterate L = atan(z / (p (1 - e² R_N/(R_N+h))))
-    beta = np.arctan2(z * A_M, p * B_M)
-    lat = np.arctan2(z + EP2 * B_M * np.sin(beta) ** 3, p - E2 * A_M * np.cos(beta) ** 3)
+    beta = atan2(z * A_M, p * B_M)
+    sb, cb = np.sin(beta), np.cos(beta)
+    lat = atan2(z + EP2 * B_M * (sb * sb * sb), p - E2 * A_M * (cb * cb * cb))
     for _ in range(2):
         _, r_n = radii_of_curvature(lat)
         h = p * np.cos(lat) + z * np.sin(lat) - A_M**2 / r_n
-        lat = np.arctan2(z, p * (1.0 - E2 * r_n / (r_n + h)))
+        lat = atan2(z, p * (1.0 - E2 * r_n / (r_n + h)))
     _, r_n = radii_of_curvature(lat)
     h = p * np.cos(lat) + z * np.sin(lat) - A_M**2 / r_n
     return lat, lon, h
