@@ -48,6 +48,24 @@ filter would claim a position it cannot know. As states ``[δs (3), δṡ (3)]``
 between updates, corrected like the other states), and its position covariance keeps what GNSS
 cannot separate. Off by default (the live fusion tunes from the IMU only); the default path is
 numerically the 15-state filter.
+
+GNSS antenna lever arm (``lever_arm_b_m``, body axes from the IMU; the installation, which the
+integrator measures). The fix is of the antenna, so the predicted position is
+``p + Ĉ l`` and the predicted velocity ``v + Ĉ (ω̂ × l)``, with ``ω̂`` the bias-corrected body
+rate of the last IMU step. With ``Ĉ = (I − [φ×]) C`` the attitude error enters both as
+``[(Ĉ l)×] φ`` and ``[(Ĉ (ω̂ × l))×] φ``, and the gyro-bias error as ``−Ĉ [l×] δb_g`` in the
+velocity. Zero (the default) is numerically the filter without it. The Earth and transport rate
+in ``ω̂`` (ω_ib, not ω_nb) shift the velocity by ~1e-5 m/s per metre of arm: neglected.
+
+Gyro scale factor and misalignment (optional, ``gyro_cal_sigma`` > 0; 9 more states). A tactical
+gyro's 150 ppm scale factor leaves 0.5 mrad of heading after a 180° turn and a 0.5 mrad
+misalignment tilts the platform by ~1.6 mrad through it: errors a 15-state filter cannot know
+about, so its attitude (and then velocity) covariance is too small after every turn. As
+random constants ``δe`` (the 3 × 3 error matrix ``E`` row by row, ``ω_meas = (I + E) ω + b``),
+the rate error is ``δω = δb_g + N(ω) δe`` with ``N(ω) = I₃ ⊗ ωᵀ``, so
+``φ̇ = −[ω_ie×] φ − C (δb_g + N(ω̄) δe)`` over a covariance block of mean body rate ``ω̄``; the
+estimate ``Ê`` is removed from every increment (``Δθ − Ê Δθ``) and corrected like the biases.
+Priors: the preset's scale-factor σ on the diagonal, its misalignment σ off it.
 """
 
 from __future__ import annotations
@@ -116,6 +134,16 @@ def slow_augmented(f: F64, w_radps: float) -> F64:
     return out
 
 
+def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
+    """``F`` (15 × 15) with the 9 gyro scale-factor/misalignment states appended after it:
+    ``φ̇ += −C N(ω̄) δe`` with ``N(ω) = I₃ ⊗ ωᵀ`` (``δe`` is the error matrix row by row)."""
+    out = np.zeros((24, 24))
+    out[:15, :15] = f
+    n_w = np.kron(np.eye(3), w_b[None, :])  # (3, 9): E ω = N(ω) e
+    out[6:9, 15:24] = -mm(c_nb, n_w)
+    return out
+
+
 class Ekf15:
     """The 3-D error-state EKF as an :class:`~hil.estimators.base.Estimator`.
 
@@ -142,6 +170,8 @@ class Ekf15:
         max_rejects: int = 10,
         gnss_slow_sigma_m: float = 0.0,
         gnss_slow_period_s: float = 12660.0,
+        lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        gyro_cal_sigma: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         self.name = name
         self._init = init
@@ -164,26 +194,39 @@ class Ekf15:
             + [2 * accel_bias_sigma_mps2**2 / bias_corr_s] * 3
             + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
         )
-        # Optional GNSS slow-error states (see the module docstring): [δs (3), δṡ (3)].
+        # Optional states after the 15 (module docstring): gyro scale factor/misalignment [δe (9)],
+        # then the GNSS slow error [δs (3), δṡ (3)]. Neither has process noise.
+        sf_sigma, ma_sigma = (float(v) for v in gyro_cal_sigma)
+        self._cal = sf_sigma > 0.0 or ma_sigma > 0.0
+        self.e_hat = np.zeros((3, 3))  # estimated gyro error matrix E (scale factor + misalignment)
         self._slow_w = 2.0 * math.pi / gnss_slow_period_s if gnss_slow_sigma_m > 0.0 else 0.0
-        self.n = 21 if self._slow_w else 15
+        self._i_slow = 24 if self._cal else 15
+        self.n = self._i_slow + (6 if self._slow_w else 0)
         self.s_hat = np.zeros(3)  # estimated slow error of the GNSS position, m
         self.sd_hat = np.zeros(3)  # and its rate, m/s
+        p0 = np.zeros((self.n, self.n))
+        p0[:15, :15] = self.p
+        if self._cal:
+            e_var = np.full((3, 3), max(ma_sigma, 1e-9) ** 2)
+            np.fill_diagonal(e_var, max(sf_sigma, 1e-9) ** 2)
+            p0[15:24, 15:24] = np.diag(e_var.ravel())
         if self._slow_w:
-            sig, w = gnss_slow_sigma_m, self._slow_w
-            p0 = np.zeros((21, 21))
-            p0[:15, :15] = self.p
-            p0[15:18, 15:18] = np.eye(3) * sig**2  # a sine of RMS σ: s and ṡ/ω uncorrelated, both σ²
-            p0[18:21, 18:21] = np.eye(3) * (sig * w) ** 2
-            self.p = p0
-            qc = np.zeros((21, 21))
-            qc[:15, :15] = self._qc
-            self._qc = qc  # the sine has no process noise
+            sig, w, i = gnss_slow_sigma_m, self._slow_w, self._i_slow
+            p0[i : i + 3, i : i + 3] = np.eye(3) * sig**2  # a sine of RMS σ: s and ṡ/ω uncorrelated, both σ²
+            p0[i + 3 : i + 6, i + 3 : i + 6] = np.eye(3) * (sig * w) ** 2
+        self.p = p0
+        qc = np.zeros((self.n, self.n))
+        qc[:15, :15] = self._qc
+        self._qc = qc
+        lever = np.asarray(lever_arm_b_m, dtype=float)
+        self._lever: F64 | None = lever if np.any(lever) else None
+        self._w_b = np.zeros(3)  # corrected body rate of the last IMU step, rad/s (for the lever arm)
         self.cov_every = int(cov_every)
         self.gate_chi2 = gate_chi2
         self.max_rejects = max_rejects
         self._pending_dt = 0.0
         self._pending_dv_b = np.zeros(3)
+        self._pending_dth_b = np.zeros(3)
         self._pending_n = 0
         self._stamp_ns = init.stamp_ns
         self._nav = to_nav_state(self.ins, init)
@@ -198,11 +241,15 @@ class Ekf15:
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
         dt = imu.dt_s
         dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
+        if self._cal:
+            dth = dth - mv(self.e_hat, dth)
         dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
         self.ins = strapdown_step(self.ins, dth, dv, dt)
         self._pending_dt += dt
         self._pending_dv_b += dv
+        self._pending_dth_b += dth
         self._pending_n += 1
+        self._w_b = dth / dt
         self._stamp_ns = imu.stamp_ns
         self._nav_dirty = True
         if self._pending_n >= self.cov_every:
@@ -214,6 +261,8 @@ class Ekf15:
         dt = self._pending_dt
         c_nb = quat_to_dcm(self.ins.q_nb)
         f = error_dynamics(c_nb, mv(c_nb, self._pending_dv_b / dt), self.ins.lat_rad)
+        if self._cal:
+            f = gyro_cal_augmented(f, c_nb, self._pending_dth_b / dt)
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
@@ -224,6 +273,7 @@ class Ekf15:
         self._predict(transition(f, dt), self._qc * dt)  # Q_d = Q_c Δ
         self._pending_dt = 0.0
         self._pending_dv_b = np.zeros(3)
+        self._pending_dth_b = np.zeros(3)
         self._pending_n = 0
 
     def _predict(self, phi: F64, qd: F64) -> None:
@@ -241,17 +291,30 @@ class Ekf15:
         nav = self._current_nav()
         lag_s = (gnss.stamp_ns - self._stamp_ns) * 1e-9
         pos_tov = nav.pos_ned_m + nav.vel_ned_mps * lag_s  # INS at the GNSS time of validity
+        vel_pred = nav.vel_ned_mps
         h_pos = np.zeros((3, self.n))
         h_pos[:, 0:3] = np.eye(3)
         h_vel = np.zeros((3, self.n))
         h_vel[:, 3:6] = np.eye(3)
+        if self._lever is not None:  # the fix is of the antenna: p + Ĉ l, v + Ĉ (ω̂ × l)
+            c_nb = quat_to_dcm(self.ins.q_nb)
+            arm_n = mv(c_nb, self._lever)
+            arm_rate_n = mv(c_nb, np.cross(self._w_b, self._lever))
+            pos_tov = pos_tov + arm_n
+            vel_pred = vel_pred + arm_rate_n
+            h_pos[:, 6:9] = skew(arm_n)
+            h_vel[:, 6:9] = skew(arm_rate_n)
+            h_vel[:, 12:15] = -mm(c_nb, skew(self._lever))  # ω̂ = ω + δb_g (+ N(ω) δe)
+            if self._cal:
+                h_vel[:, 15:24] = mm(h_vel[:, 12:15], np.kron(np.eye(3), self._w_b[None, :]))
         if self._slow_w:  # z = truth + s + w: predicted z = INS + ŝ, so y = δp + δs − w
-            h_pos[:, 15:18] = np.eye(3)
-            h_vel[:, 18:21] = np.eye(3)
+            i = self._i_slow
+            h_pos[:, i : i + 3] = np.eye(3)
+            h_vel[:, i + 3 : i + 6] = np.eye(3)
         dx = np.zeros(self.n)
         for h, y, sig, kind in (
             (h_pos, pos_tov + self.s_hat - gnss.pos_ned_m, gnss.pos_sigma_m, "pos"),
-            (h_vel, nav.vel_ned_mps + self.sd_hat - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
+            (h_vel, vel_pred + self.sd_hat - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
         ):
             r = np.diag(np.square(np.asarray(sig, float)))
             y = y - mv(h, dx)  # sequential: innovation against the already-updated error state
@@ -267,7 +330,7 @@ class Ekf15:
                 if self._consecutive <= self.max_rejects:
                     continue
                 # Locked out: trust the measurement again, with the covariance opened up.
-                idx = np.nonzero(h[:, :15].any(axis=0))[0]
+                idx = np.nonzero(h[:, :6].any(axis=0))[0]
                 self.p[idx, idx] += y * y
             else:
                 self._consecutive = 0
@@ -290,9 +353,12 @@ class Ekf15:
         self.ins = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
         self.b_a = self.b_a + dx[9:12]
         self.b_g = self.b_g + dx[12:15]
+        if self._cal:
+            self.e_hat = self.e_hat + dx[15:24].reshape(3, 3)
         if self._slow_w:
-            self.s_hat = self.s_hat - dx[15:18]
-            self.sd_hat = self.sd_hat - dx[18:21]
+            i = self._i_slow
+            self.s_hat = self.s_hat - dx[i : i + 3]
+            self.sd_hat = self.sd_hat - dx[i + 3 : i + 6]
         self._nav_dirty = True
 
     # -- outputs ---------------------------------------------------------------------------------

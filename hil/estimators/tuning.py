@@ -19,17 +19,21 @@ def _rss_max(*vecs: tuple[float, float, float]) -> float:
     return max(math.sqrt(sum(v[i] ** 2 for v in vecs)) for i in range(3))
 
 
-def ekf15_params(imu: ImuParams) -> dict[str, Any]:
+def ekf15_params(imu: ImuParams, gyro_cal: bool = False) -> dict[str, Any]:
     """Priors and noise of ekf15 from the IMU's datasheet figures (SI).
 
     Turn-on bias (fixed + random) sets the bias priors; bias instability and its correlation time
     the bias random walk (2σ²/τ: the wander's variance over one correlation time, see ekf15);
     ARW/VRW the white noise. Floors keep an ideal IMU's filter from
-    becoming overconfident (zero noise would freeze its gains).
+    becoming overconfident (zero noise would freeze its gains). ``gyro_cal`` adds the gyro
+    scale-factor/misalignment states with the datasheet's σ (9 more states; see ekf15).
     """
     gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
     accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2)
-    return {
+    cal: dict[str, Any] = {}
+    if gyro_cal:  # scale factor / misalignment as states: the datasheet's σ as their priors
+        cal["gyro_cal_sigma"] = (max(imu.gyro_scale_factor_sigma), imu.gyro_misalignment_sigma_rad)
+    return cal | {
         "accel_vrw_mps_rts": max(max(imu.accel_vrw_mps_rts), 1e-4),
         "gyro_arw_rad_rts": max(max(imu.gyro_arw_rad_rts), 1e-6),
         "accel_bias_sigma_mps2": max(max(imu.accel_bias_instability_mps2), 1e-5),
@@ -53,9 +57,27 @@ def ekf15_gnss_params(gnss: GnssConfig) -> dict[str, Any]:
     return {"gnss_slow_sigma_m": amp / math.sqrt(2.0), "gnss_slow_period_s": float(gnss.slow_period_s)}
 
 
-def params_for(imu: ImuParams, gnss: GnssConfig | None = None) -> dict[str, dict[str, Any]]:
-    """Per-estimator construction parameters for a rig with this IMU (and GNSS receiver model)."""
-    ekf = ekf15_params(imu)
+def ekf15_install_params(gnss: GnssConfig) -> dict[str, Any]:
+    """The GNSS antenna's lever arm from the IMU, body axes: measured at installation, so
+    always told to the filter (the fix is of the antenna, not of the IMU)."""
+    return {"lever_arm_b_m": tuple(float(v) for v in gnss.lever_arm_b_m)} if any(gnss.lever_arm_b_m) else {}
+
+
+def params_for(
+    imu: ImuParams,
+    gnss: GnssConfig | None = None,
+    *,
+    receiver_model: bool = False,
+    gyro_cal: bool = False,
+) -> dict[str, dict[str, Any]]:
+    """Per-estimator construction parameters for a rig with this IMU and GNSS installation.
+
+    The lever arm comes with ``gnss``; ``receiver_model`` also tells ekf15 the receiver's slow
+    error (bench variants), ``gyro_cal`` adds the gyro scale-factor/misalignment states.
+    """
+    ekf = ekf15_params(imu, gyro_cal)
     if gnss is not None:
-        ekf |= ekf15_gnss_params(gnss)
+        ekf |= ekf15_install_params(gnss)
+        if receiver_model:
+            ekf |= ekf15_gnss_params(gnss)
     return {"ekf15": ekf}

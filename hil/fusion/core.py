@@ -103,7 +103,7 @@ class FusionCore:
                 vel_ned_mps=tb.vel_ned_mps[0].copy(),
                 q_nb=tb.q_nb[0].copy(),
             )
-        return cls(init, config, params=params_for(scenario.imu.params))
+        return cls(init, config, params=params_for(scenario.imu.params, scenario.gnss))
 
     def start_output_seq(self, seq: int) -> None:
         """Number outputs from ``seq`` on (a restarted fusion must not reuse an earlier seq)."""
