@@ -228,12 +228,16 @@ def _mix64_array(z: np.ndarray) -> np.ndarray:
     return z ^ (z >> np.uint64(31))
 
 
+_LOG = np.frompyfunc(math.log, 1, 1)
+
+
 def _gauss_array(key: int, t_ns: np.ndarray) -> np.ndarray:
     h1 = _mix64_array(np.uint64(key) ^ t_ns.astype(np.int64).view(np.uint64))
     h2 = _mix64_array(h1)
     u1 = ((h1 >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
     u2 = (h2 >> np.uint64(11)).astype(np.float64) * 2.0**-53
-    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+    # math.log elementwise: numpy's log is SIMD-dispatched per CPU, and this must equal _gauss_of
+    return np.sqrt(-2.0 * np.asarray(_LOG(u1), dtype=float)) * np.cos(2.0 * np.pi * u2)
 
 
 @dataclass

@@ -17,6 +17,7 @@ not depend on how the caller slices the stream.
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass
 
@@ -75,7 +76,7 @@ class _Triad:
         self.matrix = np.eye(3) + np.diag(sf)
         self.matrix[[0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]] = mis
         sigma_gm = IEEE_BI_FACTOR * bi / GM_PEAK_RATIO  # Allan peak of the GM = 0.664 B
-        self.phi = float(np.exp(-dt / corr_s))
+        self.phi = math.exp(-dt / corr_s)  # math, not numpy: numpy's exp rounds per CPU (hil.nav.portable)
         self.gm_drive = sigma_gm * np.sqrt(1.0 - self.phi**2)
         self.gm_state = sigma_gm * self._g_gm.standard_normal(3)  # start stationary
         self.white_sigma = white * np.sqrt(dt)  # per increment
