@@ -109,6 +109,20 @@ def ramp_hold(ss: StateSpace, h_s: float) -> tuple[F64, F64, F64]:
     return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
 
 
+def held_noise_gain(tf: TransferFunction, hold_s: float) -> float:
+    """RMS of ``F``'s output per unit σ of white noise sampled every ``hold_s`` and held.
+
+    The held noise has the two-sided spectrum ``σ² h sinc²(f h)``, so the output variance is
+    ``σ² h ∫ |F(j2πf)|² sinc²(f h) df`` over all f: the floor a compensation filter leaves from
+    the GNSS white noise alone, whatever the INS does (``F`` passes it, ``1 − F`` does not enter).
+    Integrated numerically to 200/h Hz, where the integrand has fallen below 1e-12 of its peak.
+    """
+    h = float(hold_s)
+    f = np.linspace(0.0, 200.0 / h, 2_000_001)
+    g = np.abs(tf.freq_response(2.0 * np.pi * f)) ** 2 * np.sinc(f * h) ** 2
+    return float(np.sqrt(2.0 * h * np.trapezoid(g, f)))
+
+
 @dataclass
 class ZohCache:
     """``(Φ, Γ0, Γ1)`` per step length in integer ns, so equal steps never recompute ``e^{A h}``."""
