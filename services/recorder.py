@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import queue
+import sys
 import threading
 import time
 from pathlib import Path
@@ -166,6 +167,8 @@ class Recorder(Service):
         depth = self.queue.qsize()
         self._peak_queue = max(self._peak_queue, depth)
         totals = {"gaps": 0, "duplicates": 0, "out_of_order": 0}
+        writer = self.writer
+        index = None if writer is None else writer.chunk_index
         for tr in list(self.completeness.topics.values()):
             totals["gaps"] += tr.gaps
             totals["duplicates"] += tr.duplicates
@@ -179,6 +182,10 @@ class Recorder(Service):
             "zenoh_missed": self.total_zenoh_missed(),
             "zenoh_unsequenced": self.zenoh_unsequenced,
             "recording": 0 if self.writer is None else 1,
+            # memory the recorder holds by design, to tell it from a leak in a long session:
+            # the MCAP summary index (grows per chunk until the footer) and Python's live blocks
+            "index_bytes": 0 if index is None else index.nbytes,
+            "py_heap_blocks": sys.getallocatedblocks(),
             **totals,
         }
 

@@ -10,7 +10,8 @@ rig's hub (so a 30-minute recording never has to be read back):
 - **latency**: arrival of each fused output (``nav/ekf15``) on the rig clock minus the true
   capture time of the IMU sample it was computed at (``imu_seq``; sample k is captured at
   ``(k + 1) / rate``), p50/p99/max;
-- **memory**: VmRSS of every service (``/proc/<pid>/status``) every ``--rss-every`` seconds;
+- **memory**: VmRSS of every service (``/proc/<pid>/status``) every ``--rss-every`` seconds
+  until the stop begins (the teardown, e.g. the recorder writing its footer, is not the run);
   growth = last sample vs the sample at 10 % of the run (after start-up and warm-up);
 - **CPU**: per service over the run (the supervisor's figures).
 
@@ -159,7 +160,10 @@ def soak_run(
         def sample_rss() -> None:
             t0 = time.monotonic()
             while not stop.wait(rss_every_s):
-                for name, child in list(sup.children.items()):
+                children = list(sup.children.items())
+                if any(child.stopping for _, child in children):
+                    break  # the stop has begun: teardown (the recorder's footer) is not the run
+                for name, child in children:
                     v = vm_rss_kib(child.proc.pid)
                     if v is not None:
                         rss.setdefault(name, []).append((time.monotonic() - t0, v))
