@@ -1,8 +1,8 @@
 """Replay is bit-identical whatever BLAS kernel or SIMD level the machine has.
 
 The golden recording was once made on a machine whose OpenBLAS chose its SkylakeX kernel; on an
-AMD EPYC (Haswell kernel) three estimators then differed in the last bit and ``hil rerun
---verify`` failed. Here the fusion's digest of the golden recording and a ``hil sim`` file are
+AMD EPYC (Haswell kernel) two estimators (cf3, comp3f) then differed in the last bit and ``hil
+rerun --verify`` failed. Here the fusion's digest of the golden recording and a ``hil sim`` file are
 computed again in child processes that run numpy on another BLAS kernel (OpenBLAS's generic
 ``Prescott``, which every x86-64 CPU runs: the opposite of the unsafe auto-detection the
 machine's own OPENBLAS_CORETYPE guards against) and with every run-time SIMD dispatch of numpy
