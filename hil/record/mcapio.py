@@ -64,8 +64,9 @@ class PackedChunkIndex:
     with a per-channel offset dict that is 2,390 B of Python objects per chunk (tracemalloc, 30
     channels; ``hil bench soak`` measures it), and the recorder closes a chunk at least every
     second: the linear part of its RSS growth over a long session. Serialised at once, the same
-    record is 386 B (~10 bytes a channel plus 60). ``finish`` only iterates the list and calls ``write`` on each item, so one item that
-    writes every packed record keeps the file byte-identical.
+    record is 386 B (~10 bytes a channel plus 60). ``finish`` only iterates the list and calls
+    ``write`` on each item, so one item that writes every packed record keeps the file
+    byte-identical.
     """
 
     def __init__(self) -> None:
