@@ -210,7 +210,7 @@ def soak_run(
         recorder={
             k2: v
             for k2, v in rec.items()
-            if k2 in ("written", "missing", "gaps", "zenoh_missed", "queue_peak")
+            if k2 in ("written", "missing", "gaps", "zenoh_missed", "queue_peak", "index_bytes")
         },
         latency_ms=lat,
         rss_kib=rss,
@@ -328,12 +328,19 @@ def soak_markdown(
     lines += ["", f"Largest RSS growth: **{worst:+.2f} %** (target < 5 %)."]
     if index_b:
         plain, packed = index_b
+        held = r.recorder.get("index_bytes", 0)
+        rate = (
+            f"; in this run the recorder's status read {held / 2**20:.2f} MiB of index at the end "
+            f"({held / max(r.duration_s, 1e-9) * 3600 / 2**20:.1f} MiB per hour: it closes a chunk "
+            "at 512 KiB or after 1 s, whichever comes first)"
+            if held
+            else ""
+        )
         lines += [
             "",
-            f"Recorder summary index held in memory until the footer (tracemalloc, 30 channels, one "
-            f"chunk per second as the recorder writes): {plain:,.0f} B per chunk as mcap's ChunkIndex "
-            f"objects, **{packed:,.0f} B** packed as the recorder keeps it "
-            f"({plain / packed:.1f}x less; {packed * 3600 / 2**20:.1f} MiB per hour of recording).",
+            f"Recorder summary index held in memory until the footer (tracemalloc, 30 channels): "
+            f"{plain:,.0f} B per chunk as mcap's ChunkIndex objects, **{packed:,.0f} B** packed as "
+            f"the recorder keeps it ({plain / packed:.1f}x less){rate}.",
         ]
     if sweep:
         lines += ["", f"IMU rate sweep ({_mode(sweep[0])}, every default estimator):", ""]

@@ -77,7 +77,7 @@ import numpy as np
 
 from hil.estimators.base import GnssInput, ImuInput, InitialState
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
-from hil.nav.earth import OMEGA_IE_RADPS, radii_of_curvature
+from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
 from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
 from hil.nav.types import F64, NavState
@@ -247,9 +247,10 @@ class Ekf15:
         self.ins = strapdown_step(self.ins, dth, dv, dt)
         self._pending_dt += dt
         self._pending_dv_b += dv
-        self._pending_dth_b += dth
         self._pending_n += 1
-        self._w_b = dth / dt
+        if self._cal or self._lever is not None:  # only these need the body rate
+            self._pending_dth_b += dth
+            self._w_b = dth / dt
         self._stamp_ns = imu.stamp_ns
         self._nav_dirty = True
         if self._pending_n >= self.cov_every:
@@ -299,7 +300,7 @@ class Ekf15:
         if self._lever is not None:  # the fix is of the antenna: p + Ĉ l, v + Ĉ (ω̂ × l)
             c_nb = quat_to_dcm(self.ins.q_nb)
             arm_n = mv(c_nb, self._lever)
-            arm_rate_n = mv(c_nb, np.cross(self._w_b, self._lever))
+            arm_rate_n = mv(c_nb, cross(self._w_b, self._lever))
             pos_tov = pos_tov + arm_n
             vel_pred = vel_pred + arm_rate_n
             h_pos[:, 6:9] = skew(arm_n)

@@ -115,7 +115,8 @@ def held_noise_gain(tf: TransferFunction, hold_s: float) -> float:
     The held noise has the two-sided spectrum ``σ² h sinc²(f h)``, so the output variance is
     ``σ² h ∫ |F(j2πf)|² sinc²(f h) df`` over all f: the floor a compensation filter leaves from
     the GNSS white noise alone, whatever the INS does (``F`` passes it, ``1 − F`` does not enter).
-    Integrated numerically to 200/h Hz, where the integrand has fallen below 1e-12 of its peak.
+    Integrated numerically to 200/h Hz: for a strictly proper low-pass ``F`` (every compensation
+    and complementary filter here) the integrand there is below 1e-13 of its peak.
     """
     h = float(hold_s)
     f = np.linspace(0.0, 200.0 / h, 2_000_001)
