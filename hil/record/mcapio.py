@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,26 +59,70 @@ def _u64(ns: int) -> int:
 
 
 class PackedChunkIndex:
-    """The writer's list of ChunkIndex records, kept as their serialised bytes.
+    """The writer's list of ChunkIndex records, kept as their serialised bytes, on disk.
 
     ``mcap.Writer`` holds one ``ChunkIndex`` object per chunk until ``finish`` writes the summary;
     with a per-channel offset dict that is 2,390 B of Python objects per chunk (tracemalloc, 30
     channels; ``hil bench soak`` measures it), and the recorder closes a chunk at least every
     second: the linear part of its RSS growth over a long session. Serialised at once, the same
-    record is 386 B (~10 bytes a channel plus 60). ``finish`` only iterates the list and calls
-    ``write`` on each item, so one item that writes every packed record keeps the file
-    byte-identical.
+    record is 386 B (~10 bytes a channel plus 60); with a ``spill`` file the packed bytes go
+    there in blocks of ``SPILL_BLOCK``, so the index costs no memory however long the session
+    (a 1 kHz soak closes ~2 chunks a second: 820 B/s, 3 MiB an hour, otherwise held until the
+    footer). ``finish`` only iterates the list and calls ``write`` on each item, so one item
+    that writes every packed record keeps the file byte-identical. A spill that cannot be
+    written (disk full) is given up and the index is held in memory from then on.
     """
 
-    def __init__(self) -> None:
+    SPILL_BLOCK = 64 * 1024
+
+    def __init__(self, spill: IO[bytes] | None = None) -> None:
         self._packed = bytearray()
         self._count = 0
+        self._spill = spill
+        self._spilled = 0
 
     def append(self, index: ChunkIndex) -> None:
         builder = RecordBuilder()
         index.write(builder)
         self._packed += builder.end()
         self._count += 1
+        if self._spill is not None and len(self._packed) >= self.SPILL_BLOCK:
+            self._spill_out()
+
+    def _spill_out(self) -> None:
+        assert self._spill is not None
+        view = memoryview(self._packed)
+        try:
+            while view:  # an unbuffered file may take part of a block per call
+                view = view[self._spill.write(view) or 0 :]
+        except OSError:
+            view.release()
+            self._take_back()  # keep it in memory: the summary must still be complete
+            return
+        view.release()
+        self._spilled += len(self._packed)
+        self._packed = bytearray()
+
+    def _read_spill(self) -> Iterator[bytes]:
+        assert self._spill is not None
+        fd, offset = self._spill.fileno(), 0
+        while offset < self._spilled:
+            try:
+                block = os.pread(fd, min(self._spilled - offset, 1 << 20), offset)
+            except OSError as err:
+                raise RecordingError(f"cannot read back the chunk index spill file: {err}") from err
+            if not block:
+                raise RecordingError(f"the chunk index spill file ended {self._spilled - offset} bytes early")
+            offset += len(block)
+            yield block
+
+    def _take_back(self) -> None:
+        """Hold the whole index in memory again and drop the spill file."""
+        if self._spill is None:
+            return
+        self._packed = bytearray(b"".join(self._read_spill())) + self._packed
+        self._spilled = 0
+        self.close()
 
     def __len__(self) -> int:
         return self._count
@@ -87,17 +132,34 @@ class PackedChunkIndex:
             yield self
 
     def write(self, stream: RecordBuilder) -> None:
-        stream._buffer.write(self._packed)  # RecordBuilder has no call for raw bytes
+        out = stream._buffer  # RecordBuilder has no call for raw bytes
+        if self._spilled:
+            for block in self._read_spill():
+                out.write(block)
+        out.write(self._packed)
+
+    def close(self) -> None:
+        """Drop the spill file (unlinked at creation, so closing it frees the disk)."""
+        if self._spill is not None:
+            with contextlib.suppress(OSError):
+                self._spill.close()
+            self._spill = None
 
     @property
     def nbytes(self) -> int:
+        """The whole index, in memory or spilled."""
+        return self._spilled + len(self._packed)
+
+    @property
+    def held_bytes(self) -> int:
+        """The part of the index in this process's memory."""
         return len(self._packed)
 
 
 _CHUNK_INDICES = "_Writer__chunk_indices"  # mcap.Writer's private list (mcap 1.x)
 
 
-def _pack_chunk_indices(writer: Writer) -> PackedChunkIndex | None:
+def _pack_chunk_indices(writer: Writer, spill: IO[bytes] | None = None) -> PackedChunkIndex | None:
     """Swap the writer's chunk-index list for a packed one (before any chunk is written).
 
     Left alone, with the summary still correct, on an mcap whose Writer keeps them otherwise.
@@ -105,15 +167,31 @@ def _pack_chunk_indices(writer: Writer) -> PackedChunkIndex | None:
     current = getattr(writer, _CHUNK_INDICES, None)
     if not isinstance(current, list) or current:
         return None
-    packed = PackedChunkIndex()
+    packed = PackedChunkIndex(spill)
     setattr(writer, _CHUNK_INDICES, packed)
     return packed
+
+
+def _index_spill_file(path: Path) -> IO[bytes] | None:
+    """An unlinked, unbuffered scratch file beside the recording (never in a tmpfs ``/tmp``,
+    which would be memory again); None, and the index stays in memory, where none can be made."""
+    try:
+        return tempfile.TemporaryFile(dir=path.parent, prefix=f".{path.name}.index-", buffering=0)
+    except OSError:
+        return None
 
 
 class SessionWriter:
     """Writes one session file. Not thread-safe: one writer thread owns it."""
 
-    def __init__(self, path: str | Path, *, chunk_size: int = 512 * 1024, pack_index: bool = True) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        chunk_size: int = 512 * 1024,
+        pack_index: bool = True,
+        spill_index: bool = True,
+    ) -> None:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -121,7 +199,11 @@ class SessionWriter:
         except OSError as err:
             raise RecordingError(f"cannot open {self.path} for writing: {err.strerror}") from err
         self._writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self.chunk_index = _pack_chunk_indices(self._writer) if pack_index else None
+        self.chunk_index = (
+            _pack_chunk_indices(self._writer, _index_spill_file(self.path) if spill_index else None)
+            if pack_index
+            else None
+        )
         self._writer.start(profile=PROFILE, library=f"hil {__version__}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -186,6 +268,8 @@ class SessionWriter:
         What was flushed before stays readable up to its last complete chunk.
         """
         self.closed = True
+        if self.chunk_index is not None:
+            self.chunk_index.close()
         with contextlib.suppress(OSError):
             self._fh.close()
 
@@ -197,7 +281,11 @@ class SessionWriter:
         if self.closed:
             return
         self.closed = True
-        self._writer.finish()
+        try:
+            self._writer.finish()
+        finally:
+            if self.chunk_index is not None:
+                self.chunk_index.close()
         self._fh.close()
 
 

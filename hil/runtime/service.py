@@ -8,6 +8,10 @@ Every publisher a service makes here counts its ``seq`` within the process's res
 (``restart_generation``: ``hil up --restart`` passes the restart number as option ``resume``), so
 a restarted service's status, events, frames and clock models never repeat a seq of its previous
 life, and the recording's completeness reports the restart as one (``hil.record.completeness``).
+
+The status thread also trims the C heap every ``heap_trim_s`` (option, default 10 s; 0 turns it
+off; ``hil.runtime.heap`` says why), so a service's RSS shows what it holds, not the high-water
+mark of its last backlog.
 """
 
 from __future__ import annotations
@@ -29,8 +33,11 @@ from hil.bus.pubsub import Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
 from hil.messages import Event, Message, RunInfo, ServiceStatus
 from hil.runtime.clock import RigClock
+from hil.runtime.heap import HeapTrimmer
 
 log = logging.getLogger(__name__)
+
+HEAP_TRIM_PERIOD_S = 10.0
 
 
 def restart_generation(options: dict[str, Any]) -> int:
@@ -43,6 +50,18 @@ def restart_generation(options: dict[str, Any]) -> int:
     if isinstance(value, int) and 0 <= value < 2**30:
         return value
     return 0
+
+
+def heap_trim_period(
+    options: dict[str, Any], default: float = HEAP_TRIM_PERIOD_S
+) -> tuple[float, str | None]:
+    """Seconds between heap trims from option ``heap_trim_s`` (0: never), and what was wrong."""
+    value = options.get("heap_trim_s", default)
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < 1e6:
+        return float(value), None
+    return default, (
+        f"option heap_trim_s={value!r} is not a number of seconds in [0, 1e6); trimming every {default:g} s"
+    )
 
 
 @dataclass
@@ -65,6 +84,7 @@ class Service:
     """Base class: subclasses implement ``run_loop(run, clock)`` and may override ``ready_state``."""
 
     name = "service"
+    heap_trim_default_s = HEAP_TRIM_PERIOD_S
 
     def __init__(self, ctx: ServiceContext) -> None:
         self.ctx = ctx
@@ -84,6 +104,10 @@ class Service:
         self._run_event = threading.Event()
         self._subs: list[Any] = []
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+        self.heap = HeapTrimmer()
+        self.heap_trim_s, problem = heap_trim_period(ctx.options, self.heap_trim_default_s)
+        if problem:
+            self.stats.error("errors.options", problem)
 
     # -- helpers for subclasses -------------------------------------------------------------
     def publisher(self, key: str, cls: type[Message], **kw: Any) -> Publisher[Any]:
@@ -115,8 +139,12 @@ class Service:
     def _status_loop(self) -> None:
         first = True
         supervisor = int(os.environ.get("HIL_SUPERVISOR_PID", "0") or 0)
+        next_trim = time.monotonic() + self.heap_trim_s
         while not self.ctx.stop.wait(0 if first else 1.0):
             first = False
+            if self.heap_trim_s and time.monotonic() >= next_trim:
+                next_trim = time.monotonic() + self.heap_trim_s
+                self.heap.trim()
             if supervisor and os.getppid() != supervisor:
                 # `hil up` is gone (killed with SIGKILL, say): an orphaned service stops itself
                 # rather than run on, unsupervised and unrecorded.
@@ -130,6 +158,7 @@ class Service:
     def publish_status(self, seq: int) -> None:
         rates, counters, last_error = self.stats.snapshot()
         counters.update(self.extra_status())
+        counters.update(self.heap.counters())
         try:
             self._status_pub.put(
                 ServiceStatus(
