@@ -61,8 +61,8 @@ class _Stamp(msgspec.Struct):
 
 class Recorder(Service):
     name = "recorder"
-    # Every second, not every 10: the recorder's arenas swing by ~6 MiB between trims at 1 kHz
-    # (``hil bench soak``), the rest of the rig's by well under 1 MiB.
+    # Every second, not every 10: at 1 kHz the recorder's data path churns ~3.6 MiB of C heap a
+    # second (``hil.runtime.heap`` has the figures); with 10 s trims its floor still crept up.
     heap_trim_default_s = 1.0
 
     def __init__(self, ctx: Any) -> None:

@@ -89,6 +89,11 @@ class PackedChunkIndex:
         if self._spill is not None and len(self._packed) >= self.SPILL_BLOCK:
             self._spill_out()
 
+    def spill_to(self, spill: IO[bytes] | None) -> None:
+        """Spill from now on to ``spill`` (unbuffered, owned and closed here); None: keep it all."""
+        assert self._spill is None and not self._spilled, "one spill file per index"
+        self._spill = spill
+
     def _spill_out(self) -> None:
         assert self._spill is not None
         view = memoryview(self._packed)
@@ -159,7 +164,7 @@ class PackedChunkIndex:
 _CHUNK_INDICES = "_Writer__chunk_indices"  # mcap.Writer's private list (mcap 1.x)
 
 
-def _pack_chunk_indices(writer: Writer, spill: IO[bytes] | None = None) -> PackedChunkIndex | None:
+def _pack_chunk_indices(writer: Writer) -> PackedChunkIndex | None:
     """Swap the writer's chunk-index list for a packed one (before any chunk is written).
 
     Left alone, with the summary still correct, on an mcap whose Writer keeps them otherwise.
@@ -167,7 +172,7 @@ def _pack_chunk_indices(writer: Writer, spill: IO[bytes] | None = None) -> Packe
     current = getattr(writer, _CHUNK_INDICES, None)
     if not isinstance(current, list) or current:
         return None
-    packed = PackedChunkIndex(spill)
+    packed = PackedChunkIndex()
     setattr(writer, _CHUNK_INDICES, packed)
     return packed
 
@@ -199,11 +204,9 @@ class SessionWriter:
         except OSError as err:
             raise RecordingError(f"cannot open {self.path} for writing: {err.strerror}") from err
         self._writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self.chunk_index = (
-            _pack_chunk_indices(self._writer, _index_spill_file(self.path) if spill_index else None)
-            if pack_index
-            else None
-        )
+        self.chunk_index = _pack_chunk_indices(self._writer) if pack_index else None
+        if self.chunk_index is not None and spill_index:
+            self.chunk_index.spill_to(_index_spill_file(self.path))
         self._writer.start(profile=PROFILE, library=f"hil {__version__}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
