@@ -9,9 +9,10 @@ Every publisher a service makes here counts its ``seq`` within the process's res
 a restarted service's status, events, frames and clock models never repeat a seq of its previous
 life, and the recording's completeness reports the restart as one (``hil.record.completeness``).
 
-The status thread also trims the C heap every ``heap_trim_s`` (option, default 10 s; 0 turns it
-off; ``hil.runtime.heap`` says why), so a service's RSS shows what it holds, not the high-water
-mark of its last backlog.
+The status thread also trims the C heap every ``heap_trim_s`` (option, or ``HIL_HEAP_TRIM_S`` in
+the environment; default ``heap_trim_default_s``: 10 s, the recorder's 1 s; 0 turns it off;
+``hil.runtime.heap`` says why), so a service's RSS shows what it holds, not the high-water mark
+of its last backlog.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from hil.runtime.heap import HeapTrimmer
 log = logging.getLogger(__name__)
 
 HEAP_TRIM_PERIOD_S = 10.0
+HEAP_TRIM_ENV = "HIL_HEAP_TRIM_S"
 
 
 def restart_generation(options: dict[str, Any]) -> int:
@@ -55,13 +57,26 @@ def restart_generation(options: dict[str, Any]) -> int:
 def heap_trim_period(
     options: dict[str, Any], default: float = HEAP_TRIM_PERIOD_S
 ) -> tuple[float, str | None]:
-    """Seconds between heap trims from option ``heap_trim_s`` (0: never), and what was wrong."""
-    value = options.get("heap_trim_s", default)
+    """Seconds between heap trims, and what was wrong with the setting if anything.
+
+    Option ``heap_trim_s`` (``hil service --options``) first, then the environment's
+    ``HIL_HEAP_TRIM_S`` (which ``hil up`` passes to every service), then ``default``; 0: never.
+    """
+    if "heap_trim_s" in options:
+        value: Any = options["heap_trim_s"]
+        where = "option heap_trim_s"
+    elif os.environ.get(HEAP_TRIM_ENV, "").strip():
+        text = os.environ[HEAP_TRIM_ENV].strip()
+        try:
+            value = float(text)
+        except ValueError:
+            value = text
+        where = HEAP_TRIM_ENV
+    else:
+        return default, None
     if isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < 1e6:
         return float(value), None
-    return default, (
-        f"option heap_trim_s={value!r} is not a number of seconds in [0, 1e6); trimming every {default:g} s"
-    )
+    return default, f"{where}={value!r} is not a number of seconds in [0, 1e6); trimming every {default:g} s"
 
 
 @dataclass

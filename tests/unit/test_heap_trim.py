@@ -72,6 +72,17 @@ def test_trim_period_option(value: object, period: float, bad: bool) -> None:
     assert heap_trim_period({}) == (HEAP_TRIM_PERIOD_S, None)
 
 
+def test_trim_period_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HIL_HEAP_TRIM_S", "0")
+    assert heap_trim_period({}, 1.0) == (0.0, None)
+    assert heap_trim_period({"heap_trim_s": 5}, 1.0) == (5.0, None)  # the option wins
+    monkeypatch.setenv("HIL_HEAP_TRIM_S", "never")
+    got, problem = heap_trim_period({}, 1.0)
+    assert got == 1.0 and problem is not None and problem.startswith("HIL_HEAP_TRIM_S='never'")
+    monkeypatch.setenv("HIL_HEAP_TRIM_S", " ")
+    assert heap_trim_period({}, 1.0) == (1.0, None)
+
+
 class _Idle(Service):
     name = "idle"
 
