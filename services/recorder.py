@@ -119,8 +119,10 @@ class Recorder(Service):
         try:
             self.writer = SessionWriter(self.path)
         except RecordingError as err:
-            self.state = "degraded"
+            # the reason first: the status thread is already running, and a "degraded" status
+            # must never go out without it
             self.stats.error("errors.recording_path", str(err))
+            self.state = "degraded"
         if self._advanced:
             # The callback only enqueues (an unbounded SimpleQueue): nothing between Zenoh and the
             # writer thread can drop. Heartbeat recovery: a gap in a publisher's sequence is
@@ -244,11 +246,11 @@ class Recorder(Service):
         The process stays up, so the rest of the rig keeps running and the supervisor's table and
         the status key keep showing *why* nothing is being recorded.
         """
-        self.state = "degraded"
         self._write_failed = True
         self.stats.error(
             "errors.write", f"writing {self.part_path()} failed: {err.strerror or err}; recording stopped"
         )
+        self.state = "degraded"  # after the reason, which the status thread may publish at once
         writer, self.writer = self.writer, None
         if writer is not None:
             writer.abandon()
@@ -305,8 +307,8 @@ class Recorder(Service):
             self.writer = SessionWriter(self.part_path())
         except RecordingError as err:
             self.writer = None
-            self.state = "degraded"
             self.stats.error("errors.recording_path", str(err))
+            self.state = "degraded"
             return
         self.writer.add_metadata("part", {"index": self.part, "previous": self.part_path(self.part - 1).name})
         if self._run is not None:

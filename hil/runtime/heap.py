@@ -21,7 +21,6 @@ Elsewhere (musl, macOS) there is no such call and ``HeapTrimmer.available`` is F
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import time
 from collections.abc import Callable
@@ -30,11 +29,10 @@ _PAGE_KIB = os.sysconf("SC_PAGE_SIZE") // 1024 if hasattr(os, "sysconf") else 4
 
 
 def _load_malloc_trim() -> Callable[[int], int] | None:
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
+    # The process's own symbols: glibc is loaded already, and ctypes.util.find_library would run
+    # ldconfig in a subprocess at every service's start.
     try:
-        fn = ctypes.CDLL(name).malloc_trim  # CDLL: the GIL is released for the call
+        fn = ctypes.CDLL(None).malloc_trim  # CDLL: the GIL is released for the call
     except (OSError, AttributeError):
         return None
     fn.argtypes = [ctypes.c_size_t]

@@ -171,6 +171,9 @@ class Service:
         self.publish_status(self._status_pub.next_seq())
 
     def publish_status(self, seq: int) -> None:
+        # the state before the counters: a service records why before it says "degraded", so a
+        # degraded status always carries its reason
+        state = self.state
         rates, counters, last_error = self.stats.snapshot()
         counters.update(self.extra_status())
         counters.update(self.heap.counters())
@@ -180,7 +183,7 @@ class Service:
                     seq=seq,
                     stamp_ns=self.rig_now_ns(),
                     service=self.name,
-                    state=self.state,
+                    state=state,
                     pid=os.getpid(),
                     uptime_s=round(time.monotonic() - self._t0, 3),
                     rates_hz=rates,
