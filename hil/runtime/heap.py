@@ -8,7 +8,7 @@ each in one burst and stayed there, free but resident (``/proc/<pid>/smaps``). T
 leak, but it reads as one and it costs RAM on a bench box. ``malloc_trim(0)`` (glibc >= 2.8)
 walks every arena and ``madvise``s whole free pages away; nothing in use moves.
 
-Measured on the recorder at 1 kHz (6.7 min, one trim a second): 403 trims gave back 1.45 GB in
+Measured on the recorder at 1 kHz (6.7 min, one trim a second): 403 trims gave back 1.4 GiB in
 all, 3.6 MiB/s, which is the data path's churn (payload copies, chunk buffers, zstd). The longest
 call took 26.6 ms. After the first 10 % its RSS stayed at 61-64 MiB, apart from two transient
 backlogs (68 and 72 MiB). With one trim every 10 s the floor crept from 65 to 74 MiB in
