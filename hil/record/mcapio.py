@@ -99,7 +99,10 @@ class PackedChunkIndex:
         view = memoryview(self._packed)
         try:
             while view:  # an unbuffered file may take part of a block per call
-                view = view[self._spill.write(view) or 0 :]
+                n = self._spill.write(view)
+                if not n:  # nothing taken (None: would block): a spill that does not progress
+                    raise OSError("the index spill file took no bytes")
+                view = view[n:]
         except OSError:
             view.release()
             self._take_back()  # keep it in memory: the summary must still be complete

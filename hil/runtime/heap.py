@@ -1,15 +1,15 @@
 """Give the C heap's free pages back to the OS, so a service's RSS tracks what it holds.
 
 Why: glibc gives each thread that mallocs its own arena (64 MiB-aligned heaps). Zenoh's Rust
-threads and Python's large objects (> 512 B: most payloads) allocate there, and after a
-transient backlog -- a writer that fell 0.1 s behind a 5 kHz stream -- the arena keeps the
+threads and Python's objects over 512 B allocate there, and after a
+transient backlog -- a queue peak of 700 messages, 0.14 s of a 5 kHz stream -- the arena keeps the
 high-water mark: in a 12-minute soak the recorder's two busiest arenas went from ~3 to ~9 MiB
 each in one burst and stayed there, free but resident (``/proc/<pid>/smaps``). That is not a
 leak, but it reads as one and it costs RAM on a bench box. ``malloc_trim(0)`` (glibc >= 2.8)
 walks every arena and ``madvise``s whole free pages away; nothing in use moves.
 
 Measured on the recorder at 1 kHz (6.7 min, one trim a second): 403 trims gave back 1.4 GiB in
-all, 3.6 MiB/s, which is the data path's churn (payload copies, chunk buffers, zstd). The longest
+all, 3.6 MiB/s of C heap touched and freed again between trims. The longest
 call took 26.6 ms. After the first 10 % its RSS stayed at 61-64 MiB, apart from two transient
 backlogs (68 and 72 MiB). With one trim every 10 s the floor crept from 65 to 74 MiB in
 12 minutes. Fixing glibc's mmap threshold (``MALLOC_MMAP_THRESHOLD_=131072``) did not help: an

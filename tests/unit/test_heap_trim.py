@@ -90,14 +90,20 @@ class _Idle(Service):
         return False
 
 
-def _statuses(options: dict[str, object], rig: str, seconds: float) -> list[ServiceStatus]:
+class _IdleTrimmingEverySecond(_Idle):
+    heap_trim_default_s = 1.0  # as the recorder
+
+
+def _statuses(
+    options: dict[str, object], rig: str, seconds: float, cls: type[_Idle] = _Idle
+) -> list[ServiceStatus]:
     from hil.bus.keys import Keys
 
     got: list[ServiceStatus] = []
     probe = open_session(BusConfig.from_env())
     sub = Subscriber(probe, Keys(rig).status("idle"), ServiceStatus, lambda m, _k: got.append(m), Stats())
     ctx = ServiceContext(name="idle", rig=rig, session=open_session(BusConfig.from_env()), options=options)
-    svc = _Idle(ctx)
+    svc = cls(ctx)
     thread = threading.Thread(target=svc.start, daemon=True)
     thread.start()
     time.sleep(seconds)
@@ -123,5 +129,8 @@ def test_service_counts_a_bad_trim_option_and_keeps_running(zenoh_hub: str) -> N
     assert got and got[-1].counters["errors.options"] == 1
     assert "heap_trim_s='often'" in got[-1].last_error
     assert got[-1].counters["heap_trims"] == 0  # default 10 s: none yet
-    off = _statuses({"heap_trim_s": 0}, "t-heap-3", 2.5)
+    # 0 turns it off even where the class default would trim every second
+    on = _statuses({}, "t-heap-3", 2.5, _IdleTrimmingEverySecond)
+    assert on and on[-1].counters["heap_trims"] >= 1
+    off = _statuses({"heap_trim_s": 0}, "t-heap-4", 2.5, _IdleTrimmingEverySecond)
     assert off and off[-1].counters["heap_trims"] == 0

@@ -135,3 +135,23 @@ def test_unbuffered_partial_writes_are_completed(tmp_path: Path, monkeypatch: py
     _write(tmp_path / "trickle.mcap", True, 30, on_open=trickle)
     _write(tmp_path / "plain.mcap", False, 30)
     assert (tmp_path / "trickle.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+
+
+def test_a_spill_that_takes_no_bytes_falls_back_instead_of_spinning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(PackedChunkIndex, "SPILL_BLOCK", 300)
+
+    class Stuck(_FailingSpill):
+        def write(self, data: Any) -> int:
+            return 0
+
+    def stuck(w: SessionWriter) -> None:
+        assert w.chunk_index is not None
+        w.chunk_index._spill.close()  # type: ignore[union-attr]
+        w.chunk_index._spill = Stuck(ok=0)  # type: ignore[assignment]
+
+    w = _write(tmp_path / "stuck.mcap", True, 30, on_open=stuck)
+    _write(tmp_path / "plain.mcap", False, 30)
+    assert (tmp_path / "stuck.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+    assert w.chunk_index is not None and w.chunk_index.held_bytes == w.chunk_index.nbytes
