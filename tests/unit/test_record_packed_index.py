@@ -106,17 +106,25 @@ class _FailingSpill:
         self.fh.close()
 
 
-def test_a_spill_that_fills_up_falls_back_to_memory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(PackedChunkIndex, "SPILL_BLOCK", 300)
+def _written_with_spill(tmp_path: Path, name: str, spill: _FailingSpill, chunks: int) -> SessionWriter:
+    """Write ``chunks`` through ``spill`` in place of the real scratch file; check the file is
+    the one an unspilled index writes."""
 
-    def failing(w: SessionWriter) -> None:
+    def swap(w: SessionWriter) -> None:
         assert w.chunk_index is not None
         w.chunk_index._spill.close()  # type: ignore[union-attr]
-        w.chunk_index._spill = _FailingSpill(ok=2)  # type: ignore[assignment]
+        w.chunk_index._spill = spill  # type: ignore[assignment]
 
-    w = _write(tmp_path / "full.mcap", True, 50, on_open=failing)
-    _write(tmp_path / "plain.mcap", False, 50)
-    assert (tmp_path / "full.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+    w = _write(tmp_path / f"{name}.mcap", True, chunks, on_open=swap)
+    _write(tmp_path / "plain.mcap", False, chunks)
+    assert (tmp_path / f"{name}.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+    assert w.chunk_index is not None
+    return w
+
+
+def test_a_spill_that_fills_up_falls_back_to_memory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(PackedChunkIndex, "SPILL_BLOCK", 300)
+    w = _written_with_spill(tmp_path, "full", _FailingSpill(ok=2), 50)
     assert w.chunk_index is not None and w.chunk_index.held_bytes == w.chunk_index.nbytes
 
 
@@ -127,14 +135,8 @@ def test_unbuffered_partial_writes_are_completed(tmp_path: Path, monkeypatch: py
         def write(self, data: Any) -> int:  # at most 7 bytes a call, as a raw file may
             return os.write(self.fh.fileno(), bytes(data[:7]))
 
-    def trickle(w: SessionWriter) -> None:
-        assert w.chunk_index is not None
-        w.chunk_index._spill.close()  # type: ignore[union-attr]
-        w.chunk_index._spill = Trickle(ok=0)  # type: ignore[assignment]
-
-    _write(tmp_path / "trickle.mcap", True, 30, on_open=trickle)
-    _write(tmp_path / "plain.mcap", False, 30)
-    assert (tmp_path / "trickle.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+    w = _written_with_spill(tmp_path, "trickle", Trickle(ok=0), 30)
+    assert w.chunk_index is not None and w.chunk_index.held_bytes < w.chunk_index.nbytes
 
 
 def test_a_spill_that_takes_no_bytes_falls_back_instead_of_spinning(
@@ -146,12 +148,5 @@ def test_a_spill_that_takes_no_bytes_falls_back_instead_of_spinning(
         def write(self, data: Any) -> int:
             return 0
 
-    def stuck(w: SessionWriter) -> None:
-        assert w.chunk_index is not None
-        w.chunk_index._spill.close()  # type: ignore[union-attr]
-        w.chunk_index._spill = Stuck(ok=0)  # type: ignore[assignment]
-
-    w = _write(tmp_path / "stuck.mcap", True, 30, on_open=stuck)
-    _write(tmp_path / "plain.mcap", False, 30)
-    assert (tmp_path / "stuck.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+    w = _written_with_spill(tmp_path, "stuck", Stuck(ok=0), 30)
     assert w.chunk_index is not None and w.chunk_index.held_bytes == w.chunk_index.nbytes
