@@ -56,7 +56,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         record=record.resolve(),
         rig=a.rig,
         channel=a.channel,
-        can_interface=a.can_interface,
+        interface=a.can_interface,
         fd=a.fd,
         estimators=[e for e in a.estimators.split(",") if e],
         live=not a.quiet,
@@ -77,11 +77,15 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
     if a.dut and not Path(a.dut).is_file():
         raise UserError(f"--dut {a.dut}: no such mapping file")
+    sup = Supervisor(opts)
+    try:
+        sup.check_options()
+    except ValueError as err:
+        raise UserError(str(err)) from None
     print(
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
     print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
-    sup = Supervisor(opts)
     rc = sup.run()
     if sup.cpu_table():
         print(sup.cpu_table())
@@ -119,7 +123,7 @@ def _describe_can(channel: str, interface: str | None) -> str:
 
 def cmd_sim(a: argparse.Namespace) -> int:
     from hil.progress import Progress
-    from hil.runtime.offline import SimOptions, run_sim
+    from hil.runners.sim import SimOptions, run_sim
 
     record = a.record or _default_record_path(a.scenario)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)

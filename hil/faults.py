@@ -1,6 +1,6 @@
 """Fault injection: which fault each service applies, and the IMU/CAN faults as a pure core.
 
-Faults reach a service two ways, and both are recorded:
+Faults reach a device two ways, and both are recorded:
 
 - **timed**, from the scenario's ``[[event]]`` table (``docs/scenario-format.md``): applied at the
   sample/epoch whose true time falls in the window, so a replay of the scenario applies them
@@ -16,8 +16,9 @@ The service that applies a fault publishes ``hil.Event`` ``fault_start``/``fault
 the sample is lost (``imu_frame_loss``, ``can_bus_off``), what to send instead (``imu_stuck``,
 ``imu_saturated``), how many frames to corrupt on the wire (``can_burst_error``: the bridge
 rejects them on CRC) and how long to hold its frames (``can_latency``); :class:`FrameCorruptor`
-does the corrupting, :class:`DelayLine` the holding (in order, seeded jitter). The live emulator and ``hil
-sim`` both call these two, so a fault has one implementation whichever executor runs it.
+does the corrupting, :class:`DelayLine` the holding (in order, seeded jitter). The emulator nodes
+(``hil.nodes``) call them, and every runner runs those nodes, so a fault has one implementation
+live, in ``hil sim`` and in replay.
 :func:`device_timeline` is what each emulator announces: its own kinds plus the timed
 ``clock_step`` of its sensor (the step itself is applied by ``hil.sensors.clock``).
 
@@ -29,7 +30,6 @@ from __future__ import annotations
 
 import json
 import math
-import threading
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -37,37 +37,28 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-# kind -> (the service that applies it, params it takes)
+from hil.nav.scenario import transport_delay_problem
+from hil.sensor_table import SENSORS
+
+# kind -> (the service that applies it, params it takes): each sensor's run-time faults from the
+# sensor table (its emulator applies them), plus the two that belong to no one sensor
 FAULT_KINDS: dict[str, tuple[str, frozenset[str]]] = {
-    "gnss_outage": ("gnss_emulator", frozenset()),
-    "gnss_jump": ("gnss_emulator", frozenset({"n_m", "e_m", "d_m"})),
-    "gnss_velocity_glitch": ("gnss_emulator", frozenset({"n_mps", "e_mps", "d_mps"})),
-    "gnss_latency": ("gnss_emulator", frozenset({"latency_s", "jitter_s"})),
-    "imu_frame_loss": ("imu_emulator", frozenset({"percent"})),
-    "imu_stuck": ("imu_emulator", frozenset()),
-    "imu_saturated": ("imu_emulator", frozenset()),
-    "can_burst_error": ("imu_emulator", frozenset({"frames"})),
-    "can_bus_off": ("imu_emulator", frozenset()),
-    "can_latency": ("imu_emulator", frozenset({"latency_s", "jitter_s"})),
-    "clock_step": ("<target>_emulator", frozenset({"step_s"})),  # target: imu | gnss
+    **{kind: (s.emulator, params) for s in SENSORS.values() for kind, params in s.commands.items()},
+    "clock_step": ("<target>_emulator", frozenset({"step_s"})),  # target: a sensor
     "kill_service": ("supervisor", frozenset()),  # target: a service name
 }
-IMU_FAULTS = frozenset(k for k, (svc, _) in FAULT_KINDS.items() if svc == "imu_emulator")
-GNSS_FAULTS = frozenset(k for k, (svc, _) in FAULT_KINDS.items() if svc == "gnss_emulator")
-# Announced by the emulator on its timeline: its run-time kinds plus the scenario-only ones it owns
-# (the seed paper's GNSS pulse has no run-time form: a jump with a duration does the same).
+IMU_FAULTS = frozenset(SENSORS["imu"].commands)
+GNSS_FAULTS = frozenset(SENSORS["gnss"].commands)
+# Announced by the emulator on its timeline: its timed kinds (the run-time ones plus scenario-only
+# ones such as the seed paper's GNSS pulse) and the clock_step of its own sensor.
 DEVICE_TIMED_KINDS: dict[str, frozenset[str]] = {
-    "imu": IMU_FAULTS | {"clock_step"},
-    "gnss": GNSS_FAULTS | {"gnss_pulse", "clock_step"},
+    name: frozenset(s.events) | {"clock_step"} for name, s in SENSORS.items()
 }
 # Timed faults with no meaning in `hil sim` (one process on a virtual clock): said and recorded.
 SIM_NOT_APPLICABLE = frozenset({"kill_service"})
 MAX_BURST_FRAMES = 100_000  # ~1 min of the 400 Hz IMU's frames; longer is a bus-off, say so
 SATURATE_DTHETA_RAD = 10.0  # per sample: far beyond the DBC's full scale (0.42 rad)
 SATURATE_DVEL_MPS = 1000.0  # per sample: far beyond the DBC's full scale (8.4 m/s)
-# can_latency: beyond this a "latency" is an outage (and 10 s of held frames at 2 kHz is already
-# 80 000 frames in the emulator's memory); refused rather than silently buffered
-MAX_TRANSPORT_DELAY_S = 10.0
 
 
 class FaultError(ValueError):
@@ -116,59 +107,14 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
             raise FaultError(f"can_latency: {problem}")
 
 
-def transport_delay_problem(latency_s: float, jitter_s: float) -> str | None:
-    """Why a ``can_latency`` (latency, jitter) pair cannot be applied, or None; shared by the
-    scenario loader and :func:`check_fault` so both refuse the same values with the same words."""
-    if latency_s < 0 or jitter_s < 0:
-        return (
-            "latency_s and jitter_s must be >= 0 (a frame cannot leave before its capture), "
-            f"got {latency_s}, {jitter_s}"
-        )
-    if latency_s + jitter_s > MAX_TRANSPORT_DELAY_S:
-        return (
-            f"latency_s + jitter_s must be <= {MAX_TRANSPORT_DELAY_S:g} s (longer is an outage: use "
-            f"can_bus_off), got {latency_s + jitter_s:g} s"
-        )
-    return None
-
-
-class CommandInbox:
-    """Run-time fault commands addressed to one device: checked on arrival (a bad one is counted,
-    never raised), queued from Zenoh's thread, taken by the device's own loop at its next step.
-
-    A command no service would take (an unknown kind, a ``clock_step`` for no sensor) is counted
-    by every inbox that sees it, so it never vanishes without a trace in some status."""
-
-    def __init__(self, kinds: Iterable[str], target: str, stats: Any) -> None:
-        self.kinds = frozenset(kinds)
-        self.target = target
-        self.stats = stats
-        self._lock = threading.Lock()
-        self._pending: list[Any] = []
-
-    def on_command(self, cmd: Any, _key: str = "") -> None:
-        mine = cmd.kind in self.kinds or (cmd.kind == "clock_step" and cmd.target == self.target)
-        nobodys = cmd.kind not in FAULT_KINDS or (
-            cmd.kind == "clock_step" and cmd.target not in DEVICE_TIMED_KINDS
-        )
-        if not (mine or nobodys):
-            return
-        try:
-            check_fault(cmd.kind, cmd.target, cmd.params)
-        except FaultError as err:
-            self.stats.error("rejected.control.fault", str(err))
-            return
-        if mine:
-            with self._lock:
-                self._pending.append(cmd)
-
-    def __bool__(self) -> bool:
-        return bool(self._pending)
-
-    def take(self) -> list[Any]:
-        with self._lock:
-            out, self._pending = self._pending, []
-        return out
+def command_addressee(cmd: Any, kinds: Iterable[str], sensor: str) -> tuple[bool, bool]:
+    """Whether a run-time fault command is for the device of ``sensor`` (taking ``kinds``), and
+    whether it is nobody's (an unknown kind, a ``clock_step`` for no sensor): a device counts a
+    command nobody would take as rejected, so it never vanishes without a trace in some status."""
+    mine = cmd.kind in kinds or (cmd.kind == "clock_step" and cmd.target == sensor)
+    stray_step = cmd.kind == "clock_step" and cmd.target not in DEVICE_TIMED_KINDS
+    nobodys = cmd.kind not in FAULT_KINDS or stray_step
+    return mine, nobodys
 
 
 def fault_detail(kind: str, t0_ns: int, t1_ns: int | None, params: Mapping[str, Any], origin: str) -> str:
@@ -236,6 +182,12 @@ class FaultTimeline:
         f = Fault(kind, t0_ns, t1, dict(params), "command")
         self.faults.append(f)
         return f
+
+    def next_edge_ns(self) -> int | None:
+        """The earliest edge not yet said (a caller wakes then to announce it), or None."""
+        times = [f.t0_ns for f in self.faults if not f.started]
+        times += [f.t1_ns for f in self.faults if f.started and not f.ended and f.t1_ns is not None]
+        return min(times) if times else None
 
     def edges(self, t_ns: int) -> list[tuple[str, Fault]]:
         """``("fault_start" | "fault_end", fault)`` for every edge at or before ``t_ns`` not yet said,

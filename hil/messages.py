@@ -4,7 +4,12 @@ Every message carries a per-publisher ``seq`` (so loss is measured, not guessed)
 nanosecond stamps named ``*_ns``. ``stamp_ns`` is the time of validity on the message's timeline:
 true time for ``Truth``/``CaptureTruth``, rig time for everything else (for a raw sensor message
 before synchronisation: its arrival on the rig clock). Positions and velocities are in the local
-NED frame of the scenario origin. Messages evolve only by appending fields with defaults.
+NED frame of the scenario origin.
+
+Schema evolution: messages evolve only by appending fields with defaults, and a reader ignores
+fields it does not know, so an older reader (a recording's replay, a service of the previous
+release on the same bus) accepts newer messages. What a field must be is still checked: types,
+lengths, ranges (``decode``); an unknown field is simply not read.
 
 Encoding is JSON (msgspec): ``encode(msg)`` and ``decode(Type, payload)``. Decoding validates
 types, array lengths and ranges; NaN/inf cannot pass (JSON has no NaN; msgspec writes ``null``,
@@ -49,8 +54,8 @@ def seq_in_generation(seq: int) -> int:
     return seq & _SEQ_IN_GENERATION
 
 
-class Message(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """Base of every contract message."""
+class Message(msgspec.Struct, frozen=True, kw_only=True):
+    """Base of every contract message (unknown fields are ignored: see the module docstring)."""
 
     seq: Seq
     stamp_ns: Ns
@@ -115,6 +120,12 @@ class GnssFix(Message, frozen=True, kw_only=True):
     fix_type: Annotated[int, msgspec.Meta(ge=0, le=5)]
     num_sats: Annotated[int, msgspec.Meta(ge=0, le=200)]
     hdop: float
+
+
+#: A measurement of any sensor in ``hil.sensor_table`` (raw on ``sensor/<name>``, re-stamped on
+#: ``synced/<name>``): every one has ``sensor``, ``seq``, ``stamp_ns``, ``device_stamp_ns`` and
+#: ``rx_stamp_ns``.
+Measurement = ImuSample | GnssFix
 
 
 class CanFrame(Message, frozen=True, kw_only=True):
@@ -210,6 +221,44 @@ class Event(Message, frozen=True, kw_only=True):
     detail: str = ""
 
 
+class EstimatorHealth(Message, frozen=True, kw_only=True):
+    """One estimator's health at rig time ``stamp_ns``, as real numbers (innovation test ratios,
+    NIS, gains, bias norms, counts), published by the fusion at 1 Hz of rig time on
+    ``health/<estimator>`` -- in the manner of PX4's ``estimator_innovation_test_ratios``.
+
+    ``names[i]`` names ``values[i]`` (parallel lists rather than a map: viewers such as Foxglove
+    plot ``values[i]`` and cannot read a JSON map with no declared properties); which names an
+    estimator reports is documented with it (``docs/estimators.md``).
+    """
+
+    estimator: Name
+    names: Annotated[list[Name], msgspec.Meta(max_length=64)] = []
+    values: Annotated[list[float], msgspec.Meta(max_length=64)] = []
+
+    def __post_init__(self) -> None:
+        if len(self.names) != len(self.values):
+            raise ValueError(f"{len(self.names)} names for {len(self.values)} values")
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(self.names, self.values, strict=True))
+
+
+class FusionSettings(Message, frozen=True, kw_only=True):
+    """The fusion's configuration, published once at its start on ``fusion/config``: what
+    ``hil rerun`` needs to build the same core (``hil.fusion.core.FusionConfig``, field for field)."""
+
+    estimators: Annotated[list[Name], msgspec.Meta(max_length=64)]
+    lag_ns: Annotated[int, msgspec.Meta(ge=0, le=60 * 10**9)]
+    output_every: Annotated[int, msgspec.Meta(ge=1, le=10**6)]
+    max_future_ns: int
+    max_buffered: int
+    max_dtheta_rad: float
+    max_dvel_mps: float
+    max_pos_m: float
+    max_vel_mps: float
+    gap_confirm_inputs: int
+
+
 class FaultCommand(Message, frozen=True, kw_only=True):
     """A fault to inject now, sent on ``hil/<rig>/control/fault`` (``hil fault``).
 
@@ -240,6 +289,8 @@ CONTRACT_TYPES: tuple[type[Message], ...] = (
     ServiceStatus,
     Event,
     FaultCommand,
+    EstimatorHealth,
+    FusionSettings,
 )
 TYPES_BY_NAME: dict[str, type[Message]] = {f"hil.{t.__name__}": t for t in CONTRACT_TYPES}
 

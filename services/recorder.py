@@ -29,7 +29,6 @@ is lost across a split: the writer thread rotates between two messages.
 
 from __future__ import annotations
 
-import argparse
 import json
 import queue
 import sys
@@ -46,9 +45,12 @@ from hil import __version__
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import MAX_PAYLOAD_BYTES
 from hil.messages import RunInfo, decode
+from hil.nodes.base import decode_options
 from hil.record.completeness import Completeness
 from hil.record.mcapio import RecordingError, SessionWriter, split_part_path
+from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
+from hil.runtime.options import RecorderOptions
 from hil.runtime.service import Service, run_service
 
 FLUSH_PERIOD_S = 1.0
@@ -66,8 +68,9 @@ class Recorder(Service):
     heap_trim_default_s = 1.0
 
     def __init__(self, ctx: Any) -> None:
+        self.opts: RecorderOptions = decode_options(RecorderOptions, ctx.options, "recorder")
         super().__init__(ctx)
-        self.path = Path(ctx.options.get("path") or "recordings/session.mcap")
+        self.path = Path(self.opts.path)
         self.queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
         self.completeness = Completeness()
         self.writer: SessionWriter | None = None
@@ -78,8 +81,8 @@ class Recorder(Service):
         self._run: RunInfo | None = None
         self.part = 0
         self._part_t0 = time.monotonic()
-        self.split_bytes = int(float(ctx.options.get("split_mb") or 0) * 1e6)
-        self.split_s = float(ctx.options.get("split_s") or 0)
+        self.split_bytes = int(self.opts.split_mb * 1e6)
+        self.split_s = self.opts.split_s
         self._pending: list[tuple[str, bytes, int]] = []
         self.written = 0
         self.bytes_written = 0
@@ -87,7 +90,7 @@ class Recorder(Service):
         self.zenoh_unsequenced = 0
         self._source_key: dict[str, str] = {}  # Zenoh publisher id -> its key, to name a miss
         self._keys_sourced: set[str] = set()
-        self._advanced = bool(ctx.options.get("zenoh_advanced", True))
+        self._advanced = self.opts.zenoh_advanced
         self._miss: zext.SampleMissListener[None] | None = None
         self._miss_lock = threading.Lock()
         self._peak_queue = 0
@@ -280,7 +283,9 @@ class Recorder(Service):
                 "publish_time = message stamp_ns (time of validity); sequence = per-publisher seq",
             },
         )
-        self.writer.add_metadata("config", {"options": json.dumps(self.ctx.options, sort_keys=True)})
+        self.writer.add_metadata(
+            "config", {"options": json.dumps(msgspec.to_builtins(self.opts), sort_keys=True)}
+        )
         for name, data, media in run_attachments(run):
             self.writer.add_attachment(name, data, media)
 
@@ -347,9 +352,9 @@ class Recorder(Service):
         ``stop_timeout_s``, inside the supervisor's 30 s); what is still queued then is counted
         (``unwritten_at_stop`` in status and summary, ``replay_ready`` false), never silent.
         """
-        opts = self.ctx.options
-        quiet_s = float(opts.get("drain_s", 0.5))
-        give_up = time.monotonic() + float(opts.get("drain_max_s", 5.0))
+        opts = self.opts
+        quiet_s = opts.drain_s
+        give_up = time.monotonic() + opts.drain_max_s
         time.sleep(quiet_s)
         while time.monotonic() - self._last_rx < quiet_s and time.monotonic() < give_up:
             time.sleep(0.05)
@@ -360,7 +365,7 @@ class Recorder(Service):
         except Exception as err:  # a session already closing must not cost us the summary
             self.stats.error("errors.undeclare", f"{type(err).__name__}: {err}")
         self.queue.put(None)
-        self._writer_thread.join(timeout=float(opts.get("stop_timeout_s", 20.0)))
+        self._writer_thread.join(timeout=opts.stop_timeout_s)
         if self._writer_thread.is_alive():
             self._abort.set()  # the writer stops after the message in hand
             self._writer_thread.join(timeout=5.0)
@@ -410,19 +415,8 @@ SERVICE = Recorder
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="hil service recorder")
-    ap.add_argument("--rig", default="default")
-    ap.add_argument("--path", default="recordings/session.mcap")
-    ap.add_argument("--split-mb", type=float, default=0.0, help="start a new part after this many MB")
-    ap.add_argument("--split-s", type=float, default=0.0, help="start a new part after this many seconds")
-    ap.add_argument(
-        "--no-zenoh-miss-detection", action="store_true", help="a plain Zenoh subscriber (seq gaps only)"
+    ap = options_parser(
+        RecorderOptions, "hil service recorder", {"--no-zenoh-miss-detection": "zenoh_advanced"}
     )
     a = ap.parse_args(argv)
-    opts = {
-        "path": a.path,
-        "split_mb": a.split_mb,
-        "split_s": a.split_s,
-        "zenoh_advanced": not a.no_zenoh_miss_detection,
-    }
-    return run_service(Recorder, a.rig, opts)
+    return run_service(Recorder, a.rig or "default", {k: v for k, v in vars(a).items() if k != "rig"})

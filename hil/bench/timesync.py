@@ -24,13 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.sensors.clock import (
-    CAN_FRAME_TIME_NS,
-    IMU_FRAMES_PER_SAMPLE,
-    ClockStep,
-    DeviceClock,
-    DeviceClockConfig,
-)
+from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FRAMES_PER_SAMPLE
+from hil.sensors.clock import ClockStep, DeviceClock, DeviceClockConfig
 from hil.sensors.imu import sensor_rng
 from hil.timesync.core import SyncConfig, TimeSyncCore
 
@@ -269,7 +264,7 @@ def nav_effect(duration_s: float, workdir: Path) -> list[dict[str, str]]:
     from hil.nav.scenario import dump_toml, load_scenario
     from hil.record.info import estimator_errors
     from hil.record.mcapio import read_session
-    from hil.runtime.offline import SimOptions, run_sim
+    from hil.runners.sim import SimOptions, run_sim
 
     base = load_scenario("uav_survey")
     doc = tomllib.loads(base.source_text)

@@ -6,12 +6,14 @@ Layout (``<rig>`` namespaces one bench, so a replay can run beside a live rig)::
     hil/<rig>/truth               Truth
     hil/<rig>/capture/<sensor>    CaptureTruth   true capture time per measurement
     hil/<rig>/can/<channel>       CanFrame       raw frames as read by the bridge
-    hil/<rig>/sensor/<sensor>     ImuSample | GnssFix   raw, device-stamped
+    hil/<rig>/sensor/<sensor>     ImuSample | GnssFix | ...   raw, device-stamped (hil.sensor_table)
     hil/<rig>/timetag/<sensor>    TimeTag
     hil/<rig>/clock/<sensor>      ClockModel
-    hil/<rig>/synced/<sensor>     ImuSample | GnssFix   re-stamped to rig time of validity
+    hil/<rig>/synced/<sensor>     ImuSample | GnssFix | ...   re-stamped to rig time of validity
     hil/<rig>/nav/<estimator>     NavSolution
+    hil/<rig>/health/<estimator>  EstimatorHealth   innovation test ratios, NIS, gains (1 Hz)
     hil/<rig>/fusion/journal      FusionJournal
+    hil/<rig>/fusion/config       FusionSettings    the fusion's configuration, at its start
     hil/<rig>/status/<service>    ServiceStatus
     hil/<rig>/event/<source>      Event
     hil/<rig>/control/fault       FaultCommand   run-time fault injection (``hil fault``)
@@ -28,11 +30,11 @@ from hil.messages import (
     CanFrame,
     CaptureTruth,
     ClockModel,
+    EstimatorHealth,
     Event,
     FaultCommand,
     FusionJournal,
-    GnssFix,
-    ImuSample,
+    FusionSettings,
     Message,
     NavSolution,
     RunInfo,
@@ -40,11 +42,12 @@ from hil.messages import (
     TimeTag,
     Truth,
 )
+from hil.sensor_table import SENSORS
 
 _NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
-# sensor name -> raw/synced message type
-SENSOR_TYPES: dict[str, type[Message]] = {"imu": ImuSample, "gnss": GnssFix}
+# sensor name -> raw/synced message type (the sensor table's)
+SENSOR_TYPES: dict[str, type[Message]] = {name: kind.message for name, kind in SENSORS.items()}
 
 
 def check_name(what: str, name: str) -> str:
@@ -94,6 +97,12 @@ class Keys:
     def journal(self) -> str:
         return f"{self.root}/fusion/journal"
 
+    def fusion_config(self) -> str:
+        return f"{self.root}/fusion/config"
+
+    def health(self, estimator: str) -> str:
+        return f"{self.root}/health/{estimator}"
+
     def status(self, service: str) -> str:
         return f"{self.root}/status/{service}"
 
@@ -117,6 +126,7 @@ _FIXED: dict[str, type[Message]] = {
     "timetag": TimeTag,
     "clock": ClockModel,
     "nav": NavSolution,
+    "health": EstimatorHealth,
     "fusion": FusionJournal,
     "status": ServiceStatus,
     "event": Event,
@@ -132,6 +142,8 @@ def type_for_key(key: str) -> type[Message] | None:
     kind = parts[2]
     if kind in ("sensor", "synced"):
         return SENSOR_TYPES.get(parts[3]) if len(parts) > 3 else None
+    if kind == "fusion" and len(parts) > 3 and parts[3] == "config":
+        return FusionSettings
     return _FIXED.get(kind)
 
 

@@ -103,6 +103,11 @@ class Stats:
             self.counters[counter] = self.counters.get(counter, 0) + 1
             self.last_error = message[:500]
 
+    def note(self, message: str) -> None:
+        """A last error counted elsewhere (a node's own counters)."""
+        with self._lock:
+            self.last_error = message[:500]
+
     def snapshot(self) -> tuple[dict[str, float], dict[str, int], str]:
         """Rates over the interval since the previous snapshot, counters, last error."""
         with self._lock:

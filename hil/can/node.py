@@ -1,12 +1,13 @@
-"""The IMU emulator's CAN side: samples -> DBC frames -> bus, robust to a full or failing bus.
+"""Frames onto a CAN bus the way a device's controller sends them: robust to a full or failing bus.
 
 A real IMU never stops because its CAN controller is busy: it retries briefly, then drops the
-frame and flags it. ``ImuCanNode`` does the same: a ``can.CanOperationError`` (SocketCAN's
+frame and flags it. ``CanTransmitter`` (what the live runner sends a node's frames through)
+does the same: a ``can.CanOperationError`` (SocketCAN's
 ``ENOBUFS`` "transmit buffer full", a bus-off, a closed Zenoh session) is retried with a short
 exponential back-off and, failing that, counted and dropped; the caller gets ``False`` and keeps
 its cadence. The receiver then sees an incomplete sample or a counter jump, both counted there.
 
-The node also meters the bus load it causes (time the frames occupy the wire, worst-case
+It also meters the bus load it causes (time the frames occupy the wire, worst-case
 stuffing, over the last second) against the configured bit rates: 1 Mbit/s classic; FD 1 Mbit/s
 arbitration / 5 Mbit/s data.
 """
@@ -18,14 +19,13 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import can
 
 from hil.bus.pubsub import Stats
 from hil.can.busload import FD_DATA_BITRATE, NOMINAL_BITRATE, frame_bits
 from hil.can.codec import EncodeError, ImuCanCodec
-from hil.faults import FrameCorruptor
-from hil.runtime.clock import monotonic_s
 
 log = logging.getLogger(__name__)
 
@@ -38,25 +38,20 @@ _COUNTERS = (
     "tx_bus_error",
     "tx_dropped_frames",
     "tx_dropped_samples",
-    "tx_encode_errors",
-    "tx_saturated_samples",
-    "tx_corrupted_frames",
-    "tx_fault_dropped_samples",
 )
 
 
-class ImuCanNode:
-    """Send IMU samples and sync frames through ``codec`` onto ``bus``.
+class CanTransmitter:
+    """Send frames onto ``bus``; what the live runner does with a node's CAN output.
 
     ``stats`` (the service's) receives ``can.tx.*`` counters and the last error text.
     ``retries``/``backoff_s``: attempts after the first failure, first back-off (doubling).
-    ``now``: a monotonic clock in seconds (injected so tests and replay need no wall clock).
+    ``now``: a monotonic clock in seconds (injected so tests need no wall clock).
     """
 
     def __init__(
         self,
         bus: can.BusABC,
-        codec: ImuCanCodec,
         stats: Stats | None = None,
         *,
         retries: int = 3,
@@ -64,11 +59,10 @@ class ImuCanNode:
         send_timeout_s: float = 0.005,
         nominal_bitrate: float = NOMINAL_BITRATE,
         data_bitrate: float = FD_DATA_BITRATE,
-        now: Callable[[], float] = monotonic_s,
+        now: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         self.bus = bus
-        self.codec = codec
         self.stats = stats
         self.retries = retries
         self.backoff_s = backoff_s
@@ -81,82 +75,16 @@ class ImuCanNode:
         self._busy: deque[tuple[float, float]] = deque()
         self._busy_sum = 0.0
         self._busy_cache: dict[tuple[int, bool, bool], float] = {}
-        self._corruptor = FrameCorruptor()
 
-    def corrupt_next(self, frames: int) -> None:
-        """A burst error: the next ``frames`` frames go out with a flipped data byte, so the
-        receiver's E2E CRC rejects them (fault ``can_burst_error``; the corruption itself is
-        ``hil.faults.FrameCorruptor``, which ``hil sim`` applies too)."""
-        self._corruptor.arm(frames)
-
-    # -- public API ----------------------------------------------------------------------
-    def send_sample(
-        self,
-        device_stamp_ns: int,
-        dtheta_b_rad: Sequence[float],
-        dvel_b_mps: Sequence[float],
-        status: int = 0,
-        *,
-        drop: bool = False,
-    ) -> bool:
-        """Encode and send one sample; False if it could not be encoded or a frame was dropped.
-
-        ``drop``: encode (the device's counters and SampleCount advance) but do not transmit --
-        an injected frame loss or bus-off, which the receiver sees as counter jumps.
-        """
-        frames = self.encode_sample(device_stamp_ns, dtheta_b_rad, dvel_b_mps, status, drop=drop)
-        return frames is not None and self.send_frames(frames)
-
-    def encode_sample(
-        self,
-        device_stamp_ns: int,
-        dtheta_b_rad: Sequence[float],
-        dvel_b_mps: Sequence[float],
-        status: int = 0,
-        *,
-        drop: bool = False,
-    ) -> list[can.Message] | None:
-        """The sample's frames, to send now or later (``send_frames``); None if it could not be
-        encoded or is ``drop``ped. Split from sending so a ``can_latency`` fault can hold the
-        frames after the device stamped and counted them, as a slow transmit path would."""
-        try:
-            frames = self.codec.encode_sample(
-                device_stamp_ns=device_stamp_ns,
-                dtheta_b_rad=dtheta_b_rad,
-                dvel_b_mps=dvel_b_mps,
-                status=status,
-            )
-        except (EncodeError, TypeError, ValueError) as err:
-            self._count("tx_encode_errors", f"sample not encodable: {err}")
-            return None
-        if self.codec.saturated_samples > self._counts["tx_saturated_samples"]:
-            self._counts["tx_saturated_samples"] = self.codec.saturated_samples
-        if drop:
-            self._counts["tx_fault_dropped_samples"] += 1
-            return None
-        return list(frames)
-
-    def send_frames(self, frames: Sequence[can.Message]) -> bool:
-        """Send one sample's encoded frames; False (and counted) if a frame was dropped."""
+    def send_frames(self, frames: Sequence[can.Message], *, sync: bool = False) -> bool:
+        """Send one sample's frames (or a sync frame); False (and counted) if a frame was dropped."""
         ok = True
         for frame in frames:
             ok = self._send(frame) and ok
         if ok:
-            self._counts["tx_samples"] += 1
-        else:
+            self._counts["tx_syncs" if sync else "tx_samples"] += 1
+        elif not sync:
             self._count("tx_dropped_samples")
-        return ok
-
-    def send_sync(self, device_stamp_ns: int) -> bool:
-        """Send the time-tag frame of a sync edge at ``device_stamp_ns`` (device clock)."""
-        try:
-            frame = self.codec.encode_sync(device_stamp_ns)
-        except (EncodeError, TypeError, ValueError) as err:
-            self._count("tx_encode_errors", f"sync not encodable: {err}")
-            return False
-        ok = self._send(frame)
-        if ok:
-            self._counts["tx_syncs"] += 1
         return ok
 
     def bus_load(self) -> float:
@@ -180,8 +108,6 @@ class ImuCanNode:
                 self.stats.inc(f"can.{name.replace('_', '.', 1)}")
 
     def _send(self, frame: can.Message) -> bool:
-        if self._corruptor(frame):
-            self._counts["tx_corrupted_frames"] += 1
         delay = self.backoff_s
         for attempt in range(self.retries + 1):
             try:
@@ -227,3 +153,44 @@ class ImuCanNode:
             self._busy_sum -= q.popleft()[1]
         if not q:
             self._busy_sum = 0.0
+
+
+class ImuCanNode(CanTransmitter):
+    """IMU samples encoded with ``codec`` and sent: a sender for tests, benches and tools (the
+    rig's own emulator is ``hil.nodes.imu_emulator``, whose frames the live runner sends through
+    a ``CanTransmitter``)."""
+
+    def __init__(self, bus: can.BusABC, codec: ImuCanCodec, stats: Stats | None = None, **kw: Any) -> None:
+        super().__init__(bus, stats, **kw)
+        self.codec = codec
+        self._counts.update(tx_encode_errors=0, tx_saturated_samples=0)
+
+    def send_sample(
+        self,
+        device_stamp_ns: int,
+        dtheta_b_rad: Sequence[float],
+        dvel_b_mps: Sequence[float],
+        status: int = 0,
+    ) -> bool:
+        """Encode and send one sample; False if it could not be encoded or a frame was dropped."""
+        try:
+            frames = self.codec.encode_sample(
+                device_stamp_ns=device_stamp_ns,
+                dtheta_b_rad=dtheta_b_rad,
+                dvel_b_mps=dvel_b_mps,
+                status=status,
+            )
+        except (EncodeError, TypeError, ValueError) as err:
+            self._count("tx_encode_errors", f"sample not encodable: {err}")
+            return False
+        self._counts["tx_saturated_samples"] = self.codec.saturated_samples
+        return self.send_frames(frames)
+
+    def send_sync(self, device_stamp_ns: int) -> bool:
+        """Send the time-tag frame of a sync edge at ``device_stamp_ns`` (device clock)."""
+        try:
+            frame = self.codec.encode_sync(device_stamp_ns)
+        except (EncodeError, TypeError, ValueError) as err:
+            self._count("tx_encode_errors", f"sync not encodable: {err}")
+            return False
+        return self.send_frames([frame], sync=True)

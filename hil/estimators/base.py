@@ -9,8 +9,11 @@ no threading).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any
+
+import numpy as np
 
 from hil.nav.types import F64, NavState
 
@@ -51,17 +54,54 @@ class InitialState:
     q_nb: F64  # (4,)
 
 
-class Estimator(Protocol):
-    """What the fusion core calls. ``ins`` is the shared free (uncorrected) INS after this step."""
+class Estimator:
+    """Base of every estimator: what the fusion core calls, with a no-op per measurement kind.
 
-    name: str
+    ``on_imu`` propagates (every estimator must); ``on_<sensor>`` takes a measurement of that
+    kind of ``hil.sensor_table`` and by default does nothing, so a sensor added to the table
+    reaches the estimators that define its handler and leaves the others untouched.
+    ``ins`` is the shared free (uncorrected) INS after this step.
+    """
 
-    def on_imu(self, imu: ImuInput, ins: NavState) -> None: ...
+    name: str = "estimator"
 
-    def on_gnss(self, gnss: GnssInput, ins: NavState) -> None: ...
+    def on_imu(self, imu: ImuInput, ins: NavState) -> None:
+        raise NotImplementedError(f"{type(self).__name__} must propagate on every IMU step")
 
-    def solution(self) -> NavState: ...
+    def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
+        """No-op: an estimator that does not fuse GNSS ignores it."""
+
+    def solution(self) -> NavState:
+        raise NotImplementedError(f"{type(self).__name__} must say where it thinks it is")
 
     def health(self) -> dict[str, float]:
-        """Innovation test ratios, rejected-measurement counters, ... for the status topic."""
-        ...
+        """Innovation test ratios, NIS, gains, bias norms, counts: published as ``hil.EstimatorHealth``."""
+        return {}
+
+    def handler(self, sensor: str) -> Callable[[Any, NavState], None] | None:
+        """The method taking ``sensor``'s measurements, or None if this estimator takes none
+        (the base class's no-op, or no ``on_<sensor>`` at all): resolved once, not per input."""
+        fn = getattr(type(self), f"on_{sensor}", None)
+        if fn is None or fn is getattr(Estimator, f"on_{sensor}", None):
+            return None
+        bound: Callable[[Any, NavState], None] = getattr(self, f"on_{sensor}")
+        return bound
+
+
+def gnss_input(msg: Any) -> GnssInput | None:
+    """A GNSS fix as estimators take it; None if it is no position fix (fix type below 2D)."""
+    if msg.fix_type < MIN_GNSS_FIX_TYPE:
+        return None
+    return GnssInput(
+        stamp_ns=msg.stamp_ns,
+        pos_ned_m=np.asarray(msg.pos_ned_m, dtype=np.float64),
+        vel_ned_mps=np.asarray(msg.vel_ned_mps, dtype=np.float64),
+        pos_sigma_m=np.asarray(msg.pos_sigma_m, dtype=np.float64),
+        vel_sigma_mps=np.asarray(msg.vel_sigma_mps, dtype=np.float64),
+    )
+
+
+MIN_GNSS_FIX_TYPE = 2
+#: sensor -> the measurement as estimators take it (None: refused, counted by the fusion as
+#: ``<sensor>.unusable``). A sensor without an entry reaches its handlers as the message itself.
+INPUTS: dict[str, Callable[[Any], Any]] = {"gnss": gnss_input}

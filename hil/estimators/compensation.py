@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.estimators.lti import (
     StateSpace,
     TransferFunction,
@@ -213,7 +213,7 @@ def seconds_since(t_ns: int, t0_ns: int | None) -> float:
     return float("nan") if t0_ns is None else (t_ns - t0_ns) * 1e-9
 
 
-class CompensationEstimator:
+class CompensationEstimator(Estimator):
     """Live compensation scheme on position and velocity, every axis on its own.
 
     The corrected solution is ``X̂ = X_INS − y`` at the last IMU stamp; attitude is the free

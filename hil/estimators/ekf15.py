@@ -75,7 +75,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
@@ -144,7 +144,7 @@ def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
     return out
 
 
-class Ekf15:
+class Ekf15(Estimator):
     """The 3-D error-state EKF as an :class:`~hil.estimators.base.Estimator`.
 
     Default noise figures are the rig's ``tactical`` IMU preset (HG1700 class).

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.nav.types import F64, NavState
 
 
@@ -66,7 +66,7 @@ def monte_carlo(
     return rms, sig
 
 
-class ScalarKfEstimator:
+class ScalarKfEstimator(Estimator):
     """Live per-axis scalar KFs on position and velocity (registry name ``kfvel``)."""
 
     def __init__(

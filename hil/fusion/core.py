@@ -19,13 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
-from hil.messages import FusionJournal, GnssFix, ImuSample, NavSolution
+from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState
+from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.types import NavState
+from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
-SOURCE_RANK = {"imu": 0, "gnss": 1}
 FREE_INS = "ins"
-MIN_GNSS_FIX_TYPE = 2
 
 
 @dataclass(frozen=True)
@@ -43,14 +42,42 @@ class FusionConfig:
     max_vel_mps: float = 2000.0
     gap_confirm_inputs: int = 40  # consecutive consistent "future" IMU inputs that prove a real gap
 
+    @property
+    def lag_s(self) -> float:
+        return self.lag_ns / 1e9
 
-def implausible(msg: ImuSample | GnssFix, cfg: FusionConfig) -> str:
+    def settings(self, seq: int, stamp_ns: int) -> FusionSettings:
+        """This configuration as the typed message the recording keeps (``fusion/config``)."""
+        return FusionSettings(
+            seq=seq,
+            stamp_ns=stamp_ns,
+            estimators=list(self.estimators),
+            lag_ns=self.lag_ns,
+            output_every=self.output_every,
+            max_future_ns=self.max_future_ns,
+            max_buffered=self.max_buffered,
+            max_dtheta_rad=self.max_dtheta_rad,
+            max_dvel_mps=self.max_dvel_mps,
+            max_pos_m=self.max_pos_m,
+            max_vel_mps=self.max_vel_mps,
+            gap_confirm_inputs=self.gap_confirm_inputs,
+        )
+
+    @classmethod
+    def from_settings(cls, m: FusionSettings) -> FusionConfig:
+        fields = {f: getattr(m, f) for f in cls.__dataclass_fields__ if f != "estimators"}
+        return cls(estimators=tuple(m.estimators), **fields)
+
+
+def implausible(msg: Measurement, cfg: FusionConfig) -> str:
     """Why an input cannot be a measurement ("" if it can): non-finite or absurd values."""
     if isinstance(msg, ImuSample):
         if not all(math.isfinite(v) and abs(v) <= cfg.max_dtheta_rad for v in msg.dtheta_b_rad):
             return "dtheta"
         if not all(math.isfinite(v) and abs(v) <= cfg.max_dvel_mps for v in msg.dvel_b_mps):
             return "dvel"
+        return ""
+    if not isinstance(msg, GnssFix):
         return ""
     if not all(math.isfinite(v) and abs(v) <= cfg.max_pos_m for v in msg.pos_ned_m):
         return "pos"
@@ -61,11 +88,20 @@ def implausible(msg: ImuSample | GnssFix, cfg: FusionConfig) -> str:
     return ""
 
 
-def input_key(msg: ImuSample | GnssFix) -> tuple[int, int, int]:
-    return (msg.stamp_ns, SOURCE_RANK.get(msg.sensor, 9), msg.seq)
+def handler_of(est: Any, sensor: str) -> Any:
+    """``est``'s handler of ``sensor``: ``Estimator.handler``, or ``on_<sensor>`` of an object
+    that keeps the contract without deriving from the base class."""
+    if isinstance(est, Estimator):
+        return est.handler(sensor)
+    return getattr(est, f"on_{sensor}", None)
 
 
-def input_id(msg: ImuSample | GnssFix) -> str:
+def input_key(msg: Measurement) -> tuple[int, int, int]:
+    """The total order: rig time of validity, then the sensor's rank, then seq."""
+    return (msg.stamp_ns, rank_of(msg.sensor), msg.seq)
+
+
+def input_id(msg: Measurement) -> str:
     return f"{msg.sensor}:{msg.seq}"
 
 
@@ -132,7 +168,15 @@ class FusionCore:
             except Exception as err:  # one broken estimator must not take the others down
                 self._inc(f"errors.estimator_init.{name}")
                 self.last_error = f"estimator {name} could not start: {type(err).__name__}: {err}"
-        self._heap: list[tuple[tuple[int, int, int], int, ImuSample | GnssFix]] = []
+        # per sensor (other than the IMU, which every estimator takes): the estimators' handlers,
+        # in estimator order, resolved once
+        self._handlers: dict[str, list[tuple[str, Any]]] = {
+            sensor: [(e.name, h) for e in self.estimators if (h := handler_of(e, sensor)) is not None]
+            for sensor in SENSOR_NAMES
+            if not SENSORS[sensor].paces_fusion
+        }
+        self._pacer = {n for n in SENSOR_NAMES if SENSORS[n].paces_fusion}
+        self._heap: list[tuple[tuple[int, int, int], int, Measurement]] = []
         self._arrivals = 0  # tie-break for identical keys: first arrival first, never compare messages
         self._future_lead_ns: int | None = None
         self._future_run = 0
@@ -145,7 +189,7 @@ class FusionCore:
         self.consumed = 0
 
     # -- arrival side (live) ---------------------------------------------------------------
-    def push(self, msg: ImuSample | GnssFix) -> list[NavSolution]:
+    def push(self, msg: Measurement) -> list[NavSolution]:
         key = input_key(msg)
         why = implausible(msg, self.config)
         if why:
@@ -159,7 +203,7 @@ class FusionCore:
             if lead is None or not lead <= msg.stamp_ns <= lead + self.config.max_future_ns:
                 self._future_lead_ns, self._future_run = msg.stamp_ns, 0
             self._future_run += 1
-            if msg.sensor != "imu" or self._future_run < self.config.gap_confirm_inputs:
+            if msg.sensor not in self._pacer or self._future_run < self.config.gap_confirm_inputs:
                 self._inc("rejected.future_stamp")
                 self._dropped.append("future:" + input_id(msg))
                 return []
@@ -174,7 +218,7 @@ class FusionCore:
         self._arrivals += 1
         # The IMU is the fusion's clock: only its progress moves the watermark, so a GNSS fix that
         # arrives before the IMU samples around its time of validity waits for them.
-        if msg.sensor == "imu" and (self._newest_ns is None or msg.stamp_ns > self._newest_ns):
+        if msg.sensor in self._pacer and (self._newest_ns is None or msg.stamp_ns > self._newest_ns):
             self._newest_ns = msg.stamp_ns
         if self._newest_ns is None:
             return []
@@ -218,12 +262,12 @@ class FusionCore:
         return out
 
     # -- processing side (live after release, and rerun) -----------------------------------
-    def process(self, msg: ImuSample | GnssFix) -> list[NavSolution]:
+    def process(self, msg: Measurement) -> list[NavSolution]:
         """Consume one input in total order; return the solutions it produced."""
         self.consumed += 1
         if isinstance(msg, ImuSample):
             return self._on_imu(msg)
-        self._on_gnss(msg)
+        self._on_measurement(msg)
         return []
 
     def _on_imu(self, msg: ImuSample) -> list[NavSolution]:
@@ -254,26 +298,25 @@ class FusionCore:
                 self._inc(f"errors.nonfinite.{name}")
         return out
 
-    def _on_gnss(self, msg: GnssFix) -> None:
-        if msg.fix_type < MIN_GNSS_FIX_TYPE:
-            self._inc("gnss.no_fix")
+    def _on_measurement(self, msg: Measurement) -> None:
+        """An aiding measurement at its time of validity, to every estimator that takes its kind."""
+        convert = INPUTS.get(msg.sensor)
+        data = convert(msg) if convert is not None else msg
+        if data is None:
+            self._inc(f"{msg.sensor}.unusable")
             return
-        gnss = GnssInput(
-            stamp_ns=msg.stamp_ns,
-            pos_ned_m=np.asarray(msg.pos_ned_m, dtype=np.float64),
-            vel_ned_mps=np.asarray(msg.vel_ned_mps, dtype=np.float64),
-            pos_sigma_m=np.asarray(msg.pos_sigma_m, dtype=np.float64),
-            vel_sigma_mps=np.asarray(msg.vel_sigma_mps, dtype=np.float64),
-        )
-        ins_nav = self._sd.to_nav_state(self._ins, self._origin)
-        for est in self.estimators:
-            if est.name in self._failed:
-                continue
-            try:
-                est.on_gnss(gnss, ins_nav)
-            except Exception as err:
-                self._fail(est.name, err)
-        self._last_gnss_seq = msg.seq
+        handlers = self._handlers.get(msg.sensor, ())
+        if handlers:
+            ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+            for name, handle in handlers:
+                if name in self._failed:
+                    continue
+                try:
+                    handle(data, ins_nav)
+                except Exception as err:
+                    self._fail(name, err)
+        if msg.sensor == "gnss":
+            self._last_gnss_seq = msg.seq
 
     def _fail(self, name: str, err: Exception) -> None:
         """An estimator that raises is taken out (and says so); the others go on."""
@@ -310,18 +353,24 @@ class FusionCore:
             gnss_seq=self._last_gnss_seq,
         )
 
-    def health(self) -> dict[str, int]:
+    def status_counters(self) -> dict[str, int]:
+        """What the status topic counts: rejections, drops, the buffer, inputs consumed."""
         out = dict(self.counters)
         out["buffered"] = len(self._heap)
         out["consumed"] = self.consumed
+        return out
+
+    def estimator_health(self) -> dict[str, dict[str, float]]:
+        """Each running estimator's health, as the real numbers it reports (advisory: an
+        estimator whose ``health()`` raises reports nothing rather than stopping the fusion)."""
+        out: dict[str, dict[str, float]] = {}
         for est in self.estimators:
             if est.name in self._failed:
                 continue
             try:
-                for k, v in est.health().items():
-                    out[f"{est.name}.{k}"] = int(v)
+                out[est.name] = {k: float(v) for k, v in est.health().items()}
             except Exception:  # health is advisory
-                pass
+                self._inc(f"errors.health.{est.name}")
         return out
 
     def _inc(self, name: str) -> None:

@@ -22,6 +22,7 @@ from types import MappingProxyType
 from typing import Any
 
 from hil.nav.sensor_specs import ImuParams, SpecError, resolve_imu_params
+from hil.sensor_table import SENSORS
 
 Vec3 = tuple[float, float, float]
 
@@ -29,22 +30,6 @@ Vec3 = tuple[float, float, float]
 #: ``Scenario.extra_tables``, not interpreted here. Any other unknown key is an error.
 RESERVED_TABLES = frozenset({"clock"})
 SEGMENT_KINDS = ("hold", "accelerate", "turn", "coordinated_turn", "climb", "rates")
-EVENT_KINDS = (
-    "gnss_outage",
-    "gnss_jump",
-    "gnss_pulse",
-    "gnss_velocity_glitch",
-    "gnss_latency",
-    # applied by the IMU emulator / its CAN node, the device clocks and the supervisor (hil/faults.py)
-    "imu_frame_loss",
-    "imu_stuck",
-    "imu_saturated",
-    "can_burst_error",
-    "can_bus_off",
-    "can_latency",
-    "clock_step",
-    "kill_service",
-)
 DEFAULT_SCENARIO = "straight_level"
 
 
@@ -177,21 +162,34 @@ _SEGMENT_KEYS: dict[str, set[str]] = {
     "climb": {"duration_s", "pitch_deg", "pitch_rate_dps"},
     "rates": {"duration_s", "euler_rate_dps", "accel_body_mps2"},
 }
+# Timed faults: each sensor's emulator applies its own (hil/sensor_table.py); the device clocks
+# take clock_step, the supervisor kill_service (hil/faults.py).
 _EVENT_KEYS: dict[str, set[str]] = {
-    "gnss_outage": set(),
-    "gnss_jump": {"offset_ned_m"},
-    "gnss_pulse": {"amplitude_m", "tau_s", "direction_ned"},
-    "gnss_velocity_glitch": {"offset_ned_mps"},
-    "gnss_latency": {"latency_s", "jitter_s"},
-    "imu_frame_loss": {"percent"},
-    "imu_stuck": set(),
-    "imu_saturated": set(),
-    "can_burst_error": {"frames"},
-    "can_bus_off": set(),
-    "can_latency": {"latency_s", "jitter_s"},
+    **{kind: set(keys) for s in SENSORS.values() for kind, keys in s.events.items()},
     "clock_step": {"sensor", "step_s"},
     "kill_service": {"service"},
 }
+EVENT_KINDS = tuple(_EVENT_KEYS)
+# can_latency: beyond this a "latency" is an outage (and 10 s of held frames at 2 kHz is already
+# 80 000 frames in the emulator's memory); refused rather than silently buffered
+MAX_TRANSPORT_DELAY_S = 10.0
+
+
+def transport_delay_problem(latency_s: float, jitter_s: float) -> str | None:
+    """Why a ``can_latency`` (latency, jitter) pair cannot be applied, or None; shared by the
+    scenario loader and ``hil.faults.check_fault`` so both refuse the same values with the same
+    words."""
+    if latency_s < 0 or jitter_s < 0:
+        return (
+            "latency_s and jitter_s must be >= 0 (a frame cannot leave before its capture), "
+            f"got {latency_s}, {jitter_s}"
+        )
+    if latency_s + jitter_s > MAX_TRANSPORT_DELAY_S:
+        return (
+            f"latency_s + jitter_s must be <= {MAX_TRANSPORT_DELAY_S:g} s (longer is an outage: use "
+            f"can_bus_off), got {latency_s + jitter_s:g} s"
+        )
+    return None
 
 
 def _parse_segment(i: int, raw: Mapping[str, Any]) -> MotionSegment:
@@ -280,16 +278,15 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
             raise ScenarioError(f"{where} (can_burst_error) takes frames in [1, 100000] and no t_end_s")
         params["frames"] = int(frames)
     if kind == "can_latency":  # t_end_s optional: to the end of the run
-        from hil.faults import transport_delay_problem
-
         params["latency_s"] = _num(f"{where}.latency_s", raw.get("latency_s"))
         params["jitter_s"] = _num(f"{where}.jitter_s", raw.get("jitter_s", 0.0))
         problem = transport_delay_problem(params["latency_s"], params["jitter_s"])
         if problem:
             raise ScenarioError(f"{where} (can_latency): {problem}")
     if kind == "clock_step":
-        if raw.get("sensor") not in ("imu", "gnss") or t1 is not None:
-            raise ScenarioError(f"{where} (clock_step) needs sensor = imu or gnss, step_s, no t_end_s")
+        if raw.get("sensor") not in SENSORS or t1 is not None:
+            names = " or ".join(SENSORS)
+            raise ScenarioError(f"{where} (clock_step) needs sensor = {names}, step_s, no t_end_s")
         params.update(sensor=raw["sensor"], step_s=_num(f"{where}.step_s", raw.get("step_s")))
     if kind == "kill_service":
         if not isinstance(raw.get("service"), str) or t1 is not None:
@@ -510,3 +507,12 @@ def scenario_overrides(s: Scenario, **kw: Any) -> Scenario:
         + ", ".join(f"{k}={v!r}" for k, v in sorted(kw.items())),
     )
     return parse_scenario(text, s.name)
+
+
+def scenario_for_run(run: Any) -> Scenario:
+    """The run's scenario (``hil.RunInfo``): its TOML text parsed, its duration applied.
+
+    The text travels in ``RunInfo`` so services on other hosts need no shared file system, and
+    the recording holds the exact text; every node and rerun rebuilds the scenario this way."""
+    s = parse_scenario(run.scenario_toml, default_name=run.scenario)
+    return scenario_overrides(s, duration_s=run.duration_s)

@@ -4,7 +4,8 @@ The time-sync core is per sensor, and per sensor its inputs -- ``timetag/<sensor
 ``sensor/<sensor>`` measurements -- come from one publishing process (the bridge for the IMU, the
 receiver for GNSS), so the recorder sees them in the order the timesync service saw them (one
 Zenoh link per peer pair is FIFO). Feeding them in file order through a fresh
-``TimeSyncCore`` configured from the run's scenario therefore reproduces every re-stamp; each
+time-sync node (``hil.nodes.timesync``, configured from the run's scenario) therefore reproduces
+every re-stamp; each
 recomputed ``synced/<sensor>`` message (the raw one with its ``stamp_ns`` replaced) is compared
 byte for byte with the recorded one, by (sensor, seq).
 
@@ -26,11 +27,14 @@ from dataclasses import dataclass
 
 import msgspec
 
-from hil.messages import GnssFix, ImuSample, RunInfo, TimeTag, decode, encode
+from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
+from hil.nodes.base import Out
+from hil.nodes.timesync import TimeSyncNode
+from hil.record.matching import Matcher
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream
-from hil.record.rerun import Matcher
+from hil.sensor_table import SENSORS
 
-_RAW = {"hil.ImuSample": ImuSample, "hil.GnssFix": GnssFix}
+_RAW = {schema_name(k.message): k.message for k in SENSORS.values()}
 
 
 @dataclass
@@ -61,42 +65,36 @@ HORIZON_NS = 60_000_000_000  # log time a re-stamp waits for its recorded copy b
 
 
 def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -> TimesyncRerun:
-    """Feed time tags and raw measurements, in file order, through a fresh ``TimeSyncCore``.
+    """Feed time tags and raw measurements, in file order, through a fresh time-sync node.
 
     Streams: the records before the run's ``RunInfo`` (which configures the core) are held until
     it comes; after that only re-stamps waiting for their recorded copy (or the other way round)
     are held (``Matcher``), and a re-stamp nobody recorded is let go after ``HORIZON_NS`` of log
     time. A recorded copy that comes even later is reported as a difference, never skipped.
     """
-    from hil.runtime.scenario_io import scenario_for_run
-    from hil.timesync.config import sync_configs_for
-    from hil.timesync.core import TimeSyncCore
-
-    core: TimeSyncCore[ImuSample | GnssFix] | None = None
+    node: TimeSyncNode | None = None
     held: list[Record] = []
     matcher = Matcher(_synced_difference, "recorded", HORIZON_NS)
     late: list[tuple[int, tuple[str, int]]] = []  # recorded after their re-stamp was let go
     counts = {"meas": 0, "tags": 0, "out": 0, "order": 0}
     now_ns = 0
 
-    def keep(released: list[tuple[ImuSample | GnssFix, int]]) -> None:
-        for m, t in released:
-            matcher.recomputed((m.sensor, m.seq), encode(msgspec.structs.replace(m, stamp_ns=t)), -1, now_ns)
+    def keep(outs: list[Out]) -> None:
+        for _key, m in outs:
+            matcher.recomputed((m.sensor, m.seq), encode(m), -1, now_ns)
             counts["out"] += 1
 
     def handle(r: Record) -> None:
-        assert core is not None
+        assert node is not None
         parts = r.topic.split("/")
         if len(parts) != 4:
             return
         kind, sensor = parts[2], parts[3]
         if kind == "timetag":
-            tag = decode(TimeTag, r.payload)
-            core.on_timetag(tag.sensor, tag.device_stamp_ns, tag.stamp_ns)
+            keep(node.on_message(f"timetag/{sensor}", decode(TimeTag, r.payload), now_ns))
             counts["tags"] += 1
         elif kind == "sensor" and r.schema in _RAW:
-            raw = decode(_RAW[r.schema], r.payload)
-            keep(core.on_measurement(raw.sensor, raw.device_stamp_ns, raw.rx_stamp_ns, raw))
+            keep(node.on_message(f"sensor/{sensor}", decode(_RAW[r.schema], r.payload), now_ns))
             counts["meas"] += 1
         elif kind == "synced" and r.schema in _RAW:
             key = (sensor, r.sequence)
@@ -108,10 +106,9 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
 
     for r in records:
         now_ns = r.log_time_ns
-        if core is None:
+        if node is None:
             if r.topic.endswith("/run"):
-                run = decode(RunInfo, r.payload)
-                core = TimeSyncCore(sync_configs_for(scenario_for_run(run)))
+                node = TimeSyncNode(decode(RunInfo, r.payload))
                 for h in held:
                     handle(h)
                 held.clear()
@@ -119,9 +116,9 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
                 held.append(r)
                 continue
         handle(r)
-    if core is None:
+    if node is None:
         raise RecordingError(f"{name}: no RunInfo (hil/<rig>/run): not a rig session")
-    keep(core.flush())
+    keep(node.finish(now_ns))
     # the first difference in file order, among differing, missing and too-late recorded outputs
     candidates: list[tuple[int, str]] = [matcher.first] if matcher.first is not None else []
     if matcher.recorded_pending:

@@ -7,10 +7,13 @@ file system, and the recording holds the exact text as an attachment.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from pathlib import Path
 
 from hil.messages import CONTRACT_TYPES, RunInfo, json_schema, schema_name
+from hil.nav.scenario import Scenario, parse_scenario
+from hil.nav.scenario import scenario_for_run as scenario_for_run  # re-exported: the services' import
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,19 +22,9 @@ def dbc_path() -> Path:
     return Path(os.environ.get("HIL_DBC") or REPO_ROOT / "schemas" / "imu.dbc")
 
 
-def scenario_from_text(text: str, name: str = "scenario"):  # -> hil.nav.scenario.Scenario
+def scenario_from_text(text: str, name: str = "scenario") -> Scenario:
     """Parse scenario TOML text with the same parser as files."""
-    from hil.nav.scenario import parse_scenario
-
     return parse_scenario(text, default_name=name)
-
-
-def scenario_for_run(run: RunInfo):
-    """The run's scenario with the run's duration applied."""
-    from hil.nav.scenario import scenario_overrides
-
-    s = scenario_from_text(run.scenario_toml, run.scenario)
-    return scenario_overrides(s, duration_s=run.duration_s)
 
 
 def sha256_text(text: str) -> str:
@@ -40,8 +33,6 @@ def sha256_text(text: str) -> str:
 
 def run_attachments(run: RunInfo) -> list[tuple[str, bytes, str]]:
     """What a recording carries besides messages: scenario, DBC, schemas."""
-    import json
-
     out = [(f"scenario/{run.scenario}.toml", run.scenario_toml.encode(), "application/toml")]
     dbc = dbc_path()
     if dbc.is_file():

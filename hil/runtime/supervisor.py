@@ -27,6 +27,7 @@ from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
 from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
 from hil.runtime.clock import RigClock
+from hil.runtime.options import fill_options
 from hil.runtime.registry import SERVICES, STOP_STAGES
 
 
@@ -54,7 +55,7 @@ class UpOptions:
     record: Path | None = None
     rig: str = "bench"
     channel: str = "vcan0"
-    can_interface: str | None = None
+    interface: str | None = None  # python-can interface of the IMU and the bridge
     fd: bool = False
     estimators: list[str] = field(default_factory=list)
     live: bool = True
@@ -236,37 +237,27 @@ class Supervisor:
         return names
 
     def options_for(self, name: str, restarts: int = 0) -> dict[str, Any]:
+        """The service's typed options from this run's (``hil.runtime.options.fill_options``)."""
         o = self.opts
-        base: dict[str, Any] = {}
+        derived: dict[str, Any] = {}
         if name == "world":
-            base = {
-                "scenario": o.scenario,
-                "duration_s": o.duration_s,
-                "speed": o.speed,
-                "wait_for": [n for n in self.service_names() if n != "world"],
-            }
-            if o.imu_rate_hz:
-                base["imu_rate_hz"] = int(o.imu_rate_hz)
+            derived["wait_for"] = [n for n in self.service_names() if n != "world"]
             run = self.view.run
             if restarts and run is not None:
                 # the same run again: time zero and scenario as announced, not a new run
-                base["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
+                derived["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
         elif name == "recorder":
             path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
-            base = {"path": str(path), "zenoh_advanced": o.zenoh_miss_detection}
-            if o.split_mb:
-                base["split_mb"] = o.split_mb
-            if o.split_s:
-                base["split_s"] = o.split_s
-        elif name in ("imu_emulator", "can_bridge", "dut_emulator"):
-            base = {"channel": o.channel, "interface": o.can_interface, "fd": o.fd}
-            if name != "imu_emulator" and o.dut_mapping:
-                base["dut_mapping"] = o.dut_mapping
-        elif name == "fusion" and o.estimators:
-            base = {"estimators": o.estimators}
+            derived.update(path=str(path), zenoh_advanced=o.zenoh_miss_detection)
         if restarts:
-            base["resume"] = restarts
-        return base
+            derived["resume"] = restarts
+        return fill_options(name, o, derived)
+
+    def check_options(self) -> None:
+        """Every service's options decoded now: a bad one is refused before any process starts
+        (``hil.nodes.base.OptionsError``, naming the service and the field)."""
+        for name in self.service_names():
+            self.options_for(name)
 
     def emit(self, kind: str, source: str, detail: str) -> None:
         """An ``hil.Event`` from the supervisor (recorded like any other rig traffic)."""

@@ -45,9 +45,8 @@ from typing import Any
 import numpy as np
 
 from hil.nav.scenario import Scenario, ScenarioError
+from hil.sensor_table import SENSORS
 
-CAN_FRAME_TIME_NS = 135_000  # ~ one 8-byte classic frame at 1 Mbit/s with stuffing
-IMU_FRAMES_PER_SAMPLE = 4  # classic CAN: AxisX, AxisY, AxisZ, Time (the last completes the sample)
 _M64 = (1 << 64) - 1
 
 
@@ -84,24 +83,9 @@ class DeviceClockConfig:
         ) and not (self.quantum_s or self.steps)
 
 
-#: Realistic but modest defaults: an IMU whose counter started 7.1 ms before the run and runs
-#: 20 ppm fast (a plain crystal), and a GNSS receiver disciplined to GPS time (tiny drift,
-#: 20 ns stamp noise) with a 1.5 ms offset to the rig clock; PPS latched with 1 µs jitter, the
-#: sync frame's kernel stamp with 5 µs; CAN data: 20 µs + exponential 10 µs beyond wire time.
+#: Each sensor's defaults, from the sensor table (``hil.sensor_table``: why they are what they are).
 DEFAULT_CLOCKS: Mapping[str, DeviceClockConfig] = {
-    "imu": DeviceClockConfig(
-        offset_s=0.0071,
-        drift_ppm=20.0,
-        drift_rw_ppm_per_sqrt_s=0.005,
-        jitter_s=0.5e-6,
-        quantum_s=1e-6,
-        latch_jitter_s=5e-6,
-        transport_latency_s=20e-6,
-        transport_jitter_s=10e-6,
-    ),
-    "gnss": DeviceClockConfig(
-        offset_s=0.0015, drift_ppm=0.02, jitter_s=20e-9, quantum_s=1e-9, latch_jitter_s=1e-6
-    ),
+    name: DeviceClockConfig(**kind.clock) for name, kind in SENSORS.items()
 }
 
 _KEYS = {
@@ -182,19 +166,11 @@ def clock_config_for(scenario: Scenario, sensor: str) -> DeviceClockConfig:
     if not isinstance(raw, Mapping):
         raise ScenarioError(f"clock.{sensor} must be a table")
     cfg = parse_clock_table(sensor, raw, DEFAULT_CLOCKS.get(sensor, DeviceClockConfig()))
-    frame_s = CAN_FRAME_TIME_NS * 1e-9
+    kind = SENSORS.get(sensor)
     if cfg.tag_latency_s is None:
-        # the IMU's sync frame goes first at its edge and is stamped by the kernel on receipt:
-        # one frame's wire time plus the bus latency; the PPS is latched at its edge
-        tag = cfg.transport_latency_s + frame_s if sensor == "imu" else 0.0
-        cfg = replace(cfg, tag_latency_s=tag)
+        cfg = replace(cfg, tag_latency_s=kind.tag_latency_s(cfg, scenario) if kind else 0.0)
     if cfg.min_delay_s is None:
-        if sensor == "imu":
-            md = cfg.transport_latency_s + IMU_FRAMES_PER_SAMPLE * frame_s
-        elif sensor == "gnss":
-            md = float(scenario.gnss.latency_s)
-        else:
-            md = cfg.transport_latency_s
+        md = kind.min_delay_s(cfg, scenario) if kind else float(cfg.transport_latency_s)
         cfg = replace(cfg, min_delay_s=md)
     return cfg
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -86,6 +87,16 @@ class GnssEmulatorCore:
                 if "jitter_s" in ev.params:
                     jit[on] = ev.params["jitter_s"]
         return dpos, dvel, out, lat, jit
+
+    def add_event(self, event: Any) -> None:
+        """A fault from now on (a run-time command, as a ``ScenarioEvent``): epochs not yet
+        returned see it."""
+        self._events = (*self._events, event)
+
+    def next_epoch_ns(self) -> int | None:
+        """Time of validity of the next epoch not yet returned (None past the run's end)."""
+        t = self.next_epoch * self.period_ns
+        return t if t <= self.truth.duration_ns else None
 
     def has_due(self, until_t_valid_ns: int) -> bool:
         """Whether :meth:`next_batch` would return an epoch: lets a polling caller skip empty work."""

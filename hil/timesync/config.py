@@ -9,10 +9,11 @@ configure the same core the same way.
 from __future__ import annotations
 
 from hil.nav.scenario import Scenario
+from hil.sensor_table import SENSOR_NAMES
 from hil.sensors.clock import clock_config_for
 from hil.timesync.core import SyncConfig
 
-SYNCED_SENSORS = ("imu", "gnss")
+SYNCED_SENSORS = SENSOR_NAMES  # every sensor of the table is synchronised
 
 
 def sync_config_for(scenario: Scenario, sensor: str) -> SyncConfig:

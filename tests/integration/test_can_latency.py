@@ -28,7 +28,7 @@ from hil.messages import (
 )
 from hil.nav.scenario import load_scenario
 from hil.record.mcapio import Session, read_session
-from hil.runtime.offline import SimOptions, run_sim
+from hil.runners.sim import SimOptions, run_sim
 from tests.conftest import REPO, hil_cmd
 from tests.integration.test_supervision import Rig
 

@@ -20,9 +20,9 @@ import pytest
 
 from hil.bus.keys import Keys
 from hil.fusion.core import FusionCore
-from hil.messages import Event, FusionJournal, GnssFix, ImuSample, RunInfo, encode
+from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, RunInfo, encode
 from hil.record.mcapio import SessionWriter, read_session
-from hil.record.rerun import FUSION_CONFIG_EVENT, fusion_config_detail, fusion_config_from, rerun
+from hil.record.rerun import fusion_config_from, rerun
 from hil.runtime.scenario_io import scenario_for_run
 from tests.replay.helpers import GOLDEN, Hub
 
@@ -58,8 +58,14 @@ def build_lossy_session(path: Path) -> tuple[int, int]:
     core = FusionCore.for_scenario(scenario_for_run(run), cfg)
     w = SessionWriter(path)
     w.write(k.run(), RunInfo, encode(run), log_time_ns=0, publish_time_ns=0, seq=0)
-    ev = Event(seq=0, stamp_ns=0, kind=FUSION_CONFIG_EVENT, source="fusion", detail=fusion_config_detail(cfg))
-    w.write(k.event("fusion"), Event, encode(ev), log_time_ns=0, publish_time_ns=0, seq=0)
+    w.write(
+        k.root + "/fusion/config",
+        FusionSettings,
+        encode(cfg.settings(0, 0)),
+        log_time_ns=0,
+        publish_time_ns=0,
+        seq=0,
+    )
     jseq = 0
     dropped_total = 0
     outputs = 0

@@ -17,7 +17,7 @@ from hil.can.codec import ImuCanCodec, ImuFrameAssembler
 from hil.can.mcap_io import can_message
 from hil.messages import CanFrame, CaptureTruth, Event, GnssFix, ImuSample, ServiceStatus, Truth, decode
 from hil.record.mcapio import Session, read_session
-from hil.runtime.offline import SimOptions, SimResult, run_sim
+from hil.runners.sim import SimOptions, SimResult, run_sim
 from tests.conftest import run_hil
 
 pytestmark = pytest.mark.slow

@@ -51,7 +51,7 @@ def digest(path: Path) -> dict[str, object]:
 
 
 def main() -> int:
-    from hil.runtime.offline import SimOptions, run_sim
+    from hil.runners.sim import SimOptions, run_sim
 
     GOLDEN_DIR.mkdir(parents=True, exist_ok=True)
     res = run_sim(

@@ -15,7 +15,7 @@ from pathlib import Path
 from hil.cli import build_parser
 from hil.faults import FAULT_KINDS, SIM_NOT_APPLICABLE, check_fault, fault_detail
 from hil.nav.scenario import load_scenario
-from hil.runtime.offline import not_applicable_faults
+from hil.runners.sim import not_applicable_faults
 from hil.runtime.scenario_io import scenario_from_text
 from tests.conftest import REPO
 

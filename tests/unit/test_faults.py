@@ -9,10 +9,8 @@ import can
 import numpy as np
 import pytest
 
-from hil.bus.pubsub import Stats
 from hil.can.codec import ImuCanCodec, ImuFrameAssembler
 from hil.faults import (
-    CommandInbox,
     FaultError,
     FrameCorruptor,
     ImuFaults,
@@ -22,6 +20,8 @@ from hil.faults import (
 )
 from hil.messages import FaultCommand
 from hil.nav.scenario import ScenarioError, ScenarioEvent, load_scenario
+from hil.nodes.gnss_emulator import GnssEmulatorNode
+from hil.runners.sim import SimOptions, sim_run_info
 from hil.runtime.scenario_io import scenario_from_text
 
 DT_NS = 2_500_000
@@ -112,16 +112,21 @@ def test_bad_fault_commands_are_refused_with_a_reason_and_counted_not_raised() -
     for duration in (-1.0, float("inf"), 2e6):
         with pytest.raises(FaultError, match="duration must be in"):
             check_fault("imu_stuck", "", {}, duration)
-    stats = Stats()
-    inbox = CommandInbox({"gnss_latency"}, "gnss", stats)
-    inbox.on_command(FaultCommand(seq=0, stamp_ns=0, kind="gnss_latency", params={"latency_s": -1.0}))
-    _rates, counters, last = stats.snapshot()
-    assert counters == {"rejected.control.fault": 1} and "must be >= 0" in last and not inbox
-    # addressed to nobody: counted by every inbox that sees it; another device's command: not ours
+    # the GNSS emulator node: a bad command is counted, never raised, never applied
+    node = GnssEmulatorNode(sim_run_info(SimOptions(scenario="straight_level", duration_s=5.0)))
+    events_before = len(node.timeline.faults)
+    cmd = FaultCommand(seq=0, stamp_ns=0, kind="gnss_latency", params={"latency_s": -1.0})
+    assert node.on_message("control/fault", cmd, 1_000_000_000) == []
+    assert node.counters() == {"rejected.control.fault": 1} and "must be >= 0" in node.last_error
+    # addressed to nobody: counted by every device that sees it; another device's command: not ours
     for kind, target in (("bogus", ""), ("clock_step", "fusion"), ("imu_stuck", ""), ("clock_step", "imu")):
-        inbox.on_command(FaultCommand(seq=1, stamp_ns=0, kind=kind, target=target, params={"step_s": 1.0}))
-    _rates, counters, last = stats.snapshot()
-    assert counters == {"rejected.control.fault": 3} and "--target imu or --target gnss" in last and not inbox
+        cmd = FaultCommand(seq=1, stamp_ns=0, kind=kind, target=target, params={"step_s": 1.0})
+        assert node.on_message("control/fault", cmd, 1_000_000_000) == []
+    assert (
+        node.counters() == {"rejected.control.fault": 3}
+        and "--target imu or --target gnss" in node.last_error
+    )
+    assert len(node.timeline.faults) == events_before
     base = load_scenario("straight_level").source_text
     for event, why in (
         ('kind = "gnss_latency"\nt_start_s = 1\nlatency_s = -0.1', "must be >= 0"),

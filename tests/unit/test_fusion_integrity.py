@@ -109,15 +109,15 @@ def _run() -> dict[str, object]:
     inputs.sort(key=lambda m: (m.stamp_ns, 0 if m.sensor == "imu" else 1, m.seq))
     core = FusionCore.for_scenario(s, FusionConfig(estimators=("ekf15", "compvs"), output_every=20))
     out = []
-    health_before_pulse: dict[str, int] = {}
+    health_before_pulse: dict[str, dict[str, float]] = {}
     compvs_restarts_in_outage = None
     for m in inputs:
         out += core.process(m)
         t = m.stamp_ns * 1e-9
         if not health_before_pulse and t >= PULSE_T - 0.5:
-            health_before_pulse = core.health()
+            health_before_pulse = core.estimator_health()
         if compvs_restarts_in_outage is None and t >= OUTAGE[1] - 1.0:
-            compvs_restarts_in_outage = core.health()["compvs.restarts"]
+            compvs_restarts_in_outage = core.estimator_health()["compvs"]["restarts"]
     sols = [o for o in out if o.estimator == "ekf15"]
     ts = np.array([o.stamp_ns for o in sols])
     tb = truth.sample(ts)
@@ -128,7 +128,7 @@ def _run() -> dict[str, object]:
         "err": err,
         "sig": sig,
         "out": out,
-        "health": core.health(),
+        "health": core.estimator_health(),
         "before_pulse": health_before_pulse,
         "compvs_restarts_in_outage": compvs_restarts_in_outage,
     }
@@ -141,8 +141,8 @@ def test_nothing_published_is_non_finite() -> None:
 
 def test_innovation_gate_rejects_the_50_m_pulse_and_health_says_so() -> None:
     r = _run()
-    rejected_before = r["before_pulse"]["ekf15.gnss_rejected"]  # type: ignore[index]
-    rejected_after = r["health"]["ekf15.gnss_rejected"]  # type: ignore[index]
+    rejected_before = r["before_pulse"]["ekf15"]["gnss_rejected"]  # type: ignore[index]
+    rejected_after = r["health"]["ekf15"]["gnss_rejected"]  # type: ignore[index]
     assert rejected_after - rejected_before >= 8  # the 10 Hz fixes inside the 1 s pulse
     t, err = r["t"], r["err"]
     during = (t >= PULSE_T) & (t < PULSE_T + 3.0)  # type: ignore[operator]
@@ -175,4 +175,4 @@ def test_ekf_reconverges_within_10_s_after_gnss_returns() -> None:
 
 def test_variable_structure_filter_restarts_its_schedule_when_gnss_returns() -> None:
     r = _run()
-    assert r["health"]["compvs.restarts"] == r["compvs_restarts_in_outage"] + 1  # type: ignore[index,operator]
+    assert r["health"]["compvs"]["restarts"] == r["compvs_restarts_in_outage"] + 1  # type: ignore[index,operator]

@@ -15,8 +15,9 @@ from pathlib import Path
 import msgspec
 
 from hil.messages import TYPES_BY_NAME
+from hil.record.matching import SeqSet
 from hil.record.mcapio import SessionStream, SessionWriter, read_session
-from hil.record.rerun import SeqSet, rerun, rerun_fusion, rerun_fusion_file
+from hil.record.rerun import rerun, rerun_fusion, rerun_fusion_file
 from hil.record.rerun_timesync import rerun_timesync, rerun_timesync_records
 from tests.replay.helpers import GOLDEN
 

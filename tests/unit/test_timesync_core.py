@@ -146,7 +146,7 @@ def test_a_receiver_that_joined_mid_stream_waits_for_the_sample_count() -> None:
 
 def test_sim_recording_pairs_every_synced_measurement_with_capture_truth(tmp_path: Path) -> None:
     from hil.record.mcapio import read_session
-    from hil.runtime.offline import SimOptions, run_sim
+    from hil.runners.sim import SimOptions, run_sim
 
     rec = tmp_path / "s.mcap"
     run_sim(SimOptions(scenario="static", record=rec, duration_s=6.0, estimators=["comp1"]))

@@ -1,0 +1,155 @@
+"""What every node is: a service's behaviour with its inputs and its time as arguments.
+
+A node holds the logic of one rig service -- the world's truth, an emulated device with its
+faults and wire encoding, a bridge's decoding, the time sync, the fusion -- and nothing of the
+process around it: no Zenoh, no clock reads, no threads, no files. A runner calls it::
+
+    node = Node(run, options)         # the run (time zero, scenario) is known
+    outs = node.start(now_ns)         # once
+    outs = node.on_message(key, msg, now_ns)   # an input arrived (key relative to hil/<rig>/)
+    outs = node.tick(now_ns)          # the time it asked for (next_tick_ns()) has come
+    outs = node.finish(now_ns)        # end of input: release what is held
+
+and publishes what it returns: ``(key, message)`` pairs, the key relative to ``hil/<rig>/``, or
+``(CAN_TX, CanBurst)`` for frames that leave on the CAN bus. The live runner
+(``hil.runners.live``) calls it from a Zenoh session and the wall clock, the virtual-clock
+runner (``hil.runners.sim``, ``hil sim``) from a scheduler, rerun from a recording; the node is
+the same object in all three, so a fault, a quantisation or a decision has one implementation.
+
+Every message a node builds carries its ``seq`` from the node's own counter per key, numbered in
+the process's restart generation (``hil.messages.generation_seq``; option ``resume``), so a
+restarted service never repeats a seq. Counters and the last error (``inc``/``error``) go into
+the service's status; the runner adds its own (rates, transport, heap).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import msgspec
+
+from hil.messages import Event, Message, RunInfo, generation_seq
+
+Out = tuple[str, Any]  # (key relative to hil/<rig>/, message) or (CAN_TX, CanBurst)
+CAN_TX = "@can"  # the port of frames leaving on the CAN bus (not a Zenoh key)
+CAN_RX = "@can"  # on_message key prefix of frames read off the bus: "@can/<channel>"
+
+
+@dataclass(frozen=True)
+class Input:
+    """A subscription: a key expression relative to ``hil/<rig>/`` and the type of each kind.
+
+    ``types`` maps the key's first segment (``sensor``, ``timetag``, ...) to the message type
+    carried there; one Input is one Zenoh subscription, so the inputs it matches reach the node
+    in the order they were published (e.g. a sensor's measurements and its time tags)."""
+
+    key: str
+    types: Mapping[str, type[Message]]
+
+
+class NodeOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Options every service takes (``hil service NAME --options JSON``), one default each."""
+
+    resume: int = 0  # restart generation: hil up --restart passes N on the N-th restart
+    heap_trim_s: float | None = None  # seconds between C-heap trims (None: the service's default)
+
+
+@dataclass
+class CanBurst:
+    """Frames that leave the device together: one sample's, or a sync frame alone.
+
+    ``capture_ns``: true capture time of the sample (or sync edge) they carry; ``index``: its
+    device sample index; ``sync``: a sync (time-tag) frame. The live runner only sends the
+    frames; the virtual-clock runner's wire model times them from these facts."""
+
+    frames: list[Any]  # can.Message
+    capture_ns: int
+    index: int
+    sync: bool = False
+
+
+class Node:
+    """Base of every node: options, per-key seq counters, counters and the last error."""
+
+    name: ClassVar[str] = "node"
+    Options: ClassVar[type[NodeOptions]] = NodeOptions
+    inputs: ClassVar[tuple[Input, ...]] = ()
+    # frames read off the CAN bus reach on_message("@can/<channel>", frame, rx_ns) when True
+    reads_can: ClassVar[bool] = False
+    writes_can: ClassVar[bool] = False  # it returns (CAN_TX, CanBurst) outputs
+    # what this node puts on the bus that others must find declared from its start
+    outputs: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, run: RunInfo, options: NodeOptions | None = None) -> None:
+        self.run = run
+        self.options = options if options is not None else self.Options()
+        self.generation = max(0, int(self.options.resume))
+        self._seqs: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+        self.last_error = ""
+        self.errors_seen = 0  # bumps with every error(), so a runner can tell a new last_error
+
+    # -- the runner's calls ------------------------------------------------------------------
+    def start(self, now_ns: int) -> list[Out]:
+        return []
+
+    def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
+        return []
+
+    def tick(self, now_ns: int) -> list[Out]:
+        return []
+
+    def next_tick_ns(self) -> int | None:
+        """When the node next wants ``tick`` (rig ns), or None: only inputs wake it."""
+        return None
+
+    def finish(self, now_ns: int) -> list[Out]:
+        return []
+
+    def counters(self) -> dict[str, int]:
+        """The status's counters: ``inc``/``error`` counts by default; nodes add their cores'."""
+        return dict(self.counts)
+
+    # -- helpers -----------------------------------------------------------------------------
+    def next_seq(self, key: str) -> int:
+        n = self._seqs.get(key, 0)
+        self._seqs[key] = n + 1
+        return generation_seq(self.generation, n)
+
+    def inc(self, name: str, n: int = 1) -> None:
+        self.counts[name] = self.counts.get(name, 0) + n
+
+    def error(self, counter: str, message: str) -> None:
+        """Count a rejected input or a failure and remember why (the status's ``last_error``)."""
+        self.inc(counter)
+        self.last_error = message[:500]
+        self.errors_seen += 1
+
+    def event(self, kind: str, detail: str, stamp_ns: int) -> Out:
+        key = f"event/{self.name}"
+        ev = Event(seq=self.next_seq(key), stamp_ns=stamp_ns, kind=kind, source=self.name, detail=detail)
+        return key, ev
+
+
+class OptionsError(ValueError):
+    """Options that cannot be used; one line naming the field (``hil service --options``)."""
+
+
+def decode_options(cls: type[NodeOptions], raw: Mapping[str, Any] | None, service: str) -> Any:
+    """``raw`` (decoded ``--options`` JSON) as ``cls``; a bad or unknown field is one line."""
+    try:
+        return msgspec.convert(dict(raw or {}), cls, strict=False)
+    except msgspec.ValidationError as err:
+        known = ", ".join(f for f in cls.__struct_fields__)
+        raise OptionsError(f"{service}: option {_option_path(err)}: {err}; known options: {known}") from None
+
+
+def _option_path(err: msgspec.ValidationError) -> str:
+    text = str(err)
+    if "unknown field" in text:
+        return text.split("`")[1] if "`" in text else "?"
+    if "at `$." in text:
+        return text.rsplit("at `$.", 1)[1].rstrip("`").split("[")[0].split(".")[0]
+    return "?"

@@ -1,0 +1,186 @@
+"""The fusion: every estimator on the same synchronised inputs, each on ``nav/<estimator>``.
+
+Inputs go to the pure ``hil.fusion.core.FusionCore`` in arrival order; it releases them in the
+total order behind its watermark and journals what it dropped. Every half second of rig time
+the node publishes that journal on ``fusion/journal`` -- with the recorded inputs, all
+``hil rerun`` needs -- and every second each estimator's health as real numbers
+(``health/<estimator>``, ``hil.EstimatorHealth``). Its configuration goes out once at start as
+``fusion/config`` (``hil.FusionSettings``), so a recording says how to rebuild the core.
+
+A fusion restarted mid-run (option ``resume``) re-aligns: it holds its inputs until the first
+IMU sample and builds every estimator from the run's truth at that sample's stamp (an in-flight
+re-alignment; the rig knows truth, a real unit would use its last good solution), then numbers
+its outputs after ``imu_seq // output_every + 1`` so no seq repeats one from before the death,
+and says so in a ``realigned`` event. ``hil rerun --verify`` reproduces runs without a fusion
+restart; after one, the outputs of the second process are not those of an uninterrupted run by
+design, and rerun names the first difference.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import msgspec
+
+from hil.estimators.registry import DEFAULT_ESTIMATORS, ESTIMATORS
+from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
+from hil.messages import EstimatorHealth, ImuSample, Measurement, NavSolution
+from hil.nav.scenario import scenario_for_run
+from hil.nodes.base import Input, Node, NodeOptions, Out
+from hil.sensor_table import SENSOR_NAMES, SENSORS
+
+JOURNAL_PERIOD_NS = 500_000_000
+HEALTH_PERIOD_NS = 1_000_000_000
+_DEFAULT = FusionConfig()
+DEFAULT_LAG_S = _DEFAULT.lag_s  # one default, FusionConfig's, for every caller
+DEFAULT_OUTPUT_EVERY = _DEFAULT.output_every
+
+
+class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    # empty: the registry's defaults (hil.estimators.registry)
+    estimators: list[str] = msgspec.field(default_factory=list)
+    lag_s: float = DEFAULT_LAG_S  # the watermark's lag behind the newest IMU stamp
+    output_every: int = DEFAULT_OUTPUT_EVERY  # publish every N-th IMU step
+
+    def __post_init__(self) -> None:
+        unknown = [e for e in self.estimators if e not in ESTIMATORS]
+        if unknown:
+            raise ValueError(f"unknown estimator(s) {unknown}; known: {', '.join(sorted(ESTIMATORS))}")
+        if not 0.0 <= self.lag_s <= 60.0:
+            raise ValueError(f"lag_s must be in [0, 60] s, got {self.lag_s}")
+        if self.output_every < 1:
+            raise ValueError(f"output_every must be >= 1, got {self.output_every}")
+
+    def config(self) -> FusionConfig:
+        return FusionConfig(
+            estimators=tuple(self.estimators) or DEFAULT_ESTIMATORS,
+            lag_ns=round(self.lag_s * 1e9),
+            output_every=self.output_every,
+        )
+
+
+class FusionNode(Node):
+    name = "fusion"
+    Options = FusionOptions
+    inputs = tuple(Input(f"synced/{s}", {"synced": SENSORS[s].message}) for s in SENSOR_NAMES)
+
+    def __init__(self, run: Any, options: FusionOptions | None = None) -> None:
+        super().__init__(run, options)
+        opts: FusionOptions = self.options  # type: ignore[assignment]
+        self.config = opts.config()
+        self.scenario = scenario_for_run(run)
+        self.end_ns = int(run.duration_s * 1e9)
+        self.outputs = tuple(f"nav/{n}" for n in (FREE_INS, *self.config.estimators))  # type: ignore[misc]
+        # restarted: hold inputs until the first IMU sample, then re-align there
+        self.core: FusionCore | None = None
+        if not opts.resume:
+            self.core = FusionCore.for_scenario(self.scenario, self.config)
+        self._held: list[Measurement] = []
+        self.pushed = 0  # inputs handed to the core (lockstep replay counts them)
+        self._next_journal = JOURNAL_PERIOD_NS
+        self._next_health = HEALTH_PERIOD_NS
+
+    @classmethod
+    def for_rerun(cls, run: Any, config: FusionConfig) -> FusionNode:
+        """The node as a recording says it ran: its configuration field for field (``hil rerun``)."""
+        node = cls(run, FusionOptions(estimators=list(config.estimators)))
+        node.config = config
+        node.core = FusionCore.for_scenario(node.scenario, config)
+        return node
+
+    def replay(self, msg: Measurement) -> list[NavSolution]:
+        """One input already in the total order (``hil rerun``): the core's ``process``."""
+        assert self.core is not None
+        return self.core.process(msg)
+
+    def start(self, now_ns: int) -> list[Out]:
+        return [("fusion/config", self.config.settings(self.next_seq("fusion/config"), now_ns))]
+
+    def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
+        if self.core is None:
+            return self._realign(msg, now_ns)
+        return self._push(msg)
+
+    def _push(self, msg: Measurement) -> list[Out]:
+        core = self.core
+        assert core is not None
+        sols = core.push(msg)
+        self.pushed += 1
+        if core.last_error:
+            self.error("errors.estimator", core.last_error)
+            core.last_error = ""
+        return _nav(sols)
+
+    def _realign(self, msg: Measurement, now_ns: int) -> list[Out]:
+        self._held.append(msg)
+        if not isinstance(msg, ImuSample):
+            return []
+        align_ns = msg.stamp_ns
+        self.core = FusionCore.for_scenario(self.scenario, self.config, align_ns=align_ns)
+        first_seq = msg.seq // self.config.output_every + 1
+        self.core.start_output_seq(first_seq)
+        detail = (
+            f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.3f} s "
+            f"(imu seq {msg.seq}); outputs numbered from {first_seq}"
+        )
+        outs = [self.event("realigned", detail, now_ns)]
+        held, self._held = [m for m in self._held if m.stamp_ns >= align_ns], []
+        for m in held:  # nothing from before the alignment
+            outs.extend(self._push(m))
+        return outs
+
+    def next_tick_ns(self) -> int | None:
+        t = min(self._next_journal, self._next_health)
+        return t if t <= self.end_ns else None
+
+    def tick(self, now_ns: int) -> list[Out]:
+        outs: list[Out] = []
+        if now_ns >= self._next_journal:
+            self._next_journal = (now_ns // JOURNAL_PERIOD_NS + 1) * JOURNAL_PERIOD_NS
+            outs.extend(self._journal(now_ns))
+        if now_ns >= self._next_health:
+            self._next_health = (now_ns // HEALTH_PERIOD_NS + 1) * HEALTH_PERIOD_NS
+            outs.extend(self.health(now_ns))
+        return outs
+
+    def _journal(self, now_ns: int) -> list[Out]:
+        if self.core is None:
+            return []
+        return [("fusion/journal", self.core.journal(self.next_seq("fusion/journal"), now_ns))]
+
+    def health(self, now_ns: int) -> list[Out]:
+        """Each estimator's health as real numbers (``health/<estimator>``)."""
+        if self.core is None:
+            return []
+        outs: list[Out] = []
+        for name, values in self.core.estimator_health().items():
+            key = f"health/{name}"
+            finite = {k: v for k, v in values.items() if math.isfinite(v)}
+            if len(finite) != len(values):  # JSON has no NaN: said, not sent
+                self.inc(f"health.nonfinite.{name}", len(values) - len(finite))
+            msg = EstimatorHealth(
+                seq=self.next_seq(key),
+                stamp_ns=now_ns,
+                estimator=name,
+                names=list(finite),
+                values=list(finite.values()),
+            )
+            outs.append((key, msg))
+        return outs
+
+    def finish(self, now_ns: int) -> list[Out]:
+        """End of input: release the buffered tail and journal it."""
+        if self.core is None:
+            return []
+        return _nav(self.core.flush()) + self._journal(now_ns)
+
+    def counters(self) -> dict[str, int]:
+        core = self.core
+        out = core.status_counters() if core is not None else {"held_for_alignment": len(self._held)}
+        out.update(self.counts)
+        return out
+
+
+def _nav(sols: list[NavSolution]) -> list[Out]:
+    return [(f"nav/{s.estimator}", s) for s in sols]

@@ -1,0 +1,85 @@
+"""Time sync: every raw measurement re-stamped to its rig time of validity; clock models.
+
+The estimator is ``hil.timesync.core.TimeSyncCore``, configured per sensor from the scenario's
+``[clock.<sensor>]`` tables (``hil.timesync.config``): time tags or arrival times only, the
+calibrated tag latency and minimum delay. A re-stamped measurement on ``synced/<sensor>`` is the
+raw one with ``stamp_ns`` replaced, so it keeps its ``seq`` and pairs with its raw original and
+its capture truth. Each sensor's measurements and time tags come in through one subscription
+(``*/<sensor>``), so they reach the core in publication order -- the order a recording keeps,
+which ``hil rerun --core timesync`` relies on.
+
+The core may hold a few measurements while it decides whether the device clock stepped; held
+ones are released by the next measurement, by an idle flush when the sensor has been silent for
+``IDLE_FLUSH_NS`` of rig time, or at the end of input. Clock models go out once a second.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from hil.messages import Measurement, TimeTag
+from hil.nav.scenario import scenario_for_run
+from hil.nodes.base import Input, Node, Out
+from hil.nodes.builders import clock_model_msg
+from hil.sensor_table import SENSOR_NAMES, SENSORS
+from hil.timesync.config import sync_configs_for
+from hil.timesync.core import TimeSyncCore
+
+IDLE_FLUSH_NS = 200_000_000  # release held measurements of a sensor silent this long
+CLOCK_PERIOD_NS = 1_000_000_000
+
+
+class TimeSyncNode(Node):
+    name = "timesync"
+    inputs = tuple(Input(f"*/{s}", {"sensor": SENSORS[s].message, "timetag": TimeTag}) for s in SENSOR_NAMES)
+    outputs = tuple(f"synced/{s}" for s in SENSOR_NAMES)
+
+    def __init__(self, run: Any, options: Any = None) -> None:
+        super().__init__(run, options)
+        self.core: TimeSyncCore[Measurement] = TimeSyncCore(sync_configs_for(scenario_for_run(run)))
+        self.end_ns = int(run.duration_s * 1e9)
+        self._next_flush = IDLE_FLUSH_NS
+        self._next_clock = CLOCK_PERIOD_NS
+        self._arrivals_at_flush: dict[str, int] = {}
+
+    def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
+        if isinstance(msg, TimeTag):
+            self.core.on_timetag(msg.sensor, msg.device_stamp_ns, msg.stamp_ns)
+            return []
+        if msg.sensor not in SENSORS:
+            self.error("rejected.sensor.unknown", f"no synced channel for sensor {msg.sensor!r}")
+            return []
+        return self._synced(self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns, msg))
+
+    @staticmethod
+    def _synced(released: list[tuple[Any, int]]) -> list[Out]:
+        return [(f"synced/{m.sensor}", msgspec.structs.replace(m, stamp_ns=t)) for m, t in released]
+
+    def next_tick_ns(self) -> int | None:
+        t = min(self._next_flush, self._next_clock)
+        return t if t <= self.end_ns else None
+
+    def tick(self, now_ns: int) -> list[Out]:
+        outs: list[Out] = []
+        if now_ns >= self._next_flush:
+            self._next_flush = (now_ns // IDLE_FLUSH_NS + 1) * IDLE_FLUSH_NS
+            for name, s in self.core.sensors.items():
+                if s.held and self._arrivals_at_flush.get(name) == s.n_arrivals:
+                    outs.extend(self._synced(s.flush()))
+                self._arrivals_at_flush[name] = s.n_arrivals
+        if now_ns >= self._next_clock:
+            self._next_clock = (now_ns // CLOCK_PERIOD_NS + 1) * CLOCK_PERIOD_NS
+            for m in list(self.core.mappings.values()):
+                key = f"clock/{m.sensor}"
+                outs.append((key, clock_model_msg(self.next_seq(key), now_ns, m)))
+        return outs
+
+    def finish(self, now_ns: int) -> list[Out]:
+        return self._synced(self.core.flush())  # measurements still held at the end of input
+
+    def counters(self) -> dict[str, int]:
+        out = {f"steps_detected.{k}": m.steps_detected for k, m in self.core.mappings.items()}
+        out.update(self.counts)
+        return out

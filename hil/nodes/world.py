@@ -1,0 +1,103 @@
+"""The world: announces the run and publishes the truth trajectory.
+
+Every emulator derives truth itself from the scenario in ``RunInfo``; the ``truth`` topic is the
+reference the recording and the live view compare estimates against (100 Hz, computed in blocks
+of 0.1 s of rig time; the trajectory does not depend on the block). ``RunInfo`` goes out at start
+and, with ``announce_every_s``, again periodically so late joiners -- a restarted service, a
+monitor -- learn time zero. Deciding the run (time zero, scenario, speed) is the runner's: live,
+``world``'s service waits for the other services and picks a wall-clock instant; ``hil sim``
+starts at zero.
+
+Restarted (option ``resume``), world announces the same run again and resumes truth at the
+current rig time with ``seq`` = truth sample index, so a restart never starts a second run nor
+re-sends the past.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from hil.messages import RunInfo
+from hil.nav.scenario import scenario_for_run
+from hil.nav.trajectory import TruthGenerator
+from hil.nodes.base import Node, NodeOptions, Out
+from hil.nodes.builders import truth_msg
+
+BLOCK_NS = 100_000_000  # truth computed per 0.1 s of rig time
+
+
+class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    scenario: str = "straight_level"  # built-in name or TOML path
+    duration_s: float | None = None  # None: the scenario's
+    speed: float = 1.0  # rig seconds per wall second
+    imu_rate_hz: int | None = None  # override the scenario's IMU rate (travels in RunInfo's text)
+    truth_rate_hz: float = 100.0
+    announce_every_s: float = 1.0  # RunInfo again this often (0: once)
+    # services whose status must say ready before time zero
+    wait_for: list[str] = msgspec.field(default_factory=list)
+    wait_timeout_s: float = 60.0
+    lead_s: float = 1.0  # time zero this long after the run is decided
+    resume_run: dict[str, Any] | None = None  # a restarted world: the run it had announced
+
+
+class WorldNode(Node):
+    name = "world"
+    Options = WorldOptions
+    outputs = ("run", "truth")
+
+    def __init__(self, run: RunInfo, options: WorldOptions | None = None) -> None:
+        super().__init__(run, options)
+        opts: WorldOptions = self.options  # type: ignore[assignment]
+        self.truth = TruthGenerator(scenario_for_run(run))
+        self.dt_ns = round(1e9 / opts.truth_rate_hz)
+        self.n_total = int(run.duration_s * 1e9) // self.dt_ns + 1
+        self.k = 0
+        self.announce_ns = round(opts.announce_every_s * 1e9)
+        self._next_announce: int | None = None
+        self._block: Any = None
+        self._block_k0 = 0
+
+    def start(self, now_ns: int) -> list[Out]:
+        outs = [self._announce(now_ns)]
+        if self.options.resume:
+            self.k = min(max(0, now_ns // self.dt_ns), self.n_total)
+            detail = f"world restarted: same run, truth resumes at sample {self.k}"
+            outs.append(self.event("resumed", detail, now_ns))
+        return outs
+
+    def _announce(self, now_ns: int) -> Out:
+        fields = {f: getattr(self.run, f) for f in self.run.__struct_fields__}
+        fields.update(seq=self.next_seq("run"), stamp_ns=max(now_ns, 0))
+        if self.announce_ns > 0:
+            self._next_announce = now_ns + self.announce_ns
+        return "run", RunInfo(**fields)
+
+    def next_tick_ns(self) -> int | None:
+        """The next truth sample; an announcement before it; nothing after the run's last sample."""
+        if self.k >= self.n_total:
+            return None
+        t = self.k * self.dt_ns
+        return t if self._next_announce is None else min(t, self._next_announce)
+
+    def tick(self, now_ns: int) -> list[Out]:
+        outs: list[Out] = []
+        if self._next_announce is not None and now_ns >= self._next_announce:
+            outs.append(self._announce(now_ns))
+        while self.k < self.n_total and self.k * self.dt_ns <= now_ns:
+            b, i = self._row(self.k)
+            outs.append(("truth", truth_msg(self.k, self.k * self.dt_ns, b, i)))  # seq = sample index
+            self.k += 1
+        return outs
+
+    def _row(self, k: int) -> tuple[Any, int]:
+        b = self._block
+        if b is None or not self._block_k0 <= k < self._block_k0 + len(b.alt_m):
+            t0 = k * self.dt_ns
+            t_end = (t0 // BLOCK_NS + 1) * BLOCK_NS
+            n = min(self.n_total, (t_end - 1) // self.dt_ns + 1) - k
+            self._block = b = self.truth.sample(np.arange(k, k + max(1, n), dtype=np.int64) * self.dt_ns)
+            self._block_k0 = k
+        return b, k - self._block_k0

@@ -1,0 +1,60 @@
+"""``hil sim``'s CAN bus: when each frame the IMU node sends reaches the bridge.
+
+Live, the real bus (SocketCAN or the Zenoh transport) does this and the kernel stamps arrivals.
+Offline the runner models it from the scenario's ``[clock.imu]`` transport terms: a sample's
+frames leave together (when the node releases them), take ``transport_latency_s`` plus an
+exponential extra delay of mean ``transport_jitter_s`` -- one draw per sample index, from its own
+seeded stream, so the draws do not depend on which samples a fault kept off the bus -- and one
+frame's wire time each, first in first out. A sync frame goes first at its edge and carries the
+kernel-stamp latch jitter of the IMU's clock model; the data frames of that sample follow it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hil.nav.scenario import Scenario
+from hil.nodes.base import CanBurst
+from hil.sensor_table import CAN_FRAME_TIME_NS
+from hil.sensors.clock import clock_config_for, device_clock_for
+from hil.sensors.imu import sensor_rng
+
+
+class CanWireModel:
+    """A FIFO CAN bus between the IMU node and the bridge node (pure: no clock, seeded)."""
+
+    def __init__(self, scenario: Scenario) -> None:
+        cc = clock_config_for(scenario, "imu")
+        self.latency_ns = round(cc.transport_latency_s * 1e9)
+        self.jitter_ns = cc.transport_jitter_s * 1e9
+        self._rng = sensor_rng(scenario.seed, "imu.transport")
+        self._latch = device_clock_for(scenario, "imu")  # the receiver's kernel-stamp latch
+        self._drawn = 0  # extra delays drawn so far (one per sample index)
+        self._extra = 0.0
+        self._sync_capture: int | None = None
+        self.last_rx_ns = -(2**62)
+
+    def _extra_ns(self, index: int) -> float:
+        if self.jitter_ns <= 0:
+            return 0.0
+        while self._drawn <= index:
+            self._extra = float(self._rng.exponential(self.jitter_ns))
+            self._drawn += 1
+        return self._extra
+
+    def arrivals(self, burst: CanBurst, t_emit_ns: int) -> list[tuple[int, Any]]:
+        """``(rx_ns, frame)`` of each frame of ``burst``, which left at ``t_emit_ns``."""
+        if burst.sync:
+            self._sync_capture = burst.capture_ns
+            nominal = [self._latch.latch_ns(burst.capture_ns) + self.latency_ns + CAN_FRAME_TIME_NS]
+        else:
+            t_burst = t_emit_ns + self.latency_ns + round(self._extra_ns(burst.index))
+            first = 1 if self._sync_capture == burst.capture_ns else 0  # behind its sync frame
+            nominal = [t_burst + (j + 1) * CAN_FRAME_TIME_NS for j in range(first, first + len(burst.frames))]
+        out: list[tuple[int, Any]] = []
+        for nom, frame in zip(nominal, burst.frames, strict=False):
+            rx = max(nom, self.last_rx_ns + CAN_FRAME_TIME_NS)  # the bus is FIFO
+            self.last_rx_ns = rx
+            frame.timestamp = rx * 1e-9  # python-can's receive stamp (rig seconds here)
+            out.append((rx, frame))
+        return out
