@@ -7,6 +7,7 @@ file only ever holds numbers that a command measured.
 
 from __future__ import annotations
 
+import os
 import platform
 import re
 import sys
@@ -24,8 +25,6 @@ command to refresh it; nothing here is typed by hand.
 
 def machine_line() -> str:
     """Where the figures came from, so a reader can compare like with like."""
-    import os
-
     return (
         f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"{datetime.now(UTC).strftime('%Y-%m-%d')}"

@@ -25,9 +25,11 @@ from typing import Any
 import numpy as np
 
 from hil.bench import command_line, write_section
+from hil.bench.seeds_uav import uav_scenario
 from hil.estimators.base import GnssInput, ImuInput, InitialState
-from hil.estimators.ekf15 import Ekf15, kf_update
+from hil.estimators.ekf15 import Ekf15, error_dynamics, kf_update, transition
 from hil.estimators.tuning import params_for
+from hil.nav.attitude import quat_to_dcm
 from hil.nav.strapdown import strapdown_from_initial, to_nav_state
 from hil.nav.trajectory import TruthGenerator
 from hil.nav.types import F64, NavState
@@ -51,8 +53,6 @@ class Stream:
 
 def make_stream(duration_s: float, seed: int = 4) -> Stream:
     """uav_survey with the tactical IMU and the seed GNSS model, as prebuilt estimator inputs."""
-    from hil.bench.seeds_uav import uav_scenario
-
     sc = uav_scenario(duration_s, seed, "seed")
     truth = TruthGenerator(sc)
     init = truth.initial_state()
@@ -89,7 +89,7 @@ class FilterPyEkf15(Ekf15):
     """
 
     def __init__(self, name: str, init: InitialState, **params: Any) -> None:
-        from filterpy.kalman import KalmanFilter
+        from filterpy.kalman import KalmanFilter  # lazy: filterpy is an optional (test) extra
 
         super().__init__(name, init, **params)
         self.kf = KalmanFilter(dim_x=15, dim_z=3)
@@ -153,7 +153,7 @@ def algebra_costs(p: F64, phi: F64, qd: F64, calls: int = 1000, rounds: int = 9)
     The four calls are timed in interleaved rounds of ``calls`` each and the fastest round of
     each counts, so load from other work on a shared machine hits all four alike.
     """
-    from filterpy.kalman import KalmanFilter
+    from filterpy.kalman import KalmanFilter  # lazy: filterpy is an optional (test) extra
 
     h = np.hstack([np.eye(3), np.zeros((3, 12))])
     r = np.eye(3) * 400.0
@@ -204,9 +204,6 @@ def measure(duration_s: float, repeats: int, seed: int = 4) -> dict[str, Any]:
             last[name] = est
     diff = difference(last["ours"], last["filterpy"])
     # bare algebra on the final covariance and a representative Φ (level flight, 10 ms)
-    from hil.estimators.ekf15 import error_dynamics, transition
-    from hil.nav.attitude import quat_to_dcm
-
     e = last["ours"]
     c_nb = quat_to_dcm(e.ins.q_nb)
     phi = transition(error_dynamics(c_nb, np.array([0.0, 0.0, -9.81]), e.ins.lat_rad), 0.01)
@@ -231,7 +228,7 @@ def report(m: dict[str, Any], duration_s: float, repeats: int) -> str:
     implied = (a["predict_ours"] - a["predict_filterpy"]) / 4 + 2 * (
         a["update_ours"] - a["update_filterpy"]
     ) * s.n_gnss / s.n_imu
-    import filterpy
+    import filterpy  # lazy: filterpy is an optional (test) extra
 
     lines = [
         f"Inputs: uav_survey, tactical IMU at {IMU_RATE_HZ:.0f} Hz, seed-000 GNSS model (1 Hz, σ 20 m, "
@@ -285,7 +282,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     args = ap.parse_args(argv)
     try:
-        import filterpy  # noqa: F401
+        import filterpy  # noqa: F401  # lazy: optional (test) extra; say so instead of a traceback
     except ImportError:
         print("hil bench ekf needs filterpy (pip install -e '.[test]')")
         return 2

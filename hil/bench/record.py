@@ -31,20 +31,28 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import zenoh
+from mcap.reader import make_reader
+
 from hil.bench import DEFAULT_DOC, command_line, machine_line, write_section
+from hil.bus.keys import Keys
+from hil.bus.pubsub import Publisher
+from hil.bus.session import BusConfig, open_session
+from hil.messages import CanFrame, ImuSample, RunInfo, ServiceStatus, Truth, decode, encode
+from hil.record.mcapio import Record, SessionStream, iter_records, read_session
+from hil.record.replay import ReplayOptions, replay
+from hil.record.rerun import RERUN_WINDOW_S, rerun_fusion_records
+from hil.runtime.supervisor import free_port
 
 RIG = "benchrec"
 
 
 def _counter_main(endpoint: str, key: str, n: int) -> int:
     """Child: count samples on ``key`` until ``n``; print wall times of first and last as JSON."""
-    import zenoh
-
-    from hil.bus.session import BusConfig, open_session
-
     session = open_session(BusConfig(mode="peer", connect=(endpoint,), listen=("tcp/127.0.0.1:0",)))
     state = {"n": 0, "bytes": 0, "first": 0.0, "last": 0.0}
     done = threading.Event()
@@ -92,13 +100,6 @@ def _counter_result(p: subprocess.Popen[str], timeout: float) -> dict[str, float
 
 def bench_recorder(n_samples: int) -> dict[str, float]:
     """Flood ``4 * n_samples`` messages; return rates of the recorder and of a bare subscriber."""
-    from hil.bus.keys import Keys
-    from hil.bus.pubsub import Publisher
-    from hil.bus.session import BusConfig, open_session
-    from hil.messages import CanFrame, ImuSample, RunInfo, ServiceStatus, Truth, decode, encode
-    from hil.record.mcapio import read_session
-    from hil.runtime.supervisor import free_port
-
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
     status: dict[str, ServiceStatus] = {}
@@ -207,11 +208,6 @@ def bench_rerun(path: Path, end_s: float | None) -> dict[str, float]:
     Streams the file as ``hil rerun`` does (``rerun_fusion_records`` over a ``SessionStream``), so
     the read is part of the time and nothing is held whole.
     """
-    from collections.abc import Iterator
-
-    from hil.record.mcapio import Record, SessionStream
-    from hil.record.rerun import RERUN_WINDOW_S, rerun_fusion_records
-
     last = {"imu_stamp": 0, "n": 0}
 
     def records() -> Iterator[Record]:
@@ -261,8 +257,6 @@ def _timed(cmd: list[str], out_path: Path) -> dict[str, object]:
 
 def _file_stats(path: Path) -> dict[str, float]:
     """Size, message count and span of a finished recording, from its MCAP summary (no full read)."""
-    from mcap.reader import make_reader
-
     with open(path, "rb") as fh:
         summary = make_reader(fh).get_summary()
     st = summary.statistics if summary is not None else None
@@ -297,8 +291,6 @@ def bench_hour(workdir: Path) -> dict[str, object]:
 
 def hour_md(h: dict[str, Any], command: str) -> str:
     """The one-hour subsection, in its own markers so that a later run without --rerun-hour keeps it."""
-    from hil.record.rerun import RERUN_WINDOW_S
-
     sim, fus, ts = h["sim"], h["fusion"], h["timesync"]
 
     def verdict(r: dict[str, Any]) -> str:
@@ -348,16 +340,10 @@ def previous_hour_block(doc: Path = DEFAULT_DOC) -> str:
 
 
 def bench_replay(path: Path, end_s: float | None) -> dict[str, float]:
-    from hil.bus.session import BusConfig, open_session
-    from hil.record.replay import ReplayOptions, replay
-    from hil.runtime.supervisor import free_port
-
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
     pub_session = open_session(BusConfig(mode="peer", connect=(endpoint,), listen=("tcp/127.0.0.1:0",)))
     # first pass without a counter to know n (the counter needs to know when to stop)
-    from hil.record.mcapio import iter_records
-
     t_start = end_s * 1e9 if end_s is not None else None
     n = 0
     first = None

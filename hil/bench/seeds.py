@@ -12,48 +12,31 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2
+from scipy.stats import t as student_t
 
 from hil.bench import command_line, write_section
+from hil.bench.seeds_common import (
+    SCHULER_RADPS,
+    SEED_GNSS_POS_SIGMA_M,
+    SEED_GNSS_RATE_HZ,
+    SEED_GNSS_SLOW_AMPLITUDE_M,
+    SEED_GNSS_SLOW_PERIOD_S,
+    SEED_GNSS_VEL_SIGMA_MPS,
+    Report,
+)
+from hil.bench.seeds_uav import plot_nees, plot_uav, uav_comparison
 from hil.estimators import ins7, scalar_kf
 from hil.estimators.compensation import VS_SCHEDULE, CompensationCore, fixed_filter
 from hil.estimators.complementary import ComplementaryFilter, pulse_peak_error, static_error
 from hil.estimators.lti import TransferFunction, aperiodic, complementary2, complementary3
 from hil.nav.types import F64
 
-SCHULER_RADPS = math.sqrt(9.81 / 6_372_000.0)
 SEED = 20240601
-
-# The seed-000 GNSS error model (digest §1), as this reproduction reconstructs it: white noise
-# sampled at 1 s, σ 20 m on coordinates and 0.2 m/s on velocity, plus a slow geometry/DOP
-# component, a 5 m sine whose period is 2.5 Schuler periods (the paper says 2–3). The UAV
-# comparison (hil.bench.seeds_uav) runs the rig's GNSS emulator with these same figures.
-SEED_GNSS_RATE_HZ = 1.0
-SEED_GNSS_POS_SIGMA_M = 20.0
-SEED_GNSS_VEL_SIGMA_MPS = 0.2
-SEED_GNSS_SLOW_AMPLITUDE_M = 5.0
-SEED_GNSS_SLOW_PERIOD_S = 2.5 * 2 * math.pi / SCHULER_RADPS
-
-
-@dataclass
-class Report:
-    rows: list[tuple[str, str, str, str]] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    series: dict[str, Any] = field(default_factory=dict)
-
-    def add(self, seed: str, figure: str, paper: str, ours: str) -> None:
-        self.rows.append((seed, figure, paper, ours))
-
-    def markdown(self) -> str:
-        out = ["| seed | figure | paper | rig reproduction |", "| --- | --- | --- | --- |"]
-        out += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in self.rows]
-        out += ["", "Conditions and differences:", ""]
-        out += [f"- {n}" for n in self.notes]
-        return "\n".join(out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -251,8 +234,6 @@ def lecture(rep: Report, rng: np.random.Generator) -> None:
 
 
 def seed004(rep: Report, rng: np.random.Generator, bias_repeats: int = 50) -> None:
-    from scipy.stats import chi2
-
     p = ins7.Ins7Params()
     n, runs = 900, 1000
     covs, _ = ins7.riccati(p, n)
@@ -286,8 +267,6 @@ def seed004(rep: Report, rng: np.random.Generator, bias_repeats: int = 50) -> No
     se = m.std(axis=0, ddof=1) / math.sqrt(bias_repeats)
     tstat = bias / se
     # |t| the largest of 7 independent t(K−1) values exceeds by chance with probability 5 %
-    from scipy.stats import t as student_t
-
     t_crit = float(student_t.ppf(1 - (1 - 0.95 ** (1 / 7)) / 2, bias_repeats - 1))
     pooled_dev = np.abs(np.sqrt(pooled / bias_repeats) / sigma - 1.0)
     n_pooled = bias_repeats * runs
@@ -372,10 +351,10 @@ def all_filters() -> list[TransferFunction]:
 
 
 def write_plots(rep: Report, out: Path) -> list[Path]:
-    import matplotlib
+    import matplotlib  # lazy: matplotlib costs ~1 s; only --plots draws
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: as above, and after the backend is chosen
 
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -443,8 +422,6 @@ def write_plots(rep: Report, out: Path) -> list[Path]:
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
     if "uav" in rep.series:
-        from hil.bench.seeds_uav import plot_nees, plot_uav
-
         paths.append(plot_uav(rep.series["uav"], out))
         paths.append(plot_nees(rep.series["uav_nees"], out))
     return paths
@@ -457,12 +434,7 @@ def run_all(rng: np.random.Generator, uav: bool, uav_kw: dict[str, Any] | None =
     lecture(rep, rng)
     seed004(rep, rng)
     if uav:
-        try:
-            from hil.bench.seeds_uav import uav_comparison
-        except ImportError as err:  # the sensor models it needs may not exist yet
-            rep.notes.append(f"UAV comparison not run: {err}")
-        else:
-            uav_comparison(rep, **(uav_kw or {}))
+        uav_comparison(rep, **(uav_kw or {}))
     return rep
 
 

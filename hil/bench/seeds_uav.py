@@ -5,7 +5,7 @@ IMU and GNSS stamped with their true times, GNSS delivered between the IMU steps
 time of validity, as the fusion core does), with the free strapdown INS as the shared ``ins``.
 
 The issue asks for the *seed* GNSS model, not the scenario's own receiver: the rig's GNSS
-emulator is configured with the seed-000 figures (:data:`hil.bench.seeds.SEED_GNSS_RATE_HZ` and
+emulator is configured with the seed-000 figures (:data:`hil.bench.seeds_common.SEED_GNSS_RATE_HZ` and
 siblings) and the scenario's GNSS fault events are dropped, so the estimators see the error
 model the paper's numbers were made with. ``gnss_model="scenario"`` keeps the scenario's own
 receiver (what the unit tests of ekf15 use).
@@ -26,13 +26,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2
 
-from hil.bench.seeds import (
+from hil.bench.seeds_common import (
     SEED_GNSS_POS_SIGMA_M,
     SEED_GNSS_RATE_HZ,
     SEED_GNSS_SLOW_AMPLITUDE_M,
     SEED_GNSS_SLOW_PERIOD_S,
     SEED_GNSS_VEL_SIGMA_MPS,
+    Report,
 )
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.estimators.compensation import VS_SCHEDULE
@@ -40,6 +42,7 @@ from hil.estimators.ekf15 import Ekf15
 from hil.estimators.lti import held_noise_gain
 from hil.estimators.registry import make_estimator
 from hil.estimators.tuning import params_for
+from hil.nav.attitude import quat_to_dcm
 from hil.nav.scenario import Scenario, dump_toml, load_scenario, parse_scenario, scenario_overrides
 from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
 from hil.nav.trajectory import TruthGenerator
@@ -277,8 +280,6 @@ def horiz(x: F64) -> F64:
 
 def nees_band(runs: int, dof: int = NEES_DOF, p: float = 0.95) -> tuple[float, float]:
     """Two-sided ``p`` band of the run-averaged NEES: ``χ²(dof·runs)/runs`` quantiles."""
-    from scipy.stats import chi2
-
     lo, hi = chi2.ppf([(1 - p) / 2, (1 + p) / 2], dof * runs) / runs
     return float(lo), float(hi)
 
@@ -347,8 +348,6 @@ def nees_monte_carlo(
 
 def _lever_worker(seed: int) -> dict[str, tuple[float, float]]:
     """ekf15 on uav_survey's own receiver (σ 1.5 m, 0.18 m arm) told the lever arm, and not."""
-    from hil.nav.attitude import quat_to_dcm
-
     sc = uav_scenario(LEVER_RUN_S, seed, "scenario")
     truth = TruthGenerator(sc)
     out: dict[str, tuple[float, float]] = {}
@@ -373,7 +372,7 @@ def lever_arm_effect(runs: int = 6, first_seed: int = 10) -> dict[str, np.ndarra
 
 
 def uav_comparison(
-    rep: Any,
+    rep: Report,
     duration_s: float | None = None,
     nees_runs: int = 26,
     nees_duration_s: float = 320.0,
@@ -390,6 +389,35 @@ def uav_comparison(
     res = run_uav(duration_s, seed)
     wall = time.perf_counter() - t0
     late = res["t"] >= SETTLE_S
+    table = _side_by_side_table(res, late)
+    t1 = time.perf_counter()
+    mc = nees_monte_carlo(nees_runs, nees_duration_s, workers=min(2, os.cpu_count() or 1))
+    mc_wall = time.perf_counter() - t1
+    run = (
+        f"{res['duration_s']:.0f} s run{' (whole scenario)' if duration_s is None else ''}, "
+        f"{res['n_steps']} IMU steps, {wall:.0f} s wall"
+    )
+    _add_accuracy_rows(rep, res, mc, late, run, f"{nees_runs} runs of {nees_duration_s:.0f} s")
+    _add_lever_arm_row(rep, lever_arm_effect())
+    sets = [(nm, mc[nm], "") for nm in MC_NAMES]
+    if ablation:
+        sets += _ablation_sets(nees_runs, nees_duration_s)
+    _add_nees_rows(rep, sets, mc["band"], nees_runs)
+    rep.add(
+        "uav",
+        "NEES Monte-Carlo cost",
+        "—",
+        f"{nees_runs} runs × {nees_duration_s:.0f} s × {len(MC_NAMES)} filters, 2 processes, "
+        f"{mc_wall:.0f} s wall" + (" (ablation sets not included)" if ablation else ""),
+    )
+    rep.notes.append(_conditions_note(nees_runs, nees_duration_s) + "\n\n" + "\n".join(table))
+    rep.notes.append(_nees_note())
+    rep.series["uav"] = res
+    rep.series["uav_nees"] = mc
+
+
+def _side_by_side_table(res: dict[str, Any], late: np.ndarray) -> list[str]:
+    """Markdown rows: every estimator's errors after settling, vs truth and vs the GNSS reference."""
     slow = res["slow"][late]
     lines = [
         "| estimator | horiz pos RMS m | horiz pos 95 % m | N / E RMS m | horiz pos RMS vs GNSS ref m "
@@ -405,18 +433,15 @@ def uav_comparison(
             f"| {nm} | {rms(hp):.2f} | {np.percentile(hp, 95):.2f} | {rms(e[:, 0]):.2f} / {rms(e[:, 1]):.2f} "
             f"| {rms(horiz(e - slow)):.2f} | {rms(hv):.3f} | {np.percentile(hv, 95):.3f} | {c:.0f} |"
         )
-    t1 = time.perf_counter()
-    mc = nees_monte_carlo(nees_runs, nees_duration_s, workers=min(2, os.cpu_count() or 1))
-    mc_wall = time.perf_counter() - t1
-    lo, hi = mc["band"]
-    vs = res["pos"]["compvs"][late]
-    rep.add(
-        "uav",
-        "estimators side by side, seed GNSS model (table below)",
-        "—",
-        f"{res['duration_s']:.0f} s run{' (whole scenario)' if duration_s is None else ''}, "
-        f"{res['n_steps']} IMU steps, {wall:.0f} s wall",
-    )
+    return lines
+
+
+def _add_accuracy_rows(
+    rep: Report, res: dict[str, Any], mc: dict[str, Any], late: np.ndarray, run: str, mc_runs: str
+) -> None:
+    """The run itself, the slow component, each EKF's position RMS (one run and the Monte-Carlo), compvs."""
+    slow = res["slow"][late]
+    rep.add("uav", "estimators side by side, seed GNSS model (table below)", "—", run)
     rep.add(
         "uav",
         "GNSS slow component alone, horizontal RMS over the same window",
@@ -435,10 +460,11 @@ def uav_comparison(
             f"{what} horizontal position RMS (target ≤ 3 m)",
             "—",
             f"{rms(horiz(e)):.2f} m vs truth, {rms(horiz(e - slow)):.2f} m vs GNSS ref; "
-            f"{nees_runs} runs of {nees_duration_s:.0f} s: median {np.median(m['hp_rms']):.2f} m "
+            f"{mc_runs}: median {np.median(m['hp_rms']):.2f} m "
             f"(range {m['hp_rms'].min():.2f}–{m['hp_rms'].max():.2f} m) vs truth, median "
             f"{np.median(m['hp_rms_ref']):.2f} m vs GNSS ref",
         )
+    vs = res["pos"]["compvs"][late]
     floor = SEED_GNSS_POS_SIGMA_M * held_noise_gain(VS_SCHEDULE[-1][1], 1.0 / SEED_GNSS_RATE_HZ)
     rep.add(
         "uav",
@@ -450,7 +476,10 @@ def uav_comparison(
         f"{floor:.2f} m per coordinate, {floor * np.sqrt(2):.2f} m horizontal; the slow component "
         "passes F whole",
     )
-    lev = lever_arm_effect()
+
+
+def _add_lever_arm_row(rep: Report, lev: dict[str, np.ndarray]) -> None:
+    """ekf15 told the antenna lever arm or not (:func:`lever_arm_effect`)."""
     told, not_told = lev["told"], lev["not told"]
     arm = uav_scenario(10.0, 1, "scenario").gnss.lever_arm_b_m
     rep.add(
@@ -462,17 +491,26 @@ def uav_comparison(
         f"{int(np.sum(told[:, 0] < not_told[:, 0]))} of {len(told)} runs); mean error along body x "
         f"{told[:, 1].mean():+.3f} vs {not_told[:, 1].mean():+.3f} m (the arm's x is {arm[0]:.2f} m)",
     )
-    sets = [(nm, mc[nm], "") for nm in MC_NAMES]
-    if ablation:
-        workers = min(2, os.cpu_count() or 1)
-        mc_r = nees_monte_carlo(nees_runs, nees_duration_s, workers=workers, names=("ekf15r",))
-        mc_c = nees_monte_carlo(
-            nees_runs, nees_duration_s, workers=workers, names=("ekf15s",), gnss_model="seed_clean"
-        )
-        sets += [
-            ("ekf15r", mc_r["ekf15r"], " (ablation: ekf15 with R + slow variance)"),
-            ("ekf15s", mc_c["ekf15s"], " (ablation: IMU without scale factor/misalignment, no lever arm)"),
-        ]
+
+
+def _ablation_sets(nees_runs: int, nees_duration_s: float) -> list[tuple[str, dict[str, Any], str]]:
+    """The two ablation Monte-Carlo sets: ekf15 with R inflated, ekf15s on clean sensors."""
+    workers = min(2, os.cpu_count() or 1)
+    mc_r = nees_monte_carlo(nees_runs, nees_duration_s, workers=workers, names=("ekf15r",))
+    mc_c = nees_monte_carlo(
+        nees_runs, nees_duration_s, workers=workers, names=("ekf15s",), gnss_model="seed_clean"
+    )
+    return [
+        ("ekf15r", mc_r["ekf15r"], " (ablation: ekf15 with R + slow variance)"),
+        ("ekf15s", mc_c["ekf15s"], " (ablation: IMU without scale factor/misalignment, no lever arm)"),
+    ]
+
+
+def _add_nees_rows(
+    rep: Report, sets: list[tuple[str, dict[str, Any], str]], band: tuple[float, float], nees_runs: int
+) -> None:
+    """One row per Monte-Carlo set: its run-averaged NEES against the χ² band."""
+    lo, hi = band
     for nm, m, what in sets:
         rep.add(
             "uav",
@@ -484,14 +522,11 @@ def uav_comparison(
             f"{100 * m['inside']:.0f} % of "
             f"epochs (above {100 * m['above']:.0f} %, below {100 * m['below']:.0f} %)",
         )
-    rep.add(
-        "uav",
-        "NEES Monte-Carlo cost",
-        "—",
-        f"{nees_runs} runs × {nees_duration_s:.0f} s × {len(MC_NAMES)} filters, 2 processes, "
-        f"{mc_wall:.0f} s wall" + (" (ablation sets not included)" if ablation else ""),
-    )
-    rep.notes.append(
+
+
+def _conditions_note(nees_runs: int, nees_duration_s: float) -> str:
+    """How the UAV comparison was run and how to read 'vs GNSS ref' (the table follows it)."""
+    return (
         "UAV: uav_survey (8 legs of 120 s at 25 m/s joined by 180° turns from t = 150 s on) with "
         "the IMU preset overridden to tactical "
         f"and the scenario's GNSS overridden by the seed-000 model: {SEED_GNSS_RATE_HZ:.0f} Hz, white "
@@ -515,9 +550,13 @@ def uav_comparison(
         "towards the slow σ. Monte-Carlo: scenario seeds "
         f"1000…{999 + nees_runs} (IMU and GNSS noise and slow-component phases), the first "
         f"{nees_duration_s:.0f} s of the scenario per run; the NEES band is for the "
-        f"mean of {nees_runs} independent χ²({NEES_DOF}) values.\n\n" + "\n".join(lines)
+        f"mean of {nees_runs} independent χ²({NEES_DOF}) values."
     )
-    rep.notes.append(
+
+
+def _nees_note() -> str:
+    """Why the NEES of each EKF lands where it does (the ablation rows are the evidence)."""
+    return (
         "UAV NEES, why: ekf15's position part is far above 3 because the slow component is not in "
         "its model: R holds the white σ only, and a common error is averaged away as if it were "
         "white, so its position σ ends well below the error it cannot see. Inflating R by the slow "
@@ -534,12 +573,10 @@ def uav_comparison(
         "fixed: ekf15's bias error used to decay as Gauss–Markov while its estimate was held "
         "(over-confident after turns, docs/estimators.md), and the lever arm was not modelled."
     )
-    rep.series["uav"] = res
-    rep.series["uav_nees"] = mc
 
 
 def plot_uav(res: dict[str, Any], out: Path) -> Path:
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: matplotlib costs ~1 s; only --plots draws
 
     fig, ax = plt.subplots(figsize=(11, 5))
     for nm in NAMES:
@@ -557,7 +594,7 @@ def plot_uav(res: dict[str, Any], out: Path) -> Path:
 
 
 def plot_nees(mc: dict[str, Any], out: Path) -> Path:
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: matplotlib costs ~1 s; only --plots draws
 
     fig, ax = plt.subplots(figsize=(11, 4))
     for nm in MC_NAMES:

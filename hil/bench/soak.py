@@ -27,6 +27,7 @@ import argparse
 import tempfile
 import threading
 import time
+import tracemalloc
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +39,7 @@ from hil.bus.pubsub import Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
 from hil.messages import ImuSample, NavSolution, RunInfo, ServiceStatus
 from hil.record.completeness import SeqTracker
+from hil.record.mcapio import SessionWriter
 from hil.runtime.clock import RigClock
 from hil.runtime.supervisor import Supervisor, UpOptions
 
@@ -275,11 +277,6 @@ def index_bytes_per_chunk(pack: bool, chunks: int = 400, channels: int = 30, spi
     Each chunk carries one message on every channel, as the recorder's 1 s chunks do at the
     rig's topic count; what stays allocated after the chunks are out is the summary index.
     """
-    import tracemalloc
-
-    from hil.messages import ImuSample
-    from hil.record.mcapio import SessionWriter
-
     with tempfile.TemporaryDirectory() as tmp:
         w = SessionWriter(Path(tmp) / "index.mcap", pack_index=pack, spill_index=spill)
         payload = b'{"seq":0}'

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from hil.nav.types import F64, NavState
+from hil.nav.types import InitialState as InitialState  # re-exported: nav needs it, below us
 
 
 @dataclass(frozen=True)
@@ -37,21 +38,6 @@ class GnssInput:
     vel_ned_mps: F64  # (3,)
     pos_sigma_m: F64  # (3,) receiver-reported 1-sigma, N E D
     vel_sigma_mps: F64  # (3,)
-
-
-@dataclass(frozen=True)
-class InitialState:
-    """Where every estimator starts: the alignment the rig hands them at run start."""
-
-    stamp_ns: int
-    lat_rad: float
-    lon_rad: float
-    alt_m: float
-    origin_lat_rad: float
-    origin_lon_rad: float
-    origin_alt_m: float
-    vel_ned_mps: F64  # (3,)
-    q_nb: F64  # (4,)
 
 
 class Estimator:

@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import InitialState
 from hil.nav.earth import (
     _K_SOMIGLIANA,
     _M_RATIO,
@@ -37,7 +36,7 @@ from hil.nav.earth import (
     F,
     lla_to_ned,
 )
-from hil.nav.types import F64, NavState
+from hil.nav.types import F64, InitialState, NavState
 
 
 @dataclass

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.estimators.base import InitialState
 from hil.nav.attitude import euler_rates_to_body_rate, euler_to_dcm, euler_to_quat, quat_normalise
 from hil.nav.earth import (
     cross,
@@ -38,7 +37,7 @@ from hil.nav.earth import (
     transport_rate_ned,
 )
 from hil.nav.scenario import MotionSegment, Scenario
-from hil.nav.types import F64, I64, TruthBatch
+from hil.nav.types import F64, I64, InitialState, TruthBatch
 
 KNOT_MAX_S = 0.5
 G_COORD_MPS2 = 9.80665  # gravity used to size the bank of a coordinated turn

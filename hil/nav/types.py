@@ -1,5 +1,8 @@
 """Array containers shared by the navigation cores, the emulators and the estimators.
 
+They live at the bottom layer so the navigation code (strapdown, trajectory) and the estimators
+built on it share them without nav importing the estimators.
+
 Shapes: ``n`` samples along axis 0. Frames: ``ned`` = local North-East-Down of the scenario
 origin, ``b`` = body (x forward, y right, z down). Stamps are integer nanoseconds since run start.
 """
@@ -39,3 +42,18 @@ class NavState:
     q_nb: F64  # (4,)
     pos_sigma_m: F64 | None = None  # (3,)
     vel_sigma_mps: F64 | None = None  # (3,)
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """Where every estimator and the free INS start: the alignment the rig hands out at run start."""
+
+    stamp_ns: int
+    lat_rad: float
+    lon_rad: float
+    alt_m: float
+    origin_lat_rad: float
+    origin_lon_rad: float
+    origin_alt_m: float
+    vel_ned_mps: F64  # (3,)
+    q_nb: F64  # (4,)

@@ -39,9 +39,11 @@ from typing import Any, TextIO
 
 import zenoh
 import zenoh.ext as zext
+from mcap.reader import make_reader
 
 from hil.bus.keys import rekey
 from hil.bus.pubsub import declare_publisher
+from hil.messages import CanFrame, FusionJournal, decode
 from hil.record.lockstep import ack_key, decode_ack
 from hil.record.mcapio import Record, RecordingError, iter_records
 
@@ -113,8 +115,6 @@ def check_readable(path: str | Path) -> None:
 
 def journaled_drops(path: str | Path) -> set[str]:
     """``sensor:seq`` of every input the live fusion journaled as not used."""
-    from hil.messages import FusionJournal, decode
-
     out: set[str] = set()
     for kind, rec in iter_records(path):
         if kind == "message" and rec.topic.endswith("/fusion/journal"):
@@ -258,8 +258,6 @@ class Progress:
 
 def recorded_span_ns(path: str | Path) -> int | None:
     """log_time span from the file's summary (None when a crashed recorder left no summary)."""
-    from mcap.reader import make_reader
-
     try:
         with open(path, "rb") as fh:
             summary = make_reader(fh).get_summary()
@@ -292,8 +290,6 @@ def replay(
 
     ``step_input`` reads one line for ``--step`` (default: ``input``; EOF or "q" stops).
     """
-    from hil.messages import CanFrame, decode
-
     check_readable(path)
     stop = stop or threading.Event()
     sel = Selector(opts)
@@ -383,7 +379,7 @@ def _ask(ask: Callable[[str], str], prompt: str) -> str | None:
 
 
 def _send_can(bus: Any, frame: Any) -> bool:
-    import can
+    import can  # lazy: python-can costs ~0.1 s at import and only --can sends frames
 
     msg = can.Message(
         arbitration_id=frame.arbitration_id,

@@ -20,7 +20,15 @@ import numpy as np
 from hil import __version__
 from hil.report import plots
 from hil.report.data import ReportData, load
-from hil.report.metrics import Errors, EstimatorStats, errors, estimator_stats, fault_windows, gnss_bound_m
+from hil.report.metrics import (
+    Errors,
+    EstimatorStats,
+    FaultWindow,
+    errors,
+    estimator_stats,
+    fault_windows,
+    gnss_bound_m,
+)
 
 ProgressFn = Callable[[float, str], None]  # (fraction 0..1, stage)
 
@@ -77,31 +85,78 @@ img{max-width:100%;height:auto;display:block;margin:8px 0}
 """
 
 
+@dataclass
+class _Draft:
+    """The page being assembled: sections and notes in page order, the PNGs written beside it.
+
+    Each section builder appends to it, so the order of the calls in :func:`build_report` is the
+    order of the page.
+    """
+
+    out: Path
+    progress: ProgressFn | None
+    notes: list[str] = field(default_factory=list)
+    sections: list[_Section] = field(default_factory=list)
+    pngs: list[Path] = field(default_factory=list)
+
+    def step(self, frac: float, stage: str) -> None:
+        if self.progress is not None:
+            self.progress(frac, stage)
+
+    def figure(self, name: str, data: bytes, alt: str) -> str:
+        """Write ``name.png`` beside the page and return the same image inline."""
+        p = self.out / f"{name}.png"
+        p.write_bytes(data)
+        self.pngs.append(p)
+        return _img(data, alt)
+
+    def add(self, anchor: str, title: str, body: str) -> None:
+        self.sections.append(_Section(anchor, title, body))
+
+
 def build_report(path: str | Path, out_dir: str | Path, progress: ProgressFn | None = None) -> ReportResult:
     """Read ``path``, write ``out_dir/report.html`` and ``out_dir/*.png``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     t0 = time.monotonic()
-
-    def step(frac: float, stage: str) -> None:
-        if progress is not None:
-            progress(frac, stage)
-
-    d = load(path, lambda done, total: step(0.7 * done / max(total, 1), "reading"))
+    page = _Draft(out, progress)
+    d = load(path, lambda done, total: page.step(0.7 * done / max(total, 1), "reading"))
     timings["read"] = time.monotonic() - t0
-    notes = list(d.notes)
-    sections: list[_Section] = []
-    pngs: list[Path] = []
-
-    def figure(name: str, data: bytes, alt: str) -> str:
-        p = out / f"{name}.png"
-        p.write_bytes(data)
-        pngs.append(p)
-        return _img(data, alt)
-
+    page.notes.extend(d.notes)
     windows, wnotes = fault_windows(d)
-    notes.extend(wnotes)
+    page.notes.extend(wnotes)
+    errs = _errors(d, page.notes)
+    cap = gnss_bound_m(d)
+    stats = [estimator_stats(n, e, windows, cap) for n, e in errs.items()]
+
+    t1 = time.monotonic()
+    page.step(0.72, "plotting")
+    _trajectory_section(page, d)
+    page.step(0.78, "plotting")
+    if errs:
+        _accuracy_sections(page, errs, stats, windows, cap)
+    if windows:
+        _faults_section(page, windows)
+    page.step(0.9, "plotting")
+    _timesync_section(page, d)
+    page.step(0.95, "plotting")
+    _can_section(page, d)
+    if d.topics:
+        _topics_section(page, d)
+    if d.status:
+        _services_section(page, d)
+    timings["plots"] = time.monotonic() - t1
+    page.step(0.98, "writing")
+    html_path = out / "report.html"
+    html_path.write_text(_page(d, page.sections, page.notes), encoding="utf-8")
+    timings["total"] = time.monotonic() - t0
+    page.step(1.0, "done")
+    return ReportResult(html_path, page.pngs, page.notes, stats, timings)
+
+
+def _errors(d: ReportData, notes: list[str]) -> dict[str, Errors]:
+    """Each estimator's errors against truth; why there are none goes to ``notes``."""
     errs: dict[str, Errors] = {}
     if d.truth is None:
         notes.append("no truth (hil/<rig>/truth) in this recording: accuracy is not computed")
@@ -114,213 +169,212 @@ def build_report(path: str | Path, out_dir: str | Path, progress: ProgressFn | N
                 notes.append(f"estimator {name}: no solution inside the truth's time span")
             else:
                 errs[name] = e
-    cap = gnss_bound_m(d)
-    stats = [estimator_stats(n, e, windows, cap) for n, e in errs.items()]
+    return errs
 
-    t1 = time.monotonic()
-    step(0.72, "plotting")
-    # trajectory
-    if d.truth is not None or d.nav or d.gnss_pos.size:
-        body = figure(
-            "trajectory",
-            plots.trajectory(
-                d.truth.pos if d.truth is not None else None, d.gnss_pos, {n: s.pos for n, s in d.nav.items()}
-            ),
-            "trajectory map",
-        )
-        if not d.gnss_pos.size:
-            body = _note("no GNSS fixes in this recording") + body
-        if d.truth is None:
-            body = _note("no truth: the map shows the estimators only") + body
-        sections.append(_Section("trajectory", "Trajectory", body))
-    else:
-        notes.append("nothing to draw on a map: no truth, no estimator output, no GNSS fixes")
-    step(0.78, "plotting")
-    # accuracy
-    if errs:
-        rows = []
-        for s in stats:
-            conv = _f(s.convergence_s, 1) if s.convergence_s is not None else "never"
-            rows.append(
-                [
-                    html.escape(s.name),
-                    _f(s.horiz.rms),
-                    _f(s.horiz.p95),
-                    _f(s.horiz.max),
-                    _f(s.horiz.final),
-                    _f(s.vert.rms),
-                    _f(s.vel.rms, 3),
-                    _f(s.vel.p95, 3),
-                    _f(s.att.rms, 3),
-                    _f(s.att.max, 3),
-                    conv,
-                    str(s.horiz.n),
-                ]
-            )
-        table = _table(
-            [
-                "estimator",
-                "horiz RMS m",
-                "horiz 95% m",
-                "horiz max m",
-                "horiz final m",
-                "vert RMS m",
-                "vel RMS m/s",
-                "vel 95% m/s",
-                "att RMS °",
-                "att max °",
-                "converged at s",
-                "n",
-            ],
-            rows,
-        )
-        expl = (
-            '<p class="small">Errors at every solution stamp against truth interpolated there. '
-            "Converged at: the first time after which the horizontal error stays below 2× its median over "
-            "the last half of the run (at least 1 m, at most the GNSS 95 % radius of the scenario"
-            + (f", {cap:.0f} m" if cap else "")
-            + "); samples during a scenario fault and 10 s after it are "
-            f"excused. <code>{plots.FREE_INS}</code> is the free (unaided) INS, for reference.</p>"
-        )
-        sections.append(_Section("stats", "Statistics", table + expl))
-        step(0.8, "plotting")
-        body = figure("errors", plots.error_overview(errs, windows), "error vs time")
-        step(0.86, "plotting")
-        body += figure("errors_ned", plots.error_per_estimator(errs, windows), "N/E/D error per estimator")
-        sections.append(_Section("errors", "Error vs time", body))
-    # faults
-    if windows:
-        rows = [
-            [
-                html.escape(w.kind),
-                _f(w.t0_s, 1),
-                _f(w.t1_s, 1) if w.t1_s is not None else "–",
-                html.escape(w.label),
-            ]
-            for w in windows
+
+def _trajectory_section(page: _Draft, d: ReportData) -> None:
+    """The map: truth, GNSS fixes and every estimator, with what is missing said above it."""
+    if d.truth is None and not d.nav and not d.gnss_pos.size:
+        page.notes.append("nothing to draw on a map: no truth, no estimator output, no GNSS fixes")
+        return
+    body = page.figure(
+        "trajectory",
+        plots.trajectory(
+            d.truth.pos if d.truth is not None else None, d.gnss_pos, {n: s.pos for n, s in d.nav.items()}
+        ),
+        "trajectory map",
+    )
+    if not d.gnss_pos.size:
+        body = _note("no GNSS fixes in this recording") + body
+    if d.truth is None:
+        body = _note("no truth: the map shows the estimators only") + body
+    page.add("trajectory", "Trajectory", body)
+
+
+_STATS_HEAD = [
+    "estimator",
+    "horiz RMS m",
+    "horiz 95% m",
+    "horiz max m",
+    "horiz final m",
+    "vert RMS m",
+    "vel RMS m/s",
+    "vel 95% m/s",
+    "att RMS °",
+    "att max °",
+    "converged at s",
+    "n",
+]
+
+
+def _stats_row(s: EstimatorStats) -> list[str]:
+    conv = _f(s.convergence_s, 1) if s.convergence_s is not None else "never"
+    return [
+        html.escape(s.name),
+        _f(s.horiz.rms),
+        _f(s.horiz.p95),
+        _f(s.horiz.max),
+        _f(s.horiz.final),
+        _f(s.vert.rms),
+        _f(s.vel.rms, 3),
+        _f(s.vel.p95, 3),
+        _f(s.att.rms, 3),
+        _f(s.att.max, 3),
+        conv,
+        str(s.horiz.n),
+    ]
+
+
+def _accuracy_sections(
+    page: _Draft,
+    errs: dict[str, Errors],
+    stats: list[EstimatorStats],
+    windows: list[FaultWindow],
+    cap: float | None,
+) -> None:
+    """The statistics table and the error-vs-time figures."""
+    table = _table(_STATS_HEAD, [_stats_row(s) for s in stats])
+    expl = (
+        '<p class="small">Errors at every solution stamp against truth interpolated there. '
+        "Converged at: the first time after which the horizontal error stays below 2× its median over "
+        "the last half of the run (at least 1 m, at most the GNSS 95 % radius of the scenario"
+        + (f", {cap:.0f} m" if cap else "")
+        + "); samples during a scenario fault and 10 s after it are "
+        f"excused. <code>{plots.FREE_INS}</code> is the free (unaided) INS, for reference.</p>"
+    )
+    page.add("stats", "Statistics", table + expl)
+    page.step(0.8, "plotting")
+    body = page.figure("errors", plots.error_overview(errs, windows), "error vs time")
+    page.step(0.86, "plotting")
+    body += page.figure("errors_ned", plots.error_per_estimator(errs, windows), "N/E/D error per estimator")
+    page.add("errors", "Error vs time", body)
+
+
+def _faults_section(page: _Draft, windows: list[FaultWindow]) -> None:
+    rows = [
+        [
+            html.escape(w.kind),
+            _f(w.t0_s, 1),
+            _f(w.t1_s, 1) if w.t1_s is not None else "–",
+            html.escape(w.label),
         ]
-        sections.append(
-            _Section("faults", "Faults and events", _table(["kind", "start s", "end s", "what"], rows))
-        )
-    step(0.9, "plotting")
-    # timesync
-    if d.sync_err_ns:
-        rows = []
-        for sensor in sorted(d.sync_err_ns):
-            e_us = d.sync_err_ns[sensor] * 1e-3
-            rows.append(
-                [
-                    html.escape(sensor),
-                    str(e_us.size),
-                    _f(float(np.mean(e_us)), 1),
-                    _f(float(np.sqrt(np.mean(e_us**2))), 1),
-                    _f(float(np.percentile(np.abs(e_us), 95)), 1),
-                    _f(float(np.max(np.abs(e_us))), 1),
-                    str(d.sync_unmatched.get(sensor, 0)),
-                ]
-            )
-        body = _table(
-            ["sensor", "matched", "mean µs", "RMS µs", "95% |e| µs", "max |e| µs", "unmatched"], rows
-        )
-        body += figure(
-            "timesync",
-            plots.timesync(
-                {k: v * 1e-9 for k, v in d.sync_t_ns.items()}, {k: v * 1e-3 for k, v in d.sync_err_ns.items()}
-            ),
-            "time-sync error",
-        )
-        sections.append(_Section("timesync", "Time synchronisation", body))
-    else:
-        notes.append(
+        for w in windows
+    ]
+    page.add("faults", "Faults and events", _table(["kind", "start s", "end s", "what"], rows))
+
+
+def _timesync_section(page: _Draft, d: ReportData) -> None:
+    """Synced stamp minus true capture time per sensor, from the recorded capture truth."""
+    if not d.sync_err_ns:
+        page.notes.append(
             "no time-sync error: the recording lacks synced/<sensor> or capture/<sensor> (hil.CaptureTruth)"
         )
-    step(0.95, "plotting")
-    # CAN
+        return
+    rows = []
+    for sensor in sorted(d.sync_err_ns):
+        e_us = d.sync_err_ns[sensor] * 1e-3
+        rows.append(
+            [
+                html.escape(sensor),
+                str(e_us.size),
+                _f(float(np.mean(e_us)), 1),
+                _f(float(np.sqrt(np.mean(e_us**2))), 1),
+                _f(float(np.percentile(np.abs(e_us), 95)), 1),
+                _f(float(np.max(np.abs(e_us))), 1),
+                str(d.sync_unmatched.get(sensor, 0)),
+            ]
+        )
+    body = _table(["sensor", "matched", "mean µs", "RMS µs", "95% |e| µs", "max |e| µs", "unmatched"], rows)
+    body += page.figure(
+        "timesync",
+        plots.timesync(
+            {k: v * 1e-9 for k, v in d.sync_t_ns.items()}, {k: v * 1e-3 for k, v in d.sync_err_ns.items()}
+        ),
+        "time-sync error",
+    )
+    page.add("timesync", "Time synchronisation", body)
+
+
+def _can_section(page: _Draft, d: ReportData) -> None:
+    """Bus load computed from the recorded frames beside the emulators' own counters."""
     can_series: dict[str, tuple[np.ndarray, np.ndarray]] = {
         f"{ch} (from frames)": v for ch, v in d.can_load.items()
     }
     can_series.update({f"{svc} (status)": v for svc, v in d.status_load.items()})
-    if can_series:
-        rows = [
+    if not can_series:
+        page.notes.append("no CAN frames (hil.CanFrame) and no bus-load counters in this recording")
+        return
+    rows = [
+        [
+            html.escape(name),
+            _f(100 * float(np.mean(v[1])), 2),
+            _f(100 * float(np.max(v[1])), 2),
+            str(v[1].size),
+        ]
+        for name, v in can_series.items()
+    ]
+    body = _table(["source", "mean load %", "peak load %", "seconds"], rows)
+    body += (
+        '<p class="small">From frames: bits on the wire per second (ISO 11898-1 frame format, '
+        "worst-case stuffing) / 1 Mbit/s nominal (FD data phase at 5 Mbit/s). "
+        "Status: the emulator's own <code>bus_load_permille</code> counter.</p>"
+    )
+    body += page.figure("can_load", plots.can_load(can_series), "CAN bus load")
+    page.add("can", "CAN bus load", body)
+
+
+def _topics_section(page: _Draft, d: ReportData) -> None:
+    """Per-topic rate and loss; publisher restarts get their own column only when there are any."""
+    rows = []
+    restarted = [t for t in d.topics if t.restarts]
+    for t in d.topics:
+        row = [
+            html.escape(t.topic),
+            html.escape(t.schema),
+            str(t.count),
+            _f(t.rate_hz, 2),
+            str(t.missing),
+            _f(t.loss_pct, 3),
+            str(t.duplicates),
+            str(t.undecodable),
+        ]
+        if restarted:
+            row.append(str(t.restarts))
+        rows.append(row)
+    head = ["topic", "type", "count", "rate Hz", "missing", "loss %", "duplicates", "undecodable"]
+    body = _table(head + (["restarts"] if restarted else []), rows)
+    lossy = [t.topic for t in d.topics if t.missing or t.undecodable]
+    if lossy:
+        body = _note(f"loss on {len(lossy)} topic(s): {', '.join(lossy[:8])}") + body
+    if restarted:
+        names = ", ".join(t.topic for t in restarted[:8])
+        body = _note(f"{len(restarted)} publisher(s) restarted during the recording: {names}") + body
+    body += (
+        '<p class="small">Rate from the recorder receive times; missing from gaps in each publisher\'s '
+        "<code>seq</code>; a restarted service counts again in a new generation "
+        "(a restart, not loss: see <code>hil.record.completeness</code>).</p>"
+    )
+    page.add("topics", "Message rates and loss", body)
+
+
+def _services_section(page: _Draft, d: ReportData) -> None:
+    rows = []
+    for name, st in sorted(d.status.items()):
+        rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
+        rows.append(
             [
                 html.escape(name),
-                _f(100 * float(np.mean(v[1])), 2),
-                _f(100 * float(np.max(v[1])), 2),
-                str(v[1].size),
+                html.escape(st.state),
+                _f(st.uptime_s, 1),
+                str(rej),
+                html.escape(st.last_error[:120]),
             ]
-            for name, v in can_series.items()
-        ]
-        body = _table(["source", "mean load %", "peak load %", "seconds"], rows)
-        body += (
-            '<p class="small">From frames: bits on the wire per second (ISO 11898-1 frame format, '
-            "worst-case stuffing) / 1 Mbit/s nominal (FD data phase at 5 Mbit/s). "
-            "Status: the emulator's own <code>bus_load_permille</code> counter.</p>"
         )
-        body += figure("can_load", plots.can_load(can_series), "CAN bus load")
-        sections.append(_Section("can", "CAN bus load", body))
-    else:
-        notes.append("no CAN frames (hil.CanFrame) and no bus-load counters in this recording")
-    # topics
-    if d.topics:
-        rows = []
-        restarted = [t for t in d.topics if t.restarts]
-        for t in d.topics:
-            row = [
-                html.escape(t.topic),
-                html.escape(t.schema),
-                str(t.count),
-                _f(t.rate_hz, 2),
-                str(t.missing),
-                _f(t.loss_pct, 3),
-                str(t.duplicates),
-                str(t.undecodable),
-            ]
-            if restarted:
-                row.append(str(t.restarts))
-            rows.append(row)
-        head = ["topic", "type", "count", "rate Hz", "missing", "loss %", "duplicates", "undecodable"]
-        body = _table(head + (["restarts"] if restarted else []), rows)
-        lossy = [t.topic for t in d.topics if t.missing or t.undecodable]
-        if lossy:
-            body = _note(f"loss on {len(lossy)} topic(s): {', '.join(lossy[:8])}") + body
-        if restarted:
-            names = ", ".join(t.topic for t in restarted[:8])
-            body = _note(f"{len(restarted)} publisher(s) restarted during the recording: {names}") + body
-        body += (
-            '<p class="small">Rate from the recorder receive times; missing from gaps in each publisher\'s '
-            "<code>seq</code>; a restarted service counts again in a new generation "
-            "(a restart, not loss: see <code>hil.record.completeness</code>).</p>"
-        )
-        sections.append(_Section("topics", "Message rates and loss", body))
-    # services
-    if d.status:
-        rows = []
-        for name, st in sorted(d.status.items()):
-            rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
-            rows.append(
-                [
-                    html.escape(name),
-                    html.escape(st.state),
-                    _f(st.uptime_s, 1),
-                    str(rej),
-                    html.escape(st.last_error[:120]),
-                ]
-            )
-        sections.append(
-            _Section(
-                "services",
-                "Services (last status)",
-                _table(["service", "state", "uptime s", "rejected", "last error"], rows),
-            )
-        )
-    timings["plots"] = time.monotonic() - t1
-    step(0.98, "writing")
-    page = _page(d, sections, notes)
-    html_path = out / "report.html"
-    html_path.write_text(page, encoding="utf-8")
-    timings["total"] = time.monotonic() - t0
-    step(1.0, "done")
-    return ReportResult(html_path, pngs, notes, stats, timings)
+    page.add(
+        "services",
+        "Services (last status)",
+        _table(["service", "state", "uptime s", "rejected", "last error"], rows),
+    )
 
 
 def _page(d: ReportData, sections: list[_Section], notes: list[str]) -> str:

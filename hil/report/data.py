@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 import msgspec
 import numpy as np
 
+from hil.can.busload import frame_bits
 from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus
 from hil.report.scan import Batch, Channel, scan
 
@@ -181,8 +182,6 @@ class _Collector:
         key = (n, fd, brs, ext)
         v = self.can_bits_cache.get(key)
         if v is None:
-            from hil.can.busload import frame_bits
-
             v = self.can_bits_cache[key] = frame_bits(n, fd=fd, brs=brs, extended=ext).seconds()
         return v
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.report.data import ReportData, Series, scenario_text
+from hil.runtime.scenario_io import scenario_from_text
 
 RECOVERY_S = 10.0  # after a fault window, errors are not yet held against convergence
 CONVERGED_FACTOR = 2.0  # converged: below this many times the error's median over the last half
@@ -125,8 +126,6 @@ def fault_windows(d: ReportData) -> tuple[list[FaultWindow], list[str]]:
     text = scenario_text(d)
     if text:
         try:
-            from hil.runtime.scenario_io import scenario_from_text
-
             sc = scenario_from_text(text, d.run.scenario if d.run else "scenario")
         except ValueError as err:
             notes.append(
@@ -155,8 +154,6 @@ def gnss_bound_m(d: ReportData) -> float | None:
     if not text:
         return None
     try:
-        from hil.runtime.scenario_io import scenario_from_text
-
         sigma = scenario_from_text(text).gnss.pos_sigma_m
     except (ValueError, AttributeError):
         return None

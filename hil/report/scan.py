@@ -18,7 +18,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import lz4.frame
 import numpy as np
+import zstandard
 
 from hil.record.mcapio import RecordingError
 
@@ -173,12 +175,8 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes 
     if compression == "":
         return data
     if compression == "zstd":
-        import zstandard
-
         return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
     if compression == "lz4":
-        import lz4.frame
-
         return lz4.frame.decompress(bytes(data))
     raise ValueError(f"unknown chunk compression {compression!r}")
 

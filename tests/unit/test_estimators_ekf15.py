@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from hil.bench.seeds import SEED_GNSS_POS_SIGMA_M, SEED_GNSS_SLOW_AMPLITUDE_M
+from hil.bench.seeds_common import SEED_GNSS_POS_SIGMA_M, SEED_GNSS_SLOW_AMPLITUDE_M
 from hil.bench.seeds_uav import horiz, rms, run_uav, seed_gnss_scenario, uav_scenario
 from hil.estimators.tuning import ekf15_gnss_params
 
