@@ -66,9 +66,7 @@ def default_dbc_path() -> Path:
     env = os.environ.get("HIL_DBC")
     if env:
         return Path(env)
-    import hil
-
-    return Path(hil.__file__).resolve().parents[1] / "schemas" / "imu.dbc"
+    return Path(__file__).resolve().parents[2] / "schemas" / "imu.dbc"
 
 
 @dataclass(frozen=True, slots=True)
