@@ -154,6 +154,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
 
 def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
+    from hil.nodes.base import OptionsError
     from hil.runtime.registry import service_module
     from hil.runtime.service import options_from_json, run_service
 
@@ -163,7 +164,10 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
             opts = options_from_json(a.options)
         except ValueError as err:
             raise UserError(f"--options: {err}") from err
-        return run_service(mod.SERVICE, a.rig, opts)
+        try:
+            return run_service(mod.SERVICE, a.rig, opts)
+        except OptionsError as err:
+            raise UserError(str(err)) from None
     return int(mod.main([*(["--rig", a.rig] if a.rig else []), *rest]) or 0)
 
 

@@ -70,6 +70,15 @@ def _fs(*names: str) -> frozenset[str]:
     return frozenset(names)
 
 
+_IMU_FAULTS = {
+    "imu_frame_loss": _fs("percent"),
+    "imu_stuck": _fs(),
+    "imu_saturated": _fs(),
+    "can_burst_error": _fs("frames"),
+    "can_bus_off": _fs(),
+    "can_latency": _fs("latency_s", "jitter_s"),
+}
+
 SENSORS: Mapping[str, SensorKind] = MappingProxyType(
     {
         "imu": SensorKind(
@@ -78,22 +87,8 @@ SENSORS: Mapping[str, SensorKind] = MappingProxyType(
             rank=0,
             emulator="imu_emulator",
             paces_fusion=True,
-            commands={
-                "imu_frame_loss": _fs("percent"),
-                "imu_stuck": _fs(),
-                "imu_saturated": _fs(),
-                "can_burst_error": _fs("frames"),
-                "can_bus_off": _fs(),
-                "can_latency": _fs("latency_s", "jitter_s"),
-            },
-            events={
-                "imu_frame_loss": _fs("percent"),
-                "imu_stuck": _fs(),
-                "imu_saturated": _fs(),
-                "can_burst_error": _fs("frames"),
-                "can_bus_off": _fs(),
-                "can_latency": _fs("latency_s", "jitter_s"),
-            },
+            commands=_IMU_FAULTS,
+            events=_IMU_FAULTS,  # the same kinds, timed
             # a counter started 7.1 ms before the run, 20 ppm fast (a plain crystal); the sync
             # frame's kernel stamp with 5 µs; CAN data: 20 µs + exponential 10 µs beyond wire time
             clock={

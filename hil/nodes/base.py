@@ -140,16 +140,14 @@ class OptionsError(ValueError):
 def decode_options(cls: type[NodeOptions], raw: Mapping[str, Any] | None, service: str) -> Any:
     """``raw`` (decoded ``--options`` JSON) as ``cls``; a bad or unknown field is one line."""
     try:
-        return msgspec.convert(dict(raw or {}), cls, strict=False)
+        return msgspec.convert(dict(raw or {}), cls)
     except msgspec.ValidationError as err:
-        known = ", ".join(f for f in cls.__struct_fields__)
-        raise OptionsError(f"{service}: option {_option_path(err)}: {err}; known options: {known}") from None
-
-
-def _option_path(err: msgspec.ValidationError) -> str:
-    text = str(err)
-    if "unknown field" in text:
-        return text.split("`")[1] if "`" in text else "?"
-    if "at `$." in text:
-        return text.rsplit("at `$.", 1)[1].rstrip("`").split("[")[0].split(".")[0]
-    return "?"
+        text = str(err)
+        if "unknown field" in text:
+            name = text.split("`")[1] if "`" in text else "?"
+            known = ", ".join(cls.__struct_fields__)
+            raise OptionsError(f"{service}: unknown option {name!r}; known options: {known}") from None
+        if "at `$." in text:
+            what, _, where = text.rpartition(" - at `$.")
+            raise OptionsError(f"{service}: option {where.rstrip('`')}: {what}") from None
+        raise OptionsError(f"{service}: {text}") from None

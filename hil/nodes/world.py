@@ -15,6 +15,7 @@ re-sends the past.
 
 from __future__ import annotations
 
+import hashlib
 from typing import Any
 
 import msgspec
@@ -41,6 +42,28 @@ class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields
     wait_timeout_s: float = 60.0
     lead_s: float = 1.0  # time zero this long after the run is decided
     resume_run: dict[str, Any] | None = None  # a restarted world: the run it had announced
+
+
+def run_info(
+    scenario: Any, *, rig: str, start_epoch_ns: int, speed: float, duration_s: float | None
+) -> RunInfo:
+    """The run of ``scenario`` (a ``hil.nav.scenario.Scenario``): what every runner announces --
+    ``hil up`` with time zero on the wall clock, ``hil sim`` with epoch 0."""
+    return RunInfo(
+        seq=0,
+        stamp_ns=0,
+        rig=rig,
+        start_epoch_ns=start_epoch_ns,
+        speed=speed,
+        scenario=scenario.name,
+        scenario_sha256=hashlib.sha256(scenario.source_text.encode()).hexdigest(),
+        seed=scenario.seed,
+        duration_s=float(duration_s if duration_s is not None else scenario.duration_s),
+        origin_lat_deg=scenario.origin_lat_deg,
+        origin_lon_deg=scenario.origin_lon_deg,
+        origin_alt_m=scenario.origin_alt_m,
+        scenario_toml=scenario.source_text,
+    )
 
 
 class WorldNode(Node):

@@ -34,8 +34,8 @@ from hil.can.node import CanTransmitter
 from hil.messages import RunInfo, ServiceStatus
 from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nodes.base import CAN_RX, CAN_TX, Node, NodeOptions, OptionsError, Out, decode_options
+from hil.nodes.world import run_info
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
-from hil.runtime.scenario_io import sha256_text
 from hil.runtime.service import Service, ServiceContext, run_service
 
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
@@ -250,21 +250,8 @@ class WorldService(NodeService):
                 break
         if self.ctx.stop.is_set():
             return None
-        return RunInfo(
-            seq=0,
-            stamp_ns=0,
-            rig=self.keys.rig,
-            start_epoch_ns=wall_ns() + int(o.lead_s * 1e9),
-            speed=o.speed,
-            scenario=s.name,
-            scenario_sha256=sha256_text(s.source_text),
-            seed=s.seed,
-            duration_s=float(o.duration_s if o.duration_s is not None else s.duration_s),
-            origin_lat_deg=s.origin_lat_deg,
-            origin_lon_deg=s.origin_lon_deg,
-            origin_alt_m=s.origin_alt_m,
-            scenario_toml=s.source_text,
-        )
+        start = wall_ns() + int(o.lead_s * 1e9)
+        return run_info(s, rig=self.keys.rig, start_epoch_ns=start, speed=o.speed, duration_s=o.duration_s)
 
 
 def service_for(node_cls: type[Node], base: type[NodeService] = NodeService) -> type[NodeService]:

@@ -37,10 +37,10 @@ from hil.nodes.fusion import DEFAULT_LAG_S, DEFAULT_OUTPUT_EVERY, FusionNode, Fu
 from hil.nodes.gnss_emulator import GnssEmulatorNode
 from hil.nodes.imu_emulator import ImuEmulatorNode, ImuEmulatorOptions
 from hil.nodes.timesync import TimeSyncNode
-from hil.nodes.world import WorldNode, WorldOptions
+from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.mcapio import SessionWriter
 from hil.runners.wire import CanWireModel
-from hil.runtime.scenario_io import run_attachments, sha256_text
+from hil.runtime.scenario_io import run_attachments
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
@@ -176,21 +176,7 @@ def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
 def sim_run_info(opts: SimOptions) -> RunInfo:
     """The run ``hil sim`` announces: time zero at epoch 0, speed 1, the scenario's text."""
     base = load_scenario(opts.scenario)
-    return RunInfo(
-        seq=0,
-        stamp_ns=0,
-        rig=opts.rig,
-        start_epoch_ns=0,
-        speed=1.0,
-        scenario=base.name,
-        scenario_sha256=sha256_text(base.source_text),
-        seed=base.seed,
-        duration_s=float(opts.duration_s if opts.duration_s is not None else base.duration_s),
-        origin_lat_deg=base.origin_lat_deg,
-        origin_lon_deg=base.origin_lon_deg,
-        origin_alt_m=base.origin_alt_m,
-        scenario_toml=base.source_text,
-    )
+    return run_info(base, rig=opts.rig, start_epoch_ns=0, speed=1.0, duration_s=opts.duration_s)
 
 
 class _Session:

@@ -32,6 +32,8 @@ REQUIRED_TYPES = {
     "hil.ServiceStatus",
     "hil.CaptureTruth",
     "hil.FusionJournal",
+    "hil.FusionSettings",
+    "hil.EstimatorHealth",
 }
 
 
@@ -133,6 +135,29 @@ def test_rerun_verify_reproduces_the_live_fusion_bit_for_bit(
         )
         assert proc.returncode == 0, proc.stdout + proc.stderr
         assert "VERIFY OK" in proc.stdout
+
+
+def test_estimator_health_arrives_as_real_numbers(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    # GIVEN the live rig's recording (real processes, Zenoh, the recorder's decode of the wire)
+    out, _proc = up_recording
+    s = read_session(out)
+    health = {
+        r.topic.rsplit("/", 1)[1]: [r.decode() for r in s.by_topic(r.topic)]
+        for r in s.records
+        if "/health/" in r.topic
+    }
+    # THEN every default estimator reports its health once a rig second, as named real numbers
+    assert {"comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15"} <= set(health)
+    assert all(len(v) >= 8 for v in health.values())
+    # kfvel's Kalman gain lies strictly between 0 and 1: an int() on the way would make it 0
+    gains = [h.as_dict()["gain_vel_n"] for h in health["kfvel"]]
+    assert all(0.0 < g < 1.0 for g in gains), gains
+    # ekf15's NIS and bias norms are real numbers too, not truncated counts
+    ekf = health["ekf15"][-1].as_dict()
+    assert {"nis_pos", "nis_vel", "gyro_bias_norm_radps"} <= set(ekf)
+    assert any(v != int(v) for v in ekf.values())
 
 
 def test_device_under_test_is_decoded_and_scored_like_an_estimator(
