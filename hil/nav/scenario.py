@@ -27,8 +27,10 @@ from hil.sensor_table import SENSORS
 Vec3 = tuple[float, float, float]
 
 #: Top-level tables reserved for other parts of the rig: parsed as TOML, kept raw in
-#: ``Scenario.extra_tables``, not interpreted here. Any other unknown key is an error.
-RESERVED_TABLES = frozenset({"clock"})
+#: ``Scenario.extra_tables``, not interpreted here -- the device clocks, and the section of every
+#: sensor of the sensor table other than the two parsed here (its emulator reads it). Any other
+#: unknown key is an error.
+RESERVED_TABLES = frozenset({"clock", *(set(SENSORS) - {"imu", "gnss"})})
 SEGMENT_KINDS = ("hold", "accelerate", "turn", "coordinated_turn", "climb", "rates")
 DEFAULT_SCENARIO = "straight_level"
 

@@ -31,16 +31,16 @@ from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
 from hil.messages import Event, Message, RunInfo, ServiceStatus, encode
 from hil.nav.scenario import load_scenario, scenario_for_run
+from hil.nodes import node_class
 from hil.nodes.base import CAN_RX, CAN_TX, Node, Out
 from hil.nodes.can_bridge import CanBridgeNode, CanBridgeOptions
 from hil.nodes.fusion import DEFAULT_LAG_S, DEFAULT_OUTPUT_EVERY, FusionNode, FusionOptions
-from hil.nodes.gnss_emulator import GnssEmulatorNode
-from hil.nodes.imu_emulator import ImuEmulatorNode, ImuEmulatorOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.mcapio import SessionWriter
 from hil.runners.wire import CanWireModel
 from hil.runtime.scenario_io import run_attachments
+from hil.sensor_table import SENSOR_NAMES, SENSORS
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
@@ -159,18 +159,18 @@ class Scheduler:
 
 
 def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
-    """The rig's nodes in pipeline order, configured as ``hil up`` would configure them."""
-    return [
-        WorldNode(run, WorldOptions(announce_every_s=0.0)),
-        ImuEmulatorNode(run, ImuEmulatorOptions(fd=opts.fd)),
-        CanBridgeNode(run, CanBridgeOptions(fd=opts.fd)),
-        GnssEmulatorNode(run),
-        TimeSyncNode(run),
-        FusionNode(
-            run,
-            FusionOptions(estimators=list(opts.estimators), lag_s=opts.lag_s, output_every=opts.output_every),
-        ),
-    ]
+    """The rig's nodes in pipeline order, configured as ``hil up`` would configure them: the
+    world, each sensor's emulator of the sensor table (a CAN device followed by the bridge that
+    reads its bus), the time sync, the fusion."""
+    nodes: list[Node] = [WorldNode(run, WorldOptions(announce_every_s=0.0))]
+    for sensor in SENSOR_NAMES:
+        cls = node_class(SENSORS[sensor].emulator)
+        fields = cls.Options.__struct_fields__
+        nodes.append(cls(run, cls.Options(**({"fd": opts.fd} if "fd" in fields else {}))))
+        if cls.writes_can:
+            nodes.append(CanBridgeNode(run, CanBridgeOptions(fd=opts.fd)))
+    fusion = FusionOptions(estimators=list(opts.estimators), lag_s=opts.lag_s, output_every=opts.output_every)
+    return [*nodes, TimeSyncNode(run), FusionNode(run, fusion)]
 
 
 def sim_run_info(opts: SimOptions) -> RunInfo:

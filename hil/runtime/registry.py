@@ -1,9 +1,20 @@
-"""The rig's services, by name: one place that maps a name to its module."""
+"""The rig's services, by name: which run under ``hil up``, in what order they start and stop.
+
+The emulator of every sensor in ``hil.sensor_table`` is a service of the rig (started after the
+consumers, stopped first), so a sensor added to the table is started, waited for and recorded
+without an edit here. ``hil service NAME`` runs ``services/<NAME>.py`` where one exists (a
+process with its own command line) and otherwise the node of that name on the live runner.
+"""
 
 from __future__ import annotations
 
 import importlib
 from types import ModuleType
+
+from hil.nodes import NODES
+from hil.sensor_table import SENSOR_NAMES, SENSORS
+
+_EMULATORS = tuple(SENSORS[s].emulator for s in SENSOR_NAMES)
 
 # Start order matters: the recorder listens before anything else speaks; world (time zero) is last.
 SERVICES: dict[str, str] = {
@@ -11,8 +22,7 @@ SERVICES: dict[str, str] = {
     "can_bridge": "services.can_bridge",
     "timesync": "services.timesync",
     "fusion": "services.fusion",
-    "imu_emulator": "services.imu_emulator",
-    "gnss_emulator": "services.gnss_emulator",
+    **{name: f"services.{name}" for name in _EMULATORS},
     "world": "services.world",
 }
 
@@ -23,7 +33,7 @@ OPTIONAL_SERVICES: dict[str, str] = {
 
 # Stop order: producers first, consumers after they drained, recorder last.
 STOP_STAGES: tuple[tuple[str, ...], ...] = (
-    ("world", "imu_emulator", "gnss_emulator", "dut_emulator"),
+    ("world", *_EMULATORS, "dut_emulator"),
     ("can_bridge",),
     ("timesync",),
     ("fusion",),
@@ -37,7 +47,20 @@ class UnknownServiceError(KeyError):
 
 
 def service_module(name: str) -> ModuleType:
+    """The process entry point of ``name``: its ``services`` module (``SERVICE``, ``main``), or,
+    for a node without one, a module-like view of the node on the live runner."""
     module = SERVICES.get(name) or OPTIONAL_SERVICES.get(name)
     if module is None:
         raise UnknownServiceError(name)
-    return importlib.import_module(module)
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        if err.name != module or name not in NODES:
+            raise
+    from hil.nodes import node_class
+    from hil.runners.live import main_for, service_for
+
+    generic = ModuleType(module, f"{name}: the node on the live runner")
+    generic.SERVICE = service_for(node_class(name))  # type: ignore[attr-defined]
+    generic.main = main_for(generic.SERVICE)  # type: ignore[attr-defined]
+    return generic
