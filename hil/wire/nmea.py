@@ -396,6 +396,12 @@ class NmeaDecoder:
     when a sentence of a newer epoch does. Untimed sentences (VTG, GSA) join the open epoch. A
     sentence type it does not read (GSV, GLL, TXT, proprietary) is counted ``unknown`` and skipped;
     ``messages`` counts every sentence with a valid checksum, known or not.
+
+    Where the values come from: position, altitude (MSL + separation), satellites, HDOP from GGA
+    (position from RMC without GGA); the date from ZDA, else RMC (2-digit year read as 1980..2079);
+    horizontal velocity from VTG (km/h) else RMC (knots) with the course, vertical velocity and
+    velocity sigma None; sigma N/E/D from GST; fix type, PDOP, VDOP from GSA (without GSA the fix
+    type is 0 if GGA/RMC say "no fix", else None: GGA cannot tell 2-D from 3-D).
     """
 
     def __init__(
