@@ -56,10 +56,18 @@ ROOT_PACKAGES = ("hil", "services")
 COMPOSITION_ROOT = "hil.cli"  # the one module under hil/ that may import services
 
 # Pure packages: no I/O, no clock, no threads; the same inputs give the same outputs.
-PURE_PACKAGES = ("hil.nav", "hil.estimators", "hil.fusion", "hil.timesync", "hil.sensors", "hil.nodes")
+PURE_PACKAGES = (
+    "hil.nav",
+    "hil.estimators",
+    "hil.fusion",
+    "hil.timesync",
+    "hil.sensors",
+    "hil.nodes",
+    "hil.wire",
+)
 IMPURE_IMPORTS = ("zenoh", "time", "threading", "subprocess")
 # python-can is a transport too; hil.nodes may use its ``can.Message`` data type.
-NO_PYTHON_CAN = ("hil.nav", "hil.estimators", "hil.fusion", "hil.timesync", "hil.sensors")
+NO_PYTHON_CAN = ("hil.nav", "hil.estimators", "hil.fusion", "hil.timesync", "hil.sensors", "hil.wire")
 
 MAX_FUNCTION_LINES = 120
 
