@@ -7,9 +7,11 @@ saying what and where, and exit code 2 -- never a traceback.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 from hil import __version__
 from hil.runtime.argtypes import positive_float
@@ -36,6 +38,43 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
     p.add_argument(
         "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
     )
+
+
+def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--gnss-protocol",
+        default=None,
+        help="the GNSS receiver on a serial line: nmea, ubx or nmea,ubx (default with --gnss-serial: nmea)",
+    )
+    p.add_argument("--gnss-baud", type=int, default=115200, help="the receiver line's baud rate (8N1)")
+    p.add_argument(
+        "--gnss-messages", default="", help="the receiver's message set, e.g. GGA,RMC,GST or NAV-PVT,TIM-TP"
+    )
+
+
+def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
+    """The receiver-on-a-wire settings, checked here with one line each (hil.wire)."""
+    wanted = a.gnss_protocol or ("nmea" if live and (a.gnss_serial or a.gnss_tcp) else "")
+    protocols = [p for p in wanted.split(",") if p]
+    messages = [m for m in a.gnss_messages.split(",") if m]
+    if protocols:
+        from hil.nodes.gnss_emulator import check_wire
+
+        try:
+            check_wire(protocols, messages, "GN", a.gnss_baud)
+        except (KeyError, ValueError) as err:
+            raise UserError(
+                f"--gnss-protocol/--gnss-messages/--gnss-baud: {str(err).strip(chr(39))}"
+            ) from None
+    if live and a.gnss_serial:
+        p = Path(a.gnss_serial)
+        if p.exists() and not p.is_symlink():
+            raise UserError(
+                f"--gnss-serial {p}: exists and is not a link; give a new path (the rig makes the link)"
+            )
+        if not p.parent.is_dir() or not os.access(p.parent, os.W_OK):
+            raise UserError(f"--gnss-serial {p}: cannot make a link in {p.parent} (missing or not writable)")
+    return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
 
 
 def cmd_up(a: argparse.Namespace) -> int:
@@ -68,6 +107,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         split_mb=a.split_mb or 0.0,
         split_s=a.split_s or 0.0,
         zenoh_miss_detection=not a.no_zenoh_miss_detection,
+        gnss_serial=str(Path(a.gnss_serial).absolute()) if a.gnss_serial else None,
+        gnss_tcp=a.gnss_tcp,
+        **_gnss_wire(a, live=True),  # type: ignore[arg-type]
     )
     if a.imu_rate is not None:
         from hil.nav.scenario import scenario_overrides
@@ -142,6 +184,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 estimators=[e for e in a.estimators.split(",") if e],
                 fd=a.fd,
                 on_progress=on_progress,
+                **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )
     print(res.summary)
@@ -343,11 +386,8 @@ def cmd_fault(a: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
-    ap.add_argument("--version", action="version", version=f"hil {__version__}")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-
+def _add_up_parser(sub: Any) -> None:
+    """``hil up``'s options (the live rig)."""
     up = sub.add_parser("up", help="run the live rig: every service as its own process")
     _add_run_args(up, None)
     up.add_argument(
@@ -386,11 +426,25 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="plain Zenoh publishers and a plain recorder subscriber (seq gaps remain the loss measure)",
     )
+    _add_gnss_wire_args(up)
+    up.add_argument(
+        "--gnss-serial", default=None, help="PATH: the receiver's line as a pseudo-terminal linked there"
+    )
+    up.add_argument("--gnss-tcp", default=None, help="HOST:PORT: the receiver's line served over TCP")
     up.set_defaults(func=cmd_up)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
+    ap.add_argument("--version", action="version", version=f"hil {__version__}")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    _add_up_parser(sub)
 
     sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")
     _add_run_args(sim, None)
     sim.add_argument("--fd", action="store_true")
+    _add_gnss_wire_args(sim)
     sim.add_argument("--quiet", action="store_true")
     sim.set_defaults(func=cmd_sim)
 

@@ -89,8 +89,8 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
         raise FaultError("clock_step needs step_s")
     if kind == "kill_service" and not target:
         raise FaultError("kill_service needs --target SERVICE")
-    if kind == "imu_frame_loss" and not 0.0 <= params.get("percent", 100.0) <= 100.0:
-        raise FaultError("imu_frame_loss: percent must be in [0, 100]")
+    if not 0.0 <= params.get("percent", 100.0) <= 100.0:
+        raise FaultError(f"{kind}: percent must be in [0, 100]")
     if kind == "gnss_latency" and "latency_s" not in params:
         raise FaultError("gnss_latency needs latency_s")
     if kind == "gnss_latency" and min(params.get("latency_s", 0.0), params.get("jitter_s", 0.0)) < 0:
@@ -272,6 +272,15 @@ class DelayLine(Generic[T]):
         self.last_release_ns = t
         return t
 
+    def passes(self, capture_ns: int, latency_ns: int, jitter_ns: int) -> bool:
+        """True (and accounted as a release at ``capture_ns``) when an item captured now with no
+        latency leaves at once -- nothing held before it: the caller sends it without a push.
+        The same release times as ``push`` + ``due(capture_ns)`` (no draw is made either way)."""
+        if latency_ns or jitter_ns or self._held or self.last_release_ns > capture_ns:
+            return False
+        self.last_release_ns = capture_ns
+        return True
+
     def push(self, capture_ns: int, latency_ns: int, jitter_ns: int, item: T) -> int:
         """Hold ``item`` until its release time (returned)."""
         t = self.release_ns(capture_ns, latency_ns, jitter_ns)
@@ -346,3 +355,75 @@ class ImuFaults:
             self._stuck = None
             self._last = (dtheta, dvel)
         return act
+
+
+# -- the GNSS receiver's line ----------------------------------------------------------------
+#: faults of the receiver's serial line (``gnss_emulator`` with a wire): what each does to an epoch
+LINE_FAULTS = frozenset(
+    {"gnss_line_checksum", "gnss_line_truncate", "gnss_line_garble", "gnss_line_dropout", "gnss_line_burst"}
+)
+RECEIVER_FAULTS = frozenset({"gnss_time_jump", "gnss_frozen"})
+# each kind's own stream of decisions (a fixed salt: Python's str hash differs per process)
+_CORRUPT_SALT = {"gnss_line_checksum": 101, "gnss_line_truncate": 202, "gnss_line_garble": 303}
+
+
+@dataclass
+class LineAction:
+    """What to do to one epoch on the wire (decided by :meth:`LineFaults.epoch`)."""
+
+    send: bool = True  # gnss_line_dropout: nothing on the line
+    time_step_ns: int = 0  # gnss_time_jump: the reported time of validity is off by this much
+    frozen: bool = False  # gnss_frozen: the receiver repeats its last position and velocity
+    corrupt: str = ""  # "checksum" | "truncate" | "garble": done to the epoch's bytes
+    burst_bytes: int = 0  # gnss_line_burst: this many garbage bytes go out before the epoch
+
+
+class LineFaults:
+    """The receiver-line faults, per epoch ``k`` at true time ``t_ns``: pure and seeded, so a
+    replay of the scenario damages the same epochs the same way (``hil.faults._unit_hash``)."""
+
+    def __init__(self, seed: int, events: Iterable[Any] = ()) -> None:
+        self.seed = int(seed)
+        self.timeline = FaultTimeline.from_scenario(events, LINE_FAULTS | RECEIVER_FAULTS)
+
+    def epoch(self, k: int, t_ns: int) -> LineAction:
+        act = LineAction()
+        for f in self.timeline.faults:
+            if not f.active(t_ns):
+                continue
+            p = f.params
+            if f.kind == "gnss_line_dropout":
+                act.send = False
+            elif f.kind == "gnss_time_jump":
+                act.time_step_ns += round(float(p.get("step_s", 1.0)) * 1e9)
+            elif f.kind == "gnss_frozen":
+                act.frozen = True
+            elif f.kind == "gnss_line_burst" and not f.fired:
+                act.burst_bytes += int(p.get("bytes", 64))
+                f.fired = True
+            elif (
+                f.kind in _CORRUPT_SALT
+                and _unit_hash(self.seed + _CORRUPT_SALT[f.kind], k) < float(p.get("percent", 100.0)) / 100.0
+            ):
+                act.corrupt = f.kind.rsplit("_", 1)[1]
+        return act
+
+    def damage(self, data: bytes, act: LineAction, k: int) -> bytes:
+        """The epoch's bytes as ``act`` leaves them (a burst of garbage first, if any)."""
+        out = bytearray(data)
+        u = _unit_hash(self.seed + 7, k)
+        if act.corrupt == "checksum" and out:
+            # the last checksum of the epoch: NMEA's "*hh" hex digit, UBX's final byte
+            star = out.rfind(b"*")
+            i = star + 1 if star >= 0 and star + 1 < len(out) else len(out) - 1
+            out[i] = ord("0") if out[i] != ord("0") else ord("1")
+        elif act.corrupt == "truncate" and len(out) > 8:
+            out = out[: max(4, int(len(out) * (0.2 + 0.6 * u)))]
+        elif act.corrupt == "garble":
+            for j in range(max(1, len(out) // 50)):
+                i = int(_unit_hash(self.seed + 11 + j, k) * len(out))
+                out[i] ^= 0x5A
+        if act.burst_bytes:
+            noise = bytes(int(_unit_hash(self.seed + 13 + j, k) * 256) for j in range(act.burst_bytes))
+            out = bytearray(noise) + out
+        return bytes(out)

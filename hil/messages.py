@@ -140,6 +140,15 @@ class CanFrame(Message, frozen=True, kw_only=True):
     data_hex: Annotated[str, msgspec.Meta(pattern=r"^([0-9a-f]{2}){0,64}$")]
 
 
+class SerialChunk(Message, frozen=True, kw_only=True):
+    """Bytes as read off a serial line (a GNSS receiver's UART) in one read; ``stamp_ns`` is the
+    receive time on the rig clock. The recording keeps the line byte for byte, so a replay can
+    put it back on a line with its spacing (``hil replay --gnss-serial``)."""
+
+    port: Name  # the line's name ("gnss")
+    data_hex: Annotated[str, msgspec.Meta(pattern=r"^([0-9a-f]{2}){0,8192}$")]
+
+
 class TimeTag(Message, frozen=True, kw_only=True):
     """A time-tag edge: device time of the edge and the rig time it was latched at."""
 
@@ -291,6 +300,7 @@ CONTRACT_TYPES: tuple[type[Message], ...] = (
     FaultCommand,
     EstimatorHealth,
     FusionSettings,
+    SerialChunk,
 )
 TYPES_BY_NAME: dict[str, type[Message]] = {f"hil.{t.__name__}": t for t in CONTRACT_TYPES}
 

@@ -79,6 +79,17 @@ _IMU_FAULTS = {
     "can_latency": _fs("latency_s", "jitter_s"),
 }
 
+# the receiver's serial line and clock, when it is on a wire (hil/faults.py: LineFaults)
+_GNSS_LINE_FAULTS = {
+    "gnss_line_checksum": _fs("percent"),
+    "gnss_line_truncate": _fs("percent"),
+    "gnss_line_garble": _fs("percent"),
+    "gnss_line_dropout": _fs(),
+    "gnss_line_burst": _fs("bytes"),
+    "gnss_time_jump": _fs("step_s"),
+    "gnss_frozen": _fs(),
+}
+
 SENSORS: Mapping[str, SensorKind] = MappingProxyType(
     {
         "imu": SensorKind(
@@ -114,6 +125,7 @@ SENSORS: Mapping[str, SensorKind] = MappingProxyType(
                 "gnss_jump": _fs("n_m", "e_m", "d_m"),
                 "gnss_velocity_glitch": _fs("n_mps", "e_mps", "d_mps"),
                 "gnss_latency": _fs("latency_s", "jitter_s"),
+                **_GNSS_LINE_FAULTS,
             },
             events={
                 "gnss_outage": _fs(),
@@ -121,6 +133,7 @@ SENSORS: Mapping[str, SensorKind] = MappingProxyType(
                 "gnss_pulse": _fs("amplitude_m", "tau_s", "direction_ned"),  # scenario only
                 "gnss_velocity_glitch": _fs("offset_ned_mps"),
                 "gnss_latency": _fs("latency_s", "jitter_s"),
+                **_GNSS_LINE_FAULTS,
             },
             # disciplined to GPS time: tiny drift, 20 ns stamp noise, 1.5 ms offset to the rig
             # clock; the PPS latched with 1 µs jitter

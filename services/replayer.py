@@ -42,6 +42,13 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--can", default=None, metavar="CHANNEL", help="play recorded CAN frames onto this bus")
     p.add_argument("--can-interface", default=None, help="python-can interface (default: auto)")
     p.add_argument(
+        "--gnss-serial",
+        default=None,
+        metavar="PATH",
+        help="play the recorded GNSS line (serial/<port> bytes) onto a pseudo-terminal linked at PATH",
+    )
+    p.add_argument("--gnss-baud", type=int, default=115200, help="the line's baud rate (pacing of each read)")
+    p.add_argument(
         "--lockstep",
         action="store_true",
         help="gate fusion inputs on the target fusion's ack (bit-exact replay through a live fusion)",
@@ -91,13 +98,19 @@ def run(a: argparse.Namespace) -> int:
         signal.signal(s, lambda *_: stop.set())
     session = open_session()
     bus: Any = None
+    line: Any = None
     try:
+        if a.gnss_serial:
+            from hil.runners.serial import LineWriter
+
+            line = LineWriter(a.gnss_baud, [a.gnss_serial])
+            sys.stderr.write(f"hil replay: the GNSS line -> {a.gnss_serial}" + "\n")
         if a.can:
             from hil.can.bus import open_can_bus
 
             bus, desc = open_can_bus(a.can, a.can_interface, rig=a.rig or "default", session=session)
             sys.stderr.write(f"hil replay: CAN frames -> {desc}" + "\n")
-        stats = replay(a.file, opts, session, can_bus=bus, stop=stop)
+        stats = replay(a.file, opts, session, can_bus=bus, line=line, stop=stop)
     except KeyboardInterrupt:
         sys.stderr.write("hil replay: stopped\n")
         return EXIT_STOPPED
@@ -112,6 +125,8 @@ def run(a: argparse.Namespace) -> int:
             signal.signal(s, h)
         if bus is not None:
             bus.shutdown()
+        if line is not None:
+            line.close()
         session.close()
     sys.stdout.write(stats.summary() + "\n")
     return EXIT_STOPPED if stop.is_set() and not a.step else 0

@@ -6,6 +6,7 @@ Layout (``<rig>`` namespaces one bench, so a replay can run beside a live rig)::
     hil/<rig>/truth               Truth
     hil/<rig>/capture/<sensor>    CaptureTruth   true capture time per measurement
     hil/<rig>/can/<channel>       CanFrame       raw frames as read by the bridge
+    hil/<rig>/serial/<port>       SerialChunk    raw bytes of a serial line (the GNSS receiver's)
     hil/<rig>/sensor/<sensor>     ImuSample | GnssFix | ...   raw, device-stamped (hil.sensor_table)
     hil/<rig>/timetag/<sensor>    TimeTag
     hil/<rig>/clock/<sensor>      ClockModel
@@ -38,6 +39,7 @@ from hil.messages import (
     Message,
     NavSolution,
     RunInfo,
+    SerialChunk,
     ServiceStatus,
     TimeTag,
     Truth,
@@ -78,6 +80,9 @@ class Keys:
 
     def can(self, channel: str) -> str:
         return f"{self.root}/can/{channel}"
+
+    def serial(self, port: str) -> str:
+        return f"{self.root}/serial/{port}"
 
     def sensor(self, sensor: str) -> str:
         return f"{self.root}/sensor/{sensor}"
@@ -123,6 +128,7 @@ _FIXED: dict[str, type[Message]] = {
     "truth": Truth,
     "capture": CaptureTruth,
     "can": CanFrame,
+    "serial": SerialChunk,
     "timetag": TimeTag,
     "clock": ClockModel,
     "nav": NavSolution,

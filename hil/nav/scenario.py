@@ -16,6 +16,7 @@ import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
@@ -105,6 +106,27 @@ class Scenario:
     initial_vel_body_mps: Vec3 = (0.0, 0.0, 0.0)
     segments: tuple[MotionSegment, ...] = ()
     extra_tables: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    start_utc_ns: int = 0  # the UTC instant (ns since 1970) hil sim takes as time zero (start_utc)
+
+
+#: ``hil sim``'s time zero unless the scenario says ``start_utc``: a date a receiver's clock can
+#: print (GPS time, week and leap seconds all well defined), not 1970.
+DEFAULT_START_UTC = "2026-01-01T00:00:00Z"
+
+
+def _utc_ns(where: str, text: Any) -> int:
+    """An RFC 3339 UTC instant (``2026-01-01T00:00:00Z``) as integer ns since 1970."""
+    if not isinstance(text, str):
+        raise ScenarioError(f'{where} must be a UTC time like "2026-01-01T12:00:00Z", got {text!r}')
+    try:
+        t = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError as err:
+        raise ScenarioError(f'{where} must be a UTC time like "2026-01-01T12:00:00Z": {err}') from None
+    if t.tzinfo is None or t.utcoffset() != timedelta(0):
+        raise ScenarioError(f"{where} must be UTC (end it with Z), got {text!r}")
+    if not 1981 <= t.year <= 2100:
+        raise ScenarioError(f"{where} must be between 1981 and 2100 (GPS time), got {text!r}")
+    return (int(t.timestamp()) * 1_000_000_000) + t.microsecond * 1000
 
 
 # ---------------------------------------------------------------------------------------------
@@ -143,6 +165,7 @@ _TOP_KEYS = {
     "gnss",
     "segment",
     "event",
+    "start_utc",
 }
 _GNSS_KEYS = {
     "rate_hz",
@@ -172,6 +195,12 @@ _EVENT_KEYS: dict[str, set[str]] = {
     "kill_service": {"service"},
 }
 EVENT_KINDS = tuple(_EVENT_KEYS)
+# the kinds _parse_event reads field by field; the others take numbers (hil/faults.py applies them)
+_PARSED_KINDS = frozenset(
+    {"gnss_outage", "gnss_jump", "gnss_pulse", "gnss_velocity_glitch", "gnss_latency", "imu_frame_loss"}
+    | {"imu_stuck", "imu_saturated", "can_burst_error", "can_bus_off", "can_latency", "clock_step"}
+    | {"kill_service"}
+)
 # can_latency: beyond this a "latency" is an outage (and 10 s of held frames at 2 kHz is already
 # 80 000 frames in the emulator's memory); refused rather than silently buffered
 MAX_TRANSPORT_DELAY_S = 10.0
@@ -294,6 +323,10 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         if not isinstance(raw.get("service"), str) or t1 is not None:
             raise ScenarioError(f'{where} (kill_service) needs service = "<name>" and no t_end_s')
         params["service"] = raw["service"]
+    if kind not in _PARSED_KINDS:  # any other kind's parameters are plain numbers
+        params.update({k: _num(f"{where}.{k}", raw[k]) for k in _EVENT_KEYS[kind] if k in raw})
+    if "percent" in params and not 0.0 <= params["percent"] <= 100.0:
+        raise ScenarioError(f"{where}.percent must be in [0, 100], got {params['percent']}")
     if t1 is not None and t1 <= t0:
         raise ScenarioError(f"{where}: t_end_s {t1} must be after t_start_s {t0}")
     return ScenarioEvent(kind, t0, t1, MappingProxyType(params))
@@ -412,6 +445,7 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
         initial_vel_body_mps=vb,
         segments=segments,
         extra_tables=MappingProxyType(extra),
+        start_utc_ns=_utc_ns("start_utc", doc.get("start_utc", DEFAULT_START_UTC)),
     )
 
 

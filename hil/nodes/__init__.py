@@ -21,6 +21,7 @@ NODES: dict[str, str] = {
     "timesync": "hil.nodes.timesync:TimeSyncNode",
     "fusion": "hil.nodes.fusion:FusionNode",
     "dut_emulator": "hil.nodes.dut_emulator:DutEmulatorNode",
+    "gnss_bridge": "hil.nodes.gnss_bridge:GnssBridgeNode",
 }
 for _kind in SENSORS.values():
     _camel = "".join(p.capitalize() for p in _kind.emulator.split("_"))

@@ -35,6 +35,8 @@ from hil.messages import Event, Message, RunInfo, generation_seq
 Out = tuple[str, Any]  # (key relative to hil/<rig>/, message) or (CAN_TX, CanBurst)
 CAN_TX = "@can"  # the port of frames leaving on the CAN bus (not a Zenoh key)
 CAN_RX = "@can"  # on_message key prefix of frames read off the bus: "@can/<channel>"
+SERIAL_TX = "@serial"  # the port of bytes leaving on a serial line (a LineBurst)
+SERIAL_RX = "@serial"  # on_message key prefix of bytes read off a line: "@serial/<port>"
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,18 @@ class CanBurst:
     sync: bool = False
 
 
+@dataclass
+class LineBurst:
+    """Bytes a device puts on its serial line: the first leaves at ``start_ns``, the last is done
+    at ``end_ns`` (the UART's pacing). The live runner writes them at that pace; the virtual
+    clock runner delivers them to the line's readers at ``end_ns``."""
+
+    data: bytes
+    start_ns: int
+    end_ns: int
+    port: str
+
+
 class Node:
     """Base of every node: options, per-key seq counters, counters and the last error."""
 
@@ -79,13 +93,19 @@ class Node:
     # frames read off the CAN bus reach on_message("@can/<channel>", frame, rx_ns) when True
     reads_can: ClassVar[bool] = False
     writes_can: ClassVar[bool] = False  # it returns (CAN_TX, CanBurst) outputs
+    # "tx": it may return (SERIAL_TX, LineBurst) outputs (when its options name a protocol);
+    # "rx": bytes read off its line reach on_message("@serial/<port>", data, rx_ns)
+    serial: ClassVar[str] = ""
     # what this node puts on the bus that others must find declared from its start
     outputs: ClassVar[tuple[str, ...]] = ()
+    # an input can move its next tick (a fault command); False: only its own ticks move it
+    inputs_move_timers: ClassVar[bool] = True
 
     def __init__(self, run: RunInfo, options: NodeOptions | None = None) -> None:
         self.run = run
         self.options = options if options is not None else self.Options()
         self.generation = max(0, int(self.options.resume))
+        self._seq_base = generation_seq(self.generation, 0)
         self._seqs: dict[str, int] = {}
         self.counts: dict[str, int] = {}
         self.last_error = ""
@@ -116,7 +136,7 @@ class Node:
     def next_seq(self, key: str) -> int:
         n = self._seqs.get(key, 0)
         self._seqs[key] = n + 1
-        return generation_seq(self.generation, n)
+        return self._seq_base | n  # generation_seq(self.generation, n)
 
     def inc(self, name: str, n: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + n

@@ -44,6 +44,7 @@ class CanBridgeOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fi
 
 
 class CanBridgeNode(Node):
+    inputs_move_timers = False  # its timers are its own: periodic, or none
     name = "can_bridge"
     Options = CanBridgeOptions
     reads_can = True

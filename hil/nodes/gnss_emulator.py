@@ -14,40 +14,125 @@ it in the scenario, outage epochs not counted (an outage is no seq gap). A resta
 time it was dead -- a seq gap, honest loss -- and never reuses a seq. The PPS ``seq`` is the PPS
 second minus one, for the same reason. Nothing is output after the run's end except the latch of
 its last PPS edge.
+
+On a wire (option ``protocol``: ``nmea``, ``ubx`` or both on one line) the receiver is what a
+device under test would plug in: each epoch becomes the protocol's bytes (``hil.wire``), with the
+time of validity as GPS/UTC time from the run's start epoch on the receiver's clock, paced by the
+line's UART at ``baud`` (``hil.wire.line.Uart``: what does not fit in the transmit buffer
+overruns and is counted), out on ``SERIAL_TX``; the fixes then reach the rig through the
+``gnss_bridge`` node that reads the line, so the rig's own fusion sees what the device sees, and
+this node publishes no ``sensor/gnss`` itself. On a wire ``seq`` is the epoch index (time of
+validity over the period, what the bytes carry), an outage is output as "no fix" epochs as real
+receivers do, and UBX's TIM-TP announces each second's PPS.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 from typing import Any
 
-from hil.faults import GNSS_FAULTS, FaultError, check_fault, command_addressee, device_timeline, edge_time_ns
+import msgspec
+
+from hil.faults import (
+    GNSS_FAULTS,
+    LINE_FAULTS,
+    RECEIVER_FAULTS,
+    FaultError,
+    LineFaults,
+    check_fault,
+    command_addressee,
+    device_timeline,
+    edge_time_ns,
+)
 from hil.faults import fault_detail as _detail
 from hil.messages import CaptureTruth, FaultCommand, TimeTag
 from hil.nav.scenario import ScenarioEvent, scenario_for_run
 from hil.nav.trajectory import TruthGenerator
-from hil.nodes.base import Input, Node, Out
+from hil.nodes.base import SERIAL_TX, Input, LineBurst, Node, NodeOptions, Out
 from hil.nodes.builders import gnss_fix_msg
 from hil.sensors.clock import device_clock_for
 from hil.sensors.gnss import GnssEmulatorCore
 from hil.sensors.imu import sensor_rng
+from hil.wire import protocol as wire_protocol
+from hil.wire.base import ReceiverEpoch
+from hil.wire.gnss_time import utc_ns_to_gps_ns
+from hil.wire.line import Uart
 
 RESUME_AFTER_S = 2.0
 _S = 1_000_000_000
 
 
+VDOP_PER_HDOP = 1.5  # the rig models HDOP only; VDOP and PDOP follow a typical open-sky ratio
+
+
+class GnssEmulatorOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    # the receiver's wire: "nmea", "ubx" (both: one line carries both); empty: fixes on Zenoh only
+    protocol: list[str] = msgspec.field(default_factory=list)
+    # message set, the protocols' names (GGA, RMC, ..., NAV-PVT, NAV-COV, TIM-TP); empty: defaults
+    messages: list[str] = msgspec.field(default_factory=list)
+    talker: str = "GN"  # NMEA talker ID
+    baud: int = 115200  # the line's rate (8N1)
+    tx_buffer_bytes: int = 4096  # the UART's transmit buffer: a message beyond it overruns
+    port: str = "gnss"  # the line's name (serial/<port>)
+    # live: pseudo-terminals linked at these paths (a device's, gpsd's, the rig's bridge's)
+    serial_links: list[str] = msgspec.field(default_factory=list)
+    tcp_listen: str | None = None  # live: also serve the line over TCP, HOST:PORT
+    device: str | None = None  # live: also write to a real serial device (a USB-serial adapter)
+    # compute the epochs of each second of rig time at its start (hil sim: fewer, larger batches,
+    # the same numbers); 0: each at its time of validity, so a commanded fault applies at once
+    pull_block_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_wire(self.protocol, self.messages, self.talker, self.baud)
+
+
+def encoder(name: str, messages: list[str], talker: str) -> Any:
+    """The protocol ``name`` with the messages of ``messages`` it supports (none: its defaults)."""
+    cls = wire_protocol(name)
+    return cls(tuple(m for m in messages if m in cls.SUPPORTED_MESSAGES) or None, talker=talker)
+
+
+def check_wire(protocols: list[str], messages: list[str], talker: str, baud: int) -> None:
+    """Refuse a wire that cannot be built: an unknown protocol or message, a bad talker or baud."""
+    for name in protocols:
+        encoder(name, messages, talker)  # KeyError naming the known ones, ValueError
+    known = {m for name in protocols for m in wire_protocol(name).SUPPORTED_MESSAGES} | {"TIM-TP"}
+    unknown = [m for m in messages if m not in known]
+    if protocols and unknown:
+        raise ValueError(f"messages {unknown} are not in {sorted(protocols)}; known: {sorted(known)}")
+    if not 300 <= baud <= 4_000_000:
+        raise ValueError(f"baud must be in [300, 4000000], got {baud}")
+
+
 class GnssEmulatorNode(Node):
     name = "gnss_emulator"
+    Options = GnssEmulatorOptions
     inputs = (Input("control/fault", {"control": FaultCommand}),)
     outputs = ("sensor/gnss", "capture/gnss", "timetag/gnss")
+    serial = "tx"  # with option protocol: the receiver's line
 
-    def __init__(self, run: Any, options: Any = None) -> None:
+    def __init__(self, run: Any, options: GnssEmulatorOptions | None = None) -> None:
         super().__init__(run, options)
+        o: GnssEmulatorOptions = self.options  # type: ignore[assignment]
+        self.wire = bool(o.protocol)
+        if self.wire:
+            self._encoders = [encoder(p, o.messages, o.talker) for p in o.protocol]
+            tim_tp = "ubx" in o.protocol and (not o.messages or "TIM-TP" in o.messages)
+            self._ubx = self._encoders[o.protocol.index("ubx")] if tim_tp else None
+            self._next_tim_tp_s = 0
+            self.uart = Uart(o.baud, o.tx_buffer_bytes)
+            self.line_faults = LineFaults(run.seed, scenario_for_run(run).events)
+            self._last_epoch: ReceiverEpoch | None = None
+            self._lines: list[tuple[int, int, bytes]] = []  # (first byte out, last byte done, bytes)
+            self._next_k = 0  # the next epoch index to put on the wire (outages: "no fix" epochs)
         s = scenario_for_run(run)
+        self.scenario = s
         self.core = GnssEmulatorCore(s, TruthGenerator(s), sensor_rng(s.seed, "gnss"))
         self.clock = device_clock_for(s, "gnss")
         self.timeline = device_timeline(s.events, "gnss")
         self.end_ns = int(run.duration_s * 1e9)
+        self.pull_block_ns = round(self.options.pull_block_s * 1e9)  # type: ignore[attr-defined]
         self._pending: list[tuple[int, int, Any, int]] = []  # (t_output, order, batch, row)
         self._order = 0
         self.fix_index = 0  # seq of the next fix: the output index
@@ -63,10 +148,20 @@ class GnssEmulatorNode(Node):
         detail = f"gnss_emulator restarted at t={now_ns / 1e9:.3f} s: resumes at fix seq {skipped}"
         return [self.event("resumed", detail, now_ns)]
 
+    def _pull_until(self, now_ns: int) -> int:
+        """Epochs with validity up to this are computed at ``now_ns``."""
+        b = self.pull_block_ns
+        return min(((now_ns // b) + 1) * b - 1 if b > 0 else now_ns, self.end_ns)
+
     def next_tick_ns(self) -> int | None:
-        times = [self.core.next_epoch_ns(), self.timeline.next_edge_ns()]
+        epoch = self.core.next_epoch_ns()
+        if epoch is not None and self.pull_block_ns > 0:
+            epoch = epoch // self.pull_block_ns * self.pull_block_ns
+        times = [epoch, self.timeline.next_edge_ns()]
         if self._pending:
             times.append(self._pending[0][0])
+        if self.wire and self._lines:
+            times.append(self._lines[0][0])
         times = [t for t in times if t is not None and t <= self.end_ns]
         if self.next_pps_s * _S <= self.end_ns:  # an edge within the run, latched maybe just after
             times.append(self.clock.latch_ns(self.next_pps_s * _S))
@@ -99,6 +194,16 @@ class GnssEmulatorNode(Node):
             params["offset_ned_mps"] = (p.get("n_mps", 0.0), p.get("e_mps", 0.0), p.get("d_mps", 0.0))
         elif cmd.kind == "gnss_latency":
             params.update(p)
+        if cmd.kind in LINE_FAULTS | RECEIVER_FAULTS:  # the line's: for the epochs from now on
+            if self.wire:
+                self.line_faults.timeline.add(cmd.kind, now_ns, cmd.duration_s, dict(p))
+            else:
+                self.error(
+                    "rejected.control.fault", f"{cmd.kind}: the receiver is on no wire (--gnss-protocol)"
+                )
+                return []
+            self.timeline.add(cmd.kind, now_ns, cmd.duration_s, dict(p))
+            return []
         t0 = now_ns / 1e9
         t1 = t0 + cmd.duration_s if cmd.duration_s > 0 and cmd.kind != "gnss_latency" else None
         self.core.add_event(ScenarioEvent(cmd.kind, t0, t1, params))
@@ -110,16 +215,24 @@ class GnssEmulatorNode(Node):
         for edge, f in self.timeline.edges(min(now_ns, self.end_ns)):
             detail = _detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin)
             outs.append(self.event(edge, detail, edge_time_ns(edge, f)))
-        if self.core.has_due(min(now_ns, self.end_ns)):
-            b = self.core.next_batch(min(now_ns, self.end_ns))
+        until = self._pull_until(now_ns)
+        if self.core.has_due(until):
+            b = self.core.next_batch(until)
             for i in range(len(b.t_valid_ns)):
+                if self.wire:
+                    self._no_fix_epochs_before(int(b.t_valid_ns[i]))
                 t_out = int(b.t_output_ns[i])
                 if t_out <= self.end_ns:  # the receiver's output after the run is not the run's
                     heapq.heappush(self._pending, (t_out, self._order, b, i))
                     self._order += 1
+            if self.wire and self.core.next_epoch_ns() is None:
+                self._no_fix_epochs_before(self.end_ns + 1)
         while self._pending and self._pending[0][0] <= now_ns:
             _t, _o, b, i = heapq.heappop(self._pending)
-            outs.extend(self._fix(b, i, now_ns))
+            outs.extend(self._wire_epoch(b, i, now_ns) if self.wire else self._fix(b, i, now_ns))
+        while self.wire and self._lines and self._lines[0][0] <= now_ns:
+            start, end, data = self._lines.pop(0)
+            outs.append((SERIAL_TX, LineBurst(data, start, end, self.options.port)))  # type: ignore[attr-defined]
         while self.next_pps_s * _S <= self.end_ns and self.clock.latch_ns(self.next_pps_s * _S) <= now_ns:
             t_edge = self.next_pps_s * _S
             tag = TimeTag(
@@ -132,6 +245,92 @@ class GnssEmulatorNode(Node):
             outs.append(("timetag/gnss", tag))
             self.next_pps_s += 1
         return outs
+
+    # -- on a wire ---------------------------------------------------------------------------
+    def _no_fix_epochs_before(self, t_valid_ns: int) -> None:
+        """Epochs the core left out (an outage) up to ``t_valid_ns``: a receiver still outputs
+        them, saying it has no fix."""
+        period = self.core.period_ns
+        while self._next_k * period < t_valid_ns:
+            t = self._next_k * period
+            t_out = t + round(self.scenario.gnss.latency_s * 1e9)
+            if t_out <= self.end_ns:
+                heapq.heappush(self._pending, (t_out, self._order, None, t))
+                self._order += 1
+            self._next_k += 1
+        self._next_k = max(self._next_k, t_valid_ns // period + 1)
+
+    def _wire_epoch(self, b: Any, i: int, now_ns: int) -> list[Out]:
+        """One epoch onto the line (and its capture truth): the bytes wait for the UART.
+
+        ``b`` None: a "no fix" epoch, ``i`` its time of validity."""
+        t_valid = int(b.t_valid_ns[i]) if b is not None else int(i)
+        k = t_valid // self.core.period_ns
+        cap = CaptureTruth(seq=k, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid)
+        act = self.line_faults.epoch(k, t_valid)
+        epoch = self._epoch(b, i, t_valid)
+        if act.frozen and self._last_epoch is not None and epoch.fix_type:
+            last = self._last_epoch  # the receiver repeats its last solution under a new time
+            epoch = dataclasses.replace(
+                last, gps_time_ns=epoch.gps_time_ns, num_sats=epoch.num_sats, hdop=epoch.hdop
+            )
+        self._last_epoch = epoch
+        if act.time_step_ns:
+            epoch = dataclasses.replace(epoch, gps_time_ns=epoch.gps_time_ns + act.time_step_ns)
+        if not act.send:
+            self.inc("fault.line.dropout_epochs")
+            return [("capture/gnss", cap)]
+        data = b"".join(enc.encode_epoch(epoch) for enc in self._encoders)
+        if self._ubx is not None and t_valid // _S >= self._next_tim_tp_s:
+            # the first epoch of each second announces the next pulse (UBX TIM-TP)
+            pulse_s = t_valid // _S + 1
+            pulse_gps_ns = utc_ns_to_gps_ns(self.run.start_epoch_ns + self.clock.device_ns(pulse_s * _S))
+            data += self._ubx.encode_pps_announcement(pulse_gps_ns)
+            self._next_tim_tp_s = pulse_s
+        if act.corrupt or act.burst_bytes:
+            data = self.line_faults.damage(data, act, k)
+            self.inc(f"fault.line.{act.corrupt or 'burst'}_epochs")
+        slot = self.uart.send(len(data), now_ns)
+        if slot is None:
+            self.error("line.overrun_epochs", f"UART overrun: {len(data)} bytes at {self.uart.baud} baud")
+            self.inc("line.overrun_bytes", len(data))
+        else:
+            self._lines.append((slot[0], slot[1], data))
+        self.inc("line.epochs")
+        return [("capture/gnss", cap)]
+
+    def _epoch(self, b: Any, i: int, t_valid: int) -> ReceiverEpoch:
+        """What the receiver reports: the fix at its time of validity on the receiver's clock,
+        as GPS time from the run's start epoch."""
+        gps_ns = utc_ns_to_gps_ns(self.run.start_epoch_ns + self.clock.device_ns(t_valid))
+        cfg = self.scenario.gnss
+        if b is None:  # no fix
+            hdop = float(cfg.hdop)
+            return ReceiverEpoch(
+                gps_ns, 0.0, 0.0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+                0, 0, hdop, hdop * (1 + VDOP_PER_HDOP**2) ** 0.5, hdop * VDOP_PER_HDOP,
+            )  # fmt: skip
+        hdop = float(b.hdop[i])
+        return ReceiverEpoch(
+            gps_time_ns=gps_ns,
+            lat_deg=float(b.lat_deg[i]),
+            lon_deg=float(b.lon_deg[i]),
+            alt_m=float(b.alt_m[i]),
+            vel_ned_mps=tuple(float(v) for v in b.vel_ned_mps[i]),  # type: ignore[arg-type]
+            pos_sigma_ned_m=tuple(float(v) for v in b.pos_sigma_m[i]),  # type: ignore[arg-type]
+            vel_sigma_mps=tuple(float(v) for v in b.vel_sigma_mps[i]),  # type: ignore[arg-type]
+            fix_type=int(b.fix_type[i]),
+            num_sats=int(b.num_sats[i]),
+            hdop=hdop,
+            pdop=hdop * (1 + VDOP_PER_HDOP**2) ** 0.5,
+            vdop=hdop * VDOP_PER_HDOP,
+        )
+
+    def counters(self) -> dict[str, int]:
+        out = dict(self.counts)
+        if self.wire:
+            out["line.bytes_sent"] = self.uart.sent_bytes
+        return out
 
     def _fix(self, b: Any, i: int, now_ns: int) -> list[Out]:
         seq = self.fix_index

@@ -122,8 +122,9 @@ class ImuEmulatorNode(Node):
 
     def _release(self, burst: CanBurst) -> Out:
         """Frames leave: a running burst error corrupts them now, in the order they go out."""
-        for frame in burst.frames:
-            self.corruptor(frame)
+        if self.corruptor.pending:
+            for frame in burst.frames:
+                self.corruptor(frame)
         return CAN_TX, burst
 
     def _next_increments(self) -> tuple[int, Any, Any]:
@@ -149,30 +150,29 @@ class ImuEmulatorNode(Node):
             self.corruptor.arm(act.corrupt_frames)
         if act.send and (k + 1) % self.sync_every == 0:
             # the sync edge is this capture: its frame goes first and is never held
-            sync = self._encode(lambda: [self.codec.encode_sync(dev)], "sync")
-            if sync is not None:
-                outs.append(self._release(CanBurst(sync, t_true, k, sync=True)))
+            try:
+                outs.append(self._release(CanBurst([self.codec.encode_sync(dev)], t_true, k, sync=True)))
+            except (EncodeError, TypeError, ValueError) as err:
+                self.error("tx_encode_errors", f"sync not encodable: {err}")
         # encoded even when not sent: the device's counters and SampleCount advance
-        frames = self._encode(
-            lambda: self.codec.encode_sample(
+        try:
+            frames: list[Any] | None = self.codec.encode_sample(
                 device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
-            ),
-            "sample",
-        )
+            )
+        except (EncodeError, TypeError, ValueError) as err:
+            self.error("tx_encode_errors", f"sample not encodable: {err}")
+            frames = None
         if not act.send:
             self._not_sent[act.reason] = self._not_sent.get(act.reason, 0) + 1
         elif frames is not None:
-            self.delay.push(t_true, act.latency_ns, act.jitter_ns, CanBurst(list(frames), t_true, k))
-            outs.extend(self._release(b) for b in self.delay.due(now_ns))
+            burst = CanBurst(list(frames), t_true, k)
+            if self.delay.passes(t_true, act.latency_ns, act.jitter_ns):
+                outs.append(self._release(burst))  # no can_latency, nothing held: now
+            else:
+                self.delay.push(t_true, act.latency_ns, act.jitter_ns, burst)
+                outs.extend(self._release(b) for b in self.delay.due(now_ns))
         outs.append(("capture/imu", CaptureTruth(seq=k, stamp_ns=t_true, sensor="imu", true_stamp_ns=t_true)))
         self.k = k + 1
-
-    def _encode(self, make: Any, what: str) -> list[Any] | None:
-        try:
-            return list(make())
-        except (EncodeError, TypeError, ValueError) as err:
-            self.error("tx_encode_errors", f"{what} not encodable: {err}")
-            return None
 
     def _take_commands(self, t_ns: int, outs: list[Out]) -> None:
         cmds, self._commands = self._commands, []

@@ -32,6 +32,7 @@ CLOCK_PERIOD_NS = 1_000_000_000
 
 
 class TimeSyncNode(Node):
+    inputs_move_timers = False  # its timers are its own: periodic, or none
     name = "timesync"
     inputs = tuple(Input(f"*/{s}", {"sensor": SENSORS[s].message, "timetag": TimeTag}) for s in SENSOR_NAMES)
     outputs = tuple(f"synced/{s}" for s in SENSOR_NAMES)

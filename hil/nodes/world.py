@@ -27,7 +27,7 @@ from hil.nav.trajectory import TruthGenerator
 from hil.nodes.base import Node, NodeOptions, Out
 from hil.nodes.builders import truth_msg
 
-BLOCK_NS = 100_000_000  # truth computed per 0.1 s of rig time
+BLOCK_NS = 1_000_000_000  # truth computed per second of rig time (its bits do not depend on the block)
 
 
 class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -37,6 +37,7 @@ class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields
     imu_rate_hz: int | None = None  # override the scenario's IMU rate (travels in RunInfo's text)
     truth_rate_hz: float = 100.0
     announce_every_s: float = 1.0  # RunInfo again this often (0: once)
+    truth_batch: int = 10  # publish truth this many samples at a time (hil sim: 1, each at its time)
     # services whose status must say ready before time zero
     wait_for: list[str] = msgspec.field(default_factory=list)
     wait_timeout_s: float = 60.0
@@ -99,10 +100,12 @@ class WorldNode(Node):
         return "run", RunInfo(**fields)
 
     def next_tick_ns(self) -> int | None:
-        """The next truth sample; an announcement before it; nothing after the run's last sample."""
+        """The next batch of truth (at its last sample's time); an announcement before it;
+        nothing after the run's last sample."""
         if self.k >= self.n_total:
             return None
-        t = self.k * self.dt_ns
+        batch = max(1, self.options.truth_batch)  # type: ignore[attr-defined]
+        t = (min(self.k + batch, self.n_total) - 1) * self.dt_ns
         return t if self._next_announce is None else min(t, self._next_announce)
 
     def tick(self, now_ns: int) -> list[Out]:

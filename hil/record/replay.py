@@ -43,7 +43,7 @@ from mcap.reader import make_reader
 
 from hil.bus.keys import rekey
 from hil.bus.pubsub import declare_publisher
-from hil.messages import CanFrame, FusionJournal, decode
+from hil.messages import CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
 from hil.record.mcapio import Record, RecordingError, iter_records
 
@@ -78,6 +78,7 @@ class ReplayOptions:
 class ReplayStats:
     sent: int = 0
     sent_can: int = 0
+    sent_line_bytes: int = 0
     skipped_dropped: int = 0  # fusion inputs not sent because the live fusion had dropped them
     can_errors: int = 0
     passes: int = 0
@@ -91,6 +92,8 @@ class ReplayStats:
             f"replay: {self.sent} messages ({self.sent_can} CAN frames on the bus) in {self.wall_s:.2f} s "
             f"({rate:.0f} msg/s, {self.span_s:.2f} s of recording, {self.passes} pass(es))"
         ]
+        if self.sent_line_bytes:
+            parts.append(f"{self.sent_line_bytes} bytes onto the receiver's line")
         if self.skipped_dropped:
             parts.append(f"{self.skipped_dropped} inputs the live fusion had dropped were not sent")
         if self.can_errors:
@@ -282,11 +285,14 @@ def replay(
     session: zenoh.Session,
     *,
     can_bus: Any = None,
+    line: Any = None,
     stop: threading.Event | None = None,
     step_input: Callable[[str], str] | None = None,
     progress_out: TextIO | None = None,
 ) -> ReplayStats:
-    """Replay ``path`` onto ``session`` (and CAN frames onto ``can_bus``); see the module doc.
+    """Replay ``path`` onto ``session`` (and CAN frames onto ``can_bus``, a receiver's recorded
+    serial bytes onto ``line``: an object with ``write(data, start_wall_s)``, e.g.
+    ``hil.runners.serial.LineWriter``); see the module doc.
 
     ``step_input`` reads one line for ``--step`` (default: ``input``; EOF or "q" stops).
     """
@@ -349,6 +355,10 @@ def replay(
                         stats.sent_can += 1
                     else:
                         stats.can_errors += 1
+                elif line is not None and rec.schema == "hil.SerialChunk":
+                    data = bytes.fromhex(decode(SerialChunk, rec.payload).data_hex)
+                    line.write(data, time.time())  # as it was read: paced by the recording
+                    stats.sent_line_bytes += len(data)
                 else:
                     publisher(rec.topic).put(rec.payload)
                 stats.sent += 1

@@ -33,8 +33,19 @@ from hil.can.bus import open_can_bus
 from hil.can.node import CanTransmitter
 from hil.messages import RunInfo, ServiceStatus
 from hil.nav.scenario import load_scenario, scenario_overrides
-from hil.nodes.base import CAN_RX, CAN_TX, Node, NodeOptions, OptionsError, Out, decode_options
+from hil.nodes.base import (
+    CAN_RX,
+    CAN_TX,
+    SERIAL_RX,
+    SERIAL_TX,
+    Node,
+    NodeOptions,
+    OptionsError,
+    Out,
+    decode_options,
+)
 from hil.nodes.world import run_info
+from hil.runners.serial import LineReader, LineWriter
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
 
@@ -60,6 +71,8 @@ class NodeService(Service):
         self.can_bus: can.BusABC | None = None
         self.can_tx: CanTransmitter | None = None
         self.transport = ""
+        self.line_tx: LineWriter | None = None
+        self.line_rx: LineReader | None = None
 
     # -- setup: subscriptions and publishers before time zero -----------------------------------
     def setup(self) -> None:
@@ -71,6 +84,30 @@ class NodeService(Service):
             self._publisher(key, None)
         if self.node_cls.reads_can or self.node_cls.writes_can:
             self._open_can()
+        self._open_line()
+
+    def _open_line(self) -> None:
+        """The node's serial line: a receiver's (``tx``, when its options name a protocol) or the
+        bridge's (``rx``). A path that cannot be made stops the service with one line."""
+        o: Any = self.opts
+        if self.node_cls.serial == "tx" and getattr(o, "protocol", None):
+            self.line_tx = LineWriter(
+                o.baud,
+                list(o.serial_links),
+                tcp_listen=o.tcp_listen,
+                device=o.device,
+                on_error=self.stats.error,
+            )
+            where = [
+                *o.serial_links,
+                *([f"tcp {o.tcp_listen}"] if o.tcp_listen else []),
+                *([o.device] if o.device else []),
+            ]
+            self.emit_event(
+                "line", f"{'+'.join(o.protocol)} at {o.baud} baud on {', '.join(where) or 'no line'}"
+            )
+        elif self.node_cls.serial == "rx":
+            self.line_rx = LineReader(o.baud, path=o.serial_path, tcp=o.tcp_connect)
 
     def _open_can(self) -> None:
         o: Any = self.opts
@@ -126,6 +163,9 @@ class NodeService(Service):
             if self.can_bus is not None and node.reads_can:
                 self._read_can(node, run, wait_s)
                 wait_s = 0.0
+            elif self.line_rx is not None:
+                self._read_line(node, run, wait_s)
+                wait_s = 0.0
             try:
                 key, msg = self.inbox.get(timeout=wait_s) if wait_s > 0 else self.inbox.get_nowait()
             except queue.Empty:
@@ -146,9 +186,20 @@ class NodeService(Service):
         if frame is None:
             return
         rx_ns = epoch_s_to_rig_ns(frame.timestamp, run.start_epoch_ns, run.speed)
-        self.stats.count_rate("in.can.frames")
         with self.lock:
             outs = node.on_message(f"{CAN_RX}/{frame.channel or ''}", frame, rx_ns)
+        self._publish(outs, "input")
+
+    def _read_line(self, node: Node, run: RunInfo, wait_s: float) -> None:
+        assert self.line_rx is not None
+        got = self.line_rx.read(wait_s)
+        if got is None:
+            return
+        data, t_wall_ns = got
+        rx_ns = int((t_wall_ns - run.start_epoch_ns) * run.speed)
+        self.stats.count_rate("in.line.bytes", len(data))
+        with self.lock:
+            outs = node.on_message(f"{SERIAL_RX}/{getattr(self.opts, 'port', 'gnss')}", data, rx_ns)
         self._publish(outs, "input")
 
     def _drain_and_finish(self, node: Node, clock: RigClock, root_len: int) -> None:
@@ -174,6 +225,10 @@ class NodeService(Service):
                 if self.can_tx is not None:
                     self.can_tx.send_frames(msg.frames, sync=msg.sync)
                 continue
+            if key == SERIAL_TX:
+                if self.line_tx is not None and self.clock is not None:
+                    self.line_tx.write(msg.data, self.clock.wall_of(msg.start_ns))
+                continue
             self._publisher(key, type(msg)).put(msg)
         node = self.node
         if node is not None and node.errors_seen != self._errors_seen:
@@ -193,12 +248,17 @@ class NodeService(Service):
                 out.update(node.counters())
         if self.can_tx is not None:
             out.update(self.can_tx.counters())
+        if self.line_tx is not None:
+            out.update(self.line_tx.counts)
         return out
 
     def teardown(self) -> None:
         if self.can_bus is not None:
             with contextlib.suppress(Exception):
                 self.can_bus.shutdown()
+        for line in (self.line_tx, self.line_rx):
+            if line is not None:
+                line.close()
 
 
 class WorldService(NodeService):

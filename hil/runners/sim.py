@@ -19,7 +19,7 @@ order at ``end + 1 ns``, so what the time sync and the fusion hold is released a
 
 from __future__ import annotations
 
-import heapq
+import collections
 import sys
 import time
 from collections.abc import Callable
@@ -32,9 +32,10 @@ from hil.faults import SIM_NOT_APPLICABLE, fault_detail
 from hil.messages import Event, Message, RunInfo, ServiceStatus, encode
 from hil.nav.scenario import load_scenario, scenario_for_run
 from hil.nodes import node_class
-from hil.nodes.base import CAN_RX, CAN_TX, Node, Out
+from hil.nodes.base import CAN_RX, CAN_TX, SERIAL_RX, SERIAL_TX, Node, Out
 from hil.nodes.can_bridge import CanBridgeNode, CanBridgeOptions
 from hil.nodes.fusion import DEFAULT_LAG_S, DEFAULT_OUTPUT_EVERY, FusionNode, FusionOptions
+from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.mcapio import SessionWriter
@@ -44,7 +45,6 @@ from hil.sensor_table import SENSOR_NAMES, SENSORS
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
-_RUNNER, _TICK, _DELIVER = 0, 1, 2  # order of events at equal rig time
 
 
 @dataclass
@@ -55,6 +55,9 @@ class SimOptions:
     rig: str = "sim"
     estimators: list[str] = field(default_factory=list)
     fd: bool = False
+    gnss_protocol: list[str] = field(default_factory=list)  # the receiver on a wire: nmea, ubx
+    gnss_baud: int = 115200
+    gnss_messages: list[str] = field(default_factory=list)
     lag_s: float = DEFAULT_LAG_S
     output_every: int = DEFAULT_OUTPUT_EVERY
     progress: bool = False
@@ -84,27 +87,32 @@ def _matches(pattern: list[str], key: list[str]) -> bool:
 
 
 class Scheduler:
-    """The discrete-event loop: node ticks, deliveries and the runner's own events in rig time."""
+    """Rig time in windows; in each, every node in pipeline order handles its window's events.
+
+    The nodes form a pipeline (every subscription runs downstream: emulators -> bridges -> time
+    sync -> fusion; checked at start), so once the nodes upstream of a node have handled a window,
+    all of its inputs in that window are known: it can handle its window in one go, its ticks and
+    inputs in rig-time order -- the very sequence a global event loop would hand it, and the
+    stage-by-stage order that keeps each node's code and data warm (measured: interleaving every
+    node per IMU sample cost this runner 20-25 % of its time). At one rig time a node's tick comes
+    before its inputs, inputs come in pipeline order of their producers and then in the order
+    they were published. A CAN frame or a line burst that arrives after the window waits for the
+    next. Each window's messages are written sorted by log time, so the file is in rig-time order.
+    """
 
     def __init__(self, nodes: list[Node], write: Callable[[str, Message, int], None], wire: CanWireModel):
         self.nodes = nodes
         self.write = write
         self.wire = wire
-        self._heap: list[tuple[int, int, int, int, int, Any, Any]] = []
-        self._order = 0
-        self._tick_at: list[int | None] = [None] * len(nodes)
         self._routes: dict[str, list[int]] = {}
         self._can_readers = [i for i, n in enumerate(nodes) if n.reads_can]
+        self._line_readers = [i for i, n in enumerate(nodes) if n.serial == "rx"]
         self._can_keys = {i: f"{CAN_RX}/{getattr(nodes[i], 'channel', 'vcan0')}" for i in self._can_readers}
         self._subs = [[(inp.key.split("/"), frozenset(inp.types)) for inp in type(n).inputs] for n in nodes]
-
-    def push(self, t_ns: int, cls: int, kind: int, a: Any, b: Any = None) -> None:
-        """``kind`` 0: deliver ``b`` = (key, msg) to node ``a``; 1: a CAN frame ``b`` to node ``a``;
-        2: tick node ``a`` (``b``: the time it asked for); 3: the runner's own event ``a``.
-        Ticks at equal times go in node (pipeline) order, everything else first in first out."""
-        rank = a if kind == 2 else self._order
-        heapq.heappush(self._heap, (t_ns, cls, rank, self._order, kind, a, b))
-        self._order += 1
+        # per node: its inputs not handled yet, (rig time, producer, order, key, message)
+        self._inbox: list[list[tuple[int, int, int, str, Any]]] = [[] for _ in nodes]
+        self._order = 0
+        self._out: list[tuple[int, int, int, str, Message]] = []  # this window's messages to write
 
     def _route(self, key: str) -> list[int]:
         route = self._routes.get(key)
@@ -115,68 +123,113 @@ class Scheduler:
                 for i, subs in enumerate(self._subs)
                 if any(parts[0] in kinds and _matches(p, parts) for p, kinds in subs)
             ]
+            late = [self.nodes[i].name for i in route if i <= self._producer]
+            if late:
+                raise RuntimeError(f"{key} flows upstream to {late}: hil sim needs a pipeline of nodes")
         return route
 
-    def publish(self, outs: list[Out], now_ns: int) -> None:
+    def publish(self, producer: int, outs: list[Out], now_ns: int) -> None:
+        self._producer = producer
+        inbox = self._inbox
         for key, msg in outs:
+            order = self._order
+            self._order = order + 1
             if key == CAN_TX:
                 for rx, frame in self.wire.arrivals(msg, now_ns):
                     for i in self._can_readers:
-                        self.push(rx, _DELIVER, 1, i, frame)
+                        inbox[i].append((rx, producer, order, self._can_keys[i], frame))
                 continue
-            self.write(key, msg, now_ns)
-            for i in self._route(key):
-                self.push(now_ns, _DELIVER, 0, i, (key, msg))
+            if key == SERIAL_TX:  # a receiver's bytes: read whole when the last one is in
+                for i in self._line_readers:
+                    inbox[i].append((msg.end_ns, producer, order, f"{SERIAL_RX}/{msg.port}", msg.data))
+                continue
+            self._out.append((now_ns, producer, order, key, msg))
+            route = self._routes.get(key)
+            for i in route if route is not None else self._route(key):
+                inbox[i].append((now_ns, producer, order, key, msg))
 
-    def reschedule(self, i: int) -> None:
-        t = self.nodes[i].next_tick_ns()
-        if t is not None and t != self._tick_at[i]:
-            self._tick_at[i] = t
-            self.push(t, _TICK, 2, i, t)
+    def window(self, t_end_ns: int) -> bool:
+        """Every node handles its events before ``t_end_ns``; the messages are written. False
+        once nothing is left to do (no node wants a tick, nothing is in flight)."""
+        busy = False
+        for i, node in enumerate(self.nodes):
+            busy = self._handle(i, node, t_end_ns) or busy
+        out = self._out
+        out.sort(key=_event_order)
+        for t, _p, _o, key, msg in out:
+            self.write(key, msg, t)
+        out.clear()
+        return busy or any(self._inbox)
 
-    def run(self, on_runner_event: Callable[[int, Any], None]) -> None:
-        """Until every node is done and nothing is in flight."""
-        for i in range(len(self.nodes)):
-            self.reschedule(i)
-        heap = self._heap
-        nodes = self.nodes
-        while heap:
-            t, _cls, _r, _o, kind, a, b = heapq.heappop(heap)
-            if kind == 2:  # a tick (stale if the node asked for another time since)
-                if self._tick_at[a] != b:
-                    continue
-                self._tick_at[a] = None
-                self.publish(nodes[a].tick(t), t)
-            elif kind == 0:
-                key, msg = b
-                self.publish(nodes[a].on_message(key, msg, t), t)
-            elif kind == 1:
-                self.publish(nodes[a].on_message(self._can_keys[a], b, t), t)
+    def _handle(self, i: int, node: Node, t_end_ns: int) -> bool:
+        box = self._inbox[i]
+        now = [e for e in box if e[0] < t_end_ns]
+        if len(now) < len(box):
+            self._inbox[i] = [e for e in box if e[0] >= t_end_ns]
+        else:
+            box.clear()
+        now.sort(key=_event_order)
+        j, n = 0, len(now)
+        t_tick = node.next_tick_ns()
+        while True:
+            if t_tick is not None and t_tick < t_end_ns and (j == n or t_tick <= now[j][0]):
+                self.publish(i, node.tick(t_tick), t_tick)
+                t_tick = node.next_tick_ns()
+            elif j < n:
+                t, _p, _o, key, msg = now[j]
+                j += 1
+                self.publish(i, node.on_message(key, msg, t), t)
+                if node.inputs_move_timers:
+                    t_tick = node.next_tick_ns()
             else:
-                on_runner_event(t, a)
-                continue
-            self.reschedule(a)
+                return t_tick is not None
+
+    def emit(self, t_ns: int, key: str, msg: Message) -> None:
+        """A message of the runner's own (``event/sim``), written in its place in rig time."""
+        self._out.append((t_ns, -1, self._order, key, msg))
+        self._order += 1
+
+    def finish(self, t_ns: int) -> None:
+        """End of input, in pipeline order: what one node releases, the next still takes in."""
+        for i, node in enumerate(self.nodes):
+            self._handle(i, node, t_ns + 1)  # what is still in flight for it
+            self.publish(i, node.finish(t_ns), t_ns)
+        self.window(2**62)
+
+
+def _event_order(e: tuple[int, int, int, str, Any]) -> tuple[int, int, int]:
+    """(rig time, producer in pipeline order, publication order): never compares messages."""
+    return (e[0], e[1], e[2])
 
 
 def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
     """The rig's nodes in pipeline order, configured as ``hil up`` would configure them: the
     world, each sensor's emulator of the sensor table (a CAN device followed by the bridge that
     reads its bus), the time sync, the fusion."""
-    nodes: list[Node] = [WorldNode(run, WorldOptions(announce_every_s=0.0))]
+    nodes: list[Node] = [WorldNode(run, WorldOptions(announce_every_s=0.0, truth_batch=1))]
+    wire = {"protocol": opts.gnss_protocol, "baud": opts.gnss_baud, "messages": opts.gnss_messages}
     for sensor in SENSOR_NAMES:
         cls = node_class(SENSORS[sensor].emulator)
         fields = cls.Options.__struct_fields__
-        nodes.append(cls(run, cls.Options(**({"fd": opts.fd} if "fd" in fields else {}))))
+        kw: dict[str, Any] = {"fd": opts.fd} if "fd" in fields else {}
+        if "pull_block_s" in fields:
+            kw["pull_block_s"] = 1.0  # no commands offline: a second's epochs in one batch
+        if cls.serial == "tx" and opts.gnss_protocol:
+            kw.update(wire)
+        nodes.append(cls(run, cls.Options(**kw)))
         if cls.writes_can:
             nodes.append(CanBridgeNode(run, CanBridgeOptions(fd=opts.fd)))
+        if cls.serial == "tx" and opts.gnss_protocol:  # the line's reader: the rig's GNSS bridge
+            nodes.append(GnssBridgeNode(run, GnssBridgeOptions(**wire)))
     fusion = FusionOptions(estimators=list(opts.estimators), lag_s=opts.lag_s, output_every=opts.output_every)
     return [*nodes, TimeSyncNode(run), FusionNode(run, fusion)]
 
 
 def sim_run_info(opts: SimOptions) -> RunInfo:
-    """The run ``hil sim`` announces: time zero at epoch 0, speed 1, the scenario's text."""
+    """The run ``hil sim`` announces: time zero at the scenario's ``start_utc``, speed 1, its text."""
     base = load_scenario(opts.scenario)
-    return run_info(base, rig=opts.rig, start_epoch_ns=0, speed=1.0, duration_s=opts.duration_s)
+    start = base.start_utc_ns
+    return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
 class _Session:
@@ -222,21 +275,6 @@ class _Session:
             )
             self.write(key, st, t_ns)
 
-    def on_event(self, t_ns: int, what: Any) -> None:
-        if what == "second":
-            if t_ns < self.end_ns:
-                self.status(t_ns)
-            self.w.flush()
-            if self.opts.on_progress is not None:
-                self.opts.on_progress(min(t_ns, self.end_ns) * 1e-9, self.end_ns * 1e-9)
-            return
-        key = "event/sim"  # a fault_ignored
-        self.write(
-            key,
-            Event(seq=self.next_seq(key), stamp_ns=t_ns, kind="fault_ignored", source="sim", detail=what),
-            t_ns,
-        )
-
 
 def run_sim(opts: SimOptions) -> SimResult:
     t_wall = time.monotonic()
@@ -253,17 +291,27 @@ def run_sim(opts: SimOptions) -> SimResult:
             sys.stderr.write(f"hil sim: warning: {line}\n")
             sys.stderr.flush()
     sched = Scheduler(nodes, sess.write, CanWireModel(s))
-    for t0, detail in ignored:
-        sched.push(t0, _RUNNER, 3, detail)
-    for k in range(1, sess.end_ns // _S + 2):
-        sched.push(k * _S, _RUNNER, 3, "second")
-    for node in nodes:
-        sched.publish(node.start(0), 0)
-    sched.run(sess.on_event)
+    for i, node in enumerate(nodes):
+        sched.publish(i, node.start(0), 0)
+    ignored_at = collections.deque(ignored)
+    t = 0
+    while True:  # one rig second at a time, until every node is done
+        t += _S
+        while ignored_at and ignored_at[0][0] < t:
+            t0, detail = ignored_at.popleft()
+            key = "event/sim"  # a timed fault hil sim cannot apply, said where it would have been
+            ev = Event(seq=sess.next_seq(key), stamp_ns=t0, kind="fault_ignored", source="sim", detail=detail)
+            sched.emit(t0, key, ev)
+        more = sched.window(t)
+        if t < sess.end_ns:
+            sess.status(t)
+        sess.w.flush()
+        if opts.on_progress is not None:
+            opts.on_progress(min(t, sess.end_ns) * 1e-9, sess.end_ns * 1e-9)
+        if not more and t > sess.end_ns:
+            break
     t_last = sess.end_ns + 1
-    for node in nodes:  # end of input, in pipeline order: what one releases, the next consumes
-        sched.publish(node.finish(t_last), t_last)
-        sched.run(sess.on_event)
+    sched.finish(t_last)
     sess.status(t_last)
     sess.w.add_metadata(
         "completeness", {"messages": sess.n_written, "missing": 0, "replay_ready": True, "topics": {}}
@@ -281,7 +329,7 @@ def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:
             "scenario": s.name,
             "scenario_sha256": run.scenario_sha256,
             "seed": s.seed,
-            "start_epoch_ns": 0,
+            "start_epoch_ns": run.start_epoch_ns,
             "speed": 0,
             "duration_s": run.duration_s,
             "origin_lat_deg": s.origin_lat_deg,

@@ -30,17 +30,20 @@ class CanWireModel:
         self._rng = sensor_rng(scenario.seed, "imu.transport")
         self._latch = device_clock_for(scenario, "imu")  # the receiver's kernel-stamp latch
         self._drawn = 0  # extra delays drawn so far (one per sample index)
-        self._extra = 0.0
+        self._block: list[float] = []  # drawn ahead in blocks: the same stream as one at a time
+        self._block_k0 = 0
         self._sync_capture: int | None = None
         self.last_rx_ns = -(2**62)
 
     def _extra_ns(self, index: int) -> float:
         if self.jitter_ns <= 0:
             return 0.0
-        while self._drawn <= index:
-            self._extra = float(self._rng.exponential(self.jitter_ns))
-            self._drawn += 1
-        return self._extra
+        i = index - self._block_k0
+        while i >= len(self._block):  # draws go in sample-index order whatever the block size
+            self._block_k0 += len(self._block)
+            i = index - self._block_k0
+            self._block = self._rng.exponential(self.jitter_ns, 1024).tolist()
+        return self._block[i]
 
     def arrivals(self, burst: CanBurst, t_emit_ns: int) -> list[tuple[int, Any]]:
         """``(rx_ns, frame)`` of each frame of ``burst``, which left at ``t_emit_ns``."""

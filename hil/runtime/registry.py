@@ -26,15 +26,17 @@ SERVICES: dict[str, str] = {
     "world": "services.world",
 }
 
-# Started only on request (`hil up --dut-emulator`), but runnable alone like any service.
+# Started only on request (`hil up --dut-emulator`; the GNSS receiver on a wire: `--gnss-serial`,
+# `--gnss-tcp`, `--gnss-protocol`), but runnable alone like any service.
 OPTIONAL_SERVICES: dict[str, str] = {
     "dut_emulator": "services.dut_emulator",
+    "gnss_bridge": "services.gnss_bridge",
 }
 
 # Stop order: producers first, consumers after they drained, recorder last.
 STOP_STAGES: tuple[tuple[str, ...], ...] = (
     ("world", *_EMULATORS, "dut_emulator"),
-    ("can_bridge",),
+    ("can_bridge", "gnss_bridge"),
     ("timesync",),
     ("fusion",),
     ("recorder",),

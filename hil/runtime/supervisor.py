@@ -67,6 +67,16 @@ class UpOptions:
     split_mb: float = 0.0  # the recorder starts a new part after this many MB (0: one file)
     split_s: float = 0.0  # ... or after this many seconds
     zenoh_miss_detection: bool = True  # advanced publishers + the recorder's sample-miss listener
+    # the GNSS receiver on a wire (hil/wire, hil/nodes/gnss_bridge.py)
+    gnss_protocol: list[str] = field(default_factory=list)  # nmea, ubx; empty: fixes on Zenoh only
+    gnss_serial: str | None = None  # a pseudo-terminal linked at this path, for a device or gpsd
+    gnss_tcp: str | None = None  # the same line served over TCP, HOST:PORT
+    gnss_baud: int = 115200
+    gnss_messages: list[str] = field(default_factory=list)  # the receiver's message set (empty: defaults)
+
+    @property
+    def gnss_wire(self) -> bool:
+        return bool(self.gnss_protocol)
 
 
 @dataclass
@@ -234,7 +244,13 @@ class Supervisor:
         names = list(SERVICES)
         if self.opts.dut_emulator:
             names.insert(names.index("world"), "dut_emulator")
+        if self.opts.gnss_wire:  # the line's reader starts before the receiver
+            names.insert(names.index("gnss_emulator"), "gnss_bridge")
         return names
+
+    def bridge_line(self) -> str:
+        """Where the rig's own GNSS bridge reads the receiver's line: a pty linked in the logs."""
+        return str((self.opts.log_dir or Path("recordings/logs")) / "gnss_bridge.tty")
 
     def options_for(self, name: str, restarts: int = 0) -> dict[str, Any]:
         """The service's typed options from this run's (``hil.runtime.options.fill_options``)."""
@@ -249,6 +265,13 @@ class Supervisor:
         elif name == "recorder":
             path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
             derived.update(path=str(path), zenoh_advanced=o.zenoh_miss_detection)
+        elif name in ("gnss_emulator", "gnss_bridge") and o.gnss_wire:
+            derived.update(protocol=o.gnss_protocol, baud=o.gnss_baud, messages=o.gnss_messages)
+            if name == "gnss_emulator":
+                links = [*([o.gnss_serial] if o.gnss_serial else []), self.bridge_line()]
+                derived.update(serial_links=links, tcp_listen=o.gnss_tcp)
+            else:
+                derived["serial_path"] = self.bridge_line()
         if restarts:
             derived["resume"] = restarts
         return fill_options(name, o, derived)

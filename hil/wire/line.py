@@ -1,0 +1,173 @@
+"""A receiver's serial line: the UART that paces its bytes, and the reader that splits them.
+
+``Uart`` is the transmit side as a receiver has it: bytes leave at ``baud`` (10 bits a byte:
+start, 8 data, stop), one message after the other; what the line cannot carry waits in a
+transmit buffer of ``tx_buffer_bytes``, and a message that does not fit in it is dropped whole
+-- an overrun, counted, as a u-blox receiver drops output when its port buffer is full. Pure:
+the caller says when a message is ready and gets back when its first and last byte go out.
+
+``LineDecoder`` is the receiving side of a line that may carry NMEA and UBX together (a u-blox
+port with both protocols on): it splits the stream into sentences (``$ ... \\n``) and frames
+(``0xB5 0x62``, length from the header), hands each to its protocol's decoder and counts what
+is neither. With one protocol it is that protocol's decoder. A line at the wrong baud rate reads
+as a stream of garbage with no message in it: after ``BAUD_MISMATCH_BYTES`` such bytes in a row
+it says so (``baud_mismatch``), once per stretch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hil.wire import protocol
+from hil.wire.base import DecodedFix
+
+BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
+BAUD_MISMATCH_BYTES = 256  # this many bytes in a row with no message in them: the wrong baud rate
+MAX_NMEA_LINE = 256  # NMEA 0183 allows 82 characters; anything far longer is not a sentence
+MAX_UBX_FRAME = 4096  # no message the rig reads comes near this
+
+
+def byte_time_ns(baud: int) -> float:
+    """Nanoseconds one byte occupies the line at ``baud`` (8N1)."""
+    return BITS_PER_BYTE * 1e9 / baud
+
+
+@dataclass
+class Uart:
+    """The transmit side: when each message's bytes go out, and which ones overrun the buffer."""
+
+    baud: int
+    tx_buffer_bytes: int = 4096
+    free_at_ns: int = -(2**62)  # when the line has sent everything handed to it so far
+    sent_bytes: int = 0
+    overrun_bytes: int = 0
+    overrun_messages: int = 0
+
+    def queued_bytes(self, now_ns: int) -> int:
+        """Bytes still waiting in the transmit buffer at ``now_ns``."""
+        return max(0, int((self.free_at_ns - now_ns) / byte_time_ns(self.baud) + 0.999))
+
+    def send(self, n_bytes: int, ready_ns: int) -> tuple[int, int] | None:
+        """A message of ``n_bytes`` ready at ``ready_ns``: (first byte out, last byte done), or
+        None if it overruns the transmit buffer (dropped whole, counted)."""
+        if self.queued_bytes(ready_ns) + n_bytes > self.tx_buffer_bytes:
+            self.overrun_bytes += n_bytes
+            self.overrun_messages += 1
+            return None
+        start = max(ready_ns, self.free_at_ns)
+        end = start + round(n_bytes * byte_time_ns(self.baud))
+        self.free_at_ns = end
+        self.sent_bytes += n_bytes
+        return start, end
+
+    def occupancy(self, span_ns: int) -> float:
+        """Share of ``span_ns`` the line was busy, from the bytes sent over it."""
+        return self.sent_bytes * byte_time_ns(self.baud) / span_ns if span_ns > 0 else 0.0
+
+
+@dataclass
+class LineDecoder:
+    """Decode a line carrying one or more GNSS protocols; never raises on any input."""
+
+    protocols: tuple[str, ...]
+    messages: tuple[str, ...] = ()
+    counters: dict[str, int] = field(default_factory=dict)
+    last_problem: str = ""
+    _buf: bytearray = field(default_factory=bytearray)
+    _garbage_run: int = 0
+
+    def __post_init__(self) -> None:
+        self.decoders: dict[str, Any] = {}
+        for name in self.protocols:
+            cls = protocol(name)
+            mine = tuple(m for m in self.messages if m in cls.SUPPORTED_MESSAGES) or None
+            self.decoders[name] = cls(mine).decoder()
+        self.counters.update(garbage_bytes=0, baud_mismatch=0, bytes=0)
+
+    def feed(self, data: bytes, rx_ns: int) -> list[DecodedFix]:
+        self.counters["bytes"] += len(data)
+        before = self._valid_messages()
+        if len(self.decoders) == 1:
+            (dec,) = self.decoders.values()
+            garbage = dec.counters.get("garbage_bytes", 0)
+            out: list[DecodedFix] = dec.feed(data, rx_ns)
+            self._garbage(dec.counters.get("garbage_bytes", 0) - garbage)
+        else:
+            self._buf += data
+            out = self._split(rx_ns)
+        if self._valid_messages() > before:
+            self._garbage_run = 0  # a message with a valid checksum: the baud rate is right
+        return out
+
+    def _valid_messages(self) -> int:
+        return sum(int(d.counters.get("messages", 0)) for d in self.decoders.values())
+
+    def _split(self, rx_ns: int) -> list[DecodedFix]:
+        buf, out = self._buf, []
+        while buf:
+            head = buf[0]
+            if head == 0x24 and "nmea" in self.decoders:  # '$'
+                end = buf.find(b"\n", 0, MAX_NMEA_LINE)
+                if end < 0:
+                    if len(buf) < MAX_NMEA_LINE:
+                        break  # the rest of the sentence is still on the way
+                    end = MAX_NMEA_LINE - 1  # not a sentence: the NMEA decoder says too long
+                out += self.decoders["nmea"].feed(bytes(buf[: end + 1]), rx_ns)
+                del buf[: end + 1]
+            elif head == 0xB5 and "ubx" in self.decoders and (len(buf) < 2 or buf[1] == 0x62):
+                if len(buf) < 6:
+                    break
+                n = 8 + int.from_bytes(buf[4:6], "little")
+                if n > MAX_UBX_FRAME:
+                    del buf[:1]
+                    self._garbage(1)
+                    continue
+                if len(buf) < n:
+                    break
+                out += self.decoders["ubx"].feed(bytes(buf[:n]), rx_ns)
+                del buf[:n]
+            else:
+                skip = _next_start(buf)
+                del buf[:skip]
+                self._garbage(skip)
+        return out
+
+    def _garbage(self, n: int) -> None:
+        if n <= 0:
+            return
+        self.counters["garbage_bytes"] += n
+        before = self._garbage_run
+        self._garbage_run += n
+        if before < BAUD_MISMATCH_BYTES <= self._garbage_run:
+            self.counters["baud_mismatch"] += 1
+            self.last_problem = (
+                f"{self._garbage_run} bytes in a row with no valid NMEA sentence or UBX frame: "
+                "is the line at the receiver's baud rate?"
+            )
+
+    def flush(self) -> list[DecodedFix]:
+        out: list[DecodedFix] = []
+        for dec in self.decoders.values():
+            out += dec.flush()
+        return out
+
+    def all_counters(self) -> dict[str, int]:
+        """This line's counters and each protocol decoder's, prefixed with its name."""
+        out = dict(self.counters)
+        for name, dec in self.decoders.items():
+            out.update({f"{name}.{k}": v for k, v in dec.counters.items()})
+        return out
+
+    def problem(self) -> str:
+        """The most specific last problem: a decoder's, else the line's."""
+        for dec in self.decoders.values():
+            if dec.last_problem:
+                return str(dec.last_problem)
+        return self.last_problem
+
+
+def _next_start(buf: bytearray) -> int:
+    """How many bytes before the next possible start of a message (at least one)."""
+    cut = [i for i in (buf.find(b"$", 1), buf.find(b"\xb5", 1)) if i > 0]
+    return min(cut) if cut else len(buf)
