@@ -20,6 +20,7 @@ order at ``end + 1 ns``, so what the time sync and the fusion hold is released a
 from __future__ import annotations
 
 import collections
+import operator
 import sys
 import time
 from collections.abc import Callable
@@ -130,10 +131,10 @@ class Scheduler:
 
     def publish(self, producer: int, outs: list[Out], now_ns: int) -> None:
         self._producer = producer
-        inbox = self._inbox
+        inbox, routes, out = self._inbox, self._routes, self._out
+        order = self._order
         for key, msg in outs:
-            order = self._order
-            self._order = order + 1
+            order += 1
             if key == CAN_TX:
                 for rx, frame in self.wire.arrivals(msg, now_ns):
                     for i in self._can_readers:
@@ -143,10 +144,12 @@ class Scheduler:
                 for i in self._line_readers:
                     inbox[i].append((msg.end_ns, producer, order, f"{SERIAL_RX}/{msg.port}", msg.data))
                 continue
-            self._out.append((now_ns, producer, order, key, msg))
-            route = self._routes.get(key)
+            event = (now_ns, producer, order, key, msg)
+            out.append(event)
+            route = routes.get(key)
             for i in route if route is not None else self._route(key):
-                inbox[i].append((now_ns, producer, order, key, msg))
+                inbox[i].append(event)
+        self._order = order
 
     def window(self, t_end_ns: int) -> bool:
         """Every node handles its events before ``t_end_ns``; the messages are written. False
@@ -197,9 +200,8 @@ class Scheduler:
         self.window(2**62)
 
 
-def _event_order(e: tuple[int, int, int, str, Any]) -> tuple[int, int, int]:
-    """(rig time, producer in pipeline order, publication order): never compares messages."""
-    return (e[0], e[1], e[2])
+# (rig time, producer in pipeline order, publication order): never compares the messages
+_event_order = operator.itemgetter(0, 1, 2)
 
 
 def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:

@@ -120,7 +120,13 @@ class WireProtocol(Protocol):
     name: ClassVar[str]
     DEFAULT_MESSAGES: ClassVar[tuple[str, ...]]
     SUPPORTED_MESSAGES: ClassVar[tuple[str, ...]]  # in the order a receiver sends them in an epoch
+    START: ClassVar[bytes]  # the bytes every message begins with (a line may carry several protocols)
     messages: tuple[str, ...]
+
+    @staticmethod
+    def message_length(buf: bytes | bytearray) -> int:
+        """Bytes of the message at the start of ``buf``; 0: not all there yet; -1: not a message."""
+        ...
 
     def __init__(self, messages: tuple[str, ...] | None = None, talker: str = "GN") -> None: ...
 

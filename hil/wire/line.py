@@ -7,11 +7,11 @@ transmit buffer of ``tx_buffer_bytes``, and a message that does not fit in it is
 the caller says when a message is ready and gets back when its first and last byte go out.
 
 ``LineDecoder`` is the receiving side of a line that may carry NMEA and UBX together (a u-blox
-port with both protocols on): it splits the stream into sentences (``$ ... \\n``) and frames
-(``0xB5 0x62``, length from the header), hands each to its protocol's decoder and counts what
-is neither. With one protocol it is that protocol's decoder. A line at the wrong baud rate reads
-as a stream of garbage with no message in it: after ``BAUD_MISMATCH_BYTES`` such bytes in a row
-it says so (``baud_mismatch``), once per stretch.
+port with both protocols on): it splits the stream into each protocol's messages by their start
+bytes and lengths (the protocol class's ``START`` and ``message_length``), hands each to its
+protocol's decoder and counts what is neither. With one protocol it is that protocol's decoder.
+A line at the wrong baud rate reads as a stream of garbage with no message in it: after
+``BAUD_MISMATCH_BYTES`` such bytes in a row it says so (``baud_mismatch``), once per stretch.
 """
 
 from __future__ import annotations
@@ -24,8 +24,6 @@ from hil.wire.base import DecodedFix
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 BAUD_MISMATCH_BYTES = 256  # this many bytes in a row with no message in them: the wrong baud rate
-MAX_NMEA_LINE = 256  # NMEA 0183 allows 82 characters; anything far longer is not a sentence
-MAX_UBX_FRAME = 4096  # no message the rig reads comes near this
 
 
 def byte_time_ns(baud: int) -> float:
@@ -79,10 +77,12 @@ class LineDecoder:
 
     def __post_init__(self) -> None:
         self.decoders: dict[str, Any] = {}
+        self._framing: dict[str, tuple[bytes, Any]] = {}
         for name in self.protocols:
             cls = protocol(name)
             mine = tuple(m for m in self.messages if m in cls.SUPPORTED_MESSAGES) or None
             self.decoders[name] = cls(mine).decoder()
+            self._framing[name] = (cls.START, cls.message_length)
         self.counters.update(garbage_bytes=0, baud_mismatch=0, bytes=0)
 
     def feed(self, data: bytes, rx_ns: int) -> list[DecodedFix]:
@@ -104,34 +104,29 @@ class LineDecoder:
         return sum(int(d.counters.get("messages", 0)) for d in self.decoders.values())
 
     def _split(self, rx_ns: int) -> list[DecodedFix]:
+        """Each message to the protocol whose start bytes it begins with (its class's ``START``
+        and ``message_length``); bytes that start none are garbage."""
         buf, out = self._buf, []
         while buf:
-            head = buf[0]
-            if head == 0x24 and "nmea" in self.decoders:  # '$'
-                end = buf.find(b"\n", 0, MAX_NMEA_LINE)
-                if end < 0:
-                    if len(buf) < MAX_NMEA_LINE:
-                        break  # the rest of the sentence is still on the way
-                    end = MAX_NMEA_LINE - 1  # not a sentence: the NMEA decoder says too long
-                out += self.decoders["nmea"].feed(bytes(buf[: end + 1]), rx_ns)
-                del buf[: end + 1]
-            elif head == 0xB5 and "ubx" in self.decoders and (len(buf) < 2 or buf[1] == 0x62):
-                if len(buf) < 6:
-                    break
-                n = 8 + int.from_bytes(buf[4:6], "little")
-                if n > MAX_UBX_FRAME:
-                    del buf[:1]
-                    self._garbage(1)
-                    continue
-                if len(buf) < n:
-                    break
-                out += self.decoders["ubx"].feed(bytes(buf[:n]), rx_ns)
-                del buf[:n]
+            for name, (start, length) in self._framing.items():
+                if buf[: len(start)] == start[: len(buf)]:
+                    n = length(buf)
+                    if n == 0:
+                        return out  # the rest of the message is still on the way
+                    if n > 0:
+                        out += self.decoders[name].feed(bytes(buf[:n]), rx_ns)
+                        del buf[:n]
+                        break
             else:
-                skip = _next_start(buf)
+                skip = self._next_start(buf)
                 del buf[:skip]
                 self._garbage(skip)
         return out
+
+    def _next_start(self, buf: bytearray) -> int:
+        """How many bytes before the next possible start of a message (at least one)."""
+        cut = [i for start, _ in self._framing.values() if (i := buf.find(start[:1], 1)) > 0]
+        return min(cut) if cut else len(buf)
 
     def _garbage(self, n: int) -> None:
         if n <= 0:
@@ -165,9 +160,3 @@ class LineDecoder:
             if dec.last_problem:
                 return str(dec.last_problem)
         return self.last_problem
-
-
-def _next_start(buf: bytearray) -> int:
-    """How many bytes before the next possible start of a message (at least one)."""
-    cut = [i for i in (buf.find(b"$", 1), buf.find(b"\xb5", 1)) if i > 0]
-    return min(cut) if cut else len(buf)

@@ -182,6 +182,17 @@ class NmeaProtocol:
     """NMEA 0183 output of a u-blox receiver; ``talker`` is the 2-letter talker ID (GN, GP, ...)."""
 
     name: ClassVar[str] = "nmea"
+    START: ClassVar[bytes] = b"$"  # what a sentence begins with, for a line carrying several protocols
+
+    @staticmethod
+    def message_length(buf: bytes | bytearray) -> int:
+        """Bytes of the sentence at the start of ``buf`` ("$" ... "\\n"); 0: not all there yet;
+        a sentence far longer than NMEA allows is handed on whole to be counted too long."""
+        end = buf.find(b"\n", 0, 4 * MAX_SENTENCE_CHARS)
+        if end >= 0:
+            return end + 1
+        return 0 if len(buf) < 4 * MAX_SENTENCE_CHARS else 4 * MAX_SENTENCE_CHARS
+
     SUPPORTED_MESSAGES: ClassVar[tuple[str, ...]] = ("RMC", "VTG", "GGA", "GSA", "GST", "ZDA")
     DEFAULT_MESSAGES: ClassVar[tuple[str, ...]] = SUPPORTED_MESSAGES
 

@@ -228,6 +228,19 @@ class UbxProtocol:
     """UBX output of a u-blox F9; ``talker`` is accepted for a uniform signature and ignored."""
 
     name: ClassVar[str] = "ubx"
+    START: ClassVar[bytes] = SYNC  # what a frame begins with, for a line carrying several protocols
+
+    @staticmethod
+    def message_length(buf: bytes | bytearray) -> int:
+        """Bytes of the frame at the start of ``buf`` (sync, class, id, length, payload, checksum);
+        0: not all there yet; -1: not a frame (a length beyond any message)."""
+        if len(buf) < 6:
+            return 0
+        n = 8 + int.from_bytes(buf[4:6], "little")
+        if n > MAX_PAYLOAD + 8:
+            return -1
+        return n if len(buf) >= n else 0
+
     SUPPORTED_MESSAGES: ClassVar[tuple[str, ...]] = (
         "NAV-POSLLH",
         "NAV-PVT",
