@@ -42,7 +42,9 @@ def test_a_slow_line_overruns_like_a_real_receiver_counted_and_visible(tmp_path:
     emu = s.by_topic("hil/sim/status/gnss_emulator")[-1].decode().counters
     fixes = s.by_topic("hil/sim/sensor/gnss")
     # THEN about a third of the epochs fit: the rest overrun, counted, and never reach the bridge
-    assert emu["line.epochs"] == 99 and emu["line.overrun_epochs"] >= 50, emu  # the 100th is out after the end
+    assert emu["line.epochs"] == 99 and emu["line.overrun_epochs"] >= 50, (
+        emu
+    )  # the 100th is out after the end
     # what the line carried: 960 B/s, plus what still waited in the 4 KiB buffer at the end
     assert 25 <= len(fixes) <= 99 - emu["line.overrun_epochs"]
     assert emu["line.bytes_sent"] <= 960 * 10 + 4096 + 317
