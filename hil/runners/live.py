@@ -310,7 +310,9 @@ class WorldService(NodeService):
                 break
         if self.ctx.stop.is_set():
             return None
-        start = wall_ns() + int(o.lead_s * 1e9)
+        # time zero on a whole second of UTC: a receiver's epochs then fall on its own grid, as a
+        # real one's do on GPS time (and logs read better)
+        start = -(-(wall_ns() + int(o.lead_s * 1e9)) // 1_000_000_000) * 1_000_000_000
         return run_info(s, rig=self.keys.rig, start_epoch_ns=start, speed=o.speed, duration_s=o.duration_s)
 
 
