@@ -201,7 +201,12 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     from hil.runtime.registry import service_module
     from hil.runtime.service import options_from_json, run_service
 
+    if a.name is None:
+        a.parser.print_help()
+        return 0 if a.help else 2
     mod = service_module(a.name)
+    if a.help:
+        return int(mod.main(["--help"]) or 0)
     if a.options is not None:
         try:
             opts = options_from_json(a.options)
@@ -448,11 +453,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--quiet", action="store_true")
     sim.set_defaults(func=cmd_sim)
 
-    svc = sub.add_parser("service", help="run one service alone (what docker compose runs)")
-    svc.add_argument("name")
+    svc = sub.add_parser("service", help="run one service alone (what docker compose runs)", add_help=False)
+    svc.add_argument("name", nargs="?", help="a service; `hil service NAME --help` lists its flags")
+    svc.add_argument("-h", "--help", action="store_true", help="this help, or NAME's flags")
     svc.add_argument("--rig", default=None)
     svc.add_argument("--options", default=None, help="service options as a JSON object")
-    svc.set_defaults(func=cmd_service, passthrough=True)
+    svc.set_defaults(func=cmd_service, passthrough=True, parser=svc)
 
     info = sub.add_parser("info", help="what a recording holds")
     info.add_argument("file")
