@@ -93,7 +93,11 @@ class Truth(Message, frozen=True, kw_only=True):
 
 
 class ImuSample(Message, frozen=True, kw_only=True):
-    """One IMU interval of ``dt_ns`` ending at the capture instant."""
+    """One IMU interval of ``dt_ns`` ending at the capture instant.
+
+    On ``sensor/imu`` both are on the device clock; on ``synced/imu`` time sync has put both on
+    the rig clock (``stamp_ns`` re-stamped, ``dt_ns`` the interval with the clock model's rate
+    applied), which is what the estimators integrate over."""
 
     sensor: Name = "imu"
     device_stamp_ns: Ns
