@@ -38,6 +38,17 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
     p.add_argument(
         "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
     )
+    p.add_argument(
+        "--feedback",
+        default="auto",
+        help="seed estimators in feedback form (the INS reset by their estimate): auto (by the IMU "
+        "grade: consumer MEMS), none, or comma-separated names",
+    )
+    p.add_argument(
+        "--ekf-calibration",
+        default="auto",
+        help="ekf15's sensor-calibration states: auto (by the IMU grade), none, gyro, gyro+accel",
+    )
 
 
 def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
@@ -98,6 +109,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         interface=a.can_interface,
         fd=a.fd,
         estimators=[e for e in a.estimators.split(",") if e],
+        feedback=a.feedback,
+        ekf_calibration=a.ekf_calibration,
         live=not a.quiet,
         log_dir=record.resolve().with_suffix(".logs"),
         restart=a.restart,
@@ -182,6 +195,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record=record,
                 rig=a.rig,
                 estimators=[e for e in a.estimators.split(",") if e],
+                feedback=a.feedback,
+                ekf_calibration=a.ekf_calibration,
                 fd=a.fd,
                 on_progress=on_progress,
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
