@@ -73,6 +73,8 @@ class UpOptions:
     gnss_tcp: str | None = None  # the same line served over TCP, HOST:PORT
     gnss_baud: int = 115200
     gnss_messages: list[str] = field(default_factory=list)  # the receiver's message set (empty: defaults)
+    record_include: list[str] = field(default_factory=list)  # recorder key expressions (hil.record.keyfilter)
+    record_exclude: list[str] = field(default_factory=list)
 
     @property
     def gnss_wire(self) -> bool:
@@ -264,7 +266,12 @@ class Supervisor:
                 derived["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
         elif name == "recorder":
             path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
-            derived.update(path=str(path), zenoh_advanced=o.zenoh_miss_detection)
+            derived.update(
+                path=str(path),
+                zenoh_advanced=o.zenoh_miss_detection,
+                include=list(o.record_include),
+                exclude=list(o.record_exclude),
+            )
         elif name in ("gnss_emulator", "gnss_bridge") and o.gnss_wire:
             derived.update(protocol=o.gnss_protocol, baud=o.gnss_baud, messages=o.gnss_messages)
             if name == "gnss_emulator":
