@@ -42,6 +42,15 @@ class RecordingError(ValueError):
     """
 
 
+def no_run_message(name: str, records: Any) -> str:
+    """Why a rerun found no run: a file cut off before it, or not a rig session."""
+    if getattr(records, "truncated", False):
+        return (
+            f"{name}: the file is cut off before the run was announced (no hil/<rig>/run): nothing to rerun"
+        )
+    return f"{name}: no RunInfo (hil/<rig>/run): not a rig session"
+
+
 def split_part_path(path: Path, part: int) -> Path:
     """Where a split recording's part ``part`` goes: part 0 is ``path``, then ``<stem>_0001<suffix>``, ..."""
     return path if part == 0 else path.with_name(f"{path.stem}_{part:04d}{path.suffix}")

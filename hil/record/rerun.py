@@ -32,7 +32,7 @@ from hil.messages import (
 )
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import Matcher, SeqSet
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
 
@@ -59,14 +59,6 @@ def fusion_config_from(session: Session) -> FusionConfig:
         if cfg is not None:
             return cfg
     raise RecordingError(f"{session.path}: no fusion configuration (fusion/config): the fusion did not run")
-
-
-def _no_run(name: str, records: Any) -> str:
-    if getattr(records, "truncated", False):
-        return (
-            f"{name}: the file is cut off before the run was announced (no hil/<rig>/run): nothing to rerun"
-        )
-    return f"{name}: no RunInfo (hil/<rig>/run): not a rig session"
 
 
 def run_info_from(session: Session) -> RunInfo:
@@ -290,7 +282,7 @@ def rerun_fusion_records(
     for r in records:
         state.feed(r)
     if state.run is None:
-        raise RecordingError(_no_run(name, records))
+        raise RecordingError(no_run_message(name, records))
     if state.node is None:
         raise RecordingError(f"{name}: no fusion configuration (fusion/config): the fusion did not run")
     state.release(None)

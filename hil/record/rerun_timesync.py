@@ -31,8 +31,7 @@ from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.base import Out
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.matching import Matcher
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream
-from hil.record.rerun import _no_run
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
 from hil.sensor_table import SENSORS
 
 _RAW = {schema_name(k.message): k.message for k in SENSORS.values()}
@@ -126,7 +125,7 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
                 continue
         handle(r)
     if node is None:
-        raise RecordingError(_no_run(name, records))
+        raise RecordingError(no_run_message(name, records))
     keep(node.finish(now_ns))
     strict = _first_difference(matcher, late, list(matcher.recorded_pending))
     early = matcher.pending_before(now_ns - TAIL_NS)
