@@ -400,6 +400,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
     """Send one ``hil.FaultCommand`` to a running rig (Zenoh from the environment, like monitor)."""
     import time
 
+    from hil.bus.describe import encoding_of
     from hil.bus.keys import Keys, check_name
     from hil.bus.pubsub import declare_publisher
     from hil.bus.session import BusConfig, open_session
@@ -430,7 +431,8 @@ def cmd_fault(a: argparse.Namespace) -> int:
     )
     session = open_session(BusConfig.from_env())
     try:
-        pub = declare_publisher(session, Keys(a.rig).control("fault"))  # as every rig publisher
+        # as every rig publisher, the type in its encoding
+        pub = declare_publisher(session, Keys(a.rig).control("fault"), encoding=encoding_of(FaultCommand))
         time.sleep(a.wait)  # let the session find the rig's subscribers before the one put
         pub.put(encode(cmd))
         time.sleep(0.2)
