@@ -12,6 +12,7 @@ as far as it goes. A file that is not a hil recording raises ``RecordingError`` 
 from __future__ import annotations
 
 import heapq
+import itertools
 import json
 import re
 import sys
@@ -25,7 +26,7 @@ from mcap.writer import CompressionType, Writer
 
 from hil import __version__
 from hil.record.completeness import Completeness
-from hil.record.mcapio import PROFILE, RecordingError
+from hil.record.mcapio import PROFILE, RecordingError, split_part_path
 from hil.record.scan import Scan, ScanReport, channel_key, describe_loss
 
 CHUNK_SIZE = 512 * 1024
@@ -310,12 +311,15 @@ def _copy_extras(w: OutputWriter, extras: Iterable[Attachment | Metadata]) -> No
 _PER_PIECE = frozenset({"part", "filter", "recovered"})  # metadata that describes one input only
 
 
-def merge_recordings(srcs: list[Path], out: str | Path) -> WriteResult:
+def merge_recordings(srcs: list[Path], out: str | Path, *, parts: bool | None = None) -> WriteResult:
     """One indexed file from several: the parts of a split session, or pieces ``hil filter`` cut.
 
-    Messages are merged by log time, each input in its own file order, ties in input order:
-    pieces cut by time come out end to end, exactly as they were (``filter`` then ``merge``
-    gives the original messages), and pieces cut by topic interleave again. Attachments are
+    The parts of one split session (``parts``; None: when the inputs are named as the recorder
+    names parts, ``s.mcap s_0001.mcap ...``) are joined end to end: the recorder rotates between
+    two messages, so that is the session's own order. Other inputs are merged by log time, each
+    in its own file order, ties in input order: pieces cut by time come out end to end, exactly
+    as they were (``filter`` then ``merge`` gives the original messages), and pieces cut by topic
+    interleave again. Attachments are
     kept once per name and content; metadata once per name, except ``completeness``, of which
     the last is kept (a split session's last part covers the whole session) and the per-piece
     ``part``/``filter``/``recovered`` records, which are dropped.
@@ -330,9 +334,12 @@ def merge_recordings(srcs: list[Path], out: str | Path) -> WriteResult:
         ((t.message.log_time, k, n, t) for n, t in enumerate(iter_tagged(s, extras[k])))
         for k, s in enumerate(scans)
     ]
+    if parts is None:
+        parts = all(p.name == split_part_path(srcs[0], k).name for k, p in enumerate(srcs))
+    ordered = itertools.chain(*streams) if parts else heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2]))
     w = OutputWriter(dest, f"hil {__version__} merge")
     try:
-        for _log, _k, _n, t in heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2])):
+        for _log, _k, _n, t in ordered:
             w.message(w.channel(t.channel, t.schema), t.message)
         _merge_extras(w, extras)
         w.add_metadata("merge", {"from": json.dumps([p.name for p in srcs])})
