@@ -103,15 +103,18 @@ def _mean(xs: list[float]) -> float:
 def sim_table(sides: list[Side], rig_s: float) -> list[str]:
     ref, head = sides
     lines = [
-        "| revision | runs | wall s (mean) | CPU s (mean) | × real time |",
+        "| revision | runs | wall s (mean) | CPU s (mean) | rig s per CPU s |",
         "| --- | ---: | ---: | ---: | ---: |",
     ]
     for s in sides:
         wall, cpu = _mean([r.wall_s for r in s.sims]), _mean([r.cpu_s for r in s.sims])
-        lines.append(f"| {s.label} | {len(s.sims)} | {wall:.1f} | {cpu:.1f} | {rig_s / wall:.2f} |")
+        lines.append(f"| {s.label} | {len(s.sims)} | {wall:.1f} | {cpu:.1f} | {rig_s / cpu:.2f} |")
     pairs = [h.cpu_s / r.cpu_s for r, h in zip(ref.sims, head.sims, strict=True)]
     lines += ["", f"CPU time {head.label}/{ref.label} per pair: " + ", ".join(f"{p:.3f}" for p in pairs)]
-    lines.append(f"mean ratio **{_mean(pairs):.3f}** (below 1: {head.label} is faster).")
+    lines.append(
+        f"mean ratio **{_mean(pairs):.3f}** (below 1: {head.label} is faster). CPU time is the measure: "
+        "wall time includes waiting for a core when the machine is busy."
+    )
     a, b = ref.sims[0].counts, head.sims[0].counts
     same = sorted(t for t in a.keys() & b.keys() if a[t] == b[t])
     differ = sorted(t for t in a.keys() & b.keys() if a[t] != b[t])
