@@ -38,6 +38,7 @@ import queue
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, date, datetime
@@ -63,6 +64,8 @@ KNOT_MPS = 1852.0 / 3600.0
 
 OUTPUT_PERIOD_S = 0.1  # 10 Hz solutions
 MAX_PREDICT_S = 1.0  # a solution is predicted to its send time from a state at most this old
+MAX_FIX_WAIT_S = 2.0  # a fix waits at most this long for the IMU to reach its time of validity
+FRAME_BATCH = 64  # CAN frames taken in between two looks at the clock
 CLOCK_LEAK = 100e-6  # the IMU clock's offset estimate may rise this fast (s/s): its drift
 HISTORY_ROWS = 4096  # IMU-rate states kept to meet delayed fixes (~10 s at 400 Hz)
 MIN_COURSE_SPEED_MPS = 3.0  # below this the GNSS course says nothing about heading
@@ -414,7 +417,7 @@ class Navigator:
         self.llh: Vec = (0.0, 0.0, 0.0)  # latitude rad, longitude rad, height m
         self.acc_corr: Vec = (0.0, 0.0, 0.0)  # NED m/s^2, fed back by the filter
         self.P = np.zeros((3, 3, 3))  # per NED axis: position, velocity, acceleration error
-        self.counts = dict.fromkeys(("fixes_used", "fixes_rejected"), 0)
+        self.counts = dict.fromkeys(("fixes_used", "fixes_rejected", "fixes_unaligned"), 0)
         self._f_level: Vec = (0.0, 0.0, 0.0)  # body specific force, averaged, before alignment
         self._f_nav: Vec = (0.0, 0.0, 0.0)  # NED specific force x dt since the last fix ...
         self._f_nav_s = 0.0  # ... over this long
@@ -555,6 +558,7 @@ class Navigator:
         t = self._hist[:, 0]
         k = int(np.argmin(np.abs(t - t_s)))
         if abs(t[k] - t_s) > 0.05:
+            self.counts["fixes_unaligned"] += 1
             return np.array([self._t_s, *self.llh, *self.v]), 0.0
         return self._hist[k].copy(), max(0.0, self._t_s - t[k])
 
@@ -604,6 +608,10 @@ class Navigator:
         self.q = quat_mul(quat_rotvec(*phi.tolist()), self.q)
         along = (dacc @ f) / ff * f  # along the specific force: not an attitude error
         self.acc_corr = tuple((self.acc_corr + along).tolist())  # type: ignore[assignment]
+
+    def latest_s(self) -> float:
+        """The time of the newest IMU sample taken in, on the unit's UTC clock."""
+        return self._t_s
 
     def lag_s(self, now_s: float) -> float:
         """How old the newest IMU sample taken in is at ``now_s`` (the unit's processing lag)."""
@@ -689,6 +697,7 @@ class Unit:
         self.line = GnssLine(args.gnss, args.gnss_baud, self.parser, stop)
         kinds = ("solutions", "send_errors", "stale_skipped", "fixes_duplicate", "lag_max_ms")
         self.counts = dict.fromkeys(kinds, 0)
+        self.pending: deque[Fix] = deque()  # fixes ahead of the IMU data taken in
 
     def run(self) -> None:
         a = self.args
@@ -696,37 +705,52 @@ class Unit:
         LOG.info("CAN %s %s%s, GNSS %s at %d baud", a.can_interface, a.channel, " FD" if a.fd else "",
                  a.gnss, a.gnss_baud)  # fmt: skip
         self.line.start()
-        next_out = next_log = 0.0
+        next_out = next_check = next_log = 0.0
         try:
             while not self.stop.is_set():
-                msg = bus.recv(timeout=0.05)
-                if msg is not None:
-                    sample = self.imu.feed(msg)
-                    if sample is not None:
-                        self.nav.imu(sample)
-                self._fixes()
+                self._frames(bus)
                 now = time.time()
+                self._fixes(now)
                 if now >= next_out:
                     next_out = (math.floor(now / OUTPUT_PERIOD_S) + 1) * OUTPUT_PERIOD_S
                     self._send(bus, now)
-                if now >= next_log:
-                    next_log = now + 10.0
-                    LOG.info("%s", self.summary())
-                if a.stop_with_pid and not _alive(a.stop_with_pid):
-                    LOG.info("process %d is gone: stopping", a.stop_with_pid)
-                    break
+                if now >= next_check:
+                    next_check = now + 1.0
+                    if now >= next_log:
+                        next_log = now + 10.0
+                        LOG.info("%s", self.summary())
+                    if a.stop_with_pid and not _alive(a.stop_with_pid):
+                        LOG.info("process %d is gone: stopping", a.stop_with_pid)
+                        break
         finally:
             self.stop.set()
             bus.shutdown()
             self.line.join(timeout=2.0)
             LOG.info("stopped: %s", self.summary())
 
-    def _fixes(self) -> None:
+    def _frames(self, bus: can.BusABC) -> None:
+        """The frames waiting (up to a batch: the output must not wait), at most 50 ms for one."""
+        msg, n = bus.recv(timeout=0.05), 0
+        while msg is not None:
+            sample = self.imu.feed(msg)
+            if sample is not None:
+                self.nav.imu(sample)
+            n += 1
+            msg = bus.recv(timeout=0.0) if n < FRAME_BATCH else None
+
+    def _fixes(self, now: float) -> None:
+        """Fixes in time order, each once the IMU has reached its time of validity (on a busy
+        host the IMU frames can fall behind the line); one that waited too long goes as it is."""
         while True:
             try:
-                fix = self.line.fixes.get_nowait()
+                self.pending.append(self.line.fixes.get_nowait())
             except queue.Empty:
+                break
+        while self.pending:
+            fix = self.pending[0]
+            if fix.t_valid_s > self.nav.latest_s() and now - fix.rx_s < MAX_FIX_WAIT_S:
                 return
+            self.pending.popleft()
             if self.nav.gnss(fix) == "duplicate":
                 self.counts["fixes_duplicate"] += 1
 
