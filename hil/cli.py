@@ -161,6 +161,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         sup.check_options()
     except ValueError as err:
         raise UserError(str(err)) from None
+    if a.dut_emulator == "unit":
+        wire = f"GNSS ({'+'.join(opts.gnss_protocol)}) on {sup.dut_line()}"
+        print(f"hil up: device under test {sup.dut_command()[1]}: IMU on CAN, {wire}")
     print(
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
@@ -607,7 +610,16 @@ def _add_up_parser(sub: Any) -> None:
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
-    up.add_argument("--dut-emulator", action="store_true", help="also run an emulated unit for --dut")
+    up.add_argument(
+        "--dut-emulator",
+        nargs="?",
+        const="unit",
+        default=None,
+        choices=("unit", "truth"),
+        help="also play the unit for --dut: 'unit' (the default) runs the mapping's own program on the "
+        "wires (examples/dut/navbox.py: IMU on CAN, its own GNSS line, default --gnss-protocol nmea), "
+        "'truth' a stand-in sending truth plus a wandering error (docs/dut.md)",
+    )
     up.add_argument(
         "--no-zenoh-miss-detection",
         action="store_true",
