@@ -106,8 +106,15 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
             raise UserError(
                 f"--gnss-serial {p}: exists and is not a link; give a new path (the rig makes the link)"
             )
-        if not p.parent.is_dir() or not os.access(p.parent, os.W_OK):
-            raise UserError(f"--gnss-serial {p}: cannot make a link in {p.parent} (missing or not writable)")
+        probe = p.parent / f".hil-link-probe-{os.getpid()}"
+        try:  # a trial link, not os.access: root passes access checks on /proc and read-only mounts
+            os.symlink(os.devnull, probe)
+            probe.unlink()
+        except OSError as err:
+            raise UserError(
+                f"--gnss-serial {p}: cannot make a link in {p.parent} ({err.strerror}); give a path in a "
+                "writable directory"
+            ) from None
     return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
 
 
