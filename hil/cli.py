@@ -14,7 +14,16 @@ from pathlib import Path
 from typing import Any
 
 from hil import __version__
-from hil.runtime.argtypes import positive_float
+from hil.runtime.argtypes import (
+    OneLineParser,
+    bounded_float,
+    bounded_int,
+    duration_s,
+    positive_float,
+    restart_count,
+    seconds,
+    speed,
+)
 
 EXIT_USAGE = 2
 
@@ -30,7 +39,7 @@ def _default_record_path(scenario: str) -> Path:
 
 def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) -> None:
     p.add_argument("--scenario", default="straight_level", help="built-in name or path to a scenario TOML")
-    p.add_argument("--duration", type=positive_float, default=default_duration, help="seconds of rig time")
+    p.add_argument("--duration", type=duration_s, default=default_duration, help="seconds of rig time")
     p.add_argument(
         "--record", type=Path, default=None, help="MCAP path (default: recordings/<scenario>-<time>.mcap)"
     )
@@ -46,7 +55,12 @@ def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="the GNSS receiver on a serial line: nmea, ubx or nmea,ubx (default with --gnss-serial: nmea)",
     )
-    p.add_argument("--gnss-baud", type=int, default=115200, help="the receiver line's baud rate (8N1)")
+    p.add_argument(
+        "--gnss-baud",
+        type=bounded_int(1, 10_000_000),
+        default=115200,
+        help="the receiver line's baud rate (8N1)",
+    )
     p.add_argument(
         "--gnss-messages", default="", help="the receiver's message set, e.g. GGA,RMC,GST or NAV-PVT,TIM-TP"
     )
@@ -261,8 +275,10 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
 
 def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.progress import Progress
+    from hil.record.mcapio import check_hil_recording
     from hil.record.rerun import rerun
 
+    check_hil_recording(a.file)
     with Progress("rerun", unit="MB read") as bar:
 
         def on_progress(done: int, total: int) -> None:
@@ -276,8 +292,10 @@ def cmd_rerun(a: argparse.Namespace) -> int:
 
 def cmd_report(a: argparse.Namespace) -> int:
     from hil.progress import Progress
+    from hil.record.mcapio import check_hil_recording
     from hil.report.build import build_report
 
+    check_hil_recording(a.file)  # one line for a corrupt, empty or foreign file, before any output
     out = a.out or Path(a.file).with_suffix(".report")
     with Progress("report", total=100.0, unit="%", enabled=False if a.no_progress else None) as bar:
         res = build_report(a.file, out, progress=lambda f, stage: bar.update(100 * f, stage=stage))
@@ -395,9 +413,7 @@ def _add_up_parser(sub: Any) -> None:
     """``hil up``'s options (the live rig)."""
     up = sub.add_parser("up", help="run the live rig: every service as its own process")
     _add_run_args(up, None)
-    up.add_argument(
-        "--speed", type=positive_float, default=1.0, help="rig clock K times faster than real time"
-    )
+    up.add_argument("--speed", type=speed, default=1.0, help="rig clock K times faster than real time")
     up.add_argument("--channel", default="vcan0", help="CAN channel of the IMU")
     up.add_argument(
         "--can-interface",
@@ -406,10 +422,13 @@ def _add_up_parser(sub: Any) -> None:
     )
     up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
     up.add_argument(
-        "--restart", type=int, default=0, help="restarts allowed per service before the run fails"
+        "--restart", type=restart_count, default=0, help="restarts allowed per service before the run fails"
     )
     up.add_argument(
-        "--imu-rate", type=int, default=None, help="IMU rate in Hz (overrides the scenario's; 100-2000)"
+        "--imu-rate",
+        type=bounded_int(100, 2000),
+        default=None,
+        help="IMU rate in Hz (overrides the scenario's; 100-2000)",
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
@@ -440,7 +459,7 @@ def _add_up_parser(sub: Any) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
+    ap = OneLineParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
     ap.add_argument("--version", action="version", version=f"hil {__version__}")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
@@ -490,7 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     mon = sub.add_parser("monitor", help="attach to a running rig (another terminal or host): the live table")
     mon.add_argument("--rig", default="bench", help="the rig to watch (hil/<rig>/...)")
-    mon.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
+    mon.add_argument("--duration", type=seconds, default=None, help="stop after this many seconds")
     mon.add_argument("--interval", type=positive_float, default=1.0, help="seconds between redraws")
     mon.add_argument("--once", action="store_true", help="print one table once statuses arrive, then exit")
     mon.set_defaults(func=cmd_monitor)
@@ -507,9 +526,14 @@ def build_parser() -> argparse.ArgumentParser:
     flt.add_argument("kind", choices=sorted(FAULT_KINDS))
     flt.add_argument("--rig", default="bench", help="the rig (hil/<rig>/control/fault)")
     flt.add_argument("--target", default="", help="kill_service: the service; clock_step: imu or gnss")
-    flt.add_argument("--duration", type=float, default=0.0, help="seconds (0: to the end / instantaneous)")
+    flt.add_argument("--duration", type=seconds, default=0.0, help="seconds (0: to the end / instantaneous)")
     flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
-    flt.add_argument("--wait", type=float, default=1.0, help="seconds to connect before sending")
+    flt.add_argument(
+        "--wait",
+        type=bounded_float(0.0, 60.0, unit="s"),
+        default=1.0,
+        help="seconds to connect before sending",
+    )
     flt.set_defaults(func=cmd_fault)
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
