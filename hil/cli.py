@@ -26,6 +26,7 @@ from hil.runtime.argtypes import (
 )
 
 EXIT_USAGE = 2
+ROUTER_LISTEN = "tcp/127.0.0.1:7447"  # hil router with neither --listen nor --config: this host only
 
 
 class UserError(Exception):
@@ -121,6 +122,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         split_mb=a.split_mb or 0.0,
         split_s=a.split_s or 0.0,
         zenoh_miss_detection=not a.no_zenoh_miss_detection,
+        open_bus=a.open_bus,
         gnss_serial=str(Path(a.gnss_serial).absolute()) if a.gnss_serial else None,
         gnss_tcp=a.gnss_tcp,
         **_gnss_wire(a, live=True),  # type: ignore[arg-type]
@@ -142,6 +144,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
     print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
+    print(f"hil up: {sup.endpoint_line()}", flush=True)
     rc = sup.run()
     if sup.cpu_table():
         print(sup.cpu_table())
@@ -309,12 +312,11 @@ def cmd_monitor(a: argparse.Namespace) -> int:
     import threading
 
     from hil.bus.keys import check_name
-    from hil.bus.session import BusConfig, open_session
-    from hil.monitor import MonitorOptions, run_monitor
+    from hil.monitor import MonitorOptions, connect, run_monitor
     from hil.runtime.service import install_signal_handlers
 
     check_name("rig", a.rig)
-    session = open_session(BusConfig.from_env())
+    session = connect(a.rig)
     stop = threading.Event()
     install_signal_handlers(stop)
     try:
@@ -354,7 +356,7 @@ def cmd_router(a: argparse.Namespace) -> int:
             raise UserError(f"--config {a.config}: zenoh refused it: {err}") from err
         listen = a.listen or f"as in {a.config}"
     else:
-        endpoints = tuple(x for x in (a.listen or "tcp/0.0.0.0:7447").split(",") if x)
+        endpoints = tuple(x for x in (a.listen or ROUTER_LISTEN).split(",") if x)
         session = open_session(BusConfig(mode="router", listen=endpoints, connect=()))
         listen = ", ".join(endpoints)
     print(f"hil router: listening on {listen}", flush=True)
@@ -371,9 +373,9 @@ def cmd_fault(a: argparse.Namespace) -> int:
 
     from hil.bus.keys import Keys, check_name
     from hil.bus.pubsub import declare_publisher
-    from hil.bus.session import BusConfig, open_session
     from hil.faults import FaultError, check_fault
     from hil.messages import FaultCommand, encode
+    from hil.monitor import connect
 
     check_name("rig", a.rig)
     params: dict[str, float] = {}
@@ -397,7 +399,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
         params=params,
         duration_s=a.duration,
     )
-    session = open_session(BusConfig.from_env())
+    session = connect(a.rig)
     try:
         pub = declare_publisher(session, Keys(a.rig).control("fault"))  # as every rig publisher
         time.sleep(a.wait)  # let the session find the rig's subscribers before the one put
@@ -444,6 +446,12 @@ def _add_up_parser(sub: Any) -> None:
         type=positive_float,
         default=None,
         help="start a new recording part after this many seconds",
+    )
+    up.add_argument(
+        "--open-bus",
+        action="store_true",
+        help="let any local process join the embedded hub without the per-run credential "
+        "(it still listens on loopback only; docs/deploy.md, Security)",
     )
     up.add_argument(
         "--no-zenoh-miss-detection",
@@ -538,7 +546,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
     router.add_argument(
-        "--listen", default=None, help="endpoints, comma-separated (default tcp/0.0.0.0:7447 or --config's)"
+        "--listen",
+        default=None,
+        help="endpoints, comma-separated (default: --config's, else tcp/127.0.0.1:7447, this host only; "
+        "tcp/0.0.0.0:7447 for other hosts)",
     )
     router.add_argument("--config", default=None, help="a zenoh json5 config file (TLS, access control)")
     router.set_defaults(func=cmd_router)

@@ -1,8 +1,11 @@
 """``hil up``: every service as its own OS process, one live table, a clean stop, a summary.
 
 The supervisor opens the rig's embedded Zenoh hub (a peer listening on a free loopback port) and
-hands its endpoint to every child, so the rig needs no router and no set-up. With
-``HIL_ZENOH_MODE=client`` in the environment it uses that router instead.
+hands its endpoint to every child, so the rig needs no router and no set-up. Every listener of the
+rig checks a secret made for the run (``hil.bus.endpoint``: the children and the user's viewers
+read it from files only the user can read), so no other process on the machine can join unless
+``--open-bus`` says so. With ``HIL_ZENOH_MODE=client`` or ``HIL_ZENOH_CONNECT`` in the
+environment it joins that network instead.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from hil.bus.endpoint import RigAccess
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -67,6 +71,7 @@ class UpOptions:
     split_mb: float = 0.0  # the recorder starts a new part after this many MB (0: one file)
     split_s: float = 0.0  # ... or after this many seconds
     zenoh_miss_detection: bool = True  # advanced publishers + the recorder's sample-miss listener
+    open_bus: bool = False  # the embedded hub without the per-run credential (hil.bus.endpoint)
     # the GNSS receiver on a wire (hil/wire, hil/nodes/gnss_bridge.py)
     gnss_protocol: list[str] = field(default_factory=list)  # nmea, ubx; empty: fixes on Zenoh only
     gnss_serial: str | None = None  # a pseudo-terminal linked at this path, for a device or gpsd
@@ -230,15 +235,27 @@ class Supervisor:
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
         env_cfg = BusConfig.from_env()
+        self.access: RigAccess | None = None  # the embedded hub's endpoint and per-run secret
         if env_cfg.mode == "client" or os.environ.get("HIL_ZENOH_CONNECT"):
             self.hub_cfg = env_cfg
             self.child_bus = env_cfg
         else:
-            port = free_port()
-            self.hub_cfg = BusConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), connect=())
-            self.child_bus = BusConfig(
-                mode="peer", connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",)
-            )
+            endpoint = f"tcp/127.0.0.1:{free_port()}"
+            self.access = RigAccess.new(opts.rig, endpoint, authenticated=not opts.open_bus)
+            self.hub_cfg = self.access.hub_config()
+            self.child_bus = self.access.child_config()
+
+    def endpoint_line(self) -> str:
+        """What ``hil up`` prints about its bus: where it is and how a viewer gets in."""
+        a = self.access
+        if a is None:
+            where = ", ".join(self.child_bus.connect) or "the configured network"
+            return f"bus: joins {where} (HIL_ZENOH_* from the environment)"
+        how = "authenticated per run" if a.authenticated else "OPEN: any local process may join (--open-bus)"
+        return (
+            f"bus: embedded hub {a.endpoint}, {how}; `hil monitor --rig {a.rig}` attaches "
+            f"(endpoint file {a.name_path}, removed at exit)"
+        )
 
     def service_names(self) -> list[str]:
         names = list(SERVICES)
@@ -367,7 +384,14 @@ class Supervisor:
 
     def run(self) -> int:
         o = self.opts
-        session = open_session(self.hub_cfg)
+        if self.access is not None:
+            self.access.write()  # before the hub opens: it reads the dictionary from there
+        try:
+            session = open_session(self.hub_cfg)
+        except BaseException:
+            if self.access is not None:
+                self.access.remove()
+            raise
         keys = Keys(o.rig)
         stats = Stats()
         subs = [
@@ -397,6 +421,8 @@ class Supervisor:
                 sub.undeclare()
             self._event_pub = None
             session.close()
+            if self.access is not None:
+                self.access.remove()
         return 1 if self.failures else 0
 
     def _wait(self, t_start: float) -> None:
