@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -116,6 +117,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         live=not a.quiet,
         log_dir=record.resolve().with_suffix(".logs"),
         restart=a.restart,
+        restart_ready_s=a.restart_deadline,
         dut_mapping=str(Path(a.dut).resolve()) if a.dut else None,
         dut_emulator=a.dut_emulator,
         imu_rate_hz=a.imu_rate,
@@ -135,6 +137,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
     if a.dut and not Path(a.dut).is_file():
         raise UserError(f"--dut {a.dut}: no such mapping file")
+    _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]
     sup = Supervisor(opts)
     try:
         sup.check_options()
@@ -166,6 +169,22 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: no recording was written at {record}", file=sys.stderr)
         rc = rc or 1
     return rc
+
+
+def _check_writable(record: Path, log_dir: Path) -> None:
+    """The recording's directory and the log directory take a file, or one line, before any
+    process starts (a recorder that cannot write would otherwise run the whole rig for nothing)."""
+    for where in (record.parent, log_dir):
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(dir=where, prefix=".hil-probe-")
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as err:
+            raise UserError(
+                f"--record {record}: cannot write in {where} ({err.strerror or err}); "
+                "give a path on a writable disk"
+            ) from None
 
 
 def _describe_can(channel: str, interface: str | None) -> str:
@@ -425,6 +444,12 @@ def _add_up_parser(sub: Any) -> None:
     up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
     up.add_argument(
         "--restart", type=restart_count, default=0, help="restarts allowed per service before the run fails"
+    )
+    up.add_argument(
+        "--restart-deadline",
+        type=bounded_float(1.0, 3600.0, unit="s"),
+        default=60.0,
+        help="seconds a restarted service has to report running; later, the run fails (default 60)",
     )
     up.add_argument(
         "--imu-rate",

@@ -6,6 +6,7 @@ that keeps dying ends the run non-zero with the reason."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import threading
@@ -96,6 +97,7 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
     # THEN the run completes, says what happened, and the recorder went on in a new part
     assert rc == 0, stdout[-3000:] + stderr[-3000:]
     assert "gnss_emulator died (killed by signal 9); restarted (1/1)" in stdout
+    assert re.search(r"restart: fusion ready again \(pid \d+\) after [\d.]+ s down", stdout), stdout[-3000:]
     part = tmp_path / "s.part1.mcap"
     assert f"recording continues in {part}" in stdout and part.is_file()
     first = read_session(out)
