@@ -158,15 +158,21 @@ def test_a_stranger_cannot_join_the_embedded_rig_but_the_monitor_can(rig_proc) -
     # a zenoh program that opens the endpoint file (the documented way) receives the rig's data
     viewer_got: list[str] = []
     viewer = zenoh.open(zenoh.Config.from_file(str(found.name_path)))
+    strangers: list[Stranger] = []
     vsub = viewer.declare_subscriber(f"hil/{rig}/**", lambda s: viewer_got.append(str(s.key_expr)))
-
-    # strangers: at the hub and at every service's own listener
-    ports = {int(found.endpoint.rsplit(":", 1)[1])}
-    for child in _children(proc.pid):
-        ports |= _listening_ports(child)
-    assert len(ports) >= 8, ports  # the hub + seven services listening on loopback
-    strangers = [Stranger(f"tcp/127.0.0.1:{port}", rig) for port in sorted(ports)]
     try:
+        # strangers: at the hub and at every service's own listener (on a loaded machine the
+        # last services open theirs a while after the monitor saw the first rows running)
+        deadline = time.monotonic() + 90.0
+        while True:
+            ports = {int(found.endpoint.rsplit(":", 1)[1])}
+            for child in _children(proc.pid):
+                ports |= _listening_ports(child)
+            if len(ports) >= 8 or time.monotonic() > deadline or proc.poll() is not None:
+                break
+            time.sleep(0.5)
+        assert len(ports) >= 8, ports  # the hub + seven services listening on loopback
+        strangers = [Stranger(f"tcp/127.0.0.1:{port}", rig) for port in sorted(ports)]
         time.sleep(2.0)
         for s in strangers:
             s.put()
