@@ -184,12 +184,12 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
     if a.dut and not Path(a.dut).is_file():
         raise UserError(f"--dut {a.dut}: no such mapping file")
-    _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]
     sup = Supervisor(opts)
     try:
         sup.check_options()
     except ValueError as err:
         raise UserError(str(err)) from None
+    _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
     if a.dut_emulator == "unit":
         wire = f"GNSS ({'+'.join(opts.gnss_protocol)}) on {sup.dut_line()}"
         print(f"hil up: device under test {sup.dut_command()[1]}: IMU on CAN, {wire}")
