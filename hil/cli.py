@@ -106,8 +106,15 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
             raise UserError(
                 f"--gnss-serial {p}: exists and is not a link; give a new path (the rig makes the link)"
             )
-        if not p.parent.is_dir() or not os.access(p.parent, os.W_OK):
-            raise UserError(f"--gnss-serial {p}: cannot make a link in {p.parent} (missing or not writable)")
+        probe = p.parent / f".hil-link-probe-{os.getpid()}"
+        try:  # a trial link, not os.access: root passes access checks on /proc and read-only mounts
+            os.symlink(os.devnull, probe)
+            probe.unlink()
+        except OSError as err:
+            raise UserError(
+                f"--gnss-serial {p}: cannot make a link in {p.parent} ({err.strerror}); give a path in a "
+                "writable directory"
+            ) from None
     return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
 
 
@@ -161,6 +168,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         sup.check_options()
     except ValueError as err:
         raise UserError(str(err)) from None
+    if a.dut_emulator == "unit":
+        wire = f"GNSS ({'+'.join(opts.gnss_protocol)}) on {sup.dut_line()}"
+        print(f"hil up: device under test {sup.dut_command()[1]}: IMU on CAN, {wire}")
     print(
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
@@ -607,7 +617,16 @@ def _add_up_parser(sub: Any) -> None:
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
-    up.add_argument("--dut-emulator", action="store_true", help="also run an emulated unit for --dut")
+    up.add_argument(
+        "--dut-emulator",
+        nargs="?",
+        const="unit",
+        default=None,
+        choices=("unit", "truth"),
+        help="also play the unit for --dut: 'unit' (the default) runs the mapping's own program on the "
+        "wires (examples/dut/navbox.py: IMU on CAN, its own GNSS line, default --gnss-protocol nmea), "
+        "'truth' a stand-in sending truth plus a wandering error (docs/dut.md)",
+    )
     up.add_argument(
         "--no-zenoh-miss-detection",
         action="store_true",
