@@ -42,6 +42,7 @@ def proc_cpu_seconds(pid: int) -> float | None:
 
 
 DUT_EMULATORS = ("unit", "truth")
+SUPERVISOR = "supervisor"  # its own row in the CPU table (this process: the hub, the live view)
 DUT_UNIT = "dut"  # the child that runs a unit's own program (``--dut-emulator``): not a service
 
 
@@ -513,6 +514,7 @@ class Supervisor:
                 self._cpu_base_t = time.monotonic()
                 for name, c in self.children.items():
                     self._cpu_base[name] = proc_cpu_seconds(c.proc.pid) or 0.0
+                self._cpu_base[SUPERVISOR] = proc_cpu_seconds(os.getpid()) or 0.0
             if run is not None and o.duration_s is not None:
                 clock = RigClock(run.start_epoch_ns, run.speed)
                 if clock.now_ns() >= int((o.duration_s + 0.3) * 1e9):
@@ -535,6 +537,10 @@ class Supervisor:
             cpu = proc_cpu_seconds(c.proc.pid)
             if cpu is not None:
                 self.cpu_s[name] = cpu - self._cpu_base.get(name, 0.0)
+        # this process too: the hub every service talks through, the live view, the watchdog
+        own = proc_cpu_seconds(os.getpid())
+        if own is not None and SUPERVISOR in self._cpu_base:
+            self.cpu_s[SUPERVISOR] = own - self._cpu_base[SUPERVISOR]
 
     def cpu_table(self) -> str:
         if not self.cpu_s or self.cpu_window_s <= 0:
@@ -542,6 +548,8 @@ class Supervisor:
         rows = [f"CPU over {self.cpu_window_s:.1f} s of wall time (share of one core):"]
         for name, cpu in sorted(self.cpu_s.items(), key=lambda kv: -kv[1]):
             rows.append(f"  {name:<14}{cpu:8.2f} s  {100 * cpu / self.cpu_window_s:6.1f} %")
+        total = sum(self.cpu_s.values())
+        rows.append(f"  {'all':<14}{total:8.2f} s  {100 * total / self.cpu_window_s:6.1f} %")
         return "\n".join(rows)
 
     def _stop_all(self) -> None:
