@@ -82,6 +82,7 @@ def _one_rig(a: argparse.Namespace, rig: str) -> tuple[int, list[str]]:
         lines.append(f"| {name} | {cpu:.2f} | {100 * cpu / sup.cpu_window_s:.1f} % |")
     total = sum(sup.cpu_s.values())
     lines.append(f"| **all** | {total:.2f} | **{100 * total / sup.cpu_window_s:.1f} %** |")
+    lines += ["", f"CPU per IMU sample over the rig: {1e3 * total / max(1, imu.count):.2f} ms."]
     lines += [
         "",
         "Latency from an IMU sample's true capture to its arrival at the recorder (ms):",
@@ -158,8 +159,8 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
         f"`{a.scenario}`, {can}; share of one core per service (`hil up`'s CPU table), IMU samples "
         "recorded and sequence gaps over every recorded topic:",
         "",
-        "| rig | code | IMU Hz | gaps | " + " | ".join(names) + " | **all** |",
-        "| --- | --- | ---: | ---: | " + " | ".join("---:" for _ in names) + " | ---: |",
+        "| rig | code | IMU Hz | gaps | " + " | ".join(names) + " | **all** | ms CPU per IMU sample |",
+        "| --- | --- | ---: | ---: | " + " | ".join("---:" for _ in names) + " | ---: | ---: |",
     ]
     for rig, tree, window, cpu, n_imu, gaps in rows:
         share = [f"{100 * cpu.get(n, 0.0) / window:.1f} %" if n in cpu else "-" for n in names]
@@ -167,12 +168,15 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
         lines.append(
             f"| {rig} | {code} | {n_imu / a.duration:.1f} | {gaps} | "
             + " | ".join(share)
-            + f" | **{100 * sum(cpu.values()) / window:.1f} %** |"
+            + f" | **{100 * sum(cpu.values()) / window:.1f} %**"
+            + f" | {1e3 * sum(cpu.values()) / max(1, n_imu):.2f} |"
         )
     lines += [
         "",
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores (the rigs "
-        "themselves and other engineers' work); an older revision's table may lack the supervisor row.",
+        "themselves and other engineers' work); an older revision's table may lack the supervisor row. "
+        "A rig starved of CPU sends fewer samples than its rate: CPU per IMU sample (every process of "
+        "the rig over the samples recorded) is the figure to compare.",
     ]
     return 0, lines
 
