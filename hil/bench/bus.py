@@ -198,6 +198,9 @@ def _idle_cpu(_seconds: float) -> float:
 
 def _child_main(argv: list[str]) -> int:
     role, case, endpoint, n, rate, burst = argv
+    import hil
+
+    print(f"bench child {role} {case}: hil from {os.path.dirname(hil.__file__)}", file=sys.stderr)
     if role == "rx":
         out = _receiver(case, endpoint, int(n))
     else:
@@ -207,9 +210,14 @@ def _child_main(argv: list[str]) -> int:
 
 
 # -- the parent ---------------------------------------------------------------------------------
-def _spawn(args: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
+def _spawn(args: list[str], env: dict[str, str], tree: str) -> subprocess.Popen[str]:
+    """A child running this file's code with ``tree``'s ``hil`` (an older checkout has no
+    ``hil.bench.bus``; ``-m`` would import this checkout's ``hil`` from the current directory)."""
+    me = os.path.abspath(__file__)
+    run = f"import runpy, sys; sys.argv[1:1] = ['--_child']; runpy.run_path({me!r}, run_name='__main__')"
     p = subprocess.Popen(
-        [sys.executable, "-m", "hil.bench.bus", "--_child", *args],
+        [sys.executable, "-c", run, *args],
+        cwd=tree,
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -230,10 +238,10 @@ def run_case(
 
     ``tree``: run both children from that checkout of hil (``--versus``) instead of this one."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_ZENOH")}
-    if tree:
-        env["PYTHONPATH"] = tree
-    rx = _spawn(["rx", case, endpoint, str(n), "0", "1"], env)
-    tx = _spawn(["tx", case, endpoint, str(n), str(rate), str(burst)], env)
+    tree = os.path.abspath(tree or os.getcwd())
+    env["PYTHONPATH"] = tree
+    rx = _spawn(["rx", case, endpoint, str(n), "0", "1"], env, tree)
+    tx = _spawn(["tx", case, endpoint, str(n), str(rate), str(burst)], env, tree)
     time.sleep(1.0)  # the peers find each other
     assert tx.stdin is not None
     tx.stdin.write("go\n")
