@@ -145,6 +145,7 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
             )
         outs = [p.communicate()[0] for p in procs]
         rows = []
+        where: list[str] = []
         for (rig, tree), p, out in zip(runs, procs, outs, strict=True):
             if p.returncode != 0:
                 return p.returncode, [f"rig {rig}: hil up failed:", *out.splitlines()[-20:]]
@@ -152,6 +153,9 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
             window, cpu = _cpu_of(out)
             imu = next(c for c in infos if c.topic.endswith("/sensor/imu"))
             rows.append((rig, tree, window, cpu, imu.count, sum(c.missing for c in infos)))
+            lossy = [f"{c.topic.split('/', 2)[-1]} {c.missing}" for c in infos if c.missing]
+            if lossy:
+                where.append(f"rig {rig}: sequence gaps in " + ", ".join(lossy))
     names = sorted({n for r in rows for n in r[3]}, key=lambda n: -max(r[3].get(n, 0.0) for r in rows))
     can = "CAN FD" if a.fd else "classic CAN"
     lines = [
@@ -171,6 +175,7 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
             + f" | **{100 * sum(cpu.values()) / window:.1f} %**"
             + f" | {1e3 * sum(cpu.values()) / max(1, n_imu):.2f} |"
         )
+    lines += ["", *where] if where else []
     lines += [
         "",
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores (the rigs "
