@@ -147,8 +147,10 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
         rows = []
         where: list[str] = []
         for (rig, tree), p, out in zip(runs, procs, outs, strict=True):
-            if p.returncode != 0:
-                return p.returncode, [f"rig {rig}: hil up failed:", *out.splitlines()[-20:]]
+            if not (Path(d) / f"{rig}.mcap").is_file():
+                return p.returncode or 1, [f"rig {rig}: hil up failed:", *out.splitlines()[-20:]]
+            if p.returncode != 0:  # e.g. a service fell behind and lost samples: still a row
+                where.append(f"rig {rig}: hil up exited {p.returncode}")
             infos = channel_infos(read_session(Path(d) / f"{rig}.mcap"))
             window, cpu = _cpu_of(out)
             imu = next(c for c in infos if c.topic.endswith("/sensor/imu"))
