@@ -130,20 +130,28 @@ def _cpu_of(out: str) -> tuple[float, dict[str, float]]:
 
 
 def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> tuple[int, list[str]]:
-    """Several ``hil up`` at once, each with its own hub (``tree``: that checkout's code runs it)."""
+    """``hil up`` of each rig, each with its own hub (``tree``: that checkout's code runs it). The
+    rigs of one checkout run at once; checkouts in turn (two revisions at once would starve each
+    other unevenly: the faster one gets more of the machine)."""
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as d:
-        procs = []
-        for rig, tree in runs:
-            env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
-            env["PYTHONPATH"] = tree or os.getcwd()
-            cmd = [sys.executable, "-c", _RUN, *_up_args(a, rig, Path(d) / f"{rig}.mcap")]
-            procs.append(
-                subprocess.Popen(
-                    cmd, cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+        procs: list[subprocess.Popen[str]] = []
+        outs: list[str] = []
+        for group in dict.fromkeys(tree for _, tree in runs):
+            started = []
+            for rig, tree in runs:
+                if tree != group:
+                    continue
+                env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
+                env["PYTHONPATH"] = tree or os.getcwd()
+                cmd = [sys.executable, "-c", _RUN, *_up_args(a, rig, Path(d) / f"{rig}.mcap")]
+                started.append(
+                    subprocess.Popen(
+                        cmd, cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+                    )
                 )
-            )
-        outs = [p.communicate()[0] for p in procs]
+            procs += started
+            outs += [p.communicate()[0] for p in started]
         rows = []
         where: list[str] = []
         for (rig, tree), p, out in zip(runs, procs, outs, strict=True):
@@ -161,7 +169,8 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
     names = sorted({n for r in rows for n in r[3]}, key=lambda n: -max(r[3].get(n, 0.0) for r in rows))
     can = "CAN FD" if a.fd else "classic CAN"
     lines = [
-        f"{len(runs)} rigs at once on this machine, each `hil up` with its own hub, {a.duration:g} s of "
+        f"{len(runs)} rigs (one checkout's at once, checkouts in turn), each `hil up` with its own hub, "
+        f"{a.duration:g} s of "
         f"`{a.scenario}`, {can}; share of one core per service (`hil up`'s CPU table), IMU samples "
         "recorded and sequence gaps over every recorded topic:",
         "",
@@ -205,7 +214,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--versus",
         metavar="TREE",
-        help="the same rig at the same time from this checkout (a `git worktree` of an older revision)",
+        help="then the same rig(s) from this checkout (a `git worktree` of an older revision): "
+        "before/after in one run",
     )
     ap.add_argument("--section", default="rig", help="the docs/benchmarks.md section to write")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
