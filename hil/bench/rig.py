@@ -21,6 +21,7 @@ import numpy as np
 from hil.bench import command_line, write_section
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
 
 
@@ -204,8 +205,8 @@ def _revision(tree: str) -> str:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench rig")
-    ap.add_argument("--duration", type=float, default=60.0)
+    ap = OneLineParser(prog="hil bench rig")
+    ap.add_argument("--duration", type=duration_s, default=60.0)
     ap.add_argument("--scenario", default="straight_level")
     ap.add_argument("--imu-rate", type=int, default=None, help="IMU rate in Hz (default: the scenario's)")
     ap.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
