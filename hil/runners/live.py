@@ -83,7 +83,12 @@ class NodeService(Service):
         root = self.keys.root
         for inp in self.node_cls.inputs:
             routes = {kind: (cls, self._enqueue) for kind, cls in inp.types.items()}
-            self._subs.append(DispatchSubscriber(self.ctx.session, f"{root}/{inp.key}", routes, self.stats))
+            # inputs come from other services: the node's own outputs on a matching key are not
+            # delivered back to it (the session is this process's alone)
+            sub = DispatchSubscriber(
+                self.ctx.session, f"{root}/{inp.key}", routes, self.stats, remote_only=True
+            )
+            self._subs.append(sub)
         for key in self.node_cls.outputs:
             self._publisher(key, None)
         if self.node_cls.reads_can or self.node_cls.writes_can:
