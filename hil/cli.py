@@ -356,6 +356,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
     from hil.bus.session import BusConfig, open_session
     from hil.faults import FaultError, check_fault
     from hil.messages import FaultCommand, encode
+    from hil.messages import params as param_entries
 
     check_name("rig", a.rig)
     params: dict[str, float] = {}
@@ -376,7 +377,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
         stamp_ns=0,
         kind=a.kind,
         target=a.target,
-        params=params,
+        params=param_entries(params),
         duration_s=a.duration,
     )
     session = open_session(BusConfig.from_env())

@@ -49,3 +49,15 @@ def run_hil(
     return subprocess.run(
         hil_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=cwd or REPO, env=e
     )
+
+
+@pytest.fixture(scope="session")
+def sim_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A fresh 3 s ``hil sim`` recording (every topic the rig has), made once per test session."""
+    from hil.runners.sim import SimOptions, run_sim
+
+    path = tmp_path_factory.mktemp("sim") / "sim.mcap"
+    run_sim(
+        SimOptions(scenario="straight_level", duration_s=3.0, record=path, rig="simrec", on_warning=print)
+    )
+    return path

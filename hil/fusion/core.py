@@ -347,8 +347,8 @@ class FusionCore:
             lat_deg=float(np.degrees(lat)),
             lon_deg=float(np.degrees(lon)),
             alt_m=float(alt),
-            pos_sigma_m=None if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
-            vel_sigma_mps=None if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
+            pos_sigma_m=[] if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
+            vel_sigma_mps=[] if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
             imu_seq=self._last_imu_seq,
             gnss_seq=self._last_gnss_seq,
         )

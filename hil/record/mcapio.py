@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import msgspec
 from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, ChunkIndex, Metadata, Schema
@@ -27,7 +26,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from hil import __version__
-from hil.messages import TYPES_BY_NAME, Message, json_schema, schema_name
+from hil.messages import TYPES_BY_NAME, Message, decode, json_schema, schema_name
 
 PROFILE = "hil"
 _U64_MAX = 2**64 - 1
@@ -310,7 +309,7 @@ class Record:
             raise RecordingError(
                 f"channel {self.topic!r} has schema {self.schema!r}, not a hil contract type"
             )
-        return msgspec.json.decode(self.payload, type=cls)
+        return decode(cls, self.payload)  # the previous form of a type too (LEGACY_FORMS)
 
 
 @dataclass

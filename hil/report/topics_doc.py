@@ -30,11 +30,15 @@ def _type(spec: dict[str, Any], defs: dict[str, Any]) -> str:
         return f"{inner}[{n}]" if n is not None and n == spec.get("maxItems") else f"list[{inner}]"
     if t == "object" and "additionalProperties" in spec:
         return f"map[str, {_type(spec['additionalProperties'], defs)}]"
+    if t == "object" and "properties" in spec:  # a map as [{key, value}, ...], say
+        return "{" + ", ".join(f"{k}: {_type(v, defs)}" for k, v in spec["properties"].items()) + "}"
     return str(t)
 
 
 def _limits(spec: dict[str, Any]) -> str:
     out = []
+    if "maxItems" in spec and spec.get("minItems") != spec["maxItems"]:
+        out.append(f"items ≤ {spec['maxItems']}")
     for k, sym in (("minimum", "≥"), ("exclusiveMinimum", ">"), ("maximum", "≤"), ("maxLength", "len ≤")):
         if k in spec:
             out.append(f"{sym} {spec[k]}")

@@ -30,7 +30,7 @@ from typing import Any
 
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
-from hil.messages import Event, Message, RunInfo, ServiceStatus, encode
+from hil.messages import Event, Message, RunInfo, ServiceStatus, counts, encode
 from hil.nav.scenario import load_scenario, scenario_for_run
 from hil.nodes import node_class
 from hil.nodes.base import CAN_RX, CAN_TX, SERIAL_RX, SERIAL_TX, Node, Out
@@ -272,7 +272,7 @@ class _Session:
                 state="running",
                 pid=0,
                 uptime_s=t_ns / 1e9,
-                counters=node.counters(),
+                counters=counts(node.counters()),
                 last_error=node.last_error,
             )
             self.write(key, st, t_ns)

@@ -159,10 +159,10 @@ class LiveView:
                     state = "(no status)" if alive is None or is_alive else "DEAD"
                     lines.append(f"  {name:<14}{state:<12}")
                     continue
-                rin = sum(v for k, v in st.rates_hz.items() if k.startswith("in."))
-                rout = sum(v for k, v in st.rates_hz.items() if k.startswith("out."))
-                rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
-                errs = sum(v for k, v in st.counters.items() if "error" in k)
+                rin = sum(r.value for r in st.rates_hz if r.key.startswith("in."))
+                rout = sum(r.value for r in st.rates_hz if r.key.startswith("out."))
+                rej = sum(c.value for c in st.counters if c.key.startswith("rejected"))
+                errs = sum(c.value for c in st.counters if "error" in c.key)
                 if alive is not None and not is_alive:
                     state = "DEAD"
                 elif alive is None and not is_alive:

@@ -195,7 +195,7 @@ def test_imu_frame_loss_drops_about_the_configured_percentage_and_nothing_else(s
     assert all(k in _window(3.3, 3.76) for k in outside), outside  # burst + bus-off only
     assert [e[0] for e in _edges(s, "imu_emulator", "imu_frame_loss")] == ["fault_start", "fault_end"]
     st = decode(ServiceStatus, s.by_topic("hil/sf/status/imu_emulator")[-1].payload)
-    assert st.counters["fault.imu_samples_not_sent.frame_loss"] == len(lost)
+    assert st.counter_map()["fault.imu_samples_not_sent.frame_loss"] == len(lost)
 
 
 def test_imu_stuck_repeats_the_last_good_sample(sim) -> None:
@@ -221,7 +221,7 @@ def test_imu_saturated_sits_at_the_dbc_full_scale_with_the_flags(sim) -> None:
         assert np.allclose(np.abs(m.dvel_b_mps), codec.dvel_max_mps, rtol=1e-9)
     assert not [k for k, m in imu.items() if m.status & 0b1100 and k not in _window(2.9, 3.1)]
     st = decode(ServiceStatus, s.by_topic("hil/sf/status/can_bridge")[-1].payload)
-    assert st.counters["can.saturated"] == 80
+    assert st.counter_map()["can.saturated"] == 80
     assert len(_edges(s, "imu_emulator", "imu_saturated")) == 2
 
 
@@ -234,7 +234,7 @@ def test_can_burst_error_frames_fail_the_crc_in_the_bridge_core(sim) -> None:
     assert asm.counters["bad_crc"] == 8
     # ... as the sim's bridge counted, and the samples they carried are missing
     st = decode(ServiceStatus, s.by_topic("hil/sf/status/can_bridge")[-1].payload)
-    assert st.counters["can.bad_crc"] == 8
+    assert st.counter_map()["can.bad_crc"] == 8
     imu = _imu(s)
     burst = [k for k in _window(3.3, 3.32) if k not in imu]
     assert 2 <= len(burst) <= 3, burst  # 8 frames: two samples of four, or three with a sync frame
