@@ -47,7 +47,7 @@ from hil.bus.pubsub import MAX_PAYLOAD_BYTES
 from hil.messages import RunInfo, decode
 from hil.nodes.base import decode_options
 from hil.record.completeness import Completeness
-from hil.record.mcapio import RecordingError, SessionWriter, split_part_path
+from hil.record.mcapio import TIME_SEMANTICS, RecordingError, SessionWriter, split_part_path
 from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
 from hil.runtime.options import RecorderOptions
@@ -201,9 +201,12 @@ class Recorder(Service):
         }
 
     def _log_time(self, rx_wall_ns: int) -> int:
-        if self._start_epoch_ns is None:
-            return 0
-        return int((rx_wall_ns - self._start_epoch_ns) * self._speed)
+        """Start epoch + receive time on the rig clock (``hil.record.mcapio``); before the run's
+        ``RunInfo`` the receive time itself (services starting: the wall clock, as at speed 1)."""
+        start = self._start_epoch_ns
+        if start is None:
+            return rx_wall_ns
+        return start + int((rx_wall_ns - start) * self._speed)
 
     def _handle(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
         cls = type_for_key(key)
@@ -228,13 +231,15 @@ class Recorder(Service):
         self.completeness.see(key, msg.seq)
         if self.writer is None:
             return
+        log_ns = self._log_time(rx_wall_ns)
+        start = self._start_epoch_ns
         try:
             self.writer.write(
                 key,
                 cls,
                 payload,
-                log_time_ns=self._log_time(rx_wall_ns),
-                publish_time_ns=msg.stamp_ns,
+                log_time_ns=log_ns,
+                publish_time_ns=log_ns if start is None else start + msg.stamp_ns,
                 seq=msg.seq,
             )
             self.written += 1
@@ -279,15 +284,15 @@ class Recorder(Service):
                 "origin_lon_deg": run.origin_lon_deg,
                 "origin_alt_m": run.origin_alt_m,
                 "executor": "live",
-                "time_semantics": "log_time = recorder receive time on the rig clock; "
-                "publish_time = message stamp_ns (time of validity); sequence = per-publisher seq",
+                "time_semantics": TIME_SEMANTICS,
+                "time_base": "epoch",
             },
         )
         self.writer.add_metadata(
             "config", {"options": json.dumps(msgspec.to_builtins(self.opts), sort_keys=True)}
         )
         for name, data, media in run_attachments(run):
-            self.writer.add_attachment(name, data, media)
+            self.writer.add_attachment(name, data, media, log_time_ns=run.start_epoch_ns)
 
     def part_path(self, part: int | None = None) -> Path:
         """Part 0 is the requested path; later parts are ``<stem>_0001<suffix>``, ..."""

@@ -6,30 +6,37 @@ session.mcap`` plays the recorded frames onto any bus with their recorded spacin
 ``python -m can.logconvert session.mcap out.asc`` converts them.
 
 Which frames: every ``hil.CanFrame`` message (the bridge's ``hil/<rig>/can/<channel>`` topics),
-in file order. ``timestamp`` is the frame's receive stamp on the rig clock (``stamp_ns`` / 1e9,
-seconds since run start); ``channel`` is the recorded channel name. A crashed recording is read
-up to its last complete chunk, like every other reader of the rig's files.
+in file order. ``timestamp`` is the frame's receive time on the wall-clock timeline: the run's
+start epoch (``RunInfo.start_epoch_ns``, from the file's ``hil`` metadata or its ``run`` message)
++ the frame's receive stamp on the rig clock (``stamp_ns``), in seconds since 1970 -- what a
+SocketCAN log of the same bus would say, so ``.asc``/``.blf``/``.trc`` exports line up with other
+logs of the bench. Old recordings (rig-time log times) get the same, as their frames' stamps are
+rig time too. A file with no start epoch at all (a recorder killed before the run started) keeps
+rig seconds. ``channel`` is the recorded channel name. A crashed recording is read up to its last
+complete chunk, like every other reader of the rig's files.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import can
+import msgspec
 from can.io.generic import MessageReader
 
-from hil.messages import CanFrame, decode
+from hil.messages import CanFrame, RunInfo, decode
 from hil.record.mcapio import RecordingError, iter_records
 
 CAN_SCHEMA = "hil.CanFrame"
 
 
-def can_message(frame: CanFrame) -> can.Message:
-    """The python-can view of one recorded frame."""
+def can_message(frame: CanFrame, start_epoch_ns: int = 0) -> can.Message:
+    """The python-can view of one recorded frame (``start_epoch_ns``: the run's time zero)."""
     return can.Message(
-        timestamp=frame.stamp_ns * 1e-9,
+        timestamp=(start_epoch_ns + frame.stamp_ns) * 1e-9,
         arbitration_id=frame.arbitration_id,
         is_extended_id=frame.is_extended_id,
         is_fd=frame.is_fd,
@@ -57,9 +64,30 @@ class McapReader(MessageReader):
         self.channel = channel
         self.truncated = ""
         self._stopped = False
+        self.start_epoch_ns: int | None = None  # known once iteration has begun
+
+    def _start_epoch(self) -> int:
+        """The run's start epoch: the ``hil`` metadata, else the first ``run`` message (0: none).
+
+        A first pass that stops there: both come before the run's frames, near the file's start."""
+        for kind, rec in iter_records(self.path):
+            if kind == "metadata" and rec.name == "hil" and "start_epoch_ns" in rec.metadata:
+                try:
+                    return int(json.loads(rec.metadata["start_epoch_ns"]))
+                except (ValueError, TypeError):
+                    continue
+            if kind == "message" and rec.schema == "hil.RunInfo":
+                try:
+                    return decode(RunInfo, rec.payload).start_epoch_ns
+                except (msgspec.ValidationError, msgspec.DecodeError):
+                    continue
+            if kind == "truncated":
+                break
+        return 0
 
     def __iter__(self) -> Iterator[can.Message]:
         seen_any = False
+        start = self.start_epoch_ns = self._start_epoch()
         for kind, rec in iter_records(self.path):
             if self._stopped:
                 return
@@ -74,7 +102,7 @@ class McapReader(MessageReader):
             frame = decode(CanFrame, rec.payload)
             if self.channel is not None and frame.channel != self.channel:
                 continue
-            yield can_message(frame)
+            yield can_message(frame, start)
 
     def stop(self) -> None:
         self._stopped = True

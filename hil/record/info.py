@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from datetime import UTC, datetime
 
 import msgspec
 import numpy as np
@@ -108,6 +109,15 @@ def describe(path: str, *, accuracy: bool = True) -> str:
             f"speed={meta.get('speed')} executor={meta.get('executor')} version={meta.get('version')}"
         )
     lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {len(s.records)}   channels: {len(infos)}")
+    start = meta.get("start_epoch_ns")
+    if start is not None and start.lstrip("-").isdigit():
+        when = datetime.fromtimestamp(int(start) / 1e9, tz=UTC).isoformat(timespec="milliseconds")
+        base = (
+            "MCAP log/publish times = start + rig time"
+            if meta.get("time_base") == "epoch"
+            else "MCAP log/publish times are rig time (recorded before the wall-clock timeline)"
+        )
+        lines.append(f"start:     {when.replace('+00:00', 'Z')} (rig time zero; {base})")
     if s.truncated:
         lines.append(f"TRUNCATED: read up to the last complete chunk ({s.truncation_reason})")
     comp = s.metadata.get("completeness")

@@ -1,10 +1,18 @@
 """MCAP files in the rig's layout: write a session, read it back (also when truncated).
 
 Layout (the contract): one channel per Zenoh key, schema encoding ``jsonschema`` with schema
-name ``hil.<Type>``, message encoding ``json``. ``log_time`` = recorder receive time on the rig
-clock (ns since run start, clamped at 0), ``publish_time`` = the message's own ``stamp_ns``
-(clamped at 0), ``sequence`` = the message's per-publisher ``seq``. Chunks are zstd-compressed and
-flushed at least every second, so a killed recorder leaves a file readable up to its last chunk.
+name ``hil.<Type>``, message encoding ``json``. ``sequence`` = the message's per-publisher ``seq``.
+Chunks are zstd-compressed and flushed at least every second, so a killed recorder leaves a file
+readable up to its last chunk.
+
+Times are on the wall-clock timeline, so viewers (Foxglove, python-can's ``.asc``/``.blf``
+exports) show the real date and line up with other logs: ``log_time`` = the run's start epoch
+(``RunInfo.start_epoch_ns``: ``hil sim`` the scenario's ``start_utc``, ``hil up`` the wall clock
+at time zero) + the recorder's receive time on the rig clock; ``publish_time`` = start epoch +
+the message's ``stamp_ns`` (time of validity). The messages themselves keep rig time (their
+``*_ns`` fields), so a rerun is bit for bit whatever the date. Recordings made before this carried
+rig time in ``log_time``/``publish_time``; ``rig_time_ns`` reads both (hil's times never get near
+``EPOCH_FLOOR_NS`` on the rig clock, an epoch instant from 1981 on is always past it).
 """
 
 from __future__ import annotations
@@ -51,6 +59,22 @@ def split_parts(path: Path) -> list[Path]:
     while split_part_path(path, len(parts) + 1).is_file():
         parts.append(split_part_path(path, len(parts) + 1))
     return parts
+
+
+#: ~1973 as an epoch instant, three years as rig time: a recording's times below it are rig time
+#: (a recording from before the wall-clock timeline), above it start epoch + rig time
+EPOCH_FLOOR_NS = 10**17
+#: what the ``hil`` metadata says about the times of a recording with the wall-clock timeline
+TIME_SEMANTICS = (
+    "log_time = start_epoch_ns + recorder receive time on the rig clock; publish_time = start_epoch_ns + "
+    "message stamp_ns (time of validity); message fields keep rig time; sequence = per-publisher seq"
+)
+
+
+def rig_time_ns(t_ns: int, start_epoch_ns: int) -> int:
+    """A recorded ``log_time``/``publish_time`` as rig time (ns since the run's time zero), for a
+    recording of either timeline: epoch (start epoch + rig time) or, before it, rig time."""
+    return t_ns - start_epoch_ns if t_ns >= EPOCH_FLOOR_NS else t_ns
 
 
 def _u64(ns: int) -> int:

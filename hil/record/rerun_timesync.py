@@ -31,7 +31,7 @@ from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.base import Out
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.matching import Matcher
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream, rig_time_ns
 from hil.sensor_table import SENSORS
 
 _RAW = {schema_name(k.message): k.message for k in SENSORS.values()}
@@ -104,11 +104,15 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
             matcher.recorded(key, r.payload, counts["order"])
         matcher.release_before(now_ns)
 
+    start_ns = 0
     for r in records:
-        now_ns = r.log_time_ns
+        now_ns = rig_time_ns(r.log_time_ns, start_ns)
         if node is None:
             if r.topic.endswith("/run"):
-                node = TimeSyncNode(decode(RunInfo, r.payload))
+                run = decode(RunInfo, r.payload)
+                start_ns = run.start_epoch_ns
+                now_ns = rig_time_ns(r.log_time_ns, start_ns)
+                node = TimeSyncNode(run)
                 for h in held:
                     handle(h)
                 held.clear()

@@ -9,8 +9,9 @@ delay, wire time, FIFO, the sync frame's latch jitter). Events at the same rig t
 fixed order -- the runner's own (status, ``fault_ignored``), then node ticks in pipeline order,
 then deliveries first in first out -- so the same scenario gives the same file, byte for byte.
 
-Messages are written as they are published, in rig-time order, with ``log_time`` = the rig time
-of publication, so a one-hour session never sits in memory. Each node's status goes out once a
+Messages are written as they are published, in rig-time order, with ``log_time`` = the scenario's
+``start_utc`` + the rig time of publication (``hil.record.mcapio``: the wall-clock timeline), so a
+one-hour session never sits in memory. Each node's status goes out once a
 rig second (pid 0, uptime in rig time: nothing host-dependent). ``kill_service`` has no meaning
 in one process: a warning line and a ``fault_ignored`` event on ``event/sim`` say so. Every
 node stops by itself at the run's end; then each is told ``finish`` (end of input) in pipeline
@@ -39,7 +40,7 @@ from hil.nodes.fusion import DEFAULT_LAG_S, DEFAULT_OUTPUT_EVERY, FusionNode, Fu
 from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
-from hil.record.mcapio import SessionWriter
+from hil.record.mcapio import TIME_SEMANTICS, SessionWriter
 from hil.runners.wire import CanWireModel
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
@@ -242,6 +243,7 @@ class _Session:
         self.nodes = nodes
         self.opts = opts
         self.end_ns = int(run.duration_s * 1e9)
+        self.epoch_ns = run.start_epoch_ns  # rig time zero on the wall-clock timeline
         self.w = SessionWriter(opts.record)
         self.n_written = 0
         self._seqs: dict[str, int] = {}
@@ -251,8 +253,14 @@ class _Session:
         topic = self._topics.get(key)
         if topic is None:
             topic = self._topics[key] = f"{self.root}/{key}"
+        epoch = self.epoch_ns
         self.w.write(
-            topic, type(msg), encode(msg), log_time_ns=t_log, publish_time_ns=msg.stamp_ns, seq=msg.seq
+            topic,
+            type(msg),
+            encode(msg),
+            log_time_ns=epoch + t_log,
+            publish_time_ns=epoch + msg.stamp_ns,
+            seq=msg.seq,
         )
         self.n_written += 1
 
@@ -338,10 +346,12 @@ def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:
             "origin_lon_deg": s.origin_lon_deg,
             "origin_alt_m": s.origin_alt_m,
             "executor": "sim",
+            "time_semantics": TIME_SEMANTICS,
+            "time_base": "epoch",
         },
     )
     for name, data, media in run_attachments(run):
-        w.add_attachment(name, data, media)
+        w.add_attachment(name, data, media, log_time_ns=run.start_epoch_ns)
 
 
 def not_applicable_faults(events: Any, duration_s: float) -> tuple[list[str], list[tuple[int, str]]]:

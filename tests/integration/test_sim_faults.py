@@ -16,7 +16,7 @@ import pytest
 from hil.can.codec import ImuCanCodec, ImuFrameAssembler
 from hil.can.mcap_io import can_message
 from hil.messages import CanFrame, CaptureTruth, Event, GnssFix, ImuSample, ServiceStatus, Truth, decode
-from hil.record.mcapio import Session, read_session
+from hil.record.mcapio import Session, read_session, rig_time_ns
 from hil.runners.sim import SimOptions, SimResult, run_sim
 from tests.conftest import run_hil
 
@@ -244,7 +244,8 @@ def test_can_burst_error_frames_fail_the_crc_in_the_bridge_core(sim) -> None:
 
 def test_can_bus_off_leaves_the_bus_silent_for_the_window(sim) -> None:
     s, _res, _said = sim
-    t = np.array([r.log_time_ns for r in s.by_topic("hil/sf/can/vcan0")])
+    start = int(s.meta("hil", "start_epoch_ns"))  # log times are on the wall clock: start + rig time
+    t = np.array([rig_time_ns(r.log_time_ns, start) for r in s.by_topic("hil/sf/can/vcan0")])
     assert not ((t > 3.501e9) & (t < 3.75e9)).any()
     gap = np.diff(t).max()
     assert 0.24e9 < gap < 0.26e9, gap
@@ -314,7 +315,8 @@ def test_kill_service_is_said_and_recorded_not_silently_dropped(sim) -> None:
     assert len(ign) == 1 and ign[0].source == "sim" and ign[0].stamp_ns == 3_200_000_000
     d = json.loads(ign[0].detail)
     assert d["kind"] == "kill_service" and d["params"]["service"] == "fusion"
-    assert s.by_topic("hil/sf/nav/ekf15")[-1].log_time_ns > 7.9e9  # and the fusion ran on
+    start = int(s.meta("hil", "start_epoch_ns"))
+    assert rig_time_ns(s.by_topic("hil/sf/nav/ekf15")[-1].log_time_ns, start) > 7.9e9  # and the fusion ran on
 
 
 def test_hil_sim_prints_the_warning_line_on_stderr(tmp_path: Path) -> None:
