@@ -18,6 +18,10 @@ Loss is measured twice, because each measure sees what the other cannot:
   advanced subscriber can even drop them (``hil/bus/pubsub.py`` says why); their seq still can.
   ``zenoh_advanced: false`` subscribes plainly.
 
+Beside each message the recorder writes the Foxglove well-known types derived from it
+(``hil.wellknown``: ``foxglove.LocationFix``, ``FrameTransform``, ``Log``; option
+``foxglove_types``, default on), so a raw recording opens in Foxglove's Map, 3D and Log panels.
+
 Both go into status every second (``missing``, ``zenoh_missed``) and into the file's
 ``completeness`` metadata at a clean stop, with ``replay_ready`` true only when both are zero.
 
@@ -47,11 +51,18 @@ from hil.bus.pubsub import MAX_PAYLOAD_BYTES
 from hil.messages import RunInfo, decode
 from hil.nodes.base import decode_options
 from hil.record.completeness import Completeness
-from hil.record.mcapio import TIME_SEMANTICS, RecordingError, SessionWriter, split_part_path
+from hil.record.mcapio import (
+    TIME_SEMANTICS,
+    RecordingError,
+    SessionWriter,
+    split_part_path,
+    wall_clock_log_time,
+)
 from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
 from hil.runtime.options import RecorderOptions
 from hil.runtime.service import Service, run_service
+from hil.wellknown import WellKnown
 
 FLUSH_PERIOD_S = 1.0
 
@@ -86,6 +97,8 @@ class Recorder(Service):
         self._pending: list[tuple[str, bytes, int]] = []
         self.written = 0
         self.bytes_written = 0
+        self.foxglove_written = 0  # well-known messages derived (not counted in ``written``)
+        self._wellknown = WellKnown()
         self.zenoh_missed: dict[str, int] = {}  # per key (or publisher id, if its key is unknown)
         self.zenoh_unsequenced = 0
         self._source_key: dict[str, str] = {}  # Zenoh publisher id -> its key, to name a miss
@@ -183,6 +196,7 @@ class Recorder(Service):
             totals["out_of_order"] += tr.out_of_order
         return {
             "written": self.written,
+            "foxglove_written": self.foxglove_written,
             "bytes_written": self.bytes_written,
             "queue_depth": depth,
             "queue_peak": self._peak_queue,
@@ -203,10 +217,7 @@ class Recorder(Service):
     def _log_time(self, rx_wall_ns: int) -> int:
         """Start epoch + receive time on the rig clock (``hil.record.mcapio``); before the run's
         ``RunInfo`` the receive time itself (services starting: the wall clock, as at speed 1)."""
-        start = self._start_epoch_ns
-        if start is None:
-            return rx_wall_ns
-        return start + int((rx_wall_ns - start) * self._speed)
+        return wall_clock_log_time(rx_wall_ns, self._start_epoch_ns, self._speed)
 
     def _handle(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
         cls = type_for_key(key)
@@ -245,8 +256,22 @@ class Recorder(Service):
             self.written += 1
             self.bytes_written += len(payload)
             self.stats.count_rate("in.all")
+            self._write_wellknown(key, msg, log_ns)
         except OSError as err:
             self._fail(err)
+
+    def _write_wellknown(self, key: str, msg: Any, log_ns: int) -> None:
+        """Foxglove's well-known types derived from the message, beside it (``hil.wellknown``)."""
+        if not self.opts.foxglove_types or self.writer is None:
+            return
+        try:
+            derived = self._wellknown.convert(key, msg, log_ns)
+        except Exception as err:  # a conversion must never cost the recording
+            self.stats.error("errors.foxglove_types", f"{key}: {type(err).__name__}: {err}")
+            return
+        for d in derived:
+            self.writer.write_wellknown(d, log_time_ns=log_ns)
+            self.foxglove_written += 1
 
     def _fail(self, err: OSError) -> None:
         """A write error (disk full, file removed, I/O error): say so in status, stop writing.

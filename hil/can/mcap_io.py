@@ -18,17 +18,15 @@ complete chunk, like every other reader of the rig's files.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import can
-import msgspec
 from can.io.generic import MessageReader
 
-from hil.messages import CanFrame, RunInfo, decode
-from hil.record.mcapio import RecordingError, iter_records
+from hil.messages import CanFrame, decode
+from hil.record.mcapio import RecordingError, iter_records, run_start
 
 CAN_SCHEMA = "hil.CanFrame"
 
@@ -66,28 +64,9 @@ class McapReader(MessageReader):
         self._stopped = False
         self.start_epoch_ns: int | None = None  # known once iteration has begun
 
-    def _start_epoch(self) -> int:
-        """The run's start epoch: the ``hil`` metadata, else the first ``run`` message (0: none).
-
-        A first pass that stops there: both come before the run's frames, near the file's start."""
-        for kind, rec in iter_records(self.path):
-            if kind == "metadata" and rec.name == "hil" and "start_epoch_ns" in rec.metadata:
-                try:
-                    return int(json.loads(rec.metadata["start_epoch_ns"]))
-                except (ValueError, TypeError):
-                    continue
-            if kind == "message" and rec.schema == "hil.RunInfo":
-                try:
-                    return decode(RunInfo, rec.payload).start_epoch_ns
-                except (msgspec.ValidationError, msgspec.DecodeError):
-                    continue
-            if kind == "truncated":
-                break
-        return 0
-
     def __iter__(self) -> Iterator[can.Message]:
         seen_any = False
-        start = self.start_epoch_ns = self._start_epoch()
+        start = self.start_epoch_ns = run_start(self.path)[0] or 0
         for kind, rec in iter_records(self.path):
             if self._stopped:
                 return

@@ -18,6 +18,7 @@ import numpy as np
 
 from hil.can.busload import frame_bits
 from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus, decode
+from hil.record.mcapio import is_derived
 from hil.report.scan import Batch, Channel, scan
 
 F64 = np.ndarray  # float64 arrays; shapes in the field comments
@@ -187,6 +188,8 @@ class _Collector:
 
     def on_batch(self, b: Batch) -> None:
         topic, schema = b.channel.topic, b.channel.schema
+        if is_derived(topic):
+            return  # Foxglove's view of the messages (hil.wellknown), not rig traffic
         self.schema.setdefault(topic, schema)
         if not b.sequences.size:
             return

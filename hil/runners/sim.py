@@ -9,7 +9,9 @@ delay, wire time, FIFO, the sync frame's latch jitter). Events at the same rig t
 fixed order -- the runner's own (status, ``fault_ignored``), then node ticks in pipeline order,
 then deliveries first in first out -- so the same scenario gives the same file, byte for byte.
 
-Messages are written as they are published, in rig-time order, with ``log_time`` = the scenario's
+Beside each message go the Foxglove well-known types derived from it (``hil.wellknown``: map
+positions, frame transforms, log lines), as the live recorder writes them. Messages are written as
+they are published, in rig-time order, with ``log_time`` = the scenario's
 ``start_utc`` + the rig time of publication (``hil.record.mcapio``: the wall-clock timeline), so a
 one-hour session never sits in memory. Each node's status goes out once a
 rig second (pid 0, uptime in rig time: nothing host-dependent). ``kill_service`` has no meaning
@@ -44,6 +46,7 @@ from hil.record.mcapio import TIME_SEMANTICS, SessionWriter
 from hil.runners.wire import CanWireModel
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
+from hil.wellknown import WellKnown
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
@@ -245,6 +248,7 @@ class _Session:
         self.end_ns = int(run.duration_s * 1e9)
         self.epoch_ns = run.start_epoch_ns  # rig time zero on the wall-clock timeline
         self.w = SessionWriter(opts.record)
+        self.wellknown = WellKnown(start_epoch_ns=run.start_epoch_ns)  # Foxglove's types, as live
         self.n_written = 0
         self._seqs: dict[str, int] = {}
         self._topics: dict[str, str] = {}
@@ -254,7 +258,8 @@ class _Session:
         if topic is None:
             topic = self._topics[key] = f"{self.root}/{key}"
         epoch = self.epoch_ns
-        self.w.write(
+        w = self.w
+        w.write(
             topic,
             type(msg),
             encode(msg),
@@ -262,6 +267,8 @@ class _Session:
             publish_time_ns=epoch + msg.stamp_ns,
             seq=msg.seq,
         )
+        for d in self.wellknown.convert(key, msg, epoch + t_log):
+            w.write_wellknown(d, log_time_ns=epoch + t_log)
         self.n_written += 1
 
     def next_seq(self, key: str) -> int:

@@ -27,6 +27,7 @@ class RecorderOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fie
     drain_s: float = 0.5  # at the stop: wait until nothing has arrived for this long ...
     drain_max_s: float = 5.0  # ... but no longer than this
     stop_timeout_s: float = 20.0  # then let the writer empty its queue for at most this long
+    foxglove_types: bool = True  # Foxglove's well-known types beside the messages (hil.wellknown)
 
 
 OTHER_SERVICES: dict[str, type[NodeOptions]] = {"recorder": RecorderOptions}

@@ -29,6 +29,7 @@ from hil.schemas_io import (
     foxglove_schema_problems,
     parse_json_schema,
 )
+from hil.wellknown import SCHEMAS
 
 
 def _obj(**props: Any) -> dict[str, Any]:
@@ -157,6 +158,13 @@ def test_every_json_schema_a_fresh_recording_embeds_decodes_in_foxglove(sim_reco
         schema = json.loads(data)
         assert foxglove_schema_problems(schema, schema["title"]) == [], topic
     assert any("/nav/" in t for t in json_channels) and any("/status/" in t for t in json_channels)
+    # and every other channel is one of Foxglove's well-known types with the SDK's own schema
+    # (each decodes with it: tests/unit/test_wellknown.py)
+    others = {t: v for t, v in channels.items() if v[0] != "json"}
+    assert others and all(
+        enc == "protobuf" and schema_enc == "protobuf" for enc, schema_enc, _d in others.values()
+    )
+    assert {data for _e, _s, data in others.values()} <= {s.data for s in SCHEMAS.values()}
 
 
 def test_the_schemas_of_a_recording_made_before_were_refused_and_its_messages_still_decode() -> None:
