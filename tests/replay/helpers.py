@@ -19,7 +19,7 @@ GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 GOLDEN = GOLDEN_DIR / "straight_level_4s.mcap"
 #: the golden recording as the recorder wrote it before the Foxglove-first change (NavSolution's
 #: null sigmas, ServiceStatus maps, rig-time log times): old recordings must stay readable
-LEGACY_GOLDEN = GOLDEN_DIR / "straight_level_4s.mcap"
+LEGACY_GOLDEN = GOLDEN_DIR / "legacy_straight_level_4s.mcap"
 
 
 class Hub:

@@ -11,6 +11,7 @@ import json
 from hil.record.rerun import rerun
 from tests.conftest import run_hil
 from tests.replay.golden_update import EXPECTED, GOLDEN, digest
+from tests.replay.helpers import LEGACY_GOLDEN
 
 HOW_TO_UPDATE = "if intended: .venv/bin/python -m tests.replay.golden_update, and commit tests/replay/golden/"
 
@@ -43,3 +44,15 @@ def test_timesync_rerun_verify_reproduces_every_restamp_of_the_golden_recording(
     rc, lines = rerun(str(GOLDEN), core="timesync", verify=True)
     assert rc == 0, "\n".join([*lines, HOW_TO_UPDATE])
     assert "VERIFY OK" in lines[-1]
+
+
+def test_a_recording_of_the_previous_form_reruns_to_the_same_outputs_and_verifies() -> None:
+    """The golden as recorded before the Foxglove-first change (null sigmas, maps, rig-time log
+    times, no well-known channels): read, rerun and verified as today's, with the same numbers."""
+    expected = json.loads(EXPECTED.read_text())
+    got = digest(LEGACY_GOLDEN)
+    assert got["inputs_used"] == expected["inputs_used"]
+    assert got["estimators"] == expected["estimators"]
+    for core in ("fusion", "timesync"):
+        rc, lines = rerun(str(LEGACY_GOLDEN), core=core, verify=True)
+        assert rc == 0 and "VERIFY OK" in lines[-1], lines
