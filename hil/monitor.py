@@ -15,8 +15,9 @@ from typing import IO
 
 import zenoh
 
-from hil.bus.keys import Keys
+from hil.bus.keys import Keys, check_name
 from hil.bus.pubsub import Stats, Subscriber
+from hil.bus.session import BusConfig, open_session
 from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
 from hil.runtime.supervisor import LiveView, TableDrawer
 
@@ -27,6 +28,13 @@ class MonitorOptions:
     duration_s: float | None = None  # None: until stopped
     interval_s: float = 1.0
     once: bool = False  # print one table after the first status and return
+
+
+def connect(rig: str) -> zenoh.Session:
+    """The Zenoh session that reaches a running rig from another process or host: what ``hil
+    monitor`` and ``hil foxglove`` attach with (one way to find a rig, for both)."""
+    check_name("rig", rig)
+    return open_session(BusConfig.from_env())
 
 
 def attach(session: zenoh.Session, rig: str, view: LiveView) -> list[Subscriber]:

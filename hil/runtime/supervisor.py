@@ -73,6 +73,7 @@ class UpOptions:
     gnss_tcp: str | None = None  # the same line served over TCP, HOST:PORT
     gnss_baud: int = 115200
     gnss_messages: list[str] = field(default_factory=list)  # the receiver's message set (empty: defaults)
+    foxglove: str | None = None  # HOST:PORT: serve the rig to Foxglove (``hil foxglove``, its own process)
 
     @property
     def gnss_wire(self) -> bool:
@@ -229,6 +230,7 @@ class Supervisor:
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
+        self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
         env_cfg = BusConfig.from_env()
         if env_cfg.mode == "client" or os.environ.get("HIL_ZENOH_CONNECT"):
             self.hub_cfg = env_cfg
@@ -334,11 +336,7 @@ class Supervisor:
             child.proc.kill()
             _ = t_ns
 
-    def spawn(self, name: str, restarts: int = 0) -> Child:
-        log_dir = self.opts.log_dir or Path("recordings/logs")
-        log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = log_dir / f"{name}.log"
-        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+    def _child_env(self) -> dict[str, str]:
         env = dict(os.environ)
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
@@ -346,6 +344,54 @@ class Supervisor:
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
         env.setdefault("PYTHONUNBUFFERED", "1")
+        return env
+
+    def spawn_viewer(self) -> Child:
+        """``hil foxglove`` on the rig's bus, attached as a remote one would be (read-only)."""
+        assert self.opts.foxglove is not None
+        log_dir = self.opts.log_dir or Path("recordings/logs")
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = log_dir / "foxglove.log"
+        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+        cmd = [sys.executable, "-m", "hil.cli", "foxglove", "--rig", self.opts.rig]
+        cmd += ["--listen", self.opts.foxglove]
+        proc = subprocess.Popen(
+            cmd, stdout=fh, stderr=subprocess.STDOUT, env=self._child_env(), start_new_session=True
+        )
+        self.viewer = Child("foxglove", proc, log_path, fh)
+        return self.viewer
+
+    def _check_viewer(self) -> None:
+        v = self.viewer
+        if v is None or v.stopping or v.proc.poll() is None:
+            return
+        v.stopping = True  # said once; the rig runs on (the recording is the product)
+        print(
+            f"hil up: the Foxglove server exited (code {v.proc.returncode}); the rig runs on. "
+            f"See {v.log_path}:\n{_tail(v.log_path)}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def _stop_viewer(self) -> None:
+        v = self.viewer
+        if v is None:
+            return
+        if v.proc.poll() is None:
+            v.proc.send_signal(signal.SIGTERM)
+            try:
+                v.proc.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                v.proc.kill()
+                v.proc.wait()
+        v.log_fh.close()
+
+    def spawn(self, name: str, restarts: int = 0) -> Child:
+        log_dir = self.opts.log_dir or Path("recordings/logs")
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = log_dir / f"{name}.log"
+        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+        env = self._child_env()
         cmd = [
             sys.executable,
             "-m",
@@ -386,10 +432,13 @@ class Supervisor:
             signal.signal(s, lambda *_: self.stop.set())
         t_start = self._t_start = time.monotonic()
         try:
+            if o.foxglove:
+                self.spawn_viewer()  # first: it sees the run from its first message
             for name in self.service_names():
                 self.spawn(name)
             self._wait(t_start)
         finally:
+            self._stop_viewer()
             self._stop_all()
             for s, h in prev.items():
                 signal.signal(s, h)
@@ -406,6 +455,7 @@ class Supervisor:
         last_print = 0.0
         while not self.stop.wait(0.2):
             self._do_kills()
+            self._check_viewer()
             for name, child in list(self.children.items()):
                 rc = child.proc.poll()
                 if rc is not None and not child.stopping:
