@@ -16,6 +16,7 @@ from hil.record.info import estimator_errors
 from hil.record.mcapio import read_session, rig_time_ns, split_parts
 from hil.schemas_io import SCHEMAS_DIR
 from tests.conftest import REPO, hil_cmd
+from tests.foxglove_js import expected_wellknown, read_in_foxglove, same_first_fix
 from tests.wellknown_reader import decode_wellknown
 
 pytestmark = pytest.mark.slow
@@ -207,6 +208,26 @@ def test_the_live_recording_is_on_the_wall_clock_and_carries_foxglove_s_types(
     # every service's start shows in the log panel
     logs = [m for _t, m in decoded["/foxglove/log"]]
     assert len({m.name for m in logs if "state" in m.message}) >= 3  # type: ignore[attr-defined]
+
+
+def test_foxglove_s_own_reader_decodes_every_message_of_the_live_recording(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    path, _ = up_recording
+    got = read_in_foxglove(path)
+    per_topic = got["per_topic"]
+    estimators = {t.rsplit("/", 1)[1] for t, e in per_topic.items() if e["schema"] == "hil.NavSolution"}
+    assert {"ekf15", "ins", "dut_navbox"} <= estimators
+    want = expected_wellknown(estimators)
+    assert {t: per_topic[t]["schema"] for t in want if t in per_topic} == want
+    assert all(per_topic[t]["encoding"] == "protobuf" and per_topic[t]["decoded"] >= 1 for t in want)
+    assert per_topic["/foxglove/fix/truth"]["decoded"] >= 0.9 * 10 * 10  # 10 Hz for 10 s
+    # Foxglove's timeline is this run's wall clock (statuses of the start-up come before time zero)
+    run = decode(RunInfo, read_session(path).by_topic("hil/itest/run")[0].payload)
+    first, last = int(got["start_ns"]), int(got["end_ns"])
+    assert run.start_epoch_ns - 300 * 10**9 < first < run.start_epoch_ns < last < path.stat().st_mtime_ns
+    py = decode_wellknown(path)
+    assert same_first_fix(per_topic["/foxglove/fix/truth"]["first"], py["/foxglove/fix/truth"][0][1])
 
 
 def test_up_split_by_size_writes_parts_that_together_hold_the_session(tmp_path: Path) -> None:

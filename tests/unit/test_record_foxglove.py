@@ -10,13 +10,15 @@ import sys
 from pathlib import Path
 
 import jsonschema
+import pytest
 from mcap.reader import make_reader
 
-from hil.messages import NavSolution, RunInfo, Truth, encode
+from hil.messages import NavSolution, RunInfo, Truth, decode, encode
 from hil.record.foxglove import export_foxglove
 from hil.record.mcapio import SessionWriter, read_session
 from hil.schemas_io import foxglove_schema_problems
 from tests.conftest import REPO
+from tests.foxglove_js import expected_wellknown, read_in_foxglove, same_first_fix
 from tests.replay.helpers import LEGACY_GOLDEN
 from tests.wellknown_reader import decode_wellknown
 
@@ -130,3 +132,49 @@ def test_export_of_a_bad_file_fails_in_one_line_and_leaves_nothing(tmp_path: Pat
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_foxglove_s_own_reader_decodes_every_message_of_a_sim_recording(sim_recording: Path) -> None:
+    got = read_in_foxglove(sim_recording)
+    per_topic = got["per_topic"]
+    estimators = {t.rsplit("/", 1)[1] for t, e in per_topic.items() if e["schema"] == "hil.NavSolution"}
+    assert len(estimators) >= 5, estimators
+    want = expected_wellknown(estimators)
+    assert {t: per_topic[t]["schema"] for t in want if t in per_topic} == want
+    assert all(per_topic[t]["encoding"] == "protobuf" and per_topic[t]["decoded"] >= 1 for t in want)
+    assert {e["encoding"] for t, e in per_topic.items() if t.startswith("hil/")} == {"json"}
+    # the timeline Foxglove shows is the run's wall clock: it starts at the run's start epoch
+    run = decode(RunInfo, read_session(sim_recording).by_topic("hil/simrec/run")[0].payload)
+    assert int(got["start_ns"]) == run.start_epoch_ns
+    py = decode_wellknown(sim_recording)
+    assert same_first_fix(per_topic["/foxglove/fix/truth"]["first"], py["/foxglove/fix/truth"][0][1])
+    assert per_topic["/foxglove/tf/truth"]["first"]["child_frame_id"] == "truth"
+
+
+def test_a_message_foxglove_cannot_decode_fails_the_foxglove_reader_check(tmp_path: Path) -> None:
+    from foxglove.messages import LocationFix
+    from mcap.writer import Writer
+
+    from hil.wellknown import SCHEMAS
+
+    def write(path: Path, fix: bytes, nav: bytes) -> Path:
+        with open(path, "wb") as fh:
+            w = Writer(fh)
+            w.start()
+            s = SCHEMAS["foxglove.LocationFix"]
+            pb = w.register_schema(name=s.name, encoding=s.encoding, data=s.data)
+            js = w.register_schema(name="hil.X", encoding="jsonschema", data=b'{"type":"object"}')
+            c1 = w.register_channel(topic="/foxglove/fix/truth", message_encoding="protobuf", schema_id=pb)
+            c2 = w.register_channel(topic="hil/x/nav/a", message_encoding="json", schema_id=js)
+            w.add_message(channel_id=c1, log_time=1, publish_time=1, data=fix)
+            w.add_message(channel_id=c2, log_time=2, publish_time=2, data=nav)
+            w.finish()
+        return path
+
+    lat = LocationFix(latitude=1.5).encode()  # field 1, a double: 0x09 and its 8 bytes
+    good = read_in_foxglove(write(tmp_path / "good.mcap", lat, b'{"seq":1}'))
+    assert good["per_topic"]["/foxglove/fix/truth"]["first"]["latitude"] == 1.5
+    # a truncated protobuf field (tag of a double, 3 of its 8 bytes) and a JSON payload cut short
+    for fix, nav, bad in ((lat[:4], b'{"seq":1}', "/foxglove/fix/truth"), (lat, b'{"seq":', "hil/x/nav/a")):
+        with pytest.raises(AssertionError, match=bad):
+            read_in_foxglove(write(tmp_path / "bad.mcap", fix, nav))
