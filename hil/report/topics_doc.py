@@ -50,13 +50,21 @@ def _limits(spec: dict[str, Any]) -> str:
 # The plain zenoh-python client of "Discover a rig's topics": tests/integration/test_bus_live.py
 # runs this very text against a live ``hil up``.
 DISCOVERY_EXAMPLE = """\
-import json, sys, zenoh  # pip install eclipse-zenoh; argv: the rig's endpoint and its name
+import json, sys, time, zenoh  # pip install eclipse-zenoh; argv: the rig's endpoint and its name
 conf = zenoh.Config()
 conf.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))  # e.g. tcp/127.0.0.1:7447
 with zenoh.open(conf) as session:
-    topics = {}  # key -> type, from every service of the rig (each reply also has "schemas")
-    for reply in session.get(f"hil/{sys.argv[2]}/@topics/*", timeout=10):
-        topics.update(json.loads(reply.ok.payload.to_string())["topics"])
+    topics, answered = {}, None  # key -> type, from every service (each reply also has "schemas")
+    for _ in range(30):  # a new session meets the rig's peers within moments: ask until it holds
+        replies = [json.loads(r.ok.payload.to_string()) for r in
+                   session.get(f"hil/{sys.argv[2]}/@topics/*", timeout=10) if r.ok]
+        for reply in replies:
+            topics.update(reply["topics"])
+        services = sorted(r["service"] for r in replies)
+        if replies and services == answered:
+            break
+        answered = services
+        time.sleep(1)
     print("\\n".join(f"{key} {typ}" for key, typ in sorted(topics.items())))
     sample = session.declare_subscriber(f"hil/{sys.argv[2]}/nav/*").recv()  # the next solution
     print(sample.key_expr, sample.encoding, json.loads(sample.payload.to_bytes())["pos_ned_m"])

@@ -42,6 +42,11 @@ RIG = "busrig"
 MCAPJS = REPO / "tools" / "mcapjs"
 
 
+def _counters(st: ServiceStatus) -> dict[str, int]:
+    c: Any = st.counters
+    return dict(c) if isinstance(c, dict) else {x.key: x.value for x in c}
+
+
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     tmp = tmp_path_factory.mktemp("buslive")
@@ -94,7 +99,17 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         raw = hub.declare_publisher(f"hil/{RIG}/custom/probe", encoding=zenoh.Encoding.TEXT_PLAIN)
         for i in range(20):
             raw.put(f"probe {i}".encode())
-        time.sleep(3.0)  # the probe flushed (1 s) and a few more seconds of rig behind it
+        deadline = time.monotonic() + 60  # the recorder wrote the probe, then flushed a chunk
+        while time.monotonic() < deadline:
+            with lock:
+                written = _counters(statuses["recorder"]).get("raw_written", 0)
+            if written >= 20:
+                break
+            time.sleep(0.2)
+        size = record.stat().st_size
+        while time.monotonic() < deadline and record.stat().st_size == size:
+            time.sleep(0.2)
+        assert record.stat().st_size > size, "the recorder never flushed the probe"
         with lock:
             out["encodings"] = dict(encodings)
             pid = statuses["recorder"].pid

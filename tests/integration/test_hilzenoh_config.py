@@ -30,17 +30,24 @@ def test_a_bus_on_a_silent_rig_warns_and_a_busy_one_does_not(
     caplog.set_level(logging.WARNING, logger="can.hilzenoh")
     with (
         can.Bus(interface="hilzenoh", channel="vcan9", rig="nosuchrig", no_traffic_warn_s=0.3) as silent,
-        can.Bus(interface="hilzenoh", channel="vcan9", rig="busy", no_traffic_warn_s=0.3) as busy,
+        can.Bus(interface="hilzenoh", channel="vcan9", rig="busy", no_traffic_warn_s=5) as busy,
         can.Bus(interface="hilzenoh", channel="vcan9", rig="busy", no_traffic_warn_s=0) as peer,
     ):
-        peer.send(can.Message(arbitration_id=1, data=b"\x01"))
+        # a new subscription reaches the peer within moments (longer under load): send until heard
+        got = None
+        deadline = time.monotonic() + 30
+        while got is None and time.monotonic() < deadline:
+            peer.send(can.Message(arbitration_id=1, data=b"\x01"))
+            got = busy.recv(timeout=0.2)
+        assert got is not None and got.arbitration_id == 1
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and not [
             r for r in caplog.records if "nosuchrig" in r.getMessage()
         ]:
             time.sleep(0.1)
-        assert busy.recv(timeout=10) is not None
-        time.sleep(1.0)  # past the busy bus's watch too
+        assert busy._watch is not None
+        busy._watch.join(timeout=30)  # the busy bus's watch has looked, and kept quiet
+        assert not busy._watch.is_alive()
     warned = [r.getMessage() for r in caplog.records if r.name == "can.hilzenoh"]
     assert any("hilcan/nosuchrig/vcan9" in m and "rig keyword" in m for m in warned), warned
     assert not any("hilcan/busy/" in m for m in warned), warned
