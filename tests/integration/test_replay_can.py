@@ -112,4 +112,9 @@ def test_recorded_frames_are_played_onto_a_bus_with_their_spacing(hub: Hub, play
         (f.arbitration_id, f.data_hex) for f in frames
     ]
     took = at[-1] - at[0]
-    assert span_s * 0.97 < took < span_s * 1.5 + 0.5, (took, span_s)
+    assert took < span_s * 1.5 + 0.5, (took, span_s)
+    # not faster than recorded: each frame's arrival less its recorded offset is the player's start
+    # plus a delivery delay (>= 0; a loaded machine delays the first frames as much as any), so the
+    # last frame is no earlier than the earliest of the first quarter; a player 3 % fast fails this
+    lag = [t - (f.stamp_ns - frames[0].stamp_ns) * 1e-9 for t, f in zip(at, frames, strict=True)]
+    assert lag[-1] > min(lag[: len(lag) // 4]) - 0.015 * span_s, (took, span_s)
