@@ -26,7 +26,14 @@ from mcap.writer import CompressionType, Writer
 
 from hil import __version__
 from hil.messages import TYPES_BY_NAME, current_form, decode, json_schema
-from hil.record.mcapio import PROFILE, RecordingError, is_derived, iter_records, run_start
+from hil.record.mcapio import (
+    PROFILE,
+    RecordingError,
+    check_hil_recording,
+    is_derived,
+    iter_records,
+    run_start,
+)
 from hil.wellknown import MESSAGE_ENCODING, SCHEMAS, WellKnown
 
 
@@ -127,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     src = Path(args[0])
     dst = Path(args[1]) if len(args) > 1 else src.with_suffix(".foxglove.mcap")
     try:
+        check_hil_recording(src)
         derived = export_foxglove(src, dst)
     except (RecordingError, OSError) as err:
         sys.stderr.write(f"hil foxglove export: {err}\n")
