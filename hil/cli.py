@@ -187,6 +187,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         record_exclude=list(a.record_exclude),
         gnss_serial=str(Path(a.gnss_serial).absolute()) if a.gnss_serial else None,
         gnss_tcp=a.gnss_tcp,
+        foxglove=_foxglove_listen(a.foxglove),
         **_gnss_wire(a, live=True),  # type: ignore[arg-type]
     )
     if a.imu_rate is not None:
@@ -211,6 +212,12 @@ def cmd_up(a: argparse.Namespace) -> int:
     )
     print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
     print(f"hil up: {sup.endpoint_line()}", flush=True)
+    if opts.foxglove:
+        print(
+            f"hil up: Foxglove WebSocket on ws://{opts.foxglove} (Foxglove: Open connection > Foxglove "
+            f"WebSocket; layout: docs/foxglove-layout.json)",
+            flush=True,
+        )
     rc = sup.run()
     if sup.cpu_table():
         print(sup.cpu_table())
@@ -232,6 +239,27 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: no recording was written at {record}", file=sys.stderr)
         rc = rc or 1
     return rc
+
+
+def _foxglove_listen(text: str | None) -> str | None:
+    """``--foxglove [HOST:]PORT`` checked (and the port tried) before any process starts."""
+    if text is None:
+        return None
+    import socket
+
+    from hil.foxglove_server import parse_listen
+
+    try:
+        host, port = parse_listen(text)
+    except ValueError as err:
+        raise UserError(f"--foxglove {err}") from None
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((host, port))
+    except OSError as err:
+        raise UserError(f"--foxglove {text}: cannot listen on {host}:{port}: {err.strerror}") from None
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 def _check_writable(record: Path, log_dir: Path) -> None:
@@ -422,6 +450,51 @@ def cmd_monitor(a: argparse.Namespace) -> int:
         session.close()
 
 
+def cmd_foxglove(a: argparse.Namespace) -> int:
+    """Serve a running rig to Foxglove over its WebSocket protocol until Ctrl-C (or --duration)."""
+    import threading
+    import time
+
+    from hil.foxglove_server import FoxgloveServer, parse_listen
+    from hil.monitor import connect
+    from hil.runtime.service import install_signal_handlers
+
+    try:
+        host, port = parse_listen(a.listen)
+    except ValueError as err:
+        raise UserError(f"--listen {err}") from None
+    session = connect(a.rig)
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    try:
+        server = FoxgloveServer(session, a.rig, host, port)
+    except OSError as err:
+        session.close()
+        raise UserError(f"--listen {a.listen}: {err}") from None
+    supervisor = int(os.environ.get("HIL_SUPERVISOR_PID", "0") or 0)
+    print(
+        f"hil foxglove: rig {a.rig!r} on {server.url} (Foxglove: Open connection > Foxglove WebSocket)",
+        flush=True,
+    )
+    t0 = time.monotonic()
+    try:
+        while not stop.wait(0.5):
+            if a.duration is not None and time.monotonic() - t0 >= a.duration:
+                break
+            if supervisor and os.getppid() != supervisor:
+                break  # started by hil up, which is gone: stop rather than serve nothing
+    finally:
+        server.close()
+        session.close()
+    c = server.counters
+    rejected = sum(v for k, v in c.items() if k.startswith("rejected"))
+    print(
+        f"hil foxglove: served {c.get('messages', 0)} messages and {c.get('derived', 0)} derived on "
+        f"{len(server.channels())} channels; rejected {rejected}"
+    )
+    return 0
+
+
 def cmd_replay(a: argparse.Namespace) -> int:
     from services.replayer import run
 
@@ -472,6 +545,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
     from hil.bus.pubsub import declare_publisher
     from hil.faults import FaultError, check_fault
     from hil.messages import FaultCommand, encode
+    from hil.messages import params as param_entries
     from hil.monitor import connect
 
     check_name("rig", a.rig)
@@ -493,7 +567,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
         stamp_ns=0,
         kind=a.kind,
         target=a.target,
-        params=params,
+        params=param_entries(params),
         duration_s=a.duration,
     )
     session = connect(a.rig)
@@ -704,6 +778,14 @@ def _add_up_parser(sub: Any) -> None:
         "--gnss-serial", default=None, help="PATH: the receiver's line as a pseudo-terminal linked there"
     )
     up.add_argument("--gnss-tcp", default=None, help="HOST:PORT: the receiver's line served over TCP")
+    up.add_argument(
+        "--foxglove",
+        nargs="?",
+        const="8765",
+        default=None,
+        metavar="[HOST:]PORT",
+        help="serve the rig to Foxglove over WebSocket (hil foxglove) on this port (default 8765, loopback)",
+    )
     up.set_defaults(func=cmd_up)
 
 
@@ -762,6 +844,18 @@ def build_parser() -> argparse.ArgumentParser:
     mon.add_argument("--interval", type=positive_float, default=1.0, help="seconds between redraws")
     mon.add_argument("--once", action="store_true", help="print one table once statuses arrive, then exit")
     mon.set_defaults(func=cmd_monitor)
+
+    fox = sub.add_parser(
+        "foxglove", help="serve a running rig to Foxglove (WebSocket), attached like hil monitor"
+    )
+    fox.add_argument("--rig", default="bench", help="the rig to serve (hil/<rig>/...)")
+    fox.add_argument(
+        "--listen",
+        default="127.0.0.1:8765",
+        help="[HOST:]PORT of the Foxglove WebSocket server (default 127.0.0.1:8765: loopback only)",
+    )
+    fox.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
+    fox.set_defaults(func=cmd_foxglove)
 
     from services.replayer import add_args as add_replay_args
 

@@ -14,10 +14,20 @@ lengths, ranges (``decode``); an unknown field is simply not read.
 Encoding is JSON (msgspec): ``encode(msg)`` and ``decode(Type, payload)``. Decoding validates
 types, array lengths and ranges; NaN/inf cannot pass (JSON has no NaN; msgspec writes ``null``,
 which a float field rejects).
+
+Every field has one concrete JSON type, so viewers that turn a JSON Schema into typed fields
+(Foxglove's and Lichtblick's ``parseJsonSchema``: no ``null``, no unions, no ``$ref``, no map
+without ``properties``) decode every type: "absent" is an empty array (``NavSolution.pos_sigma_m``),
+a map is an array of ``{key, value}`` (``ServiceStatus.counters``, ``FaultCommand.params``).
+``hil.schemas_io.foxglove_schema_problems`` checks it. Messages of the previous form (recordings
+made before, where those fields were ``null`` or JSON objects) still decode: ``decode`` falls
+back to the legacy form and upgrades it (``LEGACY_FORMS``); ``current_form`` gives a payload's
+bytes in the current form, so such recordings rerun bit for bit.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from typing import Annotated, Any, TypeVar
 
 import msgspec
@@ -27,6 +37,48 @@ Quat = Annotated[list[float], msgspec.Meta(min_length=4, max_length=4)]
 Seq = Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)]
 Ns = Annotated[int, msgspec.Meta(ge=-(2**62), le=2**62)]
 Name = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+#: A 3-vector that may be absent: ``[]`` (absent) or three numbers (checked by the message).
+OptVec3 = Annotated[list[float], msgspec.Meta(max_length=3)]
+
+
+class Count(msgspec.Struct, frozen=True):
+    """One entry of a map of integers, as an array element (a JSON Schema viewers can type)."""
+
+    key: str
+    value: int
+
+
+class Rate(msgspec.Struct, frozen=True):
+    """One entry of a map of rates (Hz)."""
+
+    key: str
+    value: float
+
+
+class Param(msgspec.Struct, frozen=True):
+    """One named parameter (SI units)."""
+
+    key: Name
+    value: float
+
+
+def counts(values: Mapping[str, int]) -> list[Count]:
+    """A map of integers as ``[{key, value}, ...]`` in the map's order."""
+    return [Count(k, int(v)) for k, v in values.items()]
+
+
+def rates(values: Mapping[str, float]) -> list[Rate]:
+    return [Rate(k, float(v)) for k, v in values.items()]
+
+
+def params(values: Mapping[str, float]) -> list[Param]:
+    return [Param(k, float(v)) for k, v in values.items()]
+
+
+def _opt_vec3(what: str, v: list[float]) -> None:
+    if len(v) not in (0, 3):
+        raise ValueError(f"{what} must be [] (absent) or 3 numbers, got {len(v)}")
+
 
 #: A publisher's own counter (``hil.bus.pubsub.Publisher.next_seq``) is numbered within its
 #: process's *restart generation*: ``seq = generation * 2**32 + n``, generation 0 for the first
@@ -196,13 +248,18 @@ class NavSolution(Message, frozen=True, kw_only=True):
     lat_deg: float
     lon_deg: float
     alt_m: float
-    pos_sigma_m: Vec3 | None = None
-    vel_sigma_mps: Vec3 | None = None
+    pos_sigma_m: OptVec3 = []  # 1 sigma N, E, D; [] when the estimator has no covariance
+    vel_sigma_mps: OptVec3 = []
     imu_seq: int = -1
     gnss_seq: int = -1
     # 1σ of the attitude error as a rotation about N, E, D (rad): tilt, tilt, heading. A heading
     # σ that says how little the filter knows where heading is unobservable (docs/concepts.md)
-    att_sigma_rad: Vec3 | None = None
+    att_sigma_rad: OptVec3 = []  # [] when the estimator has no attitude covariance
+
+    def __post_init__(self) -> None:
+        _opt_vec3("pos_sigma_m", self.pos_sigma_m)
+        _opt_vec3("vel_sigma_mps", self.vel_sigma_mps)
+        _opt_vec3("att_sigma_rad", self.att_sigma_rad)
 
 
 class FusionJournal(Message, frozen=True, kw_only=True):
@@ -224,9 +281,15 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     state: Name  # "starting" | "running" | "degraded" | "stopping"
     pid: int
     uptime_s: float
-    rates_hz: dict[str, float] = {}
-    counters: dict[str, int] = {}
+    rates_hz: list[Rate] = []
+    counters: list[Count] = []
     last_error: str = ""
+
+    def counter_map(self) -> dict[str, int]:
+        return {c.key: c.value for c in self.counters}
+
+    def rate_map(self) -> dict[str, float]:
+        return {r.key: r.value for r in self.rates_hz}
 
 
 class Event(Message, frozen=True, kw_only=True):
@@ -291,8 +354,11 @@ class FaultCommand(Message, frozen=True, kw_only=True):
 
     kind: Name
     target: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{0,64}$")] = ""
-    params: Annotated[dict[Name, float], msgspec.Meta(max_length=16)] = {}
+    params: Annotated[list[Param], msgspec.Meta(max_length=16)] = []
     duration_s: Annotated[float, msgspec.Meta(ge=0.0, le=1e6)] = 0.0
+
+    def param_map(self) -> dict[str, float]:
+        return {p.key: p.value for p in self.params}
 
 
 CONTRACT_TYPES: tuple[type[Message], ...] = (
@@ -317,6 +383,69 @@ TYPES_BY_NAME: dict[str, type[Message]] = {f"hil.{t.__name__}": t for t in CONTR
 
 M = TypeVar("M", bound=Message)
 
+
+# -- the previous form of the types whose JSON changed (recordings made before still decode) --
+
+
+class _NavSolutionV0(NavSolution, frozen=True, kw_only=True):
+    """``pos_sigma_m``/``vel_sigma_mps`` were ``null`` when absent."""
+
+    pos_sigma_m: Vec3 | None = None  # type: ignore[assignment]
+    vel_sigma_mps: Vec3 | None = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        pass
+
+
+class _ServiceStatusV0(ServiceStatus, frozen=True, kw_only=True):
+    """``rates_hz``/``counters`` were JSON objects (either may come in either form here)."""
+
+    rates_hz: dict[str, float] | list[Rate] = {}  # type: ignore[assignment]
+    counters: dict[str, int] | list[Count] = {}  # type: ignore[assignment]
+
+
+class _FaultCommandV0(FaultCommand, frozen=True, kw_only=True):
+    """``params`` was a JSON object."""
+
+    params: Annotated[dict[Name, float], msgspec.Meta(max_length=16)] = {}  # type: ignore[assignment]
+
+
+def _fields(m: msgspec.Struct) -> dict[str, Any]:
+    return {f: getattr(m, f) for f in m.__struct_fields__}
+
+
+def _nav_v0(m: Any) -> NavSolution:
+    return NavSolution(
+        **{
+            **_fields(m),
+            "pos_sigma_m": m.pos_sigma_m or [],
+            "vel_sigma_mps": m.vel_sigma_mps or [],
+        }
+    )
+
+
+def _status_v0(m: Any) -> ServiceStatus:
+    r, c = m.rates_hz, m.counters
+    return ServiceStatus(
+        **{
+            **_fields(m),
+            "rates_hz": rates(r) if isinstance(r, dict) else r,
+            "counters": counts(c) if isinstance(c, dict) else c,
+        }
+    )
+
+
+def _fault_v0(m: Any) -> FaultCommand:
+    return FaultCommand(**{**_fields(m), "params": params(m.params)})
+
+
+#: type -> (its previous form, the upgrade to the current one)
+LEGACY_FORMS: dict[type[Message], tuple[type[Message], Callable[[Any], Message]]] = {
+    NavSolution: (_NavSolutionV0, _nav_v0),
+    ServiceStatus: (_ServiceStatusV0, _status_v0),
+    FaultCommand: (_FaultCommandV0, _fault_v0),
+}
+
 _encoder = msgspec.json.Encoder()
 _decoders: dict[type[Any], msgspec.json.Decoder[Any]] = {}
 
@@ -326,12 +455,43 @@ def encode(msg: Message) -> bytes:
     return _encoder.encode(msg)
 
 
-def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
-    """Decode and validate; raises ``msgspec.ValidationError``/``DecodeError`` on bad input."""
+def _decoder(cls: type[Any]) -> msgspec.json.Decoder[Any]:
     dec = _decoders.get(cls)
     if dec is None:
         dec = _decoders[cls] = msgspec.json.Decoder(cls)
-    return dec.decode(payload)
+    return dec
+
+
+def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
+    """Decode and validate; raises ``msgspec.ValidationError``/``DecodeError`` on bad input.
+
+    A payload in the previous form of its type (``LEGACY_FORMS``) is accepted and upgraded.
+    """
+    try:
+        return _decoder(cls).decode(payload)
+    except msgspec.ValidationError as err:
+        legacy = LEGACY_FORMS.get(cls)
+        if legacy is None:
+            raise
+        try:
+            old = _decoder(legacy[0]).decode(payload)
+        except msgspec.ValidationError:
+            raise err from None
+        return legacy[1](old)  # type: ignore[return-value]
+
+
+def current_form(cls: type[Message], payload: bytes) -> bytes:
+    """``payload`` as the current encoder writes it: unchanged unless it is in a legacy form."""
+    try:
+        _decoder(cls).decode(payload)
+        return payload
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        if cls not in LEGACY_FORMS:
+            return payload
+    try:
+        return encode(decode(cls, payload))
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        return payload
 
 
 def schema_name(cls: type[Message]) -> str:
@@ -339,14 +499,25 @@ def schema_name(cls: type[Message]) -> str:
     return f"hil.{cls.__name__}"
 
 
+def _inline(node: Any, defs: dict[str, Any]) -> Any:
+    """Replace every ``$ref`` into ``$defs`` by the definition itself (viewers do not follow refs)."""
+    if isinstance(node, dict):
+        ref = node.get("$ref")
+        if isinstance(ref, str) and ref.startswith("#/$defs/"):
+            rest = {k: v for k, v in node.items() if k != "$ref"}
+            return _inline({**defs[ref.removeprefix("#/$defs/")], **rest}, defs)
+        return {k: _inline(v, defs) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_inline(v, defs) for v in node]
+    return node
+
+
 def json_schema(cls: type[Message]) -> dict[str, Any]:
-    """The JSON Schema of a type, self-contained, with ``hil.<Type>`` as its title."""
+    """The JSON Schema of a type, self-contained (no ``$ref``), with ``hil.<Type>`` as its title."""
     raw = msgspec.json.schema(cls)
     defs = raw.get("$defs", {})
-    body = dict(defs.pop(cls.__name__))
+    body = _inline(dict(defs[cls.__name__]), defs)
     body["title"] = schema_name(cls)
     out: dict[str, Any] = {"$schema": "https://json-schema.org/draft/2020-12/schema", "$id": schema_name(cls)}
     out.update(body)
-    if defs:
-        out["$defs"] = defs
     return out

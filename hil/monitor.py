@@ -17,7 +17,7 @@ from typing import IO
 import zenoh
 
 from hil.bus.endpoint import viewer_bus
-from hil.bus.keys import Keys
+from hil.bus.keys import Keys, check_name
 from hil.bus.pubsub import Stats, Subscriber
 from hil.bus.session import open_session
 from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
@@ -27,6 +27,7 @@ from hil.runtime.supervisor import LiveView, TableDrawer
 def connect(rig: str) -> zenoh.Session:
     """A session that reaches rig ``rig`` the way every viewer does (``hil monitor``, ``hil fault``,
     ``hil foxglove``): see ``hil.bus.endpoint.viewer_bus``. ``BusConfigError`` says why not."""
+    check_name("rig", rig)
     cfg, _how = viewer_bus(rig)
     return open_session(cfg)
 

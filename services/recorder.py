@@ -18,6 +18,10 @@ Loss is measured twice, because each measure sees what the other cannot:
   advanced subscriber can even drop them (``hil/bus/pubsub.py`` says why); their seq still can.
   ``zenoh_advanced: false`` subscribes plainly.
 
+Beside each message the recorder writes the Foxglove well-known types derived from it
+(``hil.wellknown``: ``foxglove.LocationFix``, ``FrameTransform``, ``Log``; option
+``foxglove_types``, default on), so a raw recording opens in Foxglove's Map, 3D and Log panels.
+
 Both go into status every second (``missing``, ``zenoh_missed``) and into the file's
 ``completeness`` metadata at a clean stop, with ``replay_ready`` true only when both are zero.
 
@@ -48,11 +52,18 @@ from hil.messages import RunInfo, decode
 from hil.nodes.base import OptionsError, decode_options
 from hil.record.completeness import Completeness
 from hil.record.keyfilter import KeyFilter, KeyFilterError
-from hil.record.mcapio import RecordingError, SessionWriter, split_part_path
+from hil.record.mcapio import (
+    TIME_SEMANTICS,
+    RecordingError,
+    SessionWriter,
+    split_part_path,
+    wall_clock_log_time,
+)
 from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
 from hil.runtime.options import RecorderOptions
 from hil.runtime.service import Service, run_service
+from hil.wellknown import WellKnown
 
 FLUSH_PERIOD_S = 1.0
 
@@ -94,6 +105,8 @@ class Recorder(Service):
         self._pending: list[tuple[str, bytes, int]] = []
         self.written = 0
         self.bytes_written = 0
+        self.foxglove_written = 0  # well-known messages derived (not counted in ``written``)
+        self._wellknown = WellKnown()
         self.zenoh_missed: dict[str, int] = {}  # per key (or publisher id, if its key is unknown)
         self.zenoh_unsequenced = 0
         self._source_key: dict[str, str] = {}  # Zenoh publisher id -> its key, to name a miss
@@ -191,6 +204,7 @@ class Recorder(Service):
             totals["out_of_order"] += tr.out_of_order
         return {
             "written": self.written,
+            "foxglove_written": self.foxglove_written,
             "bytes_written": self.bytes_written,
             "queue_depth": depth,
             "queue_peak": self._peak_queue,
@@ -211,9 +225,9 @@ class Recorder(Service):
         }
 
     def _log_time(self, rx_wall_ns: int) -> int:
-        if self._start_epoch_ns is None:
-            return 0
-        return int((rx_wall_ns - self._start_epoch_ns) * self._speed)
+        """Start epoch + receive time on the rig clock (``hil.record.mcapio``); before the run's
+        ``RunInfo`` the receive time itself (services starting: the wall clock, as at speed 1)."""
+        return wall_clock_log_time(rx_wall_ns, self._start_epoch_ns, self._speed)
 
     def _handle(self, key: str, payload: bytes, rx_wall_ns: int, encoding: Any = None) -> None:
         if self.keyfilter.active and not self.keyfilter.keeps(key):
@@ -241,20 +255,36 @@ class Recorder(Service):
         self.completeness.see(key, msg.seq)
         if self.writer is None:
             return
+        log_ns = self._log_time(rx_wall_ns)
+        start = self._start_epoch_ns
         try:
             self.writer.write(
                 key,
                 cls,
                 payload,
-                log_time_ns=self._log_time(rx_wall_ns),
-                publish_time_ns=msg.stamp_ns,
+                log_time_ns=log_ns,
+                publish_time_ns=log_ns if start is None else start + msg.stamp_ns,
                 seq=msg.seq,
             )
             self.written += 1
             self.bytes_written += len(payload)
             self.stats.count_rate("in.all")
+            self._write_wellknown(key, msg, log_ns)
         except OSError as err:
             self._fail(err)
+
+    def _write_wellknown(self, key: str, msg: Any, log_ns: int) -> None:
+        """Foxglove's well-known types derived from the message, beside it (``hil.wellknown``)."""
+        if not self.opts.foxglove_types or self.writer is None:
+            return
+        try:
+            derived = self._wellknown.convert(key, msg, log_ns)
+        except Exception as err:  # a conversion must never cost the recording
+            self.stats.error("errors.foxglove_types", f"{key}: {type(err).__name__}: {err}")
+            return
+        for d in derived:
+            self.writer.write_wellknown(d, log_time_ns=log_ns)
+            self.foxglove_written += 1
 
     def _handle_raw(self, key: str, payload: bytes, rx_wall_ns: int, encoding: Any) -> None:
         """A key under ``hil/<rig>/`` outside the contract: its bytes, on a schema-less channel.
@@ -322,15 +352,15 @@ class Recorder(Service):
                 "origin_lon_deg": run.origin_lon_deg,
                 "origin_alt_m": run.origin_alt_m,
                 "executor": "live",
-                "time_semantics": "log_time = recorder receive time on the rig clock; "
-                "publish_time = message stamp_ns (time of validity); sequence = per-publisher seq",
+                "time_semantics": TIME_SEMANTICS,
+                "time_base": "epoch",
             },
         )
         self.writer.add_metadata(
             "config", {"options": json.dumps(msgspec.to_builtins(self.opts), sort_keys=True)}
         )
         for name, data, media in run_attachments(run):
-            self.writer.add_attachment(name, data, media)
+            self.writer.add_attachment(name, data, media, log_time_ns=run.start_epoch_ns)
 
     def part_path(self, part: int | None = None) -> Path:
         """Part 0 is the requested path; later parts are ``<stem>_0001<suffix>``, ..."""

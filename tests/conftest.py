@@ -56,6 +56,46 @@ def run_hil(
     )
 
 
+SIM_RECORDING_SCENARIO = """
+name = "simrec"
+seed = 11
+duration_s = 3.0
+
+[origin]
+lat_deg = 50.45
+lon_deg = 30.52
+alt_m = 300.0
+
+[initial]
+speed_mps = 20.0
+
+[[segment]]
+kind = "turn"
+duration_s = 3.0
+yaw_rate_dps = 10.0
+
+[[event]]
+kind = "imu_frame_loss"
+t_start_s = 1.0
+t_end_s = 1.5
+percent = 50.0
+"""
+
+
+@pytest.fixture(scope="session")
+def sim_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A fresh 3 s ``hil sim`` recording of a turn with a timed fault (every topic of the rig,
+    events and counters), made once per test session."""
+    from hil.runners.sim import SimOptions, run_sim
+
+    root = tmp_path_factory.mktemp("sim")
+    scenario = root / "simrec.toml"
+    scenario.write_text(SIM_RECORDING_SCENARIO)
+    path = root / "sim.mcap"
+    run_sim(SimOptions(scenario=str(scenario), duration_s=3.0, record=path, rig="simrec", on_warning=print))
+    return path
+
+
 # -- leftovers: every session, thread and process a test opens is closed by its teardown -------
 #
 # A test that fails half-way must not leave a rig running or a Zenoh session open: an open

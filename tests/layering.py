@@ -27,7 +27,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
     0: ("hil.messages", "hil.nav.types", "hil.sensor_table"),
     1: ("hil.nav",),
     2: ("hil.sensors", "hil.estimators", "hil.timesync", "hil.faults"),
-    3: ("hil.fusion", "hil.can", "hil.wire"),
+    3: ("hil.fusion", "hil.can", "hil.wire", "hil.wellknown"),
     4: ("hil.nodes",),
     # hil.can's transports and file adapters are I/O: python-can buses over Zenoh, the
     # transmitter that sends a node's frames, MCAP as a python-can log
@@ -43,6 +43,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "hil.runners",
         "hil.progress",
         "hil.monitor",
+        "hil.foxglove_server",
         "hil.schemas_io",
         "hil",
     ),
@@ -64,6 +65,7 @@ PURE_PACKAGES = (
     "hil.sensors",
     "hil.nodes",
     "hil.wire",
+    "hil.wellknown",  # Foxglove's well-known types from the messages (foxglove-sdk encodes, no I/O)
 )
 IMPURE_IMPORTS = ("zenoh", "time", "threading", "subprocess")
 # python-can is a transport too; hil.nodes may use its ``can.Message`` data type.

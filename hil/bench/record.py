@@ -170,12 +170,12 @@ def bench_recorder(n_samples: int) -> dict[str, float]:
     t_pub = time.time()
     bare = _counter_result(counter, timeout=600)
     deadline = time.monotonic() + 600
-    while status["r"].counters.get("written", 0) < total:
+    while status["r"].counter_map().get("written", 0) < total:
         if time.monotonic() > deadline:
             break
         time.sleep(0.01)
     t_rec = time.time()
-    peak = status["r"].counters.get("queue_peak", 0)
+    peak = status["r"].counter_map().get("queue_peak", 0)
     rec.send_signal(signal.SIGTERM)
     rec.wait(timeout=120)
     hub.close()

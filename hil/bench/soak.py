@@ -198,7 +198,7 @@ def soak_run(
         session = holder.get("session")
         if session is not None:
             session.close()  # type: ignore[attr-defined]
-    rec = probe.recorder.counters if probe.recorder is not None else {}
+    rec = probe.recorder.counter_map() if probe.recorder is not None else {}
     with probe.lock:
         seqs = {
             key: {"count": t.count, "missing": t.missing, "gaps": t.gaps} for key, t in probe.seqs.items()

@@ -206,8 +206,8 @@ class DutNavDecoder:
         else:
             q = quat_normalise([v[f][0] for f in QUAT])
 
-        def opt(names: tuple[str, str, str]) -> list[float] | None:
-            return [v[n][0] for n in names] if all(n in v for n in names) else None
+        def opt(names: tuple[str, str, str]) -> list[float]:
+            return [v[n][0] for n in names] if all(n in v for n in names) else []
 
         sol = NavSolution(
             seq=self._seq,

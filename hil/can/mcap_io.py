@@ -6,9 +6,14 @@ session.mcap`` plays the recorded frames onto any bus with their recorded spacin
 ``python -m can.logconvert session.mcap out.asc`` converts them.
 
 Which frames: every ``hil.CanFrame`` message (the bridge's ``hil/<rig>/can/<channel>`` topics),
-in file order. ``timestamp`` is the frame's receive stamp on the rig clock (``stamp_ns`` / 1e9,
-seconds since run start); ``channel`` is the recorded channel name. A crashed recording is read
-up to its last complete chunk, like every other reader of the rig's files.
+in file order. ``timestamp`` is the frame's receive time on the wall-clock timeline: the run's
+start epoch (``RunInfo.start_epoch_ns``, from the file's ``hil`` metadata or its ``run`` message)
++ the frame's receive stamp on the rig clock (``stamp_ns``), in seconds since 1970 -- what a
+SocketCAN log of the same bus would say, so ``.asc``/``.blf``/``.trc`` exports line up with other
+logs of the bench. Old recordings (rig-time log times) get the same, as their frames' stamps are
+rig time too. A file with no start epoch at all (a recorder killed before the run started) keeps
+rig seconds. ``channel`` is the recorded channel name. A crashed recording is read up to its last
+complete chunk, like every other reader of the rig's files.
 """
 
 from __future__ import annotations
@@ -21,15 +26,15 @@ import can
 from can.io.generic import MessageReader
 
 from hil.messages import CanFrame, decode
-from hil.record.mcapio import RecordingError, iter_records
+from hil.record.mcapio import RecordingError, iter_records, run_start
 
 CAN_SCHEMA = "hil.CanFrame"
 
 
-def can_message(frame: CanFrame) -> can.Message:
-    """The python-can view of one recorded frame."""
+def can_message(frame: CanFrame, start_epoch_ns: int = 0) -> can.Message:
+    """The python-can view of one recorded frame (``start_epoch_ns``: the run's time zero)."""
     return can.Message(
-        timestamp=frame.stamp_ns * 1e-9,
+        timestamp=(start_epoch_ns + frame.stamp_ns) * 1e-9,
         arbitration_id=frame.arbitration_id,
         is_extended_id=frame.is_extended_id,
         is_fd=frame.is_fd,
@@ -57,9 +62,11 @@ class McapReader(MessageReader):
         self.channel = channel
         self.truncated = ""
         self._stopped = False
+        self.start_epoch_ns: int | None = None  # known once iteration has begun
 
     def __iter__(self) -> Iterator[can.Message]:
         seen_any = False
+        start = self.start_epoch_ns = run_start(self.path)[0] or 0
         for kind, rec in iter_records(self.path):
             if self._stopped:
                 return
@@ -74,7 +81,7 @@ class McapReader(MessageReader):
             frame = decode(CanFrame, rec.payload)
             if self.channel is not None and frame.channel != self.channel:
                 continue
-            yield can_message(frame)
+            yield can_message(frame, start)
 
     def stop(self) -> None:
         self._stopped = True

@@ -369,9 +369,9 @@ class FusionCore:
             lat_deg=float(np.degrees(lat)),
             lon_deg=float(np.degrees(lon)),
             alt_m=float(alt),
-            pos_sigma_m=None if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
-            vel_sigma_mps=None if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
-            att_sigma_rad=None if nav.att_sigma_rad is None else [float(v) for v in nav.att_sigma_rad],
+            pos_sigma_m=[] if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
+            vel_sigma_mps=[] if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
+            att_sigma_rad=[] if nav.att_sigma_rad is None else [float(v) for v in nav.att_sigma_rad],
             imu_seq=self._last_imu_seq,
             gnss_seq=self._last_gnss_seq,
         )

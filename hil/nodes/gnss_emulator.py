@@ -174,7 +174,7 @@ class GnssEmulatorNode(Node):
         if not (mine or nobodys):
             return []
         try:
-            check_fault(msg.kind, msg.target, msg.params)
+            check_fault(msg.kind, msg.target, msg.param_map())
         except FaultError as err:
             self.error("rejected.control.fault", str(err))
             return []
@@ -183,7 +183,7 @@ class GnssEmulatorNode(Node):
     def _apply(self, cmd: FaultCommand, now_ns: int) -> list[Out]:
         """A commanded fault from ``now_ns`` on: as a scenario event the core applies to the
         epochs it has not computed yet, and on the timeline that announces its edges."""
-        p = cmd.params
+        p = cmd.param_map()
         if cmd.kind == "clock_step":
             self.clock.add_step(now_ns, round(p["step_s"] * 1e9))
             return [self.event("fault_start", _detail(cmd.kind, now_ns, None, p, "command"), now_ns)]

@@ -107,7 +107,7 @@ class ImuEmulatorNode(Node):
         if not (mine or nobodys):
             return
         try:
-            check_fault(cmd.kind, cmd.target, cmd.params)
+            check_fault(cmd.kind, cmd.target, cmd.param_map())
         except FaultError as err:
             self.error("rejected.control.fault", str(err))
             return
@@ -178,11 +178,12 @@ class ImuEmulatorNode(Node):
         cmds, self._commands = self._commands, []
         for cmd in cmds:
             if cmd.kind == "clock_step":
-                self.clock.add_step(t_ns, round(cmd.params["step_s"] * 1e9))
-                detail = fault_detail(cmd.kind, t_ns, None, cmd.params, "command")
+                p = cmd.param_map()
+                self.clock.add_step(t_ns, round(p["step_s"] * 1e9))
+                detail = fault_detail(cmd.kind, t_ns, None, p, "command")
                 outs.append(self.event("fault_start", detail, t_ns))
                 continue
-            self.faults.timeline.add(cmd.kind, t_ns, cmd.duration_s, dict(cmd.params))
+            self.faults.timeline.add(cmd.kind, t_ns, cmd.duration_s, cmd.param_map())
 
     def counters(self) -> dict[str, int]:
         """What the device counts (the live runner adds its transmitter's tx_frames, retries, ...)."""

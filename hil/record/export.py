@@ -5,8 +5,10 @@ one row per message, in file order. Columns: ``log_time_ns`` and ``publish_time_
 record's times, ``docs/recording.md`` says which clock), then the message's fields with vectors
 spread over named columns: NED vectors (``pos_*``, ``vel_*``, their sigmas) as ``_n/_e/_d``,
 quaternions ``q_nb`` as ``_w/_x/_y/_z`` (scalar first, as the message has it), body-frame
-vectors as ``_x/_y/_z``. A solution without a covariance (``pos_sigma_m`` absent) leaves its
-sigma cells empty (CSV) or null (Parquet). Times stay integer nanoseconds.
+vectors as ``_x/_y/_z``. A solution without a covariance (``pos_sigma_m`` absent: ``[]``, or
+``null`` in a recording made before) leaves its sigma cells empty (CSV) or null (Parquet). Times
+stay integer nanoseconds; ``log_time_ns``/``publish_time_ns`` are on the wall clock (start epoch +
+rig time) in recordings made now, rig time in those made before; the message fields are rig time.
 
 Parquet is written with pyarrow (``ParquetWriter``, zstd, in row groups of ``BATCH`` rows, so an
 hour-long recording is converted in bounded memory): the columnar format Dask, Spark, DuckDB and
@@ -23,7 +25,7 @@ from typing import IO, Any
 
 import msgspec
 
-from hil.messages import TYPES_BY_NAME, GnssFix, ImuSample, NavSolution, Truth, schema_name
+from hil.messages import TYPES_BY_NAME, GnssFix, ImuSample, NavSolution, Truth, decode, schema_name
 from hil.record.mcapio import RecordingError
 from hil.record.scan import Scan, describe_loss
 from hil.record.tools import iter_tagged
@@ -71,7 +73,10 @@ def _row(msg: Any, cols: list[tuple[str, str, int | None, str]]) -> list[Any]:
     row = []
     for _c, name, i, _k in cols:
         v = getattr(msg, name)
-        row.append(None if v is None else (v[i] if i is not None else v))
+        if i is None:
+            row.append(v)
+        else:  # an absent vector is [] (and was None in recordings made before)
+            row.append(v[i] if v is not None and i < len(v) else None)
     return row
 
 
@@ -166,7 +171,7 @@ def export(
     out = Path(out_dir)
     scan = Scan(src)
     tables: dict[str, _Table] = {}
-    decoders: dict[str, msgspec.json.Decoder[Any]] = {}
+    decoders: dict[str, type[Any]] = {}
     try:
         for t in _wanted(iter_tagged(scan), pats):
             topic = t.channel.topic
@@ -178,9 +183,9 @@ def export(
                     tab = tables[topic] = _Table(out / f"{table_name(topic)}.{fmt}", cls, fmt)
                 except OSError as err:
                     raise RecordingError(f"cannot write under {out}: {err.strerror}") from err
-                decoders[topic] = msgspec.json.Decoder(cls)
+                decoders[topic] = cls
             try:
-                msg = decoders[topic].decode(t.message.data)
+                msg = decode(decoders[topic], t.message.data)  # a recording's previous forms too
             except (msgspec.DecodeError, msgspec.ValidationError):
                 continue  # the recorder validated it; a foreign writer's bad message is skipped
             tab.add(t.message.log_time, t.message.publish_time, msg)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from datetime import UTC, datetime
 
 import msgspec
 import numpy as np
@@ -66,14 +67,14 @@ def channel_infos(session: Session) -> list[ChannelInfo]:
 
 def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
     """Horizontal position error of every estimator vs truth (interpolated at the solution stamps)."""
-    truth = [r.decode() for r in session.records if r.topic.endswith("/truth")]
+    truth = [r.decode() for r in session.records if r.schema == "hil.Truth"]
     if len(truth) < 2:
         return {}
     tt = np.array([t.stamp_ns for t in truth], dtype=np.float64)
     tp = np.array([t.pos_ned_m for t in truth])
     sols: dict[str, list[tuple[int, list[float]]]] = {}
     for r in session.records:
-        if "/nav/" in r.topic:
+        if r.schema == "hil.NavSolution":
             m = r.decode()
             sols.setdefault(m.estimator, []).append((m.stamp_ns, m.pos_ned_m))  # type: ignore[attr-defined]
     out: dict[str, dict[str, float]] = {}
@@ -96,7 +97,7 @@ def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
 
 
 def describe(path: str, *, accuracy: bool = True) -> str:
-    s = read_session(path)
+    s = read_session(path, derived=True)  # the Foxglove channels are listed too
     infos = channel_infos(s)
     t0 = min((c.first_ns for c in infos), default=0)
     t1 = max((c.last_ns for c in infos), default=0)
@@ -108,6 +109,15 @@ def describe(path: str, *, accuracy: bool = True) -> str:
             f"speed={meta.get('speed')} executor={meta.get('executor')} version={meta.get('version')}"
         )
     lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {len(s.records)}   channels: {len(infos)}")
+    start = meta.get("start_epoch_ns")
+    if start is not None and start.lstrip("-").isdigit():
+        when = datetime.fromtimestamp(int(start) / 1e9, tz=UTC).isoformat(timespec="milliseconds")
+        base = (
+            "MCAP log/publish times = start + rig time"
+            if meta.get("time_base") == "epoch"
+            else "MCAP log/publish times are rig time (recorded before the wall-clock timeline)"
+        )
+        lines.append(f"start:     {when.replace('+00:00', 'Z')} (rig time zero; {base})")
     if s.truncated:
         lines.append(f"TRUNCATED: read up to the last complete chunk ({s.truncation_reason})")
     comp = s.metadata.get("completeness")
@@ -134,11 +144,11 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         lines.append(f"restarts:  {len(restarted)} publisher(s) restarted during the recording: {names}")
     lines.append("")
     rst = f"{'restarts':>9}" if restarted else ""
-    lines.append(f"{'topic':<34}{'type':<20}{'count':>8}{'rate Hz':>10}{'gaps':>7}{'dups':>6}{rst}")
+    lines.append(f"{'topic':<34}{'type':<25}{'count':>8}{'rate Hz':>10}{'gaps':>7}{'dups':>6}{rst}")
     for c in infos:
         rst = f"{c.restarts:>9}" if restarted else ""
         lines.append(
-            f"{c.topic:<34}{c.schema:<20}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}{rst}"
+            f"{c.topic:<34}{c.schema:<25}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}{rst}"
         )
     if accuracy:
         errs = estimator_errors(s)

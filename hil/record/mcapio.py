@@ -1,10 +1,18 @@
 """MCAP files in the rig's layout: write a session, read it back (also when truncated).
 
 Layout (the contract): one channel per Zenoh key, schema encoding ``jsonschema`` with schema
-name ``hil.<Type>``, message encoding ``json``. ``log_time`` = recorder receive time on the rig
-clock (ns since run start, clamped at 0), ``publish_time`` = the message's own ``stamp_ns``
-(clamped at 0), ``sequence`` = the message's per-publisher ``seq``. Chunks are zstd-compressed and
-flushed at least every second, so a killed recorder leaves a file readable up to its last chunk.
+name ``hil.<Type>``, message encoding ``json``. ``sequence`` = the message's per-publisher ``seq``.
+Chunks are zstd-compressed and flushed at least every second, so a killed recorder leaves a file
+readable up to its last chunk.
+
+Times are on the wall-clock timeline, so viewers (Foxglove, python-can's ``.asc``/``.blf``
+exports) show the real date and line up with other logs: ``log_time`` = the run's start epoch
+(``RunInfo.start_epoch_ns``: ``hil sim`` the scenario's ``start_utc``, ``hil up`` the wall clock
+at time zero) + the recorder's receive time on the rig clock; ``publish_time`` = start epoch +
+the message's ``stamp_ns`` (time of validity). The messages themselves keep rig time (their
+``*_ns`` fields), so a rerun is bit for bit whatever the date. Recordings made before this carried
+rig time in ``log_time``/``publish_time``; ``rig_time_ns`` reads both (hil's times never get near
+``EPOCH_FLOOR_NS`` on the rig clock, an epoch instant from 1981 on is always past it).
 """
 
 from __future__ import annotations
@@ -18,7 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import msgspec
 from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, ChunkIndex, Header, Metadata, Schema
@@ -27,7 +34,9 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from hil import __version__
-from hil.messages import TYPES_BY_NAME, Message, json_schema, schema_name
+from hil.messages import TYPES_BY_NAME, Message, decode, json_schema, schema_name
+from hil.wellknown import MESSAGE_ENCODING, SCHEMAS, Derived
+from hil.wellknown import PREFIX as WELLKNOWN_PREFIX
 
 PROFILE = "hil"
 RAW = "raw"  # channel metadata ``hil`` of a key outside the contract, recorded as its bytes
@@ -62,6 +71,50 @@ def split_parts(path: Path) -> list[Path]:
     while split_part_path(path, len(parts) + 1).is_file():
         parts.append(split_part_path(path, len(parts) + 1))
     return parts
+
+
+#: ~1973 as an epoch instant, three years as rig time: a recording's times below it are rig time
+#: (a recording from before the wall-clock timeline), above it start epoch + rig time
+EPOCH_FLOOR_NS = 10**17
+#: what the ``hil`` metadata says about the times of a recording with the wall-clock timeline
+TIME_SEMANTICS = (
+    "log_time = start_epoch_ns + recorder receive time on the rig clock; publish_time = start_epoch_ns + "
+    "message stamp_ns (time of validity); message fields keep rig time; sequence = per-publisher seq"
+)
+
+
+def wall_clock_log_time(rx_wall_ns: int, start_epoch_ns: int | None, speed: float = 1.0) -> int:
+    """The log time of a sample received at ``rx_wall_ns``: start epoch + its receive time on the
+    rig clock (``--speed`` scales it); before the run's start epoch is known, the wall clock."""
+    if start_epoch_ns is None:
+        return rx_wall_ns
+    return start_epoch_ns + int((rx_wall_ns - start_epoch_ns) * speed)
+
+
+def rig_time_ns(t_ns: int, start_epoch_ns: int) -> int:
+    """A recorded ``log_time``/``publish_time`` as rig time (ns since the run's time zero), for a
+    recording of either timeline: epoch (start epoch + rig time) or, before it, rig time."""
+    return t_ns - start_epoch_ns if t_ns >= EPOCH_FLOOR_NS else t_ns
+
+
+def run_start(path: str | Path) -> tuple[int | None, bool]:
+    """A recording's start epoch (``hil`` metadata, else its first ``run`` message; None: neither)
+    and whether its MCAP times are on the wall-clock timeline already (False: rig time, a
+    recording from before). Reads from the start of the file until it knows: both come before the
+    run's traffic."""
+    start: int | None = None
+    for kind, rec in iter_records(path, derived=True):
+        if kind == "metadata" and rec.name == "hil" and "start_epoch_ns" in rec.metadata:
+            with contextlib.suppress(ValueError, TypeError):
+                start = int(json.loads(rec.metadata["start_epoch_ns"]))
+        elif kind == "message" and start is None and rec.schema == "hil.RunInfo":
+            with contextlib.suppress(ValueError):
+                start = decode(TYPES_BY_NAME["hil.RunInfo"], rec.payload).start_epoch_ns  # type: ignore[attr-defined]
+        elif kind == "message" and start is not None:
+            return start, rec.log_time_ns >= EPOCH_FLOOR_NS
+        elif kind == "truncated":
+            break
+    return start, False
 
 
 def _u64(ns: int) -> int:
@@ -258,6 +311,24 @@ class SessionWriter:
         )
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
+    def write_wellknown(self, d: Derived, *, log_time_ns: int) -> None:
+        """A Foxglove well-known message (``hil.wellknown``): its own channel, the SDK's schema,
+        ``publish_time`` = its timestamp, ``sequence`` = its count on the topic."""
+        chan = self._channels.get(d.topic)
+        if chan is None:
+            schema = SCHEMAS[d.schema]
+            sid = self._schemas.get(schema.name)
+            if sid is None:
+                sid = self._schemas[schema.name] = self._writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            chan = self._channels[d.topic] = self._writer.register_channel(d.topic, MESSAGE_ENCODING, sid)
+        n = self.counts.get(d.topic, 0)
+        log_ns, pub_ns = _u64(log_time_ns), _u64(d.stamp_ns)
+        seq = n & 0xFFFFFFFF
+        self._writer.add_message(chan, log_time=log_ns, data=d.data, publish_time=pub_ns, sequence=seq)
+        self.counts[d.topic] = n + 1
+
     def write_raw(
         self, topic: str, payload: bytes, *, log_time_ns: int, encoding: str, sequence: int
     ) -> None:
@@ -342,7 +413,7 @@ class Record:
             raise RecordingError(
                 f"channel {self.topic!r} has schema {self.schema!r}, not a hil contract type"
             )
-        return msgspec.json.decode(self.payload, type=cls)
+        return decode(cls, self.payload)  # the previous form of a type too (LEGACY_FORMS)
 
 
 @dataclass
@@ -381,11 +452,24 @@ class Session:
 PROGRESS_EVERY = 8192  # records between two progress callbacks of ``iter_records``
 
 
+def is_derived(topic: str) -> bool:
+    """A channel of Foxglove well-known types derived from the rig's messages (``hil.wellknown``)."""
+    return topic.startswith(WELLKNOWN_PREFIX)
+
+
 def iter_records(
-    path: str | Path, on_progress: Callable[[int, int], None] | None = None, *, header: bool = False
+    path: str | Path,
+    on_progress: Callable[[int, int], None] | None = None,
+    *,
+    derived: bool = False,
+    header: bool = False,
 ) -> Iterator[tuple[str, Any]]:
     """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail
     (``header``: the file's ``Header`` record too, as ``("header", rec)``).
+
+    The derived ``/foxglove/...`` channels (``is_derived``) are left out unless ``derived``: they are
+    a view of the rig's messages, not rig traffic, and rerun, replay and loss accounting read the
+    messages themselves.
 
     ``on_progress(bytes_read, file_bytes)`` is called every ``PROGRESS_EVERY`` records: a one-hour
     file is read for minutes, and the byte position is the only total known before the end.
@@ -411,6 +495,8 @@ def iter_records(
                     channels[rec.id] = rec
                 elif isinstance(rec, McapMessage):
                     chan = channels[rec.channel_id]
+                    if not derived and is_derived(chan.topic):
+                        continue
                     schema = schemas.get(chan.schema_id)
                     yield (
                         "message",
@@ -535,14 +621,16 @@ def check_hil_recording(path: str | Path) -> None:
     raise RecordingError(f"{p} is a hil recording that holds no messages")
 
 
-def read_session(path: str | Path) -> Session:
-    """Read a whole recording; a file cut short by a crash reads up to its last complete chunk."""
+def read_session(path: str | Path, *, derived: bool = False) -> Session:
+    """Read a whole recording; a file cut short by a crash reads up to its last complete chunk.
+
+    ``derived``: also the Foxglove well-known channels (``iter_records``)."""
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"no recording at {path}")
     records: list[Record] = []
     session = Session(path=path, records=records)
-    for kind, rec in iter_records(path):
+    for kind, rec in iter_records(path, derived=derived):
         if kind == "message":
             records.append(rec)
         elif kind == "metadata":

@@ -27,6 +27,7 @@ from hil.messages import (
     Measurement,
     NavSolution,
     RunInfo,
+    current_form,
     decode,
     encode,
 )
@@ -177,7 +178,9 @@ class _FusionRerun:
         w = self.window_ns
         if self.last_key is not None and w is not None and r.publish_time_ns < self.last_key[0] - w:
             raise OutOfWindow(f"{r.topic} seq {r.sequence} is recorded long after its inputs")
-        self.matcher.recorded((est, r.sequence), r.payload, -1, r.log_time_ns)
+        # a recording made before the current form of NavSolution (``null`` for an absent sigma)
+        # is compared in the current form: the same values, the bytes today's encoder writes
+        self.matcher.recorded((est, r.sequence), current_form(NavSolution, r.payload), -1, r.log_time_ns)
 
     def _journal(self, r: Record) -> None:
         j = r.decode()

@@ -31,7 +31,7 @@ from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.base import Out
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.matching import Matcher
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message, rig_time_ns
 from hil.sensor_table import SENSORS
 
 _RAW = {schema_name(k.message): k.message for k in SENSORS.values()}
@@ -109,14 +109,18 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
             counts["order"] += 1
             if key in matcher.released:
                 late.append((counts["order"], key))
-            matcher.recorded(key, r.payload, counts["order"], r.log_time_ns)
+            matcher.recorded(key, r.payload, counts["order"], now_ns)  # rig time, as now_ns below
         matcher.release_before(now_ns)
 
+    start_ns = 0
     for r in records:
-        now_ns = r.log_time_ns
+        now_ns = rig_time_ns(r.log_time_ns, start_ns)
         if node is None:
             if r.topic.endswith("/run"):
-                node = TimeSyncNode(decode(RunInfo, r.payload))
+                run = decode(RunInfo, r.payload)
+                start_ns = run.start_epoch_ns
+                now_ns = rig_time_ns(r.log_time_ns, start_ns)
+                node = TimeSyncNode(run)
                 for h in held:
                     handle(h)
                 held.clear()

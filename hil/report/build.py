@@ -360,7 +360,7 @@ def _topics_section(page: _Draft, d: ReportData) -> None:
 def _services_section(page: _Draft, d: ReportData) -> None:
     rows = []
     for name, st in sorted(d.status.items()):
-        rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
+        rej = sum(c.value for c in st.counters if c.key.startswith("rejected"))
         rows.append(
             [
                 html.escape(name),

@@ -17,7 +17,8 @@ import msgspec
 import numpy as np
 
 from hil.can.busload import frame_bits
-from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus
+from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus, decode
+from hil.record.mcapio import is_derived
 from hil.report.scan import Batch, Channel, scan
 
 F64 = np.ndarray  # float64 arrays; shapes in the field comments
@@ -187,6 +188,8 @@ class _Collector:
 
     def on_batch(self, b: Batch) -> None:
         topic, schema = b.channel.topic, b.channel.schema
+        if is_derived(topic):
+            return  # Foxglove's view of the messages (hil.wellknown), not rig traffic
         self.schema.setdefault(topic, schema)
         if not b.sequences.size:
             return
@@ -374,7 +377,7 @@ def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None
         if cls is None:
             continue
         try:
-            m = msgspec.json.decode(payload, type=cls)
+            m = decode(cls, payload)  # also the previous form of a type (hil.messages.LEGACY_FORMS)
         except (msgspec.DecodeError, msgspec.ValidationError):
             col.undecodable[topic] = col.undecodable.get(topic, 0) + 1
             continue
@@ -384,10 +387,9 @@ def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None
             d.events.append(m)
         elif isinstance(m, ServiceStatus):
             d.status[m.service] = m
-            if "bus_load_permille" in m.counters:
-                loads.setdefault(m.service, []).append(
-                    (m.stamp_ns * 1e-9, m.counters["bus_load_permille"] / 1000)
-                )
+            load = m.counter_map().get("bus_load_permille")
+            if load is not None:
+                loads.setdefault(m.service, []).append((m.stamp_ns * 1e-9, load / 1000))
     for svc, pts in loads.items():
         a = np.array(sorted(pts))
         d.status_load[svc] = (a[:, 0], a[:, 1])

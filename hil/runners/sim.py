@@ -9,8 +9,11 @@ delay, wire time, FIFO, the sync frame's latch jitter). Events at the same rig t
 fixed order -- the runner's own (status, ``fault_ignored``), then node ticks in pipeline order,
 then deliveries first in first out -- so the same scenario gives the same file, byte for byte.
 
-Messages are written as they are published, in rig-time order, with ``log_time`` = the rig time
-of publication, so a one-hour session never sits in memory. Each node's status goes out once a
+Beside each message go the Foxglove well-known types derived from it (``hil.wellknown``: map
+positions, frame transforms, log lines), as the live recorder writes them. Messages are written as
+they are published, in rig-time order, with ``log_time`` = the scenario's
+``start_utc`` + the rig time of publication (``hil.record.mcapio``: the wall-clock timeline), so a
+one-hour session never sits in memory. Each node's status goes out once a
 rig second (pid 0, uptime in rig time: nothing host-dependent). ``kill_service`` has no meaning
 in one process: a warning line and a ``fault_ignored`` event on ``event/sim`` say so. Every
 node stops by itself at the run's end; then each is told ``finish`` (end of input) in pipeline
@@ -30,7 +33,7 @@ from typing import Any
 
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
-from hil.messages import Event, Message, RunInfo, ServiceStatus, encode
+from hil.messages import Event, Message, RunInfo, ServiceStatus, counts, encode
 from hil.nav.scenario import load_scenario, scenario_for_run, scenario_overrides
 from hil.nodes import node_class
 from hil.nodes.base import CAN_RX, CAN_TX, SERIAL_RX, SERIAL_TX, Node, Out
@@ -40,10 +43,11 @@ from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
-from hil.record.mcapio import SessionWriter, split_part_path
+from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
 from hil.runners.wire import CanWireModel
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
+from hil.wellknown import WellKnown
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
@@ -258,7 +262,9 @@ class _Session:
         self.nodes = nodes
         self.opts = opts
         self.end_ns = int(run.duration_s * 1e9)
+        self.epoch_ns = run.start_epoch_ns  # rig time zero on the wall-clock timeline
         self.w = SessionWriter(opts.record)
+        self.wellknown = WellKnown(start_epoch_ns=run.start_epoch_ns)  # Foxglove's types, as live
         self.keep = KeyFilter(run.rig, opts.record_include, opts.record_exclude)
         self.part = 0
         self.part_t0_ns = 0
@@ -271,10 +277,19 @@ class _Session:
         if topic is None:
             topic = self._topics[key] = f"{self.root}/{key}"
         if self.keep.active and not self.keep.keeps(topic):
-            return
-        self.w.write(
-            topic, type(msg), encode(msg), log_time_ns=t_log, publish_time_ns=msg.stamp_ns, seq=msg.seq
+            return  # and nothing derived from it
+        epoch = self.epoch_ns
+        w = self.w
+        w.write(
+            topic,
+            type(msg),
+            encode(msg),
+            log_time_ns=epoch + t_log,
+            publish_time_ns=epoch + msg.stamp_ns,
+            seq=msg.seq,
         )
+        for d in self.wellknown.convert(key, msg, epoch + t_log):
+            w.write_wellknown(d, log_time_ns=epoch + t_log)
         self.n_written += 1
 
     def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:
@@ -321,7 +336,7 @@ class _Session:
                 state="running",
                 pid=0,
                 uptime_s=t_ns / 1e9,
-                counters=node.counters(),
+                counters=counts(node.counters()),
                 last_error=node.last_error,
             )
             self.write(key, st, t_ns)
@@ -389,10 +404,12 @@ def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:
             "origin_lon_deg": s.origin_lon_deg,
             "origin_alt_m": s.origin_alt_m,
             "executor": "sim",
+            "time_semantics": TIME_SEMANTICS,
+            "time_base": "epoch",
         },
     )
     for name, data, media in run_attachments(run):
-        w.add_attachment(name, data, media)
+        w.add_attachment(name, data, media, log_time_ns=run.start_epoch_ns)
 
 
 def not_applicable_faults(events: Any, duration_s: float) -> tuple[list[str], list[tuple[int, str]]]:

@@ -34,6 +34,7 @@ class RecorderOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fie
     include: list[str] = msgspec.field(default_factory=list)
     exclude: list[str] = msgspec.field(default_factory=list)
     raw_unknown: bool = True  # keys outside the contract recorded as raw bytes (else refused)
+    foxglove_types: bool = True  # Foxglove's well-known types beside the messages (hil.wellknown)
 
 
 OTHER_SERVICES: dict[str, type[NodeOptions]] = {"recorder": RecorderOptions}

@@ -29,6 +29,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from hil import messages
 from hil.bus.describe import BusDescription
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher, Stats, Subscriber
@@ -191,8 +192,8 @@ class Service:
                     state=state,
                     pid=os.getpid(),
                     uptime_s=round(time.monotonic() - self._t0, 3),
-                    rates_hz=rates,
-                    counters=counters,
+                    rates_hz=messages.rates(rates),
+                    counters=messages.counts(counters),
                     last_error=last_error,
                 )
             )

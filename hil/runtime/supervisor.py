@@ -108,6 +108,7 @@ class UpOptions:
     gnss_tcp: str | None = None  # the same line served over TCP, HOST:PORT
     gnss_baud: int = 115200
     gnss_messages: list[str] = field(default_factory=list)  # the receiver's message set (empty: defaults)
+    foxglove: str | None = None  # HOST:PORT: serve the rig to Foxglove (``hil foxglove``, its own process)
     record_include: list[str] = field(default_factory=list)  # recorder key expressions (hil.record.keyfilter)
     record_exclude: list[str] = field(default_factory=list)
 
@@ -223,10 +224,10 @@ class LiveView:
                     state = "(no status)" if alive is None or is_alive else "DEAD"
                     lines.append(f"  {name:<14}{state:<12}")
                     continue
-                rin = sum(v for k, v in st.rates_hz.items() if k.startswith("in."))
-                rout = sum(v for k, v in st.rates_hz.items() if k.startswith("out."))
-                rej = sum(v for k, v in st.counters.items() if k.startswith("rejected"))
-                errs = sum(v for k, v in st.counters.items() if "error" in k)
+                rin = sum(r.value for r in st.rates_hz if r.key.startswith("in."))
+                rout = sum(r.value for r in st.rates_hz if r.key.startswith("out."))
+                rej = sum(c.value for c in st.counters if c.key.startswith("rejected"))
+                errs = sum(c.value for c in st.counters if "error" in c.key)
                 if alive is not None and not is_alive:
                     state = "DEAD"
                 elif alive is None and not is_alive:
@@ -293,6 +294,7 @@ class Supervisor:
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
+        self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
         self._cpu_self_base = _own_cpu_seconds()
         self._cpu_dead: dict[str, float] = {}  # CPU of the earlier lives of restarted services
         self._restarting: dict[str, tuple[float, int]] = {}  # name -> (when it died, new pid)
@@ -446,11 +448,7 @@ class Supervisor:
             child.proc.kill()
             _ = t_ns
 
-    def spawn(self, name: str, restarts: int = 0) -> Child:
-        log_dir = self.opts.log_dir or Path("recordings/logs")
-        log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = log_dir / f"{name}.log"
-        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+    def _child_env(self) -> dict[str, str]:
         env = dict(os.environ)
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
@@ -458,6 +456,54 @@ class Supervisor:
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
         env.setdefault("PYTHONUNBUFFERED", "1")
+        return env
+
+    def spawn_viewer(self) -> Child:
+        """``hil foxglove`` on the rig's bus, attached as a remote one would be (read-only)."""
+        assert self.opts.foxglove is not None
+        log_dir = self.opts.log_dir or Path("recordings/logs")
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = log_dir / "foxglove.log"
+        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+        cmd = [sys.executable, "-m", "hil.cli", "foxglove", "--rig", self.opts.rig]
+        cmd += ["--listen", self.opts.foxglove]
+        proc = subprocess.Popen(
+            cmd, stdout=fh, stderr=subprocess.STDOUT, env=self._child_env(), start_new_session=True
+        )
+        self.viewer = Child("foxglove", proc, log_path, fh)
+        return self.viewer
+
+    def _check_viewer(self) -> None:
+        v = self.viewer
+        if v is None or v.stopping or v.proc.poll() is None:
+            return
+        v.stopping = True  # said once; the rig runs on (the recording is the product)
+        print(
+            f"hil up: the Foxglove server exited (code {v.proc.returncode}); the rig runs on. "
+            f"See {v.log_path}:\n{_tail(v.log_path)}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def _stop_viewer(self) -> None:
+        v = self.viewer
+        if v is None:
+            return
+        if v.proc.poll() is None:
+            v.proc.send_signal(signal.SIGTERM)
+            try:
+                v.proc.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                v.proc.kill()
+                v.proc.wait()
+        v.log_fh.close()
+
+    def spawn(self, name: str, restarts: int = 0) -> Child:
+        log_dir = self.opts.log_dir or Path("recordings/logs")
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = log_dir / f"{name}.log"
+        fh = open(log_path, "ab")  # noqa: SIM115 - owned by the Child
+        env = self._child_env()
         if name == DUT_UNIT:
             cmd = self.dut_command()
         else:
@@ -503,10 +549,13 @@ class Supervisor:
             signal.signal(s, lambda *_: self.stop.set())
         t_start = self._t_start = time.monotonic()
         try:
+            if o.foxglove:
+                self.spawn_viewer()  # first: it sees the run from its first message
             for name in self.service_names():
                 self.spawn(name)
             self._wait(t_start)
         finally:
+            self._stop_viewer()
             self._stop_all()
             self._final_accounting()
             for s, h in prev.items():
@@ -526,6 +575,7 @@ class Supervisor:
         last_print = 0.0
         while not self.stop.wait(0.2):
             self._do_kills()
+            self._check_viewer()
             if self._check_deaths():
                 return
             self._check_degraded()

@@ -105,7 +105,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
         )
         deadline = time.monotonic() + 30  # the fusion consumes its inbox in order: may lag on a busy host
         while time.monotonic() < deadline:
-            fusion = statuses["fusion"].counters
+            fusion = statuses["fusion"].counter_map()
             if all(fusion.get(r, 0) >= 1 for r in reasons):
                 break
             time.sleep(0.5)
@@ -114,7 +114,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
 
         def rejected_by_service() -> dict[str, int]:
             return {
-                name: sum(v for c, v in st.counters.items() if c.startswith("rejected"))
+                name: sum(v for c, v in st.counter_map().items() if c.startswith("rejected"))
                 for name, st in list(statuses.items())
             }
 

@@ -25,6 +25,7 @@ from hil.messages import (
     decode,
     encode,
 )
+from hil.messages import params as fault_params
 from hil.nav.scenario import load_scenario
 from hil.record.mcapio import Session, read_session
 from hil.runners.sim import SimOptions, run_sim
@@ -113,7 +114,7 @@ def test_hil_sim_delays_the_window_in_order_and_leaves_the_device_stamps(sim: Se
     p = {"latency_s": 0.04, "jitter_s": 0.02}
     assert edges == [("fault_start", 5_000_000_000, p), ("fault_end", 9_000_000_000, p)]
     st = decode(ServiceStatus, sim.by_topic("hil/cl/status/imu_emulator")[-1].payload)
-    assert st.counters["fault.can_latency.delayed_samples"] == 1600
+    assert st.counter_map()["fault.can_latency.delayed_samples"] == 1600
 
 
 def test_hil_sim_same_seed_same_delays(sim: Session, tmp_path: Path) -> None:
@@ -165,7 +166,9 @@ def test_live_timed_and_commanded_can_latency_are_applied_and_recorded(tmp_path:
     bad = subprocess.run(hil_cmd("fault", "can_latency", "--rig", "clrig", "--param", "latency_s=-1"), **run)
     assert bad.returncode == 2 and "latency_s and jitter_s must be >= 0" in bad.stderr, bad.stderr
     # a bad command that arrives anyway (another tool): counted by the emulator, not applied
-    bad_cmd = FaultCommand(seq=1, stamp_ns=0, kind="can_latency", target="", params={"latency_s": 20.0})
+    bad_cmd = FaultCommand(
+        seq=1, stamp_ns=0, kind="can_latency", target="", params=fault_params({"latency_s": 20.0})
+    )
     rig.hub.put("hil/clrig/control/fault", encode(bad_cmd))
     sent = subprocess.run(
         hil_cmd(
@@ -223,8 +226,8 @@ def test_live_timed_and_commanded_can_latency_are_applied_and_recorded(tmp_path:
     rx = [m.rx_stamp_ns for _t, m in raw]
     assert all(a <= b for a, b in itertools.pairwise(rx))
     st = decode(ServiceStatus, s.by_topic("hil/clrig/status/imu_emulator")[-1].payload)
-    assert st.counters.get("rejected.control.fault", 0) == 1, st.counters
+    assert st.counter_map().get("rejected.control.fault", 0) == 1, st.counter_map()
     # the timed window's 400 samples at least (the 1 Hz status may predate the commanded one's end)
-    assert st.counters["fault.can_latency.delayed_samples"] >= 400
+    assert st.counter_map()["fault.can_latency.delayed_samples"] >= 400
     for log in (tmp_path / "cl.logs").glob("*.log"):
         assert "Traceback" not in log.read_text(errors="replace"), log

@@ -95,7 +95,7 @@ def test_timed_and_commanded_faults_are_applied_and_recorded(tmp_path: Path) -> 
     assert all(m.status & 0b1100 == 0 for k, m in cap.items() if k < 1900)
     # burst error: the bridge rejected corrupted frames on CRC, counted in its status
     bridge = [decode(ServiceStatus, r.payload) for r in s.by_topic("hil/faultrig/status/can_bridge")]
-    assert bridge[-1].counters.get("rejected.can.bad_crc", 0) == 8, bridge[-1].counters
+    assert bridge[-1].counter_map().get("rejected.can.bad_crc", 0) == 8, bridge[-1].counter_map()
     # commanded outage: a 2 s hole in the fixes' times of validity
     t_out = next(e.stamp_ns for e in events if e.kind == "fault_start" and "gnss_outage" in e.detail)
     valid = sorted(decode(GnssFix, r.payload).stamp_ns for r in s.by_topic("hil/faultrig/synced/gnss"))

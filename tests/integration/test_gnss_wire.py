@@ -146,7 +146,7 @@ def test_gpsd_and_pyubx2_read_the_live_receiver_and_the_rig_decodes_it(
     assert max(same) < 0.05, same  # gpsd and the rig read the same numbers off the line
     assert np.median(noise) < 2.5 * sigma and max(noise) < 6 * sigma, (sigma, noise)  # truth + noise
     # the rig's own bridge decoded the same line: every epoch, nothing rejected
-    counts = s.by_topic(f"hil/{RIG}/status/gnss_bridge")[-1].decode().counters
+    counts = s.by_topic(f"hil/{RIG}/status/gnss_bridge")[-1].decode().counter_map()
     assert counts.get("line.ubx.fixes", 0) >= 100 and counts.get("line.nmea.fixes", 0) >= 100, counts
     assert not any(k.startswith("rejected") and v for k, v in counts.items()), counts
     assert "FAILED" not in out

@@ -16,7 +16,7 @@ from pathlib import Path
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher
 from hil.bus.session import BusConfig, open_session
-from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
+from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth, counts, rates
 from hil.runtime.supervisor import LiveView
 from tests.conftest import REPO, free_port, hil_cmd
 
@@ -59,8 +59,8 @@ def _fake_rig(endpoint: str, stop: threading.Event) -> None:
                         state="running",
                         pid=1,
                         uptime_s=t * 1e-9,
-                        rates_hz={"in.x": 400.0, "out.y": 50.0},
-                        counters={"rejected.late": 3},
+                        rates_hz=rates({"in.x": 400.0, "out.y": 50.0}),
+                        counters=counts({"rejected.late": 3}),
                         last_error="late input" if name == "fusion" else "",
                     )
                 )

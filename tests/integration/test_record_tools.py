@@ -85,12 +85,22 @@ def test_merge_of_a_split_session_is_the_unsplit_session(rec: dict[str, Path]) -
 
 
 def test_cat_prints_every_message_as_a_json_line(rec: dict[str, Path]) -> None:
-    out = hil_ok("cat", str(rec["whole"]), "--topics", "/nav/ekf15$")
+    out = hil_ok("cat", str(rec["whole"]), "--topics", "^hil/.*/nav/ekf15$")  # not /foxglove/fix/nav/ekf15
     lines = [json.loads(ln) for ln in out.splitlines()]
-    want = [x for x in messages(rec["whole"]) if x[0].endswith("/nav/ekf15")]
+    want = [x for x in messages(rec["whole"]) if x[0].startswith("hil/") and x[0].endswith("/nav/ekf15")]
     assert len(lines) == len(want) > 0
     assert [ln["message"] for ln in lines] == [json.loads(d) for _t, _l, d in want]
     assert {ln["schema"] for ln in lines} == {"hil.NavSolution"}
+    # Foxglove's well-known types derived from it are protobuf: their bytes, as hex
+    fox = [
+        json.loads(ln)
+        for ln in hil_ok("cat", str(rec["whole"]), "--topics", "^/foxglove/fix/nav/ekf15$").splitlines()
+    ]
+    assert (
+        fox
+        and {ln["schema"] for ln in fox} == {"foxglove.LocationFix"}
+        and all("data_hex" in ln for ln in fox)
+    )
 
 
 def test_attachments_lists_and_extracts_the_scenario_dbc_and_schemas(rec: dict[str, Path]) -> None:

@@ -146,9 +146,9 @@ def test_burst_is_recorded_without_loss_and_sigterm_writes_the_summary(hub: Hub,
         pubs_synced.put(m)
         truth_pub.put(truth(i))
     burst_s = time.monotonic() - t0
-    st = hub.wait(lambda st: st.counters.get("written", 0) >= 3 * n + 1, timeout=60)
-    assert st.counters["missing"] == 0 and st.counters["zenoh_missed"] == 0, st.counters
-    assert st.counters["zenoh_unsequenced"] == 0  # every sample carried Zenoh's sequence number
+    st = hub.wait(lambda st: st.counter_map().get("written", 0) >= 3 * n + 1, timeout=60)
+    assert st.counter_map()["missing"] == 0 and st.counter_map()["zenoh_missed"] == 0, st.counter_map()
+    assert st.counter_map()["zenoh_unsequenced"] == 0  # every sample carried Zenoh's sequence number
     proc.send_signal(signal.SIGTERM)
     out, _ = proc.communicate(timeout=60)
     # THEN the file is complete, finished (summary + index), and says so
@@ -209,7 +209,7 @@ def test_unwritable_path_is_reported_in_status_and_the_process_keeps_serving(
         # THEN status says degraded with the path and the reason, and keeps coming
         st = hub.wait(lambda st: st.state == "degraded")
         assert str(target) in st.last_error and "exists" in st.last_error.lower(), st.last_error
-        assert st.counters.get("errors.recording_path") == 1
+        assert st.counter_map().get("errors.recording_path") == 1
         seq = st.seq
         hub.wait(lambda st: st.seq >= seq + 2)
         assert proc.poll() is None
@@ -231,12 +231,12 @@ def test_full_disk_is_reported_in_status_and_the_process_keeps_serving(hub: Hub)
             pub.put(imu(i))
         # THEN the first flush fails: degraded, a write error counted, the reason in one line
         st = hub.wait(lambda st: st.state == "degraded", timeout=10)
-        assert st.counters.get("errors.write") == 1, st.counters
+        assert st.counter_map().get("errors.write") == 1, st.counter_map()
         assert "No space left on device" in st.last_error, st.last_error
         # and it still accounts what it receives (a gap is still a gap), still publishing status
         for i in range(200, 300):
             pub.put(imu(i))
-        hub.wait(lambda st: st.counters.get("recording") == 0 and st.seq > 2)
+        hub.wait(lambda st: st.counter_map().get("recording") == 0 and st.seq > 2)
         assert proc.poll() is None
     finally:
         proc.send_signal(signal.SIGTERM)
@@ -318,7 +318,7 @@ def test_zenoh_recovers_samples_lost_in_transit_and_reports_what_it_cannot(hub: 
                 p.put(CaptureTruth(seq=i, stamp_ns=i, sensor="imu", true_stamp_ns=i))
             time.sleep(0.001)
         # the last samples are found by the publishers' sporadic heartbeat (1 s)
-        st = hub.wait(lambda st: st.counters.get("written", 0) >= 1 + n + 100, timeout=30)
+        st = hub.wait(lambda st: st.counter_map().get("written", 0) >= 1 + n + 100, timeout=30)
         time.sleep(2.5)
         st = hub.status["recorder"]
     finally:
@@ -344,7 +344,9 @@ def test_zenoh_recovers_samples_lost_in_transit_and_reports_what_it_cannot(hub: 
     assert json.loads(comp["zenoh_missed_by_key"]) == {lossy_key: missing}
     assert json.loads(comp["zenoh_unsequenced"]) == 0
     assert json.loads(comp["replay_ready"]) is False
-    assert st.counters["zenoh_missed"] == missing and st.counters["missing"] == missing, st.counters
+    assert st.counter_map()["zenoh_missed"] == missing and st.counter_map()["missing"] == missing, (
+        st.counter_map()
+    )
     assert "Zenoh sample miss" in st.last_error and lossy_key in st.last_error
 
 
@@ -357,7 +359,7 @@ def test_zenoh_miss_detection_can_be_turned_off(hub: Hub, tmp_path: Path) -> Non
     pub = Publisher(hub.session, k.sensor("imu"), ImuSample, miss_detection=False)
     for i in range(500):
         pub.put(imu(i))
-    hub.wait(lambda st: st.counters.get("written", 0) >= 501)
+    hub.wait(lambda st: st.counter_map().get("written", 0) >= 501)
     proc.send_signal(signal.SIGTERM)
     proc.communicate(timeout=60)
     comp = read_session(path).metadata["completeness"]

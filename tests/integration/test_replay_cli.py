@@ -115,10 +115,12 @@ def test_step_sends_one_message_per_enter(hub: Hub) -> None:
 def test_loop_runs_until_ctrl_c_and_stops_cleanly(hub: Hub) -> None:
     hub.collect("hil/looper/run")
     proc = hub.spawn("replay", str(GOLDEN), "--rig", "looper", "--topics", "/run$", "--afap", "--loop")
-    time.sleep(3.0)
+    n_run = sum(1 for r in read_session(GOLDEN).records if r.topic.endswith("/run"))
+    deadline = time.monotonic() + 60  # a deadline, not a pause: a loaded machine loops slower
+    while len(hub.samples) <= 2 * n_run and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=20)
     assert proc.returncode == 130, out
     assert "Traceback" not in out and "replay:" in out
-    n_run = sum(1 for r in read_session(GOLDEN).records if r.topic.endswith("/run"))
     assert len(hub.samples) > 2 * n_run  # it went round more than twice

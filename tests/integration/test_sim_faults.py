@@ -16,7 +16,7 @@ import pytest
 from hil.can.codec import ImuCanCodec, ImuFrameAssembler
 from hil.can.mcap_io import can_message
 from hil.messages import CanFrame, CaptureTruth, Event, GnssFix, ImuSample, ServiceStatus, Truth, decode
-from hil.record.mcapio import Session, read_session
+from hil.record.mcapio import Session, read_session, rig_time_ns
 from hil.runners.sim import SimOptions, SimResult, run_sim
 from tests.conftest import run_hil
 
@@ -195,7 +195,7 @@ def test_imu_frame_loss_drops_about_the_configured_percentage_and_nothing_else(s
     assert all(k in _window(3.3, 3.76) for k in outside), outside  # burst + bus-off only
     assert [e[0] for e in _edges(s, "imu_emulator", "imu_frame_loss")] == ["fault_start", "fault_end"]
     st = decode(ServiceStatus, s.by_topic("hil/sf/status/imu_emulator")[-1].payload)
-    assert st.counters["fault.imu_samples_not_sent.frame_loss"] == len(lost)
+    assert st.counter_map()["fault.imu_samples_not_sent.frame_loss"] == len(lost)
 
 
 def test_imu_stuck_repeats_the_last_good_sample(sim) -> None:
@@ -221,7 +221,7 @@ def test_imu_saturated_sits_at_the_dbc_full_scale_with_the_flags(sim) -> None:
         assert np.allclose(np.abs(m.dvel_b_mps), codec.dvel_max_mps, rtol=1e-9)
     assert not [k for k, m in imu.items() if m.status & 0b1100 and k not in _window(2.9, 3.1)]
     st = decode(ServiceStatus, s.by_topic("hil/sf/status/can_bridge")[-1].payload)
-    assert st.counters["can.saturated"] == 80
+    assert st.counter_map()["can.saturated"] == 80
     assert len(_edges(s, "imu_emulator", "imu_saturated")) == 2
 
 
@@ -234,7 +234,7 @@ def test_can_burst_error_frames_fail_the_crc_in_the_bridge_core(sim) -> None:
     assert asm.counters["bad_crc"] == 8
     # ... as the sim's bridge counted, and the samples they carried are missing
     st = decode(ServiceStatus, s.by_topic("hil/sf/status/can_bridge")[-1].payload)
-    assert st.counters["can.bad_crc"] == 8
+    assert st.counter_map()["can.bad_crc"] == 8
     imu = _imu(s)
     burst = [k for k in _window(3.3, 3.32) if k not in imu]
     assert 2 <= len(burst) <= 3, burst  # 8 frames: two samples of four, or three with a sync frame
@@ -244,7 +244,8 @@ def test_can_burst_error_frames_fail_the_crc_in_the_bridge_core(sim) -> None:
 
 def test_can_bus_off_leaves_the_bus_silent_for_the_window(sim) -> None:
     s, _res, _said = sim
-    t = np.array([r.log_time_ns for r in s.by_topic("hil/sf/can/vcan0")])
+    start = int(s.meta("hil", "start_epoch_ns"))  # log times are on the wall clock: start + rig time
+    t = np.array([rig_time_ns(r.log_time_ns, start) for r in s.by_topic("hil/sf/can/vcan0")])
     assert not ((t > 3.501e9) & (t < 3.75e9)).any()
     gap = np.diff(t).max()
     assert 0.24e9 < gap < 0.26e9, gap
@@ -314,7 +315,8 @@ def test_kill_service_is_said_and_recorded_not_silently_dropped(sim) -> None:
     assert len(ign) == 1 and ign[0].source == "sim" and ign[0].stamp_ns == 3_200_000_000
     d = json.loads(ign[0].detail)
     assert d["kind"] == "kill_service" and d["params"]["service"] == "fusion"
-    assert s.by_topic("hil/sf/nav/ekf15")[-1].log_time_ns > 7.9e9  # and the fusion ran on
+    start = int(s.meta("hil", "start_epoch_ns"))
+    assert rig_time_ns(s.by_topic("hil/sf/nav/ekf15")[-1].log_time_ns, start) > 7.9e9  # and the fusion ran on
 
 
 def test_hil_sim_prints_the_warning_line_on_stderr(tmp_path: Path) -> None:

@@ -226,7 +226,7 @@ def test_a_restart_reads_as_a_restart_in_the_completeness_and_the_downtime_as_lo
     assert gnss["restarts"] == 0 and gnss["gaps"] >= 1 and gnss["missing"] > 0, gnss
     assert s.meta("completeness", "replay_ready") is False  # data was lost: honest
     bridge = [decode(ServiceStatus, r.payload) for r in s.by_topic("hil/genrig/status/can_bridge")]
-    assert bridge[-1].counters.get("dropped.can.unindexed_samples", 0) < 40
+    assert bridge[-1].counter_map().get("dropped.can.unindexed_samples", 0) < 40
     # the restarts are on record, and hil info says so instead of showing duplicates
     kinds = {(e.source, e.kind) for e in _events(out)}
     assert ("can_bridge", "service_restarted") in kinds and ("timesync", "service_restarted") in kinds

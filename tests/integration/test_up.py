@@ -12,11 +12,13 @@ import jsonschema
 import numpy as np
 import pytest
 
-from hil.messages import TYPES_BY_NAME, ServiceStatus, decode
+from hil.messages import TYPES_BY_NAME, RunInfo, ServiceStatus, Truth, decode
 from hil.record.info import estimator_errors
-from hil.record.mcapio import read_session, split_parts
+from hil.record.mcapio import read_session, rig_time_ns, split_parts
 from hil.schemas_io import SCHEMAS_DIR
 from tests.conftest import REPO, hil_cmd
+from tests.foxglove_js import expected_wellknown, read_in_foxglove, same_first_fix
+from tests.wellknown_reader import decode_wellknown
 
 pytestmark = pytest.mark.slow
 
@@ -183,6 +185,56 @@ def test_device_under_test_is_decoded_and_scored_like_an_estimator(
     assert {"dut_emulator"} <= {
         decode(ServiceStatus, r.payload).service for r in s.by_topic_prefix("hil/itest/status/")
     }
+
+
+def test_the_live_recording_is_on_the_wall_clock_and_carries_foxglove_s_types(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    path, _ = up_recording
+    s = read_session(path)
+    run = decode(RunInfo, s.by_topic("hil/itest/run")[0].payload)
+    start = run.start_epoch_ns
+    assert s.meta("hil", "time_base") == "epoch"
+    # the run's time zero is this run's wall clock (the file was finished after it)
+    assert 0 < path.stat().st_mtime_ns - start < 600 * 10**9
+    truth = [(r, decode(Truth, r.payload)) for r in s.by_topic("hil/itest/truth")]
+    for r, m in truth:
+        assert r.publish_time_ns == start + m.stamp_ns  # epoch + time of validity
+        assert 0 <= rig_time_ns(r.log_time_ns, start) - m.stamp_ns < 5 * 10**9  # received after it
+    # the recorder wrote Foxglove's well-known types beside the messages; each decodes
+    decoded = decode_wellknown(path)
+    estimators = {r.topic.rsplit("/", 1)[1] for r in s.records if r.schema == "hil.NavSolution"}
+    assert {"ekf15", "ins", "dut_navbox"} <= estimators
+    want = {f"/foxglove/{k}/nav/{e}" for e in estimators for k in ("fix", "tf")}
+    want |= {"/foxglove/fix/truth", "/foxglove/tf/truth", "/foxglove/fix/sensor/gnss", "/foxglove/tf_static"}
+    assert want <= set(decoded), want - set(decoded)
+    stamps = {start + m.stamp_ns for _r, m in truth}
+    fixes = decoded["/foxglove/fix/truth"]
+    assert len(fixes) >= 0.9 * 10 * 10  # 10 Hz for 10 s
+    assert all(f.timestamp.seconds * 10**9 + f.timestamp.nanos in stamps for _t, f in fixes)  # type: ignore[attr-defined]
+    # every service's start shows in the log panel
+    logs = [m for _t, m in decoded["/foxglove/log"]]
+    assert len({m.name for m in logs if "state" in m.message}) >= 3  # type: ignore[attr-defined]
+
+
+def test_foxglove_s_own_reader_decodes_every_message_of_the_live_recording(
+    up_recording: tuple[Path, subprocess.CompletedProcess[str]],
+) -> None:
+    path, _ = up_recording
+    got = read_in_foxglove(path)
+    per_topic = got["per_topic"]
+    estimators = {t.rsplit("/", 1)[1] for t, e in per_topic.items() if e["schema"] == "hil.NavSolution"}
+    assert {"ekf15", "ins", "dut_navbox"} <= estimators
+    want = expected_wellknown(estimators)
+    assert {t: per_topic[t]["schema"] for t in want if t in per_topic} == want
+    assert all(per_topic[t]["encoding"] == "protobuf" and per_topic[t]["decoded"] >= 1 for t in want)
+    assert per_topic["/foxglove/fix/truth"]["decoded"] >= 0.9 * 10 * 10  # 10 Hz for 10 s
+    # Foxglove's timeline is this run's wall clock (statuses of the start-up come before time zero)
+    run = decode(RunInfo, read_session(path).by_topic("hil/itest/run")[0].payload)
+    first, last = int(got["start_ns"]), int(got["end_ns"])
+    assert run.start_epoch_ns - 300 * 10**9 < first < run.start_epoch_ns < last < path.stat().st_mtime_ns
+    py = decode_wellknown(path)
+    assert same_first_fix(per_topic["/foxglove/fix/truth"]["first"], py["/foxglove/fix/truth"][0][1])
 
 
 def test_up_split_by_size_writes_parts_that_together_hold_the_session(tmp_path: Path) -> None:

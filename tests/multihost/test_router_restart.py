@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from hil.record.mcapio import rig_time_ns
 from tests.docker._recording import audit
 from tests.multihost._netns import Hosts, require_netns, three_hosts
 
@@ -192,11 +193,11 @@ def test_rig_across_hosts_survives_a_router_restart(tmp_path: Path) -> None:
     with open(rig.record, "rb") as fh:
         reader = make_reader(fh)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
-        # log_time is the rig clock (ns since the run's time zero), not the wall clock
+        # log_time is start epoch + rig time (hil.record.mcapio): back to the rig clock
         start_epoch_ns = int(json.loads(meta["hil"]["start_epoch_ns"]))
         restart_rig_ns = int((t_restart + 1.0) * 1e9) - start_epoch_ns
         for _s, ch, msg in reader.iter_messages(log_time_order=False):
-            if msg.log_time > restart_rig_ns:
+            if rig_time_ns(msg.log_time, start_epoch_ns) > restart_rig_ns:
                 kind = ch.topic.split("/")[2]
                 after[kind] = after.get(kind, 0) + 1
     for kind in ("truth", "sensor", "can", "nav", "status"):

@@ -17,6 +17,9 @@ from tests.conftest import REPO, free_port, hil_cmd
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 GOLDEN = GOLDEN_DIR / "straight_level_4s.mcap"
+#: the golden recording as the recorder wrote it before the Foxglove-first change (NavSolution's
+#: null sigmas, ServiceStatus maps, rig-time log times): old recordings must stay readable
+LEGACY_GOLDEN = GOLDEN_DIR / "legacy_straight_level_4s.mcap"
 
 
 class Hub:

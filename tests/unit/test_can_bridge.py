@@ -120,7 +120,7 @@ def test_bridge_decodes_counts_and_publishes(zenoh_hub: str, fd: bool) -> None:
     assert all(t.kind == "sync_frame" and t.sensor == "imu" for t in got["tag"])
     frames_per_sample = 1 if fd else 4
     assert len(got["can"]) >= (n + 1) * frames_per_sample + 3 + 2
-    counters = got["status"][-1].counters
+    counters = got["status"][-1].counter_map()
     assert counters["rejected.can.unknown_id"] == 1
     assert counters["rejected.can.bad_crc"] == 1
     assert counters["rejected.can.bad_dlc"] == 1

@@ -96,7 +96,7 @@ def test_dut_frames_decode_into_a_named_nav_solution(db: cantools.database.Datab
     # heading 90 deg: q_nb is a 90 deg yaw
     assert sol.q_nb == pytest.approx([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)], abs=1e-4)
     assert sol.pos_sigma_m == pytest.approx([1.5, 1.5, 3.0])
-    assert sol.vel_sigma_mps is None
+    assert sol.vel_sigma_mps == []  # absent
 
 
 def test_dut_bad_input_is_counted(db: cantools.database.Database) -> None:

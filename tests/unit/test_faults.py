@@ -19,6 +19,7 @@ from hil.faults import (
     edge_time_ns,
 )
 from hil.messages import FaultCommand
+from hil.messages import params as fault_params
 from hil.nav.scenario import ScenarioError, ScenarioEvent, load_scenario
 from hil.nodes.gnss_emulator import GnssEmulatorNode
 from hil.runners.sim import SimOptions, sim_run_info
@@ -115,12 +116,12 @@ def test_bad_fault_commands_are_refused_with_a_reason_and_counted_not_raised() -
     # the GNSS emulator node: a bad command is counted, never raised, never applied
     node = GnssEmulatorNode(sim_run_info(SimOptions(scenario="straight_level", duration_s=5.0)))
     events_before = len(node.timeline.faults)
-    cmd = FaultCommand(seq=0, stamp_ns=0, kind="gnss_latency", params={"latency_s": -1.0})
+    cmd = FaultCommand(seq=0, stamp_ns=0, kind="gnss_latency", params=fault_params({"latency_s": -1.0}))
     assert node.on_message("control/fault", cmd, 1_000_000_000) == []
     assert node.counters() == {"rejected.control.fault": 1} and "must be >= 0" in node.last_error
     # addressed to nobody: counted by every device that sees it; another device's command: not ours
     for kind, target in (("bogus", ""), ("clock_step", "fusion"), ("imu_stuck", ""), ("clock_step", "imu")):
-        cmd = FaultCommand(seq=1, stamp_ns=0, kind=kind, target=target, params={"step_s": 1.0})
+        cmd = FaultCommand(seq=1, stamp_ns=0, kind=kind, target=target, params=fault_params({"step_s": 1.0}))
         assert node.on_message("control/fault", cmd, 1_000_000_000) == []
     assert (
         node.counters() == {"rejected.control.fault": 3}

@@ -39,7 +39,7 @@ def test_a_slow_line_overruns_like_a_real_receiver_counted_and_visible(tmp_path:
         SimOptions(duration_s=10.0, record=rec, estimators=["comp1"], gnss_protocol=["nmea"], gnss_baud=9600)
     )
     s = read_session(rec)
-    emu = s.by_topic("hil/sim/status/gnss_emulator")[-1].decode().counters
+    emu = s.by_topic("hil/sim/status/gnss_emulator")[-1].decode().counter_map()
     fixes = s.by_topic("hil/sim/sensor/gnss")
     # THEN about a third of the epochs fit: the rest overrun, counted, and never reach the bridge
     assert emu["line.epochs"] == 99 and emu["line.overrun_epochs"] >= 50, (

@@ -118,7 +118,7 @@ def _statuses(
 def test_service_trims_on_schedule_and_reports(zenoh_hub: str) -> None:
     got = _statuses({"heap_trim_s": 1}, "t-heap-1", 3.6)
     assert len(got) >= 3
-    last = got[-1].counters
+    last = got[-1].counter_map()
     assert last["heap_trims"] >= 2  # at ~1 s, ~2 s, ~3 s
     assert last["rss_kib"] > 10 * 1024 and "heap_trim_released_kib" in last
     assert "errors.options" not in last
@@ -126,11 +126,11 @@ def test_service_trims_on_schedule_and_reports(zenoh_hub: str) -> None:
 
 def test_service_counts_a_bad_trim_option_and_keeps_running(zenoh_hub: str) -> None:
     got = _statuses({"heap_trim_s": "often"}, "t-heap-2", 1.5)
-    assert got and got[-1].counters["errors.options"] == 1
+    assert got and got[-1].counter_map()["errors.options"] == 1
     assert "heap_trim_s='often'" in got[-1].last_error
-    assert got[-1].counters["heap_trims"] == 0  # default 10 s: none yet
+    assert got[-1].counter_map()["heap_trims"] == 0  # default 10 s: none yet
     # 0 turns it off even where the class default would trim every second
     on = _statuses({}, "t-heap-3", 2.5, _IdleTrimmingEverySecond)
-    assert on and on[-1].counters["heap_trims"] >= 1
+    assert on and on[-1].counter_map()["heap_trims"] >= 1
     off = _statuses({"heap_trim_s": 0}, "t-heap-4", 2.5, _IdleTrimmingEverySecond)
-    assert off and off[-1].counters["heap_trims"] == 0
+    assert off and off[-1].counter_map()["heap_trims"] == 0

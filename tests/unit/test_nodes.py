@@ -12,6 +12,7 @@ from hil.bus.keys import SENSOR_TYPES, type_for_key
 from hil.estimators.base import Estimator, GnssInput, ImuInput
 from hil.fusion.core import FusionConfig, FusionCore, input_key
 from hil.messages import EstimatorHealth, FaultCommand, FusionSettings, GnssFix, ImuSample
+from hil.messages import params as fault_params
 from hil.nav.scenario import load_scenario
 from hil.nav.types import NavState
 from hil.nodes import NODES, node_class
@@ -157,7 +158,7 @@ def test_imu_node_paces_on_the_time_it_is_given_and_resumes_after_a_restart() ->
 
 def test_imu_node_counts_a_bad_fault_command_and_applies_a_good_one_at_the_next_sample() -> None:
     node = ImuEmulatorNode(_run())
-    bad = FaultCommand(seq=0, stamp_ns=0, kind="imu_frame_loss", params={"percent": 140.0})
+    bad = FaultCommand(seq=0, stamp_ns=0, kind="imu_frame_loss", params=fault_params({"percent": 140.0}))
     node.on_message("control/fault", bad, 0)
     assert node.counters()["rejected.control.fault"] == 1 and "percent" in node.last_error
     good = FaultCommand(seq=1, stamp_ns=0, kind="can_bus_off", duration_s=0.01)

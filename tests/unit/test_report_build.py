@@ -28,6 +28,7 @@ from hil.messages import (
     RunInfo,
     ServiceStatus,
     Truth,
+    counts,
     encode,
 )
 from hil.progress import Progress
@@ -198,7 +199,7 @@ def write_session(
                     state="running",
                     pid=1,
                     uptime_s=t * 1e-9,
-                    counters={"bus_load_permille": 7},
+                    counters=counts({"bus_load_permille": 7}),
                 ),
             )
     put(f"{k}/event/fusion", Event(seq=0, stamp_ns=12_000_000_000, kind="service_restart", source="fusion"))
