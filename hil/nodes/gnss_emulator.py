@@ -155,6 +155,10 @@ class GnssEmulatorNode(Node):
 
     def next_tick_ns(self) -> int | None:
         epoch = self.core.next_epoch_ns()
+        if epoch is not None and epoch > self.end_ns:
+            # past the run's end (the truth's duration can round 1 ns beyond it): no tick, or
+            # its block's start would be asked for again and again (hil sim hung on car_drive)
+            epoch = None
         if epoch is not None and self.pull_block_ns > 0:
             epoch = epoch // self.pull_block_ns * self.pull_block_ns
         times = [epoch, self.timeline.next_edge_ns()]
