@@ -201,13 +201,20 @@ class NavSolution(Message, frozen=True, kw_only=True):
 class FusionJournal(Message, frozen=True, kw_only=True):
     """What the fusion decided over a span of its input: enough to rerun it bit for bit.
 
-    Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the
-    ``"source:seq"`` of inputs that arrived behind the watermark and were not used.
+    Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the inputs
+    that were not used, as ``"<why>:<sensor>:<seq>[@<publisher>]"`` (why: ``late`` behind the
+    watermark, ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's bounded
+    inbox, ``overflow`` evicted from the reorder buffer; the publisher is the Zenoh source id,
+    absent offline). ``gated`` lists the GNSS fixes the integrity gate kept from estimators, as
+    ``"<sensor>:<seq>[@<publisher>]"`` (from all) or ``"...>estimator"`` (from that one): not
+    needed to rerun (the gate is deterministic), but the record of what was refused and why.
+    A span with many decisions is published as several journals.
     """
 
     watermark_ns: Ns
     consumed: int
     dropped: list[str] = []
+    gated: list[str] = []
 
 
 class ServiceStatus(Message, frozen=True, kw_only=True):
@@ -266,6 +273,13 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     max_pos_m: float
     max_vel_mps: float
     gap_confirm_inputs: int
+    # added with the GNSS integrity gate; their defaults are a recording from before it (no gate)
+    max_buffered_aiding: int = 0
+    gnss_gate_chi2: float = 0.0
+    gnss_alarm_after_ns: int = 0
+    gnss_reacquire_after_ns: int = 0
+    gnss_gate_reference: str = ""
+    gnss_sigma_floor: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

@@ -121,6 +121,18 @@ class Stats:
             return dict(self.rates_hz), dict(self.counters), self.last_error
 
 
+def source_id(sample: zenoh.Sample) -> str:
+    """The publisher of a sample as Zenoh names it, ``"<zid>:<eid>"`` (its ``source_info``), or
+    ``""`` when the sample carries none (a plain publisher: the rig's advanced publishers always
+    do, ``declare_publisher``). Honest only as far as the bus is closed: a process that can
+    publish can also copy another's source info."""
+    info = sample.source_info
+    if info is None:
+        return ""
+    sid = info.source_id
+    return f"{sid.zid}:{sid.eid}"
+
+
 def _kind(key: str) -> str:
     """``hil/rig/sensor/imu`` -> ``sensor.imu``: short names for counters."""
     parts = key.split("/")
@@ -229,11 +241,14 @@ class DispatchSubscriber:
         self,
         session: zenoh.Session,
         key: str,
-        routes: dict[str, tuple[type[Message], Callable[[Any, str], None]]],
+        routes: dict[str, tuple[type[Message], Callable[..., None]]],
         stats: Stats,
+        *,
+        with_source: bool = False,
     ) -> None:
         self.routes = routes
         self.stats = stats
+        self.with_source = with_source  # handlers take (msg, key, source_id(sample))
         self._sub = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -258,7 +273,10 @@ class DispatchSubscriber:
             return
         self.stats.count_rate("in." + kind)
         try:
-            handler(msg, key)
+            if self.with_source:
+                handler(msg, key, source_id(sample))
+            else:
+                handler(msg, key)
         except Exception as err:
             self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
 

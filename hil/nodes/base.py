@@ -7,6 +7,7 @@ process around it: no Zenoh, no clock reads, no threads, no files. A runner call
     node = Node(run, options)         # the run (time zero, scenario) is known
     outs = node.start(now_ns)         # once
     outs = node.on_message(key, msg, now_ns)   # an input arrived (key relative to hil/<rig>/)
+    outs = node.on_message_from(key, msg, now_ns, source)  # the same, with its publisher (live)
     outs = node.tick(now_ns)          # the time it asked for (next_tick_ns()) has come
     outs = node.finish(now_ns)        # end of input: release what is held
 
@@ -117,6 +118,16 @@ class Node:
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
         return []
+
+    def on_message_from(self, key: str, msg: Any, now_ns: int, source: str) -> list[Out]:
+        """``on_message`` with the publisher's id (the live runner's Zenoh source id; "" offline,
+        where every input is the rig's). Only a node that names its inputs (the fusion's journal)
+        needs it; the others ignore it."""
+        return self.on_message(key, msg, now_ns)
+
+    def on_dropped(self, key: str, msg: Any, source: str) -> None:
+        """An input the runner's bounded inbox dropped before it got here (``hil.bus.inbox``: the
+        runner counts it); a node whose decisions are journaled says so in its journal."""
 
     def tick(self, now_ns: int) -> list[Out]:
         return []

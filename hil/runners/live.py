@@ -3,13 +3,17 @@
 ``NodeService`` is the process shell of every node service (``hil service NAME``, one process
 each under ``hil up`` or compose): it decodes the node's typed options, subscribes to the node's
 inputs before the run starts (Zenoh callbacks only enqueue), waits for the run's ``RunInfo``,
-builds the node, and then one thread calls it -- ``on_message`` for each input in arrival order,
+builds the node, and then one thread calls it -- ``on_message_from`` for each input in arrival order,
 ``tick`` when rig time reaches ``next_tick_ns`` -- and publishes what it returns: Zenoh keys
 through typed publishers (the node numbers its own seqs), frames through a ``CanTransmitter``.
 Frames read off the CAN bus reach a node that ``reads_can`` with their kernel receive stamps on
 the rig clock. Status (1 Hz, the node's counters beside the runner's), heap trims and the
 supervisor's restart generation come from ``hil.runtime.service.Service``. At a stop, what has
 arrived is still consumed (bounded by ``STOP_DRAIN_S``) and the node's ``finish`` is published.
+
+The inbox is bounded (``hil.bus.inbox``): a lane per input kind and publisher, drop-oldest, served
+in arrival order; what it drops is counted in status (``inbox.dropped.<kind>``) and handed to the
+node (``on_dropped``) before the next input, so the fusion journals it.
 """
 
 from __future__ import annotations
@@ -17,7 +21,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import queue
 import threading
 import time
 import types
@@ -28,6 +31,7 @@ from typing import Any, ClassVar
 import can
 import msgspec
 
+from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.pubsub import DispatchSubscriber, Publisher
 from hil.can.bus import open_can_bus
 from hil.can.node import CanTransmitter
@@ -63,7 +67,8 @@ class NodeService(Service):
         self.name = self.node_cls.name
         self.opts: NodeOptions = decode_options(self.node_cls.Options, ctx.options, self.name)
         super().__init__(ctx)
-        self.inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self.inbox: BoundedInbox[tuple[str, Any, str]] = BoundedInbox(keep_dropped=True)
+        self._root_len = len(self.keys.root) + 1
         self.node: Node | None = None
         self.lock = threading.Lock()  # the status thread reads the node's counters
         self._pubs: dict[str, Publisher[Any]] = {}
@@ -79,7 +84,8 @@ class NodeService(Service):
         root = self.keys.root
         for inp in self.node_cls.inputs:
             routes = {kind: (cls, self._enqueue) for kind, cls in inp.types.items()}
-            self._subs.append(DispatchSubscriber(self.ctx.session, f"{root}/{inp.key}", routes, self.stats))
+            key = f"{root}/{inp.key}"
+            self._subs.append(DispatchSubscriber(self.ctx.session, key, routes, self.stats, with_source=True))
         for key in self.node_cls.outputs:
             self._publisher(key, None)
         if self.node_cls.reads_can or self.node_cls.writes_can:
@@ -124,10 +130,10 @@ class NodeService(Service):
             self.emit_event("can_transport", self.transport)
         print(f"[{self.name}] CAN: {self.transport}", flush=True)  # noqa: T201 - the start-up line users need
 
-    def _enqueue(self, msg: Any, key: str) -> None:
+    def _enqueue(self, msg: Any, key: str, source: str) -> None:
         # Zenoh's callback thread only enqueues: a subscription may match this node's own
         # outputs, and publishing from inside the callback could wait on the queue it drains
-        self.inbox.put((key, msg))
+        self.inbox.put(key_kind(key[self._root_len :]), source, (key, msg, source))
 
     def _publisher(self, key: str, cls: type | None) -> Publisher[Any]:
         pub = self._pubs.get(key)
@@ -166,14 +172,22 @@ class NodeService(Service):
             elif self.line_rx is not None:
                 self._read_line(node, run, wait_s)
                 wait_s = 0.0
-            try:
-                key, msg = self.inbox.get(timeout=wait_s) if wait_s > 0 else self.inbox.get_nowait()
-            except queue.Empty:
+            item = self.inbox.get(timeout=wait_s)
+            if item is None:
                 continue
-            with self.lock:
-                outs = node.on_message(key[root_len:], msg, clock.now_ns())
-            self._publish(outs, "input")
+            self._consume(node, item, clock, root_len)
         self._drain_and_finish(node, clock, root_len)
+
+    def _consume(self, node: Node, item: tuple[str, Any, str], clock: RigClock, root_len: int) -> None:
+        """One input to the node, after the ones the inbox dropped before it (so a journal that
+        names them does so in the order they were lost)."""
+        dropped = self.inbox.take_dropped()
+        key, msg, source = item
+        with self.lock:
+            for k, m, src in dropped:
+                node.on_dropped(k[root_len:], m, src)
+            outs = node.on_message_from(key[root_len:], msg, clock.now_ns(), source)
+        self._publish(outs, "input")
 
     def _read_can(self, node: Node, run: RunInfo, wait_s: float) -> None:
         assert self.can_bus is not None
@@ -207,14 +221,13 @@ class NodeService(Service):
         time), then release what the node holds."""
         drain_until = time.monotonic() + STOP_DRAIN_S
         while time.monotonic() < drain_until:
-            try:
-                key, msg = self.inbox.get_nowait()
-            except queue.Empty:
+            item = self.inbox.get(timeout=0)
+            if item is None:
                 break
-            with self.lock:
-                outs = node.on_message(key[root_len:], msg, clock.now_ns())
-            self._publish(outs, "input")
+            self._consume(node, item, clock, root_len)
         with self.lock:
+            for k, m, src in self.inbox.take_dropped():
+                node.on_dropped(k[root_len:], m, src)
             outs = node.finish(clock.now_ns())
         with contextlib.suppress(Exception):  # the session may be closing
             self._publish(outs, "finish")
@@ -241,7 +254,7 @@ class NodeService(Service):
 
     # -- status ---------------------------------------------------------------------------------
     def extra_status(self) -> dict[str, int]:
-        out: dict[str, int] = {"inbox": self.inbox.qsize()}
+        out: dict[str, int] = self.inbox.counters()
         node = self.node
         if node is not None:
             with self.lock:
