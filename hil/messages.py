@@ -280,6 +280,7 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     gnss_reacquire_after_ns: int = 0
     gnss_gate_reference: str = ""
     gnss_sigma_floor: bool = False
+    gnss_min_interval: float = 0.0
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

@@ -71,15 +71,22 @@ class BoundedInbox(Generic[T]):
 
     def __init__(
         self,
-        cap_of: Callable[[str], int] = lane_cap,
+        cap_of: Callable[[str, str], int] = lambda kind, _publisher: lane_cap(kind),
         *,
         max_publisher_lanes: int = MAX_PUBLISHER_LANES,
+        max_total: int = 0,
         keep_dropped: bool = False,
+        on_drop: Callable[[str, str, T], None] | None = None,
     ) -> None:
+        """``cap_of(kind, publisher)``: a lane's cap; ``max_total`` (0: none) bounds all lanes
+        together (the longest lane gives up its oldest); ``on_drop(kind, publisher, item)`` is
+        told of each drop (under the inbox's lock: count, do not block)."""
         self._cap_of = cap_of
-        self._caps: dict[str, int] = {}
+        self._caps: dict[tuple[str, str], int] = {}
         self._max_pub = max_publisher_lanes
+        self._max_total = max_total
         self._keep = keep_dropped
+        self._on_drop = on_drop
         self._cond = threading.Condition(threading.Lock())
         self._lanes: dict[tuple[str, str], deque[tuple[int, T]]] = {}
         self._publishers: dict[str, int] = {}  # kind -> publishers with a lane of their own
@@ -101,9 +108,9 @@ class BoundedInbox(Generic[T]):
                 self._publishers[kind] = n + 1
             if lane is None:
                 lane = self._lanes[(kind, publisher)] = deque()
-        cap = self._caps.get(kind)
+        cap = self._caps.get((kind, publisher))
         if cap is None:
-            cap = self._caps[kind] = max(1, int(self._cap_of(kind)))
+            cap = self._caps[(kind, publisher)] = max(1, int(self._cap_of(kind, publisher)))
         return lane, cap
 
     def put(self, kind: str, publisher: str, item: T) -> None:
@@ -111,20 +118,28 @@ class BoundedInbox(Generic[T]):
         with self._cond:
             lane, cap = self._lane(kind, publisher)
             if len(lane) >= cap:
-                _, old = lane.popleft()
-                self._size -= 1
-                self.dropped[kind] = self.dropped.get(kind, 0) + 1
-                if self._keep:
-                    if len(self._dropped_items) < MAX_DROPPED_KEPT:
-                        self._dropped_items.append(old)
-                    else:
-                        self.dropped_unkept += 1
+                self._drop(kind, publisher, lane)
+            elif self._max_total and self._size >= self._max_total:
+                (k, pub), longest = max(self._lanes.items(), key=lambda kv: len(kv[1]))
+                self._drop(k, pub, longest)
             lane.append((self._arrivals, item))
             self._arrivals += 1
             self._size += 1
             if self._size > self.peak:
                 self.peak = self._size
             self._cond.notify()
+
+    def _drop(self, kind: str, publisher: str, lane: deque[tuple[int, T]]) -> None:
+        _, old = lane.popleft()
+        self._size -= 1
+        self.dropped[kind] = self.dropped.get(kind, 0) + 1
+        if self._on_drop is not None:
+            self._on_drop(kind, publisher, old)
+        if self._keep:
+            if len(self._dropped_items) < MAX_DROPPED_KEPT:
+                self._dropped_items.append(old)
+            else:
+                self.dropped_unkept += 1
 
     def get(self, timeout: float | None = None) -> T | None:
         """The oldest message of any lane, waiting up to ``timeout`` s (0: not at all); None if

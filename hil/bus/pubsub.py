@@ -169,6 +169,8 @@ class Publisher(Generic[M]):
             session, key, reliable=reliable, block=block, express=express, miss_detection=miss_detection
         )
         self._rate_name = "out." + _kind(key)
+        self._plain = isinstance(self._pub, zenoh.Publisher)
+        self._sn = 0
 
     def next_seq(self) -> int:
         seq = generation_seq(self.generation, self._seq)
@@ -179,7 +181,11 @@ class Publisher(Generic[M]):
         self.put_bytes(encode(msg))
 
     def put_bytes(self, payload: bytes) -> None:
-        self._pub.put(payload)
+        if self._plain:  # an advanced publisher names itself; a plain one is told to
+            self._pub.put(payload, source_info=zenoh.SourceInfo(self._pub.id, self._sn))
+            self._sn += 1
+        else:
+            self._pub.put(payload)
         if self.stats is not None:
             self.stats.count_rate(self._rate_name)
 
@@ -241,14 +247,11 @@ class DispatchSubscriber:
         self,
         session: zenoh.Session,
         key: str,
-        routes: dict[str, tuple[type[Message], Callable[..., None]]],
+        routes: dict[str, tuple[type[Message], Callable[[Any, str], None]]],
         stats: Stats,
-        *,
-        with_source: bool = False,
     ) -> None:
         self.routes = routes
         self.stats = stats
-        self.with_source = with_source  # handlers take (msg, key, source_id(sample))
         self._sub = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -273,12 +276,63 @@ class DispatchSubscriber:
             return
         self.stats.count_rate("in." + kind)
         try:
-            if self.with_source:
-                handler(msg, key, source_id(sample))
-            else:
-                handler(msg, key)
+            handler(msg, key)
         except Exception as err:
             self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+def decode_checked(cls: type[M], key: str, raw: bytes, stats: Stats) -> M | None:
+    """``raw`` as a ``cls``, or None with the reason counted (``rejected.<kind>.<why>``) and kept as
+    the last error: what every subscriber does with a payload, wherever it decodes it."""
+    kind = _kind(key)
+    try:
+        if len(raw) > MAX_PAYLOAD_BYTES:
+            stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
+            return None
+        msg = decode(cls, raw)
+    except (msgspec.ValidationError, msgspec.DecodeError) as err:
+        stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
+        return None
+    except Exception as err:
+        stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
+        return None
+    stats.count_rate("in." + kind)
+    return msg
+
+
+class RawSubscriber:
+    """One subscription that only hands on the undecoded payload of the kinds it routes, with its
+    key and publisher (``source_id``): ``handler(key, raw, source, cls)``. For a bounded inbox
+    (``hil.bus.inbox``): what a full lane drops is then never decoded, so a flood costs Zenoh's
+    thread a copy of the bytes, not a parse; the consumer decodes what it keeps
+    (``decode_checked``). One callback thread, so one publisher's samples keep their order."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        routes: dict[str, type[Message]],
+        handler: Callable[[str, bytes, str, type[Message]], None],
+        stats: Stats,
+    ) -> None:
+        self.routes = routes
+        self.handler = handler
+        self.stats = stats
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        parts = key.split("/", 3)
+        cls = self.routes.get(parts[2]) if len(parts) > 2 else None
+        if cls is None:
+            return
+        try:
+            self.handler(key, sample.payload.to_bytes(), source_id(sample), cls)
+        except Exception as err:  # never into Zenoh's thread
+            self.stats.error(f"errors.{_kind(key)}.enqueue", f"{key}: {type(err).__name__}: {err}")
 
     def undeclare(self) -> None:
         self._sub.undeclare()

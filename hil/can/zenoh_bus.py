@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import queue
 import secrets
 import struct
 import threading
@@ -39,10 +38,12 @@ import can
 import zenoh
 from can import CanProtocol
 
+from hil.bus.inbox import BoundedInbox
 from hil.bus.keys import Keys
 from hil.bus.session import BusConfig, open_session
 
 _HEADER = struct.Struct("<QIBB")
+RX_LANE_CAP = 20_000  # frames of one sender waiting for recv (12 s of the 400 Hz IMU's frames)
 F_EXT, F_FD, F_BRS, F_ESI, F_ERR, F_RTR = 1, 2, 4, 8, 16, 32
 FD_LENGTHS = frozenset([*range(9), 12, 16, 20, 24, 32, 48, 64])
 
@@ -92,8 +93,10 @@ class ZenohCanBus(can.BusABC):
     - ``session``: an open ``zenoh.Session`` to reuse (it is then not closed by ``shutdown``);
       otherwise one is opened from ``BusConfig.from_env()``;
     - ``receive_own_messages``: also deliver this bus's own frames (default False);
-    - ``rx_queue_size``: frames held for ``recv`` before new ones are dropped and counted in
-      ``rx_overflow`` (default 100 000, like a generous socket buffer).
+    - ``rx_queue_size``: frames held for ``recv`` in all (default 100 000, like a generous socket
+      buffer), at most ``RX_LANE_CAP`` of one sender (the frame's sender id): past either, the
+      oldest frame of the longest sender's lane is dropped and counted in ``rx_overflow``
+      (``hil.bus.inbox``: a stranger flooding the channel loses its own frames, not the IMU's).
     """
 
     def __init__(
@@ -116,7 +119,11 @@ class ZenohCanBus(can.BusABC):
         self.channel_info = f"hilzenoh {self.key} ({'CAN FD' if self.fd else 'CAN 2.0'})"
         self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
         self._sender = secrets.randbits(64)
-        self._rx: queue.Queue[can.Message] = queue.Queue(maxsize=rx_queue_size)
+        self._rx: BoundedInbox[can.Message] = BoundedInbox(
+            lambda _kind, _sender: min(RX_LANE_CAP, rx_queue_size),
+            max_total=rx_queue_size,
+            on_drop=self._count_overflow,
+        )
         self._closed = threading.Event()
         self.rx_overflow = 0
         self.rx_malformed = 0
@@ -158,20 +165,28 @@ class ZenohCanBus(can.BusABC):
         msg.timestamp = stamp
         msg.channel = self.channel
         msg.is_rx = sender != self._sender
-        try:
-            self._rx.put_nowait(msg)
-        except queue.Full:
-            self.rx_overflow += 1
+        self._rx.put("can", f"{sender:016x}", msg)
+
+    def _count_overflow(self, _kind: str, _sender: str, _msg: can.Message) -> None:
+        self.rx_overflow += 1
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if self._closed.is_set():
             raise can.CanOperationError("hilzenoh: bus is shut down")
-        try:
-            msg = self._rx.get(timeout=timeout) if timeout is None or timeout > 0 else self._rx.get_nowait()
-        except queue.Empty:
+        msg = self._rx.get(timeout=timeout if timeout is None or timeout > 0 else 0)
+        if msg is None:
             return None, False
         self.rx_frames += 1
         return msg, False
+
+    def counters(self) -> dict[str, int]:
+        """What a service's status shows of this bus: its receive queue and what it refused."""
+        return {
+            "can.rx_queue": self._rx.qsize(),
+            "can.rx_queue_peak": self._rx.peak,
+            "can.rx_overflow": self.rx_overflow,
+            "can.rx_malformed": self.rx_malformed,
+        }
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Publish ``msg``; raises ``CanOperationError`` on a closed bus or an illegal frame."""

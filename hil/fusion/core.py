@@ -52,6 +52,10 @@ class FusionConfig:
     gnss_reacquire_after_ns: int = 30_000_000_000  # and this long let fixes through again
     gnss_gate_reference: str = "ekf15"  # whose prediction decides for all ("": each its own)
     gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
+    # a publisher's GNSS fixes closer together than this share of the receiver's period are
+    # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
+    # and a flood of copies must not cost an estimator update each (0: no such rule)
+    gnss_min_interval: float = 0.5
 
     @property
     def lag_s(self) -> float:
@@ -78,6 +82,7 @@ class FusionConfig:
             gnss_reacquire_after_ns=self.gnss_reacquire_after_ns,
             gnss_gate_reference=self.gnss_gate_reference,
             gnss_sigma_floor=self.gnss_sigma_floor,
+            gnss_min_interval=self.gnss_min_interval,
         )
 
     def gate_settings(self) -> GateSettings:
@@ -234,6 +239,11 @@ class FusionCore:
             self.gate = GnssGate(cfg.gate_settings(), self.receiver)
         self._gated: list[str] = []
         self._last_imu_ns = self.init.stamp_ns
+        # the stamp of each GNSS publisher's last fix taken in (the rate rule)
+        self._gnss_min_gap_ns = 0
+        if self.receiver is not None and cfg.gnss_min_interval > 0:
+            self._gnss_min_gap_ns = round(cfg.gnss_min_interval * self.receiver.period_ns)
+        self._last_fix_ns: dict[str, int] = {}
         self._arrivals = 0  # tie-break for identical keys: first arrival first, never compare messages
         self._future_lead_ns: int | None = None
         self._future_run = 0
@@ -273,6 +283,10 @@ class FusionCore:
             self._inc(f"dropped_late.{msg.sensor}")
             self._dropped.append("late:" + input_id(msg, source))
             return []
+        if self._gnss_min_gap_ns and msg.sensor == "gnss" and self._too_soon(msg.stamp_ns, source):
+            self._inc("rejected.gnss_rate")
+            self._dropped.append("rate:" + input_id(msg, source))
+            return []
         arrival = self._arrivals
         heapq.heappush(self._heap, (key, arrival, msg, source))
         self._arrivals += 1
@@ -289,6 +303,15 @@ class FusionCore:
             self._inc("released_on_overflow")
             return self._release(self._heap[0][0][0])
         return self._release(self._newest_ns - self.config.lag_ns)
+
+    def _too_soon(self, stamp_ns: int, source: str) -> bool:
+        """A fix of this publisher within the rate rule's gap of its last one taken in."""
+        last = self._last_fix_ns.get(source)
+        if last is not None and abs(stamp_ns - last) < self._gnss_min_gap_ns:
+            return True
+        if last is not None or len(self._last_fix_ns) < 1024:  # bounded whatever a flood names
+            self._last_fix_ns[source] = stamp_ns
+        return False
 
     def _hold_aiding(self, key: tuple[int, int, int], arrival: int, msg: Measurement, source: str) -> None:
         """Bound the aiding inputs held: past ``max_buffered_aiding`` the one furthest ahead in

@@ -59,6 +59,7 @@ class ReceiverModel:
     vel_var_floor_m2ps2: F64  # (3,)
     lever_arm_b_m: F64  # (3,)
     unaided_accel_mps2: float
+    period_ns: int = 100_000_000  # between two epochs of the receiver
 
     @classmethod
     def for_scenario(cls, scenario: Any) -> ReceiverModel:
@@ -77,6 +78,7 @@ class ReceiverModel:
             + slow * (2.0 * math.pi / g.slow_period_s) ** 2,
             lever_arm_b_m=np.asarray(g.lever_arm_b_m, dtype=np.float64),
             unaided_accel_mps2=max(0.05, accel + G0 * gyro * UNAIDED_WINDOW_S),
+            period_ns=round(1e9 / g.rate_hz),
         )
 
 

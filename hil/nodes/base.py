@@ -101,6 +101,13 @@ class Node:
     outputs: ClassVar[tuple[str, ...]] = ()
     # an input can move its next tick (a fault command); False: only its own ticks move it
     inputs_move_timers: ClassVar[bool] = True
+    # the live runner hands it every input its bounded inbox dropped (``on_dropped``): for a
+    # node whose journal must name them (the fusion); the others' drops are only counted
+    journals_drops: ClassVar[bool] = False
+    # the live runner refuses inputs from publishers that are not the rig's (hil.bus.identity)
+    # before they reach it: a node that re-publishes under its own name (the time sync) would
+    # otherwise pass a stranger's data on as the rig's
+    refuses_foreign: ClassVar[bool] = False
 
     def __init__(self, run: RunInfo, options: NodeOptions | None = None) -> None:
         self.run = run

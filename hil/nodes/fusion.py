@@ -62,6 +62,7 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
 
 class FusionNode(Node):
     inputs_move_timers = False  # its timers are its own: periodic, or none
+    journals_drops = True  # an input the live inbox dropped is journaled: rerun leaves it out
     name = "fusion"
     Options = FusionOptions
     inputs = tuple(Input(f"synced/{s}", {"synced": SENSORS[s].message}) for s in SENSOR_NAMES)

@@ -31,8 +31,9 @@ from typing import Any, ClassVar
 import can
 import msgspec
 
+from hil.bus.identity import FOREIGN, RigIdentity
 from hil.bus.inbox import BoundedInbox, key_kind
-from hil.bus.pubsub import DispatchSubscriber, Publisher
+from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
 from hil.can.bus import open_can_bus
 from hil.can.node import CanTransmitter
 from hil.messages import RunInfo, ServiceStatus
@@ -53,6 +54,16 @@ from hil.runners.serial import LineReader, LineWriter
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
 
+
+class _Ident(msgspec.Struct):
+    """What names an input in a journal; the rest of the payload is skipped unparsed."""
+
+    seq: int
+    sensor: str = ""
+
+
+_IDENT = msgspec.json.Decoder(_Ident)
+
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
 
@@ -67,8 +78,13 @@ class NodeService(Service):
         self.name = self.node_cls.name
         self.opts: NodeOptions = decode_options(self.node_cls.Options, ctx.options, self.name)
         super().__init__(ctx)
-        self.inbox: BoundedInbox[tuple[str, Any, str]] = BoundedInbox(keep_dropped=True)
+        # (key, payload, publisher, type): decoded when taken, so what a lane drops costs no parse
+        self.inbox: BoundedInbox[tuple[str, bytes, str, type]] = BoundedInbox(
+            keep_dropped=self.node_cls.journals_drops
+        )
         self._root_len = len(self.keys.root) + 1
+        self._refuse_foreign = self.node_cls.refuses_foreign
+        self.identity = RigIdentity.from_env()
         self.node: Node | None = None
         self.lock = threading.Lock()  # the status thread reads the node's counters
         self._pubs: dict[str, Publisher[Any]] = {}
@@ -83,9 +99,9 @@ class NodeService(Service):
     def setup(self) -> None:
         root = self.keys.root
         for inp in self.node_cls.inputs:
-            routes = {kind: (cls, self._enqueue) for kind, cls in inp.types.items()}
             key = f"{root}/{inp.key}"
-            self._subs.append(DispatchSubscriber(self.ctx.session, key, routes, self.stats, with_source=True))
+            sub = RawSubscriber(self.ctx.session, key, dict(inp.types), self._enqueue, self.stats)
+            self._subs.append(sub)
         for key in self.node_cls.outputs:
             self._publisher(key, None)
         if self.node_cls.reads_can or self.node_cls.writes_can:
@@ -130,10 +146,14 @@ class NodeService(Service):
             self.emit_event("can_transport", self.transport)
         print(f"[{self.name}] CAN: {self.transport}", flush=True)  # noqa: T201 - the start-up line users need
 
-    def _enqueue(self, msg: Any, key: str, source: str) -> None:
+    def _enqueue(self, key: str, raw: bytes, source: str, cls: type) -> None:
         # Zenoh's callback thread only enqueues: a subscription may match this node's own
         # outputs, and publishing from inside the callback could wait on the queue it drains
-        self.inbox.put(key_kind(key[self._root_len :]), source, (key, msg, source))
+        kind = key_kind(key[self._root_len :])
+        if self._refuse_foreign and self.identity.classify(source) == FOREIGN:
+            self.stats.inc(f"rejected.foreign.{kind.replace('/', '.')}")
+            return
+        self.inbox.put(kind, source, (key, raw, source, cls))
 
     def _publisher(self, key: str, cls: type | None) -> Publisher[Any]:
         pub = self._pubs.get(key)
@@ -178,16 +198,37 @@ class NodeService(Service):
             self._consume(node, item, clock, root_len)
         self._drain_and_finish(node, clock, root_len)
 
-    def _consume(self, node: Node, item: tuple[str, Any, str], clock: RigClock, root_len: int) -> None:
+    def _consume(
+        self, node: Node, item: tuple[str, bytes, str, type], clock: RigClock, root_len: int
+    ) -> None:
         """One input to the node, after the ones the inbox dropped before it (so a journal that
         names them does so in the order they were lost)."""
-        dropped = self.inbox.take_dropped()
-        key, msg, source = item
+        self._hand_dropped(node, root_len)
+        key, raw, source, cls = item
+        msg = decode_checked(cls, key, raw, self.stats)
+        if msg is None:
+            return
         with self.lock:
-            for k, m, src in dropped:
-                node.on_dropped(k[root_len:], m, src)
             outs = node.on_message_from(key[root_len:], msg, clock.now_ns(), source)
         self._publish(outs, "input")
+
+    def _hand_dropped(self, node: Node, root_len: int) -> None:
+        """What the inbox dropped, to a node that journals it: only the fields that name it
+        (``seq``, ``sensor``; a flood drops thousands a second, a full parse each would cost
+        more than the flood), quietly (a payload that does not even have those was not recorded
+        either, so it needs no journal)."""
+        dropped = self.inbox.take_dropped()
+        if not dropped:
+            return
+        with self.lock:
+            for key, raw, source, _cls in dropped:
+                try:
+                    ident = _IDENT.decode(raw)
+                except (msgspec.ValidationError, msgspec.DecodeError):
+                    continue
+                if not ident.sensor:  # a message type's default, left out of the payload
+                    ident.sensor = key.rsplit("/", 1)[-1]
+                node.on_dropped(key[root_len:], ident, source)
 
     def _read_can(self, node: Node, run: RunInfo, wait_s: float) -> None:
         assert self.can_bus is not None
@@ -225,9 +266,8 @@ class NodeService(Service):
             if item is None:
                 break
             self._consume(node, item, clock, root_len)
+        self._hand_dropped(node, root_len)
         with self.lock:
-            for k, m, src in self.inbox.take_dropped():
-                node.on_dropped(k[root_len:], m, src)
             outs = node.finish(clock.now_ns())
         with contextlib.suppress(Exception):  # the session may be closing
             self._publish(outs, "finish")
@@ -261,6 +301,9 @@ class NodeService(Service):
                 out.update(node.counters())
         if self.can_tx is not None:
             out.update(self.can_tx.counters())
+        bus_counters = getattr(self.can_bus, "counters", None)  # the hilzenoh bus's receive queue
+        if callable(bus_counters):
+            out.update(bus_counters())
         if self.line_tx is not None:
             out.update(self.line_tx.counts)
         return out

@@ -7,6 +7,7 @@ hands its endpoint to every child, so the rig needs no router and no set-up. Wit
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -22,6 +23,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_zid
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -229,6 +231,7 @@ class Supervisor:
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
+        self.rig_key = new_rig_key()  # per run: the rig's processes' Zenoh ids derive from it
         env_cfg = BusConfig.from_env()
         if env_cfg.mode == "client" or os.environ.get("HIL_ZENOH_CONNECT"):
             self.hub_cfg = env_cfg
@@ -343,6 +346,10 @@ class Supervisor:
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
         env["HIL_SUPERVISOR_PID"] = str(os.getpid())  # children stop themselves if we vanish
+        # the rig's identity on the bus (hil.bus.identity): this child's Zenoh id, and the run's
+        # key that lets the recorder recognise every rig process's id
+        env[RIG_KEY_ENV] = self.rig_key
+        env[ZENOH_ID_ENV] = rig_zid(self.rig_key)
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -367,7 +374,8 @@ class Supervisor:
 
     def run(self) -> int:
         o = self.opts
-        session = open_session(self.hub_cfg)
+        hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
+        session = open_session(hub_cfg)
         keys = Keys(o.rig)
         stats = Stats()
         subs = [
