@@ -449,7 +449,7 @@ class FusionCore:
         handlers = [(n, h) for n, h in self._handlers.get(msg.sensor, ()) if n not in self._failed]
         allowed: dict[str, bool] = {}
         if msg.sensor == "gnss" and self.gate is not None and handlers:
-            data, allowed = self._gate(data, [n for n, _ in handlers], input_id(msg, source))
+            data, allowed = self._gate(data, [n for n, _ in handlers], msg, source)
         if handlers:
             ins_nav = self._sd.to_nav_state(self._ins, self._origin)
             for name, handle in handlers:
@@ -462,7 +462,9 @@ class FusionCore:
         if msg.sensor == "gnss":
             self._last_gnss_seq = msg.seq
 
-    def _gate(self, data: Any, names: list[str], name_in_journal: str) -> tuple[Any, dict[str, bool]]:
+    def _gate(
+        self, data: Any, names: list[str], msg: Measurement, source: str
+    ) -> tuple[Any, dict[str, bool]]:
         """The integrity gate's σ floor and verdicts; rejections counted and journaled."""
         gate = self.gate
         assert gate is not None
@@ -481,13 +483,14 @@ class FusionCore:
                 return None
 
         n_transitions = len(gate.transitions)
-        allowed = gate.verdicts(floored, names, solution, self._last_imu_ns)
+        allowed = gate.verdicts(floored, names, solution, self._last_imu_ns, source)
         for t in gate.transitions[n_transitions:]:
             self._inc(f"gnss_gate.{t.kind.removeprefix('gnss_integrity_')}")
         refused = [n for n in names if not allowed.get(n, True)]
         for n in refused:
             self._inc(f"gnss_gate.rejected.{n}")
         if refused:
+            name_in_journal = input_id(msg, source)
             whole = len(refused) == len(names)
             self._gated.extend([name_in_journal] if whole else [f"{name_in_journal}>{n}" for n in refused])
         return floored, allowed

@@ -19,9 +19,11 @@ update (``FusionCore``; the estimators themselves are untouched):
    ``P = max(σ_est², m) + g(Δt)``: ``m`` the running mean of its accepted innovations' excess
    over R (what it actually achieves), ``g`` the unaided growth ``(a Δt²/2)²`` (velocity:
    ``(a Δt)²``) since its last accepted fix, ``a`` from the IMU's datasheet bias figures.
-3. **Persistent inconsistency is an alarm, not a lock-out.** Rejections for ``alarm_after`` of
-   rig time raise a ``gnss_integrity_alarm`` event (a GNSS integrity alarm, as a receiver's RAIM
-   says "do not use"); the first accepted fix after it a ``gnss_integrity_restored``. After
+3. **Persistent inconsistency is an alarm, not a lock-out.** A publisher's fixes rejected for
+   ``alarm_after`` of rig time raise a ``gnss_integrity_alarm`` event (a GNSS integrity alarm, as
+   a receiver's RAIM says "do not use") -- per publisher, so a stranger's spoof alongside the
+   genuine receiver (whose fixes pass) is an alarm too; once no publisher has such a run (its fix
+   passes, or it has sent nothing rejected for ``alarm_after``), a ``gnss_integrity_restored``. After
    ``reacquire_after`` of unbroken rejection the gate lets fixes through again (counted as
    ``reacquired``): a navigator that disagrees with GNSS for that long is more likely the one
    that is wrong (the reference's own gate and its covariance decide from there).
@@ -33,6 +35,7 @@ counts them (status ``gnss_gate.rejected.<estimator>``, ``health/<estimator>``).
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -102,7 +105,10 @@ class GateTrack:
     last_ratio: float = 0.0  # the last fix's max NIS / chi2
     last_accept_ns: int | None = None
     reject_since_ns: int | None = None  # stamp of the first fix of the current rejection run
+    # per publisher: [first, last] stamp of its current run of rejected fixes (for the alarm)
+    runs: dict[str, list[int]] = field(default_factory=dict)
     alarmed: bool = False
+    alarm_since_ns: int = 0
     m_pos: F64 = field(default_factory=lambda: np.zeros(3))
     m_vel: F64 = field(default_factory=lambda: np.zeros(3))
 
@@ -148,13 +154,15 @@ class GnssGate:
         names: list[str],
         solution: Callable[[str], NavState | None],
         imu_stamp_ns: int,
+        publisher: str = "",
     ) -> dict[str, bool]:
         """Which of the estimators ``names`` take ``gnss`` (already floored); ``solution(name)``
-        is an estimator's solution at the last IMU stamp (None: it has none, it failed)."""
+        is an estimator's solution at the last IMU stamp (None: it has none, it failed);
+        ``publisher`` who sent it ("" offline: one receiver)."""
         ref = self.settings.reference
         ref_sol = solution(ref) if ref in names else None
         if ref_sol is not None and ref_sol.pos_sigma_m is not None and ref_sol.vel_sigma_mps is not None:
-            ok = self._decide(self._track(ref), gnss, ref_sol, imu_stamp_ns, own=False)
+            ok = self._decide(self._track(ref), gnss, ref_sol, imu_stamp_ns, own=False, publisher=publisher)
             self.decided_by.update((n, ref) for n in names)
             return {n: ok for n in names}
         out: dict[str, bool] = {}
@@ -164,7 +172,7 @@ class GnssGate:
                 out[n] = False
                 continue
             self.decided_by[n] = n
-            out[n] = self._decide(self._track(n), gnss, sol, imu_stamp_ns, own=True)
+            out[n] = self._decide(self._track(n), gnss, sol, imu_stamp_ns, own=True, publisher=publisher)
         return out
 
     def _track(self, name: str) -> GateTrack:
@@ -173,7 +181,9 @@ class GnssGate:
             tr = self.tracks[name] = GateTrack(name)
         return tr
 
-    def _decide(self, tr: GateTrack, gnss: GnssInput, sol: NavState, imu_ns: int, own: bool) -> bool:
+    def _decide(
+        self, tr: GateTrack, gnss: GnssInput, sol: NavState, imu_ns: int, own: bool, publisher: str
+    ) -> bool:
         dt_s = (gnss.stamp_ns - imu_ns) * 1e-9
         pred = sol.pos_ned_m + sol.vel_ned_mps * dt_s
         if np.any(self.model.lever_arm_b_m):
@@ -203,6 +213,7 @@ class GnssGate:
             self._accepted(tr, gnss.stamp_ns, y_p * y_p - r_p, y_v * y_v - r_v)
         else:
             self._rejected(tr, gnss.stamp_ns)
+        self._alarm(tr, gnss.stamp_ns, publisher, ok)
         return ok
 
     def _accepted(self, tr: GateTrack, stamp_ns: int, excess_p: F64, excess_v: F64) -> None:
@@ -210,25 +221,43 @@ class GnssGate:
         tr.last_accept_ns = stamp_ns
         tr.m_pos = (1.0 - EWMA_ALPHA) * tr.m_pos + EWMA_ALPHA * np.maximum(excess_p, 0.0)
         tr.m_vel = (1.0 - EWMA_ALPHA) * tr.m_vel + EWMA_ALPHA * np.maximum(excess_v, 0.0)
-        since = tr.reject_since_ns
         tr.reject_since_ns = None
-        if tr.alarmed:
-            tr.alarmed = False
-            lasted = (stamp_ns - since) / 1e9 if since is not None else 0.0
-            detail = f'{{"gate": "{tr.name}", "rejected_for_s": {lasted:.3f}, "reacquired": {tr.reacquired}}}'
-            self.transitions.append(Transition("gnss_integrity_restored", tr.name, stamp_ns, detail))
 
     def _rejected(self, tr: GateTrack, stamp_ns: int) -> None:
         tr.rejected += 1
         if tr.reject_since_ns is None:
             tr.reject_since_ns = stamp_ns
-        if not tr.alarmed and stamp_ns - tr.reject_since_ns >= self.settings.alarm_after_ns:
+
+    def _alarm(self, tr: GateTrack, stamp_ns: int, publisher: str, ok: bool) -> None:
+        """Raise or clear the alarm on the publishers' runs of rejected fixes (rule 3)."""
+        after = self.settings.alarm_after_ns
+        for src in [s for s, (_first, last) in tr.runs.items() if stamp_ns - last > after]:
+            del tr.runs[src]  # silent for alarm_after: its run has ended
+        if ok:
+            tr.runs.pop(publisher, None)
+        else:
+            tr.runs[publisher] = [tr.runs.get(publisher, [stamp_ns])[0], stamp_ns]
+        long_runs = {s: first for s, (first, last) in tr.runs.items() if last - first >= after}
+        if long_runs and not tr.alarmed:
             tr.alarmed = True
-            detail = (
-                f'{{"gate": "{tr.name}", "since_s": {tr.reject_since_ns / 1e9:.3f}, '
-                f'"nis_over_chi2": {tr.last_ratio:.1f}, "rejected": {tr.rejected}}}'
+            tr.alarm_since_ns = min(long_runs.values())
+            detail = json.dumps(
+                {
+                    "gate": tr.name,
+                    "since_s": round(tr.alarm_since_ns / 1e9, 3),
+                    "publishers": sorted(long_runs),
+                    "nis_over_chi2": round(tr.last_ratio, 1),
+                    "rejected": tr.rejected,
+                }
             )
             self.transitions.append(Transition("gnss_integrity_alarm", tr.name, stamp_ns, detail))
+        elif not long_runs and tr.alarmed:
+            tr.alarmed = False
+            lasted = (stamp_ns - tr.alarm_since_ns) / 1e9
+            detail = json.dumps(
+                {"gate": tr.name, "rejected_for_s": round(lasted, 3), "reacquired": tr.reacquired}
+            )
+            self.transitions.append(Transition("gnss_integrity_restored", tr.name, stamp_ns, detail))
 
     def take_transitions(self) -> list[Transition]:
         out, self.transitions = self.transitions, []

@@ -63,6 +63,9 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
 class FusionNode(Node):
     inputs_move_timers = False  # its timers are its own: periodic, or none
     journals_drops = True  # an input the live inbox dropped is journaled: rerun leaves it out
+    # a stranger's fixes never reach an estimator (nor the journal): Zenoh may drop a stranger's
+    # messages to the recorder but not to the fusion, so what it took could not be rerun
+    refuses_foreign = True
     name = "fusion"
     Options = FusionOptions
     inputs = tuple(Input(f"synced/{s}", {"synced": SENSORS[s].message}) for s in SENSOR_NAMES)

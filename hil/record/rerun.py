@@ -141,10 +141,10 @@ class _FusionRerun:
 
     def feed(self, r: Record) -> None:
         t = r.topic
+        if r.foreign:  # the live fusion refused a stranger's inputs (``refuses_foreign``), and
+            return  # they are not its outputs, journal or configuration, nor the rig's run
         if "/synced/" in t:
             self._synced(r)
-        elif r.foreign:
-            return  # not the fusion's outputs, journal or configuration, nor the rig's run
         elif "/nav/" in t:
             if self.cfg is None:
                 self.early_nav.append(r)

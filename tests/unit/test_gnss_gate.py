@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from functools import cache
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -192,3 +193,31 @@ def test_a_recording_made_before_the_gate_reruns_without_it() -> None:
     assert cfg.gnss_gate_chi2 == 0.0 and not cfg.gnss_sigma_floor and cfg.gnss_min_interval == 0.0
     s, _truth, _msgs = _inputs(BASE)
     assert FusionCore.for_scenario(s, cfg).gate is None
+
+
+def test_a_strangers_spoof_alongside_the_genuine_receiver_raises_the_alarm_too() -> None:
+    """The receiver's genuine fixes pass between the stranger's: the alarm is per publisher, and
+    it clears once the stranger has been silent for the alarm's span."""
+    s, _truth, inputs = _inputs(BASE.replace("duration_s = 50.0", "duration_s = 20.0"))
+    core = FusionCore.for_scenario(s, FusionConfig(estimators=DEFAULT_ESTIMATORS, output_every=10))
+    spoof_ns = (8 * 10**9, 12 * 10**9)
+    for m in inputs:
+        core.push(m, "receiver")
+        if isinstance(m, GnssFix) and spoof_ns[0] <= m.stamp_ns < spoof_ns[1]:
+            pos = [m.pos_ned_m[0] + 500.0, *m.pos_ned_m[1:]]
+            core.push(
+                msgspec.structs.replace(
+                    m,
+                    seq=m.seq + 10**6,
+                    stamp_ns=m.stamp_ns + 1,
+                    pos_ned_m=pos,
+                    lat_deg=m.lat_deg + 500.0 / 111_194.9,
+                ),
+                "stranger",
+            )
+    core.flush()
+    gated = core.take_gated()
+    assert len(gated) == 40 and all(g.endswith("@stranger") for g in gated)
+    events = [(e.kind, e.stamp_ns / 1e9) for e in core.take_gate_events()]
+    assert [k for k, _ in events] == ["gnss_integrity_alarm", "gnss_integrity_restored"]
+    assert 10.0 <= events[0][1] <= 10.2 and 14.0 <= events[1][1] <= 14.3
