@@ -59,8 +59,9 @@ from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import MAX_PAYLOAD_BYTES, source_id
 from hil.messages import RunInfo, decode
-from hil.nodes.base import decode_options
+from hil.nodes.base import OptionsError, decode_options
 from hil.record.completeness import Completeness, ForeignTraffic
+from hil.record.keyfilter import KeyFilter, KeyFilterError
 from hil.record.mcapio import RecordingError, SessionWriter, split_part_path
 from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
@@ -92,11 +93,19 @@ class Recorder(Service):
         self.identity = RigIdentity.from_env()
         self.dropped_rig = 0
         self.dropped_foreign = 0
-        self.queue: BoundedInbox[tuple[str, bytes, int, str, str]] = BoundedInbox(
+        # (key, payload, receive wall time, publisher, origin, Zenoh encoding)
+        self.queue: BoundedInbox[tuple[str, bytes, int, str, str, Any]] = BoundedInbox(
             self._lane_cap, max_total=MAX_QUEUED, on_drop=self._count_drop
         )
         self._root_len = len(self.keys.root) + 1
         self._closing = threading.Event()
+        try:
+            self.keyfilter = KeyFilter(ctx.rig, self.opts.include, self.opts.exclude)
+        except KeyFilterError as err:
+            raise OptionsError(f"recorder: {err}") from None
+        self.excluded = 0
+        self.raw_written = 0
+        self._raw_seq: dict[str, int] = {}
         self.completeness = Completeness()
         self.foreign = ForeignTraffic(MAX_FOREIGN_TRACKED)
         self.writer: SessionWriter | None = None
@@ -174,7 +183,7 @@ class Recorder(Service):
     def _lane_cap(self, _kind: str, publisher: str) -> int:
         return FOREIGN_LANE_CAP if self.identity.classify(publisher) == FOREIGN else RIG_LANE_CAP
 
-    def _count_drop(self, _kind: str, _publisher: str, item: tuple[str, bytes, int, str, str]) -> None:
+    def _count_drop(self, _kind: str, _publisher: str, item: tuple[str, bytes, int, str, str, Any]) -> None:
         if item[4] == FOREIGN:
             self.dropped_foreign += 1
         else:
@@ -186,7 +195,7 @@ class Recorder(Service):
             key = str(sample.key_expr)
             source = source_id(sample)
             origin = self.identity.classify(source)
-            item = (key, sample.payload.to_bytes(), wall_ns(), source, origin)
+            item = (key, sample.payload.to_bytes(), wall_ns(), source, origin, sample.encoding)
             self.queue.put(key_kind(key[self._root_len :]), source, item)
             self._last_rx = time.monotonic()
             if self._advanced:
@@ -239,6 +248,8 @@ class Recorder(Service):
             "dropped_foreign": self.dropped_foreign,
             "foreign": self.foreign.messages,
             "recording": 0 if self.writer is None else 1,
+            "raw_written": self.raw_written,
+            "excluded": self.excluded,
             # memory the recorder holds by design, to tell it from a leak in a long session:
             # the MCAP summary index (grows per chunk until the footer; held is the part in
             # memory, the rest is in an unlinked scratch file beside the recording) and
@@ -254,11 +265,16 @@ class Recorder(Service):
             return 0
         return int((rx_wall_ns - self._start_epoch_ns) * self._speed)
 
-    def _handle(self, key: str, payload: bytes, rx_wall_ns: int, source: str, origin: str) -> None:
+    def _handle(
+        self, key: str, payload: bytes, rx_wall_ns: int, source: str, origin: str, encoding: Any = None
+    ) -> None:
+        if self.keyfilter.active and not self.keyfilter.keeps(key):
+            self.excluded += 1
+            return
         cls = type_for_key(key)
         kind = ".".join(key.split("/")[2:3]) or key
         if cls is None:
-            self.stats.error("rejected.unknown_key", f"{key}: not a contract key")
+            self._handle_raw(key, payload, rx_wall_ns, encoding)
             return
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.stats.error(f"rejected.{kind}.oversized", f"{key}: {len(payload)} B")
@@ -295,6 +311,36 @@ class Recorder(Service):
             self.written += 1
             self.bytes_written += len(payload)
             self.stats.count_rate("in.all")
+        except OSError as err:
+            self._fail(err)
+
+    def _handle_raw(self, key: str, payload: bytes, rx_wall_ns: int, encoding: Any) -> None:
+        """A key under ``hil/<rig>/`` outside the contract: its bytes, on a schema-less channel.
+
+        Evidence is kept rather than refused (a tool's own topic, a newer release's key); it is
+        not decoded, so it has no seq to account: MCAP's ``sequence`` counts it per key here.
+        """
+        if not self.opts.raw_unknown:
+            self.stats.error("rejected.unknown_key", f"{key}: not a contract key")
+            return
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.stats.error("rejected.unknown_key.oversized", f"{key}: {len(payload)} B")
+            return
+        if self.writer is None:
+            return
+        n = self._raw_seq.get(key, 0)
+        self._raw_seq[key] = n + 1
+        try:
+            self.writer.write_raw(
+                key,
+                payload,
+                log_time_ns=self._log_time(rx_wall_ns),
+                encoding=str(encoding) if encoding is not None else "",
+                sequence=n & 0xFFFFFFFF,
+            )
+            self.written += 1
+            self.raw_written += 1
+            self.bytes_written += len(payload)
         except OSError as err:
             self._fail(err)
 
@@ -465,6 +511,8 @@ class Recorder(Service):
             and not self.dropped_rig
             and self._run is not None,
             "parts": self.part + 1,
+            "raw_written": self.raw_written,
+            "excluded": self.excluded,
             "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
             "method": "seq gaps per publisher"
             + (" + zenoh.ext advanced subscriber sample-miss listener" if self._advanced else ""),

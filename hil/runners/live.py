@@ -33,6 +33,7 @@ import msgspec
 
 from hil.bus.identity import FOREIGN, RigIdentity
 from hil.bus.inbox import BoundedInbox, key_kind
+from hil.bus.keys import type_for_key
 from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
 from hil.can.bus import open_can_bus
 from hil.can.node import CanTransmitter
@@ -158,7 +159,8 @@ class NodeService(Service):
     def _publisher(self, key: str, cls: type | None) -> Publisher[Any]:
         pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs[key] = self.publisher(f"{self.keys.root}/{key}", cls or ServiceStatus)
+            full = f"{self.keys.root}/{key}"
+            pub = self._pubs[key] = self.publisher(full, cls or type_for_key(full) or ServiceStatus)
         return pub
 
     # -- the loop -------------------------------------------------------------------------------
