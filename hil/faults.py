@@ -91,6 +91,8 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
         raise FaultError("kill_service needs --target SERVICE")
     if not 0.0 <= params.get("percent", 100.0) <= 100.0:
         raise FaultError(f"{kind}: percent must be in [0, 100]")
+    if kind == "gnss_spoof" and not params.get("sigma_m", 0.5) > 0:
+        raise FaultError("gnss_spoof: sigma_m (the σ the spoofed fixes claim) must be > 0")
     if kind == "gnss_latency" and "latency_s" not in params:
         raise FaultError("gnss_latency needs latency_s")
     if kind == "gnss_latency" and min(params.get("latency_s", 0.0), params.get("jitter_s", 0.0)) < 0:

@@ -265,13 +265,20 @@ class NavSolution(Message, frozen=True, kw_only=True):
 class FusionJournal(Message, frozen=True, kw_only=True):
     """What the fusion decided over a span of its input: enough to rerun it bit for bit.
 
-    Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the
-    ``"source:seq"`` of inputs that arrived behind the watermark and were not used.
+    Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the inputs
+    that were not used, as ``"<why>:<sensor>:<seq>[@<publisher>]"`` (why: ``late`` behind the
+    watermark, ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's bounded
+    inbox, ``overflow`` evicted from the reorder buffer; the publisher is the Zenoh source id,
+    absent offline). ``gated`` lists the GNSS fixes the integrity gate kept from estimators, as
+    ``"<sensor>:<seq>[@<publisher>]"`` (from all) or ``"...>estimator"`` (from that one): not
+    needed to rerun (the gate is deterministic), but the record of what was refused and why.
+    A span with many decisions is published as several journals.
     """
 
     watermark_ns: Ns
     consumed: int
     dropped: list[str] = []
+    gated: list[str] = []
 
 
 class ServiceStatus(Message, frozen=True, kw_only=True):
@@ -340,6 +347,14 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # "gyro+accel"); absent in recordings made before them: open loop, 15 states
     feedback: Annotated[list[Name], msgspec.Meta(max_length=64)] = []
     ekf_calibration: Annotated[str, msgspec.Meta(max_length=16)] = ""
+    # added with the GNSS integrity gate; their defaults are a recording from before it (no gate)
+    max_buffered_aiding: int = 0
+    gnss_gate_chi2: float = 0.0
+    gnss_alarm_after_ns: int = 0
+    gnss_reacquire_after_ns: int = 0
+    gnss_gate_reference: str = ""
+    gnss_sigma_floor: bool = False
+    gnss_min_interval: float = 0.0
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

@@ -123,6 +123,7 @@ SENSORS: Mapping[str, SensorKind] = MappingProxyType(
             commands={
                 "gnss_outage": _fs(),
                 "gnss_jump": _fs("n_m", "e_m", "d_m"),
+                "gnss_spoof": _fs("n_m", "e_m", "d_m", "sigma_m"),
                 "gnss_velocity_glitch": _fs("n_mps", "e_mps", "d_mps"),
                 "gnss_latency": _fs("latency_s", "jitter_s"),
                 **_GNSS_LINE_FAULTS,
@@ -130,6 +131,7 @@ SENSORS: Mapping[str, SensorKind] = MappingProxyType(
             events={
                 "gnss_outage": _fs(),
                 "gnss_jump": _fs("offset_ned_m"),
+                "gnss_spoof": _fs("offset_ned_m", "sigma_m"),
                 "gnss_pulse": _fs("amplitude_m", "tau_s", "direction_ned"),  # scenario only
                 "gnss_velocity_glitch": _fs("offset_ned_mps"),
                 "gnss_latency": _fs("latency_s", "jitter_s"),

@@ -25,6 +25,19 @@ Beside each message the recorder writes the Foxglove well-known types derived fr
 Both go into status every second (``missing``, ``zenoh_missed``) and into the file's
 ``completeness`` metadata at a clean stop, with ``replay_ready`` true only when both are zero.
 
+Who published each message is kept (``hil.bus.identity``): each channel names its publisher's
+Zenoh source id and whether it is one of the rig's processes (``hil up`` tells the recorder the
+run's key) or not. A stranger's messages are recorded on channels marked ``origin: foreign`` and
+accounted apart (``foreign`` in the summary): their sequence numbers, gaps and Zenoh misses are
+never the rig's loss.
+
+Bounded (``hil.bus.inbox``): what waits for the writer is held in lanes per key kind and
+publisher, drop-oldest, ``RIG_LANE_CAP`` messages a lane of the rig's and ``FOREIGN_LANE_CAP``
+a stranger's, ``MAX_QUEUED`` in all, written in arrival order. A flood from a stranger therefore
+costs the stranger's oldest messages (``dropped_foreign``), not the rig's; a rig message dropped
+(``dropped_rig``: the writer fell ``RIG_LANE_CAP`` messages of one key behind) is loss, and the
+file is not ``replay_ready``.
+
 Optional splitting (options ``split_mb``, ``split_s``): at a flush boundary the current file is
 finished (summary, index, completeness so far) and the next part ``<stem>_0001.mcap`` opened with
 the same run metadata and attachments, so every part is a self-contained recording. No message
@@ -34,7 +47,6 @@ is lost across a split: the writer thread rotates between two messages.
 from __future__ import annotations
 
 import json
-import queue
 import sys
 import threading
 import time
@@ -46,11 +58,13 @@ import zenoh
 import zenoh.ext as zext
 
 from hil import __version__
+from hil.bus.identity import FOREIGN, RigIdentity
+from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import type_for_key
-from hil.bus.pubsub import MAX_PAYLOAD_BYTES
+from hil.bus.pubsub import MAX_PAYLOAD_BYTES, source_id
 from hil.messages import RunInfo, decode
 from hil.nodes.base import OptionsError, decode_options
-from hil.record.completeness import Completeness
+from hil.record.completeness import Completeness, ForeignTraffic
 from hil.record.keyfilter import KeyFilter, KeyFilterError
 from hil.record.mcapio import (
     TIME_SEMANTICS,
@@ -66,6 +80,10 @@ from hil.runtime.service import Service, run_service
 from hil.wellknown import WellKnown
 
 FLUSH_PERIOD_S = 1.0
+RIG_LANE_CAP = 50_000  # messages of one key kind of the rig's waiting: 2 min of 400 Hz
+FOREIGN_LANE_CAP = 2_000
+MAX_QUEUED = 400_000  # all lanes together (~300 MB of the largest payloads)
+MAX_FOREIGN_TRACKED = 64  # strangers' publishers with their own seq accounting; the rest pooled
 
 
 class _Stamp(msgspec.Struct):
@@ -83,7 +101,15 @@ class Recorder(Service):
         self.opts: RecorderOptions = decode_options(RecorderOptions, ctx.options, "recorder")
         super().__init__(ctx)
         self.path = Path(self.opts.path)
-        self.queue: queue.SimpleQueue[tuple[str, bytes, int, Any] | None] = queue.SimpleQueue()
+        self.identity = RigIdentity.from_env()
+        self.dropped_rig = 0
+        self.dropped_foreign = 0
+        # (key, payload, receive wall time, publisher, origin, Zenoh encoding)
+        self.queue: BoundedInbox[tuple[str, bytes, int, str, str, Any]] = BoundedInbox(
+            self._lane_cap, max_total=MAX_QUEUED, on_drop=self._count_drop
+        )
+        self._root_len = len(self.keys.root) + 1
+        self._closing = threading.Event()
         try:
             self.keyfilter = KeyFilter(ctx.rig, self.opts.include, self.opts.exclude)
         except KeyFilterError as err:
@@ -92,6 +118,7 @@ class Recorder(Service):
         self.raw_written = 0
         self._raw_seq: dict[str, int] = {}
         self.completeness = Completeness()
+        self.foreign = ForeignTraffic(MAX_FOREIGN_TRACKED)
         self.writer: SessionWriter | None = None
         self._writer_thread = threading.Thread(target=self._write_loop, name="mcap-writer", daemon=True)
         self._start_epoch_ns: int | None = None
@@ -110,6 +137,8 @@ class Recorder(Service):
         self.zenoh_missed: dict[str, int] = {}  # per key (or publisher id, if its key is unknown)
         self.zenoh_unsequenced = 0
         self._source_key: dict[str, str] = {}  # Zenoh publisher id -> its key, to name a miss
+        self._source_origin: dict[str, str] = {}  # and whether it is the rig's
+        self.zenoh_missed_foreign = 0
         self._keys_sourced: set[str] = set()
         self._advanced = self.opts.zenoh_advanced
         self._miss: zext.SampleMissListener[None] | None = None
@@ -148,9 +177,10 @@ class Recorder(Service):
             self.stats.error("errors.recording_path", str(err))
             self.state = "degraded"
         if self._advanced:
-            # The callback only enqueues (an unbounded SimpleQueue): nothing between Zenoh and the
-            # writer thread can drop. Heartbeat recovery: a gap in a publisher's sequence is
-            # queried from its cache before it is reported as missed.
+            # The callback only enqueues (bounded lanes, see the module docstring): nothing between
+            # Zenoh and the writer thread drops unless a lane overflows, and that is counted.
+            # Heartbeat recovery: a gap in a publisher's sequence is queried from its cache before
+            # it is reported as missed.
             self._sub = zext.declare_advanced_subscriber(
                 self.ctx.session,
                 self.keys.all(),
@@ -163,11 +193,23 @@ class Recorder(Service):
             self._sub = self.ctx.session.declare_subscriber(self.keys.all(), self._on_sample)
         self._writer_thread.start()
 
+    def _lane_cap(self, _kind: str, publisher: str) -> int:
+        return FOREIGN_LANE_CAP if self.identity.classify(publisher) == FOREIGN else RIG_LANE_CAP
+
+    def _count_drop(self, _kind: str, _publisher: str, item: tuple[str, bytes, int, str, str, Any]) -> None:
+        if item[4] == FOREIGN:
+            self.dropped_foreign += 1
+        else:
+            self.dropped_rig += 1
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Zenoh's thread: stamp and enqueue only; never raise into Zenoh.
         try:
             key = str(sample.key_expr)
-            self.queue.put((key, sample.payload.to_bytes(), wall_ns(), sample.encoding))
+            source = source_id(sample)
+            origin = self.identity.classify(source)
+            item = (key, sample.payload.to_bytes(), wall_ns(), source, origin, sample.encoding)
+            self.queue.put(key_kind(key[self._root_len :]), source, item)
             self._last_rx = time.monotonic()
             if self._advanced:
                 info = sample.source_info
@@ -176,6 +218,7 @@ class Recorder(Service):
                 elif info.source_sn == 0 or key not in self._keys_sourced:
                     # a publisher's first sample (or the first we saw): remember its key for misses
                     self._source_key[str(info.source_id)] = key
+                    self._source_origin[str(info.source_id)] = origin
                     self._keys_sourced.add(key)
         except Exception as err:
             self.stats.error("errors.enqueue", f"{type(err).__name__}: {err}")
@@ -184,6 +227,10 @@ class Recorder(Service):
         """Zenoh says ``miss.nb`` samples of one advanced publisher never reached us (nor its cache)."""
         source = str(miss.source)
         key = self._source_key.get(source, source)
+        if self._source_origin.get(source) == FOREIGN:  # a stranger's loss is not the rig's
+            with self._miss_lock:
+                self.zenoh_missed_foreign += int(miss.nb)
+            return
         with self._miss_lock:
             self.zenoh_missed[key] = self.zenoh_missed.get(key, 0) + int(miss.nb)
         self.stats.error("zenoh_missed_events", f"Zenoh sample miss: {miss.nb} samples of {key}")
@@ -194,7 +241,7 @@ class Recorder(Service):
 
     def extra_status(self) -> dict[str, int]:
         depth = self.queue.qsize()
-        self._peak_queue = max(self._peak_queue, depth)
+        self._peak_queue = max(self._peak_queue, self.queue.peak)
         totals = {"gaps": 0, "duplicates": 0, "out_of_order": 0}
         writer = self.writer
         index = None if writer is None else writer.chunk_index
@@ -211,6 +258,9 @@ class Recorder(Service):
             "missing": self.completeness.total_missing(),
             "zenoh_missed": self.total_zenoh_missed(),
             "zenoh_unsequenced": self.zenoh_unsequenced,
+            "dropped_rig": self.dropped_rig,
+            "dropped_foreign": self.dropped_foreign,
+            "foreign": self.foreign.messages,
             "recording": 0 if self.writer is None else 1,
             "raw_written": self.raw_written,
             "excluded": self.excluded,
@@ -229,7 +279,9 @@ class Recorder(Service):
         ``RunInfo`` the receive time itself (services starting: the wall clock, as at speed 1)."""
         return wall_clock_log_time(rx_wall_ns, self._start_epoch_ns, self._speed)
 
-    def _handle(self, key: str, payload: bytes, rx_wall_ns: int, encoding: Any = None) -> None:
+    def _handle(
+        self, key: str, payload: bytes, rx_wall_ns: int, source: str, origin: str, encoding: Any = None
+    ) -> None:
         if self.keyfilter.active and not self.keyfilter.keeps(key):
             self.excluded += 1
             return
@@ -246,13 +298,17 @@ class Recorder(Service):
         except (msgspec.ValidationError, msgspec.DecodeError) as err:
             self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
             return
-        if isinstance(msg, RunInfo) and self._start_epoch_ns is None:
+        foreign = origin == FOREIGN
+        if isinstance(msg, RunInfo) and self._start_epoch_ns is None and not foreign:
             self._start_epoch_ns = msg.start_epoch_ns
             self._speed = msg.speed
             self._run = msg
             self._part_t0 = time.monotonic()
             self._write_run_metadata(msg)
-        self.completeness.see(key, msg.seq)
+        if foreign:
+            self.foreign.see(key, source, msg.seq)
+        else:
+            self.completeness.see(key, msg.seq)
         if self.writer is None:
             return
         log_ns = self._log_time(rx_wall_ns)
@@ -265,6 +321,8 @@ class Recorder(Service):
                 log_time_ns=log_ns,
                 publish_time_ns=log_ns if start is None else start + msg.stamp_ns,
                 seq=msg.seq,
+                publisher=source,
+                origin=origin,
             )
             self.written += 1
             self.bytes_written += len(payload)
@@ -395,15 +453,12 @@ class Recorder(Service):
     def _write_loop(self) -> None:
         last_flush = time.monotonic()
         while not self._abort.is_set():
-            try:
-                item = self.queue.get(timeout=0.2)
-            except queue.Empty:
-                item = ()  # type: ignore[assignment]
-            if item is None:
+            item = self.queue.get(timeout=0.2)
+            if item is None and self._closing.is_set():
                 break
-            if item:
+            if item is not None:
                 try:
-                    self._handle(*item)  # type: ignore[misc]
+                    self._handle(*item)
                 except Exception as err:  # one bad record must not stop the recording
                     self.stats.error("errors.record", f"{type(err).__name__}: {err}")
             if self.writer is not None and time.monotonic() - last_flush >= FLUSH_PERIOD_S:
@@ -437,12 +492,12 @@ class Recorder(Service):
             self._sub.undeclare()
         except Exception as err:  # a session already closing must not cost us the summary
             self.stats.error("errors.undeclare", f"{type(err).__name__}: {err}")
-        self.queue.put(None)
+        self._closing.set()  # the writer ends once the queue is empty
         self._writer_thread.join(timeout=opts.stop_timeout_s)
         if self._writer_thread.is_alive():
             self._abort.set()  # the writer stops after the message in hand
             self._writer_thread.join(timeout=5.0)
-            self.unwritten_at_stop = max(0, self.queue.qsize() - 1)  # the None sentinel is not a message
+            self.unwritten_at_stop = self.queue.qsize()
             self.stats.error(
                 "errors.stop_timeout",
                 f"{self.unwritten_at_stop} received messages were still queued at the stop deadline "
@@ -475,11 +530,19 @@ class Recorder(Service):
             "zenoh_missed_by_key": by_source,
             "zenoh_unsequenced": self.zenoh_unsequenced,
             "zenoh_miss_detection": self._advanced,
-            "queue_peak": self._peak_queue,
+            "queue_peak": max(self._peak_queue, self.queue.peak),
             "unwritten_at_stop": self.unwritten_at_stop,
+            "dropped_rig": self.dropped_rig,
+            "rig_identity": "known" if self.identity.known else "unknown",
+            "foreign": {
+                **self.foreign.report(),
+                "dropped": self.dropped_foreign,
+                "zenoh_missed": self.zenoh_missed_foreign,
+            },
             "replay_ready": missing == 0
             and zmissed == 0
             and not self.unwritten_at_stop
+            and not self.dropped_rig
             and self._run is not None,
             "parts": self.part + 1,
             "raw_written": self.raw_written,

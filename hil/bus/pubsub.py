@@ -125,6 +125,18 @@ class Stats:
             return dict(self.rates_hz), dict(self.counters), self.last_error
 
 
+def source_id(sample: zenoh.Sample) -> str:
+    """The publisher of a sample as Zenoh names it, ``"<zid>:<eid>"`` (its ``source_info``), or
+    ``""`` when the sample carries none (a plain publisher: the rig's advanced publishers always
+    do, ``declare_publisher``). Honest only as far as the bus is closed: a process that can
+    publish can also copy another's source info."""
+    info = sample.source_info
+    if info is None:
+        return ""
+    sid = info.source_id
+    return f"{sid.zid}:{sid.eid}"
+
+
 def _kind(key: str) -> str:
     """``hil/rig/sensor/imu`` -> ``sensor.imu``: short names for counters."""
     parts = key.split("/")
@@ -168,6 +180,8 @@ class Publisher(Generic[M]):
             encoding=encoding_of(cls),
         )
         self._rate_name = "out." + _kind(key)
+        self._plain = isinstance(self._pub, zenoh.Publisher)
+        self._sn = 0
 
     def next_seq(self) -> int:
         seq = generation_seq(self.generation, self._seq)
@@ -178,7 +192,11 @@ class Publisher(Generic[M]):
         self.put_bytes(encode(msg))
 
     def put_bytes(self, payload: bytes) -> None:
-        self._pub.put(payload)
+        if self._plain:  # an advanced publisher names itself; a plain one is told to
+            self._pub.put(payload, source_info=zenoh.SourceInfo(self._pub.id, self._sn))
+            self._sn += 1
+        else:
+            self._pub.put(payload)
         if self.stats is not None:
             self.stats.count_rate(self._rate_name)
 
@@ -280,6 +298,63 @@ class DispatchSubscriber:
             handler(msg, key)
         except Exception as err:
             self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+def decode_checked(cls: type[M], key: str, raw: bytes, stats: Stats) -> M | None:
+    """``raw`` as a ``cls``, or None with the reason counted (``rejected.<kind>.<why>``) and kept as
+    the last error: what every subscriber does with a payload, wherever it decodes it."""
+    kind = _kind(key)
+    try:
+        if len(raw) > MAX_PAYLOAD_BYTES:
+            stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
+            return None
+        msg = decode(cls, raw)
+    except (msgspec.ValidationError, msgspec.DecodeError) as err:
+        stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
+        return None
+    except Exception as err:
+        stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
+        return None
+    stats.count_rate("in." + kind)
+    return msg
+
+
+class RawSubscriber:
+    """One subscription that only hands on the undecoded payload of the kinds it routes, with its
+    key and publisher (``source_id``): ``handler(key, raw, source, cls)``. For a bounded inbox
+    (``hil.bus.inbox``): what a full lane drops is then never decoded, so a flood costs Zenoh's
+    thread a copy of the bytes, not a parse; the consumer decodes what it keeps
+    (``decode_checked``). One callback thread, so one publisher's samples keep their order."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        routes: dict[str, type[Message]],
+        handler: Callable[[str, bytes, str, type[Message]], None],
+        stats: Stats,
+        *,
+        remote_only: bool = False,
+    ) -> None:
+        self.routes = routes
+        self.handler = handler
+        self.stats = stats
+        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY  # as DispatchSubscriber
+        self._sub = session.declare_subscriber(key, self._on_sample, allowed_origin=origin)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        parts = key.split("/", 3)
+        cls = self.routes.get(parts[2]) if len(parts) > 2 else None
+        if cls is None:
+            return
+        try:
+            self.handler(key, sample.payload.to_bytes(), source_id(sample), cls)
+        except Exception as err:  # never into Zenoh's thread
+            self.stats.error(f"errors.{_kind(key)}.enqueue", f"{key}: {type(err).__name__}: {err}")
 
     def undeclare(self) -> None:
         self._sub.undeclare()

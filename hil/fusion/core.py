@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState
+from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.types import NavState
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
@@ -46,6 +47,20 @@ class FusionConfig:
     # fusion starts (hil.nodes.fusion), journaled in fusion/config so rerun builds the same
     feedback: tuple[str, ...] = ()
     ekf_calibration: str = ""
+    # aiding inputs (GNSS) held in the reorder buffer: 200 s of 10 Hz fixes through an IMU outage;
+    # beyond, the one furthest ahead is evicted (journaled), so junk stamped into the future
+    # never fills the buffer and forces the watermark past the IMU (0: no bound)
+    max_buffered_aiding: int = 2_000
+    # the GNSS integrity gate (hil.fusion.gnss_gate): NIS bound per test, 0 = off
+    gnss_gate_chi2: float = 36.0
+    gnss_alarm_after_ns: int = 2_000_000_000  # rejections this long raise gnss_integrity_alarm
+    gnss_reacquire_after_ns: int = 30_000_000_000  # and this long let fixes through again
+    gnss_gate_reference: str = "ekf15"  # whose prediction decides for all ("": each its own)
+    gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
+    # a publisher's GNSS fixes closer together than this share of the receiver's period are
+    # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
+    # and a flood of copies must not cost an estimator update each (0: no such rule)
+    gnss_min_interval: float = 0.5
 
     @property
     def lag_s(self) -> float:
@@ -68,6 +83,22 @@ class FusionConfig:
             gap_confirm_inputs=self.gap_confirm_inputs,
             feedback=list(self.feedback),
             ekf_calibration=self.ekf_calibration,
+            max_buffered_aiding=self.max_buffered_aiding,
+            gnss_gate_chi2=self.gnss_gate_chi2,
+            gnss_alarm_after_ns=self.gnss_alarm_after_ns,
+            gnss_reacquire_after_ns=self.gnss_reacquire_after_ns,
+            gnss_gate_reference=self.gnss_gate_reference,
+            gnss_sigma_floor=self.gnss_sigma_floor,
+            gnss_min_interval=self.gnss_min_interval,
+        )
+
+    def gate_settings(self) -> GateSettings:
+        return GateSettings(
+            chi2=self.gnss_gate_chi2,
+            alarm_after_ns=self.gnss_alarm_after_ns,
+            reacquire_after_ns=self.gnss_reacquire_after_ns,
+            reference=self.gnss_gate_reference,
+            floor_sigma=self.gnss_sigma_floor,
         )
 
     @classmethod
@@ -112,8 +143,23 @@ def input_key(msg: Measurement) -> tuple[int, int, int]:
     return (msg.stamp_ns, rank_of(msg.sensor), msg.seq)
 
 
-def input_id(msg: Measurement) -> str:
-    return f"{msg.sensor}:{msg.seq}"
+def input_id(msg: Measurement, source: str = "") -> str:
+    """An input's name in the journal: ``sensor:seq``, and ``@publisher`` when it is known (the
+    Zenoh source id, live), so a forged copy of ``gnss:42`` is not the rig's ``gnss:42``."""
+    return f"{msg.sensor}:{msg.seq}@{source}" if source else f"{msg.sensor}:{msg.seq}"
+
+
+def parse_journal_id(entry: str) -> tuple[str, str, str]:
+    """``(why, "sensor:seq", publisher)`` of a ``dropped`` entry (``why`` "" when it has none, as
+    in recordings made before reasons were given; publisher "" when it was not known)."""
+    body, _, source = entry.partition("@")
+    parts = body.split(":")
+    if len(parts) >= 3:
+        return parts[0], ":".join(parts[1:3]), source
+    return "", body, source
+
+
+JOURNAL_MAX_ENTRIES = 1_000  # per journal message: a flood's decisions go out in several
 
 
 @dataclass
@@ -123,6 +169,7 @@ class FusionCore:
     make_estimator: Callable[[str, InitialState], Estimator] | None = None
     counters: dict[str, int] = field(default_factory=dict)
     params: dict[str, dict[str, Any]] = field(default_factory=dict)  # per estimator, e.g. from tuning
+    receiver: ReceiverModel | None = None  # the scenario's GNSS receiver: without it, no gate
 
     @classmethod
     def for_scenario(cls, scenario: Any, config: FusionConfig, align_ns: int = 0) -> FusionCore:
@@ -159,7 +206,7 @@ class FusionCore:
                 vel_ned_mps=tb.vel_ned_mps[0].copy(),
                 q_nb=tb.q_nb[0].copy(),
             )
-        return cls(init, config, params=params)
+        return cls(init, config, params=params, receiver=ReceiverModel.for_scenario(scenario))
 
     def start_output_seq(self, seq: int) -> None:
         """Number outputs from ``seq`` on (a restarted fusion must not reuse an earlier seq)."""
@@ -196,7 +243,22 @@ class FusionCore:
             if not SENSORS[sensor].paces_fusion
         }
         self._pacer = {n for n in SENSOR_NAMES if SENSORS[n].paces_fusion}
-        self._heap: list[tuple[tuple[int, int, int], int, Measurement]] = []
+        self._heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = []
+        # the aiding entries in the heap (arrival ids), and the furthest-ahead first, lazily
+        self._aiding_live: set[int] = set()
+        self._aiding_max: list[tuple[int, int, int, int, Measurement, str]] = []
+        self._evicted: set[int] = set()
+        self.gate: GnssGate | None = None
+        cfg = self.config
+        if self.receiver is not None and (cfg.gnss_gate_chi2 > 0 or cfg.gnss_sigma_floor):
+            self.gate = GnssGate(cfg.gate_settings(), self.receiver)
+        self._gated: list[str] = []
+        self._last_imu_ns = self.init.stamp_ns
+        # the stamp of each GNSS publisher's last fix taken in (the rate rule)
+        self._gnss_min_gap_ns = 0
+        if self.receiver is not None and cfg.gnss_min_interval > 0:
+            self._gnss_min_gap_ns = round(cfg.gnss_min_interval * self.receiver.period_ns)
+        self._last_fix_ns: dict[str, int] = {}
         self._arrivals = 0  # tie-break for identical keys: first arrival first, never compare messages
         self._future_lead_ns: int | None = None
         self._future_run = 0
@@ -209,12 +271,14 @@ class FusionCore:
         self.consumed = 0
 
     # -- arrival side (live) ---------------------------------------------------------------
-    def push(self, msg: Measurement) -> list[NavSolution]:
+    def push(self, msg: Measurement, source: str = "") -> list[NavSolution]:
+        """An input as it arrived (``source``: its publisher, "" offline); the solutions its
+        arrival released."""
         key = input_key(msg)
         why = implausible(msg, self.config)
         if why:
             self._inc(f"rejected.implausible.{msg.sensor}.{why}")
-            self._dropped.append("implausible:" + input_id(msg))
+            self._dropped.append("implausible:" + input_id(msg, source))
             return []
         if self._newest_ns is not None and msg.stamp_ns > self._newest_ns + self.config.max_future_ns:
             # One wild stamp is rejected; a run of consistent ones is a real gap in the input (a
@@ -225,27 +289,66 @@ class FusionCore:
             self._future_run += 1
             if msg.sensor not in self._pacer or self._future_run < self.config.gap_confirm_inputs:
                 self._inc("rejected.future_stamp")
-                self._dropped.append("future:" + input_id(msg))
+                self._dropped.append("future:" + input_id(msg, source))
                 return []
             self._inc("input_gaps")
             self._newest_ns = msg.stamp_ns
         self._future_lead_ns, self._future_run = None, 0
         if key <= self._last_key:
             self._inc(f"dropped_late.{msg.sensor}")
-            self._dropped.append("late:" + input_id(msg))
+            self._dropped.append("late:" + input_id(msg, source))
             return []
-        heapq.heappush(self._heap, (key, self._arrivals, msg))
+        if self._gnss_min_gap_ns and msg.sensor == "gnss" and self._too_soon(msg.stamp_ns, source):
+            self._inc("rejected.gnss_rate")
+            self._dropped.append("rate:" + input_id(msg, source))
+            return []
+        arrival = self._arrivals
+        heapq.heappush(self._heap, (key, arrival, msg, source))
         self._arrivals += 1
         # The IMU is the fusion's clock: only its progress moves the watermark, so a GNSS fix that
         # arrives before the IMU samples around its time of validity waits for them.
-        if msg.sensor in self._pacer and (self._newest_ns is None or msg.stamp_ns > self._newest_ns):
-            self._newest_ns = msg.stamp_ns
+        if msg.sensor in self._pacer:
+            if self._newest_ns is None or msg.stamp_ns > self._newest_ns:
+                self._newest_ns = msg.stamp_ns
+        elif self.config.max_buffered_aiding > 0:
+            self._hold_aiding(key, arrival, msg, source)
         if self._newest_ns is None:
             return []
-        if len(self._heap) > self.config.max_buffered:
+        if len(self._heap) - len(self._evicted) > self.config.max_buffered:
             self._inc("released_on_overflow")
             return self._release(self._heap[0][0][0])
         return self._release(self._newest_ns - self.config.lag_ns)
+
+    def _too_soon(self, stamp_ns: int, source: str) -> bool:
+        """A fix of this publisher within the rate rule's gap of its last one taken in."""
+        last = self._last_fix_ns.get(source)
+        if last is not None and abs(stamp_ns - last) < self._gnss_min_gap_ns:
+            return True
+        if last is not None or len(self._last_fix_ns) < 1024:  # bounded whatever a flood names
+            self._last_fix_ns[source] = stamp_ns
+        return False
+
+    def _hold_aiding(self, key: tuple[int, int, int], arrival: int, msg: Measurement, source: str) -> None:
+        """Bound the aiding inputs held: past ``max_buffered_aiding`` the one furthest ahead in
+        the total order (junk stamped into the future first) is evicted and journaled."""
+        self._aiding_live.add(arrival)
+        heapq.heappush(self._aiding_max, (-key[0], -key[1], -key[2], -arrival, msg, source))
+        while len(self._aiding_live) > self.config.max_buffered_aiding:
+            *_, neg_arrival, old, old_source = heapq.heappop(self._aiding_max)
+            if -neg_arrival in self._aiding_live:
+                self._aiding_live.discard(-neg_arrival)
+                self._evicted.add(-neg_arrival)
+                self._inc(f"dropped_overflow.{old.sensor}")
+                self._dropped.append("overflow:" + input_id(old, old_source))
+        if len(self._aiding_max) > 2 * len(self._aiding_live) + 1024:  # drop released entries
+            self._aiding_max = [e for e in self._aiding_max if -e[3] in self._aiding_live]
+            heapq.heapify(self._aiding_max)
+
+    def note_dropped(self, msg: Measurement, source: str = "") -> None:
+        """An input the service's bounded inbox dropped before it reached the core: journaled,
+        so ``hil rerun`` leaves out what the live core never saw."""
+        self._inc(f"dropped_inbox.{msg.sensor}")
+        self._dropped.append("inbox:" + input_id(msg, source))
 
     def flush(self) -> list[NavSolution]:
         """End of input: release everything still buffered."""
@@ -259,10 +362,37 @@ class FusionCore:
             watermark_ns=self.watermark_ns,
             consumed=self.consumed,
             dropped=self.take_dropped(),
+            gated=self.take_gated(),
         )
+
+    def journals(self, seqs: Callable[[], int], stamp_ns: int) -> list[FusionJournal]:
+        """``journal`` cut into messages of at most ``JOURNAL_MAX_ENTRIES`` names each (a flood
+        is thousands a second; one message stays far below the bus's payload limit)."""
+        dropped, gated = self.take_dropped(), self.take_gated()
+        n = JOURNAL_MAX_ENTRIES
+        out: list[FusionJournal] = []
+        while True:
+            take_d, dropped = dropped[:n], dropped[n:]
+            take_g, gated = gated[: n - len(take_d)], gated[n - len(take_d) :]
+            out.append(
+                FusionJournal(
+                    seq=seqs(),
+                    stamp_ns=stamp_ns,
+                    watermark_ns=self.watermark_ns,
+                    consumed=self.consumed,
+                    dropped=take_d,
+                    gated=take_g,
+                )
+            )
+            if not dropped and not gated:
+                return out
 
     def take_dropped(self) -> list[str]:
         out, self._dropped = self._dropped, []
+        return out
+
+    def take_gated(self) -> list[str]:
+        out, self._gated = self._gated, []
         return out
 
     @property
@@ -272,22 +402,26 @@ class FusionCore:
     def _release(self, watermark_ns: int) -> list[NavSolution]:
         out: list[NavSolution] = []
         while self._heap and self._heap[0][0][0] <= watermark_ns:
-            key, _arrival, msg = heapq.heappop(self._heap)
+            key, arrival, msg, source = heapq.heappop(self._heap)
+            if arrival in self._evicted:
+                self._evicted.discard(arrival)
+                continue
+            self._aiding_live.discard(arrival)
             if key == self._last_key:  # a duplicate that was buffered twice
                 self._inc(f"dropped_duplicate.{msg.sensor}")
-                self._dropped.append("dup:" + input_id(msg))
+                self._dropped.append("dup:" + input_id(msg, source))
                 continue
             self._last_key = key
-            out.extend(self.process(msg))
+            out.extend(self.process(msg, source))
         return out
 
     # -- processing side (live after release, and rerun) -----------------------------------
-    def process(self, msg: Measurement) -> list[NavSolution]:
+    def process(self, msg: Measurement, source: str = "") -> list[NavSolution]:
         """Consume one input in total order; return the solutions it produced."""
         self.consumed += 1
         if isinstance(msg, ImuSample):
             return self._on_imu(msg)
-        self._on_measurement(msg)
+        self._on_measurement(msg, source)
         return []
 
     def _on_imu(self, msg: ImuSample) -> list[NavSolution]:
@@ -295,6 +429,7 @@ class FusionCore:
         dtheta = np.asarray(msg.dtheta_b_rad, dtype=np.float64)
         dvel = np.asarray(msg.dvel_b_mps, dtype=np.float64)
         self._ins = self._sd.strapdown_step(self._ins, dtheta, dvel, dt_s)
+        self._last_imu_ns = msg.stamp_ns
         ins_nav = self._sd.to_nav_state(self._ins, self._origin)
         imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
         for est in self.estimators:
@@ -318,18 +453,22 @@ class FusionCore:
                 self._inc(f"errors.nonfinite.{name}")
         return out
 
-    def _on_measurement(self, msg: Measurement) -> None:
-        """An aiding measurement at its time of validity, to every estimator that takes its kind."""
+    def _on_measurement(self, msg: Measurement, source: str = "") -> None:
+        """An aiding measurement at its time of validity, to every estimator that takes its kind
+        (a GNSS fix: with its σ floored, to those the integrity gate lets have it)."""
         convert = INPUTS.get(msg.sensor)
         data = convert(msg) if convert is not None else msg
         if data is None:
             self._inc(f"{msg.sensor}.unusable")
             return
-        handlers = self._handlers.get(msg.sensor, ())
+        handlers = [(n, h) for n, h in self._handlers.get(msg.sensor, ()) if n not in self._failed]
+        allowed: dict[str, bool] = {}
+        if msg.sensor == "gnss" and self.gate is not None and handlers:
+            data, allowed = self._gate(data, [n for n, _ in handlers], msg, source)
         if handlers:
             ins_nav = self._sd.to_nav_state(self._ins, self._origin)
             for name, handle in handlers:
-                if name in self._failed:
+                if name in self._failed or not allowed.get(name, True):
                     continue
                 try:
                     handle(data, ins_nav)
@@ -337,6 +476,39 @@ class FusionCore:
                     self._fail(name, err)
         if msg.sensor == "gnss":
             self._last_gnss_seq = msg.seq
+
+    def _gate(
+        self, data: Any, names: list[str], msg: Measurement, source: str
+    ) -> tuple[Any, dict[str, bool]]:
+        """The integrity gate's σ floor and verdicts; rejections counted and journaled."""
+        gate = self.gate
+        assert gate is not None
+        floored = gate.floor(data)
+        if floored is not data:
+            self._inc("gnss.sigma_floored")
+        if not gate.enabled:
+            return floored, {}
+        by_name = {e.name: e for e in self.estimators}
+
+        def solution(name: str) -> NavState | None:
+            try:
+                return by_name[name].solution()
+            except Exception as err:  # a solution that cannot be had is a failed estimator
+                self._fail(name, err)
+                return None
+
+        n_transitions = len(gate.transitions)
+        allowed = gate.verdicts(floored, names, solution, self._last_imu_ns, source)
+        for t in gate.transitions[n_transitions:]:
+            self._inc(f"gnss_gate.{t.kind.removeprefix('gnss_integrity_')}")
+        refused = [n for n in names if not allowed.get(n, True)]
+        for n in refused:
+            self._inc(f"gnss_gate.rejected.{n}")
+        if refused:
+            name_in_journal = input_id(msg, source)
+            whole = len(refused) == len(names)
+            self._gated.extend([name_in_journal] if whole else [f"{name_in_journal}>{n}" for n in refused])
+        return floored, allowed
 
     def _fail(self, name: str, err: Exception) -> None:
         """An estimator that raises is taken out (and says so); the others go on."""
@@ -379,9 +551,14 @@ class FusionCore:
     def status_counters(self) -> dict[str, int]:
         """What the status topic counts: rejections, drops, the buffer, inputs consumed."""
         out = dict(self.counters)
-        out["buffered"] = len(self._heap)
+        out["buffered"] = len(self._heap) - len(self._evicted)
+        out["buffered_aiding"] = len(self._aiding_live)
         out["consumed"] = self.consumed
         return out
+
+    def take_gate_events(self) -> list[Transition]:
+        """Integrity alarms raised or cleared since the last call (the node publishes them)."""
+        return self.gate.take_transitions() if self.gate is not None else []
 
     def estimator_health(self) -> dict[str, dict[str, float]]:
         """Each running estimator's health, as the real numbers it reports (advisory: an
@@ -394,6 +571,9 @@ class FusionCore:
                 out[est.name] = {k: float(v) for k, v in est.health().items()}
             except Exception:  # health is advisory
                 self._inc(f"errors.health.{est.name}")
+                continue
+            if self.gate is not None and self.gate.enabled:
+                out[est.name].update(self.gate.health(est.name))
         return out
 
     def _inc(self, name: str) -> None:

@@ -211,9 +211,11 @@ EVENT_KINDS = tuple(_EVENT_KEYS)
 # the kinds _parse_event reads field by field; the others take numbers (hil/faults.py applies them)
 _PARSED_KINDS = frozenset(
     {"gnss_outage", "gnss_jump", "gnss_pulse", "gnss_velocity_glitch", "gnss_latency", "imu_frame_loss"}
+    | {"gnss_spoof"}
     | {"imu_stuck", "imu_saturated", "can_burst_error", "can_bus_off", "can_latency", "clock_step"}
     | {"kill_service"}
 )
+DEFAULT_SPOOF_SIGMA_M = 0.5  # what a gnss_spoof's fixes claim unless told: better than any receiver
 # can_latency: beyond this a "latency" is an outage (and 10 s of held frames at 2 kHz is already
 # 80 000 frames in the emulator's memory); refused rather than silently buffered
 MAX_TRANSPORT_DELAY_S = 10.0
@@ -284,8 +286,12 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
     params: dict[str, Any] = {}
     if kind == "gnss_outage" and t1 is None:
         raise ScenarioError(f"{where} (gnss_outage) needs t_end_s")
-    if kind == "gnss_jump":
+    if kind in ("gnss_jump", "gnss_spoof"):
         params["offset_ned_m"] = _vec3(f"{where}.offset_ned_m", raw.get("offset_ned_m"))
+    if kind == "gnss_spoof":
+        params["sigma_m"] = _num(f"{where}.sigma_m", raw.get("sigma_m", DEFAULT_SPOOF_SIGMA_M))
+        if not params["sigma_m"] > 0:
+            raise ScenarioError(f"{where}.sigma_m (the σ the spoofed fixes claim) must be > 0")
     if kind == "gnss_velocity_glitch":
         params["offset_ned_mps"] = _vec3(f"{where}.offset_ned_mps", raw.get("offset_ned_mps"))
         if t1 is None:

@@ -7,6 +7,7 @@ process around it: no Zenoh, no clock reads, no threads, no files. A runner call
     node = Node(run, options)         # the run (time zero, scenario) is known
     outs = node.start(now_ns)         # once
     outs = node.on_message(key, msg, now_ns)   # an input arrived (key relative to hil/<rig>/)
+    outs = node.on_message_from(key, msg, now_ns, source)  # the same, with its publisher (live)
     outs = node.tick(now_ns)          # the time it asked for (next_tick_ns()) has come
     outs = node.finish(now_ns)        # end of input: release what is held
 
@@ -100,6 +101,13 @@ class Node:
     outputs: ClassVar[tuple[str, ...]] = ()
     # an input can move its next tick (a fault command); False: only its own ticks move it
     inputs_move_timers: ClassVar[bool] = True
+    # the live runner hands it every input its bounded inbox dropped (``on_dropped``): for a
+    # node whose journal must name them (the fusion); the others' drops are only counted
+    journals_drops: ClassVar[bool] = False
+    # the live runner refuses inputs from publishers that are not the rig's (hil.bus.identity)
+    # before they reach it: a node that re-publishes under its own name (the time sync) would
+    # otherwise pass a stranger's data on as the rig's
+    refuses_foreign: ClassVar[bool] = False
 
     def __init__(self, run: RunInfo, options: NodeOptions | None = None) -> None:
         self.run = run
@@ -117,6 +125,16 @@ class Node:
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
         return []
+
+    def on_message_from(self, key: str, msg: Any, now_ns: int, source: str) -> list[Out]:
+        """``on_message`` with the publisher's id (the live runner's Zenoh source id; "" offline,
+        where every input is the rig's). Only a node that names its inputs (the fusion's journal)
+        needs it; the others ignore it."""
+        return self.on_message(key, msg, now_ns)
+
+    def on_dropped(self, key: str, msg: Any, source: str) -> None:
+        """An input the runner's bounded inbox dropped before it got here (``hil.bus.inbox``: the
+        runner counts it); a node whose decisions are journaled says so in its journal."""
 
     def tick(self, now_ns: int) -> list[Out]:
         return []

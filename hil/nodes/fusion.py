@@ -99,6 +99,10 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
 
 class FusionNode(Node):
     inputs_move_timers = False  # its timers are its own: periodic, or none
+    journals_drops = True  # an input the live inbox dropped is journaled: rerun leaves it out
+    # a stranger's fixes never reach an estimator (nor the journal): Zenoh may drop a stranger's
+    # messages to the recorder but not to the fusion, so what it took could not be rerun
+    refuses_foreign = True
     name = "fusion"
     Options = FusionOptions
     inputs = tuple(Input(f"synced/{s}", {"synced": SENSORS[s].message}) for s in SENSOR_NAMES)
@@ -114,7 +118,7 @@ class FusionNode(Node):
         self.core: FusionCore | None = None
         if not opts.resume:
             self.core = FusionCore.for_scenario(self.scenario, self.config)
-        self._held: list[Measurement] = []
+        self._held: list[tuple[Measurement, str]] = []
         self.pushed = 0  # inputs handed to the core (lockstep replay counts them)
         self._next_journal = JOURNAL_PERIOD_NS
         self._next_health = HEALTH_PERIOD_NS
@@ -127,31 +131,42 @@ class FusionNode(Node):
         node.core = FusionCore.for_scenario(node.scenario, config)
         return node
 
-    def replay(self, msg: Measurement) -> list[NavSolution]:
+    def replay(self, msg: Measurement, source: str = "") -> list[NavSolution]:
         """One input already in the total order (``hil rerun``): the core's ``process``."""
         assert self.core is not None
-        return self.core.process(msg)
+        return self.core.process(msg, source)
 
     def start(self, now_ns: int) -> list[Out]:
         return [("fusion/config", self.config.settings(self.next_seq("fusion/config"), now_ns))]
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
-        if self.core is None:
-            return self._realign(msg, now_ns)
-        return self._push(msg)
+        return self.on_message_from(key, msg, now_ns, "")
 
-    def _push(self, msg: Measurement) -> list[Out]:
+    def on_message_from(self, key: str, msg: Any, now_ns: int, source: str) -> list[Out]:
+        if self.core is None:
+            return self._realign(msg, source, now_ns)
+        return self._push(msg, source)
+
+    def on_dropped(self, key: str, msg: Any, source: str) -> None:
+        """An input the live inbox dropped: journaled, so rerun leaves it out too."""
+        if self.core is not None:
+            self.core.note_dropped(msg, source)
+
+    def _push(self, msg: Measurement, source: str = "") -> list[Out]:
         core = self.core
         assert core is not None
-        sols = core.push(msg)
+        sols = core.push(msg, source)
         self.pushed += 1
         if core.last_error:
             self.error("errors.estimator", core.last_error)
             core.last_error = ""
-        return _nav(sols)
+        outs = _nav(sols)
+        for t in core.take_gate_events():  # an integrity alarm raised or cleared
+            outs.append(self.event(t.kind, t.detail, t.stamp_ns))
+        return outs
 
-    def _realign(self, msg: Measurement, now_ns: int) -> list[Out]:
-        self._held.append(msg)
+    def _realign(self, msg: Measurement, source: str, now_ns: int) -> list[Out]:
+        self._held.append((msg, source))
         if not isinstance(msg, ImuSample):
             return []
         align_ns = msg.stamp_ns
@@ -163,9 +178,9 @@ class FusionNode(Node):
             f"(imu seq {msg.seq}); outputs numbered from {first_seq}"
         )
         outs = [self.event("realigned", detail, now_ns)]
-        held, self._held = [m for m in self._held if m.stamp_ns >= align_ns], []
-        for m in held:  # nothing from before the alignment
-            outs.extend(self._push(m))
+        held, self._held = [(m, src) for m, src in self._held if m.stamp_ns >= align_ns], []
+        for m, src in held:  # nothing from before the alignment
+            outs.extend(self._push(m, src))
         return outs
 
     def next_tick_ns(self) -> int | None:
@@ -185,7 +200,8 @@ class FusionNode(Node):
     def _journal(self, now_ns: int) -> list[Out]:
         if self.core is None:
             return []
-        return [("fusion/journal", self.core.journal(self.next_seq("fusion/journal"), now_ns))]
+        journals = self.core.journals(lambda: self.next_seq("fusion/journal"), now_ns)
+        return [("fusion/journal", j) for j in journals]
 
     def health(self, now_ns: int) -> list[Out]:
         """Each estimator's health as real numbers (``health/<estimator>``)."""

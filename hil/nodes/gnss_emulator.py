@@ -47,7 +47,7 @@ from hil.faults import (
 )
 from hil.faults import fault_detail as _detail
 from hil.messages import CaptureTruth, FaultCommand, TimeTag
-from hil.nav.scenario import ScenarioEvent, scenario_for_run
+from hil.nav.scenario import DEFAULT_SPOOF_SIGMA_M, ScenarioEvent, scenario_for_run
 from hil.nav.trajectory import TruthGenerator
 from hil.nodes.base import SERIAL_TX, Input, LineBurst, Node, NodeOptions, Out
 from hil.nodes.builders import gnss_fix_msg
@@ -155,6 +155,10 @@ class GnssEmulatorNode(Node):
 
     def next_tick_ns(self) -> int | None:
         epoch = self.core.next_epoch_ns()
+        if epoch is not None and epoch > self.end_ns:
+            # past the run's end (the truth's duration can round 1 ns beyond it): no tick, or
+            # its block's start would be asked for again and again (hil sim hung on car_drive)
+            epoch = None
         if epoch is not None and self.pull_block_ns > 0:
             epoch = epoch // self.pull_block_ns * self.pull_block_ns
         times = [epoch, self.timeline.next_edge_ns()]
@@ -188,8 +192,10 @@ class GnssEmulatorNode(Node):
             self.clock.add_step(now_ns, round(p["step_s"] * 1e9))
             return [self.event("fault_start", _detail(cmd.kind, now_ns, None, p, "command"), now_ns)]
         params: dict[str, Any] = {}
-        if cmd.kind == "gnss_jump":
+        if cmd.kind in ("gnss_jump", "gnss_spoof"):
             params["offset_ned_m"] = (p.get("n_m", 0.0), p.get("e_m", 0.0), p.get("d_m", 0.0))
+        if cmd.kind == "gnss_spoof":
+            params["sigma_m"] = p.get("sigma_m", DEFAULT_SPOOF_SIGMA_M)
         elif cmd.kind == "gnss_velocity_glitch":
             params["offset_ned_mps"] = (p.get("n_mps", 0.0), p.get("e_mps", 0.0), p.get("d_mps", 0.0))
         elif cmd.kind == "gnss_latency":

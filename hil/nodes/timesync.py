@@ -16,6 +16,13 @@ over the true interval, as a 20 µg accelerometer error would otherwise be. Here
 fusion: the mapping lives here, and live, ``hil sim`` and ``hil rerun`` all read the recorded
 ``synced/imu``, so the correction is made once and replays bit for bit.
 
+Live, a publisher that is not one of the rig's processes is refused before this node
+(``Node.refuses_foreign``, ``rejected.foreign.<kind>`` in status): what the time sync publishes is
+the rig's. A raw measurement whose seq this node has already re-stamped (among the last ``DEDUP_WINDOW`` of
+its sensor) is refused (``rejected.duplicate_seq.<sensor>``): a second ``gnss:42`` -- a Zenoh
+redelivery, or a stranger's copy -- would otherwise leave as a second ``synced/gnss`` seq 42 of
+the same publisher, which no journal could tell from the first.
+
 The core may hold a few measurements while it decides whether the device clock stepped; held
 ones are released by the next measurement, by an idle flush when the sensor has been silent for
 ``IDLE_FLUSH_NS`` of rig time, or at the end of input. Clock models go out once a second.
@@ -23,6 +30,7 @@ ones are released by the next measurement, by an idle flush when the sensor has 
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import msgspec
@@ -36,11 +44,13 @@ from hil.timesync.config import sync_configs_for
 from hil.timesync.core import TimeSyncCore
 
 IDLE_FLUSH_NS = 200_000_000  # release held measurements of a sensor silent this long
+DEDUP_WINDOW = 8192  # recent seqs per sensor remembered to refuse a repeat
 CLOCK_PERIOD_NS = 1_000_000_000
 
 
 class TimeSyncNode(Node):
     inputs_move_timers = False  # its timers are its own: periodic, or none
+    refuses_foreign = True  # a stranger's raw measurement must not come out as the rig's synced one
     name = "timesync"
     inputs = tuple(Input(f"*/{s}", {"sensor": SENSORS[s].message, "timetag": TimeTag}) for s in SENSOR_NAMES)
     outputs = tuple(f"synced/{s}" for s in SENSOR_NAMES)
@@ -52,6 +62,7 @@ class TimeSyncNode(Node):
         self._next_flush = IDLE_FLUSH_NS
         self._next_clock = CLOCK_PERIOD_NS
         self._arrivals_at_flush: dict[str, int] = {}
+        self._recent: dict[str, tuple[set[int], deque[int]]] = {}
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
         if isinstance(msg, TimeTag):
@@ -60,7 +71,23 @@ class TimeSyncNode(Node):
         if msg.sensor not in SENSORS:
             self.error("rejected.sensor.unknown", f"no synced channel for sensor {msg.sensor!r}")
             return []
+        if self._repeat(msg.sensor, msg.seq):
+            self.error(
+                f"rejected.duplicate_seq.{msg.sensor}",
+                f"sensor/{msg.sensor} seq {msg.seq} came again; the first one was re-stamped",
+            )
+            return []
         return self._synced(self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns, msg))
+
+    def _repeat(self, sensor: str, seq: int) -> bool:
+        seen, order = self._recent.setdefault(sensor, (set(), deque()))
+        if seq in seen:
+            return True
+        seen.add(seq)
+        order.append(seq)
+        if len(order) > DEDUP_WINDOW:
+            seen.discard(order.popleft())
+        return False
 
     def _synced(self, released: list[tuple[Any, int]]) -> list[Out]:
         """Re-stamped measurements; an interval (``dt_ns``) is taken to the rig clock by the

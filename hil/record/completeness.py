@@ -8,6 +8,13 @@ messages, and the new stream's first seq is its baseline, as for any stream the 
 Data lost while the process was dead shows where it can be measured: as gaps in the streams
 whose seq is a time or device index (truth, IMU samples, GNSS epochs, fusion outputs), which a
 restart does not renumber.
+
+Sane under forged numbers: a seq more than ``MAX_SEQ_JUMP`` ahead of its stream (a forged
+``seq`` of 10⁹ among the rig's hundreds) is not a gap of a billion messages but an ``outlier``,
+counted and otherwise ignored; so is a "new generation" that does not start near 0 as a
+restarted publisher's does. A late message fills its gap once (a repeated one is a duplicate),
+so no count goes negative. Messages of publishers that are not the rig's are accounted apart
+(``ForeignTraffic``): never the rig's loss.
 """
 
 from __future__ import annotations
@@ -17,6 +24,8 @@ from dataclasses import dataclass, field
 from hil.messages import seq_generation, seq_in_generation
 
 MAX_GAP_RANGES = 100
+MAX_SEQ_JUMP = 100_000  # further ahead than this is no gap (4 min of 400 Hz): an outlier
+MAX_GENERATIONS = 1_024
 
 
 @dataclass
@@ -46,6 +55,7 @@ class SeqTracker:
     duplicates: int = 0
     out_of_order: int = 0
     restarts: int = 0  # new generations seen after the first
+    outliers: int = 0  # seqs no stream of the rig's could have sent (see the module docstring)
     gap_ranges: list[tuple[int, int]] = field(default_factory=list)
     generations: dict[int, _Generation] = field(default_factory=dict)
 
@@ -54,18 +64,14 @@ class SeqTracker:
         g = seq_generation(seq)
         gen = self.generations.get(g)
         if gen is None:
-            self.generations[g] = _Generation(g, seq, seq)
-            if self.first < 0:
-                self.first = self.last = seq
-            elif seq > self.last:  # the publisher was restarted: a new stream, not a gap
-                self.restarts += 1
-                self.last = seq
-            else:  # a late message of an older generation we had not seen at all
-                self.out_of_order += 1
+            self._new_generation(g, seq)
             return
         gen.count += 1
         if seq == gen.last + 1:
             gen.last = seq
+        elif seq > gen.last + 1 + MAX_SEQ_JUMP:
+            self.outliers += 1  # forged or corrupt: no stream of the rig's skips that far
+            gen.count -= 1
         elif seq > gen.last + 1:
             self.gaps += 1
             n = seq - gen.last - 1
@@ -79,13 +85,30 @@ class SeqTracker:
         elif seq == gen.last:
             self.duplicates += 1
         else:
-            # An old seq: either a late arrival filling a gap, or a duplicate of an older one.
+            # An old seq: a late arrival filling a gap (once), or a duplicate of an older one.
             self.out_of_order += 1
-            if any(a <= seq <= b for a, b in gen.gap_ranges):
+            if _fill(gen.gap_ranges, seq):
                 self.missing -= 1
                 gen.missing -= 1
         if g == seq_generation(self.last):
             self.last = max(self.last, gen.last)
+
+    def _new_generation(self, g: int, seq: int) -> None:
+        if self.first < 0:
+            self.generations[g] = _Generation(g, seq, seq)
+            self.first = self.last = seq
+        elif len(self.generations) >= MAX_GENERATIONS:
+            self.outliers += 1
+        elif seq > self.last and seq_in_generation(seq) < MAX_SEQ_JUMP:
+            # the publisher was restarted: a new stream, not a gap
+            self.generations[g] = _Generation(g, seq, seq)
+            self.restarts += 1
+            self.last = seq
+        elif seq < self.last:  # a late message of an older generation we had not seen at all
+            self.generations[g] = _Generation(g, seq, seq)
+            self.out_of_order += 1
+        else:  # a "generation" far ahead that does not start near 0: forged, not a restart
+            self.outliers += 1
 
     @property
     def generation(self) -> int:
@@ -105,6 +128,8 @@ class SeqTracker:
             "restarts": self.restarts,
             "generation": self.generation,
         }
+        if self.outliers:
+            out["outliers"] = self.outliers
         if len(self.generations) > 1:
             # per process lifetime, numbered within it: what a reader compares across a restart
             out["generations"] = [
@@ -118,6 +143,15 @@ class SeqTracker:
                 for _g, gen in sorted(self.generations.items())
             ]
         return out
+
+
+def _fill(ranges: list[tuple[int, int]], seq: int) -> bool:
+    """Take ``seq`` out of the open gap ``ranges`` it falls in; False if it is in none."""
+    for i, (a, b) in enumerate(ranges):
+        if a <= seq <= b:
+            ranges[i : i + 1] = [r for r in ((a, seq - 1), (seq + 1, b)) if r[0] <= r[1]]
+            return True
+    return False
 
 
 class Completeness:
@@ -141,3 +175,36 @@ class Completeness:
 
     def report(self) -> dict[str, dict[str, int | list[list[int]] | list[dict[str, int]]]]:
         return {k: v.summary() for k, v in sorted(self.topics.items())}
+
+
+class ForeignTraffic:
+    """What publishers that are not the rig's sent: per topic and publisher, at most
+    ``max_publishers`` of them tracked one by one (the rest counted together), never the rig's."""
+
+    def __init__(self, max_publishers: int = 64) -> None:
+        self.max_publishers = max_publishers
+        self.messages = 0
+        self.untracked = 0
+        self.publishers: dict[str, Completeness] = {}
+
+    def see(self, topic: str, publisher: str, seq: int) -> None:
+        self.messages += 1
+        comp = self.publishers.get(publisher)
+        if comp is None:
+            if len(self.publishers) >= self.max_publishers:
+                self.untracked += 1
+                return
+            comp = self.publishers[publisher] = Completeness()
+        comp.see(topic, seq)
+
+    def report(self) -> dict[str, object]:
+        topics: dict[str, int] = {}
+        for comp in self.publishers.values():
+            for topic, tr in comp.topics.items():
+                topics[topic] = topics.get(topic, 0) + tr.count
+        return {
+            "messages": self.messages,
+            "publishers": sorted(self.publishers),
+            "untracked": self.untracked,
+            "topics": dict(sorted(topics.items())),
+        }

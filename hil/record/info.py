@@ -1,4 +1,11 @@
-"""What a recording holds: channels, types, counts, rates, duration, sequence gaps, accuracy."""
+"""What a recording holds: channels, types, counts, rates, duration, sequence gaps, accuracy.
+
+The rig's traffic only: messages on channels marked ``origin: foreign`` (a publisher that is not
+one of the rig's processes, ``hil.bus.identity``) are summed up on a line of their own and never
+counted as the rig's loss, rate or accuracy. Duration and rates come from ``log_time`` (when the
+recorder received a message, on the rig clock), not from the stamps a message claims: one stamped
+10⁶ s ahead does not make a one-minute session last eleven days.
+"""
 
 from __future__ import annotations
 
@@ -44,15 +51,18 @@ class ChannelInfo:
 
 
 def channel_infos(session: Session) -> list[ChannelInfo]:
+    """Per topic, the rig's messages (foreign ones left out: ``foreign_summary``)."""
     comp = Completeness()
     spans: dict[str, list[int]] = {}
     schemas: dict[str, str] = {}
     counts: dict[str, int] = {}
     for r in session.records:
+        if r.foreign:
+            continue
         comp.see(r.topic, record_seq(r))
-        sp = spans.setdefault(r.topic, [r.publish_time_ns, r.publish_time_ns])
-        sp[0] = min(sp[0], r.publish_time_ns)
-        sp[1] = max(sp[1], r.publish_time_ns)
+        sp = spans.setdefault(r.topic, [r.log_time_ns, r.log_time_ns])
+        sp[0] = min(sp[0], r.log_time_ns)
+        sp[1] = max(sp[1], r.log_time_ns)
         schemas.setdefault(r.topic, r.schema)
         counts[r.topic] = counts.get(r.topic, 0) + 1
     out = []
@@ -65,16 +75,27 @@ def channel_infos(session: Session) -> list[ChannelInfo]:
     return out
 
 
+def foreign_summary(session: Session) -> dict[str, object]:
+    """What publishers that are not the rig's sent: messages per topic, and who."""
+    topics: dict[str, int] = {}
+    publishers: set[str] = set()
+    for r in session.records:
+        if r.foreign:
+            topics[r.topic] = topics.get(r.topic, 0) + 1
+            publishers.add(r.publisher)
+    return {"messages": sum(topics.values()), "publishers": sorted(publishers), "topics": topics}
+
+
 def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
     """Horizontal position error of every estimator vs truth (interpolated at the solution stamps)."""
-    truth = [r.decode() for r in session.records if r.schema == "hil.Truth"]
+    truth = [r.decode() for r in session.records if r.schema == "hil.Truth" and not r.foreign]
     if len(truth) < 2:
         return {}
     tt = np.array([t.stamp_ns for t in truth], dtype=np.float64)
     tp = np.array([t.pos_ned_m for t in truth])
     sols: dict[str, list[tuple[int, list[float]]]] = {}
     for r in session.records:
-        if r.schema == "hil.NavSolution":
+        if r.schema == "hil.NavSolution" and not r.foreign:
             m = r.decode()
             sols.setdefault(m.estimator, []).append((m.stamp_ns, m.pos_ned_m))  # type: ignore[attr-defined]
     out: dict[str, dict[str, float]] = {}
@@ -108,7 +129,18 @@ def describe(path: str, *, accuracy: bool = True) -> str:
             f"run:       rig={meta.get('rig')} scenario={meta.get('scenario')} seed={meta.get('seed')} "
             f"speed={meta.get('speed')} executor={meta.get('executor')} version={meta.get('version')}"
         )
-    lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {len(s.records)}   channels: {len(infos)}")
+    n_rig = sum(c.count for c in infos)
+    lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {n_rig}   channels: {len(infos)}")
+    foreign = foreign_summary(s)
+    if foreign["messages"]:
+        topics = foreign["topics"]
+        assert isinstance(topics, dict)
+        names = ", ".join(f"{t.split('/', 2)[-1]} x{n}" for t, n in sorted(topics.items())[:6])
+        more = f" (+{len(topics) - 6} topics)" if len(topics) > 6 else ""
+        lines.append(
+            f"foreign:   {foreign['messages']} messages from {len(foreign['publishers'])} publisher(s) that "  # type: ignore[arg-type]
+            f"are not the rig's, recorded but not counted: {names}{more}"
+        )
     start = meta.get("start_epoch_ns")
     if start is not None and start.lstrip("-").isdigit():
         when = datetime.fromtimestamp(int(start) / 1e9, tz=UTC).isoformat(timespec="milliseconds")
@@ -125,9 +157,11 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         extra = ""
         if "zenoh_missed" in comp:
             extra += f" zenoh_missed={comp.get('zenoh_missed')}"
-        for what in ("zenoh_unsequenced", "unwritten_at_stop"):  # shown when they say something
+        for what in ("zenoh_unsequenced", "unwritten_at_stop", "dropped_rig"):  # when they say something
             if comp.get(what) not in (None, "0"):
                 extra += f" {what}={comp.get(what)}"
+        if comp.get("rig_identity") == "unknown":
+            extra += " rig_identity=unknown"
         if comp.get("parts") not in (None, "1"):
             extra += f" split part={comp.get('part')}"
         lines.append(
@@ -167,6 +201,7 @@ def info_json(path: str) -> str:
     return json.dumps(
         {
             "channels": [c.__dict__ for c in channel_infos(s)],
+            "foreign": foreign_summary(s),
             "truncated": s.truncated,
             "metadata": s.metadata,
             "errors": estimator_errors(s),

@@ -1,9 +1,13 @@
 """MCAP files in the rig's layout: write a session, read it back (also when truncated).
 
-Layout (the contract): one channel per Zenoh key, schema encoding ``jsonschema`` with schema
-name ``hil.<Type>``, message encoding ``json``. ``sequence`` = the message's per-publisher ``seq``.
-Chunks are zstd-compressed and flushed at least every second, so a killed recorder leaves a file
-readable up to its last chunk.
+Layout (the contract): one channel per Zenoh key and publisher, schema encoding ``jsonschema``
+with schema name ``hil.<Type>``, message encoding ``json``. A live recorder names each channel's
+publisher in its metadata: ``publisher`` (the Zenoh source id, ``"<zid>:<eid>"``, "" for a
+publisher that gave none) and ``origin`` (``rig``, ``foreign`` -- a process that is not one of
+the rig's, recorded but never the rig's data -- or ``unknown`` when the recorder could not tell);
+``hil sim`` and files from before have neither, and read as the rig's. ``sequence`` = the
+message's per-publisher ``seq``. Chunks are zstd-compressed and flushed at least every second, so
+a killed recorder leaves a file readable up to its last chunk.
 
 Times are on the wall-clock timeline, so viewers (Foxglove, python-can's ``.asc``/``.blf``
 exports) show the real date and line up with other logs: ``log_time`` = the run's start epoch
@@ -39,6 +43,9 @@ from hil.wellknown import MESSAGE_ENCODING, SCHEMAS, Derived
 from hil.wellknown import PREFIX as WELLKNOWN_PREFIX
 
 PROFILE = "hil"
+FOREIGN_ORIGIN = "foreign"  # hil.bus.identity.FOREIGN (a channel's ``origin``)
+MAX_CHANNELS_PER_TOPIC = 32  # publishers of one topic with a channel each; the rest share one
+MANY_PUBLISHERS = "*"
 RAW = "raw"  # channel metadata ``hil`` of a key outside the contract, recorded as its bytes
 _U64_MAX = 2**64 - 1
 
@@ -275,20 +282,31 @@ class SessionWriter:
             self.chunk_index.spill_to(_index_spill_file(self.path))
         self._writer.start(profile=PROFILE, library=f"hil {__version__}")
         self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._publishers_per_topic: dict[str, int] = {}
         self._raw_channels: dict[tuple[str, str], int] = {}
         self.counts: dict[str, int] = {}
         self.closed = False
 
-    def _channel(self, topic: str, cls: type[Message]) -> int:
-        chan = self._channels.get(topic)
+    def _channel(self, topic: str, cls: type[Message], publisher: str | None, origin: str) -> int:
+        chan = self._channels.get((topic, publisher or ""))
         if chan is None:
+            if publisher is not None:
+                n = self._publishers_per_topic.get(topic, 0)
+                if n >= MAX_CHANNELS_PER_TOPIC:  # a flood of made-up publishers shares one
+                    publisher, origin = MANY_PUBLISHERS, FOREIGN_ORIGIN
+                    chan = self._channels.get((topic, publisher))
+                    if chan is not None:
+                        return chan
+                self._publishers_per_topic[topic] = n + 1
             name = schema_name(cls)
             sid = self._schemas.get(name)
             if sid is None:
                 data = json.dumps(json_schema(cls), sort_keys=True).encode()
                 sid = self._schemas[name] = self._writer.register_schema(name, "jsonschema", data)
-            chan = self._channels[topic] = self._writer.register_channel(topic, "json", sid)
+            meta = {} if publisher is None else {"publisher": publisher, "origin": origin}
+            chan = self._writer.register_channel(topic, "json", sid, meta)
+            self._channels[(topic, publisher or "")] = chan
         return chan
 
     def write(
@@ -300,8 +318,12 @@ class SessionWriter:
         log_time_ns: int,
         publish_time_ns: int,
         seq: int,
+        publisher: str | None = None,
+        origin: str = "",
     ) -> None:
-        chan = self._channel(topic, cls)
+        """One message; ``publisher`` (a live recorder's: the Zenoh source id) and its ``origin``
+        go into the channel's metadata, one channel per topic and publisher."""
+        chan = self._channel(topic, cls, publisher, origin)
         self._writer.add_message(
             chan,
             log_time=_u64(log_time_ns),
@@ -406,6 +428,13 @@ class Record:
     log_time_ns: int
     publish_time_ns: int
     sequence: int
+    publisher: str = ""  # the Zenoh source id the recorder saw ("" offline or unknown)
+    origin: str = ""  # "rig", "foreign", "unknown"; "" in files without publishers
+
+    @property
+    def foreign(self) -> bool:
+        """Published by a process that is not the rig's: recorded, never the rig's data."""
+        return self.origin == FOREIGN_ORIGIN
 
     def decode(self) -> Message:
         cls = TYPES_BY_NAME.get(self.schema)
@@ -498,6 +527,7 @@ def iter_records(
                     if not derived and is_derived(chan.topic):
                         continue
                     schema = schemas.get(chan.schema_id)
+                    meta = chan.metadata or {}
                     yield (
                         "message",
                         Record(
@@ -507,6 +537,8 @@ def iter_records(
                             log_time_ns=rec.log_time,
                             publish_time_ns=rec.publish_time,
                             sequence=rec.sequence,
+                            publisher=meta.get("publisher", ""),
+                            origin=meta.get("origin", ""),
                         ),
                     )
                 elif isinstance(rec, Metadata):

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+import msgspec
 import zenoh
 import zenoh.ext as zext
 from mcap.reader import make_reader
@@ -44,6 +45,7 @@ from mcap.reader import make_reader
 from hil.bus.describe import encoding_of
 from hil.bus.keys import rekey
 from hil.bus.pubsub import declare_publisher
+from hil.fusion.core import parse_journal_id
 from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
 from hil.record.mcapio import Record, check_hil_recording, iter_records
@@ -111,17 +113,28 @@ def check_readable(path: str | Path) -> None:
 
 
 def journaled_drops(path: str | Path) -> set[str]:
-    """``sensor:seq`` of every input the live fusion journaled as not used."""
+    """``sensor:seq[@publisher]`` of every input the live fusion journaled as not used."""
     out: set[str] = set()
     for kind, rec in iter_records(path):
-        if kind == "message" and rec.topic.endswith("/fusion/journal"):
+        if kind == "message" and rec.topic.endswith("/fusion/journal") and not rec.foreign:
             for d in decode(FusionJournal, rec.payload).dropped:
-                out.add(d.split(":", 1)[1] if d.count(":") > 1 else d)
+                _why, name, source = parse_journal_id(d)
+                out.add(f"{name}@{source}" if source else name)
     return out
 
 
+class _Seq(msgspec.Struct):
+    seq: int
+
+
 def _input_id(rec: Record) -> str:
-    return f"{rec.topic.rsplit('/', 1)[1]}:{rec.sequence}"
+    """The input's name as the live fusion journaled it (its full seq: MCAP keeps 32 bits)."""
+    try:
+        seq = msgspec.json.decode(rec.payload, type=_Seq).seq
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        seq = rec.sequence
+    name = f"{rec.topic.rsplit('/', 1)[1]}:{seq}"
+    return f"{name}@{rec.publisher}" if rec.publisher else name
 
 
 class Selector:

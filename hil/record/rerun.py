@@ -5,6 +5,12 @@ the total order, through the fusion node's core built from the recording's own c
 (``fusion/config``, ``hil.FusionSettings``; recordings made before it existed carry it as a
 ``fusion_config`` event) -- then every recomputed ``NavSolution`` is compared byte for byte with
 the recorded one. The first difference is named (topic, seq, field, both values).
+
+An input is named by its sensor, seq *and publisher* (the Zenoh source id the recorder kept, as
+the live fusion journals it): a stranger's forged copy of ``gnss:42`` is another input than the
+rig's, dropped or used as the live fusion decided. The fusion's own records -- its outputs, its
+journal, its configuration, the run -- are taken from the rig's publishers only; a stranger's
+``nav/ekf15`` is not the fusion's output, nor its journal the fusion's decisions.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from typing import Any
 
 import msgspec
 
-from hil.fusion.core import FREE_INS, FusionConfig, input_id, input_key
+from hil.fusion.core import FREE_INS, FusionConfig, input_id, input_key, parse_journal_id
 from hil.messages import (
     Event,
     FusionJournal,
@@ -105,6 +111,11 @@ def _nav_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
     return f"nav/{est} seq {seq}: payload bytes differ"
 
 
+def _stream(sensor: str, publisher: str) -> str:
+    """One publisher's stream of one sensor's inputs (what a seq is unique within)."""
+    return f"{sensor}@{publisher}"
+
+
 @dataclass
 class _FusionRerun:
     """The state of one fusion rerun over a stream of records (see ``rerun_fusion_records``)."""
@@ -116,7 +127,7 @@ class _FusionRerun:
     node: FusionNode | None = None
     produced: set[str] = field(default_factory=set)
     early_nav: list[Record] = field(default_factory=list)  # outputs before the config said whose
-    heap: list[tuple[tuple[int, int, int], int, Measurement]] = field(default_factory=list)
+    heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = field(default_factory=list)
     present: Counter[str] = field(default_factory=Counter)  # copies of each input still in the heap
     dropped: Counter[str] = field(default_factory=Counter)
     rerun_ids: SeqSet = field(default_factory=SeqSet)
@@ -136,6 +147,8 @@ class _FusionRerun:
 
     def feed(self, r: Record) -> None:
         t = r.topic
+        if r.foreign:  # the live fusion refused a stranger's inputs (``refuses_foreign``), and
+            return  # they are not its outputs, journal or configuration, nor the rig's run
         self.last_log_ns = max(self.last_log_ns, r.log_time_ns)
         if "/synced/" in t:
             self._synced(r)
@@ -162,10 +175,11 @@ class _FusionRerun:
     def _synced(self, r: Record) -> None:
         m = r.decode()
         key = input_key(m)  # type: ignore[arg-type]
-        if self.last_key is not None and (key < self.last_key or (m.sensor, m.seq) in self.rerun_ids):  # type: ignore[attr-defined]
-            raise OutOfWindow(f"{r.topic} seq {m.seq} comes after later inputs were rerun")
-        self.present[input_id(m)] += 1  # type: ignore[arg-type]
-        heapq.heappush(self.heap, (key, self.pushed, m))  # type: ignore[arg-type]
+        seen = (_stream(m.sensor, r.publisher), m.seq) in self.rerun_ids  # type: ignore[attr-defined]
+        if self.last_key is not None and (key < self.last_key or seen):
+            raise OutOfWindow(f"{r.topic} seq {m.seq} comes after later inputs were rerun")  # type: ignore[attr-defined]
+        self.present[input_id(m, r.publisher)] += 1  # type: ignore[arg-type]
+        heapq.heappush(self.heap, (key, self.pushed, m, r.publisher))  # type: ignore[arg-type]
         self.pushed += 1
         self.newest_ns = max(self.newest_ns, m.stamp_ns)
         if self.node is not None and self.window_ns is not None:
@@ -188,11 +202,11 @@ class _FusionRerun:
         self.last_journal_log_ns = max(self.last_journal_log_ns, r.log_time_ns)
         self.live_consumed = max(self.live_consumed, j.consumed)
         for d in j.dropped:
-            i = d.split(":", 1)[1] if d.count(":") > 1 else d
-            sensor, _, seq = i.partition(":")
-            if seq.isdigit() and (sensor, int(seq)) in self.rerun_ids:
-                raise OutOfWindow(f"the journal drops {i} after it was rerun")
-            self.dropped[i] += 1
+            _why, name, source = parse_journal_id(d)
+            sensor, _, seq = name.partition(":")
+            if seq.isdigit() and (_stream(sensor, source), int(seq)) in self.rerun_ids:
+                raise OutOfWindow(f"the journal drops {d} after it was rerun")
+            self.dropped[f"{name}@{source}" if source else name] += 1
 
     def release(self, upto_ns: int | None) -> None:
         """Inputs older than ``upto_ns`` (all: None), in the total order, through the core."""
@@ -200,16 +214,17 @@ class _FusionRerun:
         assert node is not None
         heap, m = self.heap, self.matcher
         while heap and (upto_ns is None or heap[0][0][0] < upto_ns):
-            key, _n, msg = heapq.heappop(heap)
+            key, _n, msg, source = heapq.heappop(heap)
             self.last_key = key
-            if (msg.sensor, msg.seq) in self.rerun_ids:
+            stream = _stream(msg.sensor, source)
+            if (stream, msg.seq) in self.rerun_ids:
                 continue  # a second copy of an input already decided
-            self.rerun_ids.add(msg.sensor, msg.seq)
-            i = input_id(msg)
+            self.rerun_ids.add(stream, msg.seq)
+            i = input_id(msg, source)
             if self.present.pop(i) - self.dropped[i] <= 0:
                 continue
             self.used += 1
-            for sol in node.replay(msg):
+            for sol in node.replay(msg, source):
                 if self.keep_outputs:
                     self.outputs.append(sol)
                 if sol.estimator in self.produced:

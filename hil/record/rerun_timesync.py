@@ -15,6 +15,10 @@ order, as the recorder does. (With separate subscribers, zenoh-python's one thre
 let a PPS edge and a fix published back to back reach the core in the other order: verify then
 named e.g. ``synced/gnss seq 19: field 'stamp_ns' differs``.)
 
+A stranger's messages (channels marked ``origin: foreign``) are left out: the live service
+refuses them before they reach its core (``refuses_foreign``), so a stranger's raw measurement
+never comes out as the rig's re-stamped one.
+
 Also not covered: a measurement the live service released by its *idle* flush (a sensor silent for
 ``IDLE_FLUSH_S`` while the core held samples around a suspected clock step) was stamped with the
 mapping of that wall-clock moment, which a recording cannot tell; verify then names it.
@@ -114,6 +118,8 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
 
     start_ns = 0
     for r in records:
+        if r.foreign:  # the live time sync refused a stranger's measurements and tags
+            continue
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
         if node is None:
             if r.topic.endswith("/run"):

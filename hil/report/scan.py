@@ -45,6 +45,7 @@ class Channel:
     id: int
     topic: str
     schema: str
+    foreign: bool = False  # a publisher that is not the rig's (hil.record.mcapio): not reported
 
 
 @dataclass
@@ -116,8 +117,11 @@ class _Walker:
 
     def channel(self, buf: bytes | memoryview, off: int) -> None:
         cid, sid = struct.unpack_from("<HH", buf, off)
-        topic, _ = _str(buf, off + 4)
-        self.res.channels[cid] = Channel(cid, topic, self.schemas.get(sid, ""))
+        topic, end = _str(buf, off + 4)
+        _encoding, end = _str(buf, end)
+        meta, _ = _map(buf, end)
+        foreign = meta.get("origin") == "foreign"
+        self.res.channels[cid] = Channel(cid, topic, self.schemas.get(sid, ""), foreign)
 
     def messages(self, buf: bytes | memoryview, on_batch: Callable[[Batch], None]) -> None:
         """Walk one chunk: offsets in a tight loop, then every header field at once with numpy."""
@@ -158,7 +162,7 @@ class _Walker:
         self.res.messages += len(starts)
         for cid in np.unique(cids):
             ch = self.res.channels.get(int(cid))
-            if ch is None:
+            if ch is None or ch.foreign:  # a stranger's messages are not the rig's report
                 continue
             idx = np.nonzero(cids == cid)[0]
             payloads: list[bytes] = []

@@ -3,13 +3,17 @@
 ``NodeService`` is the process shell of every node service (``hil service NAME``, one process
 each under ``hil up`` or compose): it decodes the node's typed options, subscribes to the node's
 inputs before the run starts (Zenoh callbacks only enqueue), waits for the run's ``RunInfo``,
-builds the node, and then one thread calls it -- ``on_message`` for each input in arrival order,
+builds the node, and then one thread calls it -- ``on_message_from`` for each input in arrival order,
 ``tick`` when rig time reaches ``next_tick_ns`` -- and publishes what it returns: Zenoh keys
 through typed publishers (the node numbers its own seqs), frames through a ``CanTransmitter``.
 Frames read off the CAN bus reach a node that ``reads_can`` with their kernel receive stamps on
 the rig clock. Status (1 Hz, the node's counters beside the runner's), heap trims and the
 supervisor's restart generation come from ``hil.runtime.service.Service``. At a stop, what has
 arrived is still consumed (bounded by ``STOP_DRAIN_S``) and the node's ``finish`` is published.
+
+The inbox is bounded (``hil.bus.inbox``): a lane per input kind and publisher, drop-oldest, served
+in arrival order; what it drops is counted in status (``inbox.dropped.<kind>``) and handed to the
+node (``on_dropped``) before the next input, so the fusion journals it.
 """
 
 from __future__ import annotations
@@ -17,7 +21,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import queue
 import threading
 import time
 import types
@@ -29,8 +32,10 @@ import can
 import msgspec
 
 from hil.bus.describe import alive_key
+from hil.bus.identity import FOREIGN, RigIdentity
+from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import type_for_key
-from hil.bus.pubsub import DispatchSubscriber, Publisher
+from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
 from hil.can.bus import open_can_bus
 from hil.can.node import CanTransmitter
 from hil.messages import RunInfo, ServiceStatus
@@ -52,6 +57,16 @@ from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
 
+
+class _Ident(msgspec.Struct):
+    """What names an input in a journal; the rest of the payload is skipped unparsed."""
+
+    seq: int
+    sensor: str = ""
+
+
+_IDENT = msgspec.json.Decoder(_Ident)
+
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
 RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the recorder
@@ -67,7 +82,13 @@ class NodeService(Service):
         self.name = self.node_cls.name
         self.opts: NodeOptions = decode_options(self.node_cls.Options, ctx.options, self.name)
         super().__init__(ctx)
-        self.inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        # (key, payload, publisher, type): decoded when taken, so what a lane drops costs no parse
+        self.inbox: BoundedInbox[tuple[str, bytes, str, type]] = BoundedInbox(
+            keep_dropped=self.node_cls.journals_drops
+        )
+        self._root_len = len(self.keys.root) + 1
+        self._refuse_foreign = self.node_cls.refuses_foreign
+        self.identity = RigIdentity.from_env()
         self.node: Node | None = None
         self.lock = threading.Lock()  # the status thread reads the node's counters
         self._pubs: dict[str, Publisher[Any]] = {}
@@ -82,11 +103,11 @@ class NodeService(Service):
     def setup(self) -> None:
         root = self.keys.root
         for inp in self.node_cls.inputs:
-            routes = {kind: (cls, self._enqueue) for kind, cls in inp.types.items()}
+            key = f"{root}/{inp.key}"
             # inputs come from other services: the node's own outputs on a matching key are not
             # delivered back to it (the session is this process's alone)
-            sub = DispatchSubscriber(
-                self.ctx.session, f"{root}/{inp.key}", routes, self.stats, remote_only=True
+            sub = RawSubscriber(
+                self.ctx.session, key, dict(inp.types), self._enqueue, self.stats, remote_only=True
             )
             self._subs.append(sub)
         for key in self.node_cls.outputs:
@@ -133,10 +154,14 @@ class NodeService(Service):
             self.emit_event("can_transport", self.transport)
         print(f"[{self.name}] CAN: {self.transport}", flush=True)  # noqa: T201 - the start-up line users need
 
-    def _enqueue(self, msg: Any, key: str) -> None:
+    def _enqueue(self, key: str, raw: bytes, source: str, cls: type) -> None:
         # Zenoh's callback thread only enqueues: a subscription may match this node's own
         # outputs, and publishing from inside the callback could wait on the queue it drains
-        self.inbox.put((key, msg))
+        kind = key_kind(key[self._root_len :])
+        if self._refuse_foreign and self.identity.classify(source) == FOREIGN:
+            self.stats.inc(f"rejected.foreign.{kind.replace('/', '.')}")
+            return
+        self.inbox.put(kind, source, (key, raw, source, cls))
 
     def _publisher(self, key: str, cls: type | None) -> Publisher[Any]:
         pub = self._pubs.get(key)
@@ -196,14 +221,43 @@ class NodeService(Service):
             elif self.line_rx is not None:
                 self._read_line(node, run, wait_s)
                 wait_s = 0.0
-            try:
-                key, msg = self.inbox.get(timeout=wait_s) if wait_s > 0 else self.inbox.get_nowait()
-            except queue.Empty:
+            item = self.inbox.get(timeout=wait_s)
+            if item is None:
                 continue
-            with self.lock:
-                outs = node.on_message(key[root_len:], msg, clock.now_ns())
-            self._publish(outs, "input")
+            self._consume(node, item, clock, root_len)
         self._drain_and_finish(node, clock, root_len)
+
+    def _consume(
+        self, node: Node, item: tuple[str, bytes, str, type], clock: RigClock, root_len: int
+    ) -> None:
+        """One input to the node, after the ones the inbox dropped before it (so a journal that
+        names them does so in the order they were lost)."""
+        self._hand_dropped(node, root_len)
+        key, raw, source, cls = item
+        msg = decode_checked(cls, key, raw, self.stats)
+        if msg is None:
+            return
+        with self.lock:
+            outs = node.on_message_from(key[root_len:], msg, clock.now_ns(), source)
+        self._publish(outs, "input")
+
+    def _hand_dropped(self, node: Node, root_len: int) -> None:
+        """What the inbox dropped, to a node that journals it: only the fields that name it
+        (``seq``, ``sensor``; a flood drops thousands a second, a full parse each would cost
+        more than the flood), quietly (a payload that does not even have those was not recorded
+        either, so it needs no journal)."""
+        dropped = self.inbox.take_dropped()
+        if not dropped:
+            return
+        with self.lock:
+            for key, raw, source, _cls in dropped:
+                try:
+                    ident = _IDENT.decode(raw)
+                except (msgspec.ValidationError, msgspec.DecodeError):
+                    continue
+                if not ident.sensor:  # a message type's default, left out of the payload
+                    ident.sensor = key.rsplit("/", 1)[-1]
+                node.on_dropped(key[root_len:], ident, source)
 
     def _read_can(self, node: Node, run: RunInfo, wait_s: float) -> None:
         assert self.can_bus is not None
@@ -237,13 +291,11 @@ class NodeService(Service):
         time), then release what the node holds."""
         drain_until = time.monotonic() + STOP_DRAIN_S
         while time.monotonic() < drain_until:
-            try:
-                key, msg = self.inbox.get_nowait()
-            except queue.Empty:
+            item = self.inbox.get(timeout=0)
+            if item is None:
                 break
-            with self.lock:
-                outs = node.on_message(key[root_len:], msg, clock.now_ns())
-            self._publish(outs, "input")
+            self._consume(node, item, clock, root_len)
+        self._hand_dropped(node, root_len)
         with self.lock:
             outs = node.finish(clock.now_ns())
         with contextlib.suppress(Exception):  # the session may be closing
@@ -271,13 +323,16 @@ class NodeService(Service):
 
     # -- status ---------------------------------------------------------------------------------
     def extra_status(self) -> dict[str, int]:
-        out: dict[str, int] = {"inbox": self.inbox.qsize()}
+        out: dict[str, int] = self.inbox.counters()
         node = self.node
         if node is not None:
             with self.lock:
                 out.update(node.counters())
         if self.can_tx is not None:
             out.update(self.can_tx.counters())
+        bus_counters = getattr(self.can_bus, "counters", None)  # the hilzenoh bus's receive queue
+        if callable(bus_counters):
+            out.update(bus_counters())
         if self.line_tx is not None:
             out.update(self.line_tx.counts)
         return out

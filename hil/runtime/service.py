@@ -17,6 +17,7 @@ of its last backlog.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import signal
@@ -31,6 +32,7 @@ import zenoh
 
 from hil import messages
 from hil.bus.describe import BusDescription
+from hil.bus.identity import ZENOH_ID_ENV
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -291,7 +293,7 @@ def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusC
     )
     stop = threading.Event()
     install_signal_handlers(stop)
-    session = open_session(bus)
+    session = open_session(with_rig_zid(bus or BusConfig.from_env()))
     ctx = ServiceContext(name=cls.name, rig=rig, session=session, stop=stop, options=options)
     try:
         svc = cls(ctx)
@@ -301,6 +303,15 @@ def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusC
         time.sleep(0.2)
         session.close()
     return svc.exit_code()
+
+
+def with_rig_zid(bus: BusConfig) -> BusConfig:
+    """The session config with the Zenoh id ``hil up`` chose for this process (``ZENOH_ID_ENV``),
+    so the recorder knows the rig's own publishers (``hil.bus.identity``)."""
+    zid = os.environ.get(ZENOH_ID_ENV, "").strip()
+    if not zid:
+        return bus
+    return dataclasses.replace(bus, extra={**bus.extra, "id": zid})
 
 
 def options_from_json(text: str | None) -> dict[str, Any]:

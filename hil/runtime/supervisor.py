@@ -10,6 +10,7 @@ environment it joins that network instead.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -26,6 +27,7 @@ from typing import IO, Any
 import numpy as np
 
 from hil.bus.endpoint import RigAccess
+from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_zid
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -295,6 +297,7 @@ class Supervisor:
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
         self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
+        self.rig_key = new_rig_key()  # per run: the rig's processes' Zenoh ids derive from it
         self._cpu_self_base = _own_cpu_seconds()
         self._cpu_dead: dict[str, float] = {}  # CPU of the earlier lives of restarted services
         self._restarting: dict[str, tuple[float, int]] = {}  # name -> (when it died, new pid)
@@ -453,6 +456,10 @@ class Supervisor:
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
         env["HIL_SUPERVISOR_PID"] = str(os.getpid())  # children stop themselves if we vanish
+        # the rig's identity on the bus (hil.bus.identity): this child's Zenoh id, and the run's
+        # key that lets the recorder recognise every rig process's id
+        env[RIG_KEY_ENV] = self.rig_key
+        env[ZENOH_ID_ENV] = rig_zid(self.rig_key)
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -520,10 +527,11 @@ class Supervisor:
 
     def run(self) -> int:
         o = self.opts
+        hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
         if self.access is not None:
             self.access.write()  # before the hub opens: it reads the dictionary from there
         try:
-            session = open_session(self.hub_cfg)
+            session = open_session(hub_cfg)
         except BaseException:
             if self.access is not None:
                 self.access.remove()

@@ -4,7 +4,7 @@ Position error per NED axis at epoch time t (validity):
 
     e(t) = σ w(t)                                   white, independent per epoch
          + A_slow sin(2π t / P_slow + φ)             slow geometry/DOP component, P ≈ 2–3 Schuler
-         + Σ active jumps/pulses (offset_ned_m)      scenario events
+         + Σ active jumps/pulses/spoofs (offset_ned_m)  scenario events
     velocity: σ_v w_v(t) + A_slow (2π/P) cos(…) + active velocity glitches
 
 Outages (``gnss_outage`` events) omit the epochs entirely: the receiver sends nothing, so the
@@ -66,27 +66,31 @@ class GnssEmulatorCore:
         self.slow_phase_rad = g_phase.uniform(0.0, 2.0 * math.pi, 3)
         self._events = scenario.events
 
-    def _event_offsets(self, t_s: F64) -> tuple[F64, F64, np.ndarray, F64, F64]:
-        """Position and velocity offsets, outage mask, latency and jitter at each epoch time."""
+    def _event_offsets(self, t_s: F64) -> tuple[F64, F64, np.ndarray, F64, F64, F64]:
+        """Position and velocity offsets, outage mask, latency, jitter and the position σ a
+        spoofer claims (NaN: the receiver's own) at each epoch time."""
         n = t_s.shape[0]
         dpos = np.zeros((n, 3))
         dvel = np.zeros((n, 3))
         out = np.zeros(n, dtype=bool)
         lat = np.full(n, self.cfg.latency_s)
         jit = np.full(n, self.cfg.jitter_s)
+        claim = np.full(n, np.nan)
         for ev in self._events:
             on = (t_s >= ev.t_start_s) & (t_s < (np.inf if ev.t_end_s is None else ev.t_end_s))
             if ev.kind == "gnss_outage":
                 out |= on
-            elif ev.kind in ("gnss_jump", "gnss_pulse"):
+            elif ev.kind in ("gnss_jump", "gnss_pulse", "gnss_spoof"):
                 dpos[on] += np.asarray(ev.params["offset_ned_m"])
+                if ev.kind == "gnss_spoof":
+                    claim[on] = ev.params["sigma_m"]
             elif ev.kind == "gnss_velocity_glitch":
                 dvel[on] += np.asarray(ev.params["offset_ned_mps"])
             elif ev.kind == "gnss_latency":  # events in file order: a later one overrides
                 lat[on] = ev.params["latency_s"]
                 if "jitter_s" in ev.params:
                     jit[on] = ev.params["jitter_s"]
-        return dpos, dvel, out, lat, jit
+        return dpos, dvel, out, lat, jit, claim
 
     def add_event(self, event: Any) -> None:
         """A fault from now on (a run-time command, as a ``ScenarioEvent``): epochs not yet
@@ -127,7 +131,7 @@ class GnssEmulatorCore:
             vel += mat_vec(c_nb, cross(w_nb_b, lever))
         amp = np.asarray(cfg.slow_amplitude_m)
         arg = 2.0 * np.pi * t_s[:, None] / cfg.slow_period_s + self.slow_phase_rad
-        dpos, dvel, outage, latency, jitter = self._event_offsets(t_s)
+        dpos, dvel, outage, latency, jitter, claim = self._event_offsets(t_s)
         pos += np.asarray(cfg.pos_sigma_m) * w_pos + amp * np.sin(arg) + dpos
         vel += (
             np.asarray(cfg.vel_sigma_mps) * w_vel
@@ -144,6 +148,9 @@ class GnssEmulatorCore:
             pos[keep], self.truth.origin_lat_rad, self.truth.origin_lon_rad, self.truth.origin_alt_m
         )
         m = int(keep.sum())
+        pos_sigma = np.tile(np.asarray(cfg.pos_sigma_m), (m, 1))
+        spoofed = ~np.isnan(claim[keep])
+        pos_sigma[spoofed] = claim[keep][spoofed, None]  # a spoofer claims a precise fix
         return GnssBatch(
             t_valid_ns=t_ns[keep],
             t_output_ns=t_out[keep],
@@ -152,7 +159,7 @@ class GnssEmulatorCore:
             lat_deg=np.degrees(lat_r),
             lon_deg=np.degrees(lon_r),
             alt_m=alt,
-            pos_sigma_m=np.tile(np.asarray(cfg.pos_sigma_m), (m, 1)),
+            pos_sigma_m=pos_sigma,
             vel_sigma_mps=np.tile(np.asarray(cfg.vel_sigma_mps), (m, 1)),
             fix_type=np.full(m, FIX_3D, dtype=np.int64),
             num_sats=sats[keep],

@@ -187,3 +187,20 @@ def test_hil_sim_is_a_pure_function_of_the_scenario(tmp_path: Path) -> None:
         run_sim(SimOptions(scenario="car_drive", duration_s=3.0, record=p, estimators=["comp1", "ekf15"]))
     assert a.read_bytes() == b.read_bytes()
     assert np.frombuffer(a.read_bytes()[:8], dtype=np.uint8).tolist() == list(b"\x89MCAP0\r\n")
+
+
+def test_gnss_node_asks_for_no_tick_past_the_run_when_the_truth_rounds_1_ns_longer() -> None:
+    """GIVEN a run of 4.1 s (int(4.1e9) = 4_099_999_999 ns, the truth's 4_100_000_000 ns, so its
+    last epoch lies 1 ns past the run) WHEN the GNSS node is ticked at every time it asks for
+    THEN each asked time is later than the one before and it stops asking (hil sim hung here)."""
+    from hil.nodes.gnss_emulator import GnssEmulatorNode, GnssEmulatorOptions
+
+    run = _run(4.1)
+    node = GnssEmulatorNode(run, GnssEmulatorOptions(pull_block_s=1.0))
+    node.start(0)
+    asked: list[int] = []
+    while (t := node.next_tick_ns()) is not None and len(asked) < 10_000:
+        assert not asked or t > asked[-1], f"asked for {t} again after {asked[-1]}"
+        asked.append(t)
+        node.tick(t)
+    assert node.next_tick_ns() is None and asked[-1] <= int(4.1e9) + 1_000_000

@@ -100,3 +100,41 @@ def test_the_report_counts_a_restart_as_the_recorder_does() -> None:
     for s in seqs:
         t.see(s)
     assert seq_accounting(np.array(seqs, np.int64)) == (t.missing, 1, t.restarts) == (2, 1, 1)
+
+
+def test_forged_seqs_are_outliers_not_a_billion_missing_and_no_count_goes_negative() -> None:
+    """GIVEN a stream of the rig's hundreds WHEN seq 10⁹, a made-up far 'generation' and late
+    fills repeated come in THEN nothing is missing, the forgeries are outliers, and a gap
+    filled twice un-counts once."""
+    from hil.messages import generation_seq
+
+    t = SeqTracker()
+    for s in [*range(100), 10**9, 100, 101, generation_seq(7, 123_456_789), 102]:
+        t.see(s)
+    assert (t.missing, t.gaps, t.outliers, t.restarts) == (0, 0, 2, 0)
+    assert t.last == 102 and t.summary()["outliers"] == 2
+    for s in [103, 106, 104, 104, 104, 105, 105]:  # a gap of 2, each late one sent three times
+        t.see(s)
+    assert t.missing == 0 and t.duplicates == 0 and t.out_of_order == 5
+    assert all(v >= 0 for v in (t.missing, t.gaps, t.count, t.outliers))
+
+
+def test_a_real_restart_still_counts_as_one() -> None:
+    from hil.messages import generation_seq
+
+    t = SeqTracker()
+    for s in [*range(5), *(generation_seq(1, n) for n in range(3))]:
+        t.see(s)
+    assert (t.restarts, t.missing, t.outliers) == (1, 0, 0)
+
+
+def test_foreign_traffic_is_accounted_apart_and_bounded() -> None:
+    from hil.record.completeness import ForeignTraffic
+
+    f = ForeignTraffic(max_publishers=2)
+    for p in ("a:1", "b:1", "c:1"):
+        for s in (0, 10**9, 5):
+            f.see("hil/r/synced/gnss", p, s)
+    rep = f.report()
+    assert rep["messages"] == 9 and rep["publishers"] == ["a:1", "b:1"] and rep["untracked"] == 3
+    assert rep["topics"] == {"hil/r/synced/gnss": 6}

@@ -38,7 +38,16 @@ def test_rig_time_of_a_recorded_time_reads_both_timelines() -> None:
 
 
 def test_timesync_rerun_feeds_rig_time_on_both_timelines(sim_recording: Path) -> None:
-    for path in (sim_recording, LEGACY_GOLDEN):
-        rc, lines = rerun(str(path), core="timesync", verify=True)
-        assert rc == 0, lines
-        assert "VERIFY OK" in lines[-1]
+    rc, lines = rerun(str(sim_recording), core="timesync", verify=True)
+    assert rc == 0, lines
+    assert "VERIFY OK" in lines[-1]
+    # the legacy file (rig-time log times) reruns on the same clock: every measurement re-stamped.
+    # Not verified bit for bit: its time sync ran before the start-up hold of issue 22.2.
+    rc, lines = rerun(str(LEGACY_GOLDEN), core="timesync", verify=False)
+    assert rc == 0, lines
+    n = [ln for ln in lines if ln.startswith("rerun timesync:")][0]
+    raw, restamped = (
+        n.split(" raw measurements")[0].split()[-1],
+        n.split(" re-stamps recomputed")[0].split()[-1],
+    )
+    assert raw == restamped and int(raw) > 1000, n

@@ -1,0 +1,275 @@
+"""GNSS integrity at the fusion's ingress: a fix reaches no estimator unless the INS agrees with it.
+
+A fix is a claim -- a position, a velocity and the σ the receiver says they have -- and anything
+on the bus can make one. Three rules, applied by the fusion core around every estimator's GNSS
+update (``FusionCore``; the estimators themselves are untouched):
+
+1. **σ floored at the receiver model.** A fix's claimed σ is never smaller than the scenario's
+   receiver model (``[gnss]`` ``pos_sigma_m``/``vel_sigma_mps``, plus the RMS of its slow error):
+   a spoofer's "σ 0.5 m" buys it nothing. Every estimator gets the floored σ.
+2. **An innovation gate against the INS prediction.** The fix is compared with where the
+   navigation says the antenna is at the fix's time of validity: ``y = z − (p + v·Δt + C_nb·l)``
+   and ``y_v = z_v − v``, each normalised per axis by ``S = R_floored + P`` (normalised innovation
+   squared, ``NIS = Σ y²/S``); the fix passes when both NIS are within ``chi2``.
+   *Whose* prediction: the **reference** estimator (``ekf15`` by default) when it runs and has a
+   covariance -- one consistent verdict for every estimator, so a compensation filter that cannot
+   know its own error (no covariance) is protected by the estimator that can, and after an
+   outage it takes the returning fixes as soon as the reference's grown covariance admits them.
+   Without a reference, each estimator is gated on its **own** prediction with
+   ``P = max(σ_est², m) + g(Δt)``: ``m`` the running mean of its accepted innovations' excess
+   over R (what it actually achieves), ``g`` the unaided growth ``(a Δt²/2)²`` (velocity:
+   ``(a Δt)²``) since its last accepted fix, ``a`` from the IMU's datasheet bias figures.
+3. **Persistent inconsistency is an alarm, not a lock-out.** A publisher's fixes rejected for
+   ``alarm_after`` of rig time raise a ``gnss_integrity_alarm`` event (a GNSS integrity alarm, as
+   a receiver's RAIM says "do not use") -- per publisher, so a stranger's spoof alongside the
+   genuine receiver (whose fixes pass) is an alarm too; once no publisher has such a run (its fix
+   passes, or it has sent nothing rejected for ``alarm_after``), a ``gnss_integrity_restored``. After
+   ``reacquire_after`` of unbroken rejection the gate lets fixes through again (counted as
+   ``reacquired``): a navigator that disagrees with GNSS for that long is more likely the one
+   that is wrong (the reference's own gate and its covariance decide from there).
+
+Pure and deterministic: the verdicts depend only on the inputs in the total order, so ``hil
+rerun`` reproduces them; the fusion journals each rejected fix (``FusionJournal.gated``) and
+counts them (status ``gnss_gate.rejected.<estimator>``, ``health/<estimator>``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from hil.estimators.base import GnssInput
+from hil.nav.attitude import quat_to_dcm
+from hil.nav.portable import dot, mv
+from hil.nav.types import F64, NavState
+
+G0 = 9.80665
+UNAIDED_WINDOW_S = 60.0  # tilt a gyro bias builds unaided over this long sets the fallback growth
+EWMA_ALPHA = 0.1  # weight of one accepted innovation in an estimator's achieved-error mean
+
+
+@dataclass(frozen=True)
+class ReceiverModel:
+    """What the scenario says its receiver does: the floors of R, the antenna's lever arm, and
+    how fast a navigation without GNSS drifts (for the self gates)."""
+
+    pos_var_floor_m2: F64  # (3,) σ² of the white noise plus the slow error's mean square
+    vel_var_floor_m2ps2: F64  # (3,)
+    lever_arm_b_m: F64  # (3,)
+    unaided_accel_mps2: float
+    period_ns: int = 100_000_000  # between two epochs of the receiver
+
+    @classmethod
+    def for_scenario(cls, scenario: Any) -> ReceiverModel:
+        g = scenario.gnss
+        slow = np.square(np.asarray(g.slow_amplitude_m, dtype=np.float64)) / 2.0
+        imu = scenario.imu.params
+        accel = max(
+            math.hypot(a, b) for a, b in zip(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2, strict=True)
+        )
+        gyro = max(
+            math.hypot(a, b) for a, b in zip(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps, strict=True)
+        )
+        return cls(
+            pos_var_floor_m2=np.square(np.asarray(g.pos_sigma_m, dtype=np.float64)) + slow,
+            vel_var_floor_m2ps2=np.square(np.asarray(g.vel_sigma_mps, dtype=np.float64))
+            + slow * (2.0 * math.pi / g.slow_period_s) ** 2,
+            lever_arm_b_m=np.asarray(g.lever_arm_b_m, dtype=np.float64),
+            unaided_accel_mps2=max(0.05, accel + G0 * gyro * UNAIDED_WINDOW_S),
+            period_ns=round(1e9 / g.rate_hz),
+        )
+
+
+@dataclass(frozen=True)
+class GateSettings:
+    chi2: float  # NIS bound per test (position, velocity; 3 dof); 0: no gate
+    alarm_after_ns: int
+    reacquire_after_ns: int
+    reference: str  # the estimator whose prediction and covariance decide for all ("": none)
+    floor_sigma: bool  # rule 1
+
+
+@dataclass
+class GateTrack:
+    """One gate's history: the reference's (deciding for all) or one estimator's own."""
+
+    name: str
+    accepted: int = 0
+    rejected: int = 0
+    reacquired: int = 0
+    last_ratio: float = 0.0  # the last fix's max NIS / chi2
+    last_accept_ns: int | None = None
+    reject_since_ns: int | None = None  # stamp of the first fix of the current rejection run
+    # per publisher: [first, last] stamp of its current run of rejected fixes (for the alarm)
+    runs: dict[str, list[int]] = field(default_factory=dict)
+    alarmed: bool = False
+    alarm_since_ns: int = 0
+    m_pos: F64 = field(default_factory=lambda: np.zeros(3))
+    m_vel: F64 = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass(frozen=True)
+class Transition:
+    """An alarm raised or cleared: the fusion publishes it as an ``hil.Event``."""
+
+    kind: str  # "gnss_integrity_alarm" | "gnss_integrity_restored"
+    gate: str
+    stamp_ns: int
+    detail: str
+
+
+class GnssGate:
+    """The fusion core's GNSS guard: floors σ, decides which estimators take a fix, keeps counts."""
+
+    def __init__(self, settings: GateSettings, model: ReceiverModel) -> None:
+        self.settings = settings
+        self.model = model
+        self.tracks: dict[str, GateTrack] = {}
+        self.decided_by: dict[str, str] = {}  # estimator -> the gate that decided its last fix
+        self.transitions: list[Transition] = []
+
+    @property
+    def enabled(self) -> bool:
+        return self.settings.chi2 > 0.0
+
+    def floor(self, gnss: GnssInput) -> GnssInput:
+        """The fix with its σ never below the receiver model's (rule 1)."""
+        if not self.settings.floor_sigma:
+            return gnss
+        m = self.model
+        pos = np.sqrt(np.maximum(np.square(gnss.pos_sigma_m), m.pos_var_floor_m2))
+        vel = np.sqrt(np.maximum(np.square(gnss.vel_sigma_mps), m.vel_var_floor_m2ps2))
+        if np.array_equal(pos, gnss.pos_sigma_m) and np.array_equal(vel, gnss.vel_sigma_mps):
+            return gnss
+        return replace(gnss, pos_sigma_m=pos, vel_sigma_mps=vel)
+
+    def verdicts(
+        self,
+        gnss: GnssInput,
+        names: list[str],
+        solution: Callable[[str], NavState | None],
+        imu_stamp_ns: int,
+        publisher: str = "",
+    ) -> dict[str, bool]:
+        """Which of the estimators ``names`` take ``gnss`` (already floored); ``solution(name)``
+        is an estimator's solution at the last IMU stamp (None: it has none, it failed);
+        ``publisher`` who sent it ("" offline: one receiver)."""
+        ref = self.settings.reference
+        ref_sol = solution(ref) if ref in names else None
+        if ref_sol is not None and ref_sol.pos_sigma_m is not None and ref_sol.vel_sigma_mps is not None:
+            ok = self._decide(self._track(ref), gnss, ref_sol, imu_stamp_ns, own=False, publisher=publisher)
+            self.decided_by.update((n, ref) for n in names)
+            return {n: ok for n in names}
+        out: dict[str, bool] = {}
+        for n in names:
+            sol = solution(n)
+            if sol is None:
+                out[n] = False
+                continue
+            self.decided_by[n] = n
+            out[n] = self._decide(self._track(n), gnss, sol, imu_stamp_ns, own=True, publisher=publisher)
+        return out
+
+    def _track(self, name: str) -> GateTrack:
+        tr = self.tracks.get(name)
+        if tr is None:
+            tr = self.tracks[name] = GateTrack(name)
+        return tr
+
+    def _decide(
+        self, tr: GateTrack, gnss: GnssInput, sol: NavState, imu_ns: int, own: bool, publisher: str
+    ) -> bool:
+        dt_s = (gnss.stamp_ns - imu_ns) * 1e-9
+        pred = sol.pos_ned_m + sol.vel_ned_mps * dt_s
+        if np.any(self.model.lever_arm_b_m):
+            pred = pred + mv(quat_to_dcm(sol.q_nb), self.model.lever_arm_b_m)
+        y_p = gnss.pos_ned_m - pred
+        y_v = gnss.vel_ned_mps - sol.vel_ned_mps
+        p_p = np.zeros(3) if sol.pos_sigma_m is None else np.square(sol.pos_sigma_m)
+        p_v = np.zeros(3) if sol.vel_sigma_mps is None else np.square(sol.vel_sigma_mps)
+        if own:  # what the estimator achieves, and what it may have drifted since its last fix
+            last = tr.last_accept_ns
+            since_s = 0.0 if last is None else max(0.0, (gnss.stamp_ns - last) * 1e-9)
+            a = self.model.unaided_accel_mps2
+            p_p = np.maximum(p_p, tr.m_pos) + (0.5 * a * since_s * since_s) ** 2
+            p_v = np.maximum(p_v, tr.m_vel) + (a * since_s) ** 2
+        r_p = np.square(gnss.pos_sigma_m)
+        r_v = np.square(gnss.vel_sigma_mps)
+        nis_p = dot(y_p * y_p, 1.0 / (r_p + p_p))
+        nis_v = dot(y_v * y_v, 1.0 / (r_v + p_v))
+        chi2 = self.settings.chi2
+        tr.last_ratio = max(nis_p, nis_v) / chi2
+        ok = nis_p <= chi2 and nis_v <= chi2
+        since = tr.reject_since_ns
+        if not ok and since is not None and gnss.stamp_ns - since >= self.settings.reacquire_after_ns:
+            ok = True
+            tr.reacquired += 1
+        if ok:
+            self._accepted(tr, gnss.stamp_ns, y_p * y_p - r_p, y_v * y_v - r_v)
+        else:
+            self._rejected(tr, gnss.stamp_ns)
+        self._alarm(tr, gnss.stamp_ns, publisher, ok)
+        return ok
+
+    def _accepted(self, tr: GateTrack, stamp_ns: int, excess_p: F64, excess_v: F64) -> None:
+        tr.accepted += 1
+        tr.last_accept_ns = stamp_ns
+        tr.m_pos = (1.0 - EWMA_ALPHA) * tr.m_pos + EWMA_ALPHA * np.maximum(excess_p, 0.0)
+        tr.m_vel = (1.0 - EWMA_ALPHA) * tr.m_vel + EWMA_ALPHA * np.maximum(excess_v, 0.0)
+        tr.reject_since_ns = None
+
+    def _rejected(self, tr: GateTrack, stamp_ns: int) -> None:
+        tr.rejected += 1
+        if tr.reject_since_ns is None:
+            tr.reject_since_ns = stamp_ns
+
+    def _alarm(self, tr: GateTrack, stamp_ns: int, publisher: str, ok: bool) -> None:
+        """Raise or clear the alarm on the publishers' runs of rejected fixes (rule 3)."""
+        after = self.settings.alarm_after_ns
+        for src in [s for s, (_first, last) in tr.runs.items() if stamp_ns - last > after]:
+            del tr.runs[src]  # silent for alarm_after: its run has ended
+        if ok:
+            tr.runs.pop(publisher, None)
+        else:
+            tr.runs[publisher] = [tr.runs.get(publisher, [stamp_ns])[0], stamp_ns]
+        long_runs = {s: first for s, (first, last) in tr.runs.items() if last - first >= after}
+        if long_runs and not tr.alarmed:
+            tr.alarmed = True
+            tr.alarm_since_ns = min(long_runs.values())
+            detail = json.dumps(
+                {
+                    "gate": tr.name,
+                    "since_s": round(tr.alarm_since_ns / 1e9, 3),
+                    "publishers": sorted(long_runs),
+                    "nis_over_chi2": round(tr.last_ratio, 1),
+                    "rejected": tr.rejected,
+                }
+            )
+            self.transitions.append(Transition("gnss_integrity_alarm", tr.name, stamp_ns, detail))
+        elif not long_runs and tr.alarmed:
+            tr.alarmed = False
+            lasted = (stamp_ns - tr.alarm_since_ns) / 1e9
+            detail = json.dumps(
+                {"gate": tr.name, "rejected_for_s": round(lasted, 3), "reacquired": tr.reacquired}
+            )
+            self.transitions.append(Transition("gnss_integrity_restored", tr.name, stamp_ns, detail))
+
+    def take_transitions(self) -> list[Transition]:
+        out, self.transitions = self.transitions, []
+        return out
+
+    def health(self, name: str) -> dict[str, float]:
+        """What ``health/<name>`` adds: the gate that decides for ``name`` and its counts."""
+        tr = self.tracks.get(self.decided_by.get(name, name))
+        if tr is None:
+            return {}
+        return {
+            "gnss_gate_rejected": float(tr.rejected),
+            "gnss_gate_ratio": tr.last_ratio,
+            "gnss_gate_alarm": 1.0 if tr.alarmed else 0.0,
+        }
