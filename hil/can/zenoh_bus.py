@@ -11,8 +11,16 @@ Semantics copied from SocketCAN so code cannot tell the difference:
 - one Zenoh key per channel, ``hilcan/<rig>/<channel>`` (``Keys.canbus``), reliable with blocking
   congestion control (a slow reader back-pressures the writer instead of losing frames) and
   ``express`` (no batching: the receive stamp should be close to the wire time);
-- a received frame is stamped on arrival with ``time.time()`` (epoch seconds), like the kernel's
-  receive timestamp;
+- a received frame's timestamp (epoch seconds) is the instant its sender put it on the wire, when
+  the sender says so (``send_stamped``: the live runner's pacing passes each frame's wire time,
+  carried as the Zenoh attachment), else its arrival (``time.time()`` in the Zenoh callback).
+  The first is what SocketCAN does on ``vcan`` (the kernel stamps the frame in the sender's
+  ``send``) and what a controller's receive stamp means on a real bus: the stamp does not wait
+  for the receiving process to be scheduled or for its interpreter lock. Across hosts the
+  stamp is as good as the hosts' clock sync, as the rig clock itself is; a stated stamp later
+  than the arrival (clock skew) is replaced by the arrival and counted (``rx_stamp_skew``);
+- a bus opened with ``receive=False`` only sends (no subscription: a transmit-only node does not
+  pay for receiving, and then discarding, its own frames);
 - a frame sent on a bus is not received back by that bus (unless ``receive_own_messages=True``);
   other buses, in this process or another, receive it;
 - a bus opened with ``fd=False`` refuses to send FD frames and does not see them (a classic
@@ -43,6 +51,7 @@ from hil.bus.keys import Keys
 from hil.bus.session import BusConfig, open_session
 
 _HEADER = struct.Struct("<QIBB")
+_STAMP = struct.Struct("<q")  # the attachment: wire time of the frame, epoch ns
 F_EXT, F_FD, F_BRS, F_ESI, F_ERR, F_RTR = 1, 2, 4, 8, 16, 32
 FD_LENGTHS = frozenset([*range(9), 12, 16, 20, 24, 32, 48, 64])
 
@@ -93,7 +102,11 @@ class ZenohCanBus(can.BusABC):
       otherwise one is opened from ``BusConfig.from_env()``;
     - ``receive_own_messages``: also deliver this bus's own frames (default False);
     - ``rx_queue_size``: frames held for ``recv`` before new ones are dropped and counted in
-      ``rx_overflow`` (default 100 000, like a generous socket buffer).
+      ``rx_overflow`` (default 100 000, like a generous socket buffer);
+    - ``receive``: False for a bus that only sends (no subscriber; ``recv`` returns nothing);
+    - ``express``: False lets Zenoh batch frames (less CPU per frame, and a publication that does
+      not wait on Zenoh's I/O threads once per frame); the frames' stamps travel with them
+      (``send_stamped``), so batching delays their arrival but not their time.
     """
 
     def __init__(
@@ -106,6 +119,8 @@ class ZenohCanBus(can.BusABC):
         session: zenoh.Session | None = None,
         receive_own_messages: bool = False,
         rx_queue_size: int = 100_000,
+        receive: bool = True,
+        express: bool = True,
         **kwargs: Any,
     ) -> None:
         self.channel = str(channel or "vcan0")
@@ -123,6 +138,8 @@ class ZenohCanBus(can.BusABC):
         self.rx_fd_ignored = 0
         self.tx_frames = 0
         self.rx_frames = 0
+        self.rx_stamp_skew = 0
+        self._sub: Any = None
         self._own_session = session is None
         try:
             self._session = session if session is not None else open_session(BusConfig.from_env())
@@ -133,9 +150,10 @@ class ZenohCanBus(can.BusABC):
                 self.key,
                 reliability=zenoh.Reliability.RELIABLE,
                 congestion_control=zenoh.CongestionControl.BLOCK,
-                express=True,
+                express=express,
             )
-            self._sub = self._session.declare_subscriber(self.key, self._on_sample)
+            if receive:
+                self._sub = self._session.declare_subscriber(self.key, self._on_sample)
         except Exception as err:
             if self._own_session:
                 self._session.close()
@@ -155,6 +173,15 @@ class ZenohCanBus(can.BusABC):
         if msg.is_fd and not self.fd:
             self.rx_fd_ignored += 1
             return
+        att = sample.attachment
+        if att is not None:
+            wire = att.to_bytes()
+            if len(wire) == _STAMP.size:
+                wire_s = _STAMP.unpack(wire)[0] * 1e-9
+                if wire_s <= stamp:
+                    stamp = wire_s
+                else:  # "sent" after it arrived: the hosts' clocks disagree; the arrival stands
+                    self.rx_stamp_skew += 1
         msg.timestamp = stamp
         msg.channel = self.channel
         msg.is_rx = sender != self._sender
@@ -175,6 +202,14 @@ class ZenohCanBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Publish ``msg``; raises ``CanOperationError`` on a closed bus or an illegal frame."""
+        self._put(msg, None)
+
+    def send_stamped(self, msg: can.Message, stamp_epoch_ns: int, timeout: float | None = None) -> None:
+        """``send``, telling receivers the frame was on the wire at ``stamp_epoch_ns`` (their
+        receive stamp; see the module docstring)."""
+        self._put(msg, _STAMP.pack(int(stamp_epoch_ns)))
+
+    def _put(self, msg: can.Message, attachment: bytes | None) -> None:
         if self._closed.is_set():
             raise can.CanOperationError("hilzenoh: bus is shut down")
         n = len(msg.data or b"")
@@ -186,7 +221,10 @@ class ZenohCanBus(can.BusABC):
         elif n > 8:
             raise can.CanOperationError(f"hilzenoh: {n} data bytes in a classic CAN frame")
         try:
-            self._pub.put(pack_frame(self._sender, msg))
+            if attachment is None:
+                self._pub.put(pack_frame(self._sender, msg))
+            else:
+                self._pub.put(pack_frame(self._sender, msg), attachment=attachment)
         except Exception as err:
             raise can.CanOperationError(f"hilzenoh: publish on {self.key} failed: {err}") from err
         self.tx_frames += 1
@@ -197,6 +235,8 @@ class ZenohCanBus(can.BusABC):
         self._closed.set()
         super().shutdown()
         for thing in (self._sub, self._pub):
+            if thing is None:
+                continue
             with contextlib.suppress(Exception):  # the session may already be closing
                 thing.undeclare()
         if self._own_session:
