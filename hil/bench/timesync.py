@@ -249,7 +249,7 @@ def md_table(rows: list[dict[str, str]]) -> str:
         return ""
     cols = list(rows[0])
     out = ["| " + " | ".join(cols) + " |", "|" + "|".join(" --- " for _ in cols) + "|"]
-    out += ["| " + " | ".join(r[c] for c in cols) + " |" for r in rows]
+    out += ["| " + " | ".join(r.get(c, "") for c in cols) + " |" for r in rows]
     return "\n".join(out)
 
 
@@ -299,10 +299,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--nav-duration", type=float, default=300.0, help="seconds of each hil sim run")
     ap.add_argument("--no-nav", action="store_true", help="skip the navigation comparison")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument(
+        "--live",
+        type=float,
+        default=0.0,
+        help="also run the live rig (hil up) this many seconds and add its IMU row (0: no)",
+    )
     a = ap.parse_args(argv)
     t0 = time.monotonic()
     results = [run_stream(c) for c in default_cases(a.duration)]
     rows = stream_rows(results)
+    if a.live > 0:
+        rows.append(live_row(a.live))
     body = [
         "Re-stamping error = rig stamp from `hil.timesync.core` − true capture time, from streams "
         "made by the rig's device-clock model (offset, drift, drift random walk, 0.5 µs stamp jitter, "
@@ -311,7 +319,14 @@ def main(argv: list[str]) -> int:
         f"Streams of {a.duration:g} s; steps at t = {STEP_T_S:g} s; RMS/max from 5 s on (and, with a "
         "step, up to it); 'converged' = time after which |error| stays within 100 µs (10 ms jitter: "
         "1 ms; GNSS arrival-only: 5 ms); 'recovered' = the same after the step. Core-level runs "
-        "(no processes, no bus).",
+        "(no processes, no bus)."
+        + (
+            f" The last row is the live rig (`hil up` for {a.live:g} s: emulator process → CAN → "
+            "bridge → timesync; synced stamp − the emulator's capture truth, matched by seq) with "
+            "the load average before it."
+            if a.live > 0
+            else ""
+        ),
         "",
         md_table(rows),
     ]
@@ -333,6 +348,27 @@ def main(argv: list[str]) -> int:
     if not a.no_write:
         write_section("timesync", "\n".join(body), command_line())
     return 0
+
+
+def live_row(duration_s: float) -> dict[str, str]:
+    """The IMU row of a live ``hil up`` (time-tagged IMU over CAN), in the stream rows' columns."""
+    from hil.bench.pacing import SYNC_SETTLE_S, run_live
+
+    run = run_live(duration_s)
+    e = run.sync_err_ns
+    name = f"LIVE: IMU over CAN, time tags (load {run.load_before:.1f})"
+    if run.rc != 0 or not len(e):
+        return {"case": name, "RMS µs (5 s on)": f"no synced samples after {SYNC_SETTLE_S:g} s (rc {run.rc})"}
+    return {
+        "case": name,
+        "RMS µs (5 s on)": f"{np.sqrt(np.mean(e.astype(float) ** 2)) / 1e3:.1f}",
+        "max µs (5 s on)": f"{np.max(np.abs(e)) / 1e3:.1f}",
+        "mean µs": f"{np.mean(e) / 1e3:+.1f}",
+        "converged (s)": "-",
+        "step: detected after (s)": "-",
+        "recovered after (s)": "-",
+        "RMS µs (step+2 s on)": "-",
+    }
 
 
 def restamp_errors(session: object, sensor: str) -> tuple[np.ndarray, np.ndarray]:
