@@ -208,7 +208,7 @@ class _Child:
         )
         return out
 
-    def handle(self, msg: tuple[Any, ...]) -> None:
+    def handle(self, msg: tuple[Any, ...], backlog: bool = False) -> None:
         if msg[0] == "run":
             _, start_epoch_ns, speed, latency_ns, period_ns = msg
             pacing = replace(self.pacing, wire_latency_ns=latency_ns, period_ns=period_ns)
@@ -229,7 +229,7 @@ class _Child:
                 tuple(dclock) if dclock else None,
                 corrupted,
             )
-            self.sender.send(burst, due, submitted)
+            self.sender.send(burst, due, submitted, backlog)
 
     def housekeeping(self) -> None:
         t = time.monotonic()
@@ -267,7 +267,8 @@ def main(argv: list[str]) -> int:
     while not stop.is_set():
         try:
             if inbox.poll(MAX_SLEEP_S):
-                child.handle(inbox.recv())
+                msg = inbox.recv()
+                child.handle(msg, backlog=inbox.poll(0))
         except EOFError:  # the service is gone
             break
         child.housekeeping()

@@ -327,11 +327,14 @@ class PacedSender:
             out["pacing.spin_permille"] = round(1000 * self.waiter.spin_ns_total * 1e-9 / wall_s)
         return out
 
-    def send(self, burst: CanBurst, due_ns: int, submitted_ns: int = 0) -> None:
+    def send(self, burst: CanBurst, due_ns: int, submitted_ns: int = 0, backlog: bool = False) -> None:
+        """``backlog``: more bursts are already waiting -- a late burst is then sent at wire
+        speed by spinning (catching up); without a backlog the node itself is behind, and
+        spinning would only take CPU from it."""
         if burst.sync:
             self._send_sync(burst, due_ns)
         else:
-            self._send_burst(burst, due_ns, submitted_ns)
+            self._send_burst(burst, due_ns, submitted_ns, backlog)
 
     def _wait_hand(self, at_ns: int, catching_up: bool = False) -> int | None:
         """Wait until rig time ``at_ns``; the rig time reached, None if stopped before it."""
@@ -339,7 +342,7 @@ class PacedSender:
         mono = self.waiter.until(target, spin=catching_up)
         return None if mono < target else self.clock.rig_of_mono(mono)
 
-    def _send_burst(self, burst: CanBurst, due_ns: int, submitted_ns: int) -> None:
+    def _send_burst(self, burst: CanBurst, due_ns: int, submitted_ns: int, backlog: bool = False) -> None:
         """A sample's frames: from its tick (or as soon as the wire is free), back to back.
 
         A bus that carries stamps gets the burst in one hand-over when its last frame is done,
@@ -353,7 +356,7 @@ class PacedSender:
             self.counts["tx_late_skipped_samples"] += 1  # its slot has passed: the next one is due
             return
         t = max(due_ns, self.bus_free_ns, now)
-        behind = now - due_ns > self.cfg.late_tolerance_ns
+        behind = backlog and now - due_ns > self.cfg.late_tolerance_ns
         ends = []
         for frame in burst.frames:
             t += self.wire.frame_ns(frame)

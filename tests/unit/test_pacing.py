@@ -83,7 +83,7 @@ def test_samples_leave_on_their_grid_with_frames_at_wire_spacing(stamps: bool) -
     ps, _clock, sink = _sender(stamps)
     wire = CanWire()
     for k in range(50):
-        ps.send(_burst(k), (k + 1) * PERIOD)
+        ps.send(_burst(k), (k + 1) * PERIOD, backlog=True)
     frame_ns = wire.frame_ns(_burst(0).frames[0])
     assert 100_000 < frame_ns < 140_000  # 8 data bytes at 1 Mbit/s, worst-case stuffing
     for row in ps.trace or []:
@@ -102,7 +102,7 @@ def test_a_stall_is_sent_late_at_wire_speed_and_counted_never_bunched() -> None:
     ps, clock, sink = _sender()
     clock.t = 10 * PERIOD  # the host stalled for ten samples
     for k in range(12):
-        ps.send(_burst(k), (k + 1) * PERIOD)
+        ps.send(_burst(k), (k + 1) * PERIOD, backlog=True)
     frame_ns = CanWire().frame_ns(_burst(0).frames[0])
     stamps = [s for _t, s, _f in sink.sent]
     gaps = [b - a for a, b in itertools.pairwise(stamps)]
@@ -114,7 +114,7 @@ def test_skip_policy_drops_passed_slots_and_keeps_the_grid() -> None:
     ps, clock, sink = _sender(late_policy="skip", period_ns=PERIOD)
     clock.t = 10 * PERIOD
     for k in range(12):
-        ps.send(_burst(k), (k + 1) * PERIOD)
+        ps.send(_burst(k), (k + 1) * PERIOD, backlog=True)
     assert ps.counts["tx_late_skipped_samples"] == 9
     assert len(sink.bursts) == 3
 
