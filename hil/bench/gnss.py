@@ -15,6 +15,7 @@ how well the bridge time-tags reception.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import timeit
 from pathlib import Path
@@ -189,6 +190,7 @@ def main(argv: list[str]) -> int:
         "| line | fixes | median µs | p99 µs | max µs |",
         "| --- | ---: | ---: | ---: | ---: |",
     ]
+    load = os.getloadavg()[0]
     for name, baud in (("nmea", 115200), ("ubx", 115200), ("nmea", 38400)):
         err = live_tag_errors(name, baud, a.duration)
         lines.append(
@@ -200,7 +202,8 @@ def main(argv: list[str]) -> int:
         "",
         f"One byte takes {byte_time_ns(115200) / 1e3:.1f} µs at 115200 baud. The live figure holds the "
         "emulator's wake-up lateness, the writer's 1 ms chunks, the pseudo-terminal and the bridge's read: "
-        "what a device reading the same line would also see.",
+        "what a device reading the same line would also see. Load average (1 min) before the live runs: "
+        f"{load:.2f} on {os.cpu_count()} cores (the tail grows with other work on the machine).",
     ]
     md = "\n".join(lines)
     print(md)

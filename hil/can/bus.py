@@ -52,11 +52,13 @@ def open_can_bus(
     kw: dict[str, Any] = dict(kwargs)
     if iface == "hilzenoh":
         kw.setdefault("rig", rig)
+        kw.setdefault("no_traffic_warn_s", 0.0)  # the rig's own processes know their rig
         if session is not None:
             kw["session"] = session
         if not receive:
             kw["receive"] = False
             kw.setdefault("express", False)  # its frames carry their wire time (send_stamped)
+            kw.setdefault("no_traffic_warn_s", 0)  # opened before time zero: silence is expected
     try:
         bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)
     except (can.CanError, OSError, ValueError, ImportError) as err:

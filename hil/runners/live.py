@@ -5,7 +5,9 @@ each under ``hil up`` or compose): it decodes the node's typed options, subscrib
 inputs before the run starts (Zenoh callbacks only enqueue), waits for the run's ``RunInfo``,
 builds the node, and then one thread calls it -- ``on_message`` for each input in arrival order,
 ``tick`` when rig time reaches ``next_tick_ns`` -- and publishes what it returns: Zenoh keys
-through typed publishers (the node numbers its own seqs), frames through a ``CanTransmitter``.
+through typed publishers (the node numbers its own seqs). A node that writes CAN is ticked up
+to ``lookahead_s`` ahead and its frames leave through a pacing process of its own
+(``hil.runners.can_sender``, ``hil.runners.pacing``: on the sample grid, at wire spacing).
 Frames read off the CAN bus reach a node that ``reads_can`` with their kernel receive stamps on
 the rig clock. Status (1 Hz, the node's counters beside the runner's), heap trims and the
 supervisor's restart generation come from ``hil.runtime.service.Service``. At a stop, what has
@@ -30,6 +32,7 @@ from typing import Any, ClassVar
 import can
 import msgspec
 
+from hil.bus.keys import type_for_key
 from hil.bus.pubsub import DispatchSubscriber, Publisher
 from hil.can.bus import open_can_bus
 from hil.messages import RunInfo, ServiceStatus
@@ -168,7 +171,8 @@ class NodeService(Service):
     def _publisher(self, key: str, cls: type | None) -> Publisher[Any]:
         pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs[key] = self.publisher(f"{self.keys.root}/{key}", cls or ServiceStatus)
+            full = f"{self.keys.root}/{key}"
+            pub = self._pubs[key] = self.publisher(full, cls or type_for_key(full) or ServiceStatus)
         return pub
 
     # -- the loop -------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from pyubx2 import NMEA_PROTOCOL, UBX_PROTOCOL, UBXReader
 
 from hil.nav.earth import lla_to_ned
 from hil.record.mcapio import read_session
-from tests.conftest import REPO, free_port, hil_cmd
+from tests.conftest import REPO, free_port, hil_cmd, run_hil
 
 pytestmark = pytest.mark.slow
 
@@ -254,3 +254,23 @@ def test_replay_puts_the_recorded_line_back_on_a_pty_and_it_decodes_to_the_recor
     assert len(matched) >= len(recorded) - 1
     assert all(abs(f.lat_deg - m.lat_deg) < 1e-7 and abs(f.lon_deg - m.lon_deg) < 1e-7 for f, m in matched)
     assert line.counters["garbage_bytes"] == 0
+
+
+@pytest.mark.parametrize(
+    ("path", "why"),
+    [
+        ("{tmp}/no/such/dir/gnss0", "No such file or directory"),
+        ("/sys/gnss0", "cannot make a link in /sys"),  # root passes os.access here; the link fails
+        ("{tmp}/taken", "exists and is not a link"),
+    ],
+)
+def test_a_gnss_line_path_that_cannot_be_made_is_one_line_at_start(
+    tmp_path: Path, path: str, why: str
+) -> None:
+    (tmp_path / "taken").write_text("")
+    proc = run_hil("up", "--gnss-serial", path.format(tmp=tmp_path), "--duration", "2", timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and why in lines[0] and "--gnss-serial" in lines[0], proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert "hil up: rig" not in proc.stdout, "refused before any process started"
