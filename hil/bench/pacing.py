@@ -61,7 +61,7 @@ def run_live(
     fd: bool = False,
 ) -> LiveRun:
     """``hil up`` for ``duration_s`` with the pacing traced; the recording read back."""
-    from hil.bench.timesync import restamp_errors
+    from hil.bench.capture import restamp_errors
 
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as d:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.bench.capture import restamp_errors  # noqa: F401 - the benches' and tests' name for it
 from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FRAMES_PER_SAMPLE
 from hil.sensors.clock import ClockStep, DeviceClock, DeviceClockConfig
 from hil.sensors.imu import sensor_rng
@@ -369,25 +370,3 @@ def live_row(duration_s: float) -> dict[str, str]:
         "recovered after (s)": "-",
         "RMS µs (step+2 s on)": "-",
     }
-
-
-def restamp_errors(session: object, sensor: str) -> tuple[np.ndarray, np.ndarray]:
-    """(true capture s, synced stamp - true capture ns) for every synced measurement of a
-    recording, paired with the emulator's capture truth by ``seq``."""
-    from hil.record.mcapio import Session
-
-    assert isinstance(session, Session)
-    truth = {}
-    for r in session.records:
-        if r.topic.endswith(f"/capture/{sensor}"):
-            m = r.decode()
-            truth[m.seq] = m.true_stamp_ns  # type: ignore[attr-defined]
-    t, e = [], []
-    for r in session.records:
-        if r.topic.endswith(f"/synced/{sensor}"):
-            m = r.decode()
-            tt = truth.get(m.seq)  # type: ignore[attr-defined]
-            if tt is not None:
-                t.append(tt * 1e-9)
-                e.append(m.stamp_ns - tt)  # type: ignore[attr-defined]
-    return np.asarray(t), np.asarray(e, dtype=np.int64)
