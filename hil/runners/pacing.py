@@ -382,7 +382,13 @@ class PacedSender:
         self._account(burst, due_ns, ideal, first, submitted_ns)
 
     def _send_sync(self, burst: CanBurst, due_ns: int) -> None:
-        """The time tag leaves on its edge, or states when it left, or does not leave."""
+        """The time tag leaves on its edge, or states when it left, or does not leave.
+
+        A bus that carries stamps (``hilzenoh``) is stamped with the instant the tag states
+        (plus its wire time): the receiver's stamp and the tag agree however late the host
+        hands it over. SocketCAN stamps the frame when it is sent: the hand-over must then
+        meet the stated instant within ``SYNC_CLAIM_TOL_NS``, or the tag is re-stamped later
+        (three tries) or dropped."""
         frames = list(burst.frames)
         for _attempt in range(3):
             first = max(due_ns, self.bus_free_ns, self.clock.now_ns())
@@ -396,8 +402,8 @@ class PacedSender:
             left = self._wait_hand(at)
             if left is None:
                 return
-            if left - at <= SYNC_CLAIM_TOL_NS:
-                stamp = self.clock.epoch_ns(left)
+            if left - at <= SYNC_CLAIM_TOL_NS or self.sink.carries_stamps:
+                stamp = self.clock.epoch_ns(at if self.sink.carries_stamps else left)
                 ok = all([self.sink.send_frame(f, stamp) for f in frames])
                 self.bus_free_ns = end
                 self.sink.count_burst(ok, True)

@@ -136,3 +136,22 @@ def test_a_late_time_tag_states_when_it_left() -> None:
     left = stamp - CanWire().frame_ns(frame)
     want_ns = dev0 + (left - edge)
     assert abs(stated - want_ns) <= 2 * tick, (stated, want_ns)  # DeviceTime is in ns
+
+
+@pytest.mark.parametrize("stamps", [True, False])
+def test_a_time_tag_handed_over_late_is_stamped_with_its_stated_instant_or_dropped(stamps: bool) -> None:
+    ps, clock, sink = _sender(stamps)
+    clock.overshoot_ns = 2_000_000  # every sleep wakes 2 ms late: the hand-over misses its instant
+    codec = ImuCanCodec.from_dbc(None)
+    edge = 5 * PERIOD
+    clock.t = edge + 3_000_000
+    sync = codec.encode_sync(edge)
+    ps.send(CanBurst([sync], edge, 5, sync=True, device_clock=(edge, 1.0, 1_000)), edge)
+    if stamps:  # the stamp is the instant the tag states (+ its wire time), not the late hand-over
+        ((t, stamp, frame),) = sink.sent
+        stated = codec.decode(frame.arbitration_id, frame.data)["DeviceTime"]
+        assert stamp is not None and t - stamp > 1_000_000
+        assert abs(stamp - CanWire().frame_ns(frame) - stated) <= 1_000
+        assert ps.counts["tx_sync_dropped"] == 0
+    else:  # SocketCAN stamps at send: a tag that cannot meet its instant is not sent
+        assert sink.sent == [] and ps.counts["tx_sync_dropped"] == 1
