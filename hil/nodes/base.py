@@ -74,8 +74,9 @@ class CanWriterOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fi
     cpu_affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []  # CPUs of the sending thread (empty: any)
     # a sample whose tick the host missed: "send" it late (a FIFO, at wire speed) or "skip" its slot
     late_policy: Literal["send", "skip"] = "send"
-    # compute a tick up to this long before it is due (a fault command applies after it)
-    lookahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=5.0)] = 0.25
+    # compute a tick up to this long before it is due (a fault command applies after it); 1 s
+    # absorbs a physics block computed late on a loaded machine (0.25 s did not, at load 24)
+    lookahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=5.0)] = 1.0
 
 
 @dataclass
