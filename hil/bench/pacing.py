@@ -177,16 +177,19 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of each live run")
     ap.add_argument("--rates", default="100,400", help="IMU rates (Hz), one live run each")
     ap.add_argument("--scenario", default="straight_level")
-    ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO of the sender (0: none)")
+    ap.add_argument(
+        "--rt-priorities", default="0", help="SCHED_FIFO priorities of the sender, one run each (0: none)"
+    )
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     rows, syncs, ready_lines = [], [], []
-    for rate in [int(r) for r in a.rates.split(",") if r]:
-        run = run_live(a.duration, a.scenario, rate, a.rt_priority)
+    runs = [(int(r), int(p)) for p in a.rt_priorities.split(",") if p for r in a.rates.split(",") if r]
+    for rate, prio in runs:
+        run = run_live(a.duration, a.scenario, rate, prio)
         if run.rc != 0:
             print("\n".join(run.failures))
             return run.rc
-        label = f"{rate} Hz" + (f", SCHED_FIFO {a.rt_priority}" if a.rt_priority else "")
+        label = f"{rate} Hz, " + (f"SCHED_FIFO {prio}" if prio else "normal priority")
         rows.append(describe(run, label))
         syncs.append({"run": label, **sync_row(run)})
         ready = ", ".join(f"{n} {s:.2f}" for n, s in sorted(run.ready_s.items(), key=lambda kv: -kv[1]))
