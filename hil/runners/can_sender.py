@@ -13,9 +13,9 @@ imports, opens its bus (its own Zenoh session for ``hilzenoh``, or a SocketCAN s
 the codec before time zero, while the service already reports ready. It then sends it, over a
 pipe, each burst with the rig time it is due (computed up to ``lookahead_s`` ahead); this process
 paces them (``hil.runners.pacing.PacedSender``) and reports its counters back once a second
-(merged into the service's status). SIGTERM: what is not due yet is not sent; it reports its
-final counters, writes its trace (benches) and exits. If the service dies, the pipe closes and
-this process exits with it.
+(merged into the service's status). SIGTERM: what was submitted still leaves at its time (at
+most ``lookahead_s``); it reports its final counters, writes its trace (benches) and exits. If
+the service dies, the pipe closes and this process exits with it.
 
     python -m hil.runners.can_sender CONFIG_JSON READ_FD WRITE_FD
 """
@@ -140,7 +140,7 @@ class SenderProcess:
         return self.proc.poll() is None
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop it: what is due is sent, what is not is dropped; wait for its last counters."""
+        """Stop it: what was submitted leaves at its time; wait for its last counters."""
         if self._closed:
             return
         self._closed = True
@@ -214,13 +214,13 @@ class _Child:
             pacing = replace(self.pacing, wire_latency_ns=latency_ns, period_ns=period_ns)
             clock = MonotonicRigClock(start_epoch_ns, speed)
             trace = bool(self.cfg.get("trace"))
-            self.sender = PacedSender(clock, pacing, self.tx, self.restamp, self.stop, trace)
+            # no stop event for its waits: at a stop what the service computed still leaves at its
+            # time (the service sent at most lookahead_s ahead; it waits for our "done")
+            self.sender = PacedSender(clock, pacing, self.tx, self.restamp, None, trace)
         elif msg[0] == "burst" and self.sender is not None:
             from hil.nodes.base import CanBurst
 
             _, due, submitted, index, capture, sync, dclock, corrupted, frames = msg
-            if self.stop.is_set() and due > self.sender.clock.now_ns():
-                return  # stopping: what is not due yet never leaves
             burst = CanBurst(
                 [_frame(f) for f in frames],
                 capture,
@@ -272,7 +272,7 @@ def main(argv: list[str]) -> int:
         except EOFError:  # the service is gone
             break
         child.housekeeping()
-    # SIGTERM: send what is due, drop the rest
+    # SIGTERM: what was submitted leaves at its time (the service submits at most lookahead_s ahead)
     while inbox.poll(0):
         try:
             child.handle(inbox.recv())

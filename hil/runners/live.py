@@ -247,6 +247,7 @@ class NodeService(Service):
         self._route(outs, None, "start")
         root_len = len(self.keys.root) + 1
         stop = self.ctx.stop
+        horizon = 0  # rig time the node has computed up to: an input applies from there on
         try:
             while not stop.is_set():
                 now = mono.now_ns()
@@ -255,6 +256,7 @@ class NodeService(Service):
                 if t_next is not None and t_next <= now + lookahead:
                     with self.lock:
                         outs = node.tick(t_next)
+                    horizon = max(horizon, t_next)
                     self._route(outs, t_next, "tick")
                     continue
                 wake = [
@@ -267,11 +269,15 @@ class NodeService(Service):
                     key, msg = self.inbox.get(timeout=wait_s) if wait_s > 0 else self.inbox.get_nowait()
                 except queue.Empty:
                     continue
-                with self.lock:
-                    outs = node.on_message(key[root_len:], msg, mono.now_ns())
+                with self.lock:  # a fault command applies from the first sample not yet computed
+                    outs = node.on_message(key[root_len:], msg, max(mono.now_ns(), horizon + 1))
                 self._route(outs, None, "input")
+            # stop: what was computed still leaves at its time (at most lookahead_s more: no seq
+            # gap before the node's finish outputs), then the node finishes
+            while self._due:
+                time.sleep(max(0.0, (self._due[0][0] - mono.now_ns()) * 1e-9 / run.speed))
+                self._publish_due(mono.now_ns())
             self._drain_and_finish(node, mono, root_len)
-            self._publish_due(mono.now_ns())  # what was due by the stop; the rest never happened
         finally:
             sender.close()
 
