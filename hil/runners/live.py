@@ -243,6 +243,7 @@ class NodeService(Service):
         }
         self.emit_event("pacing", json.dumps(pacing))  # JSON, as the node's own events
         with self.lock:
+            self.node = node  # its counters reach the status
             outs = node.start(mono.now_ns())
         self._route(outs, None, "start")
         root_len = len(self.keys.root) + 1
