@@ -52,6 +52,7 @@ from hil.nodes.world import run_info
 from hil.runners.can_sender import SenderProcess, pacing_config_dict
 from hil.runners.pacing import MonotonicRigClock, PacingConfig
 from hil.runners.serial import LineReader, LineWriter
+from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
 
@@ -478,7 +479,7 @@ def options_parser(
 ) -> argparse.ArgumentParser:
     """``--field-name`` for every field of ``cls`` (a list: comma-separated; a bool: a switch,
     ``--no-<name>`` when it defaults to true), plus ``--rig``; ``aliases`` maps older flags."""
-    ap = argparse.ArgumentParser(prog=prog)
+    ap = OneLineParser(prog=prog)
     ap.add_argument("--rig", default=None)
     hints = typing.get_type_hints(cls)
     defaults = {f: d for f, d in zip(cls.__struct_fields__, _defaults(cls), strict=True)}
@@ -511,9 +512,11 @@ def _arg_type(hint: Any) -> Callable[[str], Any]:
         (item,) = typing.get_args(base) or (str,)
         if typing.get_origin(item) is typing.Annotated:
             item = typing.get_args(item)[0]
-        conv: Callable[[str], Any] = item if item in (int, float) else str
+        conv: Callable[[str], Any] = finite_float if item is float else int if item is int else str
         return lambda text: [conv(x) for x in text.split(",") if x.strip()]
-    if base in (int, float):
+    if base is float:
+        return finite_float
+    if base is int:
         return base  # type: ignore[no-any-return]
     return str
 
