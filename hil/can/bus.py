@@ -57,7 +57,6 @@ def open_can_bus(
             kw["session"] = session
         if not receive:
             kw["receive"] = False
-            kw.setdefault("express", False)  # its frames carry their wire time (send_stamped)
             kw.setdefault("no_traffic_warn_s", 0)  # opened before time zero: silence is expected
     try:
         bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)

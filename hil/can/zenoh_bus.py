@@ -18,22 +18,26 @@ network (their ``hil/<rig>/@alive/*`` liveliness tokens): the usual cause is the
 Semantics copied from SocketCAN so code cannot tell the difference:
 
 - one Zenoh key per channel, ``hilcan/<rig>/<channel>`` (``Keys.canbus``), reliable with blocking
-  congestion control (a slow reader back-pressures the writer instead of losing frames) and
-  ``express`` (no batching: the receive stamp should be close to the wire time);
+  congestion control (a slow reader back-pressures the writer instead of losing frames);
 - a received frame's timestamp (epoch seconds) is the instant its sender put it on the wire, when
   the sender says so (``send_stamped``: the live runner's pacing passes each frame's wire time,
-  carried as the Zenoh attachment), else its arrival (``time.time()`` in the Zenoh callback).
-  The first is what SocketCAN does on ``vcan`` (the kernel stamps the frame in the sender's
-  ``send``) and what a controller's receive stamp means on a real bus: the stamp does not wait
-  for the receiving process to be scheduled or for its interpreter lock. Across hosts the
-  stamp is as good as the hosts' clock sync, as the rig clock itself is; a stated stamp later
-  than the arrival (clock skew) is replaced by the arrival and counted (``rx_stamp_skew``);
-- a bus opened with ``receive=False`` only sends (no subscription: a transmit-only node does not
-  pay for receiving, and then discarding, its own frames);
+  carried as the Zenoh attachment), else its arrival (``time.time()``): the first is what the
+  kernel does on ``vcan`` (it stamps the frame in the sender's ``send``), and the stamp then does
+  not wait for the receiving process to be scheduled. A stated stamp later than the arrival
+  (clock skew between hosts) is replaced by the arrival and counted (``rx_stamp_skew``);
+- a bus opened with ``receive=False`` only sends (no subscription);
 - a frame sent on a bus is not received back by that bus (unless ``receive_own_messages=True``);
   other buses, in this process or another, receive it;
 - a bus opened with ``fd=False`` refuses to send FD frames and does not see them (a classic
   SocketCAN socket behaves so).
+
+What a frame costs (``hil bench bus``): Zenoh's default batching, not ``express``. A frame is
+still written to the socket at once when the link is idle -- Zenoh holds a message only while
+its transmit task is busy with the previous one -- so the receive stamp stays close to the send,
+but frames put back to back (one sample's four) share one write and one wake-up of the reader:
+express cost ~20 µs of CPU per frame on each side. Frames reach the other buses of the *same*
+Zenoh session (a service's, shared) straight from ``send``; the subscription takes remote ones
+only, so a sender is not woken by the echo of its own frames (it was, once per frame).
 
 Wire format of one Zenoh payload (little-endian)::
 
@@ -51,7 +55,8 @@ import secrets
 import struct
 import threading
 import time
-from typing import Any
+import weakref
+from typing import Any, ClassVar
 
 import can
 import zenoh
@@ -68,6 +73,31 @@ _STAMP = struct.Struct("<q")  # the attachment: wire time of the frame, epoch ns
 F_EXT, F_FD, F_BRS, F_ESI, F_ERR, F_RTR = 1, 2, 4, 8, 16, 32
 FD_LENGTHS = frozenset([*range(9), 12, 16, 20, 24, 32, 48, 64])
 FRAME_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema("hilzenoh.frame")  # the format above
+
+
+class _LocalBuses:
+    """The buses of one Zenoh session on one key: they hand frames to each other directly."""
+
+    _lock: ClassVar[threading.Lock] = threading.Lock()
+    _groups: ClassVar[weakref.WeakValueDictionary[tuple[int, str], _LocalBuses]] = (
+        weakref.WeakValueDictionary()
+    )
+
+    def __init__(self) -> None:
+        self.buses: tuple[ZenohCanBus, ...] = ()  # replaced whole: send() reads it without a lock
+
+    @classmethod
+    def join(cls, session: zenoh.Session, key: str, bus: ZenohCanBus) -> _LocalBuses:
+        with cls._lock:
+            group = cls._groups.get((id(session), key))
+            if group is None:
+                group = cls._groups[(id(session), key)] = cls()
+            group.buses = (*group.buses, bus)
+            return group
+
+    def leave(self, bus: ZenohCanBus) -> None:
+        with self._lock:
+            self.buses = tuple(b for b in self.buses if b is not bus)
 
 
 def pack_frame(sender: int, msg: can.Message) -> bytes:
@@ -117,10 +147,6 @@ class ZenohCanBus(can.BusABC):
     - ``receive_own_messages``: also deliver this bus's own frames (default False);
     - ``rx_queue_size``: frames held for ``recv`` before new ones are dropped and counted in
       ``rx_overflow`` (default 100 000, like a generous socket buffer);
-    - ``receive``: False for a bus that only sends (no subscriber; ``recv`` returns nothing);
-    - ``express``: False lets Zenoh batch frames (less CPU per frame, and a publication that does
-      not wait on Zenoh's I/O threads once per frame); the frames' stamps travel with them
-      (``send_stamped``), so batching delays their arrival but not their time;
     - ``no_traffic_warn_s``: warn when nothing was sent or received this long after opening
       (default 5; 0: never).
     """
@@ -136,7 +162,6 @@ class ZenohCanBus(can.BusABC):
         receive_own_messages: bool = False,
         rx_queue_size: int = 100_000,
         receive: bool = True,
-        express: bool = True,
         no_traffic_warn_s: float = NO_TRAFFIC_WARN_S,
         **kwargs: Any,
     ) -> None:
@@ -157,16 +182,17 @@ class ZenohCanBus(can.BusABC):
         self.channel_info = f"hilzenoh {self.key} ({'CAN FD' if self.fd else 'CAN 2.0'})"
         self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
         self._sender = secrets.randbits(64)
-        self._rx: queue.Queue[can.Message] = queue.Queue(maxsize=rx_queue_size)
+        self._rx: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self._rx_max = max(1, int(rx_queue_size))
         self._closed = threading.Event()
         self.rx_overflow = 0
         self.rx_malformed = 0
         self.rx_fd_ignored = 0
         self.tx_frames = 0
         self.rx_frames = 0
+        self.rx_samples = 0  # every sample on the key, own frames included: traffic on the rig
         self.rx_stamp_skew = 0
         self._sub: Any = None
-        self.rx_samples = 0  # every sample on the key, own frames included: traffic on the rig
         self._own_session = session is None
         try:
             self._session = session if session is not None else open_session(BusConfig.from_env())
@@ -177,16 +203,19 @@ class ZenohCanBus(can.BusABC):
                 self.key,
                 reliability=zenoh.Reliability.RELIABLE,
                 congestion_control=zenoh.CongestionControl.BLOCK,
-                express=express,
                 encoding=FRAME_ENCODING,
             )
+            # remote frames only: this session's own buses get theirs from send() (_LocalBuses)
             if receive:
-                self._sub = self._session.declare_subscriber(self.key, self._on_sample)
+                self._sub = self._session.declare_subscriber(
+                    self.key, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
+                )
         except Exception as err:
             if self._own_session:
                 self._session.close()
             raise can.CanInitializationError(f"hilzenoh: cannot declare {self.key}: {err}") from err
         super().__init__(channel=self.channel, can_filters=can_filters, **kwargs)
+        self._local = _LocalBuses.join(self._session, self.key, self)
         self._watch: threading.Timer | None = None
         if no_traffic_warn_s and no_traffic_warn_s > 0:
             self._watch = threading.Timer(
@@ -225,9 +254,32 @@ class ZenohCanBus(can.BusABC):
     # Runs on a Zenoh thread: stamp first, never raise.
     def _on_sample(self, sample: zenoh.Sample) -> None:
         stamp = time.time()
+        try:
+            payload = sample.payload.to_bytes()
+        except Exception:
+            self.rx_samples += 1
+            self.rx_malformed += 1
+            return
+        att = sample.attachment
+        if att is not None:
+            stamp = self._stated(att.to_bytes(), stamp)
+        self._on_payload(payload, stamp)
+
+    def _stated(self, wire: bytes, arrival: float) -> float:
+        """The sender's wire time (``send_stamped``) unless it is after the arrival (clock skew)."""
+        if len(wire) != _STAMP.size:
+            return arrival
+        wire_s = _STAMP.unpack(wire)[0] * 1e-9
+        if wire_s <= arrival:
+            return wire_s
+        self.rx_stamp_skew += 1
+        return arrival
+
+    def _on_payload(self, payload: bytes, stamp: float) -> None:
+        """A frame on the key, from Zenoh or from a bus of this session (``send``)."""
         self.rx_samples += 1
         try:
-            sender, msg = unpack_frame(sample.payload.to_bytes())
+            sender, msg = unpack_frame(payload)
         except Exception:
             self.rx_malformed += 1
             return
@@ -236,22 +288,13 @@ class ZenohCanBus(can.BusABC):
         if msg.is_fd and not self.fd:
             self.rx_fd_ignored += 1
             return
-        att = sample.attachment
-        if att is not None:
-            wire = att.to_bytes()
-            if len(wire) == _STAMP.size:
-                wire_s = _STAMP.unpack(wire)[0] * 1e-9
-                if wire_s <= stamp:
-                    stamp = wire_s
-                else:  # "sent" after it arrived: the hosts' clocks disagree; the arrival stands
-                    self.rx_stamp_skew += 1
         msg.timestamp = stamp
         msg.channel = self.channel
         msg.is_rx = sender != self._sender
-        try:
-            self._rx.put_nowait(msg)
-        except queue.Full:
+        if self._rx.qsize() >= self._rx_max:  # a bound on memory (a racing producer may pass it by one)
             self.rx_overflow += 1
+            return
+        self._rx.put(msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if self._closed.is_set():
@@ -270,9 +313,9 @@ class ZenohCanBus(can.BusABC):
     def send_stamped(self, msg: can.Message, stamp_epoch_ns: int, timeout: float | None = None) -> None:
         """``send``, telling receivers the frame was on the wire at ``stamp_epoch_ns`` (their
         receive stamp; see the module docstring)."""
-        self._put(msg, _STAMP.pack(int(stamp_epoch_ns)))
+        self._put(msg, int(stamp_epoch_ns))
 
-    def _put(self, msg: can.Message, attachment: bytes | None) -> None:
+    def _put(self, msg: can.Message, stamp_ns: int | None) -> None:
         if self._closed.is_set():
             raise can.CanOperationError("hilzenoh: bus is shut down")
         n = len(msg.data or b"")
@@ -283,19 +326,27 @@ class ZenohCanBus(can.BusABC):
                 raise can.CanOperationError(f"hilzenoh: {n} data bytes is not a CAN FD length")
         elif n > 8:
             raise can.CanOperationError(f"hilzenoh: {n} data bytes in a classic CAN frame")
+        payload = pack_frame(self._sender, msg)
         try:
-            if attachment is None:
-                self._pub.put(pack_frame(self._sender, msg))
+            if stamp_ns is None:
+                self._pub.put(payload)
             else:
-                self._pub.put(pack_frame(self._sender, msg), attachment=attachment)
+                self._pub.put(payload, attachment=_STAMP.pack(stamp_ns))
         except Exception as err:
             raise can.CanOperationError(f"hilzenoh: publish on {self.key} failed: {err}") from err
         self.tx_frames += 1
+        buses = self._local.buses
+        if len(buses) > 1 or self.receive_own_messages:
+            stamp = time.time() if stamp_ns is None else min(time.time(), stamp_ns * 1e-9)
+            for bus in buses:
+                if bus is not self or self.receive_own_messages:
+                    bus._on_payload(payload, stamp)
 
     def shutdown(self) -> None:
         if self._closed.is_set():
             return
         self._closed.set()
+        self._local.leave(self)
         if self._watch is not None:
             self._watch.cancel()
         super().shutdown()
