@@ -115,6 +115,8 @@ class UpOptions:
     cpu_affinity: list[int] = field(default_factory=list)
     late_policy: str = "send"
     estimators: list[str] = field(default_factory=list)
+    feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
+    ekf_calibration: str = "auto"  # ekf15's calibration states (same)
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
