@@ -148,6 +148,18 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
     return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
 
 
+def _cpu_list(text: str) -> list[int]:
+    """``--cpu-affinity 0,1`` -> [0, 1]; a bad list is one line."""
+    try:
+        cpus = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise UserError(f"--cpu-affinity {text!r}: give CPU numbers, e.g. 1 or 0,1") from None
+    bad = [c for c in cpus if not 0 <= c < (os.cpu_count() or 1)]
+    if bad:
+        raise UserError(f"--cpu-affinity {text!r}: this machine has CPUs 0..{(os.cpu_count() or 1) - 1}")
+    return cpus
+
+
 def cmd_up(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.nav.scenario import load_scenario
@@ -169,6 +181,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         channel=a.channel,
         interface=a.can_interface,
         fd=a.fd,
+        rt_priority=a.rt_priority,
+        cpu_affinity=_cpu_list(a.cpu_affinity),
+        late_policy=a.late_policy,
         estimators=[e for e in a.estimators.split(",") if e],
         feedback=a.feedback,
         ekf_calibration=a.ekf_calibration,
@@ -219,6 +234,8 @@ def cmd_up(a: argparse.Namespace) -> int:
             flush=True,
         )
     rc = sup.run()
+    if sup.ready_line():
+        print(f"hil up: {sup.ready_line()}")
     if sup.cpu_table():
         print(sup.cpu_table())
     for line in sup.restart_log:
@@ -741,6 +758,23 @@ def _add_up_parser(sub: Any) -> None:
         help="python-can interface (default: socketcan if the channel exists, else hilzenoh)",
     )
     up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
+    up.add_argument(
+        "--rt-priority",
+        type=bounded_int(0, 99),
+        default=0,
+        help="SCHED_FIFO priority (1-99) of the IMU's frame sender where permitted (docs/timing.md)",
+    )
+    up.add_argument(
+        "--cpu-affinity",
+        default="",
+        help="CPUs to pin the IMU's frame sender to, e.g. 1 or 0,1 (default: any)",
+    )
+    up.add_argument(
+        "--late-policy",
+        choices=("send", "skip"),
+        default="send",
+        help="an IMU sample whose tick the host missed: send it late (default) or skip its slot",
+    )
     up.add_argument(
         "--restart", type=restart_count, default=0, help="restarts allowed per service before the run fails"
     )

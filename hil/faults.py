@@ -237,10 +237,15 @@ class FrameCorruptor:
             return False
         self.pending -= 1
         self.corrupted += 1
+        self.flip(frame)
+        return True
+
+    @staticmethod
+    def flip(frame: Any) -> None:
+        """The corruption itself: one data byte flipped in place (the E2E CRC then fails)."""
         data = bytearray(frame.data)
         data[min(2, len(data) - 1)] ^= 0x5A
         frame.data = data
-        return True
 
 
 class DelayLine(Generic[T]):

@@ -2,7 +2,8 @@
 
 The behaviour (physics, error model, faults, DBC frames, delay line, capture truth) is
 ``hil.nodes.imu_emulator.ImuEmulatorNode``; ``hil.runners.live`` paces it on the rig clock and
-sends its frames through a ``CanTransmitter`` on the configured bus.
+sends its frames on the configured bus through a pacing process (``hil.runners.can_sender``:
+on the sample grid, frames at wire spacing; docs/timing.md).
 """
 
 from __future__ import annotations

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.bench.capture import restamp_errors  # noqa: F401 - the benches' and tests' name for it
 from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FRAMES_PER_SAMPLE
 from hil.sensors.clock import ClockStep, DeviceClock, DeviceClockConfig
@@ -249,7 +250,7 @@ def md_table(rows: list[dict[str, str]]) -> str:
         return ""
     cols = list(rows[0])
     out = ["| " + " | ".join(cols) + " |", "|" + "|".join(" --- " for _ in cols) + "|"]
-    out += ["| " + " | ".join(r[c] for c in cols) + " |" for r in rows]
+    out += ["| " + " | ".join(r.get(c, "") for c in cols) + " |" for r in rows]
     return "\n".join(out)
 
 
@@ -299,10 +300,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--nav-duration", type=duration_s, default=300.0, help="seconds of each hil sim run")
     ap.add_argument("--no-nav", action="store_true", help="skip the navigation comparison")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument(
+        "--live",
+        type=float,
+        default=0.0,
+        help="also run the live rig (hil up) this many seconds and add its IMU row (0: no)",
+    )
     a = ap.parse_args(argv)
     t0 = time.monotonic()
     results = [run_stream(c) for c in default_cases(a.duration)]
     rows = stream_rows(results)
+    if a.live > 0:
+        rows.append(live_row(a.live))
     body = [
         "Re-stamping error = rig stamp from `hil.timesync.core` − true capture time, from streams "
         "made by the rig's device-clock model (offset, drift, drift random walk, 0.5 µs stamp jitter, "
@@ -311,7 +320,14 @@ def main(argv: list[str]) -> int:
         f"Streams of {a.duration:g} s; steps at t = {STEP_T_S:g} s; RMS/max from 5 s on (and, with a "
         "step, up to it); 'converged' = time after which |error| stays within 100 µs (10 ms jitter: "
         "1 ms; GNSS arrival-only: 5 ms); 'recovered' = the same after the step. Core-level runs "
-        "(no processes, no bus).",
+        "(no processes, no bus)."
+        + (
+            f" The last row is the live rig (`hil up` for {a.live:g} s: emulator process → CAN → "
+            "bridge → timesync; synced stamp − the emulator's capture truth, matched by seq) with "
+            "the load average before it."
+            if a.live > 0
+            else ""
+        ),
         "",
         md_table(rows),
     ]
@@ -335,23 +351,22 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-def restamp_errors(session: object, sensor: str) -> tuple[np.ndarray, np.ndarray]:
-    """(true capture s, synced stamp - true capture ns) for every synced measurement of a
-    recording, paired with the emulator's capture truth by ``seq``."""
-    from hil.record.mcapio import Session
+def live_row(duration_s: float) -> dict[str, str]:
+    """The IMU row of a live ``hil up`` (time-tagged IMU over CAN), in the stream rows' columns."""
+    from hil.bench.pacing import SYNC_SETTLE_S, run_live
 
-    assert isinstance(session, Session)
-    truth = {}
-    for r in session.records:
-        if r.topic.endswith(f"/capture/{sensor}"):
-            m = r.decode()
-            truth[m.seq] = m.true_stamp_ns  # type: ignore[attr-defined]
-    t, e = [], []
-    for r in session.records:
-        if r.topic.endswith(f"/synced/{sensor}"):
-            m = r.decode()
-            tt = truth.get(m.seq)  # type: ignore[attr-defined]
-            if tt is not None:
-                t.append(tt * 1e-9)
-                e.append(m.stamp_ns - tt)  # type: ignore[attr-defined]
-    return np.asarray(t), np.asarray(e, dtype=np.int64)
+    run = run_live(duration_s)
+    e = run.sync_err_ns
+    name = f"LIVE: IMU over CAN, time tags (load {run.load_before:.1f})"
+    if run.rc != 0 or not len(e):
+        return {"case": name, "RMS µs (5 s on)": f"no synced samples after {SYNC_SETTLE_S:g} s (rc {run.rc})"}
+    return {
+        "case": name,
+        "RMS µs (5 s on)": f"{np.sqrt(np.mean(e.astype(float) ** 2)) / 1e3:.1f}",
+        "max µs (5 s on)": f"{np.max(np.abs(e)) / 1e3:.1f}",
+        "mean µs": f"{np.mean(e) / 1e3:+.1f}",
+        "converged (s)": "-",
+        "step: detected after (s)": "-",
+        "recovered after (s)": "-",
+        "RMS µs (step+2 s on)": "-",
+    }

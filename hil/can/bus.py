@@ -39,11 +39,13 @@ def open_can_bus(
     fd: bool = False,
     rig: str = "default",
     session: Any = None,
+    receive: bool = True,
     **kwargs: Any,
 ) -> tuple[can.BusABC, str]:
     """Open the bus; return it and a one-line description of the transport chosen.
 
     ``session``: a service's open Zenoh session, reused by ``hilzenoh`` (ignored otherwise).
+    ``receive=False``: the caller only sends (``hilzenoh`` then subscribes to nothing).
     Extra keyword arguments go to ``can.Bus``.
     """
     iface = resolve_interface(channel, interface)
@@ -53,6 +55,9 @@ def open_can_bus(
         kw.setdefault("no_traffic_warn_s", 0.0)  # the rig's own processes know their rig
         if session is not None:
             kw["session"] = session
+        if not receive:
+            kw["receive"] = False
+            kw.setdefault("no_traffic_warn_s", 0)  # opened before time zero: silence is expected
     try:
         bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)
     except (can.CanError, OSError, ValueError, ImportError) as err:

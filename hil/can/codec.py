@@ -278,9 +278,13 @@ class ImuCanCodec:
         return frozenset(self.layouts)
 
     # -- encoding ------------------------------------------------------------------------
-    def _frame(self, lay: FrameLayout, raws: dict[str, int]) -> can.Message:
-        ctr = self._tx_counter[lay.frame_id]
-        self._tx_counter[lay.frame_id] = next_counter(ctr)
+    def _frame(self, lay: FrameLayout, raws: dict[str, int], counter: int | None = None) -> can.Message:
+        """One frame; the identifier's rolling counter advances unless ``counter`` is given."""
+        if counter is None:
+            ctr = self._tx_counter[lay.frame_id]
+            self._tx_counter[lay.frame_id] = next_counter(ctr)
+        else:
+            ctr = counter
         word = ctr << lay.counter_start
         for f in lay.fields:
             word |= (raws.get(f.name, 0) & f.mask) << f.start
@@ -370,6 +374,15 @@ class ImuCanCodec:
     def encode_sync(self, device_stamp_ns: int) -> can.Message:
         """The time-tag frame for a sync edge at ``device_stamp_ns`` on the device clock."""
         return self._frame(self.sync_layout, {"DeviceTime": self._time_raw(device_stamp_ns)})
+
+    def restamp_sync(self, frame: can.Message, device_stamp_ns: int) -> can.Message:
+        """``frame`` (a sync frame this codec encoded) stating ``device_stamp_ns`` instead: the same
+        rolling counter (it is the same transmission, only its time changed), a new E2E CRC, no
+        codec state touched -- so it may be called from another thread than the encoder's."""
+        if frame.arbitration_id != self.sync_layout.frame_id:
+            raise EncodeError(f"0x{frame.arbitration_id:X} is not the sync frame")
+        counter = frame.data[1] & 0x0F  # bits 8..11, as the DBC check pins them
+        return self._frame(self.sync_layout, {"DeviceTime": self._time_raw(device_stamp_ns)}, counter)
 
     # -- decoding (no checks: the assembler does those) ----------------------------------
     def decode(self, frame_id: int, data: bytes | bytearray) -> dict[str, float | int]:

@@ -87,6 +87,26 @@ class CanTransmitter:
             self._count("tx_dropped_samples")
         return ok
 
+    def send_frame(self, frame: can.Message, stamp_epoch_ns: int | None = None) -> bool:
+        """Send one frame (the live runner's pacing sends a burst frame by frame, each at its wire
+        time); ``stamp_epoch_ns``: that wire time, carried as the frame's receive stamp by a bus
+        that can (``hilzenoh``; a kernel stamps SocketCAN frames itself). Pair with
+        ``count_burst``."""
+        return self._send(frame, stamp_epoch_ns)
+
+    @property
+    def carries_stamps(self) -> bool:
+        """True if the bus carries the wire time ``send_frame`` is given (``hilzenoh``); a
+        SocketCAN kernel stamps a frame itself, when it is sent."""
+        return callable(getattr(self.bus, "send_stamped", None))
+
+    def count_burst(self, ok: bool, sync: bool) -> None:
+        """Count a burst sent with ``send_frame`` as ``send_frames`` counts one."""
+        if ok:
+            self._counts["tx_syncs" if sync else "tx_samples"] += 1
+        elif not sync:
+            self._count("tx_dropped_samples")
+
     def bus_load(self) -> float:
         """Fraction of the last second the bus was occupied by this node's frames (0..1+)."""
         self._trim(self._now())
@@ -107,11 +127,15 @@ class CanTransmitter:
             else:
                 self.stats.inc(f"can.{name.replace('_', '.', 1)}")
 
-    def _send(self, frame: can.Message) -> bool:
+    def _send(self, frame: can.Message, stamp_epoch_ns: int | None = None) -> bool:
         delay = self.backoff_s
+        stamped = getattr(self.bus, "send_stamped", None) if stamp_epoch_ns is not None else None
         for attempt in range(self.retries + 1):
             try:
-                self.bus.send(frame, timeout=self.send_timeout_s)
+                if stamped is not None:
+                    stamped(frame, stamp_epoch_ns, timeout=self.send_timeout_s)
+                else:
+                    self.bus.send(frame, timeout=self.send_timeout_s)
             except can.CanOperationError as err:
                 full = err.error_code == errno.ENOBUFS or "buffer" in str(err).lower()
                 self._count(

@@ -19,8 +19,13 @@ Semantics copied from SocketCAN so code cannot tell the difference:
 
 - one Zenoh key per channel, ``hilcan/<rig>/<channel>`` (``Keys.canbus``), reliable with blocking
   congestion control (a slow reader back-pressures the writer instead of losing frames);
-- a received frame is stamped on arrival with ``time.time()`` (epoch seconds), like the kernel's
-  receive timestamp;
+- a received frame's timestamp (epoch seconds) is the instant its sender put it on the wire, when
+  the sender says so (``send_stamped``: the live runner's pacing passes each frame's wire time,
+  carried as the Zenoh attachment), else its arrival (``time.time()``): the first is what the
+  kernel does on ``vcan`` (it stamps the frame in the sender's ``send``), and the stamp then does
+  not wait for the receiving process to be scheduled. A stated stamp later than the arrival
+  (clock skew between hosts) is replaced by the arrival and counted (``rx_stamp_skew``);
+- a bus opened with ``receive=False`` only sends (no subscription);
 - a frame sent on a bus is not received back by that bus (unless ``receive_own_messages=True``);
   other buses, in this process or another, receive it;
 - a bus opened with ``fd=False`` refuses to send FD frames and does not see them (a classic
@@ -64,6 +69,7 @@ log = logging.getLogger("can.hilzenoh")  # python-can's logger tree, as its own 
 
 NO_TRAFFIC_WARN_S = 5.0
 _HEADER = struct.Struct("<QIBB")
+_STAMP = struct.Struct("<q")  # the attachment: wire time of the frame, epoch ns
 F_EXT, F_FD, F_BRS, F_ESI, F_ERR, F_RTR = 1, 2, 4, 8, 16, 32
 FD_LENGTHS = frozenset([*range(9), 12, 16, 20, 24, 32, 48, 64])
 FRAME_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema("hilzenoh.frame")  # the format above
@@ -155,6 +161,7 @@ class ZenohCanBus(can.BusABC):
         session: zenoh.Session | None = None,
         receive_own_messages: bool = False,
         rx_queue_size: int = 100_000,
+        receive: bool = True,
         no_traffic_warn_s: float = NO_TRAFFIC_WARN_S,
         **kwargs: Any,
     ) -> None:
@@ -184,6 +191,8 @@ class ZenohCanBus(can.BusABC):
         self.tx_frames = 0
         self.rx_frames = 0
         self.rx_samples = 0  # every sample on the key, own frames included: traffic on the rig
+        self.rx_stamp_skew = 0
+        self._sub: Any = None
         self._own_session = session is None
         try:
             self._session = session if session is not None else open_session(BusConfig.from_env())
@@ -197,9 +206,10 @@ class ZenohCanBus(can.BusABC):
                 encoding=FRAME_ENCODING,
             )
             # remote frames only: this session's own buses get theirs from send() (_LocalBuses)
-            self._sub = self._session.declare_subscriber(
-                self.key, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
-            )
+            if receive:
+                self._sub = self._session.declare_subscriber(
+                    self.key, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
+                )
         except Exception as err:
             if self._own_session:
                 self._session.close()
@@ -250,7 +260,20 @@ class ZenohCanBus(can.BusABC):
             self.rx_samples += 1
             self.rx_malformed += 1
             return
+        att = sample.attachment
+        if att is not None:
+            stamp = self._stated(att.to_bytes(), stamp)
         self._on_payload(payload, stamp)
+
+    def _stated(self, wire: bytes, arrival: float) -> float:
+        """The sender's wire time (``send_stamped``) unless it is after the arrival (clock skew)."""
+        if len(wire) != _STAMP.size:
+            return arrival
+        wire_s = _STAMP.unpack(wire)[0] * 1e-9
+        if wire_s <= arrival:
+            return wire_s
+        self.rx_stamp_skew += 1
+        return arrival
 
     def _on_payload(self, payload: bytes, stamp: float) -> None:
         """A frame on the key, from Zenoh or from a bus of this session (``send``)."""
@@ -285,6 +308,14 @@ class ZenohCanBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Publish ``msg``; raises ``CanOperationError`` on a closed bus or an illegal frame."""
+        self._put(msg, None)
+
+    def send_stamped(self, msg: can.Message, stamp_epoch_ns: int, timeout: float | None = None) -> None:
+        """``send``, telling receivers the frame was on the wire at ``stamp_epoch_ns`` (their
+        receive stamp; see the module docstring)."""
+        self._put(msg, int(stamp_epoch_ns))
+
+    def _put(self, msg: can.Message, stamp_ns: int | None) -> None:
         if self._closed.is_set():
             raise can.CanOperationError("hilzenoh: bus is shut down")
         n = len(msg.data or b"")
@@ -297,13 +328,16 @@ class ZenohCanBus(can.BusABC):
             raise can.CanOperationError(f"hilzenoh: {n} data bytes in a classic CAN frame")
         payload = pack_frame(self._sender, msg)
         try:
-            self._pub.put(payload)
+            if stamp_ns is None:
+                self._pub.put(payload)
+            else:
+                self._pub.put(payload, attachment=_STAMP.pack(stamp_ns))
         except Exception as err:
             raise can.CanOperationError(f"hilzenoh: publish on {self.key} failed: {err}") from err
         self.tx_frames += 1
         buses = self._local.buses
         if len(buses) > 1 or self.receive_own_messages:
-            stamp = time.time()
+            stamp = time.time() if stamp_ns is None else min(time.time(), stamp_ns * 1e-9)
             for bus in buses:
                 if bus is not self or self.receive_own_messages:
                     bus._on_payload(payload, stamp)
@@ -317,6 +351,8 @@ class ZenohCanBus(can.BusABC):
             self._watch.cancel()
         super().shutdown()
         for thing in (self._sub, self._pub):
+            if thing is None:
+                continue
             with contextlib.suppress(Exception):  # the session may already be closing
                 thing.undeclare()
         if self._own_session:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import msgspec
 
@@ -59,6 +59,27 @@ class NodeOptions(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     heap_trim_s: float | None = None  # seconds between C-heap trims (None: the service's default)
 
 
+class CanWriterOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Options of a node that writes CAN: its bus, and how the live runner paces its frames
+    (``hil.runners.pacing``; ``hil sim`` models the wire itself and ignores the pacing ones)."""
+
+    channel: str = "vcan0"  # CAN channel (the live runner's bus)
+    interface: str | None = None  # python-can interface; None: socketcan if the channel exists, else hilzenoh
+    fd: bool = False  # CAN FD
+    # nominal (arbitration) bit rate: a frame's bit time on the wire
+    bitrate: Annotated[int, msgspec.Meta(ge=10_000, le=1_000_000)] = 1_000_000
+    # CAN FD data-phase bit rate (frames with bit-rate switch)
+    data_bitrate: Annotated[int, msgspec.Meta(ge=10_000, le=12_000_000)] = 5_000_000
+    # SCHED_FIFO priority of the sending thread (0: none; needs root or CAP_SYS_NICE)
+    rt_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
+    cpu_affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []  # CPUs of the sending thread (empty: any)
+    # a sample whose tick the host missed: "send" it late (a FIFO, at wire speed) or "skip" its slot
+    late_policy: Literal["send", "skip"] = "send"
+    # compute a tick up to this long before it is due (a fault command applies after it); 1 s
+    # absorbs a physics block computed late on a loaded machine (0.25 s did not, at load 24)
+    lookahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=5.0)] = 1.0
+
+
 @dataclass
 class CanBurst:
     """Frames that leave the device together: one sample's, or a sync frame alone.
@@ -71,6 +92,12 @@ class CanBurst:
     capture_ns: int
     index: int
     sync: bool = False
+    # a sync frame: the device's counter at ``capture_ns`` (ns, no stamp jitter), its rate
+    # (device ns per rig ns) and its tick (ns) -- so a frame that cannot leave on its edge can
+    # state what the counter reads when it does leave (the live runner's pacing; hil sim sends
+    # every frame on time and never needs it)
+    device_clock: tuple[int, float, int] | None = None
+    corrupted: bool = False  # a can_burst_error corrupted it (a re-stamped copy is corrupted too)
 
 
 @dataclass
@@ -94,6 +121,7 @@ class Node:
     # frames read off the CAN bus reach on_message("@can/<channel>", frame, rx_ns) when True
     reads_can: ClassVar[bool] = False
     writes_can: ClassVar[bool] = False  # it returns (CAN_TX, CanBurst) outputs
+    sends_time_tags: ClassVar[bool] = False  # some of its bursts are sync (time-tag) frames
     # "tx": it may return (SERIAL_TX, LineBurst) outputs (when its options name a protocol);
     # "rx": bytes read off its line reach on_message("@serial/<port>", data, rx_ns)
     serial: ClassVar[str] = ""
@@ -108,6 +136,10 @@ class Node:
     # before they reach it: a node that re-publishes under its own name (the time sync) would
     # otherwise pass a stranger's data on as the rig's
     refuses_foreign: ClassVar[bool] = False
+    # the CAN path's fixed latency after a frame's last bit (controller, driver): live, the
+    # runner hands each frame to the bus that long after its wire time (hil sim's wire model
+    # adds the same)
+    can_wire_latency_ns: int = 0
 
     def __init__(self, run: RunInfo, options: NodeOptions | None = None) -> None:
         self.run = run

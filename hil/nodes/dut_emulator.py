@@ -16,15 +16,12 @@ import numpy as np
 from hil.can.dut_emulator import DutNavEncoder, load_dut
 from hil.nav.scenario import scenario_for_run
 from hil.nav.trajectory import TruthGenerator
-from hil.nodes.base import CAN_TX, CanBurst, Node, NodeOptions, OptionsError, Out
+from hil.nodes.base import CAN_TX, CanBurst, CanWriterOptions, Node, OptionsError, Out
 from hil.sensors.imu import sensor_rng
 
 
-class DutEmulatorOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+class DutEmulatorOptions(CanWriterOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
     dut_mapping: str | None = None  # the unit's mapping TOML (required)
-    channel: str = "vcan0"
-    interface: str | None = None
-    fd: bool = False
     rate_hz: float = 10.0  # solutions per second
     sigma_h_m: float = 1.5  # horizontal error, 1 sigma (vertical: twice that)
     tau_s: float = 60.0  # correlation time of the error

@@ -35,18 +35,17 @@ from hil.faults import (
 from hil.messages import CaptureTruth, FaultCommand
 from hil.nav.scenario import scenario_for_run
 from hil.nav.trajectory import TruthGenerator
-from hil.nodes.base import CAN_TX, CanBurst, Input, Node, NodeOptions, Out
-from hil.sensors.clock import device_clock_for
+from hil.nodes.base import CAN_TX, CanBurst, CanWriterOptions, Input, Node, Out
+from hil.sensors.clock import clock_config_for, device_clock_for
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
 RESUME_AFTER_S = 2.0  # a start this late into the run is a restart: resume, do not burst the past
 BLOCK_NS = 1_000_000_000  # physics computed per second of rig time
 
 
-class ImuEmulatorOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    channel: str = "vcan0"  # CAN channel (the live runner's bus)
-    interface: str | None = None  # python-can interface; None: socketcan if the channel exists, else hilzenoh
-    fd: bool = False  # CAN FD: one 64-byte frame per sample
+class ImuEmulatorOptions(CanWriterOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The bus and pacing (``CanWriterOptions``; ``fd``: one frame per sample) and the DBC."""
+
     dbc: str | None = None  # the IMU's DBC (default: schemas/imu.dbc)
 
 
@@ -56,6 +55,7 @@ class ImuEmulatorNode(Node):
     inputs = (Input("control/fault", {"control": FaultCommand}),)
     outputs = ("capture/imu",)
     writes_can = True
+    sends_time_tags = True
 
     def __init__(self, run: Any, options: ImuEmulatorOptions | None = None) -> None:
         super().__init__(run, options)
@@ -63,6 +63,7 @@ class ImuEmulatorNode(Node):
         s = scenario_for_run(run)
         self.core = ImuEmulatorCore(s, TruthGenerator(s), sensor_rng(s.seed, "imu"))
         self.clock = device_clock_for(s, "imu")
+        self.can_wire_latency_ns = round(clock_config_for(s, "imu").transport_latency_s * 1e9)
         self.codec = ImuCanCodec.from_dbc(opts.dbc, fd=opts.fd)
         self.faults = ImuFaults(s.seed, s.events)
         # can_latency: a sample's frames go through the delay line (released at once when no
@@ -151,9 +152,16 @@ class ImuEmulatorNode(Node):
         if act.send and (k + 1) % self.sync_every == 0:
             # the sync edge is this capture: its frame goes first and is never held
             try:
-                outs.append(self._release(CanBurst([self.codec.encode_sync(dev)], t_true, k, sync=True)))
+                sync = self.codec.encode_sync(dev)
             except (EncodeError, TypeError, ValueError) as err:
                 self.error("tx_encode_errors", f"sync not encodable: {err}")
+            else:
+                counter, rate = self.clock.counter(t_true)
+                burst = CanBurst(
+                    [sync], t_true, k, sync=True, device_clock=(counter, rate, self.clock.quantum_ns)
+                )
+                burst.corrupted = self.corruptor.pending > 0  # _release corrupts it now if so
+                outs.append(self._release(burst))
         # encoded even when not sent: the device's counters and SampleCount advance
         try:
             frames: list[Any] | None = self.codec.encode_sample(

@@ -5,7 +5,9 @@ each under ``hil up`` or compose): it decodes the node's typed options, subscrib
 inputs before the run starts (Zenoh callbacks only enqueue), waits for the run's ``RunInfo``,
 builds the node, and then one thread calls it -- ``on_message_from`` for each input in arrival order,
 ``tick`` when rig time reaches ``next_tick_ns`` -- and publishes what it returns: Zenoh keys
-through typed publishers (the node numbers its own seqs), frames through a ``CanTransmitter``.
+through typed publishers (the node numbers its own seqs). A node that writes CAN is ticked up
+to ``lookahead_s`` ahead and its frames leave through a pacing process of its own
+(``hil.runners.can_sender``, ``hil.runners.pacing``: on the sample grid, at wire spacing).
 Frames read off the CAN bus reach a node that ``reads_can`` with their kernel receive stamps on
 the rig clock. Status (1 Hz, the node's counters beside the runner's), heap trims and the
 supervisor's restart generation come from ``hil.runtime.service.Service``. At a stop, what has
@@ -20,11 +22,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import threading
 import time
 import types
 import typing
+from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -37,7 +41,6 @@ from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
 from hil.can.bus import open_can_bus
-from hil.can.node import CanTransmitter
 from hil.messages import RunInfo, ServiceStatus
 from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nodes.base import (
@@ -52,6 +55,8 @@ from hil.nodes.base import (
     decode_options,
 )
 from hil.nodes.world import run_info
+from hil.runners.can_sender import SenderProcess, pacing_config_dict
+from hil.runners.pacing import MonotonicRigClock, PacingConfig
 from hil.runners.serial import LineReader, LineWriter
 from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
@@ -69,6 +74,7 @@ _IDENT = msgspec.json.Decoder(_Ident)
 
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
+PACING_TRACE_ENV = "HIL_PACING_TRACE"  # benches: a directory for <service>.npy pacing traces
 RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the recorder
 
 
@@ -94,10 +100,14 @@ class NodeService(Service):
         self._pubs: dict[str, Publisher[Any]] = {}
         self._errors_seen = 0
         self.can_bus: can.BusABC | None = None
-        self.can_tx: CanTransmitter | None = None
         self.transport = ""
         self.line_tx: LineWriter | None = None
         self.line_rx: LineReader | None = None
+        self.can_sender: SenderProcess | None = None  # a node that writes CAN: its frames' pacer
+        self._mono: MonotonicRigClock | None = None
+        self._sender_error = ""
+        self._sender_dead = False
+        self._due: deque[tuple[int, list[Out], str]] = deque()  # outputs held for their rig time
 
     # -- setup: subscriptions and publishers before time zero -----------------------------------
     def setup(self) -> None:
@@ -112,8 +122,10 @@ class NodeService(Service):
             self._subs.append(sub)
         for key in self.node_cls.outputs:
             self._publisher(key, None)
-        if self.node_cls.reads_can or self.node_cls.writes_can:
+        if self.node_cls.reads_can:
             self._open_can()
+        if self.node_cls.writes_can:
+            self._start_can_sender()
         self._open_line()
 
     def _open_line(self) -> None:
@@ -148,11 +160,37 @@ class NodeService(Service):
             rig=self.ctx.rig,
             session=self.ctx.session,
         )
-        if self.node_cls.writes_can:
-            self.can_tx = CanTransmitter(self.can_bus, self.stats)
         if self.node_cls.reads_can:  # the recording says which transport the bridge read
             self.emit_event("can_transport", self.transport)
         print(f"[{self.name}] CAN: {self.transport}", flush=True)  # noqa: T201 - the start-up line users need
+
+    def _start_can_sender(self) -> None:
+        """The node's frames leave through a pacing process of their own (``hil.runners.can_sender``),
+        started now so it has its bus and codec long before time zero."""
+        o: Any = self.opts
+        trace_dir = os.environ.get(PACING_TRACE_ENV)
+        pacing = PacingConfig(
+            late_policy=o.late_policy,
+            rt_priority=int(o.rt_priority),
+            cpu_affinity=tuple(o.cpu_affinity),
+            bitrate=int(o.bitrate),
+            data_bitrate=int(o.data_bitrate),
+        )
+        config = {
+            "channel": o.channel,
+            "interface": o.interface,
+            "fd": bool(o.fd),
+            "rig": self.ctx.rig,
+            "time_tags": self.node_cls.sends_time_tags,
+            "dbc": getattr(o, "dbc", None),
+            "pacing": pacing_config_dict(pacing),
+            "trace": os.path.join(trace_dir, f"{self.name}.npy") if trace_dir else None,
+        }
+        self.can_sender = SenderProcess(config, self._pacing_note, self._sender_ready)
+
+    def _sender_ready(self, transport: str) -> None:
+        self.transport = transport
+        print(f"[{self.name}] CAN: {transport}", flush=True)  # noqa: T201 - the start-up line users need
 
     def _enqueue(self, key: str, raw: bytes, source: str, cls: type) -> None:
         # Zenoh's callback thread only enqueues: a subscription may match this node's own
@@ -194,6 +232,9 @@ class NodeService(Service):
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
         node = self.make_node(run)
+        if self.can_sender is not None:
+            self._run_paced(node, run)
+            return
         with self.lock:
             self.node = node
             outs = node.start(clock.now_ns())
@@ -224,22 +265,23 @@ class NodeService(Service):
             item = self.inbox.get(timeout=wait_s)
             if item is None:
                 continue
-            self._consume(node, item, clock, root_len)
+            outs = self._consume(node, item, clock.now_ns(), root_len)
+            if outs is not None:
+                self._publish(outs, "input")
         self._drain_and_finish(node, clock, root_len)
 
     def _consume(
-        self, node: Node, item: tuple[str, bytes, str, type], clock: RigClock, root_len: int
-    ) -> None:
+        self, node: Node, item: tuple[str, bytes, str, type], now_ns: int, root_len: int
+    ) -> list[Out] | None:
         """One input to the node, after the ones the inbox dropped before it (so a journal that
-        names them does so in the order they were lost)."""
+        names them does so in the order they were lost); None: it did not decode (counted)."""
         self._hand_dropped(node, root_len)
         key, raw, source, cls = item
         msg = decode_checked(cls, key, raw, self.stats)
         if msg is None:
-            return
+            return None
         with self.lock:
-            outs = node.on_message_from(key[root_len:], msg, clock.now_ns(), source)
-        self._publish(outs, "input")
+            return node.on_message_from(key[root_len:], msg, now_ns, source)
 
     def _hand_dropped(self, node: Node, root_len: int) -> None:
         """What the inbox dropped, to a node that journals it: only the fields that name it
@@ -258,6 +300,106 @@ class NodeService(Service):
                 if not ident.sensor:  # a message type's default, left out of the payload
                     ident.sensor = key.rsplit("/", 1)[-1]
                 node.on_dropped(key[root_len:], ident, source)
+
+    def _run_paced(self, node: Node, run: RunInfo) -> None:
+        """A node whose frames must leave on time (``hil.runners.pacing``): ticked up to
+        ``lookahead_s`` before each tick is due (its output depends on the tick's rig time only),
+        its frames sent by the pacing process at their rig times, its other outputs published
+        here when their time comes."""
+        sender = self.can_sender
+        assert sender is not None
+        o: Any = self.opts
+        mono = self._mono = MonotonicRigClock(run.start_epoch_ns, run.speed)
+        lookahead = max(0, round(float(o.lookahead_s) * 1e9))
+        sender.start_run(
+            run.start_epoch_ns, run.speed, int(node.can_wire_latency_ns), int(getattr(node, "dt_ns", 0))
+        )
+        pacing = {
+            "origin": "runner",  # not the node's: how the live runner paces its frames
+            "rt_priority": o.rt_priority,
+            "cpu_affinity": list(o.cpu_affinity),
+            "late_policy": o.late_policy,
+            "lookahead_s": o.lookahead_s,
+            "bitrate": o.bitrate,
+            "data_bitrate": o.data_bitrate,
+            "wire_latency_ns": node.can_wire_latency_ns,
+        }
+        self.emit_event("pacing", json.dumps(pacing))  # JSON, as the node's own events
+        with self.lock:
+            self.node = node  # its counters reach the status
+            outs = node.start(mono.now_ns())
+        if outs:
+            self._await_recorder()
+        self._route(outs, None, "start")
+        root_len = len(self.keys.root) + 1
+        stop = self.ctx.stop
+        horizon = 0  # rig time the node has computed up to: an input applies from there on
+        try:
+            while not stop.is_set():
+                now = mono.now_ns()
+                self._publish_due(now)
+                t_next = node.next_tick_ns()
+                if t_next is not None and t_next <= now + lookahead:
+                    with self.lock:
+                        outs = node.tick(t_next)
+                    horizon = max(horizon, t_next)
+                    self._route(outs, t_next, "tick")
+                    continue
+                wake = [
+                    t
+                    for t in (None if t_next is None else t_next - lookahead, self._next_due())
+                    if t is not None
+                ]
+                wait_s = min([MAX_WAIT_S, *((w - now) * 1e-9 / run.speed for w in wake)])
+                item = self.inbox.get(timeout=max(0.0, wait_s))
+                if item is None:
+                    continue
+                # a fault command applies from the first sample not yet computed
+                outs = self._consume(node, item, max(mono.now_ns(), horizon + 1), root_len)
+                if outs is not None:
+                    self._route(outs, None, "input")
+            # stop: what was computed still leaves at its time (at most lookahead_s more: no seq
+            # gap before the node's finish outputs), then the node finishes
+            while self._due:
+                time.sleep(max(0.0, (self._due[0][0] - mono.now_ns()) * 1e-9 / run.speed))
+                self._publish_due(mono.now_ns())
+            self._drain_and_finish(node, mono, root_len)
+        finally:
+            sender.close()
+
+    def _route(self, outs: list[Out], due_ns: int | None, why: str) -> None:
+        """Frames to the pacing process (due at ``due_ns``, or now); the rest published at that time."""
+        assert self.can_sender is not None and self._mono is not None
+        now = self._mono.now_ns()
+        rest: list[Out] = []
+        for key, msg in outs:
+            if key == CAN_TX:
+                self.can_sender.submit(now if due_ns is None else due_ns, now, msg)
+            else:
+                rest.append((key, msg))
+        if due_ns is None or due_ns <= now:
+            self._publish(rest, why)
+        elif rest:
+            self._due.append((due_ns, rest, why))
+
+    def _next_due(self) -> int | None:
+        return self._due[0][0] if self._due else None
+
+    def _publish_due(self, now_ns: int) -> None:
+        while self._due and self._due[0][0] <= now_ns:
+            _, outs, why = self._due.popleft()
+            self._publish(outs, why)
+
+    def _pacing_note(self, text: str) -> None:
+        self.stats.note(f"pacing: {text}")
+        print(f"[{self.name}] pacing: {text}", flush=True)  # noqa: T201 - an operator must see it
+
+    def _deliver(self, outs: list[Out], why: str) -> None:
+        """Outputs at the stop: frames through the pacing process when there is one."""
+        if self.can_sender is not None and self._mono is not None:
+            self._route(outs, None, why)
+        else:
+            self._publish(outs, why)
 
     def _read_can(self, node: Node, run: RunInfo, wait_s: float) -> None:
         assert self.can_bus is not None
@@ -286,7 +428,7 @@ class NodeService(Service):
             outs = node.on_message(f"{SERIAL_RX}/{getattr(self.opts, 'port', 'gnss')}", data, rx_ns)
         self._publish(outs, "input")
 
-    def _drain_and_finish(self, node: Node, clock: RigClock, root_len: int) -> None:
+    def _drain_and_finish(self, node: Node, clock: RigClock | MonotonicRigClock, root_len: int) -> None:
         """Stop: consume what had arrived (bounded: a node behind a backlog must still stop on
         time), then release what the node holds."""
         drain_until = time.monotonic() + STOP_DRAIN_S
@@ -294,19 +436,19 @@ class NodeService(Service):
             item = self.inbox.get(timeout=0)
             if item is None:
                 break
-            self._consume(node, item, clock, root_len)
+            outs = self._consume(node, item, clock.now_ns(), root_len)
+            if outs is not None:
+                self._deliver(outs, "input")
         self._hand_dropped(node, root_len)
         with self.lock:
             outs = node.finish(clock.now_ns())
         with contextlib.suppress(Exception):  # the session may be closing
-            self._publish(outs, "finish")
+            self._deliver(outs, "finish")
 
     def _publish(self, outs: list[Out], why: str) -> None:
         for key, msg in outs:
             if key == CAN_TX:
-                if self.can_tx is not None:
-                    self.can_tx.send_frames(msg.frames, sync=msg.sync)
-                continue
+                continue  # frames leave through the pacing process (_route), never from here
             if key == SERIAL_TX:
                 if self.line_tx is not None and self.clock is not None:
                     self.line_tx.write(msg.data, self.clock.wall_of(msg.start_ns))
@@ -328,16 +470,27 @@ class NodeService(Service):
         if node is not None:
             with self.lock:
                 out.update(node.counters())
-        if self.can_tx is not None:
-            out.update(self.can_tx.counters())
         bus_counters = getattr(self.can_bus, "counters", None)  # the hilzenoh bus's receive queue
         if callable(bus_counters):
             out.update(bus_counters())
+        sender = self.can_sender
+        if sender is not None:
+            out.update(sender.last_counters)
+            if sender.last_error and sender.last_error != self._sender_error:
+                self._sender_error = sender.last_error
+                self.stats.note(sender.last_error)
+            if not sender.alive() and not self.ctx.stop.is_set() and not self._sender_dead:
+                self._sender_dead = True
+                self.stats.error(
+                    "errors.can_sender", f"the CAN sender process exited ({sender.proc.returncode})"
+                )
         if self.line_tx is not None:
             out.update(self.line_tx.counts)
         return out
 
     def teardown(self) -> None:
+        if self.can_sender is not None:
+            self.can_sender.close()  # idempotent: a run that never started still stops it
         if self.can_bus is not None:
             with contextlib.suppress(Exception):
                 self.can_bus.shutdown()
@@ -443,7 +596,11 @@ def _arg_type(hint: Any) -> Callable[[str], Any]:
     args = [a for a in typing.get_args(hint) if a is not type(None)]
     base = args[0] if args and typing.get_origin(hint) in (types.UnionType, typing.Union) else hint
     if typing.get_origin(base) is list:
-        return lambda text: [x for x in text.split(",") if x]
+        (item,) = typing.get_args(base) or (str,)
+        if typing.get_origin(item) is typing.Annotated:
+            item = typing.get_args(item)[0]
+        conv: Callable[[str], Any] = finite_float if item is float else int if item is int else str
+        return lambda text: [conv(x) for x in text.split(",") if x.strip()]
     if base is float:
         return finite_float
     if base is int:

@@ -37,14 +37,37 @@ from hil.runtime.options import fill_options
 from hil.runtime.registry import SERVICES, STOP_STAGES
 
 
-def proc_cpu_seconds(pid: int) -> float | None:
-    """user + system CPU seconds of a live process (Linux /proc); None where unavailable."""
+def proc_cpu_seconds(pid: int, tree: bool = True) -> float | None:
+    """user + system CPU seconds of a live process (Linux /proc); None where unavailable.
+    ``tree``: with its live child processes' (a service's CAN sender process is its own)."""
     try:
         with open(f"/proc/{pid}/stat") as fh:
             fields = fh.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return None
+    if tree:
+        for kid in _children(pid):
+            cpu += proc_cpu_seconds(kid) or 0.0
+    return cpu
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/children") as fh:
+                out += [int(x) for x in fh.read().split()]
+        except (OSError, ValueError):
+            continue
+    return out
+
+
+READY_STATES = ("waiting_run", "running")  # what world waits for before it picks time zero
 
 
 DUT_EMULATORS = ("unit", "truth")
@@ -88,6 +111,11 @@ class UpOptions:
     channel: str = "vcan0"
     interface: str | None = None  # python-can interface of the IMU and the bridge
     fd: bool = False
+    # pacing of the IMU's frames (hil.runners.pacing): real-time priority and CPUs of its sender
+    # thread, and what a sample whose tick the host missed does
+    rt_priority: int = 0
+    cpu_affinity: list[int] = field(default_factory=list)
+    late_policy: str = "send"
     estimators: list[str] = field(default_factory=list)
     feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
     ekf_calibration: str = "auto"  # ekf15's calibration states (same)
@@ -154,6 +182,7 @@ class LiveView:
         self.truth: deque[Truth] = deque(maxlen=400)
         self.errors_m: dict[str, float] = {}
         self.nav_seen: dict[str, float] = {}
+        self.ready_at: dict[str, float] = {}  # service -> monotonic time it first said it was ready
         self.nav_last: dict[str, NavSolution] = {}  # compared with truth when the table is drawn
         self.degraded: dict[str, str] = {}  # service -> why, once it has said "degraded"
 
@@ -161,6 +190,8 @@ class LiveView:
         with self.lock:
             self.status[st.service] = st
             self.status_seen[st.service] = time.monotonic()
+            if st.state in READY_STATES:
+                self.ready_at.setdefault(st.service, self.status_seen[st.service])
             if st.state == "degraded":  # kept: a later "stopping" status does not undo it
                 reason = st.last_error or self.degraded.get(st.service) or "no reason given"
                 self.degraded[st.service] = reason
@@ -293,6 +324,7 @@ class Supervisor:
         self._kill_lock = threading.Lock()
         self.view = LiveView()
         self.cpu_s: dict[str, float] = {}  # per service, sampled just before the stop
+        self.spawned_at: dict[str, float] = {}  # per service, monotonic time of its (last) start
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
@@ -522,6 +554,9 @@ class Supervisor:
             fh.flush()
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         child = Child(name, proc, log_path, fh, restarts=restarts)
+        self.spawned_at[name] = time.monotonic()
+        with self.view.lock:
+            self.view.ready_at.pop(name, None)  # a restart becomes ready again
         self.children[name] = child
         return child
 
@@ -719,6 +754,20 @@ class Supervisor:
             live = max(0.0, cpu - self._cpu_base.get(name, 0.0)) if cpu is not None else 0.0
             self.cpu_s[name] = self._cpu_dead.get(name, 0.0) + live
         self.cpu_s["supervisor"] = max(0.0, _own_cpu_seconds() - self._cpu_self_base)
+
+    def ready_s(self) -> dict[str, float]:
+        """Seconds from each service's process start to its first ready status (the world waits
+        for these before it picks time zero)."""
+        with self.view.lock:
+            ready = dict(self.view.ready_at)
+        return {n: ready[n] - t for n, t in self.spawned_at.items() if n in ready}
+
+    def ready_line(self) -> str:
+        r = self.ready_s()
+        if not r:
+            return ""
+        parts = ", ".join(f"{n} {s:.2f}" for n, s in sorted(r.items(), key=lambda kv: -kv[1]))
+        return f"ready after start (s): {parts}"
 
     def cpu_table(self) -> str:
         if not self.cpu_s or self.cpu_window_s <= 0:

@@ -274,6 +274,25 @@ class DeviceClock:
                 dev += step
         return (dev // self._q_ns) * self._q_ns
 
+    def counter(self, true_ns: int) -> tuple[int, float]:
+        """What the device's counter reads at true instant ``true_ns`` (no stamp jitter, not yet
+        floored to its tick) and how fast it runs there (device ns per true ns): enough to say
+        what it reads a few ms later -- a time-tag frame that leaves late states when it left."""
+        t = int(true_ns)
+        dev = t + self._offset_ns + math.floor(self.cfg.drift_ppm * 1e-6 * t + self._wander_ns(t))
+        for t_k, step in self._steps:
+            if t >= t_k:
+                dev += step
+        rate_ppm = self.cfg.drift_ppm
+        if self.cfg.drift_rw_ppm_per_sqrt_s:
+            rate_ppm += float(self._knots_ppm[int(max(0.0, t * 1e-9))])
+        return dev, 1.0 + rate_ppm * 1e-6
+
+    @property
+    def quantum_ns(self) -> int:
+        """The device counter's tick (stamps are floored to it)."""
+        return self._q_ns
+
     def device_ns_array(self, true_ns: np.ndarray) -> np.ndarray:
         """Vectorised :meth:`device_ns` (identical results), for benches and tests."""
         t = np.asarray(true_ns, dtype=np.int64)

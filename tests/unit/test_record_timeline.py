@@ -45,7 +45,7 @@ def test_timesync_rerun_feeds_rig_time_on_both_timelines(sim_recording: Path) ->
     # Not verified bit for bit: its time sync ran before the start-up hold of issue 22.2.
     rc, lines = rerun(str(LEGACY_GOLDEN), core="timesync", verify=False)
     assert rc == 0, lines
-    n = [ln for ln in lines if ln.startswith("rerun timesync:")][0]
+    n = next(ln for ln in lines if ln.startswith("rerun timesync:"))
     raw, restamped = (
         n.split(" raw measurements")[0].split()[-1],
         n.split(" re-stamps recomputed")[0].split()[-1],

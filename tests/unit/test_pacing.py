@@ -1,0 +1,157 @@
+"""The live pacing of CAN frames (hil.runners.pacing) on a simulated clock: the grid is kept,
+frames of a sample are spaced by their wire time, a stall never compresses the grid below wire
+speed, and a late time tag states when it left."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import pytest
+
+from hil.can.codec import ImuCanCodec
+from hil.nodes.base import CanBurst
+from hil.runners.pacing import CanWire, PacedSender, PacingConfig, Waiter
+
+PERIOD = 2_500_000
+
+
+class FakeClock:
+    """Rig time = monotonic time = epoch time (ns); sleeping advances it, with an overshoot."""
+
+    def __init__(self, overshoot_ns: int = 30_000) -> None:
+        self.t = 0
+        self.overshoot_ns = overshoot_ns
+
+    def mono(self) -> int:
+        self.t += 100  # every read costs a little, as a spin does
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.t += round(s * 1e9) + self.overshoot_ns
+
+    def now_ns(self) -> int:
+        return self.mono()
+
+    def mono_of_rig(self, rig_ns: int) -> int:
+        return rig_ns
+
+    def rig_of_mono(self, mono_ns: int) -> int:
+        return mono_ns
+
+    def epoch_ns(self, rig_ns: int) -> int:
+        return rig_ns
+
+
+@dataclass
+class Sink:
+    clock: FakeClock
+    stamps: bool = True
+    sent: list[tuple[int, int | None, can.Message]] = field(default_factory=list)
+    bursts: list[tuple[bool, bool]] = field(default_factory=list)
+
+    @property
+    def carries_stamps(self) -> bool:
+        return self.stamps
+
+    def send_frame(self, frame: Any, stamp_epoch_ns: int | None = None) -> bool:
+        self.sent.append((self.clock.t, stamp_epoch_ns, frame))
+        return True
+
+    def count_burst(self, ok: bool, sync: bool) -> None:
+        self.bursts.append((ok, sync))
+
+
+def _sender(stamps: bool = True, **cfg: Any) -> tuple[PacedSender, FakeClock, Sink]:
+    clock = FakeClock()
+    sink = Sink(clock, stamps)
+    codec = ImuCanCodec.from_dbc(None)
+    ps = PacedSender(clock, PacingConfig(**cfg), sink, codec.restamp_sync, trace=True)  # type: ignore[arg-type]
+    ps.waiter = Waiter(now=clock.mono, sleep=clock.sleep)
+    return ps, clock, sink
+
+
+def _burst(k: int, n: int = 4) -> CanBurst:
+    frames = [can.Message(arbitration_id=0x100 + i, data=bytes(8), is_extended_id=False) for i in range(n)]
+    return CanBurst(frames, (k + 1) * PERIOD, k)
+
+
+@pytest.mark.parametrize("stamps", [True, False])
+def test_samples_leave_on_their_grid_with_frames_at_wire_spacing(stamps: bool) -> None:
+    ps, _clock, sink = _sender(stamps)
+    wire = CanWire()
+    for k in range(50):
+        ps.send(_burst(k), (k + 1) * PERIOD, backlog=True)
+    frame_ns = wire.frame_ns(_burst(0).frames[0])
+    assert 100_000 < frame_ns < 140_000  # 8 data bytes at 1 Mbit/s, worst-case stuffing
+    for row in ps.trace or []:
+        _index, _due, ideal, handed, frames, _sub = row
+        assert frames == 4 and 0 <= handed - ideal < 5_000  # on time to a few µs
+    # each frame's wire time: 1, 2, 3, 4 frame times after its sample's tick
+    for i, (t, stamp, _f) in enumerate(sink.sent):
+        k, j = divmod(i, 4)
+        due_end = (k + 1) * PERIOD + (j + 1) * frame_ns
+        when = stamp if stamps else t
+        assert when is not None and 0 <= when - due_end < 5_000
+    assert ps.counts["tx_late_samples"] == 0 and len(sink.bursts) == 50
+
+
+def test_a_stall_is_sent_late_at_wire_speed_and_counted_never_bunched() -> None:
+    ps, clock, sink = _sender()
+    clock.t = 10 * PERIOD  # the host stalled for ten samples
+    for k in range(12):
+        ps.send(_burst(k), (k + 1) * PERIOD, backlog=True)
+    frame_ns = CanWire().frame_ns(_burst(0).frames[0])
+    stamps = [s for _t, s, _f in sink.sent]
+    gaps = [b - a for a, b in itertools.pairwise(stamps)]
+    assert min(gaps) >= frame_ns  # never faster than the wire carries frames
+    assert ps.counts["tx_late_samples"] >= 9 and ps.counts["tx_late_max_us"] > 20_000
+
+
+def test_skip_policy_drops_passed_slots_and_keeps_the_grid() -> None:
+    ps, clock, sink = _sender(late_policy="skip", period_ns=PERIOD)
+    clock.t = 10 * PERIOD
+    for k in range(12):
+        ps.send(_burst(k), (k + 1) * PERIOD, backlog=True)
+    assert ps.counts["tx_late_skipped_samples"] == 9
+    assert len(sink.bursts) == 3
+
+
+def test_a_late_time_tag_states_when_it_left() -> None:
+    ps, clock, sink = _sender()
+    codec = ImuCanCodec.from_dbc(None)
+    tick = 1_000
+    dev0 = 5 * PERIOD + 7_000_000  # the device counter at the edge (offset 7 ms)
+    sync = codec.encode_sync(dev0 - dev0 % tick)
+    edge = 5 * PERIOD
+    clock.t = edge + 3_000_000  # the sender got to it 3 ms after its edge
+    ps.send(CanBurst([sync], edge, 5, sync=True, device_clock=(dev0, 1.0, tick)), edge)
+    assert ps.counts["tx_sync_restamped"] == 1 and ps.counts["tx_sync_dropped"] == 0
+    ((_t, stamp, frame),) = sink.sent
+    assert frame.data[1] & 0x0F == sync.data[1] & 0x0F  # the same transmission's counter
+    stated = codec.decode(frame.arbitration_id, frame.data)["DeviceTime"]
+    # the device time it states is that of its first bit, a frame time before the stamp
+    left = stamp - CanWire().frame_ns(frame)
+    want_ns = dev0 + (left - edge)
+    assert abs(stated - want_ns) <= 2 * tick, (stated, want_ns)  # DeviceTime is in ns
+
+
+@pytest.mark.parametrize("stamps", [True, False])
+def test_a_time_tag_handed_over_late_is_stamped_with_its_stated_instant_or_dropped(stamps: bool) -> None:
+    ps, clock, sink = _sender(stamps)
+    clock.overshoot_ns = 2_000_000  # every sleep wakes 2 ms late: the hand-over misses its instant
+    codec = ImuCanCodec.from_dbc(None)
+    edge = 5 * PERIOD
+    clock.t = edge + 3_000_000
+    sync = codec.encode_sync(edge)
+    ps.send(CanBurst([sync], edge, 5, sync=True, device_clock=(edge, 1.0, 1_000)), edge)
+    if stamps:  # the stamp is the instant the tag states (+ its wire time), not the late hand-over
+        ((t, stamp, frame),) = sink.sent
+        stated = codec.decode(frame.arbitration_id, frame.data)["DeviceTime"]
+        assert stamp is not None and t - stamp > 1_000_000
+        assert abs(stamp - CanWire().frame_ns(frame) - stated) <= 1_000
+        assert ps.counts["tx_sync_dropped"] == 0
+    else:  # SocketCAN stamps at send: a tag that cannot meet its instant is not sent
+        assert sink.sent == [] and ps.counts["tx_sync_dropped"] == 1
