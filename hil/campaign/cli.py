@@ -15,6 +15,7 @@ local one with a worker per core, or ``--workers N``). Errors a user can fix rai
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tomllib
 from importlib import resources
@@ -53,7 +54,9 @@ def _positive_float(text: str) -> float:
 def _run_options(p: argparse.ArgumentParser, out_required: bool) -> None:
     p.add_argument("--out", type=Path, required=out_required, default=None, help="the campaign's directory")
     p.add_argument(
-        "--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler (default: a local cluster)"
+        "--scheduler",
+        default=os.environ.get("HIL_DASK_SCHEDULER") or None,
+        help="tcp://HOST:PORT of a Dask scheduler (default: $HIL_DASK_SCHEDULER, else a local cluster)",
     )
     p.add_argument(
         "--workers", type=_positive_int, default=None, help="local cluster size (default: one per core)"

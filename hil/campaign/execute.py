@@ -125,9 +125,18 @@ def _sim_rows(run: RunSpec, keep: Path | None = None) -> list[dict[str, Any]]:
         record = keep or Path(tmp) / "run.mcap"
         record.parent.mkdir(parents=True, exist_ok=True)
         warnings = sim_recording(run, record, Path(tmp))
-        c = Collected(frozenset(run.estimators))
-        for r in SessionStream(record):
-            c.record(r)
+        rows = sim_statistics(run, record, warnings)
+    if keep is not None:
+        for row in rows:
+            row["recording"] = str(record)
+    return rows
+
+
+def sim_statistics(run: RunSpec, record: Path, warnings: list[str]) -> list[dict[str, Any]]:
+    """The rows of a sim run from its recording (read once, streamed)."""
+    c = Collected(frozenset(run.estimators))
+    for r in SessionStream(record):
+        c.record(r)
     sc = parse_scenario(run.scenario_toml, run.scenario)
     windows, cap = scenario_windows(sc), gnss_bound(sc)
     rows = []
@@ -135,8 +144,6 @@ def _sim_rows(run: RunSpec, keep: Path | None = None) -> list[dict[str, Any]]:
         row = base_row(run, name, OK) | estimator_stats(
             c, name, settle_s=run.settle_s, windows=windows, cap_m=cap
         )
-        if keep is not None:
-            row["recording"] = str(record)
         row["note"] = "; ".join(warnings)
         if row["n"] == 0:
             row.update(status=FAILED, error=f"{name} published no solution inside the truth's span")

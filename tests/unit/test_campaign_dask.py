@@ -124,6 +124,19 @@ def test_a_failing_run_is_reported_with_its_error(cluster: Any, tmp_path: Path) 
     assert row["status"] == "failed" and row["error"] == error
 
 
+def test_builtin_uav_nees_at_tiny_size(cluster: Any, tmp_path: Path) -> None:
+    """The UAV NEES study's campaign end to end through the CLI form, 2 runs of 8 s."""
+    from hil.campaign.cli import main
+
+    argv = ["builtin", "uav_nees", "--runs", "2", "--duration", "8", "--settle", "2", "--quiet"]
+    assert main([*argv, "--out", str(tmp_path), "--scheduler", cluster.scheduler_address]) == 0
+    rows = read_results(tmp_path).table()
+    assert [(r["estimator"], r["status"], r["scenario"]) for r in rows] == [
+        ("ekf15", OK, "uav_survey_seed_gnss")
+    ] * 2
+    assert all(r["nees_mean"] is not None and len(r["series_nees"]) == 7 for r in rows)
+
+
 def test_unreachable_scheduler_is_one_line_exit_2(tmp_path: Path) -> None:
     port = free_port()  # bound and closed: nothing listens there
     env = {**os.environ, "PYTHONPATH": str(REPO)}
