@@ -157,18 +157,43 @@ class Paired:
         return float(wilcoxon(d).pvalue)
 
 
-def pair(before: list[dict[str, Any]], after: list[dict[str, Any]]) -> list[Paired]:
-    """Rows of the same run (key) and estimator, both ok, grouped like :func:`summarise`."""
-    old = {
-        (r["key"], r["estimator"]): r for r in before if r["status"] == OK and r.get("h_rms_m") is not None
-    }
+def _situation(r: dict[str, Any]) -> tuple[Any, ...]:
+    """What a run faced, whatever the configuration: kind, scenario, seed, faults, recording."""
+    return (r["kind"], r.get("scenario"), r.get("seed"), r.get("faults"), r.get("recording"), r["estimator"])
+
+
+def _usable(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [r for r in rows if r["status"] == OK and r.get("h_rms_m") is not None]
+
+
+def _unique(rows: list[dict[str, Any]]) -> dict[tuple[Any, ...], dict[str, Any]]:
+    seen: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for r in rows:
+        seen.setdefault(_situation(r), []).append(r)
+    return {k: v[0] for k, v in seen.items() if len(v) == 1}
+
+
+def pair(before: list[dict[str, Any]], after: list[dict[str, Any]]) -> tuple[list[Paired], str]:
+    """Rows of the same run and estimator, both ok, grouped like :func:`summarise`; and how.
+
+    By key (the same definition: a code change between two campaigns of one spec). If no key is
+    common, by situation -- scenario, seed, fault set, recording, estimator -- where each is
+    unique on both sides: the same runs under another configuration or statistics window.
+    """
+    old, new = _usable(before), _usable(after)
+    by_key = {(r["key"], r["estimator"]): r for r in old}
+    matched = [(by_key[(r["key"], r["estimator"])], r) for r in new if (r["key"], r["estimator"]) in by_key]
+    how = "key"
+    if not matched:
+        o, n = _unique(old), _unique(new)
+        matched = [(o[k], r) for k, r in n.items() if k in o]
+        how = "situation"
     varying = varying_parts(after)
     groups: dict[tuple[str, str, str, str], list[tuple[dict[str, Any], dict[str, Any]]]] = {}
-    for r in after:
-        b = old.get((r["key"], r["estimator"]))
-        if b is not None and r["status"] == OK and r.get("h_rms_m") is not None:
-            groups.setdefault(group_of(r), []).append((b, r))
-    return [
+    for b, a in matched:
+        groups.setdefault(group_of(a), []).append((b, a))
+    paired = [
         Paired(group_label(g, varying), sorted(p, key=lambda ba: ba[1]["run"]))
         for g, p in sorted(groups.items())
     ]
+    return paired, how

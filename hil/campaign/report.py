@@ -236,12 +236,18 @@ def _compare_section(
 ) -> None:
     from hil.campaign import report_plots as rp
 
-    paired = pair(before, after)
+    paired, how = pair(before, after)
     if not paired:
         page.notes.append(
-            f"comparison: no run of {names[1]} has an ok result in {names[0]} (runs pair by key)"
+            f"comparison: no run of {names[1]} has an ok result in {names[0]} (runs pair by key, else "
+            "by scenario, seed, fault set, recording and estimator)"
         )
         return
+    if how == "situation":
+        page.notes.append(
+            "comparison: the two campaigns share no run definition (another configuration or statistics "
+            "window): runs are paired by scenario, seed, fault set, recording and estimator instead"
+        )
     rows = []
     for p in paired:
         d = p.delta("h_rms_m")
@@ -272,8 +278,9 @@ def _compare_section(
         "largest worsening",
     ]
     expl = (
-        f'<p class="small">Δ = {html.escape(names[1])} − {html.escape(names[0])}, run by run (same key: same '
-        "scenario text and seed, configuration, recording). Wilcoxon signed-rank p of the paired RMS "
+        f'<p class="small">Δ = {html.escape(names[1])} − {html.escape(names[0])}, run by run (paired by '
+        f"{'key: same scenario text and seed, configuration, recording' if how == 'key' else 'situation'}). "
+        "Wilcoxon signed-rank p of the paired RMS "
         "differences (NaN below 5 non-zero pairs). Every per-run difference is in compare.csv beside "
         "this page.</p>"
     )
