@@ -254,13 +254,14 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
         return int(mod.main(rest) or 0)
 
 
-def cmd_campaign(a: argparse.Namespace) -> int:
-    """``hil campaign ...``: many runs on Dask (hil.campaign.cli parses its own forms)."""
+def cmd_campaign(a: argparse.Namespace, rest: list[str]) -> int:
+    """``hil campaign ...``: many runs on Dask (hil.campaign.cli parses its own forms). Options
+    before the first word land in ``rest``, the rest in ``a.args``: together, in order."""
     from hil.campaign.cli import UsageError
     from hil.campaign.cli import main as campaign_main
 
     try:
-        return campaign_main(a.args)
+        return campaign_main([*rest, *a.args])
     except UsageError as err:
         raise UserError(str(err)) from None
 
@@ -489,7 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
         "campaign", add_help=False, help="Monte-Carlo sims and rerun libraries on Dask (docs/campaigns.md)"
     )
     camp.add_argument("args", nargs=argparse.REMAINDER)
-    camp.set_defaults(func=cmd_campaign)
+    camp.set_defaults(func=cmd_campaign, passthrough=True)
 
     rep = sub.add_parser(
         "report", help="an HTML report (and PNGs) of a recording: accuracy, faults, sync, loss, CAN"

@@ -261,7 +261,7 @@ def main(argv: list[str]) -> int:
     from hil.campaign.driver import CampaignError
 
     if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__.split("\n\n")[1] if __doc__ else "")
+        print(__doc__.split("\n\n")[1] if __doc__ else "", file=sys.stdout if argv else sys.stderr)
         return 0 if argv else 2
     forms = {
         "sim": _sim_form,
