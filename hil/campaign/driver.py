@@ -26,7 +26,15 @@ from pathlib import Path
 from typing import Any
 
 from hil.campaign.execute import FAILED, LOST, MISMATCH, OK, code_fingerprint, execute_run, failed_rows
-from hil.campaign.results import SPEC, Journal, JournalBusy, read_results, write_table
+from hil.campaign.results import (
+    SPEC,
+    Journal,
+    JournalBusy,
+    current_keys,
+    read_results,
+    write_keys,
+    write_table,
+)
 from hil.campaign.runs import RunSpec, derive_runs
 from hil.campaign.spec import CampaignSpec
 from hil.progress import Progress
@@ -149,6 +157,7 @@ def _collect(
     from distributed.scheduler import KilledWorker
 
     by_key = {f.key: r for f, r in zip(futures, todo, strict=True)}
+    keys = set(current_keys(opts.out_dir) or ())
     bar = Progress("campaign", total=len(todo), unit="runs", enabled=opts.progress)
     next_table = time.monotonic() + opts.table_every_s
     try:
@@ -171,7 +180,7 @@ def _collect(
             if opts.on_rows is not None:
                 opts.on_rows(run, rows)
             if time.monotonic() >= next_table:
-                write_table(opts.out_dir, read_results(opts.out_dir).table())
+                write_table(opts.out_dir, read_results(opts.out_dir).table(keys))
                 next_table = time.monotonic() + opts.table_every_s
     finally:
         bar.close()
@@ -194,6 +203,7 @@ def run_campaign(spec: CampaignSpec, opts: DriverOptions) -> Outcome:
         raise CampaignError(str(err)) from None
     try:
         (out_dir / SPEC).write_text(spec.to_toml(), encoding="utf-8")
+        write_keys(out_dir, [r.key for r in runs])
         if todo:
             client, cluster, out.cluster = connect(opts)
             try:
@@ -205,6 +215,6 @@ def run_campaign(spec: CampaignSpec, opts: DriverOptions) -> Outcome:
                     cluster.close()
     finally:
         journal.close()
-        out.table = write_table(out_dir, read_results(out_dir).table())
+        out.table = write_table(out_dir, read_results(out_dir).table({r.key for r in runs}))
         out.wall_s = time.monotonic() - t0
     return out

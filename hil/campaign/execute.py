@@ -75,7 +75,7 @@ def failed_rows(run: RunSpec, status: str, error: str) -> list[dict[str, Any]]:
 def execute_run(run: RunSpec, keep: Path | None = None) -> list[dict[str, Any]]:
     """The task: one run's rows; never raises (see the module docstring). ``keep``: where to
     keep a sim run's MCAP (``hil campaign repro``), whatever the run's ``keep_dir``."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         rows = _sim_rows(run, keep) if run.kind == SIM else _rerun_rows(run)
     except Exception as err:  # the run's failure is its result
@@ -85,6 +85,7 @@ def execute_run(run: RunSpec, keep: Path | None = None) -> list[dict[str, Any]]:
     for row in rows:
         row.update(
             wall_s=round(time.perf_counter() - t0, 3),
+            cpu_s=round(time.process_time() - c0, 3),  # this process's CPU: the run's cost, load aside
             worker=where,
             code=code_fingerprint(),
             finished_utc=done,

@@ -22,7 +22,7 @@ import numpy as np
 from hil import __version__
 from hil.campaign.aggregate import GroupSummary, Paired, pair, pct, summarise
 from hil.campaign.execute import OK
-from hil.campaign.results import SPEC, read_results
+from hil.campaign.results import SPEC, current_keys, read_results
 from hil.campaign.spec import SpecError, load_spec
 from hil.report.build import CSS
 
@@ -106,12 +106,31 @@ def _settle_s(d: Path, notes: list[str]) -> float:
 
 
 def _load(d: Path, notes: list[str]) -> list[dict[str, Any]]:
+    """The latest rows of the directory's current runs (``campaign.keys``); what is stale or
+    missing is said in ``notes``."""
     res = read_results(d)
     if not res.rows:
         raise FileNotFoundError(f"{d}: no campaign results (results.jsonl or results.parquet)")
     if res.torn_lines:
         notes.append(f"{res.source}: {res.torn_lines} torn line(s) skipped (a campaign killed mid-write)")
-    return res.table()
+    keys = current_keys(d)
+    if keys is None:
+        return res.table()
+    rows = res.table(set(keys))
+    stale = len({r["key"] for r in res.table()} - set(keys))
+    if stale:
+        notes.append(
+            f"{d}: {stale} run(s) with results are not in its current spec (campaign.toml): left out"
+        )
+    missing = len(set(keys) - {r["key"] for r in rows})
+    if missing:
+        notes.append(
+            f"{d}: {missing} of the spec's {len(keys)} runs have no result yet (the campaign was stopped "
+            "early: run its command again to finish it)"
+        )
+    if not rows:
+        raise FileNotFoundError(f"{d}: no result for any run of its current spec")
+    return rows
 
 
 _HEAD = [
@@ -351,12 +370,13 @@ def build_campaign_report(
         page.notes.append("no run finished with statistics: nothing to summarise")
     if compare is not None:
         _compare_section(page, _load(Path(compare), page.notes), rows, (str(compare), str(d)))
-    keys = {r["key"] for r in rows}
+    have = {r["key"] for r in rows}
     ok = {r["key"] for r in rows if r["status"] == OK}
+    n_runs = len(current_keys(d) or have)
     name = rows[0].get("campaign", d.name)
     facts = (
-        f"{html.escape(str(d))} · campaign {html.escape(str(name))} · {len(keys)} runs, {len(ok)} ok, "
-        f"{len(keys - ok)} without a result · code {html.escape(', '.join(codes))}"
+        f"{html.escape(str(d))} · campaign {html.escape(str(name))} · {n_runs} runs, {len(ok)} ok, "
+        f"{n_runs - len(ok)} without an ok result · code {html.escape(', '.join(codes))}"
         + (f" · statistics after {settle:g} s" if settle else "")
     )
     path = out / "report.html"

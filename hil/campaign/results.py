@@ -27,6 +27,7 @@ from hil.campaign.execute import FINAL
 JOURNAL = "results.jsonl"
 TABLE = "results.parquet"
 SPEC = "campaign.toml"
+KEYS = "campaign.keys"  # the current spec's run keys, one a line, in run order
 
 # the table's columns and their types (Parquet schema); rows may carry more, which are dropped
 COLUMNS: dict[str, str] = {
@@ -61,6 +62,7 @@ COLUMNS: dict[str, str] = {
     "series_h_sigma_m": "list<float64>",
     "series_nees": "list<float64>",
     "wall_s": "float64",
+    "cpu_s": "float64",
     "worker": "string",
     "code": "string",
     "finished_utc": "string",
@@ -98,9 +100,12 @@ class Results:
             last[r["key"]].append(r)
         return {(k, r["estimator"]): r for k, rows in last.items() for r in rows}
 
-    def table(self) -> list[dict[str, Any]]:
-        """The latest rows, sorted by run index and estimator."""
-        return sorted(self.latest().values(), key=lambda r: (r["run"], r["estimator"]))
+    def table(self, keys: set[str] | None = None) -> list[dict[str, Any]]:
+        """The latest rows (of the runs in ``keys`` if given), sorted by run index and estimator."""
+        rows = self.latest().values()
+        if keys is not None:
+            rows = [r for r in rows if r["key"] in keys]
+        return sorted(rows, key=lambda r: (r["run"], r["estimator"]))
 
     def done_keys(self) -> set[str]:
         """Runs with a final result (ok or mismatch) in every row of their latest attempt."""
@@ -112,6 +117,19 @@ class Results:
 
 def _clean(row: dict[str, Any]) -> dict[str, Any]:
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+
+
+def write_keys(out_dir: Path, keys: list[str]) -> None:
+    """What the directory's campaign consists of now (the table and the report keep to it)."""
+    tmp = out_dir / (KEYS + ".tmp")
+    tmp.write_text("".join(k + "\n" for k in keys), encoding="utf-8")
+    os.replace(tmp, out_dir / KEYS)
+
+
+def current_keys(out_dir: str | Path) -> list[str] | None:
+    """The current spec's run keys in order, None for a directory without them."""
+    p = Path(out_dir) / KEYS
+    return p.read_text(encoding="utf-8").split() if p.is_file() else None
 
 
 def read_results(out_dir: str | Path) -> Results:

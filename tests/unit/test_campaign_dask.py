@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -86,6 +87,20 @@ def test_second_invocation_skips_every_run(campaign: tuple[Path, Outcome], clust
     )
     assert res.skipped == 4 and res.ran == 0 and res.cluster == ""  # not even connected
     assert len(read_results(out).rows) == 8  # nothing appended
+
+
+def test_a_smaller_spec_keeps_to_its_runs(campaign: tuple[Path, Outcome], tmp_path: Path) -> None:
+    """Rerun with --runs 2 in a copy: nothing runs (done), the table and report hold 2 runs."""
+    out = tmp_path / "copy"
+    shutil.copytree(campaign[0], out)
+    res = run_campaign(_sim_spec(2), DriverOptions(out_dir=out, progress=False))
+    assert res.skipped == 2 and res.ran == 0
+    import pyarrow.parquet as pq
+
+    assert sorted(set(pq.read_table(out / "results.parquet").column("run").to_pylist())) == [0, 1]
+    rep = build_campaign_report(out)
+    assert any("2 run(s) with results are not in its current spec" in n for n in rep.notes)
+    assert "2 runs, 2 ok" in rep.html_path.read_text()
 
 
 def test_report_names_the_worst_runs_reproduce_command(

@@ -59,7 +59,7 @@ def test_statistics_are_hil_infos(kept: tuple[Path, list[dict[str, Any]]]) -> No
 def test_same_run_same_rows(sim_run: RunSpec, kept: tuple[Path, list[dict[str, Any]]]) -> None:
     """Deterministic from its spec: the temporary recording is deleted, the figures repeat."""
     again = execute_run(sim_run)
-    strip = ("wall_s", "worker", "finished_utc", "recording")
+    strip = ("wall_s", "cpu_s", "worker", "finished_utc", "recording")
     assert [{k: v for k, v in r.items() if k not in strip} for r in again] == [
         {k: v for k, v in r.items() if k not in strip} for r in kept[1]
     ]
