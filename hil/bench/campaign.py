@@ -7,13 +7,16 @@ The same runs (``--runs`` x ``--duration`` s of ``--scenario``, compvs and ekf15
 2. as a campaign on a local Dask cluster of 1 worker process, 2, and (if the machine has the
    cores) more: runs per minute and the scaling ratio against 1 worker. Cluster start-up and
    the workers' first imports are timed apart (paid once per campaign, not per run);
-3. the overhead per task: (campaign wall on 1 worker - direct wall) / runs, and the ratio;
+3. the overhead per task: (campaign wall on 1 worker - direct wall) / runs, and the ratio, and
+   the same in the worker process's CPU (``cpu_s``), which other work on the machine hardly moves;
 4. 2 workers again with one worker process SIGKILLed when the first run comes back: every run
    must still come back ok (the test suite asserts the same, tests/unit/test_campaign_dask.py).
 
-Each campaign writes a fresh directory, so nothing is skipped as already done. Writes the
-``campaign`` section of docs/benchmarks.md with the command and the load average seen, since a
-shared machine's figures say as much about its other work as about Dask.
+1 and 2 are repeated ``--repeat`` times, interleaved, and each is reported by its best (fastest)
+repeat and its median: on a machine shared with other work the wall clock swings with the load,
+and the best repeat is the one least disturbed. Each campaign writes a fresh directory, so
+nothing is skipped as already done. Writes the ``campaign`` section of docs/benchmarks.md with
+the command and the load averages seen.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import logging
 import os
 import shutil
 import signal
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -64,7 +68,7 @@ def direct(runs: list[RunSpec]) -> dict[str, float]:
             assert all(r["status"] == OK for r in rows), rows
             t_sim += t1 - t0
             t_all += t2 - t0
-    return {"sim_s": t_sim, "all_s": t_all, "cpu_s": time.process_time() - c0}
+    return {"sim_s": t_sim, "all_s": t_all, "cpu_s": time.process_time() - c0, "startup_s": 0.0}
 
 
 def _warm(client: Any) -> None:
@@ -74,7 +78,17 @@ def _warm(client: Any) -> None:
     client.run(code_fingerprint)
 
 
-def on_cluster(spec: CampaignSpec, workers: int, kill: bool = False) -> dict[str, Any]:
+def _idle_cpu_fraction(client: Any, wait_s: float = 10.0) -> float:
+    """CPU a worker process spends with no task (heartbeats, monitors), per second of wall."""
+    a: dict[str, float] = client.run(time.process_time)
+    time.sleep(wait_s)
+    b: dict[str, float] = client.run(time.process_time)
+    return sum(b[k] - a[k] for k in a) / len(a) / wait_s
+
+
+def on_cluster(
+    spec: CampaignSpec, workers: int, kill: bool = False, idle_probe: bool = False
+) -> dict[str, Any]:
     """One fresh campaign on a new local cluster of ``workers`` processes; its timings."""
     from dask.distributed import Client, LocalCluster
 
@@ -99,6 +113,7 @@ def on_cluster(spec: CampaignSpec, workers: int, kill: bool = False) -> dict[str
 
     try:
         _warm(client)
+        idle = _idle_cpu_fraction(client) if idle_probe and workers == 1 else None
         t1 = time.perf_counter()
         opts = DriverOptions(
             out_dir=out, scheduler=cluster.scheduler_address, progress=False, on_rows=kill_one
@@ -117,81 +132,113 @@ def on_cluster(spec: CampaignSpec, workers: int, kill: bool = False) -> dict[str
         "ok": res.counts.get(OK, 0),
         "lost": sum(v for k, v in res.counts.items() if k != OK),
         "killed": len(killed),
+        "idle_cpu": idle,
         "cpu_s": sum(r.get("cpu_s") or 0.0 for r in rows) / len(ESTIMATORS),  # one row per estimator
     }
 
 
-def _markdown(
-    a: argparse.Namespace, d: dict[str, float], rows: list[dict[str, Any]], loads: list[str]
-) -> str:
+def _best(ms: list[dict[str, Any]]) -> dict[str, Any]:
+    """The fastest repeat, with the median wall and CPU over the repeats beside it."""
+    b = dict(min(ms, key=lambda m: m["wall_s"]))
+    b["median_wall_s"] = statistics.median(m["wall_s"] for m in ms)
+    b["median_cpu_s"] = statistics.median(m["cpu_s"] for m in ms)
+    return b
+
+
+def _markdown(a: argparse.Namespace, d: dict[str, Any], rows: list[dict[str, Any]], loads: list[str]) -> str:
     n = a.runs
     one = next(r for r in rows if r["workers"] == 1 and not r["killed"])
     rate1 = 60 * n / one["wall_s"]
     lines = [
         f"The same {n} runs of `{a.scenario}`, {a.duration:g} s each, estimators {', '.join(ESTIMATORS)} "
-        "(each run: hil sim to a temporary MCAP, its statistics, the file deleted).",
+        "(each run: hil sim to a temporary MCAP, its statistics, the file deleted); best of "
+        f"{a.repeat} interleaved repeats (median beside it).",
         "",
-        "| how | wall s | runs/min | vs 1 worker | CPU s per run | start-up s | runs ok |",
+        "| how | wall s: best (median) | runs/min | vs 1 worker | CPU s per run | start-up s | runs ok |",
         "| --- | --- | --- | --- | --- | --- | --- |",
-        f"| directly: run_sim only (hil sim) | {d['sim_s']:.1f} | {60 * n / d['sim_s']:.1f} | – | – | – "
-        f"| {n}/{n} |",
-        f"| directly: run_sim + statistics | {d['all_s']:.1f} | {60 * n / d['all_s']:.1f} | – "
-        f"| {d['cpu_s'] / n:.2f} | – | {n}/{n} |",
+        f"| directly: run_sim only (hil sim) | {d['sim_s']:.1f} ({d['median_sim_s']:.1f}) "
+        f"| {60 * n / d['sim_s']:.1f} | – | – | – | {n}/{n} |",
+        f"| directly: run_sim + statistics | {d['wall_s']:.1f} ({d['median_wall_s']:.1f}) "
+        f"| {60 * n / d['wall_s']:.1f} | – | {d['median_cpu_s'] / n:.2f} | – | {n}/{n} |",
     ]
     for r in rows:
         rate = 60 * n / r["wall_s"]
         what = f"campaign, {r['workers']} worker(s)" + (", one SIGKILLed mid-campaign" if r["killed"] else "")
+        med = f" ({r['median_wall_s']:.1f})" if "median_wall_s" in r else ""
+        cpu = r.get("median_cpu_s", r["cpu_s"])
         lines.append(
-            f"| {what} | {r['wall_s']:.1f} | {rate:.1f} | {rate / rate1:.2f}x | {r['cpu_s'] / n:.2f} "
+            f"| {what} | {r['wall_s']:.1f}{med} | {rate:.1f} | {rate / rate1:.2f}x | {cpu / n:.2f} "
             f"| {r['startup_s']:.1f} | {r['ok']}/{n} ({r['lost']} without a result) |"
         )
-    over = (one["wall_s"] - d["all_s"]) / n
-    lines += [
-        "",
-        "Overhead per task, campaign on 1 worker against the same runs directly (statistics included): "
-        f"{over:+.2f} s of wall per run (ratio {one['wall_s'] / d['all_s']:.2f}; against plain run_sim, i.e. "
-        f"hil sim: {one['wall_s'] / d['sim_s']:.2f}), and {one['cpu_s'] / n - d['cpu_s'] / n:+.2f} s of the "
-        "worker's CPU per run. CPU s per run is the worker process's CPU time summed over the runs it "
-        "ran (the `cpu_s` column): what a run costs whatever else the machine does. Start-up (a new local "
-        "cluster and every worker's first import of the rig) is paid once per campaign.",
-        "",
-        f"Load average (1 min) at the start and after each measurement: {', '.join(loads)}. This machine "
-        f"has {os.cpu_count()} cores shared with other work (another engineer's tests and benchmarks ran at "
+    lines += ["", *_overhead_lines(d, one, n), "", _conditions(loads, any(r["killed"] for r in rows))]
+    return "\n".join(lines)
+
+
+def _overhead_lines(d: dict[str, Any], one: dict[str, Any], n: int) -> list[str]:
+    idle = one.get("idle_cpu") or 0.0
+    d_cpu = one["median_cpu_s"] / n - d["median_cpu_s"] / n
+    return [
+        "Overhead per task, campaign on 1 worker against the same runs directly (statistics included), "
+        f"best repeats: {(one['wall_s'] - d['wall_s']) / n:+.2f} s of wall per run (ratio "
+        f"{one['wall_s'] / d['wall_s']:.2f}; against plain run_sim, i.e. hil sim: "
+        f"{one['wall_s'] / d['sim_s']:.2f}); medians: {d_cpu:+.2f} s "
+        "of the worker's CPU per run. CPU s per run is the worker process's CPU time over its runs (the "
+        "`cpu_s` column): what a run costs whatever else the machine does. An idle worker process "
+        f"spends {100 * idle:.1f} % of a core on its own (heartbeats, memory and system monitors), "
+        f"{idle * one['wall_s'] / n:.2f} s over the {one['wall_s'] / n:.1f} s of wall a run took here. "
+        "Start-up (a new local cluster and every worker's first import of the rig) is paid once per "
+        "campaign.",
+    ]
+
+
+def _conditions(loads: list[str], killed: bool) -> str:
+    text = (
+        f"Load average (1 min) at the start and after each repeat: {', '.join(loads)}. This machine has "
+        f"{os.cpu_count()} cores shared with other work (another engineer's tests and benchmarks ran at "
         "the same time), so wall-clock figures and the 2-worker scaling are bounded by the cores left "
         "free, not by Dask; on an idle machine with more cores the ratio approaches the worker count "
-        "(runs are independent, a run's result is a few kB).",
-    ]
-    if any(r["killed"] for r in rows):
-        lines[-1] += (
-            " The killed-worker row: the scheduler reran the dead worker's run elsewhere; no run was "
-            "lost, the cost is that run's time again and a worker restart."
+        "(runs are independent, a run's result is a few kB)."
+    )
+    if killed:
+        text += (
+            " The killed-worker row (one repeat): the scheduler reran the dead worker's run elsewhere; no "
+            "run was lost, the cost is that run's time again and a worker restart."
         )
-    return "\n".join(lines)
+    return text
 
 
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(prog="hil bench campaign", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="uav_survey")
     ap.add_argument("--runs", type=int, default=8)
-    ap.add_argument("--duration", type=float, default=20.0, help="rig seconds per run")
+    ap.add_argument("--duration", type=float, default=10.0, help="rig seconds per run")
+    ap.add_argument("--repeat", type=int, default=3, help="interleaved repeats; the best is reported")
     ap.add_argument("--max-workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     a = ap.parse_args(argv)
     spec = _spec(a.scenario, a.runs, a.duration)
     runs = derive_runs(spec)
     loads = [f"{os.getloadavg()[0]:.1f}"]
-    d = direct(runs)
-    print(f"directly: {d} for {a.runs} runs", flush=True)
     sizes = sorted({1, 2, *(w for w in (4, 8, 16) if w <= a.max_workers)} & set(range(1, a.max_workers + 1)))
-    rows = []
-    for w in sizes:
-        rows.append(on_cluster(spec, w))
-        print(f"{w} worker(s): {rows[-1]}", flush=True)
+    direct_ms: list[dict[str, Any]] = []
+    by_size: dict[int, list[dict[str, Any]]] = {w: [] for w in sizes}
+    for rep in range(a.repeat):
+        direct_ms.append(direct(runs))
+        for w in sizes:
+            by_size[w].append(on_cluster(spec, w, idle_probe=rep == 0))
         loads.append(f"{os.getloadavg()[0]:.1f}")
+        print(
+            f"repeat {rep + 1}: direct {direct_ms[-1]}, " + str({w: m[-1] for w, m in by_size.items()}),
+            flush=True,
+        )
+    d = _best([{**m, "wall_s": m["all_s"]} for m in direct_ms])
+    d["sim_s"] = min(m["sim_s"] for m in direct_ms)
+    d["median_sim_s"] = statistics.median(m["sim_s"] for m in direct_ms)
+    rows = [_best(by_size[w]) for w in sizes]
+    rows[0]["idle_cpu"] = next(m["idle_cpu"] for m in by_size[1] if m["idle_cpu"] is not None)
     if a.max_workers >= 2:
         rows.append(on_cluster(spec, 2, kill=True))
-        print(f"2 workers, one killed: {rows[-1]}", flush=True)
-    loads.append(f"{os.getloadavg()[0]:.1f}")
+        loads.append(f"{os.getloadavg()[0]:.1f}")
     md = _markdown(a, d, rows, loads)
     print(md)
     if not a.no_write:
