@@ -199,6 +199,13 @@ def _conditions(loads: list[str], killed: bool) -> str:
         "free, not by Dask; on an idle machine with more cores the ratio approaches the worker count "
         "(runs are independent, a run's result is a few kB)."
     )
+    if max(float(x) for x in loads) >= (os.cpu_count() or 1):
+        text += (
+            " Here the load average reached the core count or more, so no core was free: a second worker "
+            "only shared the same CPU with the first and with the other work (the 2-worker rows cost more "
+            "wall and more CPU per run), and the scaling ratio above is a measure of that load, not of "
+            "Dask. Rerun on an idle machine to measure the scaling."
+        )
     if killed:
         text += (
             " The killed-worker row (one repeat): the scheduler reran the dead worker's run elsewhere; no "
