@@ -38,6 +38,40 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
     p.add_argument(
         "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
     )
+    p.add_argument(
+        "--split-mb",
+        type=positive_float,
+        default=None,
+        help="start a new recording part (<stem>_0001.mcap, ...) after this many MB",
+    )
+    p.add_argument(
+        "--split-s",
+        type=positive_float,
+        default=None,
+        help="start a new recording part after this many seconds (hil sim: of rig time)",
+    )
+    p.add_argument(
+        "--imu-rate", type=int, default=None, help="IMU rate in Hz (overrides the scenario's; 100-2000)"
+    )
+    p.add_argument(
+        "--record-include",
+        action="append",
+        default=[],
+        metavar="KEYEXPR",
+        help="record only keys matching this Zenoh key expression (repeat; relative to hil/<rig>/)",
+    )
+    p.add_argument(
+        "--record-exclude", action="append", default=[], metavar="KEYEXPR", help="do not record these keys"
+    )
+
+
+def _check_record_filter(a: argparse.Namespace) -> None:
+    from hil.record.keyfilter import KeyFilter, KeyFilterError
+
+    try:
+        KeyFilter(a.rig, a.record_include, a.record_exclude)
+    except KeyFilterError as err:
+        raise UserError(f"--record-include/--record-exclude: {err}") from None
 
 
 def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
@@ -72,8 +106,15 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
             raise UserError(
                 f"--gnss-serial {p}: exists and is not a link; give a new path (the rig makes the link)"
             )
-        if not p.parent.is_dir() or not os.access(p.parent, os.W_OK):
-            raise UserError(f"--gnss-serial {p}: cannot make a link in {p.parent} (missing or not writable)")
+        probe = p.parent / f".hil-link-probe-{os.getpid()}"
+        try:  # a trial link, not os.access: root passes access checks on /proc and read-only mounts
+            os.symlink(os.devnull, probe)
+            probe.unlink()
+        except OSError as err:
+            raise UserError(
+                f"--gnss-serial {p}: cannot make a link in {p.parent} ({err.strerror}); give a path in a "
+                "writable directory"
+            ) from None
     return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
 
 
@@ -85,6 +126,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
+    _check_record_filter(a)
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
     record = a.record or _default_record_path(a.scenario)
@@ -107,6 +149,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         split_mb=a.split_mb or 0.0,
         split_s=a.split_s or 0.0,
         zenoh_miss_detection=not a.no_zenoh_miss_detection,
+        record_include=list(a.record_include),
+        record_exclude=list(a.record_exclude),
         gnss_serial=str(Path(a.gnss_serial).absolute()) if a.gnss_serial else None,
         gnss_tcp=a.gnss_tcp,
         **_gnss_wire(a, live=True),  # type: ignore[arg-type]
@@ -124,6 +168,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         sup.check_options()
     except ValueError as err:
         raise UserError(str(err)) from None
+    if a.dut_emulator == "unit":
+        wire = f"GNSS ({'+'.join(opts.gnss_protocol)}) on {sup.dut_line()}"
+        print(f"hil up: device under test {sup.dut_command()[1]}: IMU on CAN, {wire}")
     print(
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
@@ -164,9 +211,16 @@ def _describe_can(channel: str, interface: str | None) -> str:
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
+    from hil.bus.keys import check_name
     from hil.progress import Progress
     from hil.runners.sim import SimOptions, run_sim
 
+    check_name("rig", a.rig)
+    _check_record_filter(a)
+    if a.imu_rate is not None:
+        from hil.nav.scenario import load_scenario, scenario_overrides
+
+        scenario_overrides(load_scenario(a.scenario), imu_rate_hz=a.imu_rate)  # one line if refused
     record = a.record or _default_record_path(a.scenario)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 
@@ -184,6 +238,11 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 estimators=[e for e in a.estimators.split(",") if e],
                 fd=a.fd,
                 on_progress=on_progress,
+                imu_rate_hz=a.imu_rate,
+                split_mb=a.split_mb or 0.0,
+                split_s=a.split_s or 0.0,
+                record_include=list(a.record_include),
+                record_exclude=list(a.record_exclude),
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )
@@ -201,7 +260,12 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     from hil.runtime.registry import service_module
     from hil.runtime.service import options_from_json, run_service
 
+    if a.name is None:
+        a.parser.print_help()
+        return 0 if a.help else 2
     mod = service_module(a.name)
+    if a.help:
+        return int(mod.main(["--help"]) or 0)
     if a.options is not None:
         try:
             opts = options_from_json(a.options)
@@ -358,6 +422,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
     """Send one ``hil.FaultCommand`` to a running rig (Zenoh from the environment, like monitor)."""
     import time
 
+    from hil.bus.describe import encoding_of
     from hil.bus.keys import Keys, check_name
     from hil.bus.pubsub import declare_publisher
     from hil.bus.session import BusConfig, open_session
@@ -388,7 +453,8 @@ def cmd_fault(a: argparse.Namespace) -> int:
     )
     session = open_session(BusConfig.from_env())
     try:
-        pub = declare_publisher(session, Keys(a.rig).control("fault"))  # as every rig publisher
+        # as every rig publisher, the type in its encoding
+        pub = declare_publisher(session, Keys(a.rig).control("fault"), encoding=encoding_of(FaultCommand))
         time.sleep(a.wait)  # let the session find the rig's subscribers before the one put
         pub.put(encode(cmd))
         time.sleep(0.2)
@@ -396,6 +462,152 @@ def cmd_fault(a: argparse.Namespace) -> int:
         session.close()
     print(f"hil fault: sent {a.kind} to rig {a.rig!r}")
     return 0
+
+
+# -- recording tools (hil.record.tools, hil.record.export): one line and exit 2 on a bad file ----
+
+
+def _selection(a: argparse.Namespace) -> Any:
+    from hil.record.tools import Selection
+
+    return Selection(a.start, a.end, list(a.topics), list(a.exclude_topics))
+
+
+def _recording_tool(fn: Any) -> Any:
+    """A tool's bad file or option (``RecordingError``) is the user's to fix: one line, exit 2."""
+
+    def run(a: argparse.Namespace) -> int:
+        from hil.record.mcapio import RecordingError
+
+        try:
+            return int(fn(a) or 0)
+        except RecordingError as err:
+            raise UserError(str(err)) from None
+
+    return run
+
+
+@_recording_tool
+def cmd_recover(a: argparse.Namespace) -> int:
+    from hil.record.tools import recover
+
+    res = recover(a.file, a.output)
+    print("\n".join(res.lines()))
+    return 0
+
+
+@_recording_tool
+def cmd_filter(a: argparse.Namespace) -> int:
+    from hil.record.tools import filter_recording
+
+    res = filter_recording(a.file, a.output, _selection(a))
+    for note in res.notes:
+        print(f"hil filter: {note}", file=sys.stderr)
+    print(f"hil filter: {res.messages} messages, {res.attachments} attachments -> {res.out}")
+    return 0
+
+
+@_recording_tool
+def cmd_merge(a: argparse.Namespace) -> int:
+    from hil.record.mcapio import split_parts
+    from hil.record.tools import merge_recordings
+
+    files = [Path(f) for f in a.files]
+    if len(files) == 1:
+        files += split_parts(files[0])  # one name: the session and its further parts
+    res = merge_recordings(files, a.output)
+    for note in res.notes:
+        print(f"hil merge: {note}", file=sys.stderr)
+    print(
+        f"hil merge: {len(files)} files, {res.messages} messages, {res.attachments} attachments -> {res.out}"
+    )
+    return 0
+
+
+@_recording_tool
+def cmd_cat(a: argparse.Namespace) -> int:
+    from hil.record.tools import cat
+
+    try:
+        cat(a.file, _selection(a))
+        sys.stdout.flush()
+    except BrokenPipeError:  # `hil cat f | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0
+
+
+@_recording_tool
+def cmd_attachments(a: argparse.Namespace) -> int:
+    from hil.record.tools import extract_attachments, list_attachments
+
+    if a.extract is None:
+        for info in list_attachments(a.file):
+            print(f"{info.size:>9}  {info.media_type:<24} {info.name}")
+        return 0
+    for path in extract_attachments(a.file, a.extract, list(a.name)):
+        print(f"hil attachments: wrote {path}")
+    return 0
+
+
+@_recording_tool
+def cmd_export(a: argparse.Namespace) -> int:
+    from hil.record.export import export
+
+    out = a.output or Path(a.file).with_suffix(f".{a.format}")
+    tables, notes = export(a.file, out, a.format, list(a.topics))
+    for note in notes:
+        print(f"hil export: {note}", file=sys.stderr)
+    for topic, (path, rows) in sorted(tables.items()):
+        print(f"{rows:>9} rows  {topic} -> {path}")
+    return 0
+
+
+def _add_selection_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--start", type=float, default=None, help="seconds after the first message")
+    p.add_argument("--end", type=float, default=None, help="seconds after the first message (exclusive)")
+    p.add_argument(
+        "--topics", action="append", default=[], metavar="REGEX", help="only matching topics (repeat)"
+    )
+    p.add_argument(
+        "--exclude-topics", action="append", default=[], metavar="REGEX", help="skip matching topics (repeat)"
+    )
+
+
+def _add_tool_parsers(sub: Any) -> None:
+    """The recording tools (``docs/recording.md``, *Recording tools*)."""
+    rc = sub.add_parser("recover", help="rewrite a crashed or truncated recording as a finished one")
+    rc.add_argument("file")
+    rc.add_argument("-o", "--output", type=Path, default=None, help="default: FILE.recovered.mcap")
+    rc.set_defaults(func=cmd_recover)
+
+    fl = sub.add_parser("filter", help="a time range and topics of a recording into a new file")
+    fl.add_argument("file")
+    fl.add_argument("-o", "--output", type=Path, required=True)
+    _add_selection_args(fl)
+    fl.set_defaults(func=cmd_filter)
+
+    mg = sub.add_parser("merge", help="split parts (or filtered pieces) into one indexed file")
+    mg.add_argument("files", nargs="+", help="inputs; one name: that recording and its _0001... parts")
+    mg.add_argument("-o", "--output", type=Path, required=True)
+    mg.set_defaults(func=cmd_merge)
+
+    ct = sub.add_parser("cat", help="messages as JSON lines")
+    ct.add_argument("file")
+    _add_selection_args(ct)
+    ct.set_defaults(func=cmd_cat)
+
+    at = sub.add_parser("attachments", help="list or extract the embedded scenario, DBC, schemas")
+    at.add_argument("file")
+    at.add_argument("--extract", type=Path, default=None, metavar="DIR", help="write them under DIR")
+    at.add_argument("--name", action="append", default=[], help="only this attachment (repeat)")
+    at.set_defaults(func=cmd_attachments)
+
+    ex = sub.add_parser("export", help="IMU, GNSS, truth and nav as CSV or Parquet tables")
+    ex.add_argument("file")
+    ex.add_argument("--format", choices=["csv", "parquet"], default="csv")
+    ex.add_argument("-o", "--output", type=Path, default=None, help="directory (default: FILE.<format>/)")
+    ex.add_argument("--topics", action="append", default=[], metavar="REGEX", help="only matching topics")
+    ex.set_defaults(func=cmd_export)
 
 
 def _add_up_parser(sub: Any) -> None:
@@ -415,23 +627,17 @@ def _add_up_parser(sub: Any) -> None:
     up.add_argument(
         "--restart", type=int, default=0, help="restarts allowed per service before the run fails"
     )
-    up.add_argument(
-        "--imu-rate", type=int, default=None, help="IMU rate in Hz (overrides the scenario's; 100-2000)"
-    )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
-    up.add_argument("--dut-emulator", action="store_true", help="also run an emulated unit for --dut")
     up.add_argument(
-        "--split-mb",
-        type=positive_float,
+        "--dut-emulator",
+        nargs="?",
+        const="unit",
         default=None,
-        help="start a new recording part (<stem>_0001.mcap, ...) after this many MB",
-    )
-    up.add_argument(
-        "--split-s",
-        type=positive_float,
-        default=None,
-        help="start a new recording part after this many seconds",
+        choices=("unit", "truth"),
+        help="also play the unit for --dut: 'unit' (the default) runs the mapping's own program on the "
+        "wires (examples/dut/navbox.py: IMU on CAN, its own GNSS line, default --gnss-protocol nmea), "
+        "'truth' a stand-in sending truth plus a wandering error (docs/dut.md)",
     )
     up.add_argument(
         "--no-zenoh-miss-detection",
@@ -460,11 +666,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--quiet", action="store_true")
     sim.set_defaults(func=cmd_sim)
 
-    svc = sub.add_parser("service", help="run one service alone (what docker compose runs)")
-    svc.add_argument("name")
+    svc = sub.add_parser("service", help="run one service alone (what docker compose runs)", add_help=False)
+    svc.add_argument("name", nargs="?", help="a service; `hil service NAME --help` lists its flags")
+    svc.add_argument("-h", "--help", action="store_true", help="this help, or NAME's flags")
     svc.add_argument("--rig", default=None)
     svc.add_argument("--options", default=None, help="service options as a JSON object")
-    svc.set_defaults(func=cmd_service, passthrough=True)
+    svc.set_defaults(func=cmd_service, passthrough=True, parser=svc)
 
     info = sub.add_parser("info", help="what a recording holds")
     info.add_argument("file")
@@ -523,6 +730,8 @@ def build_parser() -> argparse.ArgumentParser:
     flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
     flt.add_argument("--wait", type=float, default=1.0, help="seconds to connect before sending")
     flt.set_defaults(func=cmd_fault)
+
+    _add_tool_parsers(sub)
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
     router.add_argument(

@@ -45,8 +45,9 @@ from hil import __version__
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import MAX_PAYLOAD_BYTES
 from hil.messages import RunInfo, decode
-from hil.nodes.base import decode_options
+from hil.nodes.base import OptionsError, decode_options
 from hil.record.completeness import Completeness
+from hil.record.keyfilter import KeyFilter, KeyFilterError
 from hil.record.mcapio import RecordingError, SessionWriter, split_part_path
 from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
@@ -71,7 +72,14 @@ class Recorder(Service):
         self.opts: RecorderOptions = decode_options(RecorderOptions, ctx.options, "recorder")
         super().__init__(ctx)
         self.path = Path(self.opts.path)
-        self.queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
+        self.queue: queue.SimpleQueue[tuple[str, bytes, int, Any] | None] = queue.SimpleQueue()
+        try:
+            self.keyfilter = KeyFilter(ctx.rig, self.opts.include, self.opts.exclude)
+        except KeyFilterError as err:
+            raise OptionsError(f"recorder: {err}") from None
+        self.excluded = 0
+        self.raw_written = 0
+        self._raw_seq: dict[str, int] = {}
         self.completeness = Completeness()
         self.writer: SessionWriter | None = None
         self._writer_thread = threading.Thread(target=self._write_loop, name="mcap-writer", daemon=True)
@@ -146,7 +154,7 @@ class Recorder(Service):
         # Zenoh's thread: stamp and enqueue only; never raise into Zenoh.
         try:
             key = str(sample.key_expr)
-            self.queue.put((key, sample.payload.to_bytes(), wall_ns()))
+            self.queue.put((key, sample.payload.to_bytes(), wall_ns(), sample.encoding))
             self._last_rx = time.monotonic()
             if self._advanced:
                 info = sample.source_info
@@ -190,6 +198,8 @@ class Recorder(Service):
             "zenoh_missed": self.total_zenoh_missed(),
             "zenoh_unsequenced": self.zenoh_unsequenced,
             "recording": 0 if self.writer is None else 1,
+            "raw_written": self.raw_written,
+            "excluded": self.excluded,
             # memory the recorder holds by design, to tell it from a leak in a long session:
             # the MCAP summary index (grows per chunk until the footer; held is the part in
             # memory, the rest is in an unlinked scratch file beside the recording) and
@@ -205,11 +215,14 @@ class Recorder(Service):
             return 0
         return int((rx_wall_ns - self._start_epoch_ns) * self._speed)
 
-    def _handle(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
+    def _handle(self, key: str, payload: bytes, rx_wall_ns: int, encoding: Any = None) -> None:
+        if self.keyfilter.active and not self.keyfilter.keeps(key):
+            self.excluded += 1
+            return
         cls = type_for_key(key)
         kind = ".".join(key.split("/")[2:3]) or key
         if cls is None:
-            self.stats.error("rejected.unknown_key", f"{key}: not a contract key")
+            self._handle_raw(key, payload, rx_wall_ns, encoding)
             return
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.stats.error(f"rejected.{kind}.oversized", f"{key}: {len(payload)} B")
@@ -240,6 +253,36 @@ class Recorder(Service):
             self.written += 1
             self.bytes_written += len(payload)
             self.stats.count_rate("in.all")
+        except OSError as err:
+            self._fail(err)
+
+    def _handle_raw(self, key: str, payload: bytes, rx_wall_ns: int, encoding: Any) -> None:
+        """A key under ``hil/<rig>/`` outside the contract: its bytes, on a schema-less channel.
+
+        Evidence is kept rather than refused (a tool's own topic, a newer release's key); it is
+        not decoded, so it has no seq to account: MCAP's ``sequence`` counts it per key here.
+        """
+        if not self.opts.raw_unknown:
+            self.stats.error("rejected.unknown_key", f"{key}: not a contract key")
+            return
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.stats.error("rejected.unknown_key.oversized", f"{key}: {len(payload)} B")
+            return
+        if self.writer is None:
+            return
+        n = self._raw_seq.get(key, 0)
+        self._raw_seq[key] = n + 1
+        try:
+            self.writer.write_raw(
+                key,
+                payload,
+                log_time_ns=self._log_time(rx_wall_ns),
+                encoding=str(encoding) if encoding is not None else "",
+                sequence=n & 0xFFFFFFFF,
+            )
+            self.written += 1
+            self.raw_written += 1
+            self.bytes_written += len(payload)
         except OSError as err:
             self._fail(err)
 
@@ -405,6 +448,8 @@ class Recorder(Service):
             and not self.unwritten_at_stop
             and self._run is not None,
             "parts": self.part + 1,
+            "raw_written": self.raw_written,
+            "excluded": self.excluded,
             "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},
             "method": "seq gaps per publisher"
             + (" + zenoh.ext advanced subscriber sample-miss listener" if self._advanced else ""),

@@ -30,6 +30,7 @@ import msgspec
 import zenoh
 import zenoh.ext as zext
 
+from hil.bus.describe import encoding_of
 from hil.messages import Message, decode, encode, generation_seq
 
 M = TypeVar("M", bound=Message)
@@ -54,22 +55,25 @@ def declare_publisher(
     block: bool = True,
     express: bool = False,
     miss_detection: bool | None = None,
+    encoding: zenoh.Encoding | None = None,
 ) -> zenoh.Publisher | zext.AdvancedPublisher:
     """A Zenoh publisher for rig traffic: advanced, with miss detection, unless turned off.
 
     ``miss_detection`` None follows ``HIL_ZENOH_MISS_DETECTION``. The extra work per put is a
     sequence number and a reference kept in the cache (``hil bench record`` measures the
-    recorder and ``--afap`` replay with it on).
+    recorder and ``--afap`` replay with it on). ``encoding``: the samples' Zenoh encoding,
+    ``hil.bus.describe.encoding_of(Type)`` for a contract type (``Publisher`` sets it).
     """
     reliability = zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT
     congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
     if not (miss_detection_enabled() if miss_detection is None else miss_detection):
         return session.declare_publisher(
-            key, reliability=reliability, congestion_control=congestion, express=express
+            key, reliability=reliability, congestion_control=congestion, express=express, encoding=encoding
         )
     return zext.declare_advanced_publisher(
         session,
         key,
+        encoding=encoding,
         reliability=reliability,
         congestion_control=congestion,
         express=express,
@@ -128,7 +132,8 @@ def _kind(key: str) -> str:
 
 
 class Publisher(Generic[M]):
-    """Publishes one contract type on one key and owns that key's per-publisher ``seq``.
+    """Publishes one contract type on one key and owns that key's per-publisher ``seq``; the
+    samples' Zenoh encoding names the type (``application/json;hil.<Type>``, ``hil.bus.describe``).
 
     ``generation``: the process's restart generation (``hil.runtime.service.restart_generation``);
     ``next_seq`` counts within it (``hil.messages.generation_seq``), so a restarted service's
@@ -154,7 +159,13 @@ class Publisher(Generic[M]):
         self.generation = generation
         self._seq = 0
         self._pub = declare_publisher(
-            session, key, reliable=reliable, block=block, express=express, miss_detection=miss_detection
+            session,
+            key,
+            reliable=reliable,
+            block=block,
+            express=express,
+            miss_detection=miss_detection,
+            encoding=encoding_of(cls),
         )
         self._rate_name = "out." + _kind(key)
 

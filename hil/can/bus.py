@@ -50,6 +50,7 @@ def open_can_bus(
     kw: dict[str, Any] = dict(kwargs)
     if iface == "hilzenoh":
         kw.setdefault("rig", rig)
+        kw.setdefault("no_traffic_warn_s", 0.0)  # the rig's own processes know their rig
         if session is not None:
             kw["session"] = session
     try:

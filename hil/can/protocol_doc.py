@@ -189,7 +189,8 @@ a mapping (TOML: `estimator`, `complete_on`, `max_age_ms`, `[fields]` NavSolutio
 `"Message.Signal"`, optional `[scale]` for unit or sign conventions) into a `NavSolution` named
 after the box, so it sits on `hil/<rig>/nav/<name>` beside the rig's estimators. The mapping
 format is documented in that module's docstring; bad frames and missing or stale fields are
-counted, never raised.
+counted, never raised. How to wire a real unit (CAN, its GNSS UART, the PPS), the reference unit
+`examples/dut/navbox.py` and how the score is computed: [dut.md](dut.md).
 
 ## Transports
 

@@ -6,6 +6,15 @@ backend the very same ``can.Bus(interface=..., channel="vcan0")`` calls work eve
 
     bus = can.Bus(interface="hilzenoh", channel="vcan0", rig="bench1", fd=True)
 
+Which rig: the ``rig`` keyword, which python-can also fills from its own configuration -- a
+config file section (``~/.canrc``, ``~/can.conf``, ``/etc/can.conf``; ``rig = bench``), the
+``CAN_CONFIG`` environment variable (JSON), a ``can.Bus(..., context="name")`` section, or
+``--bus-kwargs rig=bench`` on python-can's own tools (``python -m can.logger``, ``can.viewer``)
+-- then ``$HIL_RIG``, then ``default``. A bus that has neither sent nor received a frame
+``no_traffic_warn_s`` (default 5 s) after it opened logs a warning on python-can's logger
+(``can.hilzenoh``) naming its key, where its rig came from, and the rigs that are alive on the
+network (their ``hil/<rig>/@alive/*`` liveliness tokens): the usual cause is the wrong rig.
+
 Semantics copied from SocketCAN so code cannot tell the difference:
 
 - one Zenoh key per channel, ``hilcan/<rig>/<channel>`` (``Keys.canbus``), reliable with blocking
@@ -27,6 +36,7 @@ Wire format of one Zenoh payload (little-endian)::
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import queue
 import secrets
@@ -39,12 +49,16 @@ import can
 import zenoh
 from can import CanProtocol
 
-from hil.bus.keys import Keys
+from hil.bus.keys import Keys, check_name
 from hil.bus.session import BusConfig, open_session
 
+log = logging.getLogger("can.hilzenoh")  # python-can's logger tree, as its own interfaces
+
+NO_TRAFFIC_WARN_S = 5.0
 _HEADER = struct.Struct("<QIBB")
 F_EXT, F_FD, F_BRS, F_ESI, F_ERR, F_RTR = 1, 2, 4, 8, 16, 32
 FD_LENGTHS = frozenset([*range(9), 12, 16, 20, 24, 32, 48, 64])
+FRAME_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema("hilzenoh.frame")  # the format above
 
 
 def pack_frame(sender: int, msg: can.Message) -> bytes:
@@ -93,7 +107,9 @@ class ZenohCanBus(can.BusABC):
       otherwise one is opened from ``BusConfig.from_env()``;
     - ``receive_own_messages``: also deliver this bus's own frames (default False);
     - ``rx_queue_size``: frames held for ``recv`` before new ones are dropped and counted in
-      ``rx_overflow`` (default 100 000, like a generous socket buffer).
+      ``rx_overflow`` (default 100 000, like a generous socket buffer);
+    - ``no_traffic_warn_s``: warn when nothing was sent or received this long after opening
+      (default 5; 0: never).
     """
 
     def __init__(
@@ -106,10 +122,20 @@ class ZenohCanBus(can.BusABC):
         session: zenoh.Session | None = None,
         receive_own_messages: bool = False,
         rx_queue_size: int = 100_000,
+        no_traffic_warn_s: float = NO_TRAFFIC_WARN_S,
         **kwargs: Any,
     ) -> None:
         self.channel = str(channel or "vcan0")
-        self.rig = rig or os.environ.get("HIL_RIG", "default")
+        if rig:
+            self.rig, self.rig_source = str(rig), "the rig keyword or python-can's configuration"
+        elif os.environ.get("HIL_RIG"):
+            self.rig, self.rig_source = os.environ["HIL_RIG"], "HIL_RIG"
+        else:
+            self.rig, self.rig_source = "default", "nothing set (rig keyword, python-can config, HIL_RIG)"
+        try:
+            check_name("rig", self.rig)
+        except ValueError as err:
+            raise can.CanInitializationError(f"hilzenoh: {err} (from {self.rig_source})") from None
         self.key = Keys(self.rig).canbus(self.channel)
         self.fd = bool(fd)
         self.receive_own_messages = receive_own_messages
@@ -123,6 +149,7 @@ class ZenohCanBus(can.BusABC):
         self.rx_fd_ignored = 0
         self.tx_frames = 0
         self.rx_frames = 0
+        self.rx_samples = 0  # every sample on the key, own frames included: traffic on the rig
         self._own_session = session is None
         try:
             self._session = session if session is not None else open_session(BusConfig.from_env())
@@ -134,6 +161,7 @@ class ZenohCanBus(can.BusABC):
                 reliability=zenoh.Reliability.RELIABLE,
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 express=True,
+                encoding=FRAME_ENCODING,
             )
             self._sub = self._session.declare_subscriber(self.key, self._on_sample)
         except Exception as err:
@@ -141,10 +169,45 @@ class ZenohCanBus(can.BusABC):
                 self._session.close()
             raise can.CanInitializationError(f"hilzenoh: cannot declare {self.key}: {err}") from err
         super().__init__(channel=self.channel, can_filters=can_filters, **kwargs)
+        self._watch: threading.Timer | None = None
+        if no_traffic_warn_s and no_traffic_warn_s > 0:
+            self._watch = threading.Timer(
+                float(no_traffic_warn_s), self._warn_if_silent, (no_traffic_warn_s,)
+            )
+            self._watch.daemon = True
+            self._watch.start()
+
+    def _warn_if_silent(self, after_s: float) -> None:
+        """Nothing on the key after ``after_s``: say which key, whose rig, and which rigs are alive."""
+        if self._closed.is_set() or self.rx_samples or self.tx_frames:
+            return
+        rigs: set[str] = set()
+        try:
+            for reply in self._session.liveliness().get("hil/*/@alive/*", timeout=1.0):
+                if reply.ok is not None:
+                    parts = str(reply.ok.key_expr).split("/")
+                    if len(parts) > 1:
+                        rigs.add(parts[1])
+        except Exception:  # the warning goes out without the list
+            rigs.clear()
+        alive = (
+            f"rigs alive on this network: {', '.join(sorted(rigs))}"
+            if rigs
+            else "no rig is alive on this network"
+        )
+        log.warning(
+            "hilzenoh: no CAN frame on %s in %g s; rig %r comes from %s; %s",
+            self.key,
+            after_s,
+            self.rig,
+            self.rig_source,
+            alive,
+        )
 
     # Runs on a Zenoh thread: stamp first, never raise.
     def _on_sample(self, sample: zenoh.Sample) -> None:
         stamp = time.time()
+        self.rx_samples += 1
         try:
             sender, msg = unpack_frame(sample.payload.to_bytes())
         except Exception:
@@ -195,6 +258,8 @@ class ZenohCanBus(can.BusABC):
         if self._closed.is_set():
             return
         self._closed.set()
+        if self._watch is not None:
+            self._watch.cancel()
         super().shutdown()
         for thing in (self._sub, self._pub):
             with contextlib.suppress(Exception):  # the session may already be closing

@@ -414,8 +414,8 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
         num_sats=int(_num("gnss.num_sats", g.get("num_sats", gd.num_sats))),
         hdop=_num("gnss.hdop", g.get("hdop", gd.hdop)),
     )
-    if not 1.0 <= gnss.rate_hz <= 10.0:
-        raise ScenarioError(f"gnss.rate_hz must be in [1, 10], got {gnss.rate_hz}")
+    if not 1.0 <= gnss.rate_hz <= 20.0:  # u-blox F9: up to 20 Hz navigation rate
+        raise ScenarioError(f"gnss.rate_hz must be in [1, 20], got {gnss.rate_hz}")
     if gnss.latency_s < 0 or gnss.jitter_s < 0 or gnss.slow_period_s <= 0:
         raise ScenarioError("gnss.latency_s and jitter_s must be >= 0, slow_period_s > 0")
 

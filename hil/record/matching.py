@@ -70,28 +70,41 @@ class Matcher:
         self.n_recorded = 0
         self.compared = 0
         self.first: tuple[int, str] | None = None  # (order, text) of the first difference
+        # for a truncated file: the recorded copies' log times (pending ones, and the earliest
+        # recorded log time among the differences), so its tail can be told from the rest
+        self.recorded_t: dict[tuple[str, int], int] = {}
+        self.first_by_log: tuple[int, str] | None = None
+        self.diff_logs: list[int] = []  # recorded log time of every differing output
 
-    def _compare(self, key: tuple[str, int], rec: tuple[int, bytes], mine: tuple[int, bytes]) -> None:
+    def _compare(
+        self, key: tuple[str, int], rec: tuple[int, bytes], mine: tuple[int, bytes], log_ns: int
+    ) -> None:
         self.compared += 1
         if mine[1] != rec[1]:
+            self.diff_logs.append(log_ns)
             order = rec[0] if self.by_recorded else mine[0]
+            text = None
             if self.first is None or order < self.first[0]:
-                self.first = (order, self.describe(key, rec[1], mine[1]))
+                text = self.describe(key, rec[1], mine[1])
+                self.first = (order, text)
+            if self.first_by_log is None or log_ns < self.first_by_log[0]:
+                self.first_by_log = (log_ns, text or self.describe(key, rec[1], mine[1]))
 
-    def recorded(self, key: tuple[str, int], payload: bytes, order: int) -> None:
+    def recorded(self, key: tuple[str, int], payload: bytes, order: int, log_ns: int = 0) -> None:
         if key in self.recorded_pending:
             return  # a recorded duplicate: the first copy counts
         self.n_recorded += 1
         mine = self.recomputed_pending.pop(key, None)
         if mine is not None:
-            self._compare(key, (order, payload), (mine[0], mine[1]))
+            self._compare(key, (order, payload), (mine[0], mine[1]), log_ns)
         else:
             self.recorded_pending[key] = (order, payload)
+            self.recorded_t[key] = log_ns
 
     def recomputed(self, key: tuple[str, int], payload: bytes, order: int, t_ns: int) -> None:
         rec = self.recorded_pending.pop(key, None)
         if rec is not None:
-            self._compare(key, rec, (order, payload))
+            self._compare(key, rec, (order, payload), self.recorded_t.pop(key, 0))
         else:
             self.recomputed_pending[key] = (order, payload, t_ns)
 
@@ -105,3 +118,7 @@ class Matcher:
                 break
             del self.recomputed_pending[key]
             self.released.add(*key)
+
+    def pending_before(self, log_ns: int) -> list[tuple[str, int]]:
+        """Recorded outputs never recomputed that were recorded before ``log_ns``."""
+        return sorted(k for k in self.recorded_pending if self.recorded_t.get(k, 0) < log_ns)

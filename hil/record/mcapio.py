@@ -30,6 +30,7 @@ from hil import __version__
 from hil.messages import TYPES_BY_NAME, Message, json_schema, schema_name
 
 PROFILE = "hil"
+RAW = "raw"  # channel metadata ``hil`` of a key outside the contract, recorded as its bytes
 _U64_MAX = 2**64 - 1
 
 
@@ -39,6 +40,15 @@ class RecordingError(ValueError):
     A ``ValueError`` so every CLI boundary that already turns bad input into one line and exit
     code 2 treats a corrupt, truncated or non-MCAP file the same way.
     """
+
+
+def no_run_message(name: str, records: Any) -> str:
+    """Why a rerun found no run: a file cut off before it, or not a rig session."""
+    if getattr(records, "truncated", False):
+        return (
+            f"{name}: the file is cut off before the run was announced (no hil/<rig>/run): nothing to rerun"
+        )
+    return f"{name}: no RunInfo (hil/<rig>/run): not a rig session"
 
 
 def split_part_path(path: Path, part: int) -> Path:
@@ -213,6 +223,7 @@ class SessionWriter:
         self._writer.start(profile=PROFILE, library=f"hil {__version__}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._raw_channels: dict[tuple[str, str], int] = {}
         self.counts: dict[str, int] = {}
         self.closed = False
 
@@ -244,6 +255,27 @@ class SessionWriter:
             data=payload,
             publish_time=_u64(publish_time_ns),
             sequence=seq & 0xFFFFFFFF,
+        )
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def write_raw(
+        self, topic: str, payload: bytes, *, log_time_ns: int, encoding: str, sequence: int
+    ) -> None:
+        """A message on a key outside the contract, kept as its bytes on a schema-less channel.
+
+        The channel's message encoding is ``json`` when the publisher's Zenoh encoding says JSON,
+        else that Zenoh encoding itself (``zenoh/bytes``, ``text/plain``, ...); channel metadata
+        ``hil: raw``. ``publish_time`` is the receive time: the bytes carry no stamp we can trust.
+        """
+        base = encoding.split(";", 1)[0]
+        msg_encoding = "json" if base in ("application/json", "text/json") else (encoding or "zenoh/bytes")
+        chan = self._raw_channels.get((topic, msg_encoding))
+        if chan is None:
+            chan = self._raw_channels[(topic, msg_encoding)] = self._writer.register_channel(
+                topic, msg_encoding, 0, {"hil": RAW, "zenoh_encoding": encoding}
+            )
+        self._writer.add_message(
+            chan, log_time=_u64(log_time_ns), data=payload, publish_time=_u64(log_time_ns), sequence=sequence
         )
         self.counts[topic] = self.counts.get(topic, 0) + 1
 

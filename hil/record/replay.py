@@ -41,9 +41,10 @@ import zenoh
 import zenoh.ext as zext
 from mcap.reader import make_reader
 
+from hil.bus.describe import encoding_of
 from hil.bus.keys import rekey
 from hil.bus.pubsub import declare_publisher
-from hil.messages import CanFrame, FusionJournal, SerialChunk, decode
+from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
 from hil.record.mcapio import Record, RecordingError, iter_records
 
@@ -308,12 +309,14 @@ def replay(
     progress = Progress(progress_out or sys.stderr, recorded_span_ns(path), opts.progress)
     ask = step_input or input
 
-    def publisher(topic: str) -> zenoh.Publisher | zext.AdvancedPublisher:
+    def publisher(topic: str, schema: str = "") -> zenoh.Publisher | zext.AdvancedPublisher:
         pub = pubs.get(topic)
         if pub is None:
             key = rekey(topic, opts.rig) if opts.rig and topic.startswith("hil/") else topic
-            # as the rig's own publishers: reliable, blocking, with Zenoh sample-miss detection
-            pub = pubs[topic] = declare_publisher(session, key)
+            # as the rig's own publishers: reliable, blocking, with Zenoh sample-miss detection,
+            # and the recorded type in the encoding (hil.bus.describe)
+            cls = TYPES_BY_NAME.get(schema)
+            pub = pubs[topic] = declare_publisher(session, key, encoding=encoding_of(cls) if cls else None)
         return pub
 
     t_start = time.monotonic()
@@ -360,7 +363,7 @@ def replay(
                     line.write(data, time.time())  # as it was read: paced by the recording
                     stats.sent_line_bytes += len(data)
                 else:
-                    publisher(rec.topic).put(rec.payload)
+                    publisher(rec.topic, rec.schema).put(rec.payload)
                 stats.sent += 1
                 if is_input:
                     inputs_sent += 1

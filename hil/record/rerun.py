@@ -32,7 +32,7 @@ from hil.messages import (
 )
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import Matcher, SeqSet
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
 
@@ -79,9 +79,12 @@ class RerunResult:
     inputs_dropped: int
     live_consumed: int = -1  # the last journal's count of inputs the live fusion consumed
     difference: str | None = None
+    # a truncated file: the difference leaving out what the cut made unverifiable (below)
+    difference_if_cut: str | None = None
+    unverified: int = 0  # recorded outputs near the cut whose inputs the cut took
 
-    def first_difference(self) -> str | None:
-        return self.difference
+    def first_difference(self, truncated: bool = False) -> str | None:
+        return self.difference_if_cut if truncated else self.difference
 
 
 class OutOfWindow(Exception):
@@ -123,6 +126,8 @@ class _FusionRerun:
     n_out: int = 0
     live_consumed: int = -1
     outputs: list[NavSolution] = field(default_factory=list)
+    last_log_ns: int = 0
+    last_journal_log_ns: int = -1  # log time of the last journal record read
     matcher: Matcher = field(init=False)
 
     def __post_init__(self) -> None:
@@ -130,6 +135,7 @@ class _FusionRerun:
 
     def feed(self, r: Record) -> None:
         t = r.topic
+        self.last_log_ns = max(self.last_log_ns, r.log_time_ns)
         if "/synced/" in t:
             self._synced(r)
         elif "/nav/" in t:
@@ -171,11 +177,12 @@ class _FusionRerun:
         w = self.window_ns
         if self.last_key is not None and w is not None and r.publish_time_ns < self.last_key[0] - w:
             raise OutOfWindow(f"{r.topic} seq {r.sequence} is recorded long after its inputs")
-        self.matcher.recorded((est, r.sequence), r.payload, -1)
+        self.matcher.recorded((est, r.sequence), r.payload, -1, r.log_time_ns)
 
     def _journal(self, r: Record) -> None:
         j = r.decode()
         assert isinstance(j, FusionJournal)
+        self.last_journal_log_ns = max(self.last_journal_log_ns, r.log_time_ns)
         self.live_consumed = max(self.live_consumed, j.consumed)
         for d in j.dropped:
             i = d.split(":", 1)[1] if d.count(":") > 1 else d
@@ -217,9 +224,38 @@ class _FusionRerun:
         if diff is None and m.compared == 0:
             diff = "the recording holds no fusion outputs to compare"
         n_dropped = sum(self.dropped.values())
+        if_cut, unverified = self._if_cut()
         return RerunResult(
-            self.outputs, m.n_recorded, self.n_out, self.used, n_dropped, self.live_consumed, diff
+            self.outputs,
+            m.n_recorded,
+            self.n_out,
+            self.used,
+            n_dropped,
+            self.live_consumed,
+            diff,
+            if_cut,
+            unverified,
         )
+
+    def _if_cut(self) -> tuple[str | None, int]:
+        """The verdict on a file cut short, which can leave two kinds of outputs unverifiable:
+        one recorded before an input that the cut took (within ``TAIL_NS`` of the end), and one
+        recorded after the last journal, whose drops (inputs the live fusion skipped) the cut
+        took with the next journal. Everything recorded before those is verified as usual."""
+        m = self.matcher
+        cut_ns = self.last_log_ns - TAIL_NS
+        early = m.pending_before(cut_ns)
+        unverified = len(m.recorded_pending) - len(early)
+        unverified += sum(1 for t in m.diff_logs if t >= self.last_journal_log_ns)
+        first = m.first_by_log
+        if first is not None and first[0] < self.last_journal_log_ns:
+            return first[1], unverified
+        if early:
+            est, seq = early[0]
+            return f"nav/{est} seq {seq}: recorded but not recomputed ({len(early)} such outputs)", unverified
+        if m.compared == 0:
+            return "the part of the file that exists holds no fusion outputs to compare", unverified
+        return None, unverified
 
 
 def rerun_fusion_records(
@@ -246,7 +282,7 @@ def rerun_fusion_records(
     for r in records:
         state.feed(r)
     if state.run is None:
-        raise RecordingError(f"{name}: no RunInfo (hil/<rig>/run): not a rig session")
+        raise RecordingError(no_run_message(name, records))
     if state.node is None:
         raise RecordingError(f"{name}: no fusion configuration (fusion/config): the fusion did not run")
     state.release(None)
@@ -257,6 +293,8 @@ def rerun_fusion(session: Session) -> RerunResult:
     """The fusion rerun of a recording already in memory (every recomputed output kept)."""
     return rerun_fusion_records(session.records, window_ns=None, keep_outputs=True, name=str(session.path))
 
+
+TAIL_NS = 5_000_000_000  # log time before a cut within which an output's inputs may lie beyond it
 
 RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fractions of a second of order
 
@@ -305,9 +343,14 @@ def rerun(
         lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
     if stream.truncated:
         lines.append(
-            "note: the file is truncated (its recorder did not finish it); "
-            "rerun covers it up to its last complete chunk"
+            "note: the file is truncated (its recorder did not finish it; hil recover FILE rewrites it "
+            "finished); rerun covers it up to its last complete chunk"
         )
+        if res.unverified:
+            lines.append(
+                f"note: {res.unverified} outputs recorded in the last {TAIL_NS / 1e9:g} s before the cut "
+                "have inputs beyond it: not verifiable"
+            )
     elif res.live_consumed >= 0 and res.live_consumed != res.inputs_used:
         lines.append(
             f"note: the live fusion journaled {res.live_consumed} consumed inputs, the recording holds "
@@ -316,7 +359,8 @@ def rerun(
         )
     if not verify:
         return 0, lines
-    diff = res.first_difference()
+    diff = res.first_difference(stream.truncated)
     if diff:
         return 1, [*lines, f"VERIFY FAILED: {diff}"]
-    return 0, [*lines, f"VERIFY OK: all {res.n_recorded} recorded outputs are bit-identical"]
+    n = res.n_recorded - (res.unverified if stream.truncated else 0)
+    return 0, [*lines, f"VERIFY OK: all {n} recorded outputs are bit-identical"]

@@ -31,7 +31,7 @@ from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.base import Out
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.matching import Matcher
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream
+from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
 from hil.sensor_table import SENSORS
 
 _RAW = {schema_name(k.message): k.message for k in SENSORS.values()}
@@ -44,9 +44,13 @@ class TimesyncRerun:
     n_recomputed: int
     n_recorded: int
     difference: str | None
+    # a truncated file: the difference leaving out the recorded re-stamps of its last
+    # ``TAIL_NS`` whose raw measurement the cut took (``unverified`` of them)
+    difference_if_cut: str | None = None
+    unverified: int = 0
 
-    def first_difference(self) -> str | None:
-        return self.difference
+    def first_difference(self, truncated: bool = False) -> str | None:
+        return self.difference_if_cut if truncated else self.difference
 
 
 def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
@@ -62,6 +66,10 @@ def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> st
 
 
 HORIZON_NS = 60_000_000_000  # log time a re-stamp waits for its recorded copy before it is let go
+# A file cut short: a re-stamp can be recorded before its raw measurement (they come from two
+# processes), so the cut may keep the one and lose the other; within this much log time of the
+# end such an output is not verifiable, and not a failure.
+TAIL_NS = 5_000_000_000
 
 
 def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -> TimesyncRerun:
@@ -101,7 +109,7 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
             counts["order"] += 1
             if key in matcher.released:
                 late.append((counts["order"], key))
-            matcher.recorded(key, r.payload, counts["order"])
+            matcher.recorded(key, r.payload, counts["order"], r.log_time_ns)
         matcher.release_before(now_ns)
 
     for r in records:
@@ -117,14 +125,29 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
                 continue
         handle(r)
     if node is None:
-        raise RecordingError(f"{name}: no RunInfo (hil/<rig>/run): not a rig session")
+        raise RecordingError(no_run_message(name, records))
     keep(node.finish(now_ns))
-    # the first difference in file order, among differing, missing and too-late recorded outputs
+    strict = _first_difference(matcher, late, list(matcher.recorded_pending))
+    early = matcher.pending_before(now_ns - TAIL_NS)
+    if_cut = _first_difference(matcher, late, early)
+    if if_cut is None and matcher.n_recorded == 0:
+        if_cut = "the part of the file that exists holds no synced/<sensor> outputs to compare"
+    if strict is None and matcher.n_recorded == 0:
+        strict = "the recording holds no synced/<sensor> outputs to compare"
+    unverified = len(matcher.recorded_pending) - len(early)
+    return TimesyncRerun(
+        counts["meas"], counts["tags"], counts["out"], matcher.n_recorded, strict, if_cut, unverified
+    )
+
+
+def _first_difference(
+    matcher: Matcher, late: list[tuple[int, tuple[str, int]]], pending: list[tuple[str, int]]
+) -> str | None:
+    """The first difference in file order, among differing, missing and too-late recorded outputs."""
     candidates: list[tuple[int, str]] = [matcher.first] if matcher.first is not None else []
-    if matcher.recorded_pending:
-        order, (sensor, seq) = min((v[0], k) for k, v in matcher.recorded_pending.items())
-        n = len(matcher.recorded_pending)
-        text = f"synced/{sensor} seq {seq}: recorded but not recomputed ({n} such outputs)"
+    if pending:
+        order, (sensor, seq) = min((matcher.recorded_pending[k][0], k) for k in pending)
+        text = f"synced/{sensor} seq {seq}: recorded but not recomputed ({len(pending)} such outputs)"
         candidates.append((order, text))
     if late:
         order, (sensor, seq) = late[0]
@@ -135,10 +158,7 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
                 f"its measurement was re-stamped ({len(late)} such outputs)",
             )
         )
-    diff = min(candidates)[1] if candidates else None
-    if diff is None and matcher.n_recorded == 0:
-        diff = "the recording holds no synced/<sensor> outputs to compare"
-    return TimesyncRerun(counts["meas"], counts["tags"], counts["out"], matcher.n_recorded, diff)
+    return min(candidates)[1] if candidates else None
 
 
 def rerun_timesync(session: Session) -> TimesyncRerun:
@@ -157,10 +177,19 @@ def rerun_timesync_report(
     if len(stream.paths) > 1:
         lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
     if stream.truncated:
-        lines.append("note: the file is truncated; rerun covers it up to its last complete chunk")
+        lines.append(
+            "note: the file is truncated (hil recover FILE rewrites it finished); rerun covers it "
+            "up to its last complete chunk"
+        )
+        if res.unverified:
+            lines.append(
+                f"note: {res.unverified} re-stamps recorded in the last {TAIL_NS / 1e9:g} s before the cut "
+                "have their raw measurement beyond it: not verifiable"
+            )
     if not verify:
         return 0, lines
-    diff = res.first_difference()
+    diff = res.first_difference(stream.truncated)
     if diff:
         return 1, [*lines, f"VERIFY FAILED: {diff}"]
-    return 0, [*lines, f"VERIFY OK: all {res.n_recorded} recorded re-stamps are bit-identical"]
+    n = res.n_recorded - (res.unverified if stream.truncated else 0)
+    return 0, [*lines, f"VERIFY OK: all {n} recorded re-stamps are bit-identical"]

@@ -43,6 +43,55 @@ def _limits(spec: dict[str, Any]) -> str:
     return ", ".join(out)
 
 
+# The plain zenoh-python client of "Discover a rig's topics": tests/integration/test_bus_live.py
+# runs this very text against a live ``hil up``.
+DISCOVERY_EXAMPLE = """\
+import json, sys, time, zenoh  # pip install eclipse-zenoh; argv: the rig's endpoint and its name
+conf = zenoh.Config()
+conf.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))  # e.g. tcp/127.0.0.1:7447
+with zenoh.open(conf) as session:
+    topics, answered = {}, None  # key -> type, from every service (each reply also has "schemas")
+    for _ in range(30):  # a new session meets the rig's peers within moments: ask until it holds
+        replies = [json.loads(r.ok.payload.to_string()) for r in
+                   session.get(f"hil/{sys.argv[2]}/@topics/*", timeout=10) if r.ok]
+        for reply in replies:
+            topics.update(reply["topics"])
+        services = sorted(r["service"] for r in replies)
+        if replies and services == answered:
+            break
+        answered = services
+        time.sleep(1)
+    print("\\n".join(f"{key} {typ}" for key, typ in sorted(topics.items())))
+    sample = session.declare_subscriber(f"hil/{sys.argv[2]}/nav/*").recv()  # the next solution
+    print(sample.key_expr, sample.encoding, json.loads(sample.payload.to_bytes())["pos_ned_m"])
+"""
+
+
+def _discovery() -> list[str]:
+    return [
+        "## Discover a rig's topics (no hil code needed)",
+        "",
+        "The bus describes itself (`hil/bus/describe.py`):",
+        "",
+        "- every sample's Zenoh encoding names its type: `application/json;hil.NavSolution` (the",
+        "  schema below with that title; the CAN transport `hilcan/<rig>/<channel>` carries",
+        "  `application/octet-stream;hilzenoh.frame`, `hil/can/zenoh_bus.py`);",
+        "- every service holds the liveliness token `hil/<rig>/@alive/<service>` while it runs",
+        '  (`session.liveliness().get("hil/*/@alive/*")` lists the running services of every rig);',
+        "- every service answers a query on `hil/<rig>/@topics/<service>` with one JSON reply",
+        "  (encoding `application/json;hil.Topics`): `rig`, `service`, `topics` (key -> type of every",
+        "  key it publishes) and `schemas` (type -> JSON Schema).",
+        "",
+        "`@` chunks are verbatim in Zenoh: `hil/<rig>/**` never matches them, so subscribers and the",
+        "recording are unaffected. A plain zenoh-python client, given the rig's endpoint and name:",
+        "",
+        "```python",
+        *DISCOVERY_EXAMPLE.rstrip("\n").splitlines(),
+        "```",
+        "",
+    ]
+
+
 def render(schemas_dir: Path = SCHEMAS_DIR) -> str:
     lines = [
         "# Topics and message fields",
@@ -57,6 +106,7 @@ def render(schemas_dir: Path = SCHEMAS_DIR) -> str:
         *[ln.strip() for ln in (keys_mod.__doc__ or "").split("::", 1)[-1].split("\n\n")[1].splitlines()],
         "```",
         "",
+        *_discovery(),
     ]
     for path in sorted(schemas_dir.glob("hil.*.json")):
         schema = json.loads(path.read_text())

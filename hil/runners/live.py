@@ -28,6 +28,7 @@ from typing import Any, ClassVar
 import can
 import msgspec
 
+from hil.bus.keys import type_for_key
 from hil.bus.pubsub import DispatchSubscriber, Publisher
 from hil.can.bus import open_can_bus
 from hil.can.node import CanTransmitter
@@ -132,7 +133,8 @@ class NodeService(Service):
     def _publisher(self, key: str, cls: type | None) -> Publisher[Any]:
         pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs[key] = self.publisher(f"{self.keys.root}/{key}", cls or ServiceStatus)
+            full = f"{self.keys.root}/{key}"
+            pub = self._pubs[key] = self.publisher(full, cls or type_for_key(full) or ServiceStatus)
         return pub
 
     # -- the loop -------------------------------------------------------------------------------

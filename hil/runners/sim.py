@@ -31,7 +31,7 @@ from typing import Any
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
 from hil.messages import Event, Message, RunInfo, ServiceStatus, encode
-from hil.nav.scenario import load_scenario, scenario_for_run
+from hil.nav.scenario import load_scenario, scenario_for_run, scenario_overrides
 from hil.nodes import node_class
 from hil.nodes.base import CAN_RX, CAN_TX, SERIAL_RX, SERIAL_TX, Node, Out
 from hil.nodes.can_bridge import CanBridgeNode, CanBridgeOptions
@@ -39,7 +39,8 @@ from hil.nodes.fusion import DEFAULT_LAG_S, DEFAULT_OUTPUT_EVERY, FusionNode, Fu
 from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
-from hil.record.mcapio import SessionWriter
+from hil.record.keyfilter import KeyFilter
+from hil.record.mcapio import SessionWriter, split_part_path
 from hil.runners.wire import CanWireModel
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
@@ -64,6 +65,11 @@ class SimOptions:
     progress: bool = False
     on_progress: Any = None  # callable(rig_s_done, rig_s_total), called once per simulated second
     on_warning: Callable[[str], None] | None = None  # default: "hil sim: warning: ..." on stderr
+    imu_rate_hz: int | None = None  # override the scenario's IMU rate (as hil up --imu-rate)
+    split_mb: float = 0.0  # a new part (<stem>_0001.mcap, ...) after this many MB, as the recorder
+    split_s: float = 0.0  # ... or after this many seconds of rig time
+    record_include: list[str] = field(default_factory=list)  # hil.record.keyfilter, as the recorder
+    record_exclude: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -230,6 +236,8 @@ def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
 def sim_run_info(opts: SimOptions) -> RunInfo:
     """The run ``hil sim`` announces: time zero at the scenario's ``start_utc``, speed 1, its text."""
     base = load_scenario(opts.scenario)
+    if opts.imu_rate_hz:
+        base = scenario_overrides(base, imu_rate_hz=int(opts.imu_rate_hz))
     start = base.start_utc_ns
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
@@ -243,6 +251,9 @@ class _Session:
         self.opts = opts
         self.end_ns = int(run.duration_s * 1e9)
         self.w = SessionWriter(opts.record)
+        self.keep = KeyFilter(run.rig, opts.record_include, opts.record_exclude)
+        self.part = 0
+        self.part_t0_ns = 0
         self.n_written = 0
         self._seqs: dict[str, int] = {}
         self._topics: dict[str, str] = {}
@@ -251,10 +262,40 @@ class _Session:
         topic = self._topics.get(key)
         if topic is None:
             topic = self._topics[key] = f"{self.root}/{key}"
+        if self.keep.active and not self.keep.keeps(topic):
+            return
         self.w.write(
             topic, type(msg), encode(msg), log_time_ns=t_log, publish_time_ns=msg.stamp_ns, seq=msg.seq
         )
         self.n_written += 1
+
+    def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:
+        """At a window boundary, as the recorder at a flush: finish the part once it reached
+        ``split_mb`` or ``split_s`` of rig time, and open the next with the same metadata."""
+        o = self.opts
+        due = (o.split_mb and self.w.tell() >= o.split_mb * 1e6) or (
+            o.split_s and t_ns - self.part_t0_ns >= o.split_s * 1e9
+        )
+        if not due or t_ns > self.end_ns:
+            return
+        self.w.add_metadata("completeness", {**self._completeness(), "part": self.part})
+        self.w.close()
+        self.part += 1
+        self.part_t0_ns = t_ns
+        self.w = SessionWriter(split_part_path(o.record, self.part))
+        self.w.add_metadata(
+            "part", {"index": self.part, "previous": split_part_path(o.record, self.part - 1).name}
+        )
+        header(self.w)
+
+    def _completeness(self) -> dict[str, Any]:
+        return {"messages": self.n_written, "missing": 0, "replay_ready": True, "topics": {}}
+
+    def close(self) -> None:
+        self.w.add_metadata(
+            "completeness", {**self._completeness(), "part": self.part, "parts": self.part + 1}
+        )
+        self.w.close()
 
     def next_seq(self, key: str) -> int:
         n = self._seqs.get(key, 0)
@@ -284,7 +325,11 @@ def run_sim(opts: SimOptions) -> SimResult:
     s = scenario_for_run(run)
     nodes = sim_nodes(run, opts)
     sess = _Session(run, opts, nodes)
-    _header(sess.w, run, s)
+
+    def header(w: SessionWriter) -> None:
+        _header(w, run, s)
+
+    header(sess.w)
     warnings, ignored = not_applicable_faults(s.events, run.duration_s)
     for line in warnings:
         if opts.on_warning is not None:
@@ -308,6 +353,7 @@ def run_sim(opts: SimOptions) -> SimResult:
         if t < sess.end_ns:
             sess.status(t)
         sess.w.flush()
+        sess.maybe_split(t, header)
         if opts.on_progress is not None:
             opts.on_progress(min(t, sess.end_ns) * 1e-9, sess.end_ns * 1e-9)
         if not more and t > sess.end_ns:
@@ -315,10 +361,7 @@ def run_sim(opts: SimOptions) -> SimResult:
     t_last = sess.end_ns + 1
     sched.finish(t_last)
     sess.status(t_last)
-    sess.w.add_metadata(
-        "completeness", {"messages": sess.n_written, "missing": 0, "replay_ready": True, "topics": {}}
-    )
-    sess.w.close()
+    sess.close()
     return SimResult(opts.record, sess.n_written, run.duration_s, time.monotonic() - t_wall, warnings)
 
 

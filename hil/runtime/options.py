@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import msgspec
+
 from hil.nodes import NODES, node_class
 from hil.nodes.base import NodeOptions, decode_options
 
@@ -27,6 +29,11 @@ class RecorderOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fie
     drain_s: float = 0.5  # at the stop: wait until nothing has arrived for this long ...
     drain_max_s: float = 5.0  # ... but no longer than this
     stop_timeout_s: float = 20.0  # then let the writer empty its queue for at most this long
+    # Zenoh key expressions to record (empty: all) and not to record; relative to hil/<rig>/
+    # (hil.record.keyfilter)
+    include: list[str] = msgspec.field(default_factory=list)
+    exclude: list[str] = msgspec.field(default_factory=list)
+    raw_unknown: bool = True  # keys outside the contract recorded as raw bytes (else refused)
 
 
 OTHER_SERVICES: dict[str, type[NodeOptions]] = {"recorder": RecorderOptions}

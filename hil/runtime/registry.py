@@ -26,16 +26,18 @@ SERVICES: dict[str, str] = {
     "world": "services.world",
 }
 
-# Started only on request (`hil up --dut-emulator`; the GNSS receiver on a wire: `--gnss-serial`,
-# `--gnss-tcp`, `--gnss-protocol`), but runnable alone like any service.
+# Started only on request (`hil up --dut-emulator truth`: the truth+noise stand-in for a unit;
+# the GNSS receiver on a wire: `--gnss-serial`, `--gnss-tcp`, `--gnss-protocol`), but runnable
+# alone like any service.
 OPTIONAL_SERVICES: dict[str, str] = {
     "dut_emulator": "services.dut_emulator",
     "gnss_bridge": "services.gnss_bridge",
 }
 
-# Stop order: producers first, consumers after they drained, recorder last.
+# Stop order: producers first, consumers after they drained, recorder last. "dut" is the device
+# under test's own program (`hil up --dut-emulator`: examples/dut/navbox.py), a child, not a service.
 STOP_STAGES: tuple[tuple[str, ...], ...] = (
-    ("world", *_EMULATORS, "dut_emulator"),
+    ("world", *_EMULATORS, "dut_emulator", "dut"),
     ("can_bridge", "gnss_bridge"),
     ("timesync",),
     ("fusion",),

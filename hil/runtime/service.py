@@ -29,6 +29,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from hil.bus.describe import BusDescription
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -110,12 +111,15 @@ class Service:
         self.run_info: RunInfo | None = None
         self._t0 = time.monotonic()
         self.generation = restart_generation(ctx.options)
+        self.description = BusDescription(ctx.session, ctx.rig, self.name)
         self._status_pub = Publisher(
             ctx.session, self.keys.status(self.name), ServiceStatus, reliable=True, generation=self.generation
         )
         self._event_pub = Publisher(
             ctx.session, self.keys.event(self.name), Event, stats=self.stats, generation=self.generation
         )
+        self.description.add(self._status_pub.key, ServiceStatus)
+        self.description.add(self._event_pub.key, Event)
         self._run_event = threading.Event()
         self._subs: list[Any] = []
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
@@ -127,6 +131,7 @@ class Service:
     # -- helpers for subclasses -------------------------------------------------------------
     def publisher(self, key: str, cls: type[Message], **kw: Any) -> Publisher[Any]:
         kw.setdefault("generation", self.generation)
+        self.description.add(key, cls)
         return Publisher(self.ctx.session, key, cls, self.stats, **kw)
 
     def subscribe(self, key: str, cls: type[Message], handler: Callable[[Any, str], None]) -> None:
@@ -218,6 +223,7 @@ class Service:
         self.state = "starting"  # world waits for "waiting_run": only after setup() is a service ready
         self._status_thread.start()
         try:
+            self._describe()
             self.setup()
             self.state = "waiting_run" if self.needs_run() else "running"
             if self.needs_run():
@@ -232,6 +238,16 @@ class Service:
             self.ctx.stop.set()
             self.teardown()
             self._status_thread.join(timeout=2.0)
+            self.description.close()
+
+    def _describe(self) -> None:
+        """The liveliness token and the topic queryable (``hil.bus.describe``); a bus that
+        refuses them costs the description, never the service."""
+        try:
+            self.description.declare()
+        except Exception as err:
+            why = f"{type(err).__name__}: {err}"
+            self.stats.error("errors.describe", f"liveliness/queryable not declared: {why}")
 
     def setup(self) -> None:
         """Declare subscriptions/publishers before the run starts (so nothing is missed)."""

@@ -41,6 +41,31 @@ def proc_cpu_seconds(pid: int) -> float | None:
         return None
 
 
+DUT_EMULATORS = ("unit", "truth")
+DUT_UNIT = "dut"  # the child that runs a unit's own program (``--dut-emulator``): not a service
+
+
+def dut_program(mapping: str) -> Path:
+    """The unit's own program a DUT mapping names (``program = "navbox.py"``, next to it)."""
+    import tomllib
+
+    p = Path(mapping)
+    try:
+        with open(p, "rb") as fh:
+            program = tomllib.load(fh).get("program")
+    except (OSError, tomllib.TOMLDecodeError) as err:
+        raise ValueError(f"--dut {p}: cannot read it: {err}") from None
+    if not program:
+        raise ValueError(
+            f'--dut {p} names no unit program (program = "unit.py"); use --dut-emulator truth '
+            "for the truth+noise stand-in"
+        )
+    path = (p.parent / str(program)).resolve()
+    if not path.is_file():
+        raise ValueError(f"--dut {p}: its program {path} does not exist")
+    return path
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -63,7 +88,9 @@ class UpOptions:
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
     imu_rate_hz: int | None = None  # override the scenario's IMU rate (soak/load benches)
     dut_mapping: str | None = None  # a device under test on the IMU's CAN bus (can_bridge decodes it)
-    dut_emulator: bool = False  # start the emulated unit (services/dut_emulator.py) too
+    # play the unit too: "unit" runs the mapping's own program (``program = ...``, e.g.
+    # examples/dut/navbox.py) on the wires; "truth" the truth+noise stand-in (dut_emulator)
+    dut_emulator: str | None = None
     split_mb: float = 0.0  # the recorder starts a new part after this many MB (0: one file)
     split_s: float = 0.0  # ... or after this many seconds
     zenoh_miss_detection: bool = True  # advanced publishers + the recorder's sample-miss listener
@@ -73,6 +100,14 @@ class UpOptions:
     gnss_tcp: str | None = None  # the same line served over TCP, HOST:PORT
     gnss_baud: int = 115200
     gnss_messages: list[str] = field(default_factory=list)  # the receiver's message set (empty: defaults)
+    record_include: list[str] = field(default_factory=list)  # recorder key expressions (hil.record.keyfilter)
+    record_exclude: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.dut_emulator not in (None, *DUT_EMULATORS):
+            raise ValueError(f"dut_emulator {self.dut_emulator!r}: use one of {DUT_EMULATORS}")
+        if self.dut_emulator == "unit" and not self.gnss_protocol:
+            self.gnss_protocol = ["nmea"]  # the unit reads its receiver off a wire
 
     @property
     def gnss_wire(self) -> bool:
@@ -151,6 +186,7 @@ class LiveView:
             cols = f"{'in/s':>8}{'out/s':>8}{'rejected':>9}{'errors':>7}"
             lines = [head, f"  {'service':<14}{'state':<12}{cols}  last error"]
             names = list(SERVICES) + sorted(n for n in self.status if n not in SERVICES)
+            names += [n for n in alive or {} if n not in names]  # a child with no status (the unit)
             for name in names:
                 st = self.status.get(name)
                 age = now - self.status_seen.get(name, -1e9)
@@ -242,8 +278,10 @@ class Supervisor:
 
     def service_names(self) -> list[str]:
         names = list(SERVICES)
-        if self.opts.dut_emulator:
+        if self.opts.dut_emulator == "truth":
             names.insert(names.index("world"), "dut_emulator")
+        elif self.opts.dut_emulator == "unit":
+            names.insert(names.index("world"), DUT_UNIT)
         if self.opts.gnss_wire:  # the line's reader starts before the receiver
             names.insert(names.index("gnss_emulator"), "gnss_bridge")
         return names
@@ -252,23 +290,49 @@ class Supervisor:
         """Where the rig's own GNSS bridge reads the receiver's line: a pty linked in the logs."""
         return str((self.opts.log_dir or Path("recordings/logs")) / "gnss_bridge.tty")
 
+    def dut_line(self) -> str:
+        """Where the unit (``--dut-emulator``) reads the receiver: a pty of its own, as a real
+        unit has its own UART (two readers of one tty would split its bytes)."""
+        return str((self.opts.log_dir or Path("recordings/logs")) / "dut_gnss.tty")
+
+    def dut_command(self) -> list[str]:
+        """The unit's program on the run's wires: the IMU's CAN bus (channel and interface, the
+        hilzenoh transport configured by the environment every child gets) and its GNSS line."""
+        from hil.can.bus import resolve_interface
+        from hil.can.codec import default_dbc_path
+
+        o = self.opts
+        if not o.dut_mapping:
+            raise ValueError("--dut-emulator needs --dut MAPPING.toml")
+        cmd = [sys.executable, str(dut_program(o.dut_mapping))]
+        cmd += ["--can-interface", resolve_interface(o.channel, o.interface), "--channel", o.channel]
+        cmd += ["--fd"] if o.fd else []
+        cmd += ["--gnss", self.dut_line(), "--gnss-baud", str(o.gnss_baud)]
+        return [*cmd, "--imu-dbc", str(default_dbc_path()), "--stop-with-pid", str(os.getpid())]
+
     def options_for(self, name: str, restarts: int = 0) -> dict[str, Any]:
         """The service's typed options from this run's (``hil.runtime.options.fill_options``)."""
         o = self.opts
         derived: dict[str, Any] = {}
-        if name == "world":
-            derived["wait_for"] = [n for n in self.service_names() if n != "world"]
+        if name == "world":  # the unit publishes no status: the run does not wait for it
+            derived["wait_for"] = [n for n in self.service_names() if n not in ("world", DUT_UNIT)]
             run = self.view.run
             if restarts and run is not None:
                 # the same run again: time zero and scenario as announced, not a new run
                 derived["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
         elif name == "recorder":
             path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
-            derived.update(path=str(path), zenoh_advanced=o.zenoh_miss_detection)
+            derived.update(
+                path=str(path),
+                zenoh_advanced=o.zenoh_miss_detection,
+                include=list(o.record_include),
+                exclude=list(o.record_exclude),
+            )
         elif name in ("gnss_emulator", "gnss_bridge") and o.gnss_wire:
             derived.update(protocol=o.gnss_protocol, baud=o.gnss_baud, messages=o.gnss_messages)
             if name == "gnss_emulator":
                 links = [*([o.gnss_serial] if o.gnss_serial else []), self.bridge_line()]
+                links += [self.dut_line()] if o.dut_emulator == "unit" else []
                 derived.update(serial_links=links, tcp_listen=o.gnss_tcp)
             else:
                 derived["serial_path"] = self.bridge_line()
@@ -280,7 +344,10 @@ class Supervisor:
         """Every service's options decoded now: a bad one is refused before any process starts
         (``hil.nodes.base.OptionsError``, naming the service and the field)."""
         for name in self.service_names():
-            self.options_for(name)
+            if name == DUT_UNIT:
+                self.dut_command()
+            else:
+                self.options_for(name)
 
     def emit(self, kind: str, source: str, detail: str) -> None:
         """An ``hil.Event`` from the supervisor (recorded like any other rig traffic)."""
@@ -346,17 +413,12 @@ class Supervisor:
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
         env.setdefault("PYTHONUNBUFFERED", "1")
-        cmd = [
-            sys.executable,
-            "-m",
-            "hil.cli",
-            "service",
-            name,
-            "--rig",
-            self.opts.rig,
-            "--options",
-            json.dumps(self.options_for(name, restarts)),
-        ]
+        if name == DUT_UNIT:
+            cmd = self.dut_command()
+        else:
+            options = json.dumps(self.options_for(name, restarts))
+            cmd = [sys.executable, "-m", "hil.cli", "service", name, "--rig", self.opts.rig]
+            cmd += ["--options", options]
         if restarts:
             fh.write(f"\n--- hil up: restart {restarts} of {name} ---\n".encode())
             fh.flush()

@@ -151,13 +151,45 @@ def select_messages(
     return tuple(m for m in supported if m in requested)
 
 
-class DecoderState:
-    """Counters and the last problem, shared by the decoders."""
+class StreamDecoder:
+    """What every streaming decoder shares: a byte buffer fed in chunks of arbitrary size, counters,
+    the last problem, and an open epoch closed at end of stream. A subclass scans for its frames
+    (``_scan``) and closes epochs (``_close``); ``feed`` never raises."""
+
+    GARBAGE: ClassVar[str] = "outside any frame"
 
     def __init__(self) -> None:
         self.counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
         self.last_problem = ""
+        self._buf = bytearray()
+        self._rx_ns = 0
 
     def problem(self, counter: str, what: str, amount: int = 1) -> None:
         self.counters[counter] += amount
         self.last_problem = what
+
+    def feed(self, data: bytes, rx_ns: int) -> list[DecodedFix]:
+        """Consume a chunk received at ``rx_ns``; return the epochs it completed. Never raises."""
+        self.counters["bytes"] += len(data)
+        self._rx_ns = rx_ns
+        self._buf += data
+        out: list[DecodedFix] = []
+        del self._buf[: self._scan(self._buf, out)]
+        return out
+
+    def flush(self) -> list[DecodedFix]:
+        """End of stream: close the open epoch."""
+        out: list[DecodedFix] = []
+        self._close(out)
+        return out
+
+    def _garbage(self, n: int) -> None:
+        if n > 0:
+            self.problem("garbage_bytes", f"{n} byte(s) {self.GARBAGE}", n)
+
+    def _scan(self, buf: bytearray, out: list[DecodedFix]) -> int:
+        """Decode every complete frame in ``buf`` into ``out``; return how many bytes are used up."""
+        raise NotImplementedError
+
+    def _close(self, out: list[DecodedFix]) -> None:
+        raise NotImplementedError

@@ -50,9 +50,9 @@ from hil.wire.base import (
     FIX_NONE,
     NO_VEC3,
     DecodedFix,
-    DecoderState,
     OptVec3,
     ReceiverEpoch,
+    StreamDecoder,
     select_messages,
 )
 from hil.wire.gnss_time import NS_PER_S, gps_ns_to_utc_fields, utc_fields_to_gps_ns
@@ -400,7 +400,7 @@ def _assemble(epoch: _Epoch, rx_ns: int) -> DecodedFix:
     )
 
 
-class NmeaDecoder:
+class NmeaDecoder(StreamDecoder):
     """Streaming NMEA decoder: one DecodedFix per epoch (sentences with the same UTC time).
 
     An epoch closes when its last configured sentence arrives (``messages[-1]``, ZDA by default) or
@@ -418,27 +418,16 @@ class NmeaDecoder:
     def __init__(
         self, messages: tuple[str, ...] | None = None, max_sentence_chars: int = MAX_SENTENCE_CHARS
     ) -> None:
+        super().__init__()
         configured = messages or NmeaProtocol.DEFAULT_MESSAGES
         self._closing_kind = configured[-1]
         self._max_chars = max_sentence_chars
-        self._state = DecoderState()
-        self.counters = self._state.counters
-        self._buf = bytearray()
         self._open: _Epoch | None = None
         self._closed_key: str | None = None
-        self._rx_ns = 0
 
-    @property
-    def last_problem(self) -> str:
-        return self._state.last_problem
+    GARBAGE = "outside any sentence"
 
-    def feed(self, data: bytes, rx_ns: int) -> list[DecodedFix]:
-        """Consume a chunk received at ``rx_ns``; return the epochs it completed. Never raises."""
-        self.counters["bytes"] += len(data)
-        self._rx_ns = rx_ns
-        buf = self._buf
-        buf += data
-        out: list[DecodedFix] = []
+    def _scan(self, buf: bytearray, out: list[DecodedFix]) -> int:
         pos = 0
         while True:
             start = buf.find(b"$", pos)
@@ -453,32 +442,21 @@ class NmeaDecoder:
                 break
             nxt = buf.find(b"$", start + 1, end)
             if nxt >= 0:  # a new sentence began before this one ended
-                self._state.problem("truncated", f"sentence cut short: {bytes(buf[start:nxt])[:40]!r}")
+                self.problem("truncated", f"sentence cut short: {bytes(buf[start:nxt])[:40]!r}")
                 pos = nxt
                 continue
             if end + 1 - start > self._max_chars:
-                self._state.problem("too_long", f"sentence of {end + 1 - start} chars > {self._max_chars}")
+                self.problem("too_long", f"sentence of {end + 1 - start} chars > {self._max_chars}")
             else:
                 self._sentence(bytes(buf[start:end]), out)
             pos = end + 1
-        del buf[:pos]
-        return out
-
-    def flush(self) -> list[DecodedFix]:
-        """End of stream: close the open epoch."""
-        out: list[DecodedFix] = []
-        self._close(out)
-        return out
-
-    def _garbage(self, n: int) -> None:
-        if n > 0:
-            self._state.problem("garbage_bytes", f"{n} byte(s) outside any sentence", n)
+        return pos
 
     def _unterminated(self, buf: bytearray, start: int) -> int:
         """Where to keep the buffer from when no line end has arrived yet after ``start``."""
         if len(buf) - start <= self._max_chars:
             return start
-        self._state.problem("too_long", f"no line end within {self._max_chars} chars")
+        self.problem("too_long", f"no line end within {self._max_chars} chars")
         nxt = buf.find(b"$", start + 1)
         if nxt < 0:
             self.counters["garbage_bytes"] += len(buf) - start - 1  # the "$" itself counted as too_long
@@ -492,21 +470,21 @@ class NmeaDecoder:
             line = line[:-1]
         star = line.rfind(b"*")
         if star < 0:
-            self._state.problem("truncated", f"no checksum: {line[:40]!r}")
+            self.problem("truncated", f"no checksum: {line[:40]!r}")
             return
         body, given = line[1:star], line[star + 1 :]
         if len(given) != 2 or not given.isalnum() or _hex(given) != checksum(body):
-            self._state.problem("bad_checksum", f"checksum {given[:8]!r} does not match {line[:40]!r}")
+            self.problem("bad_checksum", f"checksum {given[:8]!r} does not match {line[:40]!r}")
             return
         self.counters["messages"] += 1
         if not body.isascii():
-            self._state.problem("malformed", f"non-ASCII sentence {line[:40]!r}")
+            self.problem("malformed", f"non-ASCII sentence {line[:40]!r}")
             return
         fields = body.decode("ascii").split(",")
         kind = fields[0][2:] if len(fields[0]) == 5 else ""
         spec = _PARSERS.get(kind)
         if spec is None:
-            self._state.problem("unknown", f"sentence {fields[0]!r} not read")
+            self.problem("unknown", f"sentence {fields[0]!r} not read")
             return
         min_fields, parser, time_index = spec
         try:
@@ -515,7 +493,7 @@ class NmeaDecoder:
             values = parser(fields)
             tod_ns = _time_of_day_ns(fields[time_index]) if time_index else None
         except ValueError as exc:
-            self._state.problem("malformed", f"{fields[0]}: {exc}")
+            self.problem("malformed", f"{fields[0]}: {exc}")
             return
         self._place(kind, fields[time_index] if tod_ns is not None else None, tod_ns, values, out)
 
@@ -526,7 +504,7 @@ class NmeaDecoder:
         epoch = self._open
         if key is not None:
             if key == self._closed_key and (epoch is None or epoch.key is None):
-                self._state.problem("late", f"{kind} of the closed epoch {key}")
+                self.problem("late", f"{kind} of the closed epoch {key}")
                 return
             if epoch is not None and epoch.key is not None and epoch.key != key:
                 self._close(out)
@@ -546,12 +524,12 @@ class NmeaDecoder:
             return
         self._closed_key = epoch.key
         if not any(k in epoch.parts for k in _POSITION_KINDS):
-            self._state.problem("incomplete", f"epoch {epoch.key} closed without GGA or RMC")
+            self.problem("incomplete", f"epoch {epoch.key} closed without GGA or RMC")
             return
         try:
             fix = _assemble(epoch, self._rx_ns)
         except (ValueError, OverflowError) as exc:
-            self._state.problem("malformed", f"epoch {epoch.key}: {exc}")
+            self.problem("malformed", f"epoch {epoch.key}: {exc}")
             return
         self.counters["fixes"] += 1
         out.append(fix)

@@ -47,7 +47,7 @@ from dataclasses import replace
 from itertools import accumulate
 from typing import ClassVar
 
-from hil.wire.base import FIX_NONE, NO_VEC3, DecodedFix, DecoderState, ReceiverEpoch, select_messages
+from hil.wire.base import FIX_NONE, NO_VEC3, DecodedFix, ReceiverEpoch, StreamDecoder, select_messages
 from hil.wire.gnss_time import (
     MS_PER_WEEK,
     NS_PER_MS,
@@ -305,7 +305,7 @@ def _sigma(variance: float) -> float:
     return math.sqrt(variance) if variance > 0.0 else 0.0
 
 
-class UbxDecoder:
+class UbxDecoder(StreamDecoder):
     """Streaming UBX decoder: one DecodedFix per iTOW, resynchronising on garbage.
 
     An epoch closes on NAV-EOE if the configuration has it, else when every configured NAV message
@@ -316,31 +316,20 @@ class UbxDecoder:
     """
 
     def __init__(self, messages: tuple[str, ...] | None = None, max_payload: int = MAX_PAYLOAD) -> None:
+        super().__init__()
         configured = messages or UbxProtocol.DEFAULT_MESSAGES
         self._close_on_eoe = "NAV-EOE" in configured
         self._required = frozenset(m for m in configured if m.startswith("NAV-") and m != "NAV-EOE")
         self._max_payload = max_payload
-        self._state = DecoderState()
-        self.counters = self._state.counters
         self.counters["pps_announcements"] = 0
         self.last_pps_gps_ns: int | None = None
         self._week_ref: tuple[int, int] | None = None  # (GPS week, tow ms) of a recent message
-        self._buf = bytearray()
         self._open: _Epoch | None = None
         self._closed_itow: int | None = None
-        self._rx_ns = 0
 
-    @property
-    def last_problem(self) -> str:
-        return self._state.last_problem
+    GARBAGE = "outside any UBX frame"
 
-    def feed(self, data: bytes, rx_ns: int) -> list[DecodedFix]:
-        """Consume a chunk received at ``rx_ns``; return the epochs it completed. Never raises."""
-        self.counters["bytes"] += len(data)
-        self._rx_ns = rx_ns
-        buf = self._buf
-        buf += data
-        out: list[DecodedFix] = []
+    def _scan(self, buf: bytearray, out: list[DecodedFix]) -> int:
         pos = 0
         while True:
             start = buf.find(SYNC, pos)
@@ -355,7 +344,7 @@ class UbxDecoder:
                 break
             cls, msg_id, length = struct.unpack_from("<BBH", buf, start + 2)
             if length > self._max_payload:
-                self._state.problem(
+                self.problem(
                     "too_long", f"UBX 0x{cls:02x} 0x{msg_id:02x} length {length} > {self._max_payload}"
                 )
                 self.counters["garbage_bytes"] += 2
@@ -366,27 +355,16 @@ class UbxDecoder:
                 pos = start
                 break
             pos = self._frame(bytes(buf[start:end]), start, buf, out)
-        del buf[:pos]
-        return out
-
-    def flush(self) -> list[DecodedFix]:
-        """End of stream: close the open epoch."""
-        out: list[DecodedFix] = []
-        self._close(out)
-        return out
-
-    def _garbage(self, n: int) -> None:
-        if n > 0:
-            self._state.problem("garbage_bytes", f"{n} byte(s) outside any UBX frame", n)
+        return pos
 
     def _frame(self, raw: bytes, start: int, buf: bytearray, out: list[DecodedFix]) -> int:
         """Check one complete-length frame at ``start``; return where to scan next."""
         if checksum(raw[2:-2]) != raw[-2:]:
             inner = raw.find(SYNC, 2)
             if inner > 0:  # the next frame began inside this one: it was cut short
-                self._state.problem("truncated", f"UBX frame cut short after {inner} bytes")
+                self.problem("truncated", f"UBX frame cut short after {inner} bytes")
                 return start + inner
-            self._state.problem("bad_checksum", f"UBX 0x{raw[2]:02x} 0x{raw[3]:02x} checksum mismatch")
+            self.problem("bad_checksum", f"UBX 0x{raw[2]:02x} 0x{raw[3]:02x} checksum mismatch")
             self.counters["garbage_bytes"] += 2
             return start + 2
         self.counters["messages"] += 1
@@ -396,12 +374,10 @@ class UbxDecoder:
     def _message(self, cls_id: tuple[int, int], payload: bytes, out: list[DecodedFix]) -> None:
         name = MESSAGE_NAMES.get(cls_id)
         if name is None:
-            self._state.problem("unknown", f"UBX 0x{cls_id[0]:02x} 0x{cls_id[1]:02x} not read")
+            self.problem("unknown", f"UBX 0x{cls_id[0]:02x} 0x{cls_id[1]:02x} not read")
             return
         if len(payload) < _PAYLOAD_SIZES[cls_id]:
-            self._state.problem(
-                "malformed", f"{name} payload {len(payload)} < {_PAYLOAD_SIZES[cls_id]} bytes"
-            )
+            self.problem("malformed", f"{name} payload {len(payload)} < {_PAYLOAD_SIZES[cls_id]} bytes")
             return
         if cls_id == TIM_TP:
             tow_ms, sub_ms, _q_err, week, _flags, _ref = _TIM_TP.unpack_from(payload)
@@ -416,7 +392,7 @@ class UbxDecoder:
             epoch = None
         if epoch is None:
             if itow_ms == self._closed_itow:
-                self._state.problem("late", f"{name} of the closed epoch iTOW {itow_ms}")
+                self.problem("late", f"{name} of the closed epoch iTOW {itow_ms}")
                 return
             epoch = self._open = _Epoch(itow_ms)
         epoch.names.append(name)
@@ -430,12 +406,12 @@ class UbxDecoder:
             return
         self._closed_itow = epoch.itow_ms
         if "NAV-PVT" not in epoch.payloads and "NAV-POSLLH" not in epoch.payloads:
-            self._state.problem("incomplete", f"iTOW {epoch.itow_ms} closed without NAV-PVT or NAV-POSLLH")
+            self.problem("incomplete", f"iTOW {epoch.itow_ms} closed without NAV-PVT or NAV-POSLLH")
             return
         try:
             fix = self._assemble(epoch)
         except (ValueError, OverflowError) as exc:
-            self._state.problem("malformed", f"iTOW {epoch.itow_ms}: {exc}")
+            self.problem("malformed", f"iTOW {epoch.itow_ms}: {exc}")
             return
         self.counters["fixes"] += 1
         out.append(fix)
@@ -477,7 +453,7 @@ class UbxDecoder:
         try:
             gps_ns = utc_fields_to_gps_ns(*ymdhms, nano)
         except ValueError as exc:
-            self._state.problem("malformed", f"NAV-PVT iTOW {itow_ms}: {exc}")
+            self.problem("malformed", f"NAV-PVT iTOW {itow_ms}: {exc}")
             return None
         if gps_ns >= 0:
             week, tow_ms, _ = gps_week_tow(gps_ns)

@@ -78,6 +78,12 @@ def test_default_stack_needs_no_kernel_can_and_no_edits() -> None:
     assert json.loads(svcs["recorder"]["command"][-1])["path"].startswith("/data/")
     # the router is published on the host's loopback only, unless the user widens it
     assert all(p.get("host_ip") == "127.0.0.1" for p in svcs["router"]["ports"])
+    # so is the receiver's byte stream (docs/gnss-wire.md), and it is off (Zenoh fixes only)
+    # until HIL_GNSS_PROTOCOL names a protocol
+    assert all(p.get("host_ip") == "127.0.0.1" for p in svcs["gnss_emulator"]["ports"])
+    gnss = svcs["gnss_emulator"]["command"]
+    assert gnss[gnss.index("--protocol") + 1] == ""
+    assert "gnss_bridge" not in svcs, "the bridge only runs in the gnss-wire profile"
 
 
 @pytest.mark.docker

@@ -5,6 +5,7 @@ decodes it; a recorded line played back onto a pty decodes to the recorded fixes
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -21,7 +22,7 @@ from pyubx2 import NMEA_PROTOCOL, UBX_PROTOCOL, UBXReader
 
 from hil.nav.earth import lla_to_ned
 from hil.record.mcapio import read_session
-from tests.conftest import REPO, free_port, hil_cmd
+from tests.conftest import REPO, free_port, hil_cmd, run_hil
 
 pytestmark = pytest.mark.slow
 
@@ -198,3 +199,78 @@ def _gpspipe_tpv(gpspipe: str, port: int, count: int) -> list[dict[str, object]]
     finally:
         _terminate(proc)
     return tpv
+
+
+def test_replay_puts_the_recorded_line_back_on_a_pty_and_it_decodes_to_the_recorded_fixes(
+    tmp_path: Path,
+) -> None:
+    from hil.runners.sim import SimOptions, run_sim
+    from hil.wire.line import LineDecoder
+
+    # GIVEN a session whose receiver was on an NMEA+UBX line (hil sim: the same nodes)
+    rec = tmp_path / "line.mcap"
+    run_sim(SimOptions(duration_s=6.0, record=rec, estimators=["comp1"], gnss_protocol=["nmea", "ubx"]))
+    recorded = [r.decode() for r in read_session(rec).by_topic("hil/sim/sensor/gnss")]
+    # WHEN hil replay plays the recorded bytes onto a pty (5x faster than recorded)
+    tty = tmp_path / "replay0"
+    proc = subprocess.Popen(
+        hil_cmd("replay", str(rec), "--gnss-serial", str(tty), "--topics", "serial/", "--rate", "5", "--no-progress"),
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    line = LineDecoder(("nmea", "ubx"))
+    fixes = []
+    try:
+        deadline = time.monotonic() + 60.0
+        while not tty.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0]
+            time.sleep(0.05)
+        fd = os.open(tty, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            while proc.poll() is None and time.monotonic() < deadline:
+                try:
+                    fixes += line.feed(os.read(fd, 65536), 0)
+                except BlockingIOError:
+                    time.sleep(0.01)
+            with contextlib.suppress(OSError):
+                fixes += line.feed(os.read(fd, 65536), 0)
+        finally:
+            os.close(fd)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        _terminate(proc)
+    # THEN a device reading that pty gets every recorded epoch, to the recorded numbers
+    assert proc.returncode == 0 and "bytes onto the receiver's line" in out, out
+    ubx = [f for f in fixes if f.protocol == "ubx"]
+    assert len(ubx) >= len(recorded) - 1, (len(ubx), len(recorded))  # the pty may open a moment late
+    by_time = {f.gps_time_ns: f for f in ubx}
+    run = read_session(rec).by_topic("hil/sim/run")[0].decode()
+    from hil.wire.gnss_time import utc_ns_to_gps_ns
+
+    matched = [
+        (by_time[g], m)
+        for m in recorded
+        if (g := utc_ns_to_gps_ns(run.start_epoch_ns + m.device_stamp_ns)) in by_time
+    ]
+    assert len(matched) >= len(recorded) - 1
+    assert all(abs(f.lat_deg - m.lat_deg) < 1e-7 and abs(f.lon_deg - m.lon_deg) < 1e-7 for f, m in matched)
+    assert line.counters["garbage_bytes"] == 0
+
+
+@pytest.mark.parametrize(
+    ("path", "why"),
+    [
+        ("{tmp}/no/such/dir/gnss0", "No such file or directory"),
+        ("/sys/gnss0", "cannot make a link in /sys"),  # root passes os.access here; the link fails
+        ("{tmp}/taken", "exists and is not a link"),
+    ],
+)
+def test_a_gnss_line_path_that_cannot_be_made_is_one_line_at_start(
+    tmp_path: Path, path: str, why: str
+) -> None:
+    (tmp_path / "taken").write_text("")
+    proc = run_hil("up", "--gnss-serial", path.format(tmp=tmp_path), "--duration", "2", timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and why in lines[0] and "--gnss-serial" in lines[0], proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert "hil up: rig" not in proc.stdout, "refused before any process started"

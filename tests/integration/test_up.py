@@ -53,6 +53,7 @@ def up_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subpro
             "--dut",
             str(REPO / "examples/dut/navbox.toml"),
             "--dut-emulator",
+            "truth",  # the truth+noise stand-in; the unit itself: tests/integration/test_dut.py
         ),
         capture_output=True,
         text=True,

@@ -23,8 +23,8 @@ from hil.wire import protocol
 from hil.wire.base import COUNTER_NAMES, DecodedFix, ReceiverEpoch
 from hil.wire.gnss_time import NS_PER_S, gps_ns_to_utc_fields, utc_fields_to_gps_ns
 from hil.wire.nmea import KMH_MPS, KNOT_MPS, NmeaDecoder, NmeaProtocol, checksum
+from tests.wire_samples import T0, sample_epoch
 
-T0 = utc_fields_to_gps_ns(2024, 5, 6, 12, 34, 56, 200_000_000)
 LATLON_TOL_DEG = 0.5e-5 / 60.0 + 1e-10
 # years 1999..2068: pynmeagps reads RMC's 2-digit year with strptime's pivot (69 -> 1969); the codec
 # reads yy < 80 as 20yy (GPS time starts in 1980), so the two agree up to 2068
@@ -32,23 +32,7 @@ GPS_2068_S = 2_808_000_000
 FUZZ = settings(derandomize=True, max_examples=300, deadline=None)
 
 
-def _epoch(gps_ns: int = T0, **kw: object) -> ReceiverEpoch:
-    values: dict[str, object] = dict(
-        gps_time_ns=gps_ns,
-        lat_deg=47.28523316,
-        lon_deg=8.56526500,
-        alt_m=499.6,
-        vel_ned_mps=(1.0, -2.0, 0.3),
-        pos_sigma_ned_m=(0.46, 0.29, 0.64),
-        vel_sigma_mps=(0.05, 0.05, 0.08),
-        fix_type=3,
-        num_sats=8,
-        hdop=1.01,
-        pdop=1.8,
-        vdop=1.4,
-    )
-    values.update(kw)
-    return ReceiverEpoch(**values)  # type: ignore[arg-type]
+_epoch = sample_epoch
 
 
 @st.composite

@@ -30,29 +30,14 @@ from hil.wire.gnss_time import (
     utc_fields_to_gps_ns,
 )
 from hil.wire.ubx import MAX_PAYLOAD, UbxDecoder, UbxProtocol, checksum, frame
+from tests.wire_samples import T0, sample_epoch
 
-T0 = utc_fields_to_gps_ns(2024, 5, 6, 12, 34, 56, 200_000_000)
 LEGACY = UbxProtocol.LEGACY_MESSAGES
 FUZZ = settings(derandomize=True, max_examples=300, deadline=None)
 
 
 def _epoch(gps_ns: int = T0, **kw: object) -> ReceiverEpoch:
-    values: dict[str, object] = dict(
-        gps_time_ns=gps_ns,
-        lat_deg=47.28523316,
-        lon_deg=8.56526500,
-        alt_m=499.6,
-        vel_ned_mps=(1.0, -2.0, 0.3),
-        pos_sigma_ned_m=(0.46, 0.29, 0.64),
-        vel_sigma_mps=(0.05, 0.04, 0.08),
-        fix_type=3,
-        num_sats=18,
-        hdop=1.01,
-        pdop=1.8,
-        vdop=1.4,
-    )
-    values.update(kw)
-    return ReceiverEpoch(**values)  # type: ignore[arg-type]
+    return sample_epoch(gps_ns, **{**dict(vel_sigma_mps=(0.05, 0.04, 0.08), num_sats=18), **kw})
 
 
 @st.composite

@@ -228,12 +228,13 @@ def test_bridge_counts_injected_bad_frames_and_keeps_decoding(
         sub.undeclare()
         test_session.close()
         svc_session.close()
-    c = bridge.assembler.counters
+    assert bridge.node is not None
+    c = bridge.node.assembler.counters
     record_property("bridge_counters", json.dumps({k: v for k, v in c.items() if v}))
     assert [m.device_stamp_ns for m in got] == [1_000_000_000 + i * 20_000_000 for i in range(20)]
     assert c["unknown_id"] == 1 and c["bad_dlc"] == 1 and c["bad_crc"] == 1
     assert c["counter_jump"] == 4  # the four sample frames of the lost sample
-    s = bridge.stats.counters
+    s = bridge.node.counters()  # what the status carries
     assert (
         s["rejected.can.unknown_id"] == 1
         and s["rejected.can.bad_crc"] == 1

@@ -1,0 +1,210 @@
+"""The recording tools on real ``hil sim`` recordings, as a user runs them (``hil ...``).
+
+filter then merge gives the original messages back; merge of a split session equals the unsplit
+one; cat, attachments and export read a real recording; recover turns a file cut at any byte
+into one the plain mcap reader reads; every tool gives a bad file one line and exit 2.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from hil.record.mcapio import read_session
+from tests.conftest import REPO, run_hil
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def rec(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Path]]:
+    tmp = tmp_path_factory.mktemp("tools")
+    whole, split = tmp / "whole.mcap", tmp / "split.mcap"
+    for path, extra in ((whole, []), (split, ["--split-mb", "0.25"])):
+        proc = run_hil("sim", "--duration", "6", "--quiet", "--record", str(path), *extra, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+    yield {"tmp": tmp, "whole": whole, "split": split}
+
+
+def messages(path: Path) -> list[tuple[str, int, bytes]]:
+    """(topic, log time, payload) in file order, read by the plain mcap reader (index and all)."""
+    with open(path, "rb") as f:
+        return [
+            (c.topic, m.log_time, m.data) for _s, c, m in make_reader(f).iter_messages(log_time_order=False)
+        ]
+
+
+def hil_ok(*args: str) -> str:
+    proc = run_hil(*args, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc.stdout
+
+
+def test_filter_by_time_then_merge_gives_the_original_messages(rec: dict[str, Path]) -> None:
+    tmp, whole = rec["tmp"], rec["whole"]
+    a, b, m = tmp / "a.mcap", tmp / "b.mcap", tmp / "ab.mcap"
+    hil_ok("filter", str(whole), "-o", str(a), "--end", "2")
+    hil_ok("filter", str(whole), "-o", str(b), "--start", "2")
+    hil_ok("merge", str(a), str(b), "-o", str(m))
+    orig = messages(whole)
+    assert 0 < len(messages(a)) < len(orig)
+    assert messages(m) == orig
+    s = read_session(m)
+    assert set(read_session(whole).metadata) | {"merge"} == set(s.metadata)  # no filter records
+    assert s.attachments == read_session(whole).attachments
+
+
+def test_filter_by_topics_then_merge_gives_every_topic_back_in_order(rec: dict[str, Path]) -> None:
+    tmp, whole = rec["tmp"], rec["whole"]
+    nav, rest, m = tmp / "nav.mcap", tmp / "rest.mcap", tmp / "navrest.mcap"
+    hil_ok("filter", str(whole), "-o", str(nav), "--topics", "/nav/")
+    hil_ok("filter", str(whole), "-o", str(rest), "--exclude-topics", "/nav/")
+    assert {t for t, _l, _d in messages(nav)} == {t for t, _l, _d in messages(whole) if "/nav/" in t}
+    hil_ok("merge", str(nav), str(rest), "-o", str(m))
+    orig, got = messages(whole), messages(m)
+    assert sorted(orig) == sorted(got)
+    by_topic = lambda ms: {t: [x for x in ms if x[0] == t] for t in {x[0] for x in ms}}  # noqa: E731
+    assert by_topic(got) == by_topic(orig)
+
+
+def test_merge_of_a_split_session_is_the_unsplit_session(rec: dict[str, Path]) -> None:
+    parts = sorted(rec["tmp"].glob("split*.mcap"))
+    assert len(parts) >= 3, parts
+    m = rec["tmp"] / "merged.mcap"
+    out = hil_ok("merge", str(rec["split"]), "-o", str(m))  # one name: the session and its parts
+    assert f"{len(parts)} files" in out
+    assert messages(m) == messages(rec["whole"])  # hil sim is deterministic: same seed, same bytes
+    proc = run_hil("rerun", str(m), "--verify", timeout=300)
+    assert proc.returncode == 0 and "VERIFY OK" in proc.stdout, proc.stdout
+
+
+def test_cat_prints_every_message_as_a_json_line(rec: dict[str, Path]) -> None:
+    out = hil_ok("cat", str(rec["whole"]), "--topics", "/nav/ekf15$")
+    lines = [json.loads(ln) for ln in out.splitlines()]
+    want = [x for x in messages(rec["whole"]) if x[0].endswith("/nav/ekf15")]
+    assert len(lines) == len(want) > 0
+    assert [ln["message"] for ln in lines] == [json.loads(d) for _t, _l, d in want]
+    assert {ln["schema"] for ln in lines} == {"hil.NavSolution"}
+
+
+def test_attachments_lists_and_extracts_the_scenario_dbc_and_schemas(rec: dict[str, Path]) -> None:
+    listing = hil_ok("attachments", str(rec["whole"]))
+    assert "can/imu.dbc" in listing and "schemas/hil.NavSolution.json" in listing and "scenario/" in listing
+    out = rec["tmp"] / "att"
+    hil_ok("attachments", str(rec["whole"]), "--extract", str(out), "--name", "can/imu.dbc")
+    assert (out / "can" / "imu.dbc").read_bytes() == (REPO / "schemas" / "imu.dbc").read_bytes()
+    proc = run_hil("attachments", str(rec["whole"]), "--extract", str(out), "--name", "nosuch")
+    assert proc.returncode == 2 and "nosuch" in proc.stderr
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_export_writes_imu_gnss_truth_and_nav_tables(rec: dict[str, Path], fmt: str) -> None:
+    out = rec["tmp"] / f"export-{fmt}"
+    hil_ok("export", str(rec["whole"]), "--format", fmt, "-o", str(out))
+    s = read_session(rec["whole"])
+    for table, topic in (
+        ("sensor_imu", "sensor/imu"),
+        ("synced_gnss", "synced/gnss"),
+        ("truth", "truth"),
+        ("nav_ekf15", "nav/ekf15"),
+    ):
+        recs = s.by_topic(f"hil/bench/{topic}")
+        first = json.loads(recs[0].payload)
+        path = out / f"{table}.{fmt}"
+        if fmt == "csv":
+            with open(path, newline="") as f:
+                rows = list(csv.DictReader(f))
+            got = {k: rows[0][k] for k in ("seq", "stamp_ns")}
+            assert got == {"seq": str(first["seq"]), "stamp_ns": str(first["stamp_ns"])}
+        else:
+            import pyarrow.parquet as pq
+
+            t = pq.read_table(path)
+            rows = t.to_pylist()
+            assert rows[0]["seq"] == first["seq"] and rows[0]["log_time_ns"] == recs[0].log_time_ns
+            if "pos_ned_m" in first:
+                assert [rows[0][f"pos_ned_m_{a}"] for a in "ned"] == first["pos_ned_m"]
+        assert len(rows) == len(recs) > 0
+
+
+def test_recover_reads_a_file_cut_at_any_byte(rec: dict[str, Path]) -> None:
+    data, orig = rec["whole"].read_bytes(), messages(rec["whole"])
+    cut, fixed = rec["tmp"] / "cut.mcap", rec["tmp"] / "cut.fixed.mcap"
+    for k in range(1, 7):
+        cut.write_bytes(data[: len(data) * k // 7 + 13 * k])
+        out = hil_ok("recover", str(cut), "-o", str(fixed))
+        got = messages(fixed)
+        assert got == orig[: len(got)] and len(got) >= len(read_session(cut).records), k
+        assert "lost: " in out
+    out = hil_ok("recover", str(rec["whole"]), "-o", str(fixed))
+    assert messages(fixed) == orig and "nothing lost" in out
+
+
+def _foreign(path: Path) -> Path:
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="someone else")
+        sid = w.register_schema("pkg/Msg", "ros2msg", b"int32 x")
+        cid = w.register_channel("/x", "cdr", sid)
+        w.add_message(cid, log_time=1, data=b"\x00\x01\x00\x00\x05\x00\x00\x00", publish_time=1)
+        w.finish()
+    return path
+
+
+@pytest.mark.parametrize(
+    "cmd",
+    [["recover"], ["filter", "-o", "X"], ["merge", "-o", "X"], ["cat"], ["attachments"], ["export"]],
+)
+def test_a_bad_file_gets_one_line_and_exit_2(rec: dict[str, Path], cmd: list[str]) -> None:
+    tmp = rec["tmp"] / f"bad-{cmd[0]}"
+    tmp.mkdir()
+    good = rec["whole"].read_bytes()
+    files = {
+        "garbage": b"this is not an mcap file\n" * 10,
+        "empty": b"",
+        "magic_only": good[:8],
+        "header_cut": good[:30],
+    }
+    paths = {n: tmp / f"{n}.mcap" for n in files}
+    for n, blob in files.items():
+        paths[n].write_bytes(blob)
+    paths["foreign"] = _foreign(tmp / "foreign.mcap")
+    paths["missing"] = tmp / "missing.mcap"
+    for name, path in paths.items():
+        args = [cmd[0], str(path), *[str(tmp / "out.mcap") if x == "X" else x for x in cmd[1:]]]
+        proc = run_hil(*args, timeout=60)
+        assert proc.returncode == 2, (name, proc.stdout, proc.stderr)
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and str(path) in lines[0] and "Traceback" not in proc.stderr, (
+            name,
+            proc.stderr,
+        )
+        assert not (tmp / "out.mcap").exists(), name  # nothing half-written left behind
+
+
+def test_hil_sim_takes_the_options_it_shares_with_hil_up(rec: dict[str, Path]) -> None:
+    path = rec["tmp"] / "opts.mcap"
+    hil_ok(
+        "sim",
+        "--duration",
+        "2",
+        "--quiet",
+        "--record",
+        str(path),
+        "--imu-rate",
+        "200",
+        "--record-exclude",
+        "status/*",
+    )
+    topics = {t for t, _l, _d in messages(path)}
+    assert topics and not [t for t in topics if "/status/" in t]
+    imu = [t for t, _l, _d in messages(path) if t.endswith("/sensor/imu")]
+    assert 380 <= len(imu) <= 420  # 2 s at 200 Hz
+    proc = run_hil("sim", "--duration", "1", "--record", str(path), "--record-include", "nav/#", timeout=60)
+    assert proc.returncode == 2 and "--record-include" in proc.stderr
