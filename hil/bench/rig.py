@@ -8,7 +8,6 @@ p99, and the CPU share of every service over the run.
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 from hil.bench import command_line, write_section
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
 
 
@@ -39,8 +39,8 @@ def hop_latencies_ms(path: Path, rig: str) -> dict[str, np.ndarray]:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench rig")
-    ap.add_argument("--duration", type=float, default=60.0)
+    ap = OneLineParser(prog="hil bench rig")
+    ap.add_argument("--duration", type=duration_s, default=60.0)
     ap.add_argument("--scenario", default="straight_level")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)

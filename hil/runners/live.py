@@ -47,6 +47,7 @@ from hil.nodes.base import (
 )
 from hil.nodes.world import run_info
 from hil.runners.serial import LineReader, LineWriter
+from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
 
@@ -330,7 +331,7 @@ def options_parser(
 ) -> argparse.ArgumentParser:
     """``--field-name`` for every field of ``cls`` (a list: comma-separated; a bool: a switch,
     ``--no-<name>`` when it defaults to true), plus ``--rig``; ``aliases`` maps older flags."""
-    ap = argparse.ArgumentParser(prog=prog)
+    ap = OneLineParser(prog=prog)
     ap.add_argument("--rig", default=None)
     hints = typing.get_type_hints(cls)
     defaults = {f: d for f, d in zip(cls.__struct_fields__, _defaults(cls), strict=True)}
@@ -361,7 +362,9 @@ def _arg_type(hint: Any) -> Callable[[str], Any]:
     base = args[0] if args and typing.get_origin(hint) in (types.UnionType, typing.Union) else hint
     if typing.get_origin(base) is list:
         return lambda text: [x for x in text.split(",") if x]
-    if base in (int, float):
+    if base is float:
+        return finite_float
+    if base is int:
         return base  # type: ignore[no-any-return]
     return str
 
