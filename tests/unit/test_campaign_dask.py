@@ -42,6 +42,14 @@ def cluster() -> Iterator[Any]:
         yield c
     finally:
         c.close()
+        # the worker processes' start made this process a multiprocessing resource tracker, which
+        # would live until pytest exits (the suite's leftover check kills and reports it): stop it;
+        # whatever needs one next starts it again
+        from multiprocessing import resource_tracker
+
+        stop = getattr(resource_tracker._resource_tracker, "_stop", None)
+        if stop is not None:
+            stop()
 
 
 def _sim_spec(runs: int, **kw: Any) -> Any:
@@ -194,10 +202,12 @@ def test_unreachable_scheduler_is_one_line_exit_2(tmp_path: Path) -> None:
 
 def test_a_killed_worker_loses_no_result(cluster: Any, tmp_path: Path) -> None:
     """SIGKILL a worker process that holds a run mid-campaign: every run still comes back ok.
-    (Last in the module: the nanny restarts the worker, but nothing else should wait for it.)"""
+    On a cluster of its own (the module's keeps the resource tracker started), closed before the
+    test ends: the nanny restarts the killed worker, a process of this test's."""
     from dask.distributed import Client
 
-    client = Client(cluster.scheduler_address, set_as_default=False)
+    own = _cluster()
+    client = Client(own.scheduler_address, set_as_default=False)
     killed: list[int] = []
 
     def kill_a_busy_worker(_run: RunSpec, _rows: list[dict[str, Any]]) -> None:
@@ -211,11 +221,12 @@ def test_a_killed_worker_loses_no_result(cluster: Any, tmp_path: Path) -> None:
 
     try:
         opts = DriverOptions(
-            out_dir=tmp_path, scheduler=cluster.scheduler_address, progress=False, on_rows=kill_a_busy_worker
+            out_dir=tmp_path, scheduler=own.scheduler_address, progress=False, on_rows=kill_a_busy_worker
         )
         res = run_campaign(_sim_spec(4, duration_s=4.0), opts)
     finally:
         client.close()
+        own.close()
     assert killed, "no worker was busy when the first run came back"
     assert res.counts == {OK: 4} and not res.failures
     rows = read_results(tmp_path).table()
