@@ -38,6 +38,7 @@ from hil.campaign.execute import OK, sim_recording, sim_statistics
 from hil.campaign.results import read_results
 from hil.campaign.runs import RunSpec, derive_runs
 from hil.campaign.spec import CampaignSpec, spec_from_dict
+from hil.runtime.argtypes import OneLineParser, bounded_int, duration_s
 
 ESTIMATORS = ["compvs", "ekf15"]
 
@@ -215,12 +216,14 @@ def _conditions(loads: list[str], killed: bool) -> str:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench campaign", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="hil bench campaign", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="uav_survey")
-    ap.add_argument("--runs", type=int, default=8)
-    ap.add_argument("--duration", type=float, default=10.0, help="rig seconds per run")
-    ap.add_argument("--repeat", type=int, default=3, help="interleaved repeats; the best is reported")
-    ap.add_argument("--max-workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--runs", type=bounded_int(1, 100_000), default=8)
+    ap.add_argument("--duration", type=duration_s, default=10.0, help="rig seconds per run")
+    ap.add_argument(
+        "--repeat", type=bounded_int(1, 100), default=3, help="interleaved repeats; the best is reported"
+    )
+    ap.add_argument("--max-workers", type=bounded_int(1, 1024), default=os.cpu_count() or 1)
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     a = ap.parse_args(argv)
     spec = _spec(a.scenario, a.runs, a.duration)
