@@ -50,6 +50,17 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
         "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
     )
     p.add_argument(
+        "--feedback",
+        default="auto",
+        help="seed estimators in feedback form (the INS reset by their estimate): auto (by the IMU "
+        "grade: consumer MEMS), none, or comma-separated names",
+    )
+    p.add_argument(
+        "--ekf-calibration",
+        default="auto",
+        help="ekf15's sensor-calibration states: auto (by the IMU grade), none, gyro, gyro+accel",
+    )
+    p.add_argument(
         "--split-mb",
         type=positive_float,
         default=None,
@@ -159,6 +170,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         interface=a.can_interface,
         fd=a.fd,
         estimators=[e for e in a.estimators.split(",") if e],
+        feedback=a.feedback,
+        ekf_calibration=a.ekf_calibration,
         live=not a.quiet,
         log_dir=record.resolve().with_suffix(".logs"),
         restart=a.restart,
@@ -275,6 +288,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record=record,
                 rig=a.rig,
                 estimators=[e for e in a.estimators.split(",") if e],
+                feedback=a.feedback,
+                ekf_calibration=a.ekf_calibration,
                 fd=a.fd,
                 on_progress=on_progress,
                 imu_rate_hz=a.imu_rate,

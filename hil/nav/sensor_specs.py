@@ -166,6 +166,33 @@ IMU_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+#: IMU grades, worst first. Thresholds sit between the presets' classes (decades apart), on the
+#: turn-on plus in-run bias (the errors a navigation filter must carry) and the gyro scale factor.
+IMU_GRADES = ("consumer", "tactical", "navigation")
+
+
+def imu_grade(p: ImuParams) -> str:
+    """The IMU's class from its error budget: the worse of its gyros' and accelerometers'.
+
+    Gyro bias (fixed, turn-on, in-run, per-axis root sum square): ≥ 100 °/h or a scale factor
+    ≥ 1000 ppm is consumer MEMS, ≥ 0.1 °/h tactical, below navigation grade. Accelerometer
+    bias: ≥ 3 mg consumer, ≥ 100 µg tactical. An ideal IMU is navigation grade.
+    """
+
+    def rss(*vecs: Vec3) -> float:
+        return max(math.sqrt(sum(v[i] ** 2 for v in vecs)) for i in range(3))
+
+    gyro_dph = rss(p.gyro_bias_radps, p.gyro_turn_on_sigma_radps, p.gyro_bias_instability_radps) / (
+        DEG / 3600
+    )
+    accel_ug = rss(p.accel_bias_mps2, p.accel_turn_on_sigma_mps2, p.accel_bias_instability_mps2) / UG_MPS2
+    if gyro_dph >= 100.0 or max(p.gyro_scale_factor_sigma) >= 1000e-6 or accel_ug >= 3000.0:
+        return "consumer"
+    if gyro_dph >= 0.1 or accel_ug >= 100.0:
+        return "tactical"
+    return "navigation"
+
+
 #: Any IMU figure beyond this (in the key's own user unit) is a typo, not a sensor.
 MAX_USER_VALUE = 1e9
 

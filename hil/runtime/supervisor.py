@@ -87,6 +87,8 @@ class UpOptions:
     interface: str | None = None  # python-can interface of the IMU and the bridge
     fd: bool = False
     estimators: list[str] = field(default_factory=list)
+    feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
+    ekf_calibration: str = "auto"  # ekf15's calibration states (same)
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
