@@ -417,6 +417,18 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
         return int(mod.main(rest) or 0)
 
 
+def cmd_campaign(a: argparse.Namespace, rest: list[str]) -> int:
+    """``hil campaign ...``: many runs on Dask (hil.campaign.cli parses its own forms). Options
+    before the first word land in ``rest``, the rest in ``a.args``: together, in order."""
+    from hil.campaign.cli import UsageError
+    from hil.campaign.cli import main as campaign_main
+
+    try:
+        return campaign_main([*rest, *a.args])
+    except UsageError as err:
+        raise UserError(str(err)) from None
+
+
 def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.progress import Progress
     from hil.record.mcapio import check_hil_recording
@@ -863,6 +875,12 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
     rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
     rr.set_defaults(func=cmd_rerun)
+
+    camp = sub.add_parser(
+        "campaign", add_help=False, help="Monte-Carlo sims and rerun libraries on Dask (docs/campaigns.md)"
+    )
+    camp.add_argument("args", nargs=argparse.REMAINDER)
+    camp.set_defaults(func=cmd_campaign, passthrough=True)
 
     rep = sub.add_parser(
         "report", help="an HTML report (and PNGs) of a recording: accuracy, faults, sync, loss, CAN"

@@ -37,6 +37,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "hil.can.zenoh_bus",
         "hil.can.mcap_io",
         "hil.bus",
+        "hil.campaign",
         "hil.record",
         "hil.report",
         "hil.runtime",
