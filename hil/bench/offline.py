@@ -102,24 +102,10 @@ def run_pair(trees: list[Tree], sim_args: list[str], tmp: Path, i: int) -> dict[
     return recs
 
 
-def profile_top(tree: Path, sim_args: list[str], tmp: Path, n: int) -> list[str]:
-    """cProfile of one ``hil sim`` of ``tree``: the top ``n`` functions by own time."""
+def profile_top(tree: Path, hil_args: list[str], tmp: Path, n: int) -> list[str]:
+    """cProfile of one ``hil ...`` run by ``tree``: the top ``n`` functions by own time."""
     out = tmp / f"{tree.name}.prof"
-    rec = tmp / f"{tree.name}-profile.mcap"
-    argv = [
-        "-m",
-        "cProfile",
-        "-o",
-        str(out),
-        "-m",
-        "hil.cli",
-        "sim",
-        *sim_args,
-        "--record",
-        str(rec),
-        "--quiet",
-    ]
-    _cpu_of(tree, argv)
+    _cpu_of(tree, ["-m", "cProfile", "-o", str(out), "-m", "hil.cli", *hil_args])
     st = pstats.Stats(str(out))
     total = st.total_tt  # type: ignore[attr-defined]
     rows = sorted(st.stats.items(), key=lambda kv: -kv[1][2])[:n]  # type: ignore[attr-defined]
@@ -130,6 +116,20 @@ def profile_top(tree: Path, sim_args: list[str], tmp: Path, n: int) -> list[str]
             f"| {100 * tt / total:.1f} | {100 * ct / total:.1f} | {calls} | `{where}:{line}({fn})` |"
         )
     return lines
+
+
+def run_profiles(
+    trees: list[Tree], sim_args: list[str], rec: Path, tmp: Path, n: int
+) -> list[tuple[str, list[str]]]:
+    """Each tree's cProfile top ``n`` of ``hil sim`` and of ``hil rerun --core fusion`` of ``rec``."""
+    out = []
+    for t in trees:
+        sim = ["sim", *sim_args, "--record", str(tmp / "profile.mcap"), "--quiet"]
+        out.append((f"`hil sim {' '.join(sim_args)} --record`, {t.label}", profile_top(t.path, sim, tmp, n)))
+    for t in trees:
+        rerun = ["rerun", str(rec), "--core", "fusion", "--verify"]
+        out.append((f"`hil rerun --core fusion --verify`, {t.label}", profile_top(t.path, rerun, tmp, n)))
+    return out
 
 
 def _mean(xs: list[float]) -> float:
@@ -183,11 +183,12 @@ def main(argv: list[str]) -> int:
                     dr, dh = (digests(recs[t.label]) for t in trees)
                     same = sorted(t for t in dr.keys() & dh.keys() if dr[t] == dh[t])
                     differ = sorted(set(dr) ^ set(dh) | {t for t in dr.keys() & dh.keys() if dr[t] != dh[t]})
+                kept = recs.pop(trees[0].label) if i == 0 else None  # REF's first, for the rerun profiles
                 for r in recs.values():
                     r.unlink()
-            profiles = (
-                [(t.label, profile_top(t.path, sim_args, tmp, a.profile)) for t in trees] if a.profile else []
-            )
+                if kept is not None:
+                    first_ref = kept
+            profiles = run_profiles(trees, sim_args, first_ref, tmp, a.profile) if a.profile else []
         except RuntimeError as err:
             print(f"hil bench offline: {err}", file=sys.stderr)
             return 1
@@ -229,9 +230,6 @@ def report(
         f"{trees[0].label}'s recording: {verify}.",
     ]
     for label, top in profiles:
-        lines += [
-            "",
-            f"cProfile of `hil sim {' '.join(sim_args)} --record`, {label}, top {a.profile} by own time:",
-        ]
+        lines += ["", f"cProfile of {label}, top {a.profile} by own time:"]
         lines += ["", *top]
     return "\n".join(lines)
