@@ -103,9 +103,18 @@ def run_pair(trees: list[Tree], sim_args: list[str], tmp: Path, i: int) -> dict[
 
 
 def profile_top(tree: Path, hil_args: list[str], tmp: Path, n: int) -> list[str]:
-    """cProfile of one ``hil ...`` run by ``tree``: the top ``n`` functions by own time."""
+    """cProfile of one ``hil ...`` run by ``tree``: the top ``n`` functions by own time.
+
+    The profiler's clock is the process's CPU time, not the wall clock: on a shared machine a
+    wall-clock profile charges a function for the time the process waited for a core.
+    """
     out = tmp / f"{tree.name}.prof"
-    _cpu_of(tree, ["-m", "cProfile", "-o", str(out), "-m", "hil.cli", *hil_args])
+    code = (
+        "import cProfile, sys, time; from hil.cli import main; sys.argv = ['hil', *sys.argv[2:]]; "
+        "p = cProfile.Profile(time.process_time); rc = p.runcall(main); p.dump_stats(sys.argv_out)"
+    )
+    code = code.replace("sys.argv_out", repr(str(out)))
+    _cpu_of(tree, ["-c", code, "--", *hil_args])
     st = pstats.Stats(str(out))
     total = st.total_tt  # type: ignore[attr-defined]
     rows = sorted(st.stats.items(), key=lambda kv: -kv[1][2])[:n]  # type: ignore[attr-defined]
