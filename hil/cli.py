@@ -9,14 +9,25 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from hil import __version__
-from hil.runtime.argtypes import positive_float
+from hil.runtime.argtypes import (
+    OneLineParser,
+    bounded_float,
+    bounded_int,
+    duration_s,
+    positive_float,
+    restart_count,
+    seconds,
+    speed,
+)
 
 EXIT_USAGE = 2
+ROUTER_LISTEN = "tcp/127.0.0.1:7447"  # hil router with neither --listen nor --config: this host only
 
 
 class UserError(Exception):
@@ -30,13 +41,24 @@ def _default_record_path(scenario: str) -> Path:
 
 def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) -> None:
     p.add_argument("--scenario", default="straight_level", help="built-in name or path to a scenario TOML")
-    p.add_argument("--duration", type=positive_float, default=default_duration, help="seconds of rig time")
+    p.add_argument("--duration", type=duration_s, default=default_duration, help="seconds of rig time")
     p.add_argument(
         "--record", type=Path, default=None, help="MCAP path (default: recordings/<scenario>-<time>.mcap)"
     )
     p.add_argument("--rig", default="bench", help="rig name: namespaces every key as hil/<rig>/...")
     p.add_argument(
         "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
+    )
+    p.add_argument(
+        "--feedback",
+        default="auto",
+        help="seed estimators in feedback form (the INS reset by their estimate): auto (by the IMU "
+        "grade: consumer MEMS), none, or comma-separated names",
+    )
+    p.add_argument(
+        "--ekf-calibration",
+        default="auto",
+        help="ekf15's sensor-calibration states: auto (by the IMU grade), none, gyro, gyro+accel",
     )
     p.add_argument(
         "--split-mb",
@@ -51,7 +73,10 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
         help="start a new recording part after this many seconds (hil sim: of rig time)",
     )
     p.add_argument(
-        "--imu-rate", type=int, default=None, help="IMU rate in Hz (overrides the scenario's; 100-2000)"
+        "--imu-rate",
+        type=bounded_int(100, 2000),
+        default=None,
+        help="IMU rate in Hz (overrides the scenario's; 100-2000)",
     )
     p.add_argument(
         "--record-include",
@@ -80,7 +105,12 @@ def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="the GNSS receiver on a serial line: nmea, ubx or nmea,ubx (default with --gnss-serial: nmea)",
     )
-    p.add_argument("--gnss-baud", type=int, default=115200, help="the receiver line's baud rate (8N1)")
+    p.add_argument(
+        "--gnss-baud",
+        type=bounded_int(1, 10_000_000),
+        default=115200,
+        help="the receiver line's baud rate (8N1)",
+    )
     p.add_argument(
         "--gnss-messages", default="", help="the receiver's message set, e.g. GGA,RMC,GST or NAV-PVT,TIM-TP"
     )
@@ -140,15 +170,19 @@ def cmd_up(a: argparse.Namespace) -> int:
         interface=a.can_interface,
         fd=a.fd,
         estimators=[e for e in a.estimators.split(",") if e],
+        feedback=a.feedback,
+        ekf_calibration=a.ekf_calibration,
         live=not a.quiet,
         log_dir=record.resolve().with_suffix(".logs"),
         restart=a.restart,
+        restart_ready_s=a.restart_deadline,
         dut_mapping=str(Path(a.dut).resolve()) if a.dut else None,
         dut_emulator=a.dut_emulator,
         imu_rate_hz=a.imu_rate,
         split_mb=a.split_mb or 0.0,
         split_s=a.split_s or 0.0,
         zenoh_miss_detection=not a.no_zenoh_miss_detection,
+        open_bus=a.open_bus,
         record_include=list(a.record_include),
         record_exclude=list(a.record_exclude),
         gnss_serial=str(Path(a.gnss_serial).absolute()) if a.gnss_serial else None,
@@ -168,6 +202,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         sup.check_options()
     except ValueError as err:
         raise UserError(str(err)) from None
+    _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
     if a.dut_emulator == "unit":
         wire = f"GNSS ({'+'.join(opts.gnss_protocol)}) on {sup.dut_line()}"
         print(f"hil up: device under test {sup.dut_command()[1]}: IMU on CAN, {wire}")
@@ -175,6 +210,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
     print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
+    print(f"hil up: {sup.endpoint_line()}", flush=True)
     rc = sup.run()
     if sup.cpu_table():
         print(sup.cpu_table())
@@ -196,6 +232,22 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: no recording was written at {record}", file=sys.stderr)
         rc = rc or 1
     return rc
+
+
+def _check_writable(record: Path, log_dir: Path) -> None:
+    """The recording's directory and the log directory take a file, or one line, before any
+    process starts (a recorder that cannot write would otherwise run the whole rig for nothing)."""
+    for where in (record.parent, log_dir):
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(dir=where, prefix=".hil-probe-")
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as err:
+            raise UserError(
+                f"--record {record}: cannot write in {where} ({err.strerror or err}); "
+                "give a path on a writable disk"
+            ) from None
 
 
 def _describe_can(channel: str, interface: str | None) -> str:
@@ -236,6 +288,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record=record,
                 rig=a.rig,
                 estimators=[e for e in a.estimators.split(",") if e],
+                feedback=a.feedback,
+                ekf_calibration=a.ekf_calibration,
                 fd=a.fd,
                 on_progress=on_progress,
                 imu_rate_hz=a.imu_rate,
@@ -320,8 +374,10 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
 
 def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.progress import Progress
+    from hil.record.mcapio import check_hil_recording
     from hil.record.rerun import rerun
 
+    check_hil_recording(a.file)
     with Progress("rerun", unit="MB read") as bar:
 
         def on_progress(done: int, total: int) -> None:
@@ -335,8 +391,10 @@ def cmd_rerun(a: argparse.Namespace) -> int:
 
 def cmd_report(a: argparse.Namespace) -> int:
     from hil.progress import Progress
+    from hil.record.mcapio import check_hil_recording
     from hil.report.build import build_report
 
+    check_hil_recording(a.file)  # one line for a corrupt, empty or foreign file, before any output
     out = a.out or Path(a.file).with_suffix(".report")
     with Progress("report", total=100.0, unit="%", enabled=False if a.no_progress else None) as bar:
         res = build_report(a.file, out, progress=lambda f, stage: bar.update(100 * f, stage=stage))
@@ -350,12 +408,11 @@ def cmd_monitor(a: argparse.Namespace) -> int:
     import threading
 
     from hil.bus.keys import check_name
-    from hil.bus.session import BusConfig, open_session
-    from hil.monitor import MonitorOptions, run_monitor
+    from hil.monitor import MonitorOptions, connect, run_monitor
     from hil.runtime.service import install_signal_handlers
 
     check_name("rig", a.rig)
-    session = open_session(BusConfig.from_env())
+    session = connect(a.rig)
     stop = threading.Event()
     install_signal_handlers(stop)
     try:
@@ -395,7 +452,7 @@ def cmd_router(a: argparse.Namespace) -> int:
             raise UserError(f"--config {a.config}: zenoh refused it: {err}") from err
         listen = a.listen or f"as in {a.config}"
     else:
-        endpoints = tuple(x for x in (a.listen or "tcp/0.0.0.0:7447").split(",") if x)
+        endpoints = tuple(x for x in (a.listen or ROUTER_LISTEN).split(",") if x)
         session = open_session(BusConfig(mode="router", listen=endpoints, connect=()))
         listen = ", ".join(endpoints)
     print(f"hil router: listening on {listen}", flush=True)
@@ -413,9 +470,9 @@ def cmd_fault(a: argparse.Namespace) -> int:
     from hil.bus.describe import encoding_of
     from hil.bus.keys import Keys, check_name
     from hil.bus.pubsub import declare_publisher
-    from hil.bus.session import BusConfig, open_session
     from hil.faults import FaultError, check_fault
     from hil.messages import FaultCommand, encode
+    from hil.monitor import connect
 
     check_name("rig", a.rig)
     params: dict[str, float] = {}
@@ -439,7 +496,7 @@ def cmd_fault(a: argparse.Namespace) -> int:
         params=params,
         duration_s=a.duration,
     )
-    session = open_session(BusConfig.from_env())
+    session = connect(a.rig)
     try:
         # as every rig publisher, the type in its encoding
         pub = declare_publisher(session, Keys(a.rig).control("fault"), encoding=encoding_of(FaultCommand))
@@ -602,9 +659,7 @@ def _add_up_parser(sub: Any) -> None:
     """``hil up``'s options (the live rig)."""
     up = sub.add_parser("up", help="run the live rig: every service as its own process")
     _add_run_args(up, None)
-    up.add_argument(
-        "--speed", type=positive_float, default=1.0, help="rig clock K times faster than real time"
-    )
+    up.add_argument("--speed", type=speed, default=1.0, help="rig clock K times faster than real time")
     up.add_argument("--channel", default="vcan0", help="CAN channel of the IMU")
     up.add_argument(
         "--can-interface",
@@ -613,7 +668,13 @@ def _add_up_parser(sub: Any) -> None:
     )
     up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
     up.add_argument(
-        "--restart", type=int, default=0, help="restarts allowed per service before the run fails"
+        "--restart", type=restart_count, default=0, help="restarts allowed per service before the run fails"
+    )
+    up.add_argument(
+        "--restart-deadline",
+        type=bounded_float(1.0, 3600.0, unit="s"),
+        default=60.0,
+        help="seconds a restarted service has to report running; later, the run fails (default 60)",
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")
@@ -626,6 +687,12 @@ def _add_up_parser(sub: Any) -> None:
         help="also play the unit for --dut: 'unit' (the default) runs the mapping's own program on the "
         "wires (examples/dut/navbox.py: IMU on CAN, its own GNSS line, default --gnss-protocol nmea), "
         "'truth' a stand-in sending truth plus a wandering error (docs/dut.md)",
+    )
+    up.add_argument(
+        "--open-bus",
+        action="store_true",
+        help="let any local process join the embedded hub without the per-run credential "
+        "(it still listens on loopback only; docs/deploy.md, Security)",
     )
     up.add_argument(
         "--no-zenoh-miss-detection",
@@ -641,7 +708,7 @@ def _add_up_parser(sub: Any) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
+    ap = OneLineParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
     ap.add_argument("--version", action="version", version=f"hil {__version__}")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
@@ -691,7 +758,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     mon = sub.add_parser("monitor", help="attach to a running rig (another terminal or host): the live table")
     mon.add_argument("--rig", default="bench", help="the rig to watch (hil/<rig>/...)")
-    mon.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
+    mon.add_argument("--duration", type=seconds, default=None, help="stop after this many seconds")
     mon.add_argument("--interval", type=positive_float, default=1.0, help="seconds between redraws")
     mon.add_argument("--once", action="store_true", help="print one table once statuses arrive, then exit")
     mon.set_defaults(func=cmd_monitor)
@@ -708,16 +775,24 @@ def build_parser() -> argparse.ArgumentParser:
     flt.add_argument("kind", choices=sorted(FAULT_KINDS))
     flt.add_argument("--rig", default="bench", help="the rig (hil/<rig>/control/fault)")
     flt.add_argument("--target", default="", help="kill_service: the service; clock_step: imu or gnss")
-    flt.add_argument("--duration", type=float, default=0.0, help="seconds (0: to the end / instantaneous)")
+    flt.add_argument("--duration", type=seconds, default=0.0, help="seconds (0: to the end / instantaneous)")
     flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
-    flt.add_argument("--wait", type=float, default=1.0, help="seconds to connect before sending")
+    flt.add_argument(
+        "--wait",
+        type=bounded_float(0.0, 60.0, unit="s"),
+        default=1.0,
+        help="seconds to connect before sending",
+    )
     flt.set_defaults(func=cmd_fault)
 
     _add_tool_parsers(sub)
 
     router = sub.add_parser("router", help="run a Zenoh router (for several hosts or compose)")
     router.add_argument(
-        "--listen", default=None, help="endpoints, comma-separated (default tcp/0.0.0.0:7447 or --config's)"
+        "--listen",
+        default=None,
+        help="endpoints, comma-separated (default: --config's, else tcp/127.0.0.1:7447, this host only; "
+        "tcp/0.0.0.0:7447 for other hosts)",
     )
     router.add_argument("--config", default=None, help="a zenoh json5 config file (TLS, access control)")
     router.set_defaults(func=cmd_router)

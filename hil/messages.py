@@ -93,7 +93,11 @@ class Truth(Message, frozen=True, kw_only=True):
 
 
 class ImuSample(Message, frozen=True, kw_only=True):
-    """One IMU interval of ``dt_ns`` ending at the capture instant."""
+    """One IMU interval of ``dt_ns`` ending at the capture instant.
+
+    On ``sensor/imu`` both are on the device clock; on ``synced/imu`` time sync has put both on
+    the rig clock (``stamp_ns`` re-stamped, ``dt_ns`` the interval with the clock model's rate
+    applied), which is what the estimators integrate over."""
 
     sensor: Name = "imu"
     device_stamp_ns: Ns
@@ -196,6 +200,9 @@ class NavSolution(Message, frozen=True, kw_only=True):
     vel_sigma_mps: Vec3 | None = None
     imu_seq: int = -1
     gnss_seq: int = -1
+    # 1σ of the attitude error as a rotation about N, E, D (rad): tilt, tilt, heading. A heading
+    # σ that says how little the filter knows where heading is unobservable (docs/concepts.md)
+    att_sigma_rad: Vec3 | None = None
 
 
 class FusionJournal(Message, frozen=True, kw_only=True):
@@ -266,6 +273,10 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     max_pos_m: float
     max_vel_mps: float
     gap_confirm_inputs: int
+    # the seed estimators run in feedback form, and ekf15's calibration states ("", "gyro",
+    # "gyro+accel"); absent in recordings made before them: open loop, 15 states
+    feedback: Annotated[list[Name], msgspec.Meta(max_length=64)] = []
+    ekf_calibration: Annotated[str, msgspec.Meta(max_length=16)] = ""
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

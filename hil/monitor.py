@@ -1,7 +1,8 @@
 """``hil monitor --rig NAME``: attach to a running rig from another terminal or host, read-only.
 
-Opens a Zenoh session from the environment (``HIL_ZENOH_MODE``/``HIL_ZENOH_CONNECT``/...: point
-it at the rig's router or hub), subscribes to ``hil/<rig>/status/*``, ``nav/*``, ``truth`` and
+Opens a Zenoh session (``connect``: the ``HIL_ZENOH_*`` environment when set -- a router, another
+host -- else the endpoint file and per-run credential ``hil up`` leaves for its user,
+``hil.bus.endpoint``), subscribes to ``hil/<rig>/status/*``, ``nav/*``, ``truth`` and
 ``run``, and draws the same table as ``hil up`` (``LiveView``: one implementation). A service is
 shown ``stale`` when its 1 Hz status has not arrived for ``LiveView.STALE_S``.
 """
@@ -15,10 +16,19 @@ from typing import IO
 
 import zenoh
 
+from hil.bus.endpoint import viewer_bus
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Stats, Subscriber
+from hil.bus.session import open_session
 from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
 from hil.runtime.supervisor import LiveView, TableDrawer
+
+
+def connect(rig: str) -> zenoh.Session:
+    """A session that reaches rig ``rig`` the way every viewer does (``hil monitor``, ``hil fault``,
+    ``hil foxglove``): see ``hil.bus.endpoint.viewer_bus``. ``BusConfigError`` says why not."""
+    cfg, _how = viewer_bus(rig)
+    return open_session(cfg)
 
 
 @dataclass
@@ -68,9 +78,10 @@ def run_monitor(
         for s in subs:
             s.undeclare()
     if not view.status:
+        _cfg, how = viewer_bus(opts.rig)
         drawer.draw(
-            f"hil monitor: no status from rig {opts.rig!r} (hil/{opts.rig}/status/*): is it running, and "
-            "does HIL_ZENOH_CONNECT reach its router or hub?"
+            f"hil monitor: no status from rig {opts.rig!r} (hil/{opts.rig}/status/*) via {how}: is it "
+            "running, and (on another host) does HIL_ZENOH_CONNECT reach its router?"
         )
         return 1
     return 0

@@ -112,8 +112,8 @@ class Recorder(Service):
     @property
     def state(self) -> str:
         base = self.__dict__.get("_state", "starting")
-        if self.__dict__.get("_degraded", False) and base == "running":
-            return "degraded"
+        if self.__dict__.get("_degraded", False) and base in ("running", "stopping"):
+            return "degraded"  # to the last status: the supervisor must not read "stopped cleanly"
         return base
 
     @state.setter
@@ -425,6 +425,10 @@ class Recorder(Service):
             self.writer.close()
         except OSError as err:
             self._fail(err)
+
+    def exit_code(self) -> int:
+        """3 when the recording could not be written (the reason is in the last status)."""
+        return 3 if self.__dict__.get("_degraded", False) else 0
 
     def completeness_summary(self) -> dict[str, Any]:
         """What the file is worth: per-topic seq accounting, Zenoh misses, rejects, the verdict."""

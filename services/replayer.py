@@ -13,7 +13,7 @@ import sys
 import threading
 from typing import Any
 
-from hil.runtime.argtypes import positive_float
+from hil.runtime.argtypes import OneLineParser, bounded_float, bounded_int, seconds
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
@@ -25,12 +25,15 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", help="an MCAP recording")
     timing = p.add_mutually_exclusive_group()
     timing.add_argument(
-        "--rate", type=positive_float, default=1.0, help="K times the recorded speed (default 1)"
+        "--rate",
+        type=bounded_float(0.0, 1e6, lo_open=True),
+        default=1.0,
+        help="K times the recorded speed (default 1)",
     )
     timing.add_argument("--afap", action="store_true", help="as fast as possible (no timing)")
     timing.add_argument("--step", action="store_true", help="send one message per Enter (canplayer -i)")
-    p.add_argument("--start", type=float, default=None, help="seconds after the first message")
-    p.add_argument("--end", type=float, default=None, help="seconds after the first message")
+    p.add_argument("--start", type=seconds, default=None, help="seconds after the first message")
+    p.add_argument("--end", type=seconds, default=None, help="seconds after the first message")
     p.add_argument(
         "--topics", action="append", default=[], metavar="REGEX", help="replay only matching topics (repeat)"
     )
@@ -47,13 +50,23 @@ def add_args(p: argparse.ArgumentParser) -> None:
         metavar="PATH",
         help="play the recorded GNSS line (serial/<port> bytes) onto a pseudo-terminal linked at PATH",
     )
-    p.add_argument("--gnss-baud", type=int, default=115200, help="the line's baud rate (pacing of each read)")
+    p.add_argument(
+        "--gnss-baud",
+        type=bounded_int(1, 10_000_000),
+        default=115200,
+        help="the line's baud rate (pacing of each read)",
+    )
     p.add_argument(
         "--lockstep",
         action="store_true",
         help="gate fusion inputs on the target fusion's ack (bit-exact replay through a live fusion)",
     )
-    p.add_argument("--lockstep-window", type=int, default=0, help="fusion inputs in flight beyond the ack")
+    p.add_argument(
+        "--lockstep-window",
+        type=bounded_int(0, 1_000_000),
+        default=0,
+        help="fusion inputs in flight beyond the ack",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -133,7 +146,7 @@ def run(a: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="hil replay", description="republish a recording onto Zenoh")
+    ap = OneLineParser(prog="hil replay", description="republish a recording onto Zenoh")
     add_args(ap)
     return run(ap.parse_args(argv))
 

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import socket
 import subprocess
 import sys
-from collections.abc import Iterator
+import threading
+import time
+from collections.abc import Container, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -49,3 +54,144 @@ def run_hil(
     return subprocess.run(
         hil_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=cwd or REPO, env=e
     )
+
+
+# -- leftovers: every session, thread and process a test opens is closed by its teardown -------
+#
+# A test that fails half-way must not leave a rig running or a Zenoh session open: an open
+# session with a subscriber keeps a non-daemon "pyo3-closure" thread alive, and pytest then never
+# exits (it waited 18 minutes in threading._shutdown once). Each test is checked after its own
+# teardown (function-scoped fixtures included; module fixtures' sessions and processes, which
+# start before it, are not its own): what it left is closed or killed here and the test fails,
+# naming it. The session-end check does the same for anything left at the very end and, if a
+# non-daemon thread still runs, ends the process so that CI fails instead of hanging.
+
+_OPEN_SESSIONS: list[Any] = []  # every zenoh.Session opened in this process (no weakrefs on them)
+_real_zenoh_open = None
+
+
+def _track_zenoh_sessions() -> None:
+    global _real_zenoh_open
+    import zenoh
+
+    if _real_zenoh_open is not None:
+        return
+    _real_zenoh_open = zenoh.open
+
+    def tracked_open(*args: Any, **kwargs: Any) -> Any:
+        session = _real_zenoh_open(*args, **kwargs)  # type: ignore[misc]
+        _OPEN_SESSIONS.append(session)
+        return session
+
+    zenoh.open = tracked_open  # type: ignore[assignment]
+
+
+_track_zenoh_sessions()
+
+
+def _open_sessions() -> list[Any]:
+    _OPEN_SESSIONS[:] = [s for s in _OPEN_SESSIONS if not s.is_closed()]
+    return list(_OPEN_SESSIONS)
+
+
+def _descendants(known: Container[int] = ()) -> dict[int, str]:
+    """Live (not zombie) descendants of this process: pid -> command line.
+
+    ``known`` processes (a module fixture's rig, started before the test) and their subtrees are
+    left out: what they start (a supervisor restarting a service) is theirs, not the test's.
+    """
+    out: dict[int, str] = {}
+    todo = [os.getpid()]
+    while todo:
+        p = todo.pop()
+        try:
+            tasks = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for t in tasks:
+            try:
+                kids = Path(f"/proc/{p}/task/{t}/children").read_text().split()
+            except OSError:
+                continue
+            for k in map(int, kids):
+                if k in known:
+                    continue
+                try:
+                    state = Path(f"/proc/{k}/stat").read_text().rsplit(")", 1)[1].split()[0]
+                    cmd = (
+                        Path(f"/proc/{k}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                    )
+                except OSError:
+                    continue
+                if state != "Z":
+                    out[k] = cmd.strip()[:160]
+                todo.append(k)
+    return out
+
+
+def _live_threads() -> set[threading.Thread]:
+    return {
+        t for t in threading.enumerate() if t.is_alive() and not t.daemon and t is not threading.main_thread()
+    }
+
+
+def _clean_up(
+    procs: dict[int, str], sessions: list[Any], threads: set[threading.Thread], grace_s: float
+) -> list[str]:
+    """Wait up to ``grace_s`` for what is still closing; then close, kill and say what was left."""
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and (_descendants(procs.keys()) or _live_threads() - threads):
+        time.sleep(0.1)
+    problems: list[str] = []
+    left_sessions = [s for s in _open_sessions() if all(s is not b for b in sessions)]
+    if left_sessions:
+        problems.append(f"{len(left_sessions)} Zenoh session(s) left open (closed now)")
+        for s in left_sessions:
+            with contextlib.suppress(Exception):
+                s.close()
+    left = _descendants(procs.keys())
+    if left:
+        problems.append(
+            "process(es) left running (killed now): " + "; ".join(f"{p} {c}" for p, c in left.items())
+        )
+        for p in left:
+            with contextlib.suppress(OSError):
+                os.kill(p, signal.SIGKILL)
+    time.sleep(0.2 if left_sessions else 0)
+    extra = [t.name for t in _live_threads() - threads]
+    if extra:
+        problems.append(f"non-daemon thread(s) left running: {', '.join(extra)}")
+    return problems
+
+
+# how long a test's children and threads may take to end after its teardown (only spent when one
+# is still there: a clean test costs ~0.5 ms for the whole check)
+_GRACE_S = float(os.environ.get("HIL_TEST_LEFTOVER_GRACE_S", "5"))
+
+
+@pytest.fixture(autouse=True)
+def _no_leftovers(request: pytest.FixtureRequest) -> Iterator[None]:
+    procs, sessions, threads = _descendants(), _open_sessions(), _live_threads()
+    yield
+    problems = _clean_up(procs, sessions, threads, grace_s=_GRACE_S)
+    if problems:
+        pytest.fail(f"{request.node.nodeid} left behind: " + " | ".join(problems), pytrace=False)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    problems = _clean_up({}, [], set(), grace_s=2.0)
+    if problems:
+        sys.stderr.write("\n\nLEFTOVERS AT THE END OF THE TEST SESSION: " + " | ".join(problems) + "\n")
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+@pytest.hookimpl(trylast=True)  # after the other plugins' (junitxml writes its report there)
+def pytest_unconfigure(config: pytest.Config) -> None:
+    stuck = _live_threads()
+    if stuck:  # Python would wait for them forever in threading._shutdown: fail now instead
+        sys.stderr.write(
+            f"\nnon-daemon threads still running at exit: {[t.name for t in stuck]}; exiting 1\n"
+        )
+        sys.stderr.flush()
+        sys.stdout.flush()
+        os._exit(1)

@@ -12,7 +12,6 @@ Measures, in one run on this machine:
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
@@ -22,6 +21,7 @@ from hil.bench import command_line, write_section
 from hil.can.busload import sample_load
 from hil.can.codec import ImuCanCodec, ImuFrameAssembler
 from hil.can.node import ImuCanNode
+from hil.runtime.argtypes import OneLineParser
 
 
 class _NullBus(can.BusABC):
@@ -121,7 +121,7 @@ def measure_load(fd: bool, rate: float) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench can", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="hil bench can", description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=20_000)
     ap.add_argument("--no-write", action="store_true", help="print only, do not update docs/benchmarks.md")
     args = ap.parse_args(argv)

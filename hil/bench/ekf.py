@@ -16,7 +16,6 @@ fastest repeat counts (the machine is shared: the minimum is the least disturbed
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import time
@@ -35,6 +34,7 @@ from hil.nav.attitude import quat_to_dcm
 from hil.nav.strapdown import strapdown_from_initial, to_nav_state
 from hil.nav.trajectory import TruthGenerator
 from hil.nav.types import F64, NavState
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.sensors.gnss import GnssEmulatorCore
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
@@ -285,8 +285,8 @@ def report(m: dict[str, Any], duration_s: float, repeats: int) -> str:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench ekf", description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=30.0, help="seconds of input stream (default 30)")
+    ap = OneLineParser(prog="hil bench ekf", description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=duration_s, default=30.0, help="seconds of input stream (default 30)")
     ap.add_argument("--repeats", type=int, default=15, help="alternating timing repeats (default 15)")
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     args = ap.parse_args(argv)

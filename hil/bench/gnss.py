@@ -14,7 +14,6 @@ how well the bridge time-tags reception.
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import timeit
@@ -28,6 +27,7 @@ from hil.bench import command_line, write_section
 from hil.nodes.base import SERIAL_TX
 from hil.nodes.gnss_emulator import GnssEmulatorNode, GnssEmulatorOptions
 from hil.record.mcapio import read_session
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
 from hil.wire import protocol
 from hil.wire.base import ReceiverEpoch
@@ -165,8 +165,8 @@ def live_tag_errors(protocol_name: str, baud: int, duration_s: float) -> np.ndar
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench gnss")
-    ap.add_argument("--duration", type=float, default=30.0, help="seconds of each live run")
+    ap = OneLineParser(prog="hil bench gnss")
+    ap.add_argument("--duration", type=duration_s, default=30.0, help="seconds of each live run")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     lines = [

@@ -6,7 +6,6 @@ same run produces it.
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
@@ -16,6 +15,7 @@ from hil.nav.earth import lla_to_ned
 from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nav.strapdown import strapdown_from_initial, strapdown_run
 from hil.nav.trajectory import TruthGenerator
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
 
@@ -32,8 +32,8 @@ def _ideal_free_ins_error_m(name: str, duration_s: float, rate: int) -> float:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench physics")
-    ap.add_argument("--duration-s", type=float, default=3600.0)
+    ap = OneLineParser(prog="hil bench physics")
+    ap.add_argument("--duration-s", type=duration_s, default=3600.0)
     ap.add_argument("--rate-hz", type=int, default=400)
     ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args(argv)

@@ -21,7 +21,6 @@ Measures, in one run on this machine:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -46,6 +45,7 @@ from hil.messages import CanFrame, ImuSample, RunInfo, ServiceStatus, Truth, dec
 from hil.record.mcapio import Record, SessionStream, iter_records, read_session
 from hil.record.replay import ReplayOptions, replay
 from hil.record.rerun import RERUN_WINDOW_S, rerun_fusion_records
+from hil.runtime.argtypes import OneLineParser
 from hil.runtime.supervisor import free_port
 
 RIG = "benchrec"
@@ -373,7 +373,7 @@ def bench_replay(path: Path, end_s: float | None) -> dict[str, float]:
 def main(argv: list[str]) -> int:
     if argv and argv[0] == "--_counter":
         return _counter_main(argv[1], argv[2], int(argv[3]))
-    ap = argparse.ArgumentParser(prog="hil bench record")
+    ap = OneLineParser(prog="hil bench record")
     ap.add_argument("--samples", type=int, default=100_000, help="per topic (4 topics) for the recorder test")
     ap.add_argument(
         "--file", type=Path, default=None, help="recording for rerun and replay (default: golden)"

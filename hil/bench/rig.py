@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -18,6 +21,7 @@ import numpy as np
 from hil.bench import command_line, write_section
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
 
 
@@ -38,13 +42,8 @@ def hop_latencies_ms(path: Path, rig: str) -> dict[str, np.ndarray]:
     return out
 
 
-def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench rig")
-    ap.add_argument("--duration", type=float, default=60.0)
-    ap.add_argument("--scenario", default="straight_level")
-    ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
-    a = ap.parse_args(argv)
-    rig = "benchrig"
+def _one_rig(a: argparse.Namespace, rig: str) -> tuple[int, list[str]]:
+    """``hil up`` of one rig for ``--duration`` s: its figures as markdown lines (rc, lines)."""
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as d:
         rec = Path(d) / "bench.mcap"
@@ -54,14 +53,15 @@ def main(argv: list[str]) -> int:
                 duration_s=a.duration,
                 record=rec,
                 rig=rig,
+                fd=a.fd,
+                imu_rate_hz=a.imu_rate,
                 live=False,
                 log_dir=Path(d) / "logs",
             )
         )
         rc = sup.run()
         if rc != 0:
-            print("\n".join(sup.failures))
-            return rc
+            return rc, sup.failures
         infos = channel_infos(read_session(rec))
         lat = hop_latencies_ms(rec, rig)
     n_proc = len(sup.children)
@@ -69,8 +69,9 @@ def main(argv: list[str]) -> int:
     n_msgs = sum(c.count for c in infos)
     imu = next(c for c in infos if c.topic.endswith("/sensor/imu"))
     gnss = next(c for c in infos if c.topic.endswith("/sensor/gnss"))
+    can = "CAN FD" if a.fd else "classic CAN"
     lines = [
-        f"`hil up` for {a.duration:g} s, scenario `{a.scenario}`: {n_proc} processes, "
+        f"`hil up` for {a.duration:g} s, scenario `{a.scenario}`, {can}, rig `{rig}`: {n_proc} processes, "
         f"{n_msgs} messages recorded, "
         f"IMU {imu.count} samples ({imu.count / a.duration:.1f} Hz), GNSS {gnss.count} fixes, "
         f"sequence gaps: **{gaps}**.",
@@ -80,6 +81,9 @@ def main(argv: list[str]) -> int:
     ]
     for name, cpu in sorted(sup.cpu_s.items(), key=lambda kv: -kv[1]):
         lines.append(f"| {name} | {cpu:.2f} | {100 * cpu / sup.cpu_window_s:.1f} % |")
+    total = sum(sup.cpu_s.values())
+    lines.append(f"| **all** | {total:.2f} | **{100 * total / sup.cpu_window_s:.1f} %** |")
+    lines += ["", f"CPU per IMU sample over the rig: {1e3 * total / max(1, imu.count):.2f} ms."]
     lines += [
         "",
         "Latency from an IMU sample's true capture to its arrival at the recorder (ms):",
@@ -97,13 +101,143 @@ def main(argv: list[str]) -> int:
         "The fused outputs lag by the fusion's watermark (`lag_s`, default 0.2 s): inputs are consumed in "
         "the total order once every GNSS fix that could still be valid before them has had time to arrive, "
         "which is what makes the fusion deterministic and GNSS fused at its time of validity.",
-    ]
-    lines.append(
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores; the tail "
-        "(p99, max) is sensitive to other work on the machine. The first second holds the start-up transient."
+        "(p99, max) is sensitive to other work on the machine. "
+        "The first second holds the start-up transient.",
+    ]
+    return 0, lines
+
+
+_RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
+_CPU_ROW = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+([0-9.]+) %$")
+_CPU_HEAD = re.compile(r"^CPU over ([0-9.]+) s of wall time")
+
+
+def _up_args(a: argparse.Namespace, rig: str, rec: Path) -> list[str]:
+    args = ["up", "--quiet", "--duration", str(a.duration), "--scenario", a.scenario, "--rig", rig]
+    args += ["--record", str(rec), *(["--imu-rate", str(a.imu_rate)] if a.imu_rate else [])]
+    return [*args, "--fd"] if a.fd else args
+
+
+def _cpu_of(out: str) -> tuple[float, dict[str, float]]:
+    """``hil up``'s closing CPU table: (wall seconds, CPU seconds per row)."""
+    window, cpu = 0.0, {}
+    for line in out.splitlines():
+        if m := _CPU_HEAD.match(line):
+            window = float(m.group(1))
+        elif (m := _CPU_ROW.match(line)) and m.group(1) != "all":
+            cpu[m.group(1)] = float(m.group(2))
+    return window, cpu
+
+
+def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> tuple[int, list[str]]:
+    """``hil up`` of each rig, each with its own hub (``tree``: that checkout's code runs it). The
+    rigs of one checkout run at once; checkouts in turn (two revisions at once would starve each
+    other unevenly: the faster one gets more of the machine)."""
+    load_before = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as d:
+        procs: list[subprocess.Popen[str]] = []
+        outs: list[str] = []
+        for group in dict.fromkeys(tree for _, tree in runs):
+            started = []
+            for rig, tree in runs:
+                if tree != group:
+                    continue
+                env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
+                env["PYTHONPATH"] = tree or os.getcwd()
+                cmd = [sys.executable, "-c", _RUN, *_up_args(a, rig, Path(d) / f"{rig}.mcap")]
+                started.append(
+                    subprocess.Popen(
+                        cmd, cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+                    )
+                )
+            procs += started
+            outs += [p.communicate()[0] for p in started]
+        rows = []
+        where: list[str] = []
+        for (rig, tree), p, out in zip(runs, procs, outs, strict=True):
+            if not (Path(d) / f"{rig}.mcap").is_file():
+                return p.returncode or 1, [f"rig {rig}: hil up failed:", *out.splitlines()[-20:]]
+            if p.returncode != 0:  # e.g. a service fell behind and lost samples: still a row
+                where.append(f"rig {rig}: hil up exited {p.returncode}")
+            infos = channel_infos(read_session(Path(d) / f"{rig}.mcap"))
+            window, cpu = _cpu_of(out)
+            imu = next(c for c in infos if c.topic.endswith("/sensor/imu"))
+            rows.append((rig, tree, window, cpu, imu.count, sum(c.missing for c in infos)))
+            lossy = [f"{c.topic.split('/', 2)[-1]} {c.missing}" for c in infos if c.missing]
+            if lossy:
+                where.append(f"rig {rig}: sequence gaps in " + ", ".join(lossy))
+    names = sorted({n for r in rows for n in r[3]}, key=lambda n: -max(r[3].get(n, 0.0) for r in rows))
+    can = "CAN FD" if a.fd else "classic CAN"
+    lines = [
+        f"{len(runs)} rigs (one checkout's at once, checkouts in turn), each `hil up` with its own hub, "
+        f"{a.duration:g} s of "
+        f"`{a.scenario}`, {can}; share of one core per service (`hil up`'s CPU table), IMU samples "
+        "recorded and sequence gaps over every recorded topic:",
+        "",
+        "| rig | code | IMU Hz | gaps | " + " | ".join(names) + " | **all** | ms CPU per IMU sample |",
+        "| --- | --- | ---: | ---: | " + " | ".join("---:" for _ in names) + " | ---: | ---: |",
+    ]
+    for rig, tree, window, cpu, n_imu, gaps in rows:
+        share = [f"{100 * cpu.get(n, 0.0) / window:.1f} %" if n in cpu else "-" for n in names]
+        code = _revision(tree) if tree else _revision(os.getcwd())
+        lines.append(
+            f"| {rig} | {code} | {n_imu / a.duration:.1f} | {gaps} | "
+            + " | ".join(share)
+            + f" | **{100 * sum(cpu.values()) / window:.1f} %**"
+            + f" | {1e3 * sum(cpu.values()) / max(1, n_imu):.2f} |"
+        )
+    lines += ["", *where] if where else []
+    lines += [
+        "",
+        f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores (the rigs "
+        "themselves and other engineers' work); an older revision's table may lack the supervisor row. "
+        "A rig starved of CPU sends fewer samples than its rate: CPU per IMU sample (every process of "
+        "the rig over the samples recorded) is the figure to compare.",
+    ]
+    return 0, lines
+
+
+def _revision(tree: str) -> str:
+    """The short commit of a checkout, to label its row."""
+    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tree, capture_output=True, text=True)
+    return out.stdout.strip() or tree
+
+
+def main(argv: list[str]) -> int:
+    ap = OneLineParser(prog="hil bench rig")
+    ap.add_argument("--duration", type=duration_s, default=60.0)
+    ap.add_argument("--scenario", default="straight_level")
+    ap.add_argument("--imu-rate", type=int, default=None, help="IMU rate in Hz (default: the scenario's)")
+    ap.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
+    ap.add_argument("--rig", default="benchrig", help="the rig's name (keys hil/<rig>/...)")
+    ap.add_argument("--rigs", type=int, default=1, help="this many rigs at once on this machine (a, b, ...)")
+    ap.add_argument(
+        "--versus",
+        metavar="TREE",
+        help="then the same rig(s) from this checkout (a `git worktree` of an older revision): "
+        "before/after in one run",
     )
+    ap.add_argument("--section", default="rig", help="the docs/benchmarks.md section to write")
+    ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
+    a = ap.parse_args(argv)
+    if a.rigs < 1 or a.rigs > 8:
+        ap.error(f"--rigs {a.rigs}: use 1 to 8")
+    if a.rigs == 1 and not a.versus:
+        rc, lines = _one_rig(a, a.rig)
+    else:
+        runs: list[tuple[str, str | None]] = [(chr(97 + i), None) for i in range(a.rigs)]
+        if a.versus:
+            runs += [(f"ref{chr(97 + i)}", a.versus) for i in range(a.rigs)]
+        rc, lines = _rigs_at_once(a, runs)
     body = "\n".join(lines)
     print(body)
+    if rc != 0:
+        return rc
     if not a.no_write:
-        write_section("rig", body, command_line())
+        write_section(a.section, body, command_line())
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

@@ -9,7 +9,6 @@ Prints a markdown table and writes it as the ``seeds`` section of docs/benchmark
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ from hil.estimators.compensation import VS_SCHEDULE, CompensationCore, fixed_fil
 from hil.estimators.complementary import ComplementaryFilter, pulse_peak_error, static_error
 from hil.estimators.lti import TransferFunction, aperiodic, complementary2, complementary3
 from hil.nav.types import F64
+from hil.runtime.argtypes import OneLineParser
 
 SEED = 20240601
 
@@ -439,7 +439,7 @@ def run_all(rng: np.random.Generator, uav: bool, uav_kw: dict[str, Any] | None =
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench seeds", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="hil bench seeds", description=__doc__.splitlines()[0])
     ap.add_argument("--plots", type=Path, default=None, help="write Bode and error plots into DIR")
     ap.add_argument("--seed", type=int, default=SEED, help="RNG seed (printed in the output)")
     ap.add_argument("--no-uav", action="store_true", help="skip the UAV estimator comparison")

@@ -23,7 +23,6 @@ zero loss on this machine.
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 import threading
 import time
@@ -40,6 +39,7 @@ from hil.bus.session import BusConfig, open_session
 from hil.messages import ImuSample, NavSolution, RunInfo, ServiceStatus
 from hil.record.completeness import SeqTracker
 from hil.record.mcapio import SessionWriter
+from hil.runtime.argtypes import OneLineParser, duration_s, speed
 from hil.runtime.clock import RigClock
 from hil.runtime.supervisor import Supervisor, UpOptions
 
@@ -425,18 +425,18 @@ def soak_markdown(
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench soak")
-    ap.add_argument("--duration", type=float, default=1800.0, help="soak seconds of rig time")
+    ap = OneLineParser(prog="hil bench soak")
+    ap.add_argument("--duration", type=duration_s, default=1800.0, help="soak seconds of rig time")
     ap.add_argument(
-        "--speed", type=float, default=1.0, help="rig clock K times wall time (1 = real time; < 1 slows it)"
+        "--speed", type=speed, default=1.0, help="rig clock K times wall time (1 = real time; < 1 slows it)"
     )
     ap.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
-    ap.add_argument("--sweep-speed", type=float, default=1.0, help="rig clock speed of the sweep runs")
+    ap.add_argument("--sweep-speed", type=speed, default=1.0, help="rig clock speed of the sweep runs")
     ap.add_argument("--imu-rate", type=int, default=1000)
     ap.add_argument("--scenario", default="straight_level")
     ap.add_argument("--rss-every", type=float, default=10.0, help="seconds between RSS samples")
     ap.add_argument("--sweep", default="400,1000,2000", help="IMU rates for the sweep ('' to skip)")
-    ap.add_argument("--sweep-duration", type=float, default=20.0)
+    ap.add_argument("--sweep-duration", type=duration_s, default=20.0)
     ap.add_argument("--note", default="", help="a sentence for the section (e.g. why shorter than 30 min)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)

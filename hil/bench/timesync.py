@@ -15,7 +15,6 @@ stamps, and compares the fused position error with truth.
 
 from __future__ import annotations
 
-import argparse
 import math
 import tempfile
 import time
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FRAMES_PER_SAMPLE
 from hil.sensors.clock import ClockStep, DeviceClock, DeviceClockConfig
 from hil.sensors.imu import sensor_rng
@@ -294,9 +294,9 @@ def nav_effect(duration_s: float, workdir: Path) -> list[dict[str, str]]:
 def main(argv: list[str]) -> int:
     from hil.bench import command_line, write_section
 
-    ap = argparse.ArgumentParser(prog="hil bench timesync")
-    ap.add_argument("--duration", type=float, default=60.0, help="seconds per synthetic stream")
-    ap.add_argument("--nav-duration", type=float, default=300.0, help="seconds of each hil sim run")
+    ap = OneLineParser(prog="hil bench timesync")
+    ap.add_argument("--duration", type=duration_s, default=60.0, help="seconds per synthetic stream")
+    ap.add_argument("--nav-duration", type=duration_s, default=300.0, help="seconds of each hil sim run")
     ap.add_argument("--no-nav", action="store_true", help="skip the navigation comparison")
     ap.add_argument("--no-write", action="store_true", help="print only")
     a = ap.parse_args(argv)

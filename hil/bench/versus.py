@@ -8,7 +8,6 @@ older revision runs from a temporary ``git worktree`` of REF with the same Pytho
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import subprocess
@@ -21,6 +20,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from hil.bench import command_line, write_section
+from hil.runtime.argtypes import OneLineParser, bounded_int, duration_s, seconds
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 _ROW = re.compile(r"^\| (\w+) \| ([0-9.]+) \| [0-9.]+ % \|$")
@@ -164,12 +164,12 @@ def ref_tree(ref: str, tmp: Path) -> Path:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hil bench versus", description=__doc__)
+    ap = OneLineParser(prog="hil bench versus", description=__doc__)
     ap.add_argument("ref", help="the git revision to compare against (e.g. a commit before a change)")
     ap.add_argument("--scenario", default="uav_survey", help="hil sim's scenario")
-    ap.add_argument("--duration", type=float, default=300.0, help="hil sim's rig seconds")
-    ap.add_argument("--repeat", type=int, default=2, help="pairs of each")
-    ap.add_argument("--rig-duration", type=float, default=60.0, help="hil bench rig's seconds (0: skip)")
+    ap.add_argument("--duration", type=duration_s, default=300.0, help="hil sim's rig seconds")
+    ap.add_argument("--repeat", type=bounded_int(1, 100), default=2, help="pairs of each")
+    ap.add_argument("--rig-duration", type=seconds, default=60.0, help="hil bench rig's seconds (0: skip)")
     ap.add_argument("--rig-scenario", default="straight_level")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)

@@ -234,6 +234,11 @@ class DispatchSubscriber:
     publisher session are handled in the order they were published -- the order the recorder
     sees -- which separate subscribers (one thread each) do not guarantee. Kinds not listed are
     ignored without decoding.
+
+    ``remote_only``: samples published by this session itself are not delivered (Zenoh's
+    ``Locality.REMOTE``). A service's inputs come from other processes; ``timesync``'s ``*/imu``
+    also matches the ``synced/imu`` it publishes, and each of those echoes cost a wake-up of the
+    callback thread only to be ignored.
     """
 
     def __init__(
@@ -242,10 +247,13 @@ class DispatchSubscriber:
         key: str,
         routes: dict[str, tuple[type[Message], Callable[[Any, str], None]]],
         stats: Stats,
+        *,
+        remote_only: bool = False,
     ) -> None:
         self.routes = routes
         self.stats = stats
-        self._sub = session.declare_subscriber(key, self._on_sample)
+        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+        self._sub = session.declare_subscriber(key, self._on_sample, allowed_origin=origin)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

@@ -40,10 +40,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
+from hil.estimators.feedback import ClosedLoopIns
 from hil.estimators.lti import (
     StateSpace,
     TransferFunction,
@@ -99,6 +101,7 @@ class CompensationCore:
             raise ValueError(f"schedule must start at 0 s, got {[s for s, _ in schedule]}")
         self.stages = tuple(Stage(s, tf, StateSpace.from_tf(tf)) for s, tf in schedule)
         self._caches = tuple(ZohCache(st.ss) for st in self.stages)
+        self._ramp_states = tuple(_ramp_state_terms(st.ss) for st in self.stages)
         self._start_offsets_ns = tuple(round(st.start_s * 1e9) for st in self.stages)
         self.restart_after_ns = None if restart_after_s is None else round(restart_after_s * 1e9)
         self.n_channels = n_channels
@@ -174,6 +177,20 @@ class CompensationCore:
         self.slope = s.copy()
         self.t_last_input_ns = t_ns
 
+    def shift(self, c0: F64, c1: F64) -> None:
+        """The input drops by ``c0 + c1 τ`` from now on (the INS was reset by that much): move the
+        state to the one the filter would have had for an input without it.
+
+        The filter is linear, so subtracting the steady state it reaches on the ramp input
+        ``c0 + c1 t`` (``x_p = −A⁻¹B c0 − A⁻²B c1``) from its state and the ramp from its held
+        input leaves its response to everything else untouched: the solution ``X_INS − y`` with
+        the reset INS is the one it would have been, for every filter of this module.
+        """
+        a1b, a2b = self._ramp_states[self.stage]
+        self.x = self.x + a1b[:, None] * c0[None, :] + a2b[:, None] * c1[None, :]
+        self.u = self.u - c0
+        self.slope = self.slope - c1
+
     # -- outputs ---------------------------------------------------------------------------------
     def output(self) -> F64:
         """``y = C x + D u``: the INS error estimate per channel."""
@@ -209,6 +226,12 @@ class CompensationCore:
         self.switches += 1
 
 
+def _ramp_state_terms(ss: StateSpace) -> tuple[F64, F64]:
+    """``(A⁻¹B, A⁻²B)``: the steady state on a ramp input is ``−A⁻¹B u − A⁻²B u̇``."""
+    a1b = solve(ss.a, ss.b)
+    return a1b, solve(ss.a, a1b)
+
+
 def seconds_since(t_ns: int, t0_ns: int | None) -> float:
     return float("nan") if t0_ns is None else (t_ns - t0_ns) * 1e-9
 
@@ -216,8 +239,12 @@ def seconds_since(t_ns: int, t0_ns: int | None) -> float:
 class CompensationEstimator(Estimator):
     """Live compensation scheme on position and velocity, every axis on its own.
 
-    The corrected solution is ``X̂ = X_INS − y`` at the last IMU stamp; attitude is the free
-    INS's (the scheme estimates no attitude error). No covariance, so sigmas are ``None``.
+    Open loop (``feedback`` None, the papers' form): the corrected solution is ``X̂ = X_INS − y``
+    of the shared free INS at the last IMU stamp; attitude is the free INS's (the scheme
+    estimates no attitude error). Feedback form (``feedback`` the parameters of
+    :class:`hil.estimators.feedback.ClosedLoopIns`): the same filter on an INS of its own that
+    its estimate resets and a velocity-matching corrector keeps level (module
+    :mod:`hil.estimators.feedback`). No covariance either way, so sigmas are ``None``.
     """
 
     def __init__(
@@ -226,10 +253,12 @@ class CompensationEstimator(Estimator):
         init: InitialState,
         schedule: Sequence[tuple[float, TransferFunction]],
         restart_after_s: float | None = 3.0,
+        feedback: dict[str, Any] | None = None,
     ) -> None:
         self.name = name
         self.core = CompensationCore(schedule, 6, restart_after_s)
         self.core.advance_to(init.stamp_ns)
+        self.loop = None if feedback is None else ClosedLoopIns(init, **feedback)
         self._ins: NavState | None = None
         self._ins_stamp_ns = init.stamp_ns
         self._q0 = np.asarray(init.q_nb, float).copy()
@@ -239,36 +268,62 @@ class CompensationEstimator(Estimator):
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
         self.core.advance_to(imu.stamp_ns)
+        if self.loop is not None:
+            self.loop.propagate(imu)
+            return
         self._ins = ins
         self._ins_stamp_ns = imu.stamp_ns
 
     def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
+        if self.loop is not None:
+            self._on_gnss_feedback(gnss, self.loop)
+            return
         # INS position at the GNSS time of validity: p(t_g) ≈ p(t_imu) + v (t_g − t_imu)
         dt_s = (gnss.stamp_ns - self._ins_stamp_ns) * 1e-9
         pos_ins = ins.pos_ned_m + ins.vel_ned_mps * dt_s
         dv = ins.vel_ned_mps - gnss.vel_ned_mps
-        d = np.concatenate([pos_ins - gnss.pos_ned_m, dv])
+        self._input(gnss, pos_ins - gnss.pos_ned_m, dv)
+
+    def _input(self, gnss: GnssInput, dp: F64, dv: F64) -> None:
+        d = np.concatenate([dp, dv])
         # Between fixes the position difference drifts at the velocity difference (the INS
         # position error rate): continue it as a ramp rather than holding it.
         self.core.set_input(gnss.stamp_ns, d, np.concatenate([dv, np.zeros(3)]))
         self._gnss_count += 1
-        self._last_diff_pos_m = norm(d[:3])
+        self._last_diff_pos_m = norm(dp)
+
+    def _on_gnss_feedback(self, gnss: GnssInput, loop: ClosedLoopIns) -> None:
+        """Feedback form: corrector, the filter on its own INS, then the INS reset by ``y``."""
+        dp, dv = loop.antenna_difference(gnss)
+        loop.correct(dv, gnss)
+        self._input(gnss, dp, dv)
+        y = self.core.output()
+        loop.reset(y[:3], y[3:])
+        # the INS position error now grows slower by y_vel: a ramp out of the position channels
+        self.core.shift(y, np.concatenate([y[3:], np.zeros(3)]))
 
     def solution(self) -> NavState:
-        if self._ins is None:
+        att_sigma = None
+        if self.loop is not None:
+            nav = self.loop.nav()
+            att_sigma = self.loop.att_sigma_rad()
+        elif self._ins is None:
             return NavState(np.zeros(3), self._vel0.copy(), self._q0.copy())
+        else:
+            nav = self._ins
         y = self.core.output()
-        return NavState(self._ins.pos_ned_m - y[:3], self._ins.vel_ned_mps - y[3:], self._ins.q_nb)
+        return NavState(nav.pos_ned_m - y[:3], nav.vel_ned_mps - y[3:], nav.q_nb, att_sigma_rad=att_sigma)
 
     def health(self) -> dict[str, float]:
         core = self.core
-        return {
+        out = {
             "gnss_count": float(self._gnss_count),
             "stage": float(core.stage),
             "restarts": float(core.restarts),
             "since_start_s": seconds_since(core.t_ns or 0, core.t_start_ns),
             "ins_minus_gnss_pos_m": self._last_diff_pos_m,
         }
+        return out | (self.loop.health() if self.loop is not None else {})
 
 
 #: Fixed filters by registry name (classic T = 5 s as in the paper; the higher orders share T).

@@ -66,6 +66,11 @@ the rate error is ``δω = δb_g + N(ω) δe`` with ``N(ω) = I₃ ⊗ ωᵀ``, 
 ``φ̇ = −[ω_ie×] φ − C (δb_g + N(ω̄) δe)`` over a covariance block of mean body rate ``ω̄``; the
 estimate ``Ê`` is removed from every increment (``Δθ − Ê Δθ``) and corrected like the biases.
 Priors: the preset's scale-factor σ on the diagonal, its misalignment σ off it.
+
+Accelerometer scale factor and misalignment (optional, ``accel_cal_sigma`` > 0; 9 more states
+after the gyro's). The same construction: ``f_meas = (I + E_a) f + b_a``, the specific-force
+error ``δf = δb_a + N(f) δe_a``, so ``δv̇ = [f_n×]φ + C (δb_a + N(f̄) δe_a)``; ``Ê_a`` is removed
+from every increment (``Δv − Ê_a Δv``) and corrected like the biases.
 """
 
 from __future__ import annotations
@@ -135,12 +140,23 @@ def slow_augmented(f: F64, w_radps: float) -> F64:
 
 
 def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
-    """``F`` (15 × 15) with the 9 gyro scale-factor/misalignment states appended after it:
+    """``F`` with the 9 gyro scale-factor/misalignment states appended after it:
     ``φ̇ += −C N(ω̄) δe`` with ``N(ω) = I₃ ⊗ ωᵀ`` (``δe`` is the error matrix row by row)."""
-    out = np.zeros((24, 24))
-    out[:15, :15] = f
+    n = f.shape[0]
+    out = np.zeros((n + 9, n + 9))
+    out[:n, :n] = f
     n_w = np.kron(np.eye(3), w_b[None, :])  # (3, 9): E ω = N(ω) e
-    out[6:9, 15:24] = -mm(c_nb, n_w)
+    out[6:9, n : n + 9] = -mm(c_nb, n_w)
+    return out
+
+
+def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
+    """``F`` with the 9 accelerometer scale-factor/misalignment states appended after it:
+    ``δv̇ += C N(f̄_b) δe_a`` (the specific force's error enters as the bias's does)."""
+    n = f.shape[0]
+    out = np.zeros((n + 9, n + 9))
+    out[:n, :n] = f
+    out[3:6, n : n + 9] = mm(c_nb, np.kron(np.eye(3), f_b[None, :]))
     return out
 
 
@@ -172,6 +188,7 @@ class Ekf15(Estimator):
         gnss_slow_period_s: float = 12660.0,
         lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
         gyro_cal_sigma: tuple[float, float] = (0.0, 0.0),
+        accel_cal_sigma: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         self.name = name
         self._init = init
@@ -199,17 +216,25 @@ class Ekf15(Estimator):
         sf_sigma, ma_sigma = (float(v) for v in gyro_cal_sigma)
         self._cal = sf_sigma > 0.0 or ma_sigma > 0.0
         self.e_hat = np.zeros((3, 3))  # estimated gyro error matrix E (scale factor + misalignment)
+        asf_sigma, ama_sigma = (float(v) for v in accel_cal_sigma)
+        self._acal = asf_sigma > 0.0 or ama_sigma > 0.0
+        self.ea_hat = np.zeros((3, 3))  # and the accelerometers' E_a
+        self._i_acal = 24 if self._cal else 15
         self._slow_w = 2.0 * math.pi / gnss_slow_period_s if gnss_slow_sigma_m > 0.0 else 0.0
-        self._i_slow = 24 if self._cal else 15
+        self._i_slow = self._i_acal + (9 if self._acal else 0)
         self.n = self._i_slow + (6 if self._slow_w else 0)
         self.s_hat = np.zeros(3)  # estimated slow error of the GNSS position, m
         self.sd_hat = np.zeros(3)  # and its rate, m/s
         p0 = np.zeros((self.n, self.n))
         p0[:15, :15] = self.p
-        if self._cal:
-            e_var = np.full((3, 3), max(ma_sigma, 1e-9) ** 2)
-            np.fill_diagonal(e_var, max(sf_sigma, 1e-9) ** 2)
-            p0[15:24, 15:24] = np.diag(e_var.ravel())
+        for on, i, sf, ma in (
+            (self._cal, 15, sf_sigma, ma_sigma),
+            (self._acal, self._i_acal, asf_sigma, ama_sigma),
+        ):
+            if on:
+                e_var = np.full((3, 3), max(ma, 1e-9) ** 2)
+                np.fill_diagonal(e_var, max(sf, 1e-9) ** 2)
+                p0[i : i + 9, i : i + 9] = np.diag(e_var.ravel())
         if self._slow_w:
             sig, w, i = gnss_slow_sigma_m, self._slow_w, self._i_slow
             p0[i : i + 3, i : i + 3] = np.eye(3) * sig**2  # a sine of RMS σ: s and ṡ/ω uncorrelated, both σ²
@@ -244,6 +269,8 @@ class Ekf15(Estimator):
         if self._cal:
             dth = dth - mv(self.e_hat, dth)
         dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
+        if self._acal:
+            dv = dv - mv(self.ea_hat, dv)
         self.ins = strapdown_step(self.ins, dth, dv, dt)
         self._pending_dt += dt
         self._pending_dv_b += dv
@@ -264,6 +291,8 @@ class Ekf15(Estimator):
         f = error_dynamics(c_nb, mv(c_nb, self._pending_dv_b / dt), self.ins.lat_rad)
         if self._cal:
             f = gyro_cal_augmented(f, c_nb, self._pending_dth_b / dt)
+        if self._acal:
+            f = accel_cal_augmented(f, c_nb, self._pending_dv_b / dt)
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
@@ -356,6 +385,9 @@ class Ekf15(Estimator):
         self.b_g = self.b_g + dx[12:15]
         if self._cal:
             self.e_hat = self.e_hat + dx[15:24].reshape(3, 3)
+        if self._acal:
+            i = self._i_acal
+            self.ea_hat = self.ea_hat + dx[i : i + 9].reshape(3, 3)
         if self._slow_w:
             i = self._i_slow
             self.s_hat = self.s_hat - dx[i : i + 3]
@@ -372,7 +404,9 @@ class Ekf15(Estimator):
     def solution(self) -> NavState:
         nav = self._current_nav()
         d = np.diag(self.p)
-        return NavState(nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, np.sqrt(d[0:3]), np.sqrt(d[3:6]))
+        return NavState(
+            nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, np.sqrt(d[0:3]), np.sqrt(d[3:6]), np.sqrt(d[6:9])
+        )
 
     def health(self) -> dict[str, float]:
         return {

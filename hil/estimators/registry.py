@@ -32,23 +32,25 @@ Factory = Callable[[str, InitialState, dict[str, Any]], Estimator]
 def _fixed(kind: str) -> Factory:
     def make(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
         tf = fixed_filter(kind, float(p.get("t_s", 5.0)))
-        return CompensationEstimator(name, init, ((0.0, tf),), p.get("restart_after_s", 3.0))
+        return CompensationEstimator(
+            name, init, ((0.0, tf),), p.get("restart_after_s", 3.0), p.get("feedback")
+        )
 
     return make
 
 
 def _compvs(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
-    return CompensationEstimator(name, init, VS_SCHEDULE, p.get("restart_after_s", 3.0))
+    return CompensationEstimator(name, init, VS_SCHEDULE, p.get("restart_after_s", 3.0), p.get("feedback"))
 
 
 def _cf2(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
     tf = complementary2(float(p.get("r1", 0.07)), float(p.get("r2", 0.005)))
-    return CompensationEstimator(name, init, ((0.0, tf),), None)
+    return CompensationEstimator(name, init, ((0.0, tf),), None, p.get("feedback"))
 
 
 def _cf3(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
     tf = complementary3(float(p.get("k1", 0.07)), float(p.get("k2", 0.005)), float(p.get("k3", 1e-4)))
-    return CompensationEstimator(name, init, ((0.0, tf),), None)
+    return CompensationEstimator(name, init, ((0.0, tf),), None, p.get("feedback"))
 
 
 def _kfvel(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
@@ -74,6 +76,33 @@ ESTIMATORS: dict[str, Factory] = {
 }
 
 DEFAULT_ESTIMATORS: tuple[str, ...] = ("comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15")
+
+#: The seed family: each also runs in a feedback form (``params["feedback"]``,
+#: :mod:`hil.estimators.feedback`), the INS reset by its estimate.
+FEEDBACK_CAPABLE: tuple[str, ...] = ("comp1", "comp2", "comp3", "comp3f", "compvs", "cf2", "cf3", "kfvel")
+#: ekf15's optional sensor-calibration states: none, the gyro's scale factor and misalignment
+#: (9 states), and the accelerometer's too (9 more).
+EKF_CALIBRATIONS: tuple[str, ...] = ("", "gyro", "gyro+accel")
+
+
+def default_feedback(grade: str, estimators: tuple[str, ...]) -> tuple[str, ...]:
+    """The estimators that run in feedback form on an IMU of ``grade`` (``imu_grade``).
+
+    A consumer MEMS INS leaves every open-loop seed filter within minutes (its tilt drives the
+    INS error's acceleration to g, which ``1 − F`` leaks as ``3T²·ξ̈``); a tactical or better
+    INS stays inside it for the runs the rig makes, where the open-loop form is the papers' own
+    (docs/estimators.md, "Open loop or feedback").
+    """
+    return tuple(e for e in estimators if e in FEEDBACK_CAPABLE) if grade == "consumer" else ()
+
+
+def default_ekf_calibration(grade: str) -> str:
+    """ekf15's calibration states on an IMU of ``grade``: the gyros' and the accelerometers'
+    scale factor and misalignment for consumer MEMS (5000 ppm, 5 mrad: degrees of heading and
+    tilt per turn; the accelerometers' take tilt from 0.17° to 0.13° RMS on uav_survey, so
+    they are carried too), none for the better grades (docs/estimators.md)."""
+    return "gyro+accel" if grade == "consumer" else ""
+
 
 _NAME = re.compile(r"^[a-z0-9_]+$")
 

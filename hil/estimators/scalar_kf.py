@@ -20,10 +20,12 @@ prediction runs.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
+from hil.estimators.feedback import ClosedLoopIns
 from hil.nav.types import F64, NavState
 
 
@@ -77,6 +79,7 @@ class ScalarKfEstimator(Estimator):
         q_vel_m2ps3: float = 1e-3,
         d0_pos_m2: float = 1.0,
         d0_vel_m2ps2: float = 0.01,
+        feedback: dict[str, Any] | None = None,
     ) -> None:
         # Lecture: σ_n = 0.01 m/s per 0.1 s step → q_vel = 1e-4 / 0.1 = 1e-3 m²/s³.
         self.name = name
@@ -91,39 +94,58 @@ class ScalarKfEstimator(Estimator):
         self._vel0 = np.asarray(init.vel_ned_mps, float).copy()
         self._count = 0
         self._max_ratio = 0.0
+        # feedback form (hil.estimators.feedback): an INS of its own, reset by ε̂ at every fix
+        self.loop = None if feedback is None else ClosedLoopIns(init, **feedback)
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
-        self._ins = ins
+        if self.loop is not None:
+            self.loop.propagate(imu)
+        else:
+            self._ins = ins
         self._ins_stamp_ns = imu.stamp_ns
 
     def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
-        dt_s = (gnss.stamp_ns - self._ins_stamp_ns) * 1e-9
-        pos_ins = ins.pos_ned_m + ins.vel_ned_mps * dt_s  # INS at the time of validity
-        diff = np.concatenate([pos_ins - gnss.pos_ned_m, ins.vel_ned_mps - gnss.vel_ned_mps])
+        if self.loop is not None:
+            dp, dv = self.loop.antenna_difference(gnss)
+            self.loop.correct(dv, gnss)
+            diff = np.concatenate([dp, dv])
+        else:
+            dt_s = (gnss.stamp_ns - self._ins_stamp_ns) * 1e-9
+            pos_ins = ins.pos_ned_m + ins.vel_ned_mps * dt_s  # INS at the time of validity
+            diff = np.concatenate([pos_ins - gnss.pos_ned_m, ins.vel_ned_mps - gnss.vel_ned_mps])
         r = np.concatenate([gnss.pos_sigma_m, gnss.vel_sigma_mps]) ** 2
         q = self.q_rate * max((gnss.stamp_ns - self._t_last_ns) * 1e-9, 0.0)
         self._max_ratio = float(np.max((diff - self.eps) ** 2 / (self.d + q + r)))
         self.eps, self.d, self.gain = scalar_kf_step(self.eps, self.d, diff, q, r)
         self._t_last_ns = gnss.stamp_ns
         self._count += 1
+        if self.loop is not None:  # the closed-loop Kalman reset: ε̂ into the INS, the filter at 0
+            self.loop.reset(self.eps[:3], self.eps[3:])
+            self.eps = np.zeros(6)
 
     def solution(self) -> NavState:
-        if self._ins is None:
+        if self.loop is not None:
+            nav: NavState | None = self.loop.nav()
+        else:
+            nav = self._ins
+        if nav is None:
             return NavState(np.zeros(3), self._vel0.copy(), self._q0.copy())
         # Variance grows between fixes: D(t) = D_k + q_rate (t − t_k)
         var = self.d + self.q_rate * max((self._ins_stamp_ns - self._t_last_ns) * 1e-9, 0.0)
         sig = np.sqrt(var)
         return NavState(
-            self._ins.pos_ned_m - self.eps[:3],
-            self._ins.vel_ned_mps - self.eps[3:],
-            self._ins.q_nb,
+            nav.pos_ned_m - self.eps[:3],
+            nav.vel_ned_mps - self.eps[3:],
+            nav.q_nb,
             sig[:3].copy(),
             sig[3:].copy(),
+            None if self.loop is None else self.loop.att_sigma_rad(),
         )
 
     def health(self) -> dict[str, float]:
-        return {
+        out = {
             "gnss_count": float(self._count),
             "innov_test_ratio_max": self._max_ratio,
             "gain_vel_n": float(self.gain[3]),
         }
+        return out | (self.loop.health() if self.loop is not None else {})

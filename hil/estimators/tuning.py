@@ -19,20 +19,23 @@ def _rss_max(*vecs: tuple[float, float, float]) -> float:
     return max(math.sqrt(sum(v[i] ** 2 for v in vecs)) for i in range(3))
 
 
-def ekf15_params(imu: ImuParams, gyro_cal: bool = False) -> dict[str, Any]:
+def ekf15_params(imu: ImuParams, gyro_cal: bool = False, accel_cal: bool = False) -> dict[str, Any]:
     """Priors and noise of ekf15 from the IMU's datasheet figures (SI).
 
     Turn-on bias (fixed + random) sets the bias priors; bias instability and its correlation time
     the bias random walk (2σ²/τ: the wander's variance over one correlation time, see ekf15);
     ARW/VRW the white noise. Floors keep an ideal IMU's filter from
     becoming overconfident (zero noise would freeze its gains). ``gyro_cal`` adds the gyro
-    scale-factor/misalignment states with the datasheet's σ (9 more states; see ekf15).
+    scale-factor/misalignment states with the datasheet's σ (9 more states; see ekf15),
+    ``accel_cal`` the accelerometers' (9 more).
     """
     gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
     accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2)
     cal: dict[str, Any] = {}
     if gyro_cal:  # scale factor / misalignment as states: the datasheet's σ as their priors
         cal["gyro_cal_sigma"] = (max(imu.gyro_scale_factor_sigma), imu.gyro_misalignment_sigma_rad)
+    if accel_cal:
+        cal["accel_cal_sigma"] = (max(imu.accel_scale_factor_sigma), imu.accel_misalignment_sigma_rad)
     return cal | {
         "accel_vrw_mps_rts": max(max(imu.accel_vrw_mps_rts), 1e-4),
         "gyro_arw_rad_rts": max(max(imu.gyro_arw_rad_rts), 1e-6),
@@ -42,6 +45,15 @@ def ekf15_params(imu: ImuParams, gyro_cal: bool = False) -> dict[str, Any]:
         "p0_accel_bias_mps2": max(accel_p0, 1e-4),
         "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
     }
+
+
+def feedback_params(imu: ImuParams, gnss: GnssConfig | None = None) -> dict[str, Any]:
+    """The feedback form's INS (:class:`hil.estimators.feedback.ClosedLoopIns`): its corrector
+    told the IMU's datasheet figures as ekf15 is, and the antenna's lever arm."""
+    out = ekf15_params(imu)
+    if gnss is not None:
+        out |= ekf15_install_params(gnss)
+    return out
 
 
 def ekf15_gnss_params(gnss: GnssConfig) -> dict[str, Any]:
@@ -69,15 +81,22 @@ def params_for(
     *,
     receiver_model: bool = False,
     gyro_cal: bool = False,
+    accel_cal: bool = False,
+    feedback: tuple[str, ...] = (),
 ) -> dict[str, dict[str, Any]]:
     """Per-estimator construction parameters for a rig with this IMU and GNSS installation.
 
     The lever arm comes with ``gnss``; ``receiver_model`` also tells ekf15 the receiver's slow
-    error (bench variants), ``gyro_cal`` adds the gyro scale-factor/misalignment states.
+    error (bench variants), ``gyro_cal`` adds the gyro scale-factor/misalignment states,
+    ``accel_cal`` the accelerometers';
+    ``feedback`` names the seed estimators that run in their feedback form.
     """
-    ekf = ekf15_params(imu, gyro_cal)
+    ekf = ekf15_params(imu, gyro_cal, accel_cal)
     if gnss is not None:
         ekf |= ekf15_install_params(gnss)
         if receiver_model:
             ekf |= ekf15_gnss_params(gnss)
-    return {"ekf15": ekf}
+    out: dict[str, dict[str, Any]] = {"ekf15": ekf}
+    for name in feedback:
+        out[name] = {"feedback": feedback_params(imu, gnss)}
+    return out

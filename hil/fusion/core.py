@@ -41,6 +41,11 @@ class FusionConfig:
     max_pos_m: float = 2.0e7  # NED distance from the origin (Earth's half circumference)
     max_vel_mps: float = 2000.0
     gap_confirm_inputs: int = 40  # consecutive consistent "future" IMU inputs that prove a real gap
+    # the seed estimators that run in feedback form (hil.estimators.feedback), and ekf15's
+    # calibration states ("", "gyro", "gyro+accel"): both decided by the IMU grade when the
+    # fusion starts (hil.nodes.fusion), journaled in fusion/config so rerun builds the same
+    feedback: tuple[str, ...] = ()
+    ekf_calibration: str = ""
 
     @property
     def lag_s(self) -> float:
@@ -61,12 +66,18 @@ class FusionConfig:
             max_pos_m=self.max_pos_m,
             max_vel_mps=self.max_vel_mps,
             gap_confirm_inputs=self.gap_confirm_inputs,
+            feedback=list(self.feedback),
+            ekf_calibration=self.ekf_calibration,
         )
 
     @classmethod
     def from_settings(cls, m: FusionSettings) -> FusionConfig:
-        fields = {f: getattr(m, f) for f in cls.__dataclass_fields__ if f != "estimators"}
-        return cls(estimators=tuple(m.estimators), **fields)
+        """The configuration a recording says the fusion ran with. A recording made before the
+        feedback form and the calibration states has neither field: open loop, 15 states, which
+        is what it ran."""
+        tuples = ("estimators", "feedback")
+        fields = {f: getattr(m, f) for f in cls.__dataclass_fields__ if f not in tuples}
+        return cls(estimators=tuple(m.estimators), feedback=tuple(m.feedback), **fields)
 
 
 def implausible(msg: Measurement, cfg: FusionConfig) -> str:
@@ -124,6 +135,15 @@ class FusionCore:
         from hil.estimators.tuning import params_for
         from hil.nav.trajectory import TruthGenerator
 
+        imu = scenario.imu.params
+        params = params_for(
+            imu,
+            scenario.gnss,
+            gyro_cal=config.ekf_calibration.startswith("gyro"),
+            accel_cal=config.ekf_calibration == "gyro+accel",
+            feedback=config.feedback,
+        )
+
         truth = TruthGenerator(scenario)
         init = truth.initial_state()
         if align_ns > 0:
@@ -139,7 +159,7 @@ class FusionCore:
                 vel_ned_mps=tb.vel_ned_mps[0].copy(),
                 q_nb=tb.q_nb[0].copy(),
             )
-        return cls(init, config, params=params_for(scenario.imu.params, scenario.gnss))
+        return cls(init, config, params=params)
 
     def start_output_seq(self, seq: int) -> None:
         """Number outputs from ``seq`` on (a restarted fusion must not reuse an earlier seq)."""
@@ -332,6 +352,8 @@ class FusionCore:
             parts.append(nav.pos_sigma_m)
         if nav.vel_sigma_mps is not None:
             parts.append(nav.vel_sigma_mps)
+        if nav.att_sigma_rad is not None:
+            parts.append(nav.att_sigma_rad)
         if not all(np.all(np.isfinite(p)) for p in parts):
             raise ArithmeticError(f"{name}: non-finite solution")
         lat, lon, alt = ned_to_lla(nav.pos_ned_m, *self._origin)
@@ -349,6 +371,7 @@ class FusionCore:
             alt_m=float(alt),
             pos_sigma_m=None if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
             vel_sigma_mps=None if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
+            att_sigma_rad=None if nav.att_sigma_rad is None else [float(v) for v in nav.att_sigma_rad],
             imu_seq=self._last_imu_seq,
             gnss_seq=self._last_gnss_seq,
         )

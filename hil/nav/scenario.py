@@ -34,6 +34,12 @@ Vec3 = tuple[float, float, float]
 RESERVED_TABLES = frozenset({"clock", *(set(SENSORS) - {"imu", "gnss"})})
 SEGMENT_KINDS = ("hold", "accelerate", "turn", "coordinated_turn", "climb", "rates")
 DEFAULT_SCENARIO = "straight_level"
+#: The longest run a scenario (or ``--duration``) may ask for: ~11.6 days of rig time. Longer is a
+#: typo: ``1e12`` once asked ``hil sim`` for a 14.6 TiB allocation.
+MAX_DURATION_S = 1e6
+#: The rig clock's speed (rig seconds per wall second): faster, no host keeps up (``hil up``
+#: holds ~4x on 2 cores); slower, one rig second takes over 16 minutes.
+MIN_SPEED, MAX_SPEED = 1e-3, 1000.0
 
 
 class ScenarioError(ValueError):
@@ -139,6 +145,13 @@ def _num(where: str, v: Any) -> float:
     return float(v)
 
 
+def _within(where: str, v: float, lo: float, hi: float) -> float:
+    """``v`` if ``lo <= v <= hi``; else the one line naming the key and the range."""
+    if not lo <= v <= hi:
+        raise ScenarioError(f"{where} must be in [{lo:g}, {hi:g}], got {v:g}")
+    return v
+
+
 def _vec3(where: str, v: Any) -> Vec3:
     if isinstance(v, int | float) and not isinstance(v, bool):
         x = _num(where, v)
@@ -238,8 +251,8 @@ def _parse_segment(i: int, raw: Mapping[str, Any]) -> MotionSegment:
             if k in ("euler_rate_dps", "accel_body_mps2")
             else (_num(f"{where}.{k}", v))
         )
-    if "duration_s" in params and params["duration_s"] < 0:
-        raise ScenarioError(f"{where}.duration_s must be >= 0, got {params['duration_s']}")
+    if "duration_s" in params:
+        _within(f"{where}.duration_s", params["duration_s"], 0.0, MAX_DURATION_S)
     need_one = {
         "turn": ("duration_s", "angle_deg"),
         "coordinated_turn": ("duration_s", "angle_deg"),
@@ -266,7 +279,7 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
     _check_keys(where, raw, _EVENT_KEYS[kind] | {"kind", "t_start_s", "t_end_s"})
     if "t_start_s" not in raw:
         raise ScenarioError(f"{where} ({kind}) needs t_start_s")
-    t0 = _num(f"{where}.t_start_s", raw["t_start_s"])
+    t0 = _within(f"{where}.t_start_s", _num(f"{where}.t_start_s", raw["t_start_s"]), 0.0, MAX_DURATION_S)
     t1 = _num(f"{where}.t_end_s", raw["t_end_s"]) if "t_end_s" in raw else None
     params: dict[str, Any] = {}
     if kind == "gnss_outage" and t1 is None:
@@ -374,6 +387,8 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
     lat = _num("origin.lat_deg", origin.get("lat_deg", 0.0))
     lon = _num("origin.lon_deg", origin.get("lon_deg", 0.0))
     alt = _num("origin.alt_m", origin.get("alt_m", 0.0))
+    _within("origin.lon_deg", lon, -180.0, 360.0)
+    _within("origin.alt_m", alt, -11_000.0, 1e6)
     if abs(lat) >= 89.0:
         raise ScenarioError(f"origin.lat_deg {lat} too close to a pole for the NED mechanisation")
 
@@ -418,6 +433,14 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
         raise ScenarioError(f"gnss.rate_hz must be in [1, 20], got {gnss.rate_hz}")
     if gnss.latency_s < 0 or gnss.jitter_s < 0 or gnss.slow_period_s <= 0:
         raise ScenarioError("gnss.latency_s and jitter_s must be >= 0, slow_period_s > 0")
+    for key in ("pos_sigma_m", "vel_sigma_mps"):
+        for v in getattr(gnss, key):
+            _within(f"gnss.{key}", v, 0.0, 1e6)
+    for v in gnss.lever_arm_b_m:
+        _within("gnss.lever_arm_b_m", v, -1000.0, 1000.0)
+    _within("gnss.num_sats", gnss.num_sats, 0, 255)
+    _within("gnss.hdop", gnss.hdop, 0.0, 99.99)
+    _within("gnss.latency_s + jitter_s", gnss.latency_s + gnss.jitter_s, 0.0, 60.0)
 
     segments = tuple(_parse_segment(i, s) for i, s in enumerate(doc.get("segment", [])))
     events = tuple(_parse_event(i, e) for i, e in enumerate(doc.get("event", [])))
@@ -425,8 +448,8 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
         duration = _num("duration_s", doc["duration_s"])
     else:
         duration = _profile_duration(segments, math.hypot(*vb))
-    if duration <= 0:
-        raise ScenarioError(f"duration_s must be > 0, got {duration}")
+    if not 0 < duration <= MAX_DURATION_S:
+        raise ScenarioError(f"duration_s must be in (0, {MAX_DURATION_S:g}] s, got {duration:g}")
 
     return Scenario(
         name=name,

@@ -166,11 +166,55 @@ IMU_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+#: IMU grades, worst first. Thresholds sit between the presets' classes (decades apart), on the
+#: turn-on plus in-run bias (the errors a navigation filter must carry) and the gyro scale factor.
+IMU_GRADES = ("consumer", "tactical", "navigation")
+
+
+def imu_grade(p: ImuParams) -> str:
+    """The IMU's class from its error budget: the worse of its gyros' and accelerometers'.
+
+    Gyro bias (fixed, turn-on, in-run, per-axis root sum square): ≥ 100 °/h or a scale factor
+    ≥ 1000 ppm is consumer MEMS, ≥ 0.1 °/h tactical, below navigation grade. Accelerometer
+    bias: ≥ 3 mg consumer, ≥ 100 µg tactical. An ideal IMU is navigation grade.
+    """
+
+    def rss(*vecs: Vec3) -> float:
+        return max(math.sqrt(sum(v[i] ** 2 for v in vecs)) for i in range(3))
+
+    gyro_dph = rss(p.gyro_bias_radps, p.gyro_turn_on_sigma_radps, p.gyro_bias_instability_radps) / (
+        DEG / 3600
+    )
+    accel_ug = rss(p.accel_bias_mps2, p.accel_turn_on_sigma_mps2, p.accel_bias_instability_mps2) / UG_MPS2
+    if gyro_dph >= 100.0 or max(p.gyro_scale_factor_sigma) >= 1000e-6 or accel_ug >= 3000.0:
+        return "consumer"
+    if gyro_dph >= 0.1 or accel_ug >= 100.0:
+        return "tactical"
+    return "navigation"
+
+
+#: Any IMU figure beyond this (in the key's own user unit) is a typo, not a sensor.
+MAX_USER_VALUE = 1e9
+
+
+def _number(key: str, raw: Any) -> float:
+    """A finite number within ``MAX_USER_VALUE``; a ``*_range_*`` key may also be ``inf`` (no
+    saturation). NaN passed every ``< 0`` check and failed later, far from the file."""
+    if isinstance(raw, bool) or not isinstance(raw, int | float):
+        raise SpecError(f"{key!r} must be a number, got {raw!r}")
+    v = float(raw)
+    if math.isnan(v) or (math.isinf(v) and not (key.endswith("_range_dps") or key.endswith("_range_g"))):
+        raise SpecError(f"{key!r} must be a finite number, got {raw!r}")
+    if math.isfinite(v) and abs(v) > MAX_USER_VALUE:
+        raise SpecError(f"{key!r} = {raw!r} is out of range (|value| <= {MAX_USER_VALUE:g})")
+    return v
+
+
 def _vec3(key: str, value: Any) -> Vec3:
     if isinstance(value, int | float) and not isinstance(value, bool):
-        return (float(value),) * 3
+        return (_number(key, value),) * 3
     if isinstance(value, list | tuple) and len(value) == 3:
-        return (float(value[0]), float(value[1]), float(value[2]))
+        return (_number(key, value[0]), _number(key, value[1]), _number(key, value[2]))
     raise SpecError(f"{key!r} must be a number or a 3-list, got {value!r}")
 
 
@@ -188,9 +232,7 @@ def resolve_imu_params(preset: str, overrides: Mapping[str, Any]) -> ImuParams:
             v = _vec3(key, raw)
             values[field] = (v[0] * k, v[1] * k, v[2] * k)
         else:
-            if isinstance(raw, bool) or not isinstance(raw, int | float):
-                raise SpecError(f"{key!r} must be a number, got {raw!r}")
-            values[field] = float(raw) * k
+            values[field] = _number(key, raw) * k
     params = replace(ImuParams(), **values)
     for f in fields(params):
         v = getattr(params, f.name)
@@ -202,4 +244,6 @@ def resolve_imu_params(preset: str, overrides: Mapping[str, Any]) -> ImuParams:
             raise SpecError(f"{f.name} must be non-negative, got {v}")
     if params.gyro_bias_corr_s <= 0 or params.accel_bias_corr_s <= 0:
         raise SpecError("bias correlation times must be positive")
+    if params.gyro_range_radps <= 0 or params.accel_range_mps2 <= 0:
+        raise SpecError("gyro_range_dps and accel_range_g must be > 0 (inf: no saturation)")
     return params

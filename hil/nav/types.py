@@ -42,6 +42,7 @@ class NavState:
     q_nb: F64  # (4,)
     pos_sigma_m: F64 | None = None  # (3,)
     vel_sigma_mps: F64 | None = None  # (3,)
+    att_sigma_rad: F64 | None = None  # (3,) attitude error about N, E, D: tilt, tilt, heading
 
 
 @dataclass(frozen=True)

@@ -23,10 +23,18 @@ from typing import Any
 
 import msgspec
 
-from hil.estimators.registry import DEFAULT_ESTIMATORS, ESTIMATORS
+from hil.estimators.registry import (
+    DEFAULT_ESTIMATORS,
+    EKF_CALIBRATIONS,
+    ESTIMATORS,
+    FEEDBACK_CAPABLE,
+    default_ekf_calibration,
+    default_feedback,
+)
 from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import EstimatorHealth, ImuSample, Measurement, NavSolution
 from hil.nav.scenario import scenario_for_run
+from hil.nav.sensor_specs import imu_grade
 from hil.nodes.base import Input, Node, NodeOptions, Out
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 
@@ -42,21 +50,50 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
     estimators: list[str] = msgspec.field(default_factory=list)
     lag_s: float = DEFAULT_LAG_S  # the watermark's lag behind the newest IMU stamp
     output_every: int = DEFAULT_OUTPUT_EVERY  # publish every N-th IMU step
+    # seed estimators in feedback form: "auto" (by the IMU grade), "none", or names (a,b)
+    feedback: str = "auto"
+    # ekf15's calibration states: "auto" (by the IMU grade), "none", "gyro", "gyro+accel"
+    ekf_calibration: str = "auto"
 
     def __post_init__(self) -> None:
         unknown = [e for e in self.estimators if e not in ESTIMATORS]
         if unknown:
             raise ValueError(f"unknown estimator(s) {unknown}; known: {', '.join(sorted(ESTIMATORS))}")
+        if self.feedback not in ("auto", "none"):
+            bad = [e for e in self.feedback.split(",") if e not in FEEDBACK_CAPABLE]
+            if bad:
+                raise ValueError(
+                    f"feedback: {bad} have no feedback form; give auto, none or names of "
+                    f"{', '.join(FEEDBACK_CAPABLE)}"
+                )
+        if self.ekf_calibration not in ("auto", "none", *EKF_CALIBRATIONS[1:]):
+            raise ValueError(
+                f"ekf_calibration must be auto, none, {' or '.join(EKF_CALIBRATIONS[1:])}; "
+                f"got {self.ekf_calibration!r}"
+            )
         if not 0.0 <= self.lag_s <= 60.0:
             raise ValueError(f"lag_s must be in [0, 60] s, got {self.lag_s}")
         if self.output_every < 1:
             raise ValueError(f"output_every must be >= 1, got {self.output_every}")
 
-    def config(self) -> FusionConfig:
+    def config(self, grade: str = "tactical") -> FusionConfig:
+        """The core's configuration; ``auto`` choices resolved for an IMU of ``grade``
+        (``hil.nav.sensor_specs.imu_grade``: the fusion passes its scenario's)."""
+        estimators = tuple(self.estimators) or DEFAULT_ESTIMATORS
+        if self.feedback == "auto":
+            feedback = default_feedback(grade, estimators)
+        elif self.feedback == "none":
+            feedback = ()
+        else:
+            feedback = tuple(e for e in FEEDBACK_CAPABLE if e in self.feedback.split(",") and e in estimators)
+        cal = self.ekf_calibration
+        cal = default_ekf_calibration(grade) if cal == "auto" else "" if cal == "none" else cal
         return FusionConfig(
-            estimators=tuple(self.estimators) or DEFAULT_ESTIMATORS,
+            estimators=estimators,
             lag_ns=round(self.lag_s * 1e9),
             output_every=self.output_every,
+            feedback=feedback,
+            ekf_calibration=cal,
         )
 
 
@@ -69,8 +106,8 @@ class FusionNode(Node):
     def __init__(self, run: Any, options: FusionOptions | None = None) -> None:
         super().__init__(run, options)
         opts: FusionOptions = self.options  # type: ignore[assignment]
-        self.config = opts.config()
         self.scenario = scenario_for_run(run)
+        self.config = opts.config(imu_grade(self.scenario.imu.params))
         self.end_ns = int(run.duration_s * 1e9)
         self.outputs = tuple(f"nav/{n}" for n in (FREE_INS, *self.config.estimators))  # type: ignore[misc]
         # restarted: hold inputs until the first IMU sample, then re-align there

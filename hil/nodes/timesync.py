@@ -8,6 +8,14 @@ its capture truth. Each sensor's measurements and time tags come in through one 
 (``*/<sensor>``), so they reach the core in publication order -- the order a recording keeps,
 which ``hil rerun --core timesync`` relies on.
 
+An interval measurement (the IMU's ``dt_ns``: increments integrated over one sample period of the
+device's oscillator) is re-stamped too: ``dt_ns`` on ``synced/imu`` is that period on the rig
+clock, the mapping's rate applied (``TimeSyncCore.rig_interval``), with the same mapping as the
+stamp. The estimators integrate over it, so an IMU whose crystal runs 20 ppm fast is integrated
+over the true interval, as a 20 µg accelerometer error would otherwise be. Here, not in the
+fusion: the mapping lives here, and live, ``hil sim`` and ``hil rerun`` all read the recorded
+``synced/imu``, so the correction is made once and replays bit for bit.
+
 The core may hold a few measurements while it decides whether the device clock stepped; held
 ones are released by the next measurement, by an idle flush when the sensor has been silent for
 ``IDLE_FLUSH_NS`` of rig time, or at the end of input. Clock models go out once a second.
@@ -54,9 +62,21 @@ class TimeSyncNode(Node):
             return []
         return self._synced(self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns, msg))
 
-    @staticmethod
-    def _synced(released: list[tuple[Any, int]]) -> list[Out]:
-        return [(f"synced/{m.sensor}", msgspec.structs.replace(m, stamp_ns=t)) for m, t in released]
+    def _synced(self, released: list[tuple[Any, int]]) -> list[Out]:
+        """Re-stamped measurements; an interval (``dt_ns``) is taken to the rig clock by the
+        mapping that stamped it (the one in force now: the core released them under it)."""
+        out: list[Out] = []
+        for m, t in released:
+            dt = getattr(m, "dt_ns", None)
+            if dt is None:
+                out.append((f"synced/{m.sensor}", msgspec.structs.replace(m, stamp_ns=t)))
+                continue
+            dt_rig = self.core.rig_interval(m.sensor, m.device_stamp_ns, dt)
+            if not 0 < dt_rig <= 10**9:  # beyond the message's range (no sane mapping): kept, counted
+                self.inc(f"rig_interval_kept.{m.sensor}")
+                dt_rig = dt
+            out.append((f"synced/{m.sensor}", msgspec.structs.replace(m, stamp_ns=t, dt_ns=dt_rig)))
+        return out
 
     def next_tick_ns(self) -> int | None:
         t = min(self._next_flush, self._next_clock)

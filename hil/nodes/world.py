@@ -22,7 +22,7 @@ import msgspec
 import numpy as np
 
 from hil.messages import RunInfo
-from hil.nav.scenario import scenario_for_run
+from hil.nav.scenario import MAX_DURATION_S, MAX_SPEED, MIN_SPEED, scenario_for_run
 from hil.nav.trajectory import TruthGenerator
 from hil.nodes.base import Node, NodeOptions, Out
 from hil.nodes.builders import truth_msg
@@ -43,6 +43,13 @@ class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields
     wait_timeout_s: float = 60.0
     lead_s: float = 1.0  # time zero this long after the run is decided
     resume_run: dict[str, Any] | None = None  # a restarted world: the run it had announced
+
+    def __post_init__(self) -> None:
+        # compose hands HIL_DURATION_S/HIL_SPEED straight through: the same limits as hil up's flags
+        if self.duration_s is not None and not 0 < self.duration_s <= MAX_DURATION_S:
+            raise ValueError(f"duration_s must be in (0, {MAX_DURATION_S:g}] s, got {self.duration_s!r}")
+        if not MIN_SPEED <= self.speed <= MAX_SPEED:
+            raise ValueError(f"speed must be in [{MIN_SPEED:g}, {MAX_SPEED:g}], got {self.speed!r}")
 
 
 def run_info(

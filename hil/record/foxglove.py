@@ -38,7 +38,7 @@ from mcap.writer import CompressionType, Writer
 
 from hil import __version__
 from hil.messages import TYPES_BY_NAME, json_schema
-from hil.record.mcapio import PROFILE, RecordingError, iter_records
+from hil.record.mcapio import PROFILE, RecordingError, check_hil_recording, iter_records
 
 LOCATION_FIX = "foxglove.LocationFix"
 FIX_PREFIX = "/foxglove/fix/"
@@ -220,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     src = Path(args[0])
     dst = Path(args[1]) if len(args) > 1 else src.with_suffix(".foxglove.mcap")
     try:
+        check_hil_recording(src)
         derived = export_foxglove(src, dst)
     except (RecordingError, OSError) as err:
         sys.stderr.write(f"hil foxglove export: {err}\n")

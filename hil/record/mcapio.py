@@ -24,7 +24,7 @@ import msgspec
 from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, ChunkIndex, MessageIndex, Metadata, Schema
+from mcap.records import Attachment, Channel, ChunkIndex, Header, MessageIndex, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -450,9 +450,10 @@ PROGRESS_EVERY = 8192  # records between two progress callbacks of ``iter_record
 
 
 def iter_records(
-    path: str | Path, on_progress: Callable[[int, int], None] | None = None
+    path: str | Path, on_progress: Callable[[int, int], None] | None = None, *, header: bool = False
 ) -> Iterator[tuple[str, Any]]:
-    """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail.
+    """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail
+    (``header``: the file's ``Header`` record too, as ``("header", rec)``).
 
     ``on_progress(bytes_read, file_bytes)`` is called every ``PROGRESS_EVERY`` records: a one-hour
     file is read for minutes, and the byte position is the only total known before the end.
@@ -494,6 +495,8 @@ def iter_records(
                     yield "metadata", rec
                 elif isinstance(rec, Attachment):
                     yield "attachment", rec
+                elif header and isinstance(rec, Header):
+                    yield "header", rec
         except (McapError, EOFError, ValueError, KeyError, OSError) as err:
             yield "truncated", f"{type(err).__name__}: {err}"
         except Exception as err:  # zstd errors on a half-written chunk and similar
@@ -555,6 +558,49 @@ class SessionStream:
         if report is None:
             return None
         return lambda done, _size: report(before + done, total)
+
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_hil_recording(path: str | Path) -> None:
+    """Raise ``RecordingError`` (one line: the file and what is wrong) unless ``path`` is an MCAP
+    file written by hil (``hil up``, ``hil sim``, the export, ...) that holds at least one message.
+
+    Why before any work: an 8-byte file gave ``hil report`` an empty report and exit 0, and an
+    MCAP from another tool sent ``hil replay`` into a raw Zenoh error on its first topic. A file
+    cut short by a crash passes when something before the cut is readable (readers go up to its
+    last complete chunk).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise RecordingError(f"no recording at {p}" + (" (a directory)" if p.is_dir() else ""))
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(len(MAGIC))
+    except OSError as err:
+        raise RecordingError(f"cannot open recording {p}: {err.strerror}") from err
+    if head != MAGIC:
+        what = "empty" if not head else f"{p.stat().st_size} bytes, no MCAP magic"
+        raise RecordingError(f"{p} is not an MCAP file ({what}); give a recording made by hil up or hil sim")
+    profile = library = None
+    for kind, rec in iter_records(p, header=True):
+        if kind == "header":
+            profile, library = rec.profile, rec.library
+            if profile != PROFILE and not library.startswith("hil "):
+                raise RecordingError(
+                    f"{p} is an MCAP file but not a hil recording (profile {profile!r}, library "
+                    f"{library!r}); hil reads recordings made by hil up, hil sim or their tools"
+                )
+        elif kind == "message":
+            return
+        elif kind == "truncated":
+            where = "after its header" if profile is not None else "in its header"
+            size = p.stat().st_size
+            raise RecordingError(
+                f"{p} is cut short {where} and holds no readable message ({size} bytes; {rec.rstrip(': ')})"
+            )
+    raise RecordingError(f"{p} is a hil recording that holds no messages")
 
 
 def read_session(path: str | Path) -> Session:

@@ -46,7 +46,7 @@ from hil.bus.keys import rekey
 from hil.bus.pubsub import declare_publisher
 from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
-from hil.record.mcapio import Record, RecordingError, iter_records
+from hil.record.mcapio import Record, check_hil_recording, iter_records
 
 FUSION_INPUT = re.compile(r"^hil/[^/]+/synced/(imu|gnss)$")
 SPIN_S = 0.0005  # the last half millisecond before a deadline is spun, not slept (CAN spacing)
@@ -105,16 +105,9 @@ class ReplayStats:
 
 
 def check_readable(path: str | Path) -> None:
-    """Raise ``RecordingError`` unless ``path`` is an MCAP file with at least one message."""
-    p = Path(path)
-    if not p.is_file():
-        raise RecordingError(f"no recording at {p}")
-    for kind, rec in iter_records(p):
-        if kind == "message":
-            return
-        if kind == "truncated":
-            raise RecordingError(f"{p} is not a readable MCAP recording ({rec})")
-    raise RecordingError(f"{p} holds no messages")
+    """Raise ``RecordingError`` unless ``path`` is a hil recording with at least one message
+    (``hil.record.mcapio.check_hil_recording``: not MCAP, cut in its header, or another tool's)."""
+    check_hil_recording(path)
 
 
 def journaled_drops(path: str | Path) -> set[str]:

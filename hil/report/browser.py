@@ -153,21 +153,29 @@ class _Ws:
 
 
 class _Cdp:
-    def __init__(self, ws: _Ws, report: PageReport) -> None:
+    def __init__(self, ws: _Ws, report: PageReport, timeout_s: float = 30.0) -> None:
         self.ws = ws
         self.report = report
+        self.timeout_s = timeout_s  # per call: a loaded machine's Chromium answers late, not never
         self.next_id = 0
         self.events: list[dict[str, Any]] = []
 
     def call(
-        self, method: str, params: dict[str, Any] | None = None, timeout_s: float = 30.0
+        self, method: str, params: dict[str, Any] | None = None, timeout_s: float | None = None
     ) -> dict[str, Any]:
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
         self.next_id += 1
         mid = self.next_id
         self.ws.send(json.dumps({"id": mid, "method": method, "params": params or {}}))
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            msg = json.loads(self.ws.recv())
+        while (left := deadline - time.monotonic()) > 0:
+            # the whole time left, not what drain() last set (a screenshot on a loaded machine
+            # outlasted drain's remainder: a bare TimeoutError)
+            self.ws.sock.settimeout(left)
+            try:
+                msg = json.loads(self.ws.recv())
+            except TimeoutError:
+                break
             if msg.get("id") == mid:
                 if "error" in msg:
                     raise BrowserError(f"{method}: {msg['error']}")
@@ -255,7 +263,7 @@ def check_page(
                 target = json.loads(resp.read())
             ws = _Ws(target["webSocketDebuggerUrl"], timeout_s)
             try:
-                cdp = _Cdp(ws, report)
+                cdp = _Cdp(ws, report, timeout_s)
                 for domain in ("Runtime", "Log", "Network", "Page"):
                     cdp.call(f"{domain}.enable")
                 cdp.call(

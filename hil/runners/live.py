@@ -28,6 +28,7 @@ from typing import Any, ClassVar
 import can
 import msgspec
 
+from hil.bus.describe import alive_key
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import DispatchSubscriber, Publisher
 from hil.can.bus import open_can_bus
@@ -47,11 +48,13 @@ from hil.nodes.base import (
 )
 from hil.nodes.world import run_info
 from hil.runners.serial import LineReader, LineWriter
+from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
 
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
+RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the recorder
 
 
 class NodeService(Service):
@@ -80,7 +83,12 @@ class NodeService(Service):
         root = self.keys.root
         for inp in self.node_cls.inputs:
             routes = {kind: (cls, self._enqueue) for kind, cls in inp.types.items()}
-            self._subs.append(DispatchSubscriber(self.ctx.session, f"{root}/{inp.key}", routes, self.stats))
+            # inputs come from other services: the node's own outputs on a matching key are not
+            # delivered back to it (the session is this process's alone)
+            sub = DispatchSubscriber(
+                self.ctx.session, f"{root}/{inp.key}", routes, self.stats, remote_only=True
+            )
+            self._subs.append(sub)
         for key in self.node_cls.outputs:
             self._publisher(key, None)
         if self.node_cls.reads_can or self.node_cls.writes_can:
@@ -141,11 +149,31 @@ class NodeService(Service):
     def make_node(self, run: RunInfo) -> Node:
         return self.node_cls(run, self.opts)
 
+    def _await_recorder(self, timeout_s: float = RECORDER_WAIT_S) -> None:
+        """A restarted node's first words (``resumed``) must reach the recording.
+
+        On the embedded peer-to-peer bus a new process meets the recorder some moments after it
+        starts; a put before then is lost to the file. The recorder's liveliness token arrives with
+        its subscription on the same link, so seeing the token is the signal (bounded: a rig may
+        run without a recorder).
+        """
+        if self.name == "recorder":
+            return
+        key = alive_key(self.ctx.rig, "recorder")
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not self.ctx.stop.is_set():
+            with contextlib.suppress(Exception):
+                if any(r.ok is not None for r in self.ctx.session.liveliness().get(key, timeout=0.5)):
+                    return
+            time.sleep(0.1)
+
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
         node = self.make_node(run)
         with self.lock:
             self.node = node
             outs = node.start(clock.now_ns())
+        if outs:
+            self._await_recorder()
         self._publish(outs, "start")
         root_len = len(self.keys.root) + 1
         stop = self.ctx.stop
@@ -330,7 +358,7 @@ def options_parser(
 ) -> argparse.ArgumentParser:
     """``--field-name`` for every field of ``cls`` (a list: comma-separated; a bool: a switch,
     ``--no-<name>`` when it defaults to true), plus ``--rig``; ``aliases`` maps older flags."""
-    ap = argparse.ArgumentParser(prog=prog)
+    ap = OneLineParser(prog=prog)
     ap.add_argument("--rig", default=None)
     hints = typing.get_type_hints(cls)
     defaults = {f: d for f, d in zip(cls.__struct_fields__, _defaults(cls), strict=True)}
@@ -361,7 +389,9 @@ def _arg_type(hint: Any) -> Callable[[str], Any]:
     base = args[0] if args and typing.get_origin(hint) in (types.UnionType, typing.Union) else hint
     if typing.get_origin(base) is list:
         return lambda text: [x for x in text.split(",") if x]
-    if base in (int, float):
+    if base is float:
+        return finite_float
+    if base is int:
         return base  # type: ignore[no-any-return]
     return str
 

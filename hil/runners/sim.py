@@ -56,6 +56,8 @@ class SimOptions:
     record: Path = Path("recordings/sim.mcap")
     rig: str = "sim"
     estimators: list[str] = field(default_factory=list)
+    feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
+    ekf_calibration: str = "auto"  # ekf15's calibration states (same)
     fd: bool = False
     gnss_protocol: list[str] = field(default_factory=list)  # the receiver on a wire: nmea, ubx
     gnss_baud: int = 115200
@@ -229,7 +231,13 @@ def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
             nodes.append(CanBridgeNode(run, CanBridgeOptions(fd=opts.fd)))
         if cls.serial == "tx" and opts.gnss_protocol:  # the line's reader: the rig's GNSS bridge
             nodes.append(GnssBridgeNode(run, GnssBridgeOptions(**wire)))
-    fusion = FusionOptions(estimators=list(opts.estimators), lag_s=opts.lag_s, output_every=opts.output_every)
+    fusion = FusionOptions(
+        estimators=list(opts.estimators),
+        lag_s=opts.lag_s,
+        output_every=opts.output_every,
+        feedback=opts.feedback,
+        ekf_calibration=opts.ekf_calibration,
+    )
     return [*nodes, TimeSyncNode(run), FusionNode(run, fusion)]
 
 

@@ -238,7 +238,15 @@ class Service:
             self.ctx.stop.set()
             self.teardown()
             self._status_thread.join(timeout=2.0)
+            # one more status after the teardown: what went wrong while finishing (a recorder
+            # whose index no longer fits on the disk) reaches the supervisor, not only the log
+            self.publish_status(self._status_pub.next_seq())
             self.description.close()
+
+    def exit_code(self) -> int:
+        """The process's exit code after ``start``: 0, or non-zero when the service failed at its
+        job though it stayed up (a recorder that could not write)."""
+        return 0
 
     def _describe(self) -> None:
         """The liveliness token and the topic queryable (``hil.bus.describe``); a bus that
@@ -291,7 +299,7 @@ def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusC
         # Let reliable queues drain before the session goes (slow machines lose the tail otherwise).
         time.sleep(0.2)
         session.close()
-    return 0
+    return svc.exit_code()
 
 
 def options_from_json(text: str | None) -> dict[str, Any]:

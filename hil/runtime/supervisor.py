@@ -1,8 +1,11 @@
 """``hil up``: every service as its own OS process, one live table, a clean stop, a summary.
 
 The supervisor opens the rig's embedded Zenoh hub (a peer listening on a free loopback port) and
-hands its endpoint to every child, so the rig needs no router and no set-up. With
-``HIL_ZENOH_MODE=client`` in the environment it uses that router instead.
+hands its endpoint to every child, so the rig needs no router and no set-up. Every listener of the
+rig checks a secret made for the run (``hil.bus.endpoint``: the children and the user's viewers
+read it from files only the user can read), so no other process on the machine can join unless
+``--open-bus`` says so. With ``HIL_ZENOH_MODE=client`` or ``HIL_ZENOH_CONNECT`` in the
+environment it joins that network instead.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from hil.bus.endpoint import RigAccess
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -83,6 +87,8 @@ class UpOptions:
     interface: str | None = None  # python-can interface of the IMU and the bridge
     fd: bool = False
     estimators: list[str] = field(default_factory=list)
+    feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
+    ekf_calibration: str = "auto"  # ekf15's calibration states (same)
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
@@ -91,9 +97,11 @@ class UpOptions:
     # play the unit too: "unit" runs the mapping's own program (``program = ...``, e.g.
     # examples/dut/navbox.py) on the wires; "truth" the truth+noise stand-in (dut_emulator)
     dut_emulator: str | None = None
+    restart_ready_s: float = 60.0  # a restarted service not "running" within this is a failed run
     split_mb: float = 0.0  # the recorder starts a new part after this many MB (0: one file)
     split_s: float = 0.0  # ... or after this many seconds
     zenoh_miss_detection: bool = True  # advanced publishers + the recorder's sample-miss listener
+    open_bus: bool = False  # the embedded hub without the per-run credential (hil.bus.endpoint)
     # the GNSS receiver on a wire (hil/wire, hil/nodes/gnss_bridge.py)
     gnss_protocol: list[str] = field(default_factory=list)  # nmea, ubx; empty: fixes on Zenoh only
     gnss_serial: str | None = None  # a pseudo-terminal linked at this path, for a device or gpsd
@@ -122,6 +130,7 @@ class Child:
     log_fh: IO[bytes]
     stopping: bool = False
     restarts: int = 0
+    final_cpu_s: float | None = None  # user + system CPU at its end (from wait4's rusage)
 
 
 class LiveView:
@@ -142,11 +151,21 @@ class LiveView:
         self.truth: deque[Truth] = deque(maxlen=400)
         self.errors_m: dict[str, float] = {}
         self.nav_seen: dict[str, float] = {}
+        self.nav_last: dict[str, NavSolution] = {}  # compared with truth when the table is drawn
+        self.degraded: dict[str, str] = {}  # service -> why, once it has said "degraded"
 
     def on_status(self, st: ServiceStatus, _k: str) -> None:
         with self.lock:
             self.status[st.service] = st
             self.status_seen[st.service] = time.monotonic()
+            if st.state == "degraded":  # kept: a later "stopping" status does not undo it
+                reason = st.last_error or self.degraded.get(st.service) or "no reason given"
+                self.degraded[st.service] = reason
+
+    def degraded_since(self, seen: set[str]) -> list[tuple[str, str]]:
+        """(service, reason) of every service that said "degraded", but those in ``seen``."""
+        with self.lock:
+            return [(n, r) for n, r in self.degraded.items() if n not in seen]
 
     def on_run(self, run: RunInfo, _k: str) -> None:
         with self.lock:
@@ -157,16 +176,24 @@ class LiveView:
             self.truth.append(t)
 
     def on_nav(self, sol: NavSolution, _k: str) -> None:
+        # Only kept: the error is worked out once per table (``errors``), not for each of the
+        # ~350 solutions a second at 400 Hz (a nearest-truth search over 400 samples each was
+        # several % of a core in the supervisor).
         with self.lock:
             self.nav_seen[sol.estimator] = time.monotonic()
-            if not self.truth:
-                return
+            self.nav_last[sol.estimator] = sol
+
+    def _update_errors(self) -> None:
+        """Each estimator's latest horizontal error against the truth nearest in time (lock held)."""
+        if not self.truth:
+            return
+        for name, sol in self.nav_last.items():
             # nearest truth sample in time (truth is 100 Hz, solutions are stamped on the IMU grid)
             best = min(self.truth, key=lambda t: abs(t.stamp_ns - sol.stamp_ns))
             if abs(best.stamp_ns - sol.stamp_ns) > 20_000_000:
-                return
+                continue
             d = np.subtract(sol.pos_ned_m, best.pos_ned_m)
-            self.errors_m[sol.estimator] = float(np.hypot(d[0], d[1]))
+            self.errors_m[name] = float(np.hypot(d[0], d[1]))
 
     def table(
         self,
@@ -179,6 +206,7 @@ class LiveView:
         """The live table: one row per service, then the current error of every estimator."""
         now = time.monotonic() if now is None else now
         with self.lock:
+            self._update_errors()
             run = self.run
             head = f"{title}  t={elapsed_s:7.1f} s"
             if run is not None:
@@ -265,16 +293,33 @@ class Supervisor:
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
+        self._cpu_self_base = _own_cpu_seconds()
+        self._cpu_dead: dict[str, float] = {}  # CPU of the earlier lives of restarted services
+        self._restarting: dict[str, tuple[float, int]] = {}  # name -> (when it died, new pid)
+        self.downtime_s: dict[str, float] = {}  # per restarted service: dead until ready again
+        self._degraded_seen: set[str] = set()
         env_cfg = BusConfig.from_env()
+        self.access: RigAccess | None = None  # the embedded hub's endpoint and per-run secret
         if env_cfg.mode == "client" or os.environ.get("HIL_ZENOH_CONNECT"):
             self.hub_cfg = env_cfg
             self.child_bus = env_cfg
         else:
-            port = free_port()
-            self.hub_cfg = BusConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), connect=())
-            self.child_bus = BusConfig(
-                mode="peer", connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",)
-            )
+            endpoint = f"tcp/127.0.0.1:{free_port()}"
+            self.access = RigAccess.new(opts.rig, endpoint, authenticated=not opts.open_bus)
+            self.hub_cfg = self.access.hub_config()
+            self.child_bus = self.access.child_config()
+
+    def endpoint_line(self) -> str:
+        """What ``hil up`` prints about its bus: where it is and how a viewer gets in."""
+        a = self.access
+        if a is None:
+            where = ", ".join(self.child_bus.connect) or "the configured network"
+            return f"bus: joins {where} (HIL_ZENOH_* from the environment)"
+        how = "authenticated per run" if a.authenticated else "OPEN: any local process may join (--open-bus)"
+        return (
+            f"bus: embedded hub {a.endpoint}, {how}; `hil monitor --rig {a.rig}` attaches "
+            f"(endpoint file {a.name_path}, removed at exit)"
+        )
 
     def service_names(self) -> list[str]:
         names = list(SERVICES)
@@ -429,15 +474,25 @@ class Supervisor:
 
     def run(self) -> int:
         o = self.opts
-        session = open_session(self.hub_cfg)
+        if self.access is not None:
+            self.access.write()  # before the hub opens: it reads the dictionary from there
+        try:
+            session = open_session(self.hub_cfg)
+        except BaseException:
+            if self.access is not None:
+                self.access.remove()
+            raise
         keys = Keys(o.rig)
         stats = Stats()
         subs = [
             Subscriber(session, keys.status("*"), ServiceStatus, self.view.on_status, stats),
             Subscriber(session, keys.run(), RunInfo, self.view.on_run, stats),
-            Subscriber(session, keys.truth(), Truth, self.view.on_truth, stats),
-            Subscriber(session, keys.nav("*"), NavSolution, self.view.on_nav, stats),
         ]
+        if o.live:  # the table's error column; --quiet draws no table (~450 messages a second less)
+            subs += [
+                Subscriber(session, keys.truth(), Truth, self.view.on_truth, stats),
+                Subscriber(session, keys.nav("*"), NavSolution, self.view.on_nav, stats),
+            ]
         self._event_pub = Publisher(
             session, keys.event("supervisor"), Event, stats, miss_detection=o.zenoh_miss_detection
         )
@@ -453,12 +508,15 @@ class Supervisor:
             self._wait(t_start)
         finally:
             self._stop_all()
+            self._final_accounting()
             for s, h in prev.items():
                 signal.signal(s, h)
             for sub in subs:
                 sub.undeclare()
             self._event_pub = None
             session.close()
+            if self.access is not None:
+                self.access.remove()
         return 1 if self.failures else 0
 
     def _wait(self, t_start: float) -> None:
@@ -468,36 +526,14 @@ class Supervisor:
         last_print = 0.0
         while not self.stop.wait(0.2):
             self._do_kills()
-            for name, child in list(self.children.items()):
-                rc = child.proc.poll()
-                if rc is not None and not child.stopping:
-                    tail = _tail(child.log_path)
-                    how = f"killed by signal {-rc}" if rc < 0 else f"exit code {rc}"
-                    if child.restarts < o.restart:
-                        n = child.restarts + 1
-                        child.log_fh.close()
-                        new = self.spawn(name, n)
-                        line = f"{name} died ({how}); restarted ({n}/{o.restart}) as pid {new.proc.pid}"
-                        if name == "recorder" and o.record is not None:
-                            part = restart_part_path(o.record, n)
-                            self.record_parts.append(part)
-                            line += f", recording continues in {part}"
-                        self.restart_log.append(line)
-                        print(f"hil up: {line}", flush=True)
-                        self.emit("service_restarted", name, line)
-                        continue
-                    reason = (
-                        f"{name} died ({how}) after {child.restarts} restart(s) of {o.restart} allowed"
-                        if o.restart
-                        else f"{name} died ({how}) during the run (--restart 0)"
-                    )
-                    self.failures.append(f"{reason}; last log lines:\n{tail}")
-                    print(f"hil up: {reason}; stopping the rig", flush=True)
-                    self.emit("run_failed", name, reason)
-                    return
+            if self._check_deaths():
+                return
+            self._check_degraded()
+            self._check_restarts()
             run = self.view.run
             if run is not None and not self._cpu_base:
                 self._cpu_base_t = time.monotonic()
+                self._cpu_self_base = _own_cpu_seconds()
                 for name, c in self.children.items():
                     self._cpu_base[name] = proc_cpu_seconds(c.proc.pid) or 0.0
             if run is not None and o.duration_s is not None:
@@ -515,13 +551,116 @@ class Supervisor:
                 alive = {n: c.proc.poll() is None for n, c in self.children.items()}
                 drawer.draw(self.view.table(now - t_start, alive))
 
+    def _check_deaths(self) -> bool:
+        """Restart what died (``--restart N``); True when a death ends the run."""
+        o = self.opts
+        for name, child in list(self.children.items()):
+            rc = self._reap(child)
+            if rc is None or child.stopping:
+                continue
+            tail = _tail(child.log_path)
+            how = f"killed by signal {-rc}" if rc < 0 else f"exit code {rc}"
+            if child.restarts < o.restart:
+                n = child.restarts + 1
+                child.log_fh.close()
+                self._retire_cpu(name, child)
+                new = self.spawn(name, n)
+                self._restarting[name] = (time.monotonic(), new.proc.pid)
+                line = f"{name} died ({how}); restarted ({n}/{o.restart}) as pid {new.proc.pid}"
+                if name == "recorder" and o.record is not None:
+                    part = restart_part_path(o.record, n)
+                    self.record_parts.append(part)
+                    line += f", recording continues in {part}"
+                self.restart_log.append(line)
+                print(f"hil up: {line}", flush=True)
+                self.emit("service_restarted", name, line)
+                continue
+            reason = (
+                f"{name} died ({how}) after {child.restarts} restart(s) of {o.restart} allowed"
+                if o.restart
+                else f"{name} died ({how}) during the run (--restart 0)"
+            )
+            self.failures.append(f"{reason}; last log lines:\n{tail}")
+            print(f"hil up: {reason}; stopping the rig", flush=True)
+            self.emit("run_failed", name, reason)
+            return True
+        return False
+
+    def _reap(self, child: Child) -> int | None:
+        """The child's exit code once it has ended (None while it runs), reaped with its rusage:
+        a dead process's CPU is gone from /proc, and its successor's count starts again at 0 --
+        subtracting the old base from it once showed "fusion -0.93 s" after a restart."""
+        if child.proc.returncode is not None:
+            return child.proc.returncode
+        try:
+            pid, status, usage = os.wait4(child.proc.pid, os.WNOHANG)
+        except ChildProcessError:  # reaped elsewhere (Popen.wait): nothing more to learn
+            return child.proc.poll()
+        if pid == 0:
+            return None
+        child.proc.returncode = os.waitstatus_to_exitcode(status)
+        child.final_cpu_s = usage.ru_utime + usage.ru_stime
+        return child.proc.returncode
+
+    def _retire_cpu(self, name: str, child: Child) -> None:
+        """Add a dead life's CPU (since time zero, or since its own start) to the service's total."""
+        spent = (child.final_cpu_s or 0.0) - self._cpu_base.get(name, 0.0)
+        self._cpu_dead[name] = self._cpu_dead.get(name, 0.0) + max(0.0, spent)
+        if self._cpu_base:
+            self._cpu_base[name] = 0.0  # the next life is counted from its own start
+
+    def _check_degraded(self) -> None:
+        """Say at once, on the console, when a service reports itself degraded (a recorder that
+        cannot write): its log may sit on the very disk that is full."""
+        for name, reason in self.view.degraded_since(self._degraded_seen):
+            self._degraded_seen.add(name)
+            line = f"{name} is DEGRADED: {reason}"
+            print(f"hil up: {line}", file=sys.stderr, flush=True)
+            self.emit("service_degraded", name, line)
+
+    def _check_restarts(self) -> None:
+        """A restarted service is down until its new process reports ``running``; past the
+        deadline it counts as a failure of the run (it stayed "starting" once, silently)."""
+        now = time.monotonic()
+        for name, (t_died, pid) in list(self._restarting.items()):
+            st = self.view.status.get(name)
+            if st is not None and st.pid == pid and st.state in ("running", "degraded"):
+                down = now - t_died
+                self.downtime_s[name] = self.downtime_s.get(name, 0.0) + down
+                self.restart_log.append(f"{name} ready again (pid {pid}) after {down:.1f} s down")
+                del self._restarting[name]
+            elif pid != -1 and now - t_died > self.opts.restart_ready_s:
+                state = st.state if st is not None and st.pid == pid else "no status"
+                reason = (
+                    f"{name} was restarted (pid {pid}) but is not ready after "
+                    f"{self.opts.restart_ready_s:g} s (state: {state}): down for the rest of the run"
+                )
+                self.failures.append(reason)
+                print(f"hil up: {reason}", file=sys.stderr, flush=True)
+                self.emit("run_failed", name, reason)
+                self._restarting[name] = (t_died, -1)  # reported once; still down
+
+    def _final_accounting(self) -> None:
+        """Downtime of services that never came back, and every degradation, as failures."""
+        now = time.monotonic()
+        for name, (t_died, pid) in self._restarting.items():
+            self.downtime_s[name] = self.downtime_s.get(name, 0.0) + (now - t_died)
+            if pid != -1:
+                self.failures.append(f"{name} was restarted but never became ready before the stop")
+        self._check_degraded()
+        for name, reason in self.view.degraded_since(set()):
+            if not any(f.startswith(f"{name} ") for f in self.failures):
+                self.failures.append(f"{name} degraded: {reason}")
+
     def _sample_cpu(self) -> None:
-        """CPU seconds each service spent since time zero (start-up imports excluded)."""
+        """CPU seconds each service spent since time zero (start-up imports excluded; a restarted
+        service's earlier lives included), and the supervisor's own."""
         self.cpu_window_s = time.monotonic() - self._cpu_base_t
         for name, c in self.children.items():
-            cpu = proc_cpu_seconds(c.proc.pid)
-            if cpu is not None:
-                self.cpu_s[name] = cpu - self._cpu_base.get(name, 0.0)
+            cpu = proc_cpu_seconds(c.proc.pid) if c.proc.returncode is None else c.final_cpu_s
+            live = max(0.0, cpu - self._cpu_base.get(name, 0.0)) if cpu is not None else 0.0
+            self.cpu_s[name] = self._cpu_dead.get(name, 0.0) + live
+        self.cpu_s["supervisor"] = max(0.0, _own_cpu_seconds() - self._cpu_self_base)
 
     def cpu_table(self) -> str:
         if not self.cpu_s or self.cpu_window_s <= 0:
@@ -529,6 +668,8 @@ class Supervisor:
         rows = [f"CPU over {self.cpu_window_s:.1f} s of wall time (share of one core):"]
         for name, cpu in sorted(self.cpu_s.items(), key=lambda kv: -kv[1]):
             rows.append(f"  {name:<14}{cpu:8.2f} s  {100 * cpu / self.cpu_window_s:6.1f} %")
+        total = sum(self.cpu_s.values())
+        rows.append(f"  {'all':<14}{total:8.2f} s  {100 * total / self.cpu_window_s:6.1f} %")
         return "\n".join(rows)
 
     def _stop_all(self) -> None:
@@ -540,7 +681,9 @@ class Supervisor:
                 c.stopping = True
                 if c.proc.poll() is None:
                     c.proc.send_signal(signal.SIGTERM)
-            deadline = time.monotonic() + (30.0 if "recorder" in stage else 10.0)
+            # generous: a service that is behind on a loaded machine (the IMU emulator catching
+            # up, at load 35 on 2 cores) needs more than 10 s to end; an idle one ends in < 1 s
+            deadline = time.monotonic() + 30.0
             for c in procs:
                 try:
                     c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
@@ -549,11 +692,21 @@ class Supervisor:
                     c.proc.wait()
                     self.failures.append(f"{c.name} did not stop within its deadline and was killed")
                 rc = c.proc.returncode
-                if rc not in (0, -signal.SIGTERM) and not any(f.startswith(c.name) for f in self.failures):
+                if (
+                    rc not in (0, -signal.SIGTERM)
+                    and not any(f.startswith(c.name) for f in self.failures)
+                    and c.name not in self.view.degraded  # its own reason says more (_final_accounting)
+                ):
                     self.failures.append(
                         f"{c.name} exited with code {rc} at stop; see {c.log_path}:\n{_tail(c.log_path)}"
                     )
                 c.log_fh.close()
+
+
+def _own_cpu_seconds() -> float:
+    """user + system CPU of this process (every thread; children not included)."""
+    t = os.times()
+    return t.user + t.system
 
 
 def _tail(path: Path, n: int = 8) -> str:

@@ -37,6 +37,14 @@ which added transport delay does not move, and holding until the next tag (1 s f
 outlast what the fusion accepts (a 0.2 s watermark). The price of a real step is the samples
 between it and the confirming tag (at most one tag period), stamped with the old mapping.
 
+Start-up hold (``hold_until_locked_ns``, set for the IMU): before the tag filter has locked (three
+tags) the clock's rate is not known, and an IMU sample's interval on the rig clock needs it (a
+20 ppm crystal integrated at rate 1 for the first two seconds leaves 40 µs of time in the INS for
+good, a 100 ppm one 200 µs: 2e-6 of a minute's run). So at start the sensor's measurements are
+held until lock, at most that long of device time, and released together under the locked
+mapping: the fusion, paced by the IMU, starts ~2 s later and every interval it integrates has the
+rate. Only at start: after a clock step the stamps come from the tag mapping at once (above).
+
 Why a hull and a Kalman filter, not one filter: tags carry a small, symmetric latch noise, for
 which least squares (the KF) is optimal; arrivals carry a one-sided, heavy-tailed delay, for
 which the minimum (the hull) is the efficient estimator and a mean would be biased by the mean
@@ -75,6 +83,9 @@ class SyncConfig:
     step_confirm: int = 3  # forward-step test: this many impossible arrivals in a row
     step_floor_ns: int = 500_000  # smallest residual treated as a step indication
     max_drift_ppm: float = 500.0  # a hull slope beyond this is not a clock
+    # > 0: at start, hold measurements until the tag filter is locked (3 tags), at most this long
+    # (device time); for interval measurements, whose interval needs the clock's rate (see below)
+    hold_until_locked_ns: int = 0
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
@@ -97,6 +108,14 @@ class ClockMapping:
 
     def to_rig(self, device_ns: int) -> int:
         return device_ns + self.offset_ns + round(self.drift_ppb * 1e-9 * (device_ns - self.ref_device_ns))
+
+    def interval(self, device_ns: int, dt_ns: int) -> int:
+        """The device interval ``dt_ns`` ending at ``device_ns``, on the rig clock: the mapping's
+        rate applied (the offset cancels). Both ends through the one rounding ``to_rig`` uses, so
+        consecutive intervals telescope: their sum is the rig span of the whole stream, with no
+        rounding error that accumulates (a per-interval ``round(dt·rate)`` would carry up to
+        0.5 ns per sample, 2e-7 of a 2.5 ms interval, all of one sign under a steady drift)."""
+        return self.to_rig(device_ns) - self.to_rig(device_ns - dt_ns)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -321,6 +340,7 @@ class SensorSync(Generic[T]):
     run_last_ns: int = 0  # device time of its latest
     run_min_ns: float = 0.0  # lowest residual of the run: ≈ -Δ of a step Δ (+ the least excess)
     last_tag: tuple[int, float] | None = None  # (device, z) of the last tag
+    startup_hold: bool = True  # holding until the tag filter locks (cfg.hold_until_locked_ns > 0)
 
     def __post_init__(self) -> None:
         self.kf = TagFilter(self.cfg)
@@ -408,6 +428,9 @@ class SensorSync(Generic[T]):
         if self.cfg.source == "off":
             self.mapping.n_samples = self.n_arrivals
             return [(item, rx_ns)]
+        if self.startup_hold and self._holding_for_lock(device_ns):
+            self.held.append(_Held(item, device_ns, rx_ns, 0.0))
+            return []
         y = rx_ns - device_ns
         if self._tag_ruled():
             return self._on_tag_ruled(device_ns, rx_ns, y, item)
@@ -440,6 +463,16 @@ class SensorSync(Generic[T]):
                 return self._step_and_release()
             return []
         return self._release_all()
+
+    def _holding_for_lock(self, device_ns: int) -> bool:
+        """Start-up hold (module docstring): True while this measurement must wait for the lock."""
+        cfg = self.cfg
+        locked = self.kf.n >= 3 and not self.recovering
+        too_long = bool(self.held) and device_ns - self.held[0].device_ns >= cfg.hold_until_locked_ns
+        if cfg.hold_until_locked_ns <= 0 or cfg.source != "timetag" or locked or too_long:
+            self.startup_hold = False
+            return False
+        return True
 
     def _on_tag_ruled(self, device_ns: int, rx_ns: int, y: int, item: T) -> list[tuple[T, int]]:
         """Stamp from the tag mapping at once; arrivals only feed the hull and the step suspicion."""
@@ -585,6 +618,11 @@ class TimeSyncCore(Generic[T]):
         for s in self.sensors.values():
             out.extend(s.flush())
         return out
+
+    def rig_interval(self, sensor: str, device_ns: int, dt_ns: int) -> int:
+        """A measurement interval ``dt_ns`` (device clock) ending at ``device_ns`` on the rig clock,
+        under the current mapping: what the fusion integrates over (``ClockMapping.interval``)."""
+        return self.sensor(sensor).mapping.interval(int(device_ns), int(dt_ns))
 
     def restamp(self, sensor: str, device_ns: int) -> int:
         """Rig time of validity of ``device_ns`` under the current mapping (no hold, no update)."""

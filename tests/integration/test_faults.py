@@ -43,7 +43,7 @@ def test_timed_and_commanded_faults_are_applied_and_recorded(tmp_path: Path) -> 
     scen = tmp_path / "faulty.toml"
     scen.write_text(load_scenario("straight_level").source_text + TIMED)
     out = tmp_path / "f.mcap"
-    rig = Rig("faultrig", out, "--duration", "11", "--scenario", str(scen))
+    rig = Rig("faultrig", out, "--duration", "600", "--scenario", str(scen))  # stopped at 11 s or later
     rig.running_pid("gnss_emulator")
     env = dict(os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_LISTEN="tcp/127.0.0.1:0")
     env["HIL_ZENOH_CONNECT"] = rig.endpoint
@@ -65,7 +65,7 @@ def test_timed_and_commanded_faults_are_applied_and_recorded(tmp_path: Path) -> 
         timeout=60,
     )
     assert bad.returncode == 2 and "percent must be in [0, 100]" in bad.stderr
-    rc, stdout, stderr = rig.finish()
+    rc, stdout, stderr = rig.stop_at(max(11.0, rig.rig_time_s() + 3.0))  # the 2 s outage ended
     assert rc == 0, stdout[-2000:] + stderr[-2000:]
 
     s = read_session(out)

@@ -14,6 +14,7 @@ import pytest
 
 from hil.report.browser import check_page, find_chromium
 from hil.report.build import build_report
+from tests.load import slowdown
 from tests.unit.test_report_build import write_session
 
 GOLDEN = Path(__file__).resolve().parents[1] / "replay" / "golden" / "straight_level_4s.mcap"
@@ -24,7 +25,8 @@ pytestmark = pytest.mark.skipif(
 
 
 def _check(html: Path) -> None:
-    r = check_page(html, width=1400, height=3000)
+    # Chromium's start and a 3000 px screenshot take seconds idle, minutes on a loaded machine
+    r = check_page(html, width=1400, height=3000, timeout_s=60.0 * slowdown())
     assert r.errors == [], "\n".join(r.errors)
     assert r.height_px > 1000  # the page laid out its sections
     assert r.screenshot.startswith(b"\x89PNG") and len(r.screenshot) > 20_000
@@ -50,7 +52,7 @@ def test_checker_sees_console_errors_and_fetches(tmp_path: Path) -> None:
         '<html><body><img src="http://example.invalid/x.png">'
         '<script>console.error("boom"); missingFn();</script></body></html>'
     )
-    r = check_page(bad, width=400, height=300)
+    r = check_page(bad, width=400, height=300, timeout_s=60.0 * slowdown())
     text = "\n".join(r.errors)
     assert "console.error: boom" in text
     assert "missingFn" in text

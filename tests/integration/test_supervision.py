@@ -6,33 +6,45 @@ that keeps dying ends the run non-zero with the reason."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import threading
 import time
 from collections import Counter
 from pathlib import Path
+from typing import ClassVar
 
 import pytest
 
 from hil.bus.session import BusConfig, open_session
-from hil.messages import Event, ServiceStatus, decode
+from hil.messages import Event, RunInfo, ServiceStatus, decode
 from hil.record.mcapio import read_session
+from hil.runtime.clock import RigClock
 from tests.conftest import REPO, free_port, hil_cmd
 
 pytestmark = pytest.mark.slow
 
 
 class Rig:
-    """`hil up` on its own hub; service pids come from their own ServiceStatus messages."""
+    """`hil up` on its own hub; service pids come from their own ServiceStatus messages.
+
+    A rig a failed test did not finish is stopped and its hub closed by ``close_all`` in the
+    teardown (tests/integration/conftest.py): an open hub's callback thread kept pytest from
+    exiting once."""
+
+    live: ClassVar[list[Rig]] = []
 
     def __init__(self, rig: str, out: Path, *args: str) -> None:
+        Rig.live.append(self)
         self.rig = rig
         self.endpoint = endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
         self.status: dict[str, ServiceStatus] = {}
         self.lock = threading.Lock()
         self.hub.declare_subscriber(f"hil/{rig}/status/*", self._on_status)
+        self.run: RunInfo | None = None
+        self.hub.declare_subscriber(f"hil/{rig}/run", self._on_run)
         env = dict(
             os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
         )
@@ -50,6 +62,27 @@ class Rig:
         with self.lock:
             self.status[st.service] = st
 
+    def _on_run(self, sample: object) -> None:
+        self.run = decode(RunInfo, sample.payload.to_bytes())  # type: ignore[attr-defined]
+
+    def rig_time_s(self) -> float:
+        """The rig's time now (0 before its run starts)."""
+        run = self.run
+        return RigClock(run.start_epoch_ns, run.speed).now_ns() / 1e9 if run is not None else 0.0
+
+    def stop_at(self, t_s: float, timeout: float = 120.0) -> tuple[int, str, str]:
+        """Let the run reach rig time ``t_s``, then stop it as Ctrl-C does, and ``finish``.
+
+        For a run started with a --duration longer than the test: what the test does first (start
+        commands, wait for restarts) takes what the machine's load makes it take, and the run
+        cannot end before the test has done it; an idle machine does not wait out a margin."""
+        deadline = time.monotonic() + t_s + 180.0
+        while self.rig_time_s() < t_s + 0.3:  # as --duration stops: 0.3 s past the end
+            assert self.proc.poll() is None and time.monotonic() < deadline, self.status
+            time.sleep(0.1)
+        self.proc.send_signal(signal.SIGINT)
+        return self.finish(timeout)
+
     def running_pid(self, service: str, not_pid: int = -1, timeout: float = 90.0) -> int:
         """Pid of ``service`` once it reports running (and is not ``not_pid``)."""
         deadline = time.monotonic() + timeout
@@ -66,10 +99,28 @@ class Rig:
         try:
             out, err = self.proc.communicate(timeout=timeout)
         finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-            self.hub.close()
+            self.close()
         return self.proc.returncode, out, err
+
+    def close(self) -> None:
+        """Stop ``hil up`` (SIGTERM: it stops its services; SIGKILL if it does not within 60 s)
+        and close the hub. Safe to repeat."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.communicate()
+        if not self.hub.is_closed():
+            self.hub.close()
+        if self in Rig.live:
+            Rig.live.remove(self)
+
+    @classmethod
+    def close_all(cls) -> None:
+        for rig in list(cls.live):
+            rig.close()
 
 
 def _events(*paths: Path) -> list[Event]:
@@ -83,7 +134,7 @@ def _events(*paths: Path) -> list[Event]:
 def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path: Path) -> None:
     # GIVEN a 14 s run that allows one restart per service
     out = tmp_path / "s.mcap"
-    rig = Rig("suprig", out, "--duration", "14", "--restart", "1")
+    rig = Rig("suprig", out, "--duration", "600", "--restart", "1")  # stopped at 14 s or later
     # WHEN the GNSS receiver and the fusion are SIGKILLed early, the recorder later
     killed = {svc: rig.running_pid(svc) for svc in ("gnss_emulator", "fusion")}
     for pid in killed.values():
@@ -91,11 +142,14 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
     for svc, pid in killed.items():
         rig.running_pid(svc, not_pid=pid)
     time.sleep(3.0)
-    os.kill(rig.running_pid("recorder"), signal.SIGKILL)
-    rc, stdout, stderr = rig.finish()
+    recorder = rig.running_pid("recorder")
+    os.kill(recorder, signal.SIGKILL)
+    rig.running_pid("recorder", not_pid=recorder)
+    rc, stdout, stderr = rig.stop_at(max(14.0, rig.rig_time_s() + 6.0))
     # THEN the run completes, says what happened, and the recorder went on in a new part
     assert rc == 0, stdout[-3000:] + stderr[-3000:]
     assert "gnss_emulator died (killed by signal 9); restarted (1/1)" in stdout
+    assert re.search(r"restart: fusion ready again \(pid \d+\) after [\d.]+ s down", stdout), stdout[-3000:]
     part = tmp_path / "s.part1.mcap"
     assert f"recording continues in {part}" in stdout and part.is_file()
     first = read_session(out)
@@ -120,13 +174,12 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
 
 def test_a_service_that_keeps_dying_ends_the_run_non_zero_with_the_reason(tmp_path: Path) -> None:
     out = tmp_path / "d.mcap"
-    rig = Rig("dierig", out, "--duration", "40", "--restart", "1")
+    # a run far longer than the test may take: only the failure can end it in time
+    rig = Rig("dierig", out, "--duration", "3600", "--restart", "1")
     pid = rig.running_pid("imu_emulator")
     os.kill(pid, signal.SIGKILL)
     os.kill(rig.running_pid("imu_emulator", not_pid=pid), signal.SIGKILL)
-    t0 = time.monotonic()
-    rc, _stdout, stderr = rig.finish()
-    assert time.monotonic() - t0 < 35.0  # ended by the failure, not by --duration
+    rc, _stdout, stderr = rig.finish(timeout=180)  # TimeoutExpired if it went on
     assert rc != 0
     assert "imu_emulator died (killed by signal 9) after 1 restart(s) of 1 allowed" in stderr, stderr[-2000:]
     kinds = {(e.source, e.kind) for e in _events(out)}

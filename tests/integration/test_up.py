@@ -4,6 +4,7 @@ session and a real python-can bus; the recording is checked with the mcap reader
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 
@@ -71,6 +72,12 @@ def test_up_exits_zero_and_prints_a_summary(
     assert path.is_file()
     assert "hil/itest/sensor/imu" in proc.stdout  # the hil info summary at the end
     assert "CAN vcan0" in proc.stdout  # says which CAN transport in one line
+    # the CPU table holds every service, the supervisor (its hub and view) and the sum of them
+    cpu_row = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+[0-9.]+ %$")
+    rows = {m[1]: float(m[2]) for ln in proc.stdout.splitlines() if (m := cpu_row.match(ln))}
+    assert {"recorder", "fusion", "supervisor", "all"} <= rows.keys(), proc.stdout[-3000:]
+    assert rows["supervisor"] > 0.0
+    assert rows["all"] == pytest.approx(sum(v for k, v in rows.items() if k != "all"), abs=0.05)
 
 
 def test_recording_holds_every_contract_type_valid_against_schemas(

@@ -68,6 +68,7 @@ class Rig:
 
     def start_router(self) -> None:
         cmd = [sys.executable, "-m", "hil.cli", "router", "--config", str(REPO / "deploy/zenoh/router.json5")]
+        cmd += ["--listen", "tcp/0.0.0.0:7447"]  # the config listens on loopback unless told otherwise
         self.spawn("router", self.hosts.router, cmd)
 
     def start_service(self, name: str, options: dict[str, object]) -> None:

@@ -1,8 +1,9 @@
 """The secure router profile (deploy/zenoh/router-secure.json5): mutual TLS + access control.
 
-Certificates are made with openssl at test time (throwaway, in tmp). A rig service (CN hil-service)
-publishes into the rig; a client without a certificate, with one from another CA, over plain TCP,
-or with a valid certificate outside the publish ACL (CN hil-monitor) cannot.
+Certificates are made with openssl at test time (throwaway, in tmp), one per role (its CN). Each
+role publishes its own keys into the rig and nothing else (only the GNSS emulator on
+sensor/gnss, only timesync on synced/*, only fusion on nav/<estimator>, ...); a monitor only
+reads; a client without a certificate, with one from another CA, or over plain TCP cannot join.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ pytestmark = [pytest.mark.docker, pytest.mark.timeout(180)]
 
 REPO = Path(__file__).resolve().parents[2]
 KEY = "hil/bench/truth"
+ROLES = ("world", "imu-emulator", "can-bridge", "gnss-emulator", "timesync", "fusion", "recorder")
+ROLES += ("operator", "monitor")
 
 
 def _ssl(*args: str, cwd: Path) -> None:
@@ -53,10 +56,10 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
     _ca(d, "ca")
     _ca(d, "rogue-ca")
     _leaf(d, "router", "router", "ca", "DNS:localhost,IP:127.0.0.1")
-    _leaf(d, "service", "hil-service", "ca", "DNS:hil-service")
-    _leaf(d, "service2", "hil-service", "ca", "DNS:hil-service")
-    _leaf(d, "monitor", "hil-monitor", "ca", "DNS:hil-monitor")
-    _leaf(d, "rogue", "hil-service", "rogue-ca", "DNS:hil-service")
+    for role in ROLES:
+        _leaf(d, role, f"hil-{role}", "ca", f"DNS:hil-{role}")
+    _leaf(d, "stranger", "hil-stranger", "ca", "DNS:hil-stranger")  # the rig's CA, no role
+    _leaf(d, "rogue", "hil-gnss-emulator", "rogue-ca", "DNS:hil-gnss-emulator")
     return d
 
 
@@ -117,17 +120,17 @@ def _open(port: int, pki: Path, cert: str | None, ca: str = "ca", proto: str = "
     return zenoh.open(c)
 
 
-def _delivered(port: int, pki: Path, publisher: str, n: int = 20) -> int:
-    """How many of ``n`` puts by ``publisher`` reach a rig service subscribed to the key."""
+def _delivered(port: int, pki: Path, publisher: str, n: int = 20, key: str = KEY) -> int:
+    """How many of ``n`` puts by ``publisher`` on ``key`` reach a rig service subscribed to it."""
     got: list[bytes] = []
     done = threading.Event()
-    sub_s = _open(port, pki, "service2")
-    sub = sub_s.declare_subscriber(KEY, lambda s: (got.append(s.payload.to_bytes()), done.set()))
+    sub_s = _open(port, pki, "recorder")
+    sub = sub_s.declare_subscriber(key, lambda s: (got.append(s.payload.to_bytes()), done.set()))
     pub_s = _open(port, pki, publisher)
     try:
         time.sleep(1.0)  # declarations propagate through the router
         for i in range(n):
-            pub_s.put(KEY, json.dumps({"seq": i}))
+            pub_s.put(key, json.dumps({"seq": i}))
             time.sleep(0.02)
         done.wait(2.0)
         time.sleep(0.5)
@@ -140,12 +143,43 @@ def _delivered(port: int, pki: Path, publisher: str, n: int = 20) -> int:
 
 def test_rig_service_publishes_into_the_rig(secure_router: tuple[int, Path]) -> None:
     port, pki = secure_router
-    assert _delivered(port, pki, "service") == 20
+    assert _delivered(port, pki, "world") == 20
 
 
 def test_certificate_outside_the_acl_cannot_publish(secure_router: tuple[int, Path]) -> None:
     port, pki = secure_router
     assert _delivered(port, pki, "monitor") == 0
+    assert _delivered(port, pki, "stranger") == 0
+
+
+# (role, key under hil/bench/, allowed): each role its own keys, and a neighbour's refused
+ROLE_KEYS = [
+    ("gnss-emulator", "sensor/gnss", True),
+    ("imu-emulator", "sensor/gnss", False),
+    ("timesync", "sensor/gnss", False),
+    ("timesync", "synced/gnss", True),
+    ("gnss-emulator", "synced/gnss", False),
+    ("can-bridge", "sensor/imu", True),
+    ("gnss-emulator", "sensor/imu", False),
+    ("fusion", "nav/ekf15", True),
+    ("gnss-emulator", "nav/ekf15", False),
+    ("can-bridge", "nav/dut_navbox", True),
+    ("can-bridge", "nav/ekf15", False),
+    ("fusion", "nav/dut_navbox", False),
+    ("recorder", "truth", False),
+    ("recorder", "status/recorder", True),
+    ("recorder", "status/fusion", False),
+    ("operator", "control/fault", True),
+    ("world", "control/fault", False),
+]
+
+
+@pytest.mark.parametrize(("role", "key", "allowed"), ROLE_KEYS, ids=[f"{r}:{k}" for r, k, _ in ROLE_KEYS])
+def test_each_role_publishes_only_its_own_keys(
+    secure_router: tuple[int, Path], role: str, key: str, allowed: bool
+) -> None:
+    port, pki = secure_router
+    assert _delivered(port, pki, role, key=f"hil/bench/{key}") == (20 if allowed else 0)
 
 
 def test_monitor_may_observe_but_not_publish(secure_router: tuple[int, Path]) -> None:
@@ -153,7 +187,7 @@ def test_monitor_may_observe_but_not_publish(secure_router: tuple[int, Path]) ->
     got: list[bytes] = []
     mon = _open(port, pki, "monitor")
     sub = mon.declare_subscriber(KEY, lambda s: got.append(s.payload.to_bytes()))
-    svc = _open(port, pki, "service")
+    svc = _open(port, pki, "world")
     try:
         time.sleep(1.0)
         for i in range(10):

@@ -1,0 +1,258 @@
+"""The feedback (closed-loop) form of the seed estimators: the INS corrected by the estimate.
+
+Open loop (the papers' compensation scheme) the filter only ever sees ``X_INS − X_GNSS`` of the
+shared free INS and subtracts its estimate of the INS error from it; the INS itself is never
+touched. That is exact linear theory while the INS error stays inside what the filter tracks:
+``1 − F`` of the forcing filters removes a constant and a ramp, and leaks ``3T²·ξ̈`` of an
+INS error accelerating at ``ξ̈``. A navigation-grade INS (the papers': 140 km over 5000 s) keeps
+``ξ̈`` small. A consumer MEMS gyro's 0.5 °/s turn-on bias tilts the platform by 9 mrad every
+second, ``ξ̈`` reaches ``g`` within minutes and the free INS is hundreds of kilometres off.
+
+The feedback form keeps the INS inside the filter's range, as real integrations do. Each
+estimator in this form owns a strapdown INS (like ekf15) and, at every GNSS fix:
+
+1. **Reset by the filter's estimate.** The seed filter runs unchanged on ``X_INS − X_GNSS`` of
+   its own INS; its estimate ``y`` (position, velocity) of that INS's error is subtracted from
+   the INS, and the filter's state is moved to the one it would have had without that error
+   (:meth:`hil.estimators.compensation.CompensationCore.shift`: exact for an LTI filter, so the
+   solution ``X_INS − y`` does not jump and the filter stays the paper's filter). kfvel's
+   scalar filters hand over ``ε̂`` and restart from zero (the closed-loop Kalman reset).
+2. **Attitude and sensor biases corrected** by :class:`Corrector`, a 12-state Kalman filter on
+   the same INS − GNSS velocity difference (velocity matching, the in-flight alignment of a
+   strapdown INS; the seed-004 corrector model in three axes): ``δv̇ = [f×]φ + C δb_a``,
+   ``φ̇ = −[ω_ie×]φ − C δb_g``, biases random constants plus a random walk. Its estimates of
+   ``φ``, ``δb_g``, ``δb_a`` are fed into the INS and reset; its ``δv`` stays its own and moves
+   with every velocity reset of step 1.
+
+Why step 2, and why a Kalman filter: position/velocity resets alone are, in linear theory, the
+open-loop filter again (the reset moves the filter's state exactly, step 1) and cannot stop
+the tilt that drives ``ξ̈``; measured on uav_survey with its consumer IMU, compvs with resets
+only is 300–580 m RMS per coordinate. The attitude must be corrected, and heading can only be
+seen through horizontal specific force (turns): a fixed-gain correction perpendicular to the
+specific force never reaches the body-z gyro bias in coordinated flight (the specific force is
+along body z there), and a correction driven by the filter's own rate estimate lags a turn by
+the filter's ~3T. A Kalman filter's covariance remembers that a leg's heading error is about
+the vertical and resolves it when the bank tilts the specific force (docs/concepts.md,
+"When heading is observable").
+
+The antenna lever arm (``lever_arm_b_m``) is applied here: with an attitude of its own the
+INS is compared at the antenna, as ekf15 is. Pure numerics (hil.nav.portable), no clock, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.estimators.ekf15 import skew
+from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
+from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
+from hil.nav.portable import dot, inv, mm, mmt, mv
+from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.types import F64, NavState
+
+_DEG = math.pi / 180.0
+
+
+class Corrector:
+    """Velocity-matching Kalman filter ``[δv, φ, δb_g, δb_a]`` (12 states, module docstring).
+
+    Conventions as ekf15's: ``δv = v_INS − v``, ``C_est = (I − [φ×]) C``, true bias = estimate
+    + error. Defaults are the tactical preset's; the fusion passes the scenario IMU's figures
+    (:func:`hil.estimators.tuning.feedback_params`).
+    """
+
+    def __init__(
+        self,
+        accel_vrw_mps_rts: float = 0.03 / 60.0,
+        gyro_arw_rad_rts: float = 0.125 * _DEG / 60.0,
+        accel_bias_sigma_mps2: float = 50e-6 * 9.80665,
+        gyro_bias_sigma_radps: float = 0.35 * _DEG / 3600.0,
+        bias_corr_s: float = 300.0,
+        p0_accel_bias_mps2: float = 1e-3 * 9.80665,
+        p0_gyro_bias_radps: float = 1.0 * _DEG / 3600.0,
+        p0_vel_mps: float = 0.3,
+        p0_tilt_rad: float = 2e-3,
+        p0_yaw_rad: float = 1e-2,
+        gate_chi2: float = 16.27,
+        max_rejects: int = 10,
+    ) -> None:
+        self.p = np.diag(
+            np.square(
+                [p0_vel_mps] * 3
+                + [p0_tilt_rad, p0_tilt_rad, p0_yaw_rad]
+                + [p0_gyro_bias_radps] * 3
+                + [p0_accel_bias_mps2] * 3
+            )
+        )
+        self.qc = np.diag(
+            [accel_vrw_mps_rts**2] * 3
+            + [gyro_arw_rad_rts**2] * 3
+            + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
+            + [2 * accel_bias_sigma_mps2**2 / bias_corr_s] * 3
+        )
+        self.dv = np.zeros(3)  # the INS velocity error it believes in (not fed back: step 1 is)
+        self.gate_chi2 = gate_chi2
+        self.max_rejects = max_rejects
+        self.nis = 0.0
+        self.rejects = 0
+        self._consecutive = 0
+
+    def predict(self, c_nb: F64, f_n: F64, lat_rad: float, dt_s: float) -> None:
+        """Over ``dt_s`` at attitude ``c_nb`` and mean specific force ``f_n`` (NED)."""
+        w_ie = np.array([OMEGA_IE_RADPS * math.cos(lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(lat_rad)])
+        f = np.zeros((12, 12))
+        f[0:3, 3:6] = skew(f_n)  # δv̇ = [f×]φ + C δb_a
+        f[0:3, 9:12] = c_nb
+        f[3:6, 3:6] = -skew(w_ie)  # φ̇ = −[ω_ie×]φ − C δb_g
+        f[3:6, 6:9] = -c_nb
+        fd = f * dt_s
+        phi = np.eye(12) + fd + 0.5 * mm(fd, fd)
+        self.p = mmt(mm(phi, self.p), phi) + self.qc * dt_s
+        self.dv = mv(phi[0:3, 0:3], self.dv)  # φ, biases are zero between fixes (closed loop)
+
+    def update(self, dv_meas: F64, sigma_mps: F64) -> F64 | None:
+        """One velocity difference (INS − GNSS at the antenna) of σ ``sigma_mps`` per axis.
+
+        Returns the increment of ``[φ, δb_g, δb_a]`` to feed back (9,), or None when the
+        difference fails the χ² gate (``max_rejects`` in a row open the covariance and take it).
+        """
+        r = np.diag(np.square(np.asarray(sigma_mps, float)))
+        y = np.asarray(dv_meas, float) - self.dv
+        s = self.p[0:3, 0:3] + r  # H = [I 0 0 0]
+        s_inv = inv(s)
+        self.nis = dot(y, mv(s_inv, y))
+        if self.nis > self.gate_chi2:
+            self.rejects += 1
+            self._consecutive += 1
+            if self._consecutive <= self.max_rejects:
+                return None
+            self.p[0:3, 0:3] += np.diag(y * y)  # locked out: trust it again, covariance opened
+            s_inv = inv(self.p[0:3, 0:3] + r)
+        self._consecutive = 0
+        k = mm(self.p[:, 0:3], s_inv)  # K = P H' S⁻¹
+        dx = mv(k, y)
+        ikh = np.eye(12)
+        ikh[:, 0:3] -= k
+        p = mmt(mm(ikh, self.p), ikh) + mmt(mm(k, r), k)  # Joseph form
+        self.p = 0.5 * (p + p.T)
+        self.dv = self.dv + dx[0:3]
+        return dx[3:12]
+
+
+class ClosedLoopIns:
+    """The INS of one estimator in feedback form: strapdown, sensor-bias estimates, corrector.
+
+    ``propagate`` at every IMU step; at a fix ``antenna_difference`` gives ``X_INS − X_GNSS``
+    at the antenna, ``correct`` feeds the corrector's attitude/bias estimate back, ``reset``
+    takes the seed filter's position/velocity estimate out of the INS.
+    """
+
+    def __init__(
+        self,
+        init: InitialState,
+        lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        cov_every: int = 20,
+        **corrector: Any,
+    ) -> None:
+        self._init = init
+        self.state: StrapdownState = strapdown_from_initial(init)
+        self.b_g = np.zeros(3)
+        self.b_a = np.zeros(3)
+        self.corrector = Corrector(**corrector)
+        lever = np.asarray(lever_arm_b_m, dtype=float)
+        self._lever: F64 | None = lever if np.any(lever) else None
+        self._w_b = np.zeros(3)  # corrected body rate of the last step (the arm's velocity)
+        self.cov_every = int(cov_every)
+        self._pending_dv_b = np.zeros(3)
+        self._pending_dt = 0.0
+        self._pending_n = 0
+        self.stamp_ns = init.stamp_ns
+        self._nav = to_nav_state(self.state, init)
+        self._dirty = False
+
+    def propagate(self, imu: ImuInput) -> None:
+        dt = imu.dt_s
+        dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
+        dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
+        self.state = strapdown_step(self.state, dth, dv, dt)
+        if self._lever is not None:
+            self._w_b = dth / dt
+        self._pending_dv_b += dv
+        self._pending_dt += dt
+        self._pending_n += 1
+        if self._pending_n >= self.cov_every:
+            self._predict()
+        self.stamp_ns = imu.stamp_ns
+        self._dirty = True
+
+    def _predict(self) -> None:
+        if self._pending_n == 0:
+            return
+        c_nb = quat_to_dcm(self.state.q_nb)
+        f_n = mv(c_nb, self._pending_dv_b / self._pending_dt)
+        self.corrector.predict(c_nb, f_n, self.state.lat_rad, self._pending_dt)
+        self._pending_dv_b = np.zeros(3)
+        self._pending_dt = 0.0
+        self._pending_n = 0
+
+    def nav(self) -> NavState:
+        if self._dirty:
+            self._nav = to_nav_state(self.state, self._init)
+            self._dirty = False
+        return self._nav
+
+    def antenna_difference(self, gnss: GnssInput) -> tuple[F64, F64]:
+        """``(p, v)`` of INS minus GNSS at the fix's time of validity and at the antenna."""
+        nav = self.nav()
+        pos = nav.pos_ned_m + nav.vel_ned_mps * ((gnss.stamp_ns - self.stamp_ns) * 1e-9)
+        vel = nav.vel_ned_mps
+        if self._lever is not None:
+            c_nb = quat_to_dcm(self.state.q_nb)
+            pos = pos + mv(c_nb, self._lever)
+            vel = vel + mv(c_nb, cross(self._w_b, self._lever))
+        return pos - gnss.pos_ned_m, vel - gnss.vel_ned_mps
+
+    def correct(self, dv: F64, gnss: GnssInput) -> None:
+        """The corrector on this fix's velocity difference; its attitude/bias estimate fed back."""
+        self._predict()
+        dx = self.corrector.update(dv, gnss.vel_sigma_mps)
+        if dx is None:
+            return
+        s = self.state
+        # C_true = (I + [φ×]) C_est: rotate the NED side by +φ (ekf15's convention)
+        q = quat_normalise(quat_multiply(quat_from_rotvec(dx[0:3]), s.q_nb))
+        self.state = replace(s, q_nb=q)
+        self.b_g = self.b_g + dx[3:6]
+        self.b_a = self.b_a + dx[6:9]
+        self._dirty = True
+
+    def reset(self, dp: F64, dv: F64) -> None:
+        """Take an estimated position/velocity error (NED) out of the INS."""
+        s = self.state
+        r_m, r_n = radii_of_curvature(s.lat_rad)
+        lat = s.lat_rad - dp[0] / (float(r_m) + s.alt_m)
+        lon = s.lon_rad - dp[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
+        alt = s.alt_m + dp[2]  # δp_D = −δh
+        self.state = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=s.vel_ned_mps - dv)
+        self.corrector.dv = self.corrector.dv - dv
+        self._dirty = True
+
+    def att_sigma_rad(self) -> F64:
+        """1σ of the attitude error about N, E, D from the corrector's covariance."""
+        return np.sqrt(np.diag(self.corrector.p)[3:6])
+
+    def health(self) -> dict[str, float]:
+        c = self.corrector
+        return {
+            "feedback": 1.0,
+            "nis_vel": c.nis,
+            "gnss_rejected": float(c.rejects),
+            "accel_bias_norm_mps2": math.sqrt(dot(self.b_a, self.b_a)),
+            "gyro_bias_norm_radps": math.sqrt(dot(self.b_g, self.b_g)),
+            "yaw_sigma_rad": math.sqrt(float(c.p[5, 5])),
+        }
