@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import signal
 
 from hil.nav.portable import expm, mv
 from hil.nav.types import F64
@@ -70,8 +69,27 @@ class StateSpace:
 
     @staticmethod
     def from_tf(tf: TransferFunction) -> StateSpace:
-        a, b, c, d = signal.tf2ss(np.asarray(tf.num, float), np.asarray(tf.den, float))
-        return StateSpace(np.asarray(a, float), b[:, 0].copy(), c[0].copy(), float(d[0, 0]))
+        """Controller canonical form, the same arithmetic as ``scipy.signal.tf2ss`` (bit for bit).
+
+        Written out because importing ``scipy.signal`` costs seconds at every ``hil sim`` and
+        rerun start, for four lines of algebra; tests/unit/test_lti_tf2ss.py holds it to scipy.
+        """
+        den = np.trim_zeros(np.asarray(tf.den, float), "f")
+        num = np.asarray(tf.num, float) / den[0]
+        den = den / den[0]
+        lead = 0  # scipy's normalize: numerator leading |c| <= 1e-14 dropped, one kept
+        while lead < len(num) - 1 and abs(num[lead]) <= 1e-14:
+            lead += 1
+        num = num[lead:]
+        k = len(den)
+        if len(num) > k:
+            raise ValueError(f"improper transfer function {tf.label!r}: num is longer than den")
+        if k == 1:
+            return StateSpace(np.zeros((1, 1)), np.zeros(1), np.zeros(1), float(num[0]))
+        num = np.concatenate((np.zeros(k - len(num)), num))
+        a = np.vstack((-den[None, 1:], np.eye(k - 2, k - 1)))
+        c = num[1:] - num[0] * den[1:]
+        return StateSpace(a, np.eye(k - 1, 1)[:, 0].copy(), c, float(num[0]))
 
     @property
     def order(self) -> int:
@@ -87,6 +105,8 @@ class StateSpace:
 
 def zoh(ss: StateSpace, h_s: float) -> tuple[F64, F64]:
     """Exact ZOH discretisation over ``h_s``: returns ``(Φ, Γ)`` with ``x+ = Φ x + Γ u``."""
+    from scipy import signal  # seconds to import; only tests and benches call this
+
     n = ss.order
     ad, bd, _, _, _ = signal.cont2discrete(
         (ss.a, ss.b.reshape(n, 1), ss.c.reshape(1, n), np.array([[ss.d]])), h_s, method="zoh"

@@ -22,7 +22,6 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from hil.nav.scenario import Scenario
 from hil.nav.sensor_specs import GM_PEAK_RATIO, IEEE_BI_FACTOR
@@ -35,6 +34,27 @@ _NS = 1_000_000_000
 def sensor_rng(seed: int, sensor_name: str) -> np.random.Generator:
     """The generator for one sensor: SeedSequence([scenario seed, crc32(sensor name)])."""
     return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(sensor_name.encode())]))
+
+
+def gauss_markov(drive: F64, phi: float, zi: F64) -> F64:
+    """``y_k = φ y_{k−1} + x_k`` over rows, in ``scipy.signal.lfilter([1], [1, −φ], x, zi=zi)``'s
+    exact operation order (its direct form II transposed: ``y = z + 1·x``, ``z = 0·x − y·(−φ)``),
+    so the bits are lfilter's (tests/unit/test_imu_gauss_markov.py holds it to scipy).
+
+    Plain floats per axis: the emulator asks for one sample at a time, where lfilter's call and
+    importing ``scipy.signal`` (seconds at every start) cost far more than the recursion.
+    """
+    neg_phi = -phi
+    cols = drive.T.tolist()
+    out = np.empty_like(drive)
+    for axis, (xs, z) in enumerate(zip(cols, zi.tolist(), strict=True)):
+        ys = []
+        for x in xs:
+            y = z + 1.0 * x
+            z = 0.0 * x - y * neg_phi
+            ys.append(y)
+        out[:, axis] = ys
+    return out
 
 
 @dataclass(frozen=True)
@@ -89,11 +109,9 @@ class _Triad:
 
     def measure(self, ideal: F64) -> F64:
         n = ideal.shape[0]
-        # b_GM,k = φ b_GM,k−1 + drive u_k  (lfilter carries the state exactly across batches)
+        # b_GM,k = φ b_GM,k−1 + drive u_k  (the state carries exactly across batches)
         u = self._g_gm.standard_normal((n, 3))
-        gm, _ = lfilter(
-            [1.0], [1.0, -self.phi], self.gm_drive * u, axis=0, zi=(self.phi * self.gm_state)[None, :]
-        )
+        gm = gauss_markov(self.gm_drive * u, self.phi, self.phi * self.gm_state)
         if n:
             self.gm_state = gm[-1].copy()
         rrw = np.cumsum(

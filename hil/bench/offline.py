@@ -1,0 +1,244 @@
+"""``hil bench offline REF``: ``hil sim`` and ``hil rerun`` × real time, this tree against REF.
+
+Issue 20's offline targets are ratios of rig seconds to CPU seconds on one core, so that is what
+this measures: each child's own rusage (user + system), which a busy machine slows far less than
+wall time. Both revisions run in the same session, alternating (REF first on even repeats), so the
+before/after ratio shares the load. REF runs from a temporary ``git worktree`` with the same Python
+environment (as ``hil bench versus`` does). Every run:
+
+- ``hil sim --scenario S --duration D --record`` (every default estimator, everything recorded);
+- ``hil rerun --core fusion --verify`` and ``--core timesync --verify`` of REF's recording (the same
+  file for both trees, so the rerun figures compare like with like and the verify checks that
+  this tree reproduces REF's outputs bit for bit);
+- the start-up alone (``import hil.runners.sim, hil.record.rerun``), which every run pays.
+
+The two trees' recordings are compared topic by topic (log time, publish time, sequence, payload:
+what ``tools/recording_diff.py`` compares). ``--profile`` adds each tree's cProfile top entries
+of one ``hil sim``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import pstats
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.reader import make_reader
+
+from hil.bench import command_line, write_section
+from hil.bench.versus import ref_tree
+
+_RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
+_IMPORT = "import hil.runners.sim, hil.record.rerun"
+_STEPS = ("start-up", "sim", "rerun fusion", "rerun timesync")
+
+
+@dataclass
+class Tree:
+    label: str
+    path: Path
+    cpu: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in _STEPS})
+    verify_failed: list[str] = field(default_factory=list)
+
+
+def _env(tree: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
+    env["PYTHONPATH"] = str(tree)
+    return env
+
+
+def _cpu_of(tree: Path, argv: list[str]) -> tuple[float, int]:
+    """CPU seconds (user + system) of one child and its exit code."""
+    proc = subprocess.Popen(
+        [sys.executable, *argv], cwd=tree, env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    _, status, ru = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.read().decode(errors="replace").strip() if proc.stderr else ""
+    if proc.stderr:
+        proc.stderr.close()
+    if proc.returncode not in (0, 1):
+        raise RuntimeError(f"{' '.join(argv[2:5])} in {tree} exited {proc.returncode}: {err[-300:]}")
+    return ru.ru_utime + ru.ru_stime, proc.returncode
+
+
+def digests(path: Path) -> dict[str, tuple[int, str]]:
+    """Per topic: message count and SHA-256 of its (log, publish, sequence, payload) sequence."""
+    acc: dict[str, tuple[int, hashlib._Hash]] = {}
+    with open(path, "rb") as fh:
+        for _s, ch, msg in make_reader(fh).iter_messages(log_time_order=False):
+            n, h = acc.get(ch.topic, (0, hashlib.sha256()))
+            h.update(f"{msg.log_time} {msg.publish_time} {msg.sequence} {len(msg.data)}\n".encode())
+            h.update(msg.data)
+            acc[ch.topic] = (n + 1, h)
+    return {t: (n, h.hexdigest()) for t, (n, h) in acc.items()}
+
+
+def run_pair(trees: list[Tree], sim_args: list[str], tmp: Path, i: int) -> dict[str, Path]:
+    """One repeat: each tree's start-up and sim, then both trees' reruns of REF's recording."""
+    order = trees if i % 2 == 0 else trees[::-1]
+    recs = {}
+    for t in order:
+        cpu, _ = _cpu_of(t.path, ["-c", _IMPORT])
+        t.cpu["start-up"].append(cpu)
+        rec = tmp / f"{'ref' if t is trees[0] else 'head'}-{i}.mcap"
+        cpu, _ = _cpu_of(t.path, ["-c", _RUN, "sim", *sim_args, "--record", str(rec), "--quiet"])
+        t.cpu["sim"].append(cpu)
+        recs[t.label] = rec
+    for t in order:
+        for core in ("fusion", "timesync"):
+            cpu, rc = _cpu_of(
+                t.path, ["-c", _RUN, "rerun", str(recs[trees[0].label]), "--core", core, "--verify"]
+            )
+            t.cpu[f"rerun {core}"].append(cpu)
+            if rc != 0:
+                t.verify_failed.append(core)
+    return recs
+
+
+def profile_top(tree: Path, hil_args: list[str], tmp: Path, n: int) -> list[str]:
+    """cProfile of one ``hil ...`` run by ``tree``: the top ``n`` functions by own time.
+
+    The profiler's clock is the process's CPU time, not the wall clock: on a shared machine a
+    wall-clock profile charges a function for the time the process waited for a core.
+    """
+    out = tmp / f"{tree.name}.prof"
+    code = (
+        "import cProfile, sys, time; from hil.cli import main; sys.argv = ['hil', *sys.argv[2:]]; "
+        "p = cProfile.Profile(time.process_time); rc = p.runcall(main); p.dump_stats(sys.argv_out)"
+    )
+    code = code.replace("sys.argv_out", repr(str(out)))
+    _cpu_of(tree, ["-c", code, "--", *hil_args])
+    st = pstats.Stats(str(out))
+    total = st.total_tt  # type: ignore[attr-defined]
+    rows = sorted(st.stats.items(), key=lambda kv: -kv[1][2])[:n]  # type: ignore[attr-defined]
+    lines = ["| own % | cumulative % | calls | function |", "| ---: | ---: | ---: | --- |"]
+    for (file, line, fn), (_cc, calls, tt, ct, _callers) in rows:
+        where = file.replace(str(tree) + "/", "").split("site-packages/")[-1]
+        lines.append(
+            f"| {100 * tt / total:.1f} | {100 * ct / total:.1f} | {calls} | `{where}:{line}({fn})` |"
+        )
+    return lines
+
+
+def run_profiles(
+    trees: list[Tree], sim_args: list[str], rec: Path, tmp: Path, n: int
+) -> list[tuple[str, list[str]]]:
+    """Each tree's cProfile top ``n`` of ``hil sim`` and of ``hil rerun --core fusion`` of ``rec``."""
+    out = []
+    for t in trees:
+        sim = ["sim", *sim_args, "--record", str(tmp / "profile.mcap"), "--quiet"]
+        out.append((f"`hil sim {' '.join(sim_args)} --record`, {t.label}", profile_top(t.path, sim, tmp, n)))
+    for t in trees:
+        rerun = ["rerun", str(rec), "--core", "fusion", "--verify"]
+        out.append((f"`hil rerun --core fusion --verify`, {t.label}", profile_top(t.path, rerun, tmp, n)))
+    return out
+
+
+def _mean(xs: list[float]) -> float:
+    return sum(xs) / len(xs)
+
+
+def table(trees: list[Tree], rig_s: float) -> list[str]:
+    ref, head = trees
+    lines = [
+        f"| step | {ref.label} CPU s | {ref.label} × real time | this tree CPU s | this tree × real time "
+        "| CPU ratio |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for step in _STEPS:
+        r, h = _mean(ref.cpu[step]), _mean(head.cpu[step])
+        xr = "–" if step == "start-up" else f"{rig_s / r:.2f}"
+        xh = "–" if step == "start-up" else f"{rig_s / h:.2f}"
+        lines.append(f"| {step} | {r:.2f} | {xr} | {h:.2f} | {xh} | {h / r:.3f} |")
+    return lines
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="hil bench offline", description=__doc__)
+    ap.add_argument("ref", help="the git revision to compare against (the tree before a change)")
+    ap.add_argument("--scenario", default="uav_survey", help="hil sim's scenario")
+    ap.add_argument("--duration", type=float, default=60.0, help="rig seconds simulated")
+    ap.add_argument("--repeat", type=int, default=1, help="runs of each tree (alternating order)")
+    ap.add_argument("--profile", type=int, default=0, metavar="N", help="add each tree's top N (cProfile)")
+    ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
+    a = ap.parse_args(argv)
+    if a.duration <= 0 or a.repeat < 1:
+        print("hil bench offline: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
+        return 2
+    head_path = Path(__file__).resolve().parents[2]
+    sim_args = ["--scenario", a.scenario, "--duration", f"{a.duration:g}"]
+    load0 = os.getloadavg()
+    with tempfile.TemporaryDirectory(prefix="hil-offline-") as d:
+        tmp = Path(d)
+        try:
+            ref_path = ref_tree(a.ref, tmp)
+        except RuntimeError as err:
+            print(f"hil bench offline: {err}", file=sys.stderr)
+            return 2
+        try:
+            trees = [Tree(a.ref[:10], ref_path), Tree("this tree", head_path)]
+            same: list[str] = []
+            differ: list[str] = []
+            for i in range(a.repeat):
+                recs = run_pair(trees, sim_args, tmp, i)
+                if i == 0:
+                    dr, dh = (digests(recs[t.label]) for t in trees)
+                    same = sorted(t for t in dr.keys() & dh.keys() if dr[t] == dh[t])
+                    differ = sorted(set(dr) ^ set(dh) | {t for t in dr.keys() & dh.keys() if dr[t] != dh[t]})
+                kept = recs.pop(trees[0].label) if i == 0 else None  # REF's first, for the rerun profiles
+                for r in recs.values():
+                    r.unlink()
+                if kept is not None:
+                    first_ref = kept
+            profiles = run_profiles(trees, sim_args, first_ref, tmp, a.profile) if a.profile else []
+        except RuntimeError as err:
+            print(f"hil bench offline: {err}", file=sys.stderr)
+            return 1
+        finally:
+            subprocess.run(
+                ["git", "worktree", "remove", "--force", str(ref_path)], cwd=head_path, capture_output=True
+            )
+    body = report(a, trees, sim_args, (load0[0], os.getloadavg()[0]), same, differ, profiles)
+    print(body)
+    if not a.no_write:
+        write_section("offline", body, command_line())
+    return 1 if differ or any(t.verify_failed for t in trees) else 0
+
+
+def report(
+    a: argparse.Namespace,
+    trees: list[Tree],
+    sim_args: list[str],
+    load: tuple[float, float],
+    same: list[str],
+    differ: list[str],
+    profiles: list[tuple[str, list[str]]],
+) -> str:
+    verify = ", ".join(
+        f"{t.label} {'failed ' + '/'.join(t.verify_failed) if t.verify_failed else 'bit-identical'}"
+        for t in trees
+    )
+    lines = [
+        f"`hil sim {' '.join(sim_args)} --record` (every default estimator, everything recorded), then "
+        f"`hil rerun --core fusion|timesync --verify` of {trees[0].label}'s recording, by each tree in "
+        f"turn, {a.repeat} run(s) each; × real time = {a.duration:g} rig s / CPU s of the child (user + "
+        f"system, one core). Load average (1 min) {load[0]:.1f} at the start, {load[1]:.1f} at the end on "
+        f"{os.cpu_count()} cores: other engineers' work shared the machine, so take the ratios.",
+        "",
+        *table(trees, a.duration),
+        "",
+        f"Recordings of the two trees: {len(same)} topics identical (log time, publish time, sequence, "
+        f"payload); differing or in one only: {', '.join(differ) or 'none'}. Rerun --verify of "
+        f"{trees[0].label}'s recording: {verify}.",
+    ]
+    for label, top in profiles:
+        lines += ["", f"cProfile of {label}, top {a.profile} by own time:"]
+        lines += ["", *top]
+    return "\n".join(lines)

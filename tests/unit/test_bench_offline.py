@@ -1,0 +1,37 @@
+"""``hil bench offline``'s judge of "same output": per-topic digests of two recordings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from hil.bench import offline
+from hil.messages import TYPES_BY_NAME
+from hil.record.mcapio import SessionWriter
+
+
+def _rec(path: Path, payloads: list[bytes]) -> Path:
+    w = SessionWriter(path, spill_index=False)
+    cls = next(iter(TYPES_BY_NAME.values()))
+    for i, p in enumerate(payloads):
+        w.write(f"hil/t/{i % 2}", cls, p, log_time_ns=1000 + i, publish_time_ns=1000 + i, seq=i)
+    w.close()
+    return path
+
+
+def test_digests_tell_a_changed_payload_from_equal_ones(tmp_path: Path) -> None:
+    base = [b'{"a": %d}' % i for i in range(20)]
+    changed = [*base[:7], b'{"a": -7}', *base[8:]]
+    a, b, c = (offline.digests(_rec(tmp_path / n, p)) for n, p in [("a", base), ("b", base), ("c", changed)])
+    assert a == b
+    assert a["hil/t/0"] == c["hil/t/0"]
+    assert a["hil/t/1"] != c["hil/t/1"]
+    assert a["hil/t/1"][0] == 10
+
+
+@pytest.mark.parametrize("argv", [["HEAD", "--duration", "0"], ["no-such-revision-xyz", "--duration", "1"]])
+def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert offline.main([*argv, "--no-write"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("hil bench offline:") and "\n" not in err
