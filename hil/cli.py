@@ -161,6 +161,7 @@ def _cpu_list(text: str) -> list[int]:
 
 
 def cmd_up(a: argparse.Namespace) -> int:
+    from hil.bus.identity import rig_key_from_env
     from hil.bus.keys import check_name
     from hil.nav.scenario import load_scenario
     from hil.record.info import describe
@@ -168,6 +169,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
+    rig_key_from_env()  # a malformed HIL_RIG_KEY is one line, before anything starts
     _check_record_filter(a)
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))

@@ -36,6 +36,24 @@ def new_rig_key() -> str:
     return secrets.token_hex(16)
 
 
+def rig_key_from_env() -> str | None:
+    """A rig key given to ``hil up`` (``HIL_RIG_KEY``): a rig whose processes or test clients
+    start elsewhere (another machine, a test's own session) shares it to be the rig's. Unset: None."""
+    key = os.environ.get(RIG_KEY_ENV, "").strip()
+    if not key:
+        return None
+    try:
+        ok = len(bytes.fromhex(key)) >= 16
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(
+            f"{RIG_KEY_ENV} must be at least 32 hex digits (python -c 'import secrets; "
+            f"print(secrets.token_hex(16))'), got {len(key)} characters that are not"
+        )
+    return key
+
+
 def rig_zid(key: str) -> str:
     """A fresh Zenoh id of the rig's: 16 random hex digits (the first never 0: Zenoh refuses
     leading zeros) and 16 of their hash keyed with ``key``."""

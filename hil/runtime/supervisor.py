@@ -27,7 +27,7 @@ from typing import IO, Any
 import numpy as np
 
 from hil.bus.endpoint import RigAccess
-from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_zid
+from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_key_from_env, rig_zid
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
@@ -329,7 +329,8 @@ class Supervisor:
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
         self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
-        self.rig_key = new_rig_key()  # per run: the rig's processes' Zenoh ids derive from it
+        # per run (or HIL_RIG_KEY's): the rig's processes' Zenoh ids derive from it
+        self.rig_key = rig_key_from_env() or new_rig_key()
         self._cpu_self_base = _own_cpu_seconds()
         self._cpu_dead: dict[str, float] = {}  # CPU of the earlier lives of restarted services
         self._restarting: dict[str, tuple[float, int]] = {}  # name -> (when it died, new pid)

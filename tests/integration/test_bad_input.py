@@ -13,7 +13,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+import zenoh
 
+from hil.bus.identity import new_rig_key, rig_zid
 from hil.bus.keys import Keys
 from hil.bus.session import BusConfig, open_session
 from hil.messages import ImuSample, NavSolution, ServiceStatus, decode, encode
@@ -25,10 +27,22 @@ pytestmark = pytest.mark.slow
 RIG = "fuzzrig"
 
 
+_SN = iter(range(1, 1 << 30))
+
+
+def _put(pub: zenoh.Publisher, data: bytes) -> None:
+    """As the rig's publishers put (hil.bus.pubsub): naming the publisher in the source info,
+    which is how the rig tells its own samples from a stranger's."""
+    pub.put(data, source_info=zenoh.SourceInfo(pub.id, next(_SN)))
+
+
 def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
+    # the garbage must come from the rig (a stranger's is refused before it is even decoded,
+    # issue 18.4): the hub's session carries an id of the rig, from the key hil up is given
+    key = new_rig_key()
+    hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=(), extra={"id": rig_zid(key)}))
     statuses: dict[str, ServiceStatus] = {}
     hub.declare_subscriber(
         f"hil/{RIG}/status/*",
@@ -37,7 +51,11 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
         ),
     )
     env = dict(
-        os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
+        os.environ,
+        HIL_ZENOH_MODE="peer",
+        HIL_ZENOH_CONNECT=endpoint,
+        HIL_ZENOH_LISTEN="tcp/127.0.0.1:0",
+        HIL_RIG_KEY=key,
     )
     out = tmp_path / "fuzz.mcap"
     proc = subprocess.Popen(
@@ -73,9 +91,9 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
         for key in targets:
             pub = hub.declare_publisher(key)
             for n in (0, 1, 7, 64, 300, 70_000):
-                pub.put(rng.bytes(n))
-            pub.put(b'{"seq": 1, "stamp_ns": "x"}')
-            pub.put(b"\xff" * 16)
+                _put(pub, rng.bytes(n))
+            _put(pub, b'{"seq": 1, "stamp_ns": "x"}')
+            _put(pub, b"\xff" * 16)
         # well-formed JSON, bad content, into the fusion's inputs (and the raw sensor key)
         imu = ImuSample(
             seq=3,
@@ -96,8 +114,8 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
             "far_past": encode(msgspec.structs.replace(imu, seq=10**12 + 1, stamp_ns=-(10**15))),
         }
         for payload in bad.values():
-            sync_imu.put(payload)
-            hub.declare_publisher(k.sensor("imu")).put(payload)
+            _put(sync_imu, payload)
+            _put(hub.declare_publisher(k.sensor("imu")), payload)
         reasons = (
             "rejected.synced.imu.invalid",
             "rejected.implausible.imu.dtheta",

@@ -147,11 +147,11 @@ def test_the_fused_output_kept_every_stamp_and_no_strangers_fix_reached_it(attac
     stamps = np.array([r.decode().stamp_ns for r in recs]) / 1e9
     assert stamps[-1] > DURATION_S - 2
     fusion, timesync, recorder = (_mine(s, f"status/{n}") for n in ("fusion", "timesync", "recorder"))
-    assert max(m.counters.get("rejected.foreign.synced.gnss", 0) for m in fusion) > 0
-    assert max(m.counters.get("rejected.foreign.sensor.gnss", 0) for m in timesync) > 0
-    assert max(m.counters.get("inbox.peak", 0) for m in fusion) <= PACER_CAP + 8 * AIDING_CAP
-    assert not any(m.counters.get("inbox.dropped.synced.imu", 0) for m in fusion)  # never starved
-    assert max(m.counters.get("dropped_rig", 0) for m in recorder) == 0
+    assert max(m.counter_map().get("rejected.foreign.synced.gnss", 0) for m in fusion) > 0
+    assert max(m.counter_map().get("rejected.foreign.sensor.gnss", 0) for m in timesync) > 0
+    assert max(m.counter_map().get("inbox.peak", 0) for m in fusion) <= PACER_CAP + 8 * AIDING_CAP
+    assert not any(m.counter_map().get("inbox.dropped.synced.imu", 0) for m in fusion)  # never starved
+    assert max(m.counter_map().get("dropped_rig", 0) for m in recorder) == 0
     strangers = {SPOOF["seq_base"] + i for i in range(attacked["sent"]["spoof"]["sent"]["synced/gnss"])}
     strangers |= {FLOOD_SEQ_BASE + i for i in range(FLOOD["n"])} | {10**9, 10**9 + 1}
     for j in _mine(s, "fusion/journal"):
@@ -171,7 +171,7 @@ def test_the_fused_output_kept_every_stamp_and_no_strangers_fix_reached_it(attac
         print(
             f"ekf15 {name}: {m.sum()} outputs, latency median {np.median(lat[m]) if m.any() else float('nan'):.3f} s"
         )
-    print("fusion rss_kib", [m.counters.get("rss_kib") for m in fusion])
+    print("fusion rss_kib", [m.counter_map().get("rss_kib") for m in fusion])
     print("ekf15 largest stamp gap (s)", float(np.diff(stamps).max()))  # IMU lost by a starved rig
 
 

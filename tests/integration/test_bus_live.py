@@ -63,6 +63,8 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             encodings[str(s.key_expr)] = str(s.encoding)
 
     sub = hub.declare_subscriber(f"hil/{RIG}/status/*", on_status)
+    fused = threading.Event()  # the fusion publishes (after time sync locks: a few seconds in)
+    nav_sub = hub.declare_subscriber(f"hil/{RIG}/nav/ekf15", lambda _s: fused.set())
     env = dict(
         os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
     )
@@ -82,7 +84,12 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         while time.monotonic() < deadline:  # every service running, the fusion publishing
             with lock:
                 running = {n for n, st in statuses.items() if st.state == "running"}
-            if running >= set(SERVICES) and record.exists() and record.stat().st_size > 50_000:
+            if (
+                running >= set(SERVICES)
+                and fused.is_set()
+                and record.exists()
+                and record.stat().st_size > 50_000
+            ):
                 break
             assert up.poll() is None, up.communicate()[0]
             time.sleep(0.2)
@@ -123,6 +130,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             up.kill()
             up.communicate()
         sub.undeclare()
+        nav_sub.undeclare()
         hub.close()
 
 
