@@ -51,8 +51,9 @@ class _NavLite(msgspec.Struct):
     estimator: str
     pos_ned_m: tuple[float, float, float]
     vel_ned_mps: tuple[float, float, float]
-    pos_sigma_m: tuple[float, float, float] | None = None
-    vel_sigma_mps: tuple[float, float, float] | None = None
+    # [] (or null, in recordings from before the Foxglove-first schemas) when absent
+    pos_sigma_m: list[float] | None = None
+    vel_sigma_mps: list[float] | None = None
 
 
 _TRUTH = msgspec.json.Decoder(_TruthLite)
@@ -186,7 +187,7 @@ def estimator_stats(
     out.update(
         conv_s=None if conv is None else _num(conv), series_dt_s=dt, series_h_err_m=_series(t_s, h, dt)
     )
-    sig = [s for s in rows if s.pos_sigma_m is not None and s.vel_sigma_mps is not None]
+    sig = [s for s in rows if s.pos_sigma_m and s.vel_sigma_mps]
     if len(sig) == len(rows):
         ps = np.array([s.pos_sigma_m for s in rows], dtype=np.float64)[ok]
         vs = np.array([s.vel_sigma_mps for s in rows], dtype=np.float64)[ok]
