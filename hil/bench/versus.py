@@ -39,6 +39,7 @@ class Side:
     tree: Path
     sims: list[SimRun] = field(default_factory=list)
     rig_cpu: list[dict[str, float]] = field(default_factory=list)
+    sim_extra: list[str] = field(default_factory=list)  # this side's own hil sim flags
 
 
 def _env(tree: Path) -> dict[str, str]:
@@ -68,7 +69,7 @@ def sims_side_by_side(sides: list[Side], sim_args: list[str], repeat: int, tmp: 
         for s in order:
             rec = tmp / f"{s.label}-{i}.mcap"
             procs[s.label] = (
-                _hil(s.tree, ["sim", *sim_args, "--record", str(rec), "--quiet"]),
+                _hil(s.tree, ["sim", *sim_args, *s.sim_extra, "--record", str(rec), "--quiet"]),
                 time.perf_counter(),
                 rec,
             )
@@ -171,6 +172,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--repeat", type=bounded_int(1, 100), default=2, help="pairs of each")
     ap.add_argument("--rig-duration", type=seconds, default=60.0, help="hil bench rig's seconds (0: skip)")
     ap.add_argument("--rig-scenario", default="straight_level")
+    ap.add_argument(
+        "--this-args",
+        default="",
+        help="extra hil sim flags for this tree only, to ask it for the work REF does "
+        "(e.g. '--feedback none --ekf-calibration none' against a tree from before those)",
+    )
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     head_tree = Path(__file__).resolve().parents[2]
@@ -182,7 +189,7 @@ def main(argv: list[str]) -> int:
             print(f"hil bench versus: {err}", file=sys.stderr)
             return 2
         try:
-            sides = [Side(a.ref[:10], tree), Side("this tree", head_tree)]
+            sides = [Side(a.ref[:10], tree), Side("this tree", head_tree, sim_extra=a.this_args.split())]
             load = os.getloadavg()[0]
             sims_side_by_side(
                 sides, ["--scenario", a.scenario, "--duration", f"{a.duration:g}"], a.repeat, tmp
@@ -195,7 +202,8 @@ def main(argv: list[str]) -> int:
             )
     lines = [
         f"`hil sim --scenario {a.scenario} --duration {a.duration:g} --record` of both revisions at once "
-        f"(one per core), {a.repeat} pairs, order swapped each pair; load average before: {load:.2f}.",
+        f"(one per core), {a.repeat} pairs, order swapped each pair; load average before: {load:.2f}."
+        + (f" This tree's sim also had `{a.this_args}`." if a.this_args else ""),
         "",
         *sim_table(sides, a.duration),
     ]
