@@ -401,6 +401,7 @@ def test_a_stop_deadline_that_cuts_the_backlog_is_counted_not_silent(hub: Hub, t
     """With a stop deadline too short for the backlog (``stop_timeout_s``), what was received but
     not written is counted in the summary and the file is not replay-ready. In process, with the
     backlog queued before the writer starts: the only way to be sure there is one."""
+    from hil.bus.identity import UNKNOWN
     from hil.messages import encode
     from hil.runtime.clock import wall_ns
     from hil.runtime.service import ServiceContext
@@ -411,9 +412,10 @@ def test_a_stop_deadline_that_cuts_the_backlog_is_counted_not_silent(hub: Hub, t
     rec = Recorder(ServiceContext(name="recorder", rig=RIG, session=hub.session, options=opts))
     k = Keys(RIG)
     n = 10_000
-    rec.queue.put((k.run(), encode(run_info(0)), wall_ns()))
+    # as the Zenoh callback enqueues: (key, payload, receive wall time, publisher, origin, encoding)
+    rec.queue.put("run", "", (k.run(), encode(run_info(0)), wall_ns(), "", UNKNOWN, None))
     for i in range(n):
-        rec.queue.put((k.sensor("imu"), encode(imu(i)), wall_ns()))
+        rec.queue.put("sensor/imu", "", (k.sensor("imu"), encode(imu(i)), wall_ns(), "", UNKNOWN, None))
     rec.setup()  # the writer starts on a backlog of n + 1 messages
     rec.teardown()  # and is stopped at once
     comp = read_session(path).metadata["completeness"]
