@@ -33,7 +33,7 @@ def test_replayed_frames_decode_to_the_recorded_samples_with_their_spacing() -> 
     # `hil replay --end 1.0` keeps what was logged within 1 s of the file's first message
     t_first = min(r.log_time_ns for r in s.records)
     window = [f for f in frames if f.log_time_ns - t_first <= 1_000_000_000]
-    t0 = window[0].publish_time_ns
+    t0 = window[0].decode().stamp_ns  # rig time (publish_time is on the wall-clock timeline)
     recorded = {m.device_stamp_ns: m for m in (r.decode() for r in s.by_topic(f"hil/{rig}/sensor/imu"))}
     rate = "0.5" if os.environ.get("HIL_IN_UML") == "1" else "1"
 
