@@ -221,7 +221,9 @@ def test_a_restart_reads_as_a_restart_in_the_completeness_and_the_downtime_as_lo
     imu = topics["hil/genrig/sensor/imu"]
     assert (imu["restarts"], imu["gaps"], imu["duplicates"], imu["out_of_order"]) == (0, 1, 0, 0), imu
     ((a, b),) = imu["gap_ranges"]
-    assert 100 < imu["missing"] == b - a + 1 < 8 * 400 and a > 2 * 400, imu
+    # (a: the kill comes some seconds after the bridge runs; the run's time zero is later than
+    # that by the rig's start-up, so only "well after the first samples" is a safe bound)
+    assert 100 < imu["missing"] == b - a + 1 < 8 * 400 and a > 100, imu
     gnss = topics["hil/genrig/synced/gnss"]
     assert gnss["restarts"] == 0 and gnss["gaps"] >= 1 and gnss["missing"] > 0, gnss
     assert s.meta("completeness", "replay_ready") is False  # data was lost: honest
