@@ -32,7 +32,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from hil.bench import command_line, write_section
-from hil.bench.versus import ref_tree
+from hil.bench.versus import ref_tree, remove_ref_tree
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 _IMPORT = "import hil.runners.sim, hil.record.rerun"
@@ -202,9 +202,7 @@ def main(argv: list[str]) -> int:
             print(f"hil bench offline: {err}", file=sys.stderr)
             return 1
         finally:
-            subprocess.run(
-                ["git", "worktree", "remove", "--force", str(ref_path)], cwd=head_path, capture_output=True
-            )
+            remove_ref_tree(ref_path)
     body = report(a, trees, sim_args, (load0[0], os.getloadavg()[0]), same, differ, profiles)
     print(body)
     if not a.no_write:

@@ -164,6 +164,13 @@ def ref_tree(ref: str, tmp: Path) -> Path:
     return tree
 
 
+def remove_ref_tree(tree: Path) -> None:
+    """Undo ``ref_tree`` (the worktree and git's record of it); quiet if it is already gone."""
+    subprocess.run(
+        ["git", "worktree", "remove", "--force", str(tree)], cwd=Path(__file__).parent, capture_output=True
+    )
+
+
 def main(argv: list[str]) -> int:
     ap = OneLineParser(prog="hil bench versus", description=__doc__)
     ap.add_argument("ref", help="the git revision to compare against (e.g. a commit before a change)")
@@ -197,9 +204,7 @@ def main(argv: list[str]) -> int:
             if a.rig_duration > 0:
                 rigs_in_turn(sides, a.rig_duration, a.rig_scenario, a.repeat)
         finally:
-            subprocess.run(
-                ["git", "worktree", "remove", "--force", str(tree)], cwd=head_tree, capture_output=True
-            )
+            remove_ref_tree(tree)
     lines = [
         f"`hil sim --scenario {a.scenario} --duration {a.duration:g} --record` of both revisions at once "
         f"(one per core), {a.repeat} pairs, order swapped each pair; load average before: {load:.2f}."
