@@ -192,16 +192,23 @@ class RigAccess:
 
     # -- how the rig's own sessions use it --------------------------------------------------------
     def hub_config(self) -> BusConfig:
-        """The supervisor's hub: listens on the endpoint, checks the dictionary."""
-        return BusConfig(mode="peer", listen=(self.endpoint,), connect=(), config_file=self._config_file())
+        """The supervisor's hub: a Zenoh router on the endpoint, checking the dictionary.
+
+        A router, so every service reaches every other through it by construction. With a peer
+        hub the services had to find each other by gossip and link pairwise; a pair whose link
+        did not form (seen once in CI: the IMU emulator and the CAN bridge) never heard each
+        other for the whole run, since a Zenoh 1.10 peer -- or router -- does not relay between
+        two peers.
+        """
+        return BusConfig(mode="router", listen=(self.endpoint,), connect=(), config_file=self._config_file())
 
     def child_config(self) -> BusConfig:
-        """A service: connects to the hub, listens on loopback (peers meet directly), checks the
-        dictionary on its own listener too -- else a stranger could join through it."""
+        """A service: a client of the hub (no listener of its own, so nothing to guard but the
+        hub's, which checks the dictionary)."""
         return BusConfig(
-            mode="peer",
+            mode="client",
             connect=(self.endpoint,),
-            listen=("tcp/127.0.0.1:0",),
+            listen=(),
             config_file=self._config_file(),
         )
 

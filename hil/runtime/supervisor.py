@@ -1,10 +1,10 @@
 """``hil up``: every service as its own OS process, one live table, a clean stop, a summary.
 
-The supervisor opens the rig's embedded Zenoh hub (a peer listening on a free loopback port) and
-hands its endpoint to every child, so the rig needs no router and no set-up. Every listener of the
-rig checks a secret made for the run (``hil.bus.endpoint``: the children and the user's viewers
-read it from files only the user can read), so no other process on the machine can join unless
-``--open-bus`` says so. With ``HIL_ZENOH_MODE=client`` or ``HIL_ZENOH_CONNECT`` in the
+The supervisor opens the rig's embedded Zenoh hub (a router listening on a free loopback port; the
+services are its clients) and hands its endpoint to every child, so the rig needs no separate
+router and no set-up. The hub checks a secret made for the run (``hil.bus.endpoint``: the
+children and the user's viewers read it from files only the user can read), so no other process
+on the machine can join unless ``--open-bus`` says so. With ``HIL_ZENOH_MODE=client`` or ``HIL_ZENOH_CONNECT`` in the
 environment it joins that network instead.
 """
 
