@@ -742,9 +742,30 @@ class Supervisor:
             if pid != -1:
                 self.failures.append(f"{name} was restarted but never became ready before the stop")
         self._check_degraded()
+        silent = self._silent_imu()
+        if silent:
+            self.failures.append(silent)
         for name, reason in self.view.degraded_since(set()):
             if not any(f.startswith(f"{name} ") for f in self.failures):
                 self.failures.append(f"{name} degraded: {reason}")
+
+    def _silent_imu(self, min_run_s: float = 3.0) -> str | None:
+        """The IMU is the rig's clock: a run whose CAN bridge decoded not one sample produced no
+        navigation at all, yet every service stayed up -- so say so instead of exiting 0."""
+        if "can_bridge" not in self.children or not self._cpu_base:
+            return None  # no bridge in this rig, or the run never started
+        ran_s = time.monotonic() - self._cpu_base_t
+        st = self.view.status.get("can_bridge")
+        if ran_s < min_run_s or st is None:
+            return None
+        counts = st.counter_map()
+        if counts.get("can.samples", 0) > 0:
+            return None
+        return (
+            f"can_bridge decoded no IMU sample in {ran_s:.0f} s of run (CAN frames received: "
+            f"{counts.get('can.frames', 0)}): the IMU's frames never reached it; see the logs of "
+            "imu_emulator and can_bridge"
+        )
 
     def _sample_cpu(self) -> None:
         """CPU seconds each service spent since time zero (start-up imports excluded; a restarted

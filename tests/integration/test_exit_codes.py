@@ -160,3 +160,25 @@ def test_a_restart_that_never_becomes_ready_fails_the_run(
     assert {"fusion", "supervisor", "recorder"} <= set(rows), out
     assert all(float(v) >= 0 for v in rows.values()), rows
     assert float(rows["fusion"]) > 0 and float(rows["supervisor"]) > 0, rows
+
+
+def test_a_run_whose_imu_never_reaches_the_bridge_fails_with_the_reason(tmp_path: Path) -> None:
+    """Every service stays up, yet the CAN bridge decodes not one IMU sample (the bus is off for
+    the whole run): no navigation came out, so ``hil up`` must not exit 0 (it once did, when a
+    Zenoh link between the emulator and the bridge never formed)."""
+    scenario = tmp_path / "silent_imu.toml"
+    text = (REPO / "hil/scenarios/straight_level.toml").read_text()
+    scenario.write_text(
+        text.replace('name = "straight_level"', 'name = "silent_imu"')
+        + '\n[[event]]\nkind = "can_bus_off"\nt_start_s = 0.0\nt_end_s = 3600.0\n'
+    )
+    out = tmp_path / "silent.mcap"
+    r = run_hil(
+        "up", "--scenario", str(scenario), "--duration", "5", "--record", str(out), "--quiet",
+        "--rig", f"silent{os.getpid()}", timeout=240,
+    )  # fmt: skip
+    assert r.returncode != 0, r.stdout[-3000:]
+    said = r.stdout + r.stderr
+    assert "can_bridge decoded no IMU sample" in said, said[-3000:]
+    assert "Traceback" not in said
+    assert out.exists()  # what was recorded is kept
