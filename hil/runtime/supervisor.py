@@ -4,8 +4,8 @@ The supervisor opens the rig's embedded Zenoh hub (a router listening on a free 
 services are its clients) and hands its endpoint to every child, so the rig needs no separate
 router and no set-up. The hub checks a secret made for the run (``hil.bus.endpoint``: the
 children and the user's viewers read it from files only the user can read), so no other process
-on the machine can join unless ``--open-bus`` says so. With ``HIL_ZENOH_MODE=client`` or ``HIL_ZENOH_CONNECT`` in the
-environment it joins that network instead.
+on the machine can join unless ``--open-bus`` says so. With ``HIL_ZENOH_MODE=client`` or
+``HIL_ZENOH_CONNECT`` in the environment it joins that network instead.
 """
 
 from __future__ import annotations
