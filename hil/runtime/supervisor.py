@@ -810,6 +810,9 @@ class Supervisor:
                 c.stopping = True
                 if c.proc.poll() is None:
                     c.proc.send_signal(signal.SIGTERM)
+                    # a stopped process (SIGSTOP, a debugger's) never sees SIGTERM until it runs:
+                    # continue it, as systemd does, so it ends cleanly instead of at the deadline
+                    c.proc.send_signal(signal.SIGCONT)
             # generous: a service that is behind on a loaded machine (the IMU emulator catching
             # up, at load 35 on 2 cores) needs more than 10 s to end; an idle one ends in < 1 s
             deadline = time.monotonic() + 30.0

@@ -134,14 +134,14 @@ def _wait_pid(parent: int, service: str, not_pid: int = -1, timeout: float = 120
 def test_a_restart_that_never_becomes_ready_fails_the_run(
     tmp_path: Path, spawn: list[subprocess.Popen[str]]
 ) -> None:
-    # GIVEN a run that allows one restart per service, with an 8 s readiness deadline, in which
+    # GIVEN a run that allows one restart per service, with a 6 s readiness deadline, in which
     # the fusion is killed by the scenario at rig time 4 s
     scen = tmp_path / "kill.toml"
     scen.write_text(
         'duration_s = 60.0\n[[event]]\nkind = "kill_service"\nt_start_s = 4.0\nservice = "fusion"\n'
     )
     p = subprocess.Popen(
-        hil_cmd("up", "--scenario", str(scen), "--duration", "24", "--restart", "1", "--restart-deadline", "8",
+        hil_cmd("up", "--scenario", str(scen), "--duration", "16", "--restart", "1", "--restart-deadline", "6",
                 "--record", str(tmp_path / "r.mcap"), "--quiet", "--rig", f"stuck{os.getpid()}"),
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )  # fmt: skip
@@ -153,7 +153,7 @@ def test_a_restart_that_never_becomes_ready_fails_the_run(
     out, err = p.communicate(timeout=240)
     # THEN the run fails, saying which service was down and why
     assert p.returncode == 1, out[-2000:] + err[-2000:]
-    assert f"fusion was restarted (pid {second}) but is not ready after 8 s" in err, err[-3000:]
+    assert f"fusion was restarted (pid {second}) but is not ready after 6 s" in err, err[-3000:]
     assert f"fusion died (killed by signal 9); restarted (1/1) as pid {second}" in out
     # and the CPU table has no negative figure, fusion's two lives and the supervisor included
     rows = dict(re.findall(r"^  (\w+)\s+(-?[\d.]+) s\s+-?[\d.]+ %$", out, flags=re.M))
