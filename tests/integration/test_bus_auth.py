@@ -184,6 +184,7 @@ def test_a_stranger_cannot_join_the_embedded_rig_but_the_monitor_can(rig_proc) -
             s.close()
         vsub.undeclare()
         viewer.close()
+    proc.send_signal(signal.SIGINT)  # done: stop it as a user would (Ctrl-C), not at --duration
     out, _ = proc.communicate(timeout=180)
     assert proc.returncode == 0, out[-3000:]
     assert f"hil monitor --rig {rig}" in out and found.endpoint in out  # it printed its endpoint
@@ -210,6 +211,7 @@ def test_the_same_stranger_joins_an_open_bus(rig_proc) -> None:  # type: ignore[
         assert len(s.got) >= 50, s.got[:5]
     finally:
         s.close()
+    proc.send_signal(signal.SIGINT)  # done: stop it as a user would (Ctrl-C), not at --duration
     out, _ = proc.communicate(timeout=180)
     assert proc.returncode == 0, out[-3000:]
     assert "OPEN" in out
