@@ -109,6 +109,7 @@ class Service:
         self.ctx = ctx
         self.stats = ctx.stats
         self.keys = ctx.keys
+        self._status_now = threading.Event()  # a state change: the status goes out at once
         self.state = "starting"
         self.clock: RigClock | None = None
         self.run_info: RunInfo | None = None
@@ -130,6 +131,20 @@ class Service:
         self.heap_trim_s, problem = heap_trim_period(ctx.options, self.heap_trim_default_s)
         if problem:
             self.stats.error("errors.options", problem)
+
+    @property
+    def state(self) -> str:
+        return self._state
+
+    @state.setter
+    def state(self, value: str) -> None:
+        # "ready" reaches the supervisor and the world when it happens, not at the next 1 Hz
+        # status: time zero waits for every service's readiness
+        changed = getattr(self, "_state", None) != value
+        self._state = value
+        wake = self.__dict__.get("_status_now")
+        if changed and wake is not None:
+            wake.set()
 
     # -- helpers for subclasses -------------------------------------------------------------
     def publisher(self, key: str, cls: type[Message], **kw: Any) -> Publisher[Any]:
@@ -163,7 +178,11 @@ class Service:
         first = True
         supervisor = int(os.environ.get("HIL_SUPERVISOR_PID", "0") or 0)
         next_trim = time.monotonic() + self.heap_trim_s
-        while not self.ctx.stop.wait(0 if first else 1.0):
+        while True:
+            self._status_now.wait(0 if first else 1.0)
+            self._status_now.clear()
+            if self.ctx.stop.is_set():
+                break
             first = False
             if self.heap_trim_s and time.monotonic() >= next_trim:
                 next_trim = time.monotonic() + self.heap_trim_s
@@ -239,6 +258,7 @@ class Service:
                 self.run_loop(None, None)  # type: ignore[arg-type]
         finally:
             self.ctx.stop.set()
+            self._status_now.set()  # the status thread ends now, not at its next second
             self.teardown()
             self._status_thread.join(timeout=2.0)
             # one more status after the teardown: what went wrong while finishing (a recorder

@@ -39,15 +39,16 @@ class Rig:
         Rig.live.append(self)
         self.rig = rig
         self.endpoint = endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
+        # a router, its services clients: the layout of hil up's embedded hub
+        self.hub = open_session(BusConfig(mode="router", listen=(endpoint,), connect=()))
         self.status: dict[str, ServiceStatus] = {}
+        self.events: set[tuple[str, str]] = set()  # (source, kind) seen on the bus
+        self.hub.declare_subscriber(f"hil/{rig}/event/*", self._on_event)
         self.lock = threading.Lock()
         self.hub.declare_subscriber(f"hil/{rig}/status/*", self._on_status)
         self.run: RunInfo | None = None
         self.hub.declare_subscriber(f"hil/{rig}/run", self._on_run)
-        env = dict(
-            os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
-        )
+        env = dict(os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="")
         self.proc = subprocess.Popen(
             hil_cmd("up", "--record", str(out), "--quiet", "--rig", rig, *args),
             cwd=REPO,
@@ -61,6 +62,21 @@ class Rig:
         st = decode(ServiceStatus, sample.payload.to_bytes())  # type: ignore[attr-defined]
         with self.lock:
             self.status[st.service] = st
+
+    def _on_event(self, sample: object) -> None:
+        ev = decode(Event, sample.payload.to_bytes())  # type: ignore[attr-defined]
+        with self.lock:
+            self.events.add((ev.source, ev.kind))
+
+    def wait_events(self, *wanted: tuple[str, str], timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if set(wanted) <= self.events:
+                    return
+            assert self.proc.poll() is None, self.status
+            time.sleep(0.2)
+        raise AssertionError(f"never saw {set(wanted) - self.events} on the bus; saw {self.events}")
 
     def _on_run(self, sample: object) -> None:
         self.run = decode(RunInfo, sample.payload.to_bytes())  # type: ignore[attr-defined]
@@ -141,7 +157,11 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
         os.kill(pid, signal.SIGKILL)
     for svc, pid in killed.items():
         rig.running_pid(svc, not_pid=pid)
-    time.sleep(3.0)
+    # the recorder dies only once the first part holds what the restarts said: their events went
+    # out, then a flush (1 s) wrote them (a fixed pause once lost the fusion's "realigned" in the
+    # killed recorder's unflushed chunk)
+    rig.wait_events(("gnss_emulator", "resumed"), ("fusion", "realigned"))
+    time.sleep(2.5)
     recorder = rig.running_pid("recorder")
     os.kill(recorder, signal.SIGKILL)
     rig.running_pid("recorder", not_pid=recorder)
