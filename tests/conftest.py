@@ -27,15 +27,16 @@ def free_port() -> int:
 
 @pytest.fixture
 def zenoh_hub(monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
-    """A real Zenoh peer listening on a free loopback port; children connect to it via env."""
+    """A real Zenoh router on a free loopback port; children are its clients (via env), the layout
+    of hil up's embedded hub."""
     from hil.bus.session import BusConfig, open_session
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
-    monkeypatch.setenv("HIL_ZENOH_MODE", "peer")
+    hub = open_session(BusConfig(mode="router", listen=(endpoint,), connect=()))
+    monkeypatch.setenv("HIL_ZENOH_MODE", "client")
     monkeypatch.setenv("HIL_ZENOH_CONNECT", endpoint)
-    monkeypatch.setenv("HIL_ZENOH_LISTEN", "tcp/127.0.0.1:0")
+    monkeypatch.setenv("HIL_ZENOH_LISTEN", "")
     try:
         yield endpoint
     finally:

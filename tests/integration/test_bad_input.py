@@ -42,7 +42,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
     # the garbage must come from the rig (a stranger's is refused before it is even decoded,
     # issue 18.4): the hub's session carries an id of the rig, from the key hil up is given
     key = new_rig_key()
-    hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=(), extra={"id": rig_zid(key)}))
+    hub = open_session(BusConfig(mode="router", listen=(endpoint,), connect=(), extra={"id": rig_zid(key)}))
     statuses: dict[str, ServiceStatus] = {}
     hub.declare_subscriber(
         f"hil/{RIG}/status/*",
@@ -52,9 +52,9 @@ def test_garbage_on_every_subscribed_key_is_counted_and_survived(tmp_path: Path)
     )
     env = dict(
         os.environ,
-        HIL_ZENOH_MODE="peer",
+        HIL_ZENOH_MODE="client",
         HIL_ZENOH_CONNECT=endpoint,
-        HIL_ZENOH_LISTEN="tcp/127.0.0.1:0",
+        HIL_ZENOH_LISTEN="",
         HIL_RIG_KEY=key,
     )
     out = tmp_path / "fuzz.mcap"

@@ -51,7 +51,7 @@ def _counters(st: ServiceStatus) -> dict[str, int]:
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     tmp = tmp_path_factory.mktemp("buslive")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    hub = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
+    hub = open_session(BusConfig(mode="router", listen=(endpoint,), connect=()))
     statuses: dict[str, ServiceStatus] = {}
     encodings: dict[str, str] = {}
     lock = threading.Lock()
@@ -66,7 +66,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     fused = threading.Event()  # the fusion publishes (after time sync locks: a few seconds in)
     nav_sub = hub.declare_subscriber(f"hil/{RIG}/nav/ekf15", lambda _s: fused.set())
     env = dict(
-        os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
+        os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN=""
     )
     record = tmp / "live.mcap"
     args = ["up", "--rig", RIG, "--duration", "60", "--quiet", "--record", str(record)]

@@ -24,7 +24,7 @@ RIG = "monrig"
 
 
 def _fake_rig(endpoint: str, stop: threading.Event) -> None:
-    s = open_session(BusConfig(mode="peer", listen=(endpoint,), connect=()))
+    s = open_session(BusConfig(mode="router", listen=(endpoint,), connect=()))
     k = Keys(RIG)
     run = Publisher(s, k.run(), RunInfo)
     status = {n: Publisher(s, k.status(n), ServiceStatus) for n in ("world", "fusion")}
@@ -97,7 +97,7 @@ def _fake_rig(endpoint: str, stop: threading.Event) -> None:
 
 def _env(endpoint: str) -> dict[str, str]:
     return dict(
-        os.environ, HIL_ZENOH_MODE="peer", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="tcp/127.0.0.1:0"
+        os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN=""
     )
 
 

@@ -28,7 +28,7 @@ class Hub:
     def __init__(self) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.session: zenoh.Session = open_session(
-            BusConfig(mode="peer", listen=(self.endpoint,), connect=())
+            BusConfig(mode="router", listen=(self.endpoint,), connect=())
         )
         self.status: dict[str, ServiceStatus] = {}
         self.samples: list[tuple[str, bytes]] = []
@@ -49,9 +49,9 @@ class Hub:
     def env(self) -> dict[str, str]:
         return dict(
             os.environ,
-            HIL_ZENOH_MODE="peer",
+            HIL_ZENOH_MODE="client",
             HIL_ZENOH_CONNECT=self.endpoint,
-            HIL_ZENOH_LISTEN="tcp/127.0.0.1:0",
+            HIL_ZENOH_LISTEN="",
         )
 
     def wait_status(
