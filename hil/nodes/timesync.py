@@ -25,7 +25,8 @@ the same publisher, which no journal could tell from the first.
 
 The core may hold a few measurements while it decides whether the device clock stepped; held
 ones are released by the next measurement, by an idle flush when the sensor has been silent for
-``IDLE_FLUSH_NS`` of rig time, or at the end of input. Clock models go out once a second.
+``IDLE_FLUSH_NS`` of rig time (not during the start-up hold, which has its own bound), or at the
+end of input. Clock models go out once a second.
 """
 
 from __future__ import annotations
@@ -114,7 +115,11 @@ class TimeSyncNode(Node):
         if now_ns >= self._next_flush:
             self._next_flush = (now_ns // IDLE_FLUSH_NS + 1) * IDLE_FLUSH_NS
             for name, s in self.core.sensors.items():
-                if s.held and self._arrivals_at_flush.get(name) == s.n_arrivals:
+                # not the start-up hold: it has its own bound (device time), and a stalled process
+                # (no arrivals for 200 ms of wall time on a loaded host) is not a silent sensor --
+                # releasing there stamped the first samples before the lock, which no rerun (whose
+                # clock is the inputs') could reproduce
+                if s.held and not s.startup_hold and self._arrivals_at_flush.get(name) == s.n_arrivals:
                     outs.extend(self._synced(s.flush()))
                 self._arrivals_at_flush[name] = s.n_arrivals
         if now_ns >= self._next_clock:

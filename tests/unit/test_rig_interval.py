@@ -70,3 +70,50 @@ def test_an_interval_sensor_is_held_at_start_until_its_tags_lock_the_rate() -> N
     for k in range(1, 1401):  # tags never come: released after the 3 s cap
         out += core.on_measurement("slow", k * 2_500_000, k * 2_500_000 + 200_000, k)
     assert out and out[0][0] == 1 and len(out) >= 1400 - 2
+
+
+def test_a_stalled_process_does_not_release_the_start_up_hold_before_the_lock() -> None:
+    """The live time sync ticks on the wall clock: on a loaded host its IMU arrivals can stop for
+    longer than the idle flush (200 ms) while nothing is wrong with the sensor. The start-up hold
+    must outlast that -- its own bound is device time -- so the first samples still go out under
+    the locked mapping, as a rerun (whose clock is its inputs) computes them; releasing at the
+    idle flush once made `hil rerun --core timesync --verify` of a live run fail at seq 0."""
+    from hil.messages import ImuSample, TimeTag
+    from hil.nav.scenario import load_scenario
+    from hil.nodes.timesync import IDLE_FLUSH_NS, TimeSyncNode
+    from hil.nodes.world import run_info
+
+    run = run_info(load_scenario("straight_level"), rig="t", start_epoch_ns=0, speed=1.0, duration_s=10.0)
+    drift = 20e-6
+
+    def dev(t: int) -> int:
+        return round(t * (1 + drift))
+
+    def sample(k: int) -> ImuSample:
+        t = k * 2_500_000
+        return ImuSample(
+            seq=k, stamp_ns=dev(t), device_stamp_ns=dev(t), rx_stamp_ns=t + 300_000, dt_ns=2_500_000,
+            dtheta_b_rad=[0.0, 0.0, 0.0], dvel_b_mps=[0.0, 0.0, 0.0],
+        )  # fmt: skip
+
+    def tag(k: int) -> TimeTag:
+        t = k * 2_500_000
+        return TimeTag(seq=k // 400, stamp_ns=t, sensor="imu", kind="sync_frame", device_stamp_ns=dev(t))
+
+    def feed(stall: bool) -> list[ImuSample]:
+        node = TimeSyncNode(run)
+        out: list[tuple[str, object]] = []
+        for k in range(1, 1201):  # 3 s at 400 Hz, a tag each second: locked at the third
+            if k % 400 == 1:
+                node.on_message("timetag/imu", tag(k), k * 2_500_000)
+            out += node.on_message("sensor/imu", sample(k), k * 2_500_000)
+            if stall and k == 200:  # the process stalls: ticks for a second of wall time, no arrival
+                for n in range(1, 6):
+                    out += node.tick(500_000_000 + n * IDLE_FLUSH_NS)
+                assert [o for o in out if o[0] == "synced/imu"] == []
+        assert node.core.mapping("imu").state == "locked"
+        return [m for key, m in out if key == "synced/imu"]  # type: ignore[misc]
+
+    stalled, rerun = feed(stall=True), feed(stall=False)
+    assert [m.seq for m in stalled] == list(range(1, 1201))  # in order, none lost
+    assert stalled == rerun  # every stamp and interval as the rerun computes it
