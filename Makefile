@@ -1,6 +1,7 @@
 # Two commands do all set-up on a fresh machine:
 #   make run    -> creates .venv, installs the locked dependencies, runs the rig (hil up) for 60 s
-#   make test   -> same set-up, then the whole test suite
+#   make test   -> same set-up, then the whole test suite (two pytest-xdist workers: the live
+#                  tests one at a time on one, the pure ones on the other; tests/conftest.py)
 PYTHON ?= python3
 VENV   ?= .venv
 ARGS   ?=
@@ -20,7 +21,7 @@ sim: $(VENV)/.installed
 	$(VENV)/bin/hil sim $(ARGS)
 
 test: $(VENV)/.installed
-	$(VENV)/bin/python -m pytest $(ARGS)
+	$(VENV)/bin/python -m pytest -n 2 --dist loadgroup $(ARGS)
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check .

@@ -236,3 +236,22 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         sys.stderr.flush()
         sys.stdout.flush()
         os._exit(1)
+
+
+#: Tests that start rigs, containers, user-mode-linux or network namespaces run one at a time on
+#: one pytest-xdist worker (``make test`` runs ``-n 2 --dist loadgroup``): two live rigs at once
+#: would measure each other. The pure tests (unit, replay) fill the other worker meanwhile, which
+#: shortens the suite by their time; on a plain ``pytest`` run the mark does nothing.
+SERIAL_GROUP = "live"
+POOLED_DIRS = ("unit", "replay")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    tests_dir = Path(__file__).resolve().parent
+    for item in items:
+        try:
+            top = Path(str(item.path)).resolve().relative_to(tests_dir).parts[0]
+        except ValueError:
+            top = ""
+        if top not in POOLED_DIRS:
+            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
