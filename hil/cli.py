@@ -344,6 +344,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 split_s=a.split_s or 0.0,
                 record_include=list(a.record_include),
                 record_exclude=list(a.record_exclude),
+                fusion_worker=False if a.one_process else None,
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )
@@ -849,6 +850,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--fd", action="store_true")
     _add_gnss_wire_args(sim)
     sim.add_argument("--quiet", action="store_true")
+    sim.add_argument(
+        "--one-process",
+        action="store_true",
+        help="keep the fusion in this process (default: a second process when two CPUs are free; same file)",
+    )
     sim.set_defaults(func=cmd_sim)
 
     svc = sub.add_parser("service", help="run one service alone (what docker compose runs)", add_help=False)
