@@ -504,6 +504,10 @@ class Record:
     sequence: int
     publisher: str = ""  # the Zenoh source id the recorder saw ("" offline or unknown)
     origin: str = ""  # "rig", "foreign", "unknown"; "" in files without publishers
+    # a reader with a topic filter (``iter_records(keep=...)``): the largest log time of the
+    # rig's messages it left out just before this one (-1: none), for a caller whose clock is
+    # the log time of every message (``hil.record.rerun_timesync``)
+    skipped_log_ns: int = -1
 
     @property
     def foreign(self) -> bool:
@@ -566,9 +570,15 @@ def iter_records(
     *,
     derived: bool = False,
     header: bool = False,
+    keep: Callable[[str], bool] | None = None,
 ) -> Iterator[tuple[str, Any]]:
     """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail
     (``header``: the file's ``Header`` record too, as ``("header", rec)``).
+
+    ``keep(topic)``: only the rig's messages (no foreign channel) of topics it keeps are made
+    into ``Record``s; of the others' only their log times are told: each kept record's
+    ``skipped_log_ns``, and at the end a ``("skipped", (largest, last))`` item for those after
+    the last kept one. A caller that reads a fraction of the topics skips the cost of the rest.
 
     The derived ``/foxglove/...`` channels (``is_derived``) are left out unless ``derived``: they are
     a view of the rig's messages, not rig traffic, and rerun, replay and loss accounting read the
@@ -589,11 +599,14 @@ def iter_records(
     except OSError as err:
         raise RecordingError(f"cannot open recording {path}: {err.strerror}") from err
     with fh:
+        reader = _FastReader(fh, size, on_progress, derived, header, keep)
         try:
-            yield from _FastReader(fh, size, on_progress, derived, header).records()
+            yield from reader.records()
         except (McapError, EOFError, ValueError, KeyError, OSError) as err:
+            yield from reader.tail()
             yield "truncated", f"{type(err).__name__}: {err}"
         except Exception as err:  # zstd errors on a half-written chunk and similar
+            yield from reader.tail()
             yield "truncated", f"{type(err).__name__}: {err}"
 
 
@@ -601,6 +614,7 @@ _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
 _MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
 _RECORD_SIZE_LIMIT = 4 * 2**30  # StreamReader's default
+_SKIPPED = ("", "", "", "")  # a channel whose messages ``keep`` leaves out (their log times count)
 
 
 class _FastReader:
@@ -613,15 +627,20 @@ class _FastReader:
         on_progress: Callable[[int, int], None] | None,
         derived: bool,
         header: bool,
+        keep: Callable[[str], bool] | None = None,
     ) -> None:
         self.fh = fh
+        self.keep = keep
+        self.skipped_max = -1  # the rig's messages left out by ``keep`` since the last kept one
+        self.skipped_last = -1
         self.size = size
         self.on_progress = on_progress
         self.derived = derived
         self.header = header
         self.n = 0
         self.schemas: dict[int, Schema] = {}
-        # channel id -> (topic, schema name, publisher, origin); None: a derived channel left out
+        # channel id -> (topic, schema name, publisher, origin); None: a channel left out
+        # (derived, or a foreign one ``keep`` leaves out), _SKIPPED: one whose log times count
         self.channels: dict[int, tuple[str, str, str, str] | None] = {}
 
     def _read(self, n: int) -> bytes:
@@ -643,6 +662,12 @@ class _FastReader:
             return
         schema = self.schemas.get(rec.schema_id)
         meta = rec.metadata or {}
+        if self.keep is not None and meta.get("origin") == FOREIGN_ORIGIN:
+            self.channels[rec.id] = None  # a filtering reader gives the rig's data only
+            return
+        if self.keep is not None and not self.keep(rec.topic):
+            self.channels[rec.id] = _SKIPPED
+            return
         self.channels[rec.id] = (
             rec.topic,
             schema.name if schema else "",
@@ -677,6 +702,7 @@ class _FastReader:
             elif opcode == Opcode.FOOTER:
                 if read(len(MAGIC)) != MAGIC:
                     raise InvalidMagic(MAGIC)
+                yield from self.tail()
                 return
             # message indexes, chunk indexes, statistics, ...: nothing iter_records gives
 
@@ -711,13 +737,15 @@ class _FastReader:
 
     def _messages(self, data: bytes, pos: int, end: int, *, single: bool) -> list[tuple[str, Any]]:
         """The messages in ``data[pos:end]``: a chunk's records, or one message record's body
-        (``single``). Schemas and channels among them are taken in as they come."""
+        (``single``). Schemas and channels among them are taken in as they come; what ``keep``
+        left out counts only once all of them parsed (a damaged chunk gives nothing)."""
         out: list[tuple[str, Any]] = []
         channels, unpack_msg, unpack_head = (
             self.channels,
             _MESSAGE_FIELDS.unpack_from,
             _RECORD_HEAD.unpack_from,
         )
+        skipped_max, skipped_last = self.skipped_max, self.skipped_last
         n = 0
         while pos < end:
             if single:
@@ -731,22 +759,31 @@ class _FastReader:
             if opcode == Opcode.MESSAGE:
                 cid, seq, log, pub = unpack_msg(data, pos)
                 chan = channels[cid]
-                if chan is not None:
+                if chan is _SKIPPED:
+                    skipped_last = log
+                    if log > skipped_max:
+                        skipped_max = log
+                elif chan is not None:
                     topic, schema, publisher, origin = chan
-                    out.append(
-                        (
-                            "message",
-                            Record(
-                                topic, schema, data[pos + 22 : pos + length], log, pub, seq, publisher, origin
-                            ),
-                        )
-                    )
+                    payload = data[pos + 22 : pos + length]
+                    rec = Record(topic, schema, payload, log, pub, seq, publisher, origin)
+                    if skipped_max >= 0:
+                        rec.skipped_log_ns = skipped_max
+                        skipped_max = -1
+                    out.append(("message", rec))
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
                 self._definition(opcode, data[pos : pos + length])
             pos += length
+        self.skipped_max, self.skipped_last = skipped_max, skipped_last
         if not single:
             self._count(n)
         return out
+
+    def tail(self) -> Iterator[tuple[str, Any]]:
+        """The log times of what ``keep`` left out after the last kept message, if any."""
+        if self.skipped_max >= 0:
+            yield "skipped", (self.skipped_max, self.skipped_last)
+            self.skipped_max = -1
 
 
 def _stream(body: bytes) -> ReadDataStream:
@@ -765,6 +802,9 @@ class SessionStream:
     ``follow_parts``: a recording split by size or duration (``<stem>_0001.mcap``, ...) is read on
     through its parts, in order -- the recorder rotates between two messages, so the parts end
     to end are the session's one sequence of messages.
+
+    ``keep(topic)``: only those topics' records (``iter_records``); each record's
+    ``skipped_log_ns`` and ``skipped_tail`` tell the log times of the rest, across parts.
     """
 
     def __init__(
@@ -773,10 +813,15 @@ class SessionStream:
         on_progress: Callable[[int, int], None] | None = None,
         *,
         follow_parts: bool = False,
+        keep: Callable[[str], bool] | None = None,
     ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise RecordingError(f"no recording at {self.path}")
+        self.keep = keep
+        # with ``keep``: (largest, last) log time of the rig's messages left out after the last
+        # record given (None: none); complete once the iteration has ended
+        self.skipped_tail: tuple[int, int] | None = None
         self.on_progress = on_progress
         self.paths = [self.path, *(split_parts(self.path) if follow_parts else [])]
         self.metadata: dict[str, dict[str, str]] = {}
@@ -787,13 +832,21 @@ class SessionStream:
         self.metadata = {}
         self.truncated = False
         self.truncation_reason = ""
+        self.skipped_tail = None
         sizes = [p.stat().st_size for p in self.paths]
         for k, path in enumerate(self.paths):
             n = 0
-            for kind, rec in iter_records(path, self._progress(sum(sizes[:k]), sum(sizes))):
+            progress = self._progress(sum(sizes[:k]), sum(sizes))
+            for kind, rec in iter_records(path, progress, keep=self.keep):
                 if kind == "message":
                     n += 1
+                    if self.skipped_tail is not None:  # the previous part's last messages
+                        rec.skipped_log_ns = max(rec.skipped_log_ns, self.skipped_tail[0])
+                        self.skipped_tail = None
                     yield rec
+                elif kind == "skipped":
+                    prev = self.skipped_tail
+                    self.skipped_tail = rec if prev is None else (max(prev[0], rec[0]), rec[1])
                 elif kind == "metadata":
                     self.metadata[rec.name] = dict(rec.metadata)
                 elif kind == "truncated":
