@@ -33,7 +33,7 @@ from typing import Any
 
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
-from hil.messages import Event, Message, RunInfo, ServiceStatus, counts, encode
+from hil.messages import Event, GnssFix, Message, NavSolution, RunInfo, ServiceStatus, Truth, counts, encode
 from hil.nav.scenario import load_scenario, scenario_for_run, scenario_overrides
 from hil.nodes import node_class
 from hil.nodes.base import CAN_RX, CAN_TX, SERIAL_RX, SERIAL_TX, Node, Out
@@ -303,6 +303,12 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
+# The types ``WellKnown.convert`` derives Foxglove messages from: for any other it returns none
+# and keeps no state, so the CAN frames, IMU samples and capture times (three quarters of the
+# traffic) skip the call (tests/unit/test_sim_worker.py: the same file with every type offered)
+DERIVES: tuple[type[Message], ...] = (Truth, NavSolution, GnssFix, Event, ServiceStatus, RunInfo)
+
+
 class _Session:
     """The recording side of one sim: the writer, runner-owned seqs, status, progress."""
 
@@ -337,8 +343,9 @@ class _Session:
             publish_time_ns=epoch + msg.stamp_ns,
             seq=msg.seq,
         )
-        for d in self.wellknown.convert(key, msg, epoch + t_log):
-            w.write_wellknown(d, log_time_ns=epoch + t_log)
+        if isinstance(msg, DERIVES):
+            for d in self.wellknown.convert(key, msg, epoch + t_log):
+                w.write_wellknown(d, log_time_ns=epoch + t_log)
         self.n_written += 1
 
     def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.messages import Event
+from hil.messages import Event, Message
 from hil.nodes.base import Node, Out
 from hil.runners.sim import SimOptions, run_sim, sim_run_info
 from hil.runners.sim_worker import RemoteNode, WorkerError, drive
@@ -26,6 +26,24 @@ def test_worker_writes_the_one_process_file(tmp_path: Path) -> None:
         assert res.messages > 10_000
         files[worker] = rec.read_bytes()
     assert files[True] == files[False]
+
+
+def test_only_the_types_that_derive_foxglove_messages_are_offered(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from hil.runners import sim
+
+    files = []
+    for derives in (sim.DERIVES, (Message,)):  # the sim's filter, then every message offered
+        monkeypatch.setattr(sim, "DERIVES", derives)
+        rec = tmp_path / f"d{len(files)}.mcap"
+        run_sim(
+            SimOptions(
+                scenario="car_drive", duration_s=3.0, record=rec, fusion_worker=False, gnss_protocol=["nmea"]
+            )
+        )
+        files.append(rec.read_bytes())
+    assert files[0] == files[1]
 
 
 class _Ticker(Node):
