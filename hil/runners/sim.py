@@ -78,7 +78,8 @@ class SimOptions:
     record_include: list[str] = field(default_factory=list)  # hil.record.keyfilter, as the recorder
     record_exclude: list[str] = field(default_factory=list)
     # the fusion in a second process, one window behind the rest (hil.runners.sim_worker); the
-    # file is the same byte for byte. None: when fork exists and two CPUs are available
+    # file is the same byte for byte. None: when fork exists, two CPUs are available and the
+    # fusion runs at least WORKER_MIN_ESTIMATORS estimators
     fusion_worker: bool | None = None
 
 
@@ -303,6 +304,8 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
+WORKER_MIN_ESTIMATORS = 3  # ``fusion_worker=None``: a worker for a fusion of at least this many
+
 # The types ``WellKnown.convert`` derives Foxglove messages from: for any other it returns none
 # and keeps no state, so the CAN frames, IMU samples and capture times (three quarters of the
 # traffic) skip the call (tests/unit/test_sim_worker.py: the same file with every type offered)
@@ -426,7 +429,11 @@ def run_sim(opts: SimOptions) -> SimResult:
             sys.stderr.flush()
     wire = CanWireModel(s)
     outs0 = [node.start(0) for node in nodes]
-    use_worker = worker_possible() if opts.fusion_worker is None else opts.fusion_worker
+    use_worker = opts.fusion_worker
+    if use_worker is None:  # worth it when the fusion is heavy: with one or two estimators the
+        # pickling to and from the worker cost more than the second core gave (static, kfvel: +10 % CPU)
+        heavy = len(getattr(getattr(nodes[-1], "config", None), "estimators", ())) >= WORKER_MIN_ESTIMATORS
+        use_worker = heavy and worker_possible()
     remote = RemoteNode(nodes[-1]) if use_worker else None  # forked after start: its state
     try:
         sched = Scheduler(nodes, sess.write, wire, remote)
