@@ -859,7 +859,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--one-process",
         action="store_true",
-        help="keep the fusion in this process (default: a second process for 3+ estimators on 2+ CPUs; same file)",
+        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs; same file)",
     )
     sim.set_defaults(func=cmd_sim)
 
