@@ -19,6 +19,7 @@ import contextlib
 import os
 import pickle
 import socket
+import threading
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -54,8 +55,10 @@ def drive(node: Node, now: Sequence[Event], t_end_ns: int, publish: Callable[[li
 
 
 def worker_possible() -> bool:
-    """A second process is worth it: ``fork`` exists and this process may run on two CPUs."""
-    if not hasattr(os, "fork"):
+    """A second process is worth it: ``fork`` exists, this process may run on two CPUs, and it
+    is the main thread that asks (a sim embedded in a thread pool -- a campaign's Dask worker --
+    stays in one process: forking beside other threads can inherit their locks held)."""
+    if not hasattr(os, "fork") or threading.current_thread() is not threading.main_thread():
         return False
     try:
         return len(os.sched_getaffinity(0)) >= 2
