@@ -108,9 +108,9 @@ def test_filtered_reruns_decide_as_unfiltered(recording: Path, tmp_path: Path, c
         path = tmp_path / "cut.mcap"
         path.write_bytes(data[: int(len(data) * cut)])
     full, filtered = _both(path, lambda s: rerun_timesync_records(s, "x"), timesync_topic)
-    assert full == filtered and full["n_recorded"] > 100
+    assert full == filtered and full["n_recorded"] >= 10  # a cut file: what its whole chunks hold
     full, filtered = _both(path, lambda s: rerun_fusion_records(s, window_ns=30 * 10**9), fusion_topic)
-    assert full == filtered and full["n_recorded"] > 100
+    assert full == filtered and full["n_recorded"] >= 10
 
 
 def test_filtered_stream_carries_skipped_times_across_parts(tmp_path: Path) -> None:
