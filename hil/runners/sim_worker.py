@@ -124,10 +124,11 @@ class RemoteNode:
         return self._counters
 
     def close(self) -> None:
-        """Stop the worker and reap it (also after a failure on either side)."""
+        """Stop the worker and reap it (also after a failure on either side). A shutdown, not a
+        message: a worker blocked writing a large reply while this side is not reading would
+        never see one; it sees its socket end, and leaves."""
         with contextlib.suppress(OSError):
-            pickle.dump(("stop",), self._wfile)
-            self._wfile.flush()
+            self._sock.shutdown(socket.SHUT_RDWR)
         for f in (self._wfile, self._rfile, self._sock):
             with contextlib.suppress(OSError):
                 f.close()

@@ -116,3 +116,29 @@ def test_a_killed_worker_is_an_error() -> None:
             remote.result()
     finally:
         remote.close()
+
+
+class _Chatty(_Ticker):
+    """Publishes far more per window than a socket buffer holds."""
+
+    def tick(self, now_ns: int) -> list[Out]:
+        self.t = now_ns + 1_000_000
+        return [self.event("tick", "x" * 2000, now_ns)] * 10
+
+
+def test_close_does_not_wait_on_a_worker_blocked_writing() -> None:
+    import threading
+
+    remote = RemoteNode(_Chatty(_run_info()))
+    remote.window([], 1_000_000_000)  # ~10 MB of reply nobody reads
+    remote.window([], 2_000_000_000)
+    closer = threading.Thread(target=remote.close)
+    closer.start()
+    closer.join(timeout=30.0)
+    hung = closer.is_alive()
+    if hung:  # unblock it before failing: a test never hangs
+        os.kill(remote.pid, signal.SIGKILL)
+        closer.join()
+    assert not hung
+    with pytest.raises(ChildProcessError):
+        os.waitpid(remote.pid, os.WNOHANG)  # reaped
