@@ -18,6 +18,11 @@ rig second (pid 0, uptime in rig time: nothing host-dependent). ``kill_service``
 in one process: a warning line and a ``fault_ignored`` event on ``event/sim`` say so. Every
 node stops by itself at the run's end; then each is told ``finish`` (end of input) in pipeline
 order at ``end + 1 ns``, so what the time sync and the fusion hold is released and journaled.
+
+With two CPUs and a fusion of several estimators (most of the CPU), the fusion node runs in a
+forked worker one window behind the rest (``hil.runners.sim_worker``): the same node object, the
+same inputs in the same order, its outputs merged into their window before it is written, so the
+file is the one-process file byte for byte (``fusion_worker=False`` / ``--one-process``: one).
 """
 
 from __future__ import annotations
