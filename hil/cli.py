@@ -344,6 +344,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 split_s=a.split_s or 0.0,
                 record_include=list(a.record_include),
                 record_exclude=list(a.record_exclude),
+                fusion_worker=False if a.one_process else None,
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )
@@ -434,7 +435,6 @@ def cmd_campaign(a: argparse.Namespace, rest: list[str]) -> int:
 def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.progress import Progress
     from hil.record.mcapio import check_hil_recording
-    from hil.record.rerun import rerun
 
     check_hil_recording(a.file)
     with Progress("rerun", unit="MB read") as bar:
@@ -443,7 +443,14 @@ def cmd_rerun(a: argparse.Namespace) -> int:
             bar.total = total / 1e6
             bar.update(done / 1e6)
 
-        rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress)
+        if a.core == "timesync":  # without the fusion's modules: a tenth of its start-up
+            from hil.record.rerun_timesync import rerun_timesync_report
+
+            rc, lines = rerun_timesync_report(a.file, a.verify, on_progress)
+        else:
+            from hil.record.rerun import rerun
+
+            rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress)
     print("\n".join(lines))
     return rc
 
@@ -849,6 +856,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--fd", action="store_true")
     _add_gnss_wire_args(sim)
     sim.add_argument("--quiet", action="store_true")
+    sim.add_argument(
+        "--one-process",
+        action="store_true",
+        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs; same file)",
+    )
     sim.set_defaults(func=cmd_sim)
 
     svc = sub.add_parser("service", help="run one service alone (what docker compose runs)", add_help=False)

@@ -10,7 +10,12 @@ environment (as ``hil bench versus`` does). Every run:
 - ``hil rerun --core fusion --verify`` and ``--core timesync --verify`` of REF's recording (the same
   file for both trees, so the rerun figures compare like with like and the verify checks that
   this tree reproduces REF's outputs bit for bit);
-- the start-up alone (``import hil.runners.sim, hil.record.rerun``), which every run pays.
+- the start-up alone (``import hil.runners.sim, hil.record.rerun``), which every run pays;
+- this tree's ``hil sim --one-process`` too (the fusion kept in the sim's process), beside REF's
+  ``hil sim`` (which has one process only).
+
+CPU counts a child's reaped children (``wait4``: the sim's fusion worker), so it is the work
+done; wall time says what the second core gave, and only on a machine with a core to spare.
 
 The two trees' recordings are compared topic by topic (log time, publish time, sequence, payload:
 what ``tools/recording_diff.py`` compares). ``--profile`` adds each tree's cProfile top entries
@@ -26,6 +31,7 @@ import pstats
 import subprocess
 import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,7 +42,7 @@ from hil.bench.versus import ref_tree, remove_ref_tree
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 _IMPORT = "import hil.runners.sim, hil.record.rerun"
-_STEPS = ("start-up", "sim", "rerun fusion", "rerun timesync")
+_STEPS = ("start-up", "sim", "sim, one process", "rerun fusion", "rerun timesync")
 
 
 @dataclass
@@ -44,6 +50,7 @@ class Tree:
     label: str
     path: Path
     cpu: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in _STEPS})
+    wall: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in _STEPS})
     verify_failed: list[str] = field(default_factory=list)
 
 
@@ -55,17 +62,26 @@ def _env(tree: Path) -> dict[str, str]:
 
 def _cpu_of(tree: Path, argv: list[str]) -> tuple[float, int]:
     """CPU seconds (user + system) of one child and its exit code."""
+    cpu, _wall, rc = _run(tree, argv)
+    return cpu, rc
+
+
+def _run(tree: Path, argv: list[str]) -> tuple[float, float, int]:
+    """CPU seconds (user + system, with the children it reaped), wall seconds and exit code of
+    one child."""
+    t0 = time.monotonic()
     proc = subprocess.Popen(
         [sys.executable, *argv], cwd=tree, env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
     )
     _, status, ru = os.wait4(proc.pid, 0)
+    wall = time.monotonic() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     err = proc.stderr.read().decode(errors="replace").strip() if proc.stderr else ""
     if proc.stderr:
         proc.stderr.close()
     if proc.returncode not in (0, 1):
         raise RuntimeError(f"{' '.join(argv[2:5])} in {tree} exited {proc.returncode}: {err[-300:]}")
-    return ru.ru_utime + ru.ru_stime, proc.returncode
+    return ru.ru_utime + ru.ru_stime, wall, proc.returncode
 
 
 def digests(path: Path) -> dict[str, tuple[int, str]]:
@@ -84,20 +100,33 @@ def run_pair(trees: list[Tree], sim_args: list[str], tmp: Path, i: int) -> dict[
     """One repeat: each tree's start-up and sim, then both trees' reruns of REF's recording."""
     order = trees if i % 2 == 0 else trees[::-1]
     recs = {}
+
+    def measure(t: Tree, step: str, argv: list[str]) -> int:
+        cpu, wall, rc = _run(t.path, argv)
+        t.cpu[step].append(cpu)
+        t.wall[step].append(wall)
+        return rc
+
     for t in order:
-        cpu, _ = _cpu_of(t.path, ["-c", _IMPORT])
-        t.cpu["start-up"].append(cpu)
+        measure(t, "start-up", ["-c", _IMPORT])
         rec = tmp / f"{'ref' if t is trees[0] else 'head'}-{i}.mcap"
-        cpu, _ = _cpu_of(t.path, ["-c", _RUN, "sim", *sim_args, "--record", str(rec), "--quiet"])
-        t.cpu["sim"].append(cpu)
+        measure(t, "sim", ["-c", _RUN, "sim", *sim_args, "--record", str(rec), "--quiet"])
+        if t is trees[0]:  # REF has one process only: its sim is the anchor of both rows
+            t.cpu["sim, one process"].append(t.cpu["sim"][-1])
+            t.wall["sim, one process"].append(t.wall["sim"][-1])
+        else:
+            one = tmp / f"head-one-{i}.mcap"
+            measure(
+                t,
+                "sim, one process",
+                ["-c", _RUN, "sim", *sim_args, "--record", str(one), "--quiet", "--one-process"],
+            )
+            recs["one process"] = one
         recs[t.label] = rec
     for t in order:
         for core in ("fusion", "timesync"):
-            cpu, rc = _cpu_of(
-                t.path, ["-c", _RUN, "rerun", str(recs[trees[0].label]), "--core", core, "--verify"]
-            )
-            t.cpu[f"rerun {core}"].append(cpu)
-            if rc != 0:
+            argv = ["-c", _RUN, "rerun", str(recs[trees[0].label]), "--core", core, "--verify"]
+            if measure(t, f"rerun {core}", argv) != 0:
                 t.verify_failed.append(core)
     return recs
 
@@ -134,7 +163,11 @@ def run_profiles(
     out = []
     for t in trees:
         sim = ["sim", *sim_args, "--record", str(tmp / "profile.mcap"), "--quiet"]
-        out.append((f"`hil sim {' '.join(sim_args)} --record`, {t.label}", profile_top(t.path, sim, tmp, n)))
+        if t is not trees[0]:  # the profiler sees its own process only: keep the fusion in it
+            sim.append("--one-process")
+        one = " --one-process" if t is not trees[0] else ""
+        label = f"`hil sim {' '.join(sim_args)} --record{one}`, {t.label}"
+        out.append((label, profile_top(t.path, sim, tmp, n)))
     for t in trees:
         rerun = ["rerun", str(rec), "--core", "fusion", "--verify"]
         out.append((f"`hil rerun --core fusion --verify`, {t.label}", profile_top(t.path, rerun, tmp, n)))
@@ -149,14 +182,17 @@ def table(trees: list[Tree], rig_s: float) -> list[str]:
     ref, head = trees
     lines = [
         f"| step | {ref.label} CPU s | {ref.label} × real time | this tree CPU s | this tree × real time "
-        "| CPU ratio |",
-        "| --- | ---: | ---: | ---: | ---: | ---: |",
+        f"| CPU ratio | {ref.label} wall s | this tree wall s | this tree × real time (wall) | wall ratio |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for step in _STEPS:
         r, h = _mean(ref.cpu[step]), _mean(head.cpu[step])
+        wr, wh = _mean(ref.wall[step]), _mean(head.wall[step])
         xr = "–" if step == "start-up" else f"{rig_s / r:.2f}"
         xh = "–" if step == "start-up" else f"{rig_s / h:.2f}"
-        lines.append(f"| {step} | {r:.2f} | {xr} | {h:.2f} | {xh} | {h / r:.3f} |")
+        xw = "–" if step == "start-up" else f"{rig_s / wh:.2f}"
+        cpu = f"| {step} | {r:.2f} | {xr} | {h:.2f} | {xh} | {h / r:.3f} "
+        lines.append(cpu + f"| {wr:.2f} | {wh:.2f} | {xw} | {wh / wr:.3f} |")
     return lines
 
 
@@ -189,9 +225,11 @@ def main(argv: list[str]) -> int:
             for i in range(a.repeat):
                 recs = run_pair(trees, sim_args, tmp, i)
                 if i == 0:
-                    dr, dh = (digests(recs[t.label]) for t in trees)
+                    dr, dh, d1 = (digests(recs[k]) for k in (trees[0].label, trees[1].label, "one process"))
                     same = sorted(t for t in dr.keys() & dh.keys() if dr[t] == dh[t])
                     differ = sorted(set(dr) ^ set(dh) | {t for t in dr.keys() & dh.keys() if dr[t] != dh[t]})
+                    if d1 != dh:  # the worker's file is the one-process file, byte for byte
+                        differ.append("(this tree: --one-process differs from the default)")
                 kept = recs.pop(trees[0].label) if i == 0 else None  # REF's first, for the rerun profiles
                 for r in recs.values():
                     r.unlink()
@@ -227,7 +265,10 @@ def report(
         f"`hil sim {' '.join(sim_args)} --record` (every default estimator, everything recorded), then "
         f"`hil rerun --core fusion|timesync --verify` of {trees[0].label}'s recording, by each tree in "
         f"turn, {a.repeat} run(s) each; × real time = {a.duration:g} rig s / CPU s of the child (user + "
-        f"system, one core). Load average (1 min) {load[0]:.1f} at the start, {load[1]:.1f} at the end on "
+        "system, with the fusion worker it reaps: all the work), and × real time (wall) = rig s / wall s "
+        "(what a second core gave, when one was free); this tree's `hil sim` puts the fusion in a worker "
+        "when two CPUs are available, `--one-process` keeps it in one (REF's sim anchors both rows). "
+        f"Load average (1 min) {load[0]:.1f} at the start, {load[1]:.1f} at the end on "
         f"{os.cpu_count()} cores: other engineers' work shared the machine, so take the ratios.",
         "",
         *table(trees, a.duration),

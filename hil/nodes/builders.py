@@ -3,12 +3,14 @@ and by ``hil sim`` alike, so both executors write byte-identical fields for the 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import can
 import numpy as np
 
 from hil.messages import CanFrame, ClockModel, GnssFix, ImuSample, Truth
+
+if TYPE_CHECKING:  # python-can only for the annotation: the time-sync rerun need not import it
+    import can
 
 
 def truth_msg(seq: int, t_ns: int, b: Any, i: int) -> Truth:

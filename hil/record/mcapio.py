@@ -26,18 +26,25 @@ import io
 import json
 import os
 import struct
+import sys
 import tempfile
+from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from mcap.data_stream import RecordBuilder
-from mcap.exceptions import McapError
+import zstandard
+from mcap.data_stream import ReadDataStream, RecordBuilder
+from mcap.exceptions import (
+    EndOfFile,
+    InvalidMagic,
+    McapError,
+    RecordLengthLimitExceeded,
+    UnsupportedCompressionError,
+)
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, ChunkIndex, Header, MessageIndex, Metadata, Schema
-from mcap.records import Message as McapMessage
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from hil import __version__
@@ -46,6 +53,7 @@ from hil.wellknown import MESSAGE_ENCODING, SCHEMAS, Derived
 from hil.wellknown import PREFIX as WELLKNOWN_PREFIX
 
 PROFILE = "hil"
+MAGIC = b"\x89MCAP0\r\n"
 FOREIGN_ORIGIN = "foreign"  # hil.bus.identity.FOREIGN (a channel's ``origin``)
 MAX_CHANNELS_PER_TOPIC = 32  # publishers of one topic with a channel each; the rest share one
 MANY_PUBLISHERS = "*"
@@ -192,14 +200,64 @@ class _MessageAppender:
             cb.message_end_time = log_time
         index = cb.message_indices.get(channel_id)
         if index is None:
-            index = cb.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
+            index = cb.message_indices[channel_id] = _FlatMessageIndex(channel_id)
         buf = cb.record_writer._buffer  # a new BytesIO after every chunk: looked up each time
-        index.records.append((log_time, buf.tell()))
+        if type(index) is _FlatMessageIndex:
+            flat = index.flat
+            flat.append(log_time)
+            flat.append(buf.tell())
+        else:  # made by mcap's own add_message in this chunk
+            index.records.append((log_time, buf.tell()))
         cb.num_messages += 1
         buf.write(head)
         buf.write(data)
         if buf.tell() > self._chunk_size:
             self._finalize()
+
+
+class _Pairs:
+    """``MessageIndex.records``'s list of (log time, offset), kept flat in an ``array``."""
+
+    def __init__(self, flat: array[int]) -> None:
+        self._flat = flat
+
+    def append(self, pair: tuple[int, int]) -> None:
+        self._flat.extend(pair)
+
+    def __len__(self) -> int:
+        return len(self._flat) // 2
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        f = self._flat
+        return iter(list(zip(f[0::2], f[1::2], strict=True)))
+
+
+class _FlatMessageIndex(MessageIndex):
+    """A chunk's message index for one channel as one flat array of u64, written in one piece.
+
+    ``MessageIndex.write`` writes two 8-byte values per message with a call each (at chunk end
+    that was a sixth of the recording's cost in ``hil sim``); the record's bytes are the same:
+    the entries are little-endian u64 pairs, as the array holds them on a little-endian host.
+    """
+
+    def __init__(self, channel_id: int) -> None:  # not the dataclass's: no records list
+        self.channel_id = channel_id
+        self.flat: array[int] = array("Q")
+
+    @property  # type: ignore[override]
+    def records(self) -> _Pairs:  # type: ignore[override]
+        return _Pairs(self.flat)
+
+    def write(self, stream: RecordBuilder) -> None:
+        stream.start_record(Opcode.MESSAGE_INDEX)
+        stream.write2(self.channel_id)
+        stream.write4(len(self.flat) * 8)
+        flat = self.flat
+        if sys.byteorder != "little":
+            flat = array("Q", flat)
+            flat.byteswap()
+        stream.write(flat.tobytes())
+        stream.finish_record()
 
 
 class PackedChunkIndex:
@@ -416,9 +474,7 @@ class SessionWriter:
                 )
             chan = self._channels[d.topic] = self._writer.register_channel(d.topic, MESSAGE_ENCODING, sid)
         n = self.counts.get(d.topic, 0)
-        log_ns, pub_ns = _u64(log_time_ns), _u64(d.stamp_ns)
-        seq = n & 0xFFFFFFFF
-        self._writer.add_message(chan, log_time=log_ns, data=d.data, publish_time=pub_ns, sequence=seq)
+        self._add_message(chan, _u64(log_time_ns), d.data, _u64(d.stamp_ns), n & 0xFFFFFFFF)
         self.counts[d.topic] = n + 1
 
     def write_raw(
@@ -498,6 +554,10 @@ class Record:
     sequence: int
     publisher: str = ""  # the Zenoh source id the recorder saw ("" offline or unknown)
     origin: str = ""  # "rig", "foreign", "unknown"; "" in files without publishers
+    # a reader with a topic filter (``iter_records(keep=...)``): the largest log time of the
+    # rig's messages it left out just before this one (-1: none), for a caller whose clock is
+    # the log time of every message (``hil.record.rerun_timesync``)
+    skipped_log_ns: int = -1
 
     @property
     def foreign(self) -> bool:
@@ -560,9 +620,15 @@ def iter_records(
     *,
     derived: bool = False,
     header: bool = False,
+    keep: Callable[[str], bool] | None = None,
 ) -> Iterator[tuple[str, Any]]:
     """Yield ``(kind, record)`` from a file, stopping quietly at a truncated tail
     (``header``: the file's ``Header`` record too, as ``("header", rec)``).
+
+    ``keep(topic)``: only the rig's messages (no foreign channel) of topics it keeps are made
+    into ``Record``s; of the others' only their log times are told: each kept record's
+    ``skipped_log_ns``, and at the end a ``("skipped", (largest, last))`` item for those after
+    the last kept one. A caller that reads a fraction of the topics skips the cost of the rest.
 
     The derived ``/foxglove/...`` channels (``is_derived``) are left out unless ``derived``: they are
     a view of the rig's messages, not rig traffic, and rerun, replay and loss accounting read the
@@ -570,6 +636,12 @@ def iter_records(
 
     ``on_progress(bytes_read, file_bytes)`` is called every ``PROGRESS_EVERY`` records: a one-hour
     file is read for minutes, and the byte position is the only total known before the end.
+
+    Read by ``_FastReader``: what ``mcap.StreamReader`` reads, record by record, but a chunk's
+    messages parsed with one ``struct`` call each (the reader's six small reads and a dataclass
+    per message were half of ``hil rerun --core timesync``'s time) and the per-chunk message
+    indexes skipped unparsed. A chunk is parsed whole before any of its records is given, as
+    ``StreamReader`` does, so a damaged chunk yields nothing of itself.
     """
     try:
         fh = open(path, "rb")  # noqa: SIM115
@@ -577,48 +649,195 @@ def iter_records(
     except OSError as err:
         raise RecordingError(f"cannot open recording {path}: {err.strerror}") from err
     with fh:
-        reader = StreamReader(fh, skip_magic=False, emit_chunks=False)
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        n = 0
+        reader = _FastReader(fh, size, on_progress, derived, header, keep)
         try:
-            for rec in reader.records:
-                n += 1
-                if on_progress is not None and n % PROGRESS_EVERY == 0:
-                    on_progress(fh.tell(), size)
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, McapMessage):
-                    chan = channels[rec.channel_id]
-                    if not derived and is_derived(chan.topic):
-                        continue
-                    schema = schemas.get(chan.schema_id)
-                    meta = chan.metadata or {}
-                    yield (
-                        "message",
-                        Record(
-                            topic=chan.topic,
-                            schema=schema.name if schema else "",
-                            payload=rec.data,
-                            log_time_ns=rec.log_time,
-                            publish_time_ns=rec.publish_time,
-                            sequence=rec.sequence,
-                            publisher=meta.get("publisher", ""),
-                            origin=meta.get("origin", ""),
-                        ),
-                    )
-                elif isinstance(rec, Metadata):
-                    yield "metadata", rec
-                elif isinstance(rec, Attachment):
-                    yield "attachment", rec
-                elif header and isinstance(rec, Header):
-                    yield "header", rec
+            yield from reader.records()
         except (McapError, EOFError, ValueError, KeyError, OSError) as err:
+            yield from reader.tail()
             yield "truncated", f"{type(err).__name__}: {err}"
         except Exception as err:  # zstd errors on a half-written chunk and similar
+            yield from reader.tail()
             yield "truncated", f"{type(err).__name__}: {err}"
+
+
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
+_MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
+_RECORD_SIZE_LIMIT = 4 * 2**30  # StreamReader's default
+_SKIPPED = ("", "", "", "")  # a channel whose messages ``keep`` leaves out (their log times count)
+
+
+class _FastReader:
+    """The records of one MCAP file in file order, as ``iter_records`` gives them (see there)."""
+
+    def __init__(
+        self,
+        fh: IO[bytes],
+        size: int,
+        on_progress: Callable[[int, int], None] | None,
+        derived: bool,
+        header: bool,
+        keep: Callable[[str], bool] | None = None,
+    ) -> None:
+        self.fh = fh
+        self.keep = keep
+        self.skipped_max = -1  # the rig's messages left out by ``keep`` since the last kept one
+        self.skipped_last = -1
+        self.size = size
+        self.on_progress = on_progress
+        self.derived = derived
+        self.header = header
+        self.n = 0
+        self.schemas: dict[int, Schema] = {}
+        # channel id -> (topic, schema name, publisher, origin); None: a channel left out
+        # (derived, or a foreign one ``keep`` leaves out), _SKIPPED: one whose log times count
+        self.channels: dict[int, tuple[str, str, str, str] | None] = {}
+
+    def _read(self, n: int) -> bytes:
+        data = self.fh.read(n)
+        if len(data) < n:
+            raise EndOfFile()
+        return data
+
+    def _count(self, k: int = 1) -> None:
+        """Progress as ``StreamReader``'s record count would give it: every ``PROGRESS_EVERY``."""
+        before = self.n
+        self.n += k
+        if self.on_progress is not None and self.n // PROGRESS_EVERY != before // PROGRESS_EVERY:
+            self.on_progress(self.fh.tell(), self.size)
+
+    def _channel(self, rec: Channel) -> None:
+        if not self.derived and is_derived(rec.topic):
+            self.channels[rec.id] = None
+            return
+        schema = self.schemas.get(rec.schema_id)
+        meta = rec.metadata or {}
+        if self.keep is not None and meta.get("origin") == FOREIGN_ORIGIN:
+            self.channels[rec.id] = None  # a filtering reader gives the rig's data only
+            return
+        if self.keep is not None and not self.keep(rec.topic):
+            self.channels[rec.id] = _SKIPPED
+            return
+        self.channels[rec.id] = (
+            rec.topic,
+            schema.name if schema else "",
+            meta.get("publisher", ""),
+            meta.get("origin", ""),
+        )
+
+    def records(self) -> Iterator[tuple[str, Any]]:
+        if self._read(len(MAGIC)) != MAGIC:
+            raise InvalidMagic(MAGIC)
+        read, head = self._read, _RECORD_HEAD
+        while True:
+            opcode, length = head.unpack(read(head.size))
+            if length > _RECORD_SIZE_LIMIT:
+                raise RecordLengthLimitExceeded(opcode, length, _RECORD_SIZE_LIMIT)
+            body = read(length)
+            self._count()
+            if opcode == Opcode.CHUNK:
+                yield from self._chunk(body)
+            elif opcode == Opcode.MESSAGE:
+                yield from self._messages(body, 0, len(body), single=True)
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                self._definition(opcode, body)
+            elif opcode == Opcode.METADATA:
+                yield "metadata", Metadata.read(_stream(body))
+            elif opcode == Opcode.ATTACHMENT:
+                yield "attachment", Attachment.read(_stream(body))
+            elif opcode == Opcode.HEADER:
+                rec = Header.read(_stream(body))
+                if self.header:
+                    yield "header", rec
+            elif opcode == Opcode.FOOTER:
+                if read(len(MAGIC)) != MAGIC:
+                    raise InvalidMagic(MAGIC)
+                yield from self.tail()
+                return
+            # message indexes, chunk indexes, statistics, ...: nothing iter_records gives
+
+    def _definition(self, opcode: int, body: bytes) -> None:
+        if opcode == Opcode.SCHEMA:
+            s = Schema.read(_stream(body))
+            self.schemas[s.id] = s
+        else:
+            self._channel(Channel.read(_stream(body)))
+
+    def _chunk(self, body: bytes) -> list[tuple[str, Any]]:
+        _start, _end, size, _crc, n_comp = _CHUNK_HEAD.unpack_from(body, 0)
+        at = _CHUNK_HEAD.size
+        compression = str(body[at : at + n_comp], "utf-8")
+        at += n_comp
+        (n_data,) = struct.unpack_from("<Q", body, at)
+        at += 8
+        if at + n_data > len(body):
+            raise EndOfFile()
+        raw = body[at : at + n_data]
+        if compression == "zstd":
+            data: bytes = zstandard.decompress(raw, size)
+        elif compression == "lz4":
+            import lz4.frame
+
+            data = lz4.frame.decompress(raw)
+        elif compression == "":
+            data = raw
+        else:
+            raise UnsupportedCompressionError(compression)
+        return self._messages(data, 0, len(data), single=False)
+
+    def _messages(self, data: bytes, pos: int, end: int, *, single: bool) -> list[tuple[str, Any]]:
+        """The messages in ``data[pos:end]``: a chunk's records, or one message record's body
+        (``single``). Schemas and channels among them are taken in as they come; what ``keep``
+        left out counts only once all of them parsed (a damaged chunk gives nothing)."""
+        out: list[tuple[str, Any]] = []
+        channels, unpack_msg, unpack_head = (
+            self.channels,
+            _MESSAGE_FIELDS.unpack_from,
+            _RECORD_HEAD.unpack_from,
+        )
+        skipped_max, skipped_last = self.skipped_max, self.skipped_last
+        n = 0
+        while pos < end:
+            if single:
+                opcode, length = Opcode.MESSAGE, end - pos
+            else:
+                opcode, length = unpack_head(data, pos)
+                pos += 9
+                if pos + length > end:
+                    raise EndOfFile()
+            n += 1
+            if opcode == Opcode.MESSAGE:
+                cid, seq, log, pub = unpack_msg(data, pos)
+                chan = channels[cid]
+                if chan is _SKIPPED:
+                    skipped_last = log
+                    if log > skipped_max:
+                        skipped_max = log
+                elif chan is not None:
+                    topic, schema, publisher, origin = chan
+                    payload = data[pos + 22 : pos + length]
+                    rec = Record(topic, schema, payload, log, pub, seq, publisher, origin)
+                    if skipped_max >= 0:
+                        rec.skipped_log_ns = skipped_max
+                        skipped_max = -1
+                    out.append(("message", rec))
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                self._definition(opcode, data[pos : pos + length])
+            pos += length
+        self.skipped_max, self.skipped_last = skipped_max, skipped_last
+        if not single:
+            self._count(n)
+        return out
+
+    def tail(self) -> Iterator[tuple[str, Any]]:
+        """The log times of what ``keep`` left out after the last kept message, if any."""
+        if self.skipped_max >= 0:
+            yield "skipped", (self.skipped_max, self.skipped_last)
+            self.skipped_max = -1
+
+
+def _stream(body: bytes) -> ReadDataStream:
+    return ReadDataStream(io.BytesIO(body))
 
 
 class SessionStream:
@@ -633,6 +852,9 @@ class SessionStream:
     ``follow_parts``: a recording split by size or duration (``<stem>_0001.mcap``, ...) is read on
     through its parts, in order -- the recorder rotates between two messages, so the parts end
     to end are the session's one sequence of messages.
+
+    ``keep(topic)``: only those topics' records (``iter_records``); each record's
+    ``skipped_log_ns`` and ``skipped_tail`` tell the log times of the rest, across parts.
     """
 
     def __init__(
@@ -641,10 +863,15 @@ class SessionStream:
         on_progress: Callable[[int, int], None] | None = None,
         *,
         follow_parts: bool = False,
+        keep: Callable[[str], bool] | None = None,
     ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise RecordingError(f"no recording at {self.path}")
+        self.keep = keep
+        # with ``keep``: (largest, last) log time of the rig's messages left out after the last
+        # record given (None: none); complete once the iteration has ended
+        self.skipped_tail: tuple[int, int] | None = None
         self.on_progress = on_progress
         self.paths = [self.path, *(split_parts(self.path) if follow_parts else [])]
         self.metadata: dict[str, dict[str, str]] = {}
@@ -655,13 +882,21 @@ class SessionStream:
         self.metadata = {}
         self.truncated = False
         self.truncation_reason = ""
+        self.skipped_tail = None
         sizes = [p.stat().st_size for p in self.paths]
         for k, path in enumerate(self.paths):
             n = 0
-            for kind, rec in iter_records(path, self._progress(sum(sizes[:k]), sum(sizes))):
+            progress = self._progress(sum(sizes[:k]), sum(sizes))
+            for kind, rec in iter_records(path, progress, keep=self.keep):
                 if kind == "message":
                     n += 1
+                    if self.skipped_tail is not None:  # the previous part's last messages
+                        rec.skipped_log_ns = max(rec.skipped_log_ns, self.skipped_tail[0])
+                        self.skipped_tail = None
                     yield rec
+                elif kind == "skipped":
+                    prev = self.skipped_tail
+                    self.skipped_tail = rec if prev is None else (max(prev[0], rec[0]), rec[1])
                 elif kind == "metadata":
                     self.metadata[rec.name] = dict(rec.metadata)
                 elif kind == "truncated":
@@ -676,9 +911,6 @@ class SessionStream:
         if report is None:
             return None
         return lambda done, _size: report(before + done, total)
-
-
-MAGIC = b"\x89MCAP0\r\n"
 
 
 def check_hil_recording(path: str | Path) -> None:

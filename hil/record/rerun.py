@@ -147,6 +147,8 @@ class _FusionRerun:
 
     def feed(self, r: Record) -> None:
         t = r.topic
+        if r.skipped_log_ns > self.last_log_ns:  # the rig's messages a filtering reader left out
+            self.last_log_ns = r.skipped_log_ns
         if r.foreign:  # the live fusion refused a stranger's inputs (``refuses_foreign``), and
             return  # they are not its outputs, journal or configuration, nor the rig's run
         self.last_log_ns = max(self.last_log_ns, r.log_time_ns)
@@ -303,8 +305,22 @@ def rerun_fusion_records(
         raise RecordingError(no_run_message(name, records))
     if state.node is None:
         raise RecordingError(f"{name}: no fusion configuration (fusion/config): the fusion did not run")
+    tail = getattr(records, "skipped_tail", None)
+    if tail is not None:  # the file's last messages were left out by the reader
+        state.last_log_ns = max(state.last_log_ns, tail[0])
     state.release(None)
     return state.result()
+
+
+def fusion_topic(topic: str) -> bool:
+    """The topics ``rerun_fusion_records`` does more with than read their log time: what a
+    filtering reader must give it (``SessionStream(keep=...)``)."""
+    return (
+        "/synced/" in topic
+        or "/nav/" in topic
+        or "/event/" in topic
+        or topic.endswith(("/run", "/fusion/journal", "/fusion/config"))
+    )
 
 
 def rerun_fusion(session: Session) -> RerunResult:
@@ -325,12 +341,12 @@ def rerun_fusion_file(
     Returns the result, the stream (truncation, metadata) and a note ("" or why the whole file
     was needed).
     """
-    stream = SessionStream(path, on_progress, follow_parts=True)
+    stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
     window_ns = None if window_s is None else round(window_s * 1e9)
     try:
         return rerun_fusion_records(stream, window_ns=window_ns, name=str(path)), stream, ""
     except OutOfWindow as why:
-        stream = SessionStream(path, on_progress, follow_parts=True)
+        stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
         res = rerun_fusion_records(stream, window_ns=None, name=str(path))
         note = f"{why} (out of order by more than {window_s:g} s): reran with the whole file in memory"
         return res, stream, note

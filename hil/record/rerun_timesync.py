@@ -118,6 +118,8 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
 
     start_ns = 0
     for r in records:
+        if r.skipped_log_ns >= 0 and node is not None:  # what handle() of those would have done
+            matcher.release_before(rig_time_ns(r.skipped_log_ns, start_ns))
         if r.foreign:  # the live time sync refused a stranger's measurements and tags
             continue
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
@@ -136,6 +138,10 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
         handle(r)
     if node is None:
         raise RecordingError(no_run_message(name, records))
+    tail = getattr(records, "skipped_tail", None)
+    if tail is not None:  # the file's last messages were left out by the reader
+        matcher.release_before(rig_time_ns(tail[0], start_ns))
+        now_ns = rig_time_ns(tail[1], start_ns)
     keep(node.finish(now_ns))
     strict = _first_difference(matcher, late, list(matcher.recorded_pending))
     early = matcher.pending_before(now_ns - TAIL_NS)
@@ -171,6 +177,14 @@ def _first_difference(
     return min(candidates)[1] if candidates else None
 
 
+def timesync_topic(topic: str) -> bool:
+    """The topics ``rerun_timesync_records`` does more with than read their log time (time
+    tags, raw and re-stamped measurements, the run, and any topic not of four parts, which it
+    treats apart): what a filtered reader must give it (``SessionStream(keep=...)``)."""
+    parts = topic.split("/")
+    return len(parts) != 4 or parts[2] in ("timetag", "sensor", "synced") or topic.endswith("/run")
+
+
 def rerun_timesync(session: Session) -> TimesyncRerun:
     return rerun_timesync_records(session.records, str(session.path))
 
@@ -178,7 +192,7 @@ def rerun_timesync(session: Session) -> TimesyncRerun:
 def rerun_timesync_report(
     path: str, verify: bool, on_progress: Callable[[int, int], None] | None = None
 ) -> tuple[int, list[str]]:
-    stream = SessionStream(path, on_progress, follow_parts=True)
+    stream = SessionStream(path, on_progress, follow_parts=True, keep=timesync_topic)
     res = rerun_timesync_records(stream, path)
     lines = [
         f"rerun timesync: {res.measurements} raw measurements, {res.timetags} time tags, "

@@ -18,6 +18,11 @@ rig second (pid 0, uptime in rig time: nothing host-dependent). ``kill_service``
 in one process: a warning line and a ``fault_ignored`` event on ``event/sim`` say so. Every
 node stops by itself at the run's end; then each is told ``finish`` (end of input) in pipeline
 order at ``end + 1 ns``, so what the time sync and the fusion hold is released and journaled.
+
+With two CPUs and a fusion of several estimators (most of the CPU), the fusion node runs in a
+forked worker one window behind the rest (``hil.runners.sim_worker``): the same node object, the
+same inputs in the same order, its outputs merged into their window before it is written, so the
+file is the one-process file byte for byte (``fusion_worker=False`` / ``--one-process``: one).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from typing import Any
 
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
-from hil.messages import Event, Message, RunInfo, ServiceStatus, counts, encode
+from hil.messages import Event, GnssFix, Message, NavSolution, RunInfo, ServiceStatus, Truth, counts, encode
 from hil.nav.scenario import load_scenario, scenario_for_run, scenario_overrides
 from hil.nodes import node_class
 from hil.nodes.base import CAN_RX, CAN_TX, SERIAL_RX, SERIAL_TX, Node, Out
@@ -44,6 +49,7 @@ from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
+from hil.runners.sim_worker import RemoteNode, drive, worker_possible
 from hil.runners.wire import CanWireModel
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
@@ -76,6 +82,10 @@ class SimOptions:
     split_s: float = 0.0  # ... or after this many seconds of rig time
     record_include: list[str] = field(default_factory=list)  # hil.record.keyfilter, as the recorder
     record_exclude: list[str] = field(default_factory=list)
+    # the fusion in a second process, one window behind the rest (hil.runners.sim_worker); the
+    # file is the same byte for byte. None: when fork exists, two CPUs are available and the
+    # fusion runs at least WORKER_MIN_ESTIMATORS estimators
+    fusion_worker: bool | None = None
 
 
 @dataclass
@@ -113,10 +123,20 @@ class Scheduler:
     next. Each window's messages are written sorted by log time, so the file is in rig-time order.
     """
 
-    def __init__(self, nodes: list[Node], write: Callable[[str, Message, int], None], wire: CanWireModel):
+    def __init__(
+        self,
+        nodes: list[Node],
+        write: Callable[[str, Message, int], None],
+        wire: CanWireModel,
+        remote: RemoteNode | None = None,
+    ):
         self.nodes = nodes
         self.write = write
         self.wire = wire
+        # the last node run by a worker process (``hil.runners.sim_worker``): its window's
+        # outputs come back while this process works on the next window
+        self.remote = remote
+        self._remote_i = len(nodes) - 1 if remote is not None else -1
         self._routes: dict[str, list[int]] = {}
         self._can_readers = [i for i, n in enumerate(nodes) if n.reads_can]
         self._line_readers = [i for i, n in enumerate(nodes) if n.serial == "rx"]
@@ -166,17 +186,47 @@ class Scheduler:
     def window(self, t_end_ns: int) -> bool:
         """Every node handles its events before ``t_end_ns``; the messages are written. False
         once nothing is left to do (no node wants a tick, nothing is in flight)."""
+        busy = self.dispatch(t_end_ns)
+        out = self.take_out()
+        return self.complete(out) or busy
+
+    def dispatch(self, t_end_ns: int) -> bool:
+        """Every node handles its events before ``t_end_ns`` (a remote one: they are sent to
+        it). Whether one of this process's nodes wants a tick or anything is in flight."""
         busy = False
         for i, node in enumerate(self.nodes):
             busy = self._handle(i, node, t_end_ns) or busy
-        out = self._out
+        return busy or any(self._inbox)
+
+    def take_out(self) -> list[tuple[int, int, int, str, Message]]:
+        """The window's messages so far (the remote node's are added by ``complete``)."""
+        out, self._out = self._out, []
+        return out
+
+    def complete(self, out: list[tuple[int, int, int, str, Message]]) -> bool:
+        """The remote node's outputs of the window ``out`` belongs to (the oldest it was sent)
+        join ``out``, which is written sorted. Whether the remote node wants a tick."""
+        busy = False
+        if self.remote is not None:
+            busy = self._take_remote(out)
         out.sort(key=_event_order)
         for t, _p, _o, key, msg in out:
             self.write(key, msg, t)
-        out.clear()
-        return busy or any(self._inbox)
+        return busy
 
-    def _handle(self, i: int, node: Node, t_end_ns: int) -> bool:
+    def _take_remote(self, out: list[tuple[int, int, int, str, Message]]) -> bool:
+        assert self.remote is not None
+        published, busy = self.remote.result()
+        current, self._out = self._out, out
+        try:
+            for outs, t in published:
+                self.publish(self._remote_i, outs, t)
+        finally:
+            self._out = current
+        return busy
+
+    def _now(self, i: int, t_end_ns: int) -> list[tuple[int, int, int, str, Any]]:
+        """Node ``i``'s inputs before ``t_end_ns``, taken from its inbox, sorted."""
         box = self._inbox[i]
         now = [e for e in box if e[0] < t_end_ns]
         if len(now) < len(box):
@@ -184,20 +234,19 @@ class Scheduler:
         else:
             box.clear()
         now.sort(key=_event_order)
-        j, n = 0, len(now)
-        t_tick = node.next_tick_ns()
-        while True:
-            if t_tick is not None and t_tick < t_end_ns and (j == n or t_tick <= now[j][0]):
-                self.publish(i, node.tick(t_tick), t_tick)
-                t_tick = node.next_tick_ns()
-            elif j < n:
-                t, _p, _o, key, msg = now[j]
-                j += 1
-                self.publish(i, node.on_message(key, msg, t), t)
-                if node.inputs_move_timers:
-                    t_tick = node.next_tick_ns()
-            else:
-                return t_tick is not None
+        return now
+
+    def _handle(self, i: int, node: Node, t_end_ns: int) -> bool:
+        now = self._now(i, t_end_ns)
+        if i == self._remote_i:
+            assert self.remote is not None
+            self.remote.window([(e[0], e[3], e[4]) for e in now], t_end_ns)
+            return False  # its own answer comes with its outputs (``complete``)
+
+        def publish(outs: list[Out], t: int) -> None:
+            self.publish(i, outs, t)
+
+        return drive(node, now, t_end_ns, publish)
 
     def emit(self, t_ns: int, key: str, msg: Message) -> None:
         """A message of the runner's own (``event/sim``), written in its place in rig time."""
@@ -207,6 +256,12 @@ class Scheduler:
     def finish(self, t_ns: int) -> None:
         """End of input, in pipeline order: what one node releases, the next still takes in."""
         for i, node in enumerate(self.nodes):
+            if i == self._remote_i:
+                assert self.remote is not None
+                now = self._now(i, t_ns + 1)
+                self.remote.finish_request([(e[0], e[3], e[4]) for e in now], t_ns + 1, t_ns)
+                self._take_remote(self._out)
+                continue
             self._handle(i, node, t_ns + 1)  # what is still in flight for it
             self.publish(i, node.finish(t_ns), t_ns)
         self.window(2**62)
@@ -254,6 +309,14 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
+WORKER_MIN_ESTIMATORS = 3  # ``fusion_worker=None``: a worker for a fusion of at least this many
+
+# The types ``WellKnown.convert`` derives Foxglove messages from: for any other it returns none
+# and keeps no state, so the CAN frames, IMU samples and capture times (three quarters of the
+# traffic) skip the call (tests/unit/test_sim_worker.py: the same file with every type offered)
+DERIVES: tuple[type[Message], ...] = (Truth, NavSolution, GnssFix, Event, ServiceStatus, RunInfo)
+
+
 class _Session:
     """The recording side of one sim: the writer, runner-owned seqs, status, progress."""
 
@@ -288,8 +351,9 @@ class _Session:
             publish_time_ns=epoch + msg.stamp_ns,
             seq=msg.seq,
         )
-        for d in self.wellknown.convert(key, msg, epoch + t_log):
-            w.write_wellknown(d, log_time_ns=epoch + t_log)
+        if isinstance(msg, DERIVES):
+            for d in self.wellknown.convert(key, msg, epoch + t_log):
+                w.write_wellknown(d, log_time_ns=epoch + t_log)
         self.n_written += 1
 
     def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:
@@ -325,19 +389,27 @@ class _Session:
         self._seqs[key] = n + 1
         return n
 
-    def status(self, t_ns: int) -> None:
+    def snapshot(self, remote: RemoteNode | None = None) -> list[tuple[str, list[Any], str]]:
+        """Each node's name, counters and last error now (``remote``: the last node's, as its
+        worker reported them with its latest window), for ``status``."""
+        snap = [(n.name, counts(n.counters()), n.last_error) for n in self.nodes]
+        if remote is not None:
+            snap[-1] = (remote.name, counts(remote.counters()), remote.last_error)
+        return snap
+
+    def status(self, t_ns: int, snap: list[tuple[str, list[Any], str]]) -> None:
         """Each node's counters as its live service would report them; nothing host-dependent."""
-        for node in self.nodes:
-            key = f"status/{node.name}"
+        for name, node_counts, last_error in snap:
+            key = f"status/{name}"
             st = ServiceStatus(
                 seq=self.next_seq(key),
                 stamp_ns=t_ns,
-                service=node.name,
+                service=name,
                 state="running",
                 pid=0,
                 uptime_s=t_ns / 1e9,
-                counters=counts(node.counters()),
-                last_error=node.last_error,
+                counters=node_counts,
+                last_error=last_error,
             )
             self.write(key, st, t_ns)
 
@@ -360,32 +432,82 @@ def run_sim(opts: SimOptions) -> SimResult:
         else:
             sys.stderr.write(f"hil sim: warning: {line}\n")
             sys.stderr.flush()
-    sched = Scheduler(nodes, sess.write, CanWireModel(s))
-    for i, node in enumerate(nodes):
-        sched.publish(i, node.start(0), 0)
+    wire = CanWireModel(s)
+    outs0 = [node.start(0) for node in nodes]
+    use_worker = opts.fusion_worker
+    if use_worker is None:  # worth it when the fusion is heavy: with one or two estimators the
+        # pickling to and from the worker cost more than the second core gave (static, kfvel: +10 % CPU)
+        heavy = len(getattr(getattr(nodes[-1], "config", None), "estimators", ())) >= WORKER_MIN_ESTIMATORS
+        use_worker = heavy and worker_possible()
+    remote = RemoteNode(nodes[-1]) if use_worker else None  # forked after start: its state
+    try:
+        sched = Scheduler(nodes, sess.write, wire, remote)
+        for i, outs in enumerate(outs0):
+            sched.publish(i, outs, 0)
+        _windows(sched, sess, opts, ignored, header, remote)
+    finally:
+        if remote is not None:
+            remote.close()
+    sess.close()
+    return SimResult(opts.record, sess.n_written, run.duration_s, time.monotonic() - t_wall, warnings)
+
+
+def _windows(
+    sched: Scheduler,
+    sess: _Session,
+    opts: SimOptions,
+    ignored: list[tuple[int, str]],
+    header: Callable[[SessionWriter], None],
+    remote: RemoteNode | None,
+) -> None:
+    """One rig second at a time until every node is done, then the end of input.
+
+    With a remote node, window *k* is written after this process has handled window *k + 1*
+    (the worker runs the fusion over *k* meanwhile): its status goes out with the counters
+    taken when *k* was handled, so the file is the one-process file byte for byte.
+    """
     ignored_at = collections.deque(ignored)
+    pending: tuple[int, list[Any], list[tuple[str, list[Any], str]]] | None = None
+
+    def complete(window: tuple[int, list[Any], list[tuple[str, list[Any], str]]]) -> bool:
+        t, out, snap = window
+        busy = sched.complete(out)
+        if t < sess.end_ns:
+            if remote is not None:  # its counters came with the window just completed
+                snap[-1] = sess.snapshot(remote)[-1]
+            sess.status(t, snap)
+        sess.w.flush()
+        sess.maybe_split(t, header)
+        if opts.on_progress is not None:
+            opts.on_progress(min(t, sess.end_ns) * 1e-9, sess.end_ns * 1e-9)
+        return busy
+
     t = 0
-    while True:  # one rig second at a time, until every node is done
+    while True:
         t += _S
         while ignored_at and ignored_at[0][0] < t:
             t0, detail = ignored_at.popleft()
             key = "event/sim"  # a timed fault hil sim cannot apply, said where it would have been
             ev = Event(seq=sess.next_seq(key), stamp_ns=t0, kind="fault_ignored", source="sim", detail=detail)
             sched.emit(t0, key, ev)
-        more = sched.window(t)
-        if t < sess.end_ns:
-            sess.status(t)
-        sess.w.flush()
-        sess.maybe_split(t, header)
-        if opts.on_progress is not None:
-            opts.on_progress(min(t, sess.end_ns) * 1e-9, sess.end_ns * 1e-9)
-        if not more and t > sess.end_ns:
+        busy = sched.dispatch(t)
+        window = (t, sched.take_out(), sess.snapshot() if t < sess.end_ns else [])
+        if remote is None:
+            busy = complete(window) or busy
+        else:
+            if pending is not None:
+                complete(pending)  # the worker's previous window, while it runs this one
+            pending = window
+            if not busy and t > sess.end_ns:  # the end is near: is the worker done too?
+                busy = complete(pending)
+                pending = None
+        if not busy and t > sess.end_ns:
             break
+    if pending is not None:
+        complete(pending)
     t_last = sess.end_ns + 1
     sched.finish(t_last)
-    sess.status(t_last)
-    sess.close()
-    return SimResult(opts.record, sess.n_written, run.duration_s, time.monotonic() - t_wall, warnings)
+    sess.status(t_last, sess.snapshot(remote))
 
 
 def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:

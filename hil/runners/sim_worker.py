@@ -1,0 +1,168 @@
+"""The last node of ``hil sim``'s pipeline (the fusion) in a second process, one window behind.
+
+Why: the fusion's estimators are most of ``hil sim``'s CPU, and nothing in the sim consumes the
+fusion's outputs but the recording. So while the worker runs the fusion over window *k*, the
+sim's own process runs the world, emulators, bridges and time sync over window *k + 1*; window
+*k* is written once the worker's outputs for it are back. The worker drives the very node
+object the one-process sim would (forked after ``start``, so its state is that object's), with
+the same inputs in the same order through the same loop (``drive``), so the outputs, their
+order and the file are byte for byte those of one process; only the wall time differs.
+
+``fork`` and a pipe: no ``multiprocessing.Process`` (a campaign runs sims inside daemonic
+workers, which may not start one). The child never returns into the caller's code: it leaves
+with ``os._exit``, whatever happens, and reports an exception as its text.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pickle
+import socket
+import threading
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from hil.nodes.base import Node, Out
+
+__all__ = ["RemoteNode", "drive", "worker_possible"]
+
+# one input as ``drive`` reads it: rig time first, key and message last (the scheduler's events
+# carry producer and publication order between)
+Event = Sequence[Any]
+
+
+def drive(node: Node, now: Sequence[Event], t_end_ns: int, publish: Callable[[list[Out], int], None]) -> bool:
+    """One window of one node: its ticks before ``t_end_ns`` and its inputs ``now`` (sorted), in
+    rig-time order, a tick before an input at the same time; ``publish(outs, t)`` after each.
+    True if the node still wants a tick."""
+    j, n = 0, len(now)
+    t_tick = node.next_tick_ns()
+    moves = node.inputs_move_timers
+    while True:
+        if t_tick is not None and t_tick < t_end_ns and (j == n or t_tick <= now[j][0]):
+            publish(node.tick(t_tick), t_tick)
+            t_tick = node.next_tick_ns()
+        elif j < n:
+            e = now[j]
+            j += 1
+            publish(node.on_message(e[-2], e[-1], e[0]), e[0])
+            if moves:
+                t_tick = node.next_tick_ns()
+        else:
+            return t_tick is not None
+
+
+def worker_possible() -> bool:
+    """A second process is worth it: ``fork`` exists, this process may run on two CPUs, and it
+    is the main thread that asks (a sim embedded in a thread pool -- a campaign's Dask worker --
+    stays in one process: forking beside other threads can inherit their locks held)."""
+    if not hasattr(os, "fork") or threading.current_thread() is not threading.main_thread():
+        return False
+    try:
+        return len(os.sched_getaffinity(0)) >= 2
+    except (AttributeError, OSError):
+        return (os.cpu_count() or 1) >= 2
+
+
+class WorkerError(RuntimeError):
+    """The worker failed; the message holds its traceback."""
+
+
+class RemoteNode:
+    """A node run in a forked child; ``window`` sends a window's inputs, ``result`` waits for
+    its outputs. Between the two the caller is free to work on the next window."""
+
+    def __init__(self, node: Node) -> None:
+        self.name = node.name
+        self._counters: dict[str, int] = node.counters()
+        self.last_error = node.last_error
+        parent, child = socket.socketpair()
+        pid = os.fork()
+        if pid == 0:  # the worker: serve, then leave without running the caller's code
+            code = 1
+            try:
+                parent.close()
+                _serve(node, child)
+                code = 0
+            finally:
+                os._exit(code)
+        child.close()
+        self.pid = pid
+        self._sock = parent
+        self._rfile = parent.makefile("rb")
+        self._wfile = parent.makefile("wb")
+
+    def _send(self, req: tuple[Any, ...]) -> None:
+        try:
+            pickle.dump(req, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
+            self._wfile.flush()
+        except OSError as err:
+            raise WorkerError(f"hil sim: the {self.name} worker process died ({err})") from err
+
+    def window(self, now: list[tuple[int, str, Any]], t_end_ns: int) -> None:
+        self._send(("window", now, t_end_ns))
+
+    def finish_request(self, now: list[tuple[int, str, Any]], t_end_ns: int, t_ns: int) -> None:
+        self._send(("finish", now, t_end_ns, t_ns))
+
+    def result(self) -> tuple[list[tuple[list[Out], int]], bool]:
+        """The outputs of the oldest window sent, as (outs, rig time) in publication order, and
+        whether the node still wants a tick."""
+        try:
+            reply = pickle.load(self._rfile)
+        except (EOFError, OSError, pickle.UnpicklingError) as err:
+            raise WorkerError(f"hil sim: the {self.name} worker process died ({err})") from err
+        if reply[0] == "error":
+            raise WorkerError(f"hil sim: the {self.name} worker failed:\n{reply[1]}")
+        _ok, published, busy, self._counters, self.last_error = reply
+        return published, busy
+
+    def counters(self) -> dict[str, int]:
+        """The node's counters after the last window whose result was taken."""
+        return self._counters
+
+    def close(self) -> None:
+        """Stop the worker and reap it (also after a failure on either side). A shutdown, not a
+        message: a worker blocked writing a large reply while this side is not reading would
+        never see one; it sees its socket end, and leaves."""
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)
+        for f in (self._wfile, self._rfile, self._sock):
+            with contextlib.suppress(OSError):
+                f.close()
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(self.pid, 0)
+
+
+def _serve(node: Node, sock: socket.socket) -> None:
+    rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
+    while True:
+        try:
+            req = pickle.load(rfile)
+        except EOFError:
+            return
+        if req[0] == "stop":
+            return
+        published: list[tuple[list[Out], int]] = []
+        publish = _collector(published)
+        try:
+            busy = drive(node, req[1], req[2], publish)
+            if req[0] == "finish":
+                publish(node.finish(req[3]), req[3])
+            reply: tuple[Any, ...] = ("ok", published, busy, node.counters(), node.last_error)
+        except Exception:
+            reply = ("error", traceback.format_exc())
+        pickle.dump(reply, wfile, protocol=pickle.HIGHEST_PROTOCOL)
+        wfile.flush()
+        if reply[0] == "error":
+            return
+
+
+def _collector(published: list[tuple[list[Out], int]]) -> Callable[[list[Out], int], None]:
+    def publish(outs: list[Out], t: int) -> None:
+        if outs:
+            published.append((outs, t))
+
+    return publish

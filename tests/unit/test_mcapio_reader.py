@@ -1,0 +1,130 @@
+"""``iter_records``'s own chunk parser gives what mcap's ``StreamReader`` gives, whole or cut short,
+and the reruns read through a topic filter decide exactly as they do reading every message."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.records import Attachment, Channel, Header, Metadata, Schema
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
+
+from hil.record.mcapio import SessionStream, iter_records, split_part_path
+from hil.record.rerun import fusion_topic, rerun_fusion_records
+from hil.record.rerun_timesync import rerun_timesync_records, timesync_topic
+from hil.runners.sim import SimOptions, run_sim
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    rec = tmp_path_factory.mktemp("reader") / "s.mcap"
+    run_sim(SimOptions(scenario="uav_survey", duration_s=4.0, record=rec, fusion_worker=False))
+    return rec
+
+
+def _reference(path: Path) -> Iterator[tuple[Any, ...]]:
+    """What iter_records gave before it parsed chunks itself: mcap's StreamReader, record by record."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    with open(path, "rb") as fh:
+        try:
+            for rec in StreamReader(fh, skip_magic=False, emit_chunks=False).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, McapMessage):
+                    ch = channels[rec.channel_id]
+                    s = schemas.get(ch.schema_id)
+                    meta = ch.metadata or {}
+                    yield (
+                        "message",
+                        ch.topic,
+                        s.name if s else "",
+                        rec.data,
+                        rec.log_time,
+                        rec.publish_time,
+                        rec.sequence,
+                        meta.get("publisher", ""),
+                        meta.get("origin", ""),
+                    )
+                elif isinstance(rec, (Metadata, Attachment, Header)):
+                    yield type(rec).__name__, repr(rec)
+        except Exception:
+            yield ("truncated",)
+
+
+def _ours(path: Path) -> Iterator[tuple[Any, ...]]:
+    for kind, r in iter_records(path, derived=True, header=True):
+        if kind == "message":
+            yield (
+                kind,
+                r.topic,
+                r.schema,
+                r.payload,
+                r.log_time_ns,
+                r.publish_time_ns,
+                r.sequence,
+                r.publisher,
+                r.origin,
+            )
+        elif kind == "truncated":
+            yield (kind,)
+        else:
+            yield type(r).__name__, repr(r)
+
+
+@pytest.mark.parametrize("cut", [None, 0.37, 0.81])
+def test_records_are_mcaps_whole_or_cut(recording: Path, tmp_path: Path, cut: float | None) -> None:
+    path = recording
+    if cut is not None:
+        data = recording.read_bytes()
+        path = tmp_path / "cut.mcap"
+        path.write_bytes(data[: int(len(data) * cut)])
+    ref, ours = list(_reference(path)), list(_ours(path))
+    assert len(ours) > 1000
+    assert ours == ref
+    assert (ours[-1][0] == "truncated") is (cut is not None)
+
+
+def _both(path: Path, run: Any, keep: Any) -> list[dict[str, Any]]:
+    out = []
+    for k in (None, keep):
+        d = dataclasses.asdict(run(SessionStream(path, keep=k, follow_parts=True)))
+        d.pop("recomputed", None)
+        out.append(d)
+    return out
+
+
+@pytest.mark.parametrize("cut", [None, 0.6, 0.93])
+def test_filtered_reruns_decide_as_unfiltered(recording: Path, tmp_path: Path, cut: float | None) -> None:
+    path = recording
+    if cut is not None:
+        data = recording.read_bytes()
+        path = tmp_path / "cut.mcap"
+        path.write_bytes(data[: int(len(data) * cut)])
+    least = 100 if cut is None else 1  # a cut file: what its whole chunks hold
+    full, filtered = _both(path, lambda s: rerun_timesync_records(s, "x"), timesync_topic)
+    assert full == filtered and full["n_recorded"] >= least
+    full, filtered = _both(path, lambda s: rerun_fusion_records(s, window_ns=30 * 10**9), fusion_topic)
+    assert full == filtered and (full["n_recorded"] >= least or cut is not None)
+
+
+def test_filtered_stream_carries_skipped_times_across_parts(tmp_path: Path) -> None:
+    rec = tmp_path / "split.mcap"
+    run_sim(SimOptions(scenario="uav_survey", duration_s=4.0, record=rec, split_s=1.5, fusion_worker=False))
+    assert split_part_path(rec, 1).is_file()
+    full, filtered = _both(rec, lambda s: rerun_timesync_records(s, "x"), timesync_topic)
+    assert full == filtered and full["difference"] is None
+    stream = SessionStream(rec, keep=lambda t: t.endswith("/synced/imu"), follow_parts=True)
+    records = list(stream)
+    everything = [r for r in SessionStream(rec, follow_parts=True)]
+    assert len(records) == sum(r.topic.endswith("/synced/imu") for r in everything)
+    # every left-out message's log time is told on the next record, or in the tail
+    told = max(max(r.skipped_log_ns for r in records), stream.skipped_tail[0] if stream.skipped_tail else -1)
+    assert told == max(r.log_time_ns for r in everything if not r.topic.endswith("/synced/imu"))
+    assert stream.skipped_tail is None or stream.skipped_tail[1] == everything[-1].log_time_ns
