@@ -95,10 +95,9 @@ def _fake_rig(endpoint: str, stop: threading.Event) -> None:
         s.close()
 
 
-def _env(endpoint: str) -> dict[str, str]:
-    return dict(
-        os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN=""
-    )
+def _env(endpoint: str, mode: str = "client") -> dict[str, str]:
+    listen = "" if mode == "client" else "tcp/127.0.0.1:0"
+    return dict(os.environ, HIL_ZENOH_MODE=mode, HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN=listen)
 
 
 def test_monitor_attaches_and_draws_the_table(tmp_path: Path) -> None:
@@ -129,11 +128,12 @@ def test_monitor_attaches_and_draws_the_table(tmp_path: Path) -> None:
 
 
 def test_monitor_without_a_rig_says_so() -> None:
+    # a peer that finds nobody opens anyway and listens (a client would fail to open: exit 2)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     r = subprocess.run(
         hil_cmd("monitor", "--rig", "nobody", "--duration", "2"),
         cwd=REPO,
-        env=_env(endpoint),
+        env=_env(endpoint, mode="peer"),
         capture_output=True,
         text=True,
         timeout=60,
