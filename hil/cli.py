@@ -337,6 +337,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 estimators=[e for e in a.estimators.split(",") if e],
                 feedback=a.feedback,
                 ekf_calibration=a.ekf_calibration,
+                output_predictor=not a.no_output_predictor,
+                **({} if a.fusion_lag is None else {"lag_s": a.fusion_lag}),
                 fd=a.fd,
                 on_progress=on_progress,
                 imu_rate_hz=a.imu_rate,
@@ -847,6 +849,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")
     _add_run_args(sim, None)
     sim.add_argument("--fd", action="store_true")
+    sim.add_argument(
+        "--fusion-lag",
+        type=float,
+        default=None,
+        metavar="S",
+        help="the fusion horizon's lag behind the newest IMU sample, the bound on a source's "
+        "latency (default: the fusion's, 0.5)",
+    )
+    sim.add_argument(
+        "--no-output-predictor",
+        action="store_true",
+        help="publish the fusion horizon's state, lag late (the fusion before the output predictor)",
+    )
     _add_gnss_wire_args(sim)
     sim.add_argument("--quiet", action="store_true")
     sim.set_defaults(func=cmd_sim)

@@ -1,5 +1,5 @@
 """Fusion core ordering: total order behind a watermark, late inputs dropped and journaled,
-and the rerun path (process() in total order minus the journaled drops) reproducing outputs."""
+and the rerun path (replay() in total order minus the journaled drops) reproducing outputs."""
 
 from __future__ import annotations
 
@@ -147,7 +147,7 @@ def test_rerun_path_reproduces_live_outputs_bit_for_bit_under_jittered_arrival(s
     dropped = {d.split(":", 1)[1] for d in live.take_dropped()}
     rerun = _core(lag_ns=150_000_000, every=4)
     kept = sorted((m for m in inputs if f"{m.sensor}:{m.seq}" not in dropped), key=input_key)
-    rerun_out = [o for m in kept for o in rerun.process(m)]
+    rerun_out = [o for m in kept for o in rerun.replay(m)]
     assert [encode(o) for o in rerun_out] == [encode(o) for o in live_out]
     assert len(live_out) > 0
 
