@@ -4,8 +4,9 @@ fusion process.
 
 The session is built from the golden recording's inputs the way the live rig would have seen
 them: every 97th IMU sample never arrives (lost upstream: neither fusion nor recorder has it),
-a few IMU samples arrive 300 ms late (behind the 200 ms watermark: the fusion drops and journals
-them), a few GNSS fixes arrive 100 ms late (inside the lag: fused at their time of validity).
+a few IMU samples arrive 300 ms late (behind newer ones: the fusion drops and journals them as
+``order``, the output predictor having integrated past them), a few GNSS fixes arrive 100 ms late
+(inside the horizon's lag: fused at their time of validity).
 The fusion core is pushed in that arrival order with the live service's journaling.
 """
 
