@@ -291,6 +291,7 @@ class FusionCore:
         # so far (an input at or before it is late), the sources now beyond the bound, and the
         # latency events not yet taken
         self.predictor: OutputPredictor | None = None
+        self._ins_nav: NavState | None = None  # the free INS at the horizon, as estimators saw it
         if cfg.output_predictor:
             g = self._sd._gravity(self.init.lat_rad, self.init.alt_m)
             self.predictor = OutputPredictor(self.init.stamp_ns, g)
@@ -429,7 +430,9 @@ class FusionCore:
         if msg.seq % self.config.output_every:
             return []
         motion = pred.motion()
-        ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        ins_nav = self._ins_nav
+        if ins_nav is None:  # no IMU step on the horizon yet: the initial state
+            ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
         out: list[NavSolution] = []
         for name, get in [(FREE_INS, lambda: ins_nav)] + [
             (e.name, e.solution) for e in self.estimators if e.name not in self._failed
@@ -557,7 +560,7 @@ class FusionCore:
         dvel = np.asarray(msg.dvel_b_mps, dtype=np.float64)
         self._ins = self._sd.strapdown_step(self._ins, dtheta, dvel, dt_s)
         self._last_imu_ns = msg.stamp_ns
-        ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
         imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
         for est in self.estimators:
             if est.name in self._failed:

@@ -156,9 +156,9 @@ class OutputPredictor:
         dt, dq, dv, dp = motion
         if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
             return nav
-        qw, qx, qy, qz = (float(v) for v in nav.q_nb)
-        vn, ve, vd = (float(v) for v in nav.vel_ned_mps)
-        pn, pe, pd = (float(v) for v in nav.pos_ned_m)
+        qw, qx, qy, qz = np.asarray(nav.q_nb, dtype=np.float64).tolist()
+        vn, ve, vd = np.asarray(nav.vel_ned_mps, dtype=np.float64).tolist()
+        pn, pe, pd = np.asarray(nav.pos_ned_m, dtype=np.float64).tolist()
         cvx, cvy, cvz = _rot(qw, qx, qy, qz, *dv)
         cpx, cpy, cpz = _rot(qw, qx, qy, qz, *dp)
         rw, rx, ry, rz = _qmul(qw, qx, qy, qz, *dq)
