@@ -851,7 +851,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--fd", action="store_true")
     sim.add_argument(
         "--fusion-lag",
-        type=float,
+        type=bounded_float(0.0, 60.0, unit="s"),
         default=None,
         metavar="S",
         help="the fusion horizon's lag behind the newest IMU sample, the bound on a source's "
