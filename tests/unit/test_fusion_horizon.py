@@ -260,3 +260,29 @@ def test_rerun_verifies_a_sim_recording_whose_fixes_came_later_than_the_old_lag(
     # the fixes of the late period were fused: the last output's horizon took all but the last
     # ~0.5 s of validity + 0.3 s of latency worth of fixes
     assert max(s.gnss_seq for s in ekf) >= max(f.seq for f in fixes) - 9  # type: ignore[attr-defined]
+
+
+def test_the_predictor_after_many_reanchorings_measures_the_motion_a_fresh_one_does() -> None:
+    """The running sums move their anchor to the horizon every REANCHOR_STEPS samples; after
+    several moves the motion from the horizon is what a predictor started at the horizon
+    measures (to rounding: 1e-9 of a 0.5 s window's metres)."""
+    from hil.fusion.predictor import REANCHOR_STEPS
+
+    imus, _ = _inputs()
+    n = 3 * REANCHOR_STEPS + 57  # the drive's increments over and over, on stamps 5 ms apart
+    window = 100
+    samples = [(5_000_000 * (k + 1), imus[k % len(imus)]) for k in range(n)]
+    long = OutputPredictor(0, 9.81)
+    for k, (t, m) in enumerate(samples):
+        long.step(t, tuple(m.dtheta_b_rad), tuple(m.dvel_b_mps), m.dt_ns * 1e-9)  # type: ignore[arg-type]
+        if k >= window:
+            long.horizon_at(samples[k - window][0])
+    fresh = OutputPredictor(samples[n - 1 - window][0], 9.81)
+    for t, m in samples[n - window :]:
+        fresh.step(t, tuple(m.dtheta_b_rad), tuple(m.dvel_b_mps), m.dt_ns * 1e-9)  # type: ignore[arg-type]
+    a, b = long.motion(), fresh.motion()
+    assert len(long.entries) == window + 1
+    assert abs(a[0] - b[0]) < 1e-12
+    for x, y in zip(a[1:], b[1:], strict=True):
+        assert np.allclose(x, y, rtol=0, atol=1e-9), (x, y)
+    assert np.linalg.norm(b[3]) > 1.0  # a real motion: metres in the window
