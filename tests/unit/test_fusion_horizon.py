@@ -286,3 +286,26 @@ def test_the_predictor_after_many_reanchorings_measures_the_motion_a_fresh_one_d
     for x, y in zip(a[1:], b[1:], strict=True):
         assert np.allclose(x, y, rtol=0, atol=1e-9), (x, y)
     assert np.linalg.norm(b[3]) > 1.0  # a real motion: metres in the window
+
+
+def test_the_fusion_service_publishes_the_crossing_and_states_the_bound_in_its_status() -> None:
+    """The node around the core: a fix older than the horizon is an ``event/fusion`` of kind
+    ``latency_over_bound`` (once), and the status counters say the bound and the refusals."""
+    from hil.nodes.fusion import FusionNode, FusionOptions
+    from hil.runners.sim import SimOptions, sim_run_info
+
+    node = FusionNode(sim_run_info(SimOptions(scenario="straight_level", duration_s=5.0)), FusionOptions())
+    imus, fixes = _inputs()
+    outs = node.on_message("synced/imu", imus[0], imus[0].stamp_ns)
+    # the first IMU sample's arrival publishes every estimator's solution there, not 0.5 s later
+    assert sorted(k for k, _ in outs) == sorted(f"nav/{n}" for n in ("ins", *node.config.estimators))
+    assert all(m.stamp_ns == imus[0].stamp_ns for _, m in outs)
+    for m in imus[1:400]:  # 2 s of IMU
+        outs += node.on_message("synced/imu", m, m.stamp_ns)
+    for f in fixes[:3]:  # fixes valid at 0, 0.1, 0.2 s: 1.8 s old and more, beyond the 0.5 s bound
+        outs += node.on_message("synced/gnss", f, imus[399].stamp_ns)
+    events = [m for k, m in outs if k == "event/fusion"]
+    assert [e.kind for e in events] == ["latency_over_bound"]
+    assert "gnss:0" in events[0].detail
+    counters = node.counters()
+    assert counters["horizon_lag_ms"] == 500 and counters["dropped_late.gnss"] == 3
