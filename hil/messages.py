@@ -267,8 +267,8 @@ class FusionJournal(Message, frozen=True, kw_only=True):
 
     Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the inputs
     that were not used, as ``"<why>:<sensor>:<seq>[@<publisher>]"`` (why: ``late`` behind the
-    watermark (older than the latency bound), ``order`` an IMU sample behind a newer one (with the
-    output predictor), ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's
+    watermark (older than the latency bound), ``order`` an IMU sample at the stamp of another one
+    the output predictor holds, ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's
     bounded inbox, ``overflow`` evicted from the reorder buffer; the publisher is the Zenoh source id,
     absent offline). ``gated`` lists the GNSS fixes the integrity gate kept from estimators, as
     ``"<sensor>:<seq>[@<publisher>]"`` (from all) or ``"...>estimator"`` (from that one): not
@@ -280,6 +280,9 @@ class FusionJournal(Message, frozen=True, kw_only=True):
     consumed: int
     dropped: list[str] = []
     gated: list[str] = []
+    # IMU samples the fusion's horizon took but its output predictor did not (they arrived behind
+    # a newer one), as ``"imu:<seq>[@<publisher>]"``: rerun replays them the same way
+    unpredicted: list[str] = []
 
 
 class ServiceStatus(Message, frozen=True, kw_only=True):

@@ -12,10 +12,11 @@ the arrival of that sample; without it (recordings made before it, or
 ``lag_ns`` is thus the bound on a source's latency: an input older than the released horizon is
 refused (``late``, counted, journaled) and a source whose latency crosses the bound raises a
 ``latency_over_bound`` event (``latency_within_bound`` when it comes back). With the predictor an
-IMU sample that arrives behind a newer one is refused too (``order``): the IMU is the clock and the
-predictor's increments must come in order. Every refusal is named in ``take_dropped()`` -- the
-service journals those, so ``hil rerun`` feeds exactly the same sequence through ``replay()`` and
-gets every output bit for bit.
+IMU sample that arrives behind a newer one (a time sync step) still reaches the estimators on the
+horizon, but not the predictor, which has integrated past it: it is named in
+``take_unpredicted()``. Every refusal is named in ``take_dropped()``; the service journals both,
+so ``hil rerun`` feeds exactly the same sequence through ``replay()`` and gets every output bit
+for bit.
 """
 
 from __future__ import annotations
@@ -283,6 +284,7 @@ class FusionCore:
         self._newest_key: tuple[int, int, int] | None = None
         self._last_key: tuple[int, int, int] = (-(2**62), -1, -1)
         self._dropped: list[str] = []
+        self._unpredicted: list[str] = []  # IMU samples the horizon took and the predictor did not
         self._out_seq: dict[str, int] = {}
         self._last_imu_seq = -1
         self._last_gnss_seq = -1
@@ -332,30 +334,40 @@ class FusionCore:
             self._dropped.append("late:" + input_id(msg, source))
             self._beyond_bound(msg, source)
             return []
+        predicted = True
         if self.predictor is not None and pacer and self._newest_key is not None and key <= self._newest_key:
-            # behind a newer IMU sample: the predictor has integrated past it (or a second copy)
-            why = "dup" if key == self._newest_key else "order"
-            self._inc(f"dropped_{'duplicate' if why == 'dup' else why}.{msg.sensor}")
-            self._dropped.append(f"{why}:" + input_id(msg, source))
-            return []
+            # behind a newer IMU sample (a time sync step, say): the predictor has integrated past
+            # it, the horizon has not. A copy of one it holds is a duplicate.
+            same = self.predictor.seq_at(msg.stamp_ns)
+            if same is not None:
+                why = "dup" if same == msg.seq else "order"
+                self._inc(f"dropped_{'duplicate' if why == 'dup' else why}.{msg.sensor}")
+                self._dropped.append(f"{why}:" + input_id(msg, source))
+                return []
+            predicted = False
+            self._inc(f"unpredicted.{msg.sensor}")
+            self._unpredicted.append(input_id(msg, source))
         if self._gnss_min_gap_ns and msg.sensor == "gnss" and self._too_soon(msg.stamp_ns, source):
             self._inc("rejected.gnss_rate")
             self._dropped.append("rate:" + input_id(msg, source))
             return []
         if not pacer:
             self._within_bound(msg, source)
-        return self._accept(msg, source, key)
+        return self._accept(msg, source, key, predicted)
 
-    def replay(self, msg: Measurement, source: str = "") -> list[NavSolution]:
+    def replay(self, msg: Measurement, source: str = "", predicted: bool = True) -> list[NavSolution]:
         """An input the live fusion accepted, in the total order (``hil rerun``): the same path
-        as ``push`` after its admission rules, whose refusals the journal names."""
+        as ``push`` after its admission rules, whose refusals the journal names, as are the IMU
+        samples the output predictor did not take (``predicted`` False)."""
         if self.predictor is None:
             return self.process(msg, source)
-        return self._accept(msg, source, input_key(msg))
+        return self._accept(msg, source, input_key(msg), predicted)
 
-    def _accept(self, msg: Measurement, source: str, key: tuple[int, int, int]) -> list[NavSolution]:
+    def _accept(
+        self, msg: Measurement, source: str, key: tuple[int, int, int], predicted: bool = True
+    ) -> list[NavSolution]:
         """An admitted input: buffered, the horizon moved if it is an IMU sample, and (with the
-        predictor) the solutions at that sample."""
+        predictor, unless it came behind a newer sample) the solutions at that sample."""
         arrival = self._arrivals
         heapq.heappush(self._heap, (key, arrival, msg, source))
         self._arrivals += 1
@@ -376,7 +388,7 @@ class FusionCore:
             out = self._release(self._heap[0][0][0])
         else:
             out = self._release(self._newest_ns - self.config.lag_ns)
-        if self.predictor is not None and pacer:
+        if self.predictor is not None and pacer and predicted:
             out.extend(self._predicted(msg))  # type: ignore[arg-type]
         return out
 
@@ -426,7 +438,7 @@ class FusionCore:
         pred = self.predictor
         assert pred is not None
         d, v = msg.dtheta_b_rad, msg.dvel_b_mps
-        pred.step(msg.stamp_ns, (d[0], d[1], d[2]), (v[0], v[1], v[2]), msg.dt_ns * 1e-9)
+        pred.step(msg.stamp_ns, (d[0], d[1], d[2]), (v[0], v[1], v[2]), msg.dt_ns * 1e-9, msg.seq)
         if msg.seq % self.config.output_every:
             return []
         motion = pred.motion()
@@ -488,17 +500,21 @@ class FusionCore:
             consumed=self.consumed,
             dropped=self.take_dropped(),
             gated=self.take_gated(),
+            unpredicted=self.take_unpredicted(),
         )
 
     def journals(self, seqs: Callable[[], int], stamp_ns: int) -> list[FusionJournal]:
         """``journal`` cut into messages of at most ``JOURNAL_MAX_ENTRIES`` names each (a flood
         is thousands a second; one message stays far below the bus's payload limit)."""
-        dropped, gated = self.take_dropped(), self.take_gated()
+        dropped, gated, unpredicted = self.take_dropped(), self.take_gated(), self.take_unpredicted()
         n = JOURNAL_MAX_ENTRIES
         out: list[FusionJournal] = []
         while True:
             take_d, dropped = dropped[:n], dropped[n:]
-            take_g, gated = gated[: n - len(take_d)], gated[n - len(take_d) :]
+            room = n - len(take_d)
+            take_u, unpredicted = unpredicted[:room], unpredicted[room:]
+            room -= len(take_u)
+            take_g, gated = gated[:room], gated[room:]
             out.append(
                 FusionJournal(
                     seq=seqs(),
@@ -507,9 +523,10 @@ class FusionCore:
                     consumed=self.consumed,
                     dropped=take_d,
                     gated=take_g,
+                    unpredicted=take_u,
                 )
             )
-            if not dropped and not gated:
+            if not dropped and not gated and not unpredicted:
                 return out
 
     def take_dropped(self) -> list[str]:
@@ -518,6 +535,10 @@ class FusionCore:
 
     def take_gated(self) -> list[str]:
         out, self._gated = self._gated, []
+        return out
+
+    def take_unpredicted(self) -> list[str]:
+        out, self._unpredicted = self._unpredicted, []
         return out
 
     @property

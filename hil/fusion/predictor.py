@@ -90,13 +90,14 @@ class OutputPredictor:
         base: _Entry = (int(stamp_ns), 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         # entries from the horizon's (first) to the newest sample's (last)
         self.entries: deque[_Entry] = deque([base])
+        self.seqs: deque[int] = deque([-1])  # the IMU seq of each entry (the base's: -1)
         self._since_anchor = 0
 
     @property
     def newest_ns(self) -> int:
         return self.entries[-1][0]
 
-    def step(self, stamp_ns: int, dtheta: Vec3, dvel: Vec3, dt_s: float) -> None:
+    def step(self, stamp_ns: int, dtheta: Vec3, dvel: Vec3, dt_s: float, seq: int = -1) -> None:
         """One IMU interval ending at ``stamp_ns`` (the newest: stamps only increase here)."""
         _t, tt, qw, qx, qy, qz, vx, vy, vz, px, py, pz = self.entries[-1]
         tx, ty, tz = dtheta
@@ -114,6 +115,7 @@ class OutputPredictor:
         inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
         q = (rw * inv, rx * inv, ry * inv, rz * inv)
         self.entries.append((int(stamp_ns), tt + dt_s, *q, nx, ny, nz, px, py, pz))
+        self.seqs.append(seq)
         self._since_anchor += 1
         if self._since_anchor >= REANCHOR_STEPS:
             self._reanchor()
@@ -124,6 +126,17 @@ class OutputPredictor:
         e = self.entries
         while len(e) >= 2 and e[1][0] <= stamp_ns:
             e.popleft()
+            self.seqs.popleft()
+
+    def seq_at(self, stamp_ns: int) -> int | None:
+        """The seq of the sample held at exactly ``stamp_ns`` (None: none is): whether a sample
+        arriving behind the newest is a copy of one integrated (a rare path: a linear scan)."""
+        for entry, seq in zip(reversed(self.entries), reversed(self.seqs), strict=True):
+            if entry[0] == stamp_ns:
+                return seq
+            if entry[0] < stamp_ns:
+                return None
+        return None
 
     def _reanchor(self) -> None:
         """Express every entry relative to the horizon's (same motion, smaller sums)."""

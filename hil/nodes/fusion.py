@@ -139,10 +139,11 @@ class FusionNode(Node):
         node.core = FusionCore.for_scenario(node.scenario, config)
         return node
 
-    def replay(self, msg: Measurement, source: str = "") -> list[NavSolution]:
-        """One input the live fusion accepted, in the total order (``hil rerun``)."""
+    def replay(self, msg: Measurement, source: str = "", predicted: bool = True) -> list[NavSolution]:
+        """One input the live fusion accepted, in the total order (``hil rerun``); ``predicted``
+        False for an IMU sample its journal names ``unpredicted``."""
         assert self.core is not None
-        return self.core.replay(msg, source)
+        return self.core.replay(msg, source, predicted)
 
     def start(self, now_ns: int) -> list[Out]:
         return [("fusion/config", self.config.settings(self.next_seq("fusion/config"), now_ns))]

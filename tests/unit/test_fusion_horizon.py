@@ -309,3 +309,23 @@ def test_the_fusion_service_publishes_the_crossing_and_states_the_bound_in_its_s
     assert "gnss:0" in events[0].detail
     counters = node.counters()
     assert counters["horizon_lag_ms"] == 500 and counters["dropped_late.gnss"] == 3
+
+
+def test_an_imu_sample_behind_a_newer_one_reaches_the_horizon_not_the_predictor_and_is_journaled() -> None:
+    """A time sync step can put an IMU sample behind the newest: the estimators still take it
+    (in the total order, on the horizon), the predictor, past it already, does not; the journal
+    names it so rerun does the same. A copy of a sample already held is a duplicate."""
+    imus, _ = _inputs()
+    core = _core()
+    for m in imus[:100]:
+        core.push(m)
+    behind = imus[100]
+    for m in imus[101:110]:
+        core.push(m)
+    core.push(behind)  # 22.5 ms behind the newest, far ahead of the 0.5 s horizon
+    core.push(imus[105])  # a second copy of one the predictor holds
+    j = core.journal(0, imus[109].stamp_ns)
+    assert j.unpredicted == ["imu:100"] and j.dropped == ["dup:imu:105"]
+    assert core.counters["unpredicted.imu"] == 1
+    core.flush()
+    assert core.consumed == 110  # every distinct sample reached the estimators once
