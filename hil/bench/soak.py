@@ -35,7 +35,7 @@ import numpy as np
 from hil.bench import command_line, write_section
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Stats, Subscriber
-from hil.bus.session import BusConfig, open_session
+from hil.bus.session import open_session
 from hil.messages import ImuSample, NavSolution, RunInfo, ServiceStatus
 from hil.record.completeness import SeqTracker
 from hil.record.mcapio import SessionWriter
@@ -156,8 +156,9 @@ def soak_run(
         )
         probe = SoakProbe(rate_hz)
         k = Keys(rig)
-        hub = sup.hub_cfg
-        cfg = hub if hub.mode == "client" else BusConfig(mode="peer", connect=hub.listen, listen=())
+        # joins the hub as the rig's services do: a bare peer config lacks the per-run secret, and
+        # an authenticated hub lets it in to see nothing (0 samples read as 0 lost)
+        cfg = sup.child_bus
         rss: dict[str, list[tuple[float, int]]] = {}
         stop = threading.Event()
 
