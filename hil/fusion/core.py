@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState
+from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState, imu_bias_of
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.fusion.predictor import OutputPredictor
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
@@ -446,14 +446,18 @@ class FusionCore:
         if ins_nav is None:  # no IMU step on the horizon yet: the initial state
             ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
         out: list[NavSolution] = []
-        for name, get in [(FREE_INS, lambda: ins_nav)] + [
-            (e.name, e.solution) for e in self.estimators if e.name not in self._failed
-        ]:
+        try:
+            out.append(self._solution(FREE_INS, pred.predict(ins_nav, motion), msg.stamp_ns, msg.seq))
+        except ArithmeticError:
+            self._inc(f"errors.nonfinite.{FREE_INS}")
+        for est in self.estimators:
+            if est.name in self._failed:
+                continue
             try:
-                nav = pred.predict(get(), motion)
-                out.append(self._solution(name, nav, msg.stamp_ns, msg.seq))
+                nav = pred.predict(est.solution(), motion, imu_bias_of(est))
+                out.append(self._solution(est.name, nav, msg.stamp_ns, msg.seq))
             except ArithmeticError:
-                self._inc(f"errors.nonfinite.{name}")
+                self._inc(f"errors.nonfinite.{est.name}")
         return out
 
     def _too_soon(self, stamp_ns: int, source: str) -> bool:

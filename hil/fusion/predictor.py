@@ -35,7 +35,7 @@ from collections import deque
 
 import numpy as np
 
-from hil.nav.types import NavState
+from hil.nav.types import F64, NavState
 
 REANCHOR_STEPS = 4096
 
@@ -80,6 +80,29 @@ def _rot(qw: float, qx: float, qy: float, qz: float, x: float, y: float, z: floa
 def _rot_t(qw: float, qx: float, qy: float, qz: float, x: float, y: float, z: float) -> Vec3:
     """R(q)ᵀ v."""
     return _rot(qw, -qx, -qy, -qz, x, y, z)
+
+
+def without_bias(
+    dt: float, dq: Quat, dv: Vec3, dp: Vec3, bias: tuple[F64, F64]
+) -> tuple[Quat, Vec3, Vec3]:
+    """The motion as the IMU without its biases ``b_g``, ``b_a`` would have measured it: to
+    first order in the bias and in the rotation over the window (the pre-integration's bias
+    Jacobians with the body axes held, as the window turns a few degrees at most)::
+
+        ΔR ⊗ Exp(−b_g ΔT),   Δv − b_a ΔT + (f × b_g) ΔT²/2,   Δp − b_a ΔT²/2 + (f × b_g) ΔT³/6
+
+    with ``f = Δv / ΔT`` the mean specific force (the tilt a gyro bias builds, seen by it)."""
+    gx, gy, gz = np.asarray(bias[0], dtype=np.float64).tolist()
+    ax, ay, az = np.asarray(bias[1], dtype=np.float64).tolist()
+    if dt <= 0.0:
+        return dq, dv, dp
+    fx, fy, fz = dv[0] / dt, dv[1] / dt, dv[2] / dt
+    cx, cy, cz = fy * gz - fz * gy, fz * gx - fx * gz, fx * gy - fy * gx  # f × b_g
+    t2, t3 = 0.5 * dt * dt, dt * dt * dt / 6.0
+    dv2 = (dv[0] - ax * dt + cx * t2, dv[1] - ay * dt + cy * t2, dv[2] - az * dt + cz * t2)
+    dp2 = (dp[0] - ax * t2 + cx * t3, dp[1] - ay * t2 + cy * t3, dp[2] - az * t2 + cz * t3)
+    dq2 = _qmul(*dq, *_rotvec_quat(-gx * dt, -gy * dt, -gz * dt))
+    return dq2, dv2, dp2
 
 
 class OutputPredictor:
@@ -164,11 +187,14 @@ class OutputPredictor:
         dp = _rot_t(aw, ax, ay, az, kpx - apx - avx * dt, kpy - apy - avy * dt, kpz - apz - avz * dt)
         return dt, dq, dv, dp
 
-    def predict(self, nav: NavState, motion: Motion) -> NavState:
-        """``nav`` (an estimator's solution at the horizon) moved to the newest sample."""
+    def predict(self, nav: NavState, motion: Motion, bias: tuple[F64, F64] | None = None) -> NavState:
+        """``nav`` (an estimator's solution at the horizon) moved to the newest sample; with
+        ``bias`` (the gyro's and accelerometer's, body axes) removed from the motion first."""
         dt, dq, dv, dp = motion
         if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
             return nav
+        if bias is not None:
+            dq, dv, dp = without_bias(dt, dq, dv, dp, bias)
         qw, qx, qy, qz = np.asarray(nav.q_nb, dtype=np.float64).tolist()
         vn, ve, vd = np.asarray(nav.vel_ned_mps, dtype=np.float64).tolist()
         pn, pe, pd = np.asarray(nav.pos_ned_m, dtype=np.float64).tolist()
