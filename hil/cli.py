@@ -39,6 +39,23 @@ def _default_record_path(scenario: str) -> Path:
     return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
 
 
+def _add_fusion_args(p: argparse.ArgumentParser) -> None:
+    """The fusion's horizon and output predictor (docs/concepts.md, Fusion)."""
+    p.add_argument(
+        "--fusion-lag",
+        type=bounded_float(0.0, 60.0, unit="s"),
+        default=None,
+        metavar="S",
+        help="the fusion horizon's lag behind the newest IMU sample, the bound on a source's "
+        "latency (default: the fusion's, 0.5)",
+    )
+    p.add_argument(
+        "--no-output-predictor",
+        action="store_true",
+        help="publish the fusion horizon's state, lag late (the fusion before the output predictor)",
+    )
+
+
 def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) -> None:
     p.add_argument("--scenario", default="straight_level", help="built-in name or path to a scenario TOML")
     p.add_argument("--duration", type=duration_s, default=default_duration, help="seconds of rig time")
@@ -337,6 +354,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 estimators=[e for e in a.estimators.split(",") if e],
                 feedback=a.feedback,
                 ekf_calibration=a.ekf_calibration,
+                output_predictor=not a.no_output_predictor,
+                **({} if a.fusion_lag is None else {"lag_s": a.fusion_lag}),
                 fd=a.fd,
                 on_progress=on_progress,
                 imu_rate_hz=a.imu_rate,
@@ -854,6 +873,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")
     _add_run_args(sim, None)
     sim.add_argument("--fd", action="store_true")
+    _add_fusion_args(sim)
     _add_gnss_wire_args(sim)
     sim.add_argument("--quiet", action="store_true")
     sim.add_argument(

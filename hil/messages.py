@@ -267,8 +267,9 @@ class FusionJournal(Message, frozen=True, kw_only=True):
 
     Inputs are consumed in the total order (stamp_ns, source, seq); ``dropped`` lists the inputs
     that were not used, as ``"<why>:<sensor>:<seq>[@<publisher>]"`` (why: ``late`` behind the
-    watermark, ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's bounded
-    inbox, ``overflow`` evicted from the reorder buffer; the publisher is the Zenoh source id,
+    watermark (older than the latency bound), ``order`` an IMU sample at the stamp of another one
+    the output predictor holds, ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's
+    bounded inbox, ``overflow`` evicted from the reorder buffer; the publisher is the Zenoh source id,
     absent offline). ``gated`` lists the GNSS fixes the integrity gate kept from estimators, as
     ``"<sensor>:<seq>[@<publisher>]"`` (from all) or ``"...>estimator"`` (from that one): not
     needed to rerun (the gate is deterministic), but the record of what was refused and why.
@@ -279,6 +280,9 @@ class FusionJournal(Message, frozen=True, kw_only=True):
     consumed: int
     dropped: list[str] = []
     gated: list[str] = []
+    # IMU samples the fusion's horizon took but its output predictor did not (they arrived behind
+    # a newer one), as ``"imu:<seq>[@<publisher>]"``: rerun replays them the same way
+    unpredicted: list[str] = []
 
 
 class ServiceStatus(Message, frozen=True, kw_only=True):
@@ -355,6 +359,9 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     gnss_gate_reference: str = ""
     gnss_sigma_floor: bool = False
     gnss_min_interval: float = 0.0
+    # the output predictor (hil.fusion.predictor); absent in recordings made before it, which
+    # published the horizon's state lag_ns late
+    output_predictor: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

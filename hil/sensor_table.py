@@ -39,7 +39,7 @@ class SensorKind:
     message: type[Message]  # raw (sensor/<name>) and re-stamped (synced/<name>) type
     rank: int  # order at equal rig stamps in the fusion's total order (lower first)
     emulator: str  # the node (and service) that emulates the device
-    paces_fusion: bool = False  # its stamps move the fusion's watermark (the IMU is the clock)
+    paces_fusion: bool = False  # its stamps move the fusion's horizon (the IMU is the clock)
     # run-time faults (``hil fault KIND``): kind -> the params a FaultCommand may carry
     commands: Mapping[str, frozenset[str]] = field(default_factory=dict)
     # timed faults in the scenario's [[event]] table: kind -> the keys the event may carry

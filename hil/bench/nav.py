@@ -133,7 +133,7 @@ def replay(rec: Recorded, config: FusionConfig) -> dict[str, Track]:
     n_imu = 0
     for m in rec.inputs:
         n_imu += m.sensor == "imu"
-        for s in core.process(m):
+        for s in core.replay(m):
             if s.seq % every == 0:
                 sols.setdefault(s.estimator, []).append(s)
     cost = (time.perf_counter() - t0) / max(n_imu, 1) * 1e6

@@ -98,9 +98,10 @@ def _one_rig(a: argparse.Namespace, rig: str) -> tuple[int, list[str]]:
             )
     lines += [
         "",
-        "The fused outputs lag by the fusion's watermark (`lag_s`, default 0.2 s): inputs are consumed in "
-        "the total order once every GNSS fix that could still be valid before them has had time to arrive, "
-        "which is what makes the fusion deterministic and GNSS fused at its time of validity.",
+        "The estimators run on the fusion's delayed horizon (`lag_s`, default 0.5 s): inputs are consumed "
+        "in the total order once every GNSS fix that could still be valid before them has had time to "
+        "arrive, which is what makes the fusion deterministic and GNSS fused at its time of validity; the "
+        "output predictor publishes at each IMU sample's arrival (docs/concepts.md, Fusion).",
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores; the tail "
         "(p99, max) is sensitive to other work on the machine. "
         "The first second holds the start-up transient.",

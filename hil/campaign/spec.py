@@ -52,7 +52,7 @@ class SpecError(ValueError):
 
 @dataclass(frozen=True)
 class FusionSetup:
-    """One fusion configuration: which estimators, the watermark lag, the output decimation."""
+    """One fusion configuration: which estimators, the horizon lag, the output decimation."""
 
     name: str
     estimators: tuple[str, ...] = DEFAULT_ESTIMATORS

@@ -64,6 +64,13 @@ class Estimator:
         """Innovation test ratios, NIS, gains, bias norms, counts: published as ``hil.EstimatorHealth``."""
         return {}
 
+    def imu_bias(self) -> tuple[F64, F64] | None:
+        """The gyro (rad/s) and accelerometer (m/s²) biases this estimator removes from the IMU
+        increments, in body axes, or None if it removes none: the output predictor removes them
+        too when it carries the estimator's state forward. Found as ``b_g``/``b_a`` on the
+        estimator (ekf15) or on its feedback INS (``loop``, the seed family in feedback form)."""
+        return imu_bias_of(self)
+
     def handler(self, sensor: str) -> Callable[[Any, NavState], None] | None:
         """The method taking ``sensor``'s measurements, or None if this estimator takes none
         (the base class's no-op, or no ``on_<sensor>`` at all): resolved once, not per input."""
@@ -72,6 +79,15 @@ class Estimator:
             return None
         bound: Callable[[Any, NavState], None] = getattr(self, f"on_{sensor}")
         return bound
+
+
+def imu_bias_of(est: Any) -> tuple[F64, F64] | None:
+    """``Estimator.imu_bias`` for any object keeping the contract (see there)."""
+    for holder in (est, getattr(est, "loop", None)):
+        b_g, b_a = getattr(holder, "b_g", None), getattr(holder, "b_a", None)
+        if b_g is not None and b_a is not None:
+            return np.asarray(b_g, dtype=np.float64), np.asarray(b_a, dtype=np.float64)
+    return None
 
 
 def gnss_input(msg: Any) -> GnssInput | None:

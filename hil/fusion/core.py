@@ -1,12 +1,22 @@
 """Fusion core: synchronised inputs in a total order, the shared free INS, estimators side by side.
 
-Pure and deterministic: no I/O, no clock. Inputs arrive in any order; they are released in the
-total order ``(stamp_ns, source rank, seq)`` once they are older than the watermark
-``newest stamp seen - lag_ns`` (so a GNSS fix that arrives late, but within the lag, is still
-fused at its time of validity between the IMU steps around it). An input that arrives behind the
-released watermark is dropped and named in ``take_dropped()`` -- the service journals those, so
-``hil rerun`` feeds exactly the same sequence through ``process()`` and gets every output bit for
-bit.
+Pure and deterministic: no I/O, no clock. Inputs arrive in any order; the estimators take them in
+the total order ``(stamp_ns, source rank, seq)`` on a delayed fusion horizon, the watermark
+``newest IMU stamp - lag_ns``: a GNSS fix that arrives late, but within the lag, is fused at its
+time of validity between the IMU steps around it. With the output predictor (the default,
+``hil.fusion.predictor``: PX4 EKF2's scheme) what is published is not the horizon's state but
+each estimator's horizon state carried to the newest IMU sample by the IMU increments since, at
+the arrival of that sample; without it (recordings made before it, or
+``output_predictor=False``), the horizon's state is published as it is reached, ``lag`` late.
+
+``lag_ns`` is thus the bound on a source's latency: an input older than the released horizon is
+refused (``late``, counted, journaled) and a source whose latency crosses the bound raises a
+``latency_over_bound`` event (``latency_within_bound`` when it comes back). With the predictor an
+IMU sample that arrives behind a newer one (a time sync step) still reaches the estimators on the
+horizon, but not the predictor, which has integrated past it: it is named in
+``take_unpredicted()``. Every refusal is named in ``take_dropped()``; the service journals both,
+so ``hil rerun`` feeds exactly the same sequence through ``replay()`` and gets every output bit
+for bit.
 """
 
 from __future__ import annotations
@@ -19,8 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState
+from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState, imu_bias_of
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
+from hil.fusion.predictor import OutputPredictor
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.types import NavState
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
@@ -31,7 +42,9 @@ FREE_INS = "ins"
 @dataclass(frozen=True)
 class FusionConfig:
     estimators: tuple[str, ...] = ()
-    lag_ns: int = 200_000_000  # > worst GNSS latency + jitter, so fixes are fused in time order
+    # the fusion horizon's delay behind the newest IMU stamp, and so the bound on a source's
+    # latency: > worst GNSS latency + jitter (0.1 s; car_drive's latency event 0.25 + 0.02 s)
+    lag_ns: int = 500_000_000
     output_every: int = 8  # publish every N-th IMU step (by IMU seq: deterministic under loss)
     max_future_ns: int = 5_000_000_000  # an input this far ahead of the newest is rejected, not trusted
     max_buffered: int = 20_000  # bound on the reorder buffer (e.g. GNSS during an IMU outage)
@@ -61,6 +74,9 @@ class FusionConfig:
     # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
     # and a flood of copies must not cost an estimator update each (0: no such rule)
     gnss_min_interval: float = 0.5
+    # publish each estimator's horizon state carried to the newest IMU sample (hil.fusion.predictor);
+    # False: publish the horizon's state when it is reached, lag_ns late (the fusion before it)
+    output_predictor: bool = True
 
     @property
     def lag_s(self) -> float:
@@ -90,6 +106,7 @@ class FusionConfig:
             gnss_gate_reference=self.gnss_gate_reference,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
+            output_predictor=self.output_predictor,
         )
 
     def gate_settings(self) -> GateSettings:
@@ -159,6 +176,7 @@ def parse_journal_id(entry: str) -> tuple[str, str, str]:
     return "", body, source
 
 
+BOUND_CLEAR_NS = 1_000_000_000  # a source beyond the latency bound is back after this long without a refusal
 JOURNAL_MAX_ENTRIES = 1_000  # per journal message: a flood's decisions go out in several
 
 
@@ -263,12 +281,27 @@ class FusionCore:
         self._future_lead_ns: int | None = None
         self._future_run = 0
         self._newest_ns: int | None = None
+        self._newest_key: tuple[int, int, int] | None = None
         self._last_key: tuple[int, int, int] = (-(2**62), -1, -1)
         self._dropped: list[str] = []
+        self._unpredicted: list[str] = []  # IMU samples the horizon took and the predictor did not
         self._out_seq: dict[str, int] = {}
         self._last_imu_seq = -1
         self._last_gnss_seq = -1
         self.consumed = 0
+        # the output predictor (None: the horizon's state is published), the horizon released
+        # so far (an input at or before it is late), the sources now beyond the bound, and the
+        # latency events not yet taken
+        self.predictor: OutputPredictor | None = None
+        self._ins_nav: NavState | None = None  # the free INS at the horizon, as estimators saw it
+        if cfg.output_predictor:
+            g = self._sd._gravity(self.init.lat_rad, self.init.alt_m)
+            self.predictor = OutputPredictor(self.init.stamp_ns, g)
+        self._horizon_ns = -(2**62)
+        self._over_bound: set[str] = set()
+        self._latency_events: list[Transition] = []
+        self._latency_max_ns: dict[str, int] = {}
+        self._last_refused_ns: dict[str, int] = {}
 
     # -- arrival side (live) ---------------------------------------------------------------
     def push(self, msg: Measurement, source: str = "") -> list[NavSolution]:
@@ -294,30 +327,138 @@ class FusionCore:
             self._inc("input_gaps")
             self._newest_ns = msg.stamp_ns
         self._future_lead_ns, self._future_run = None, 0
-        if key <= self._last_key:
+        pacer = msg.sensor in self._pacer
+        late = msg.stamp_ns <= self._horizon_ns if self.predictor is not None else key <= self._last_key
+        if late:
             self._inc(f"dropped_late.{msg.sensor}")
             self._dropped.append("late:" + input_id(msg, source))
+            self._beyond_bound(msg, source)
             return []
+        predicted = True
+        if self.predictor is not None and pacer and self._newest_key is not None and key <= self._newest_key:
+            # behind a newer IMU sample (a time sync step, say): the predictor has integrated past
+            # it, the horizon has not. A copy of one it holds is a duplicate.
+            same = self.predictor.seq_at(msg.stamp_ns)
+            if same is not None:
+                why = "dup" if same == msg.seq else "order"
+                self._inc(f"dropped_{'duplicate' if why == 'dup' else why}.{msg.sensor}")
+                self._dropped.append(f"{why}:" + input_id(msg, source))
+                return []
+            predicted = False
+            self._inc(f"unpredicted.{msg.sensor}")
+            self._unpredicted.append(input_id(msg, source))
         if self._gnss_min_gap_ns and msg.sensor == "gnss" and self._too_soon(msg.stamp_ns, source):
             self._inc("rejected.gnss_rate")
             self._dropped.append("rate:" + input_id(msg, source))
             return []
+        if not pacer:
+            self._within_bound(msg, source)
+        return self._accept(msg, source, key, predicted)
+
+    def replay(self, msg: Measurement, source: str = "", predicted: bool = True) -> list[NavSolution]:
+        """An input the live fusion accepted, in the total order (``hil rerun``): the same path
+        as ``push`` after its admission rules, whose refusals the journal names, as are the IMU
+        samples the output predictor did not take (``predicted`` False)."""
+        if self.predictor is None:
+            return self.process(msg, source)
+        return self._accept(msg, source, input_key(msg), predicted)
+
+    def _accept(
+        self, msg: Measurement, source: str, key: tuple[int, int, int], predicted: bool = True
+    ) -> list[NavSolution]:
+        """An admitted input: buffered, the horizon moved if it is an IMU sample, and (with the
+        predictor, unless it came behind a newer sample) the solutions at that sample."""
         arrival = self._arrivals
         heapq.heappush(self._heap, (key, arrival, msg, source))
         self._arrivals += 1
         # The IMU is the fusion's clock: only its progress moves the watermark, so a GNSS fix that
         # arrives before the IMU samples around its time of validity waits for them.
-        if msg.sensor in self._pacer:
+        pacer = msg.sensor in self._pacer
+        if pacer:
             if self._newest_ns is None or msg.stamp_ns > self._newest_ns:
                 self._newest_ns = msg.stamp_ns
+            if self._newest_key is None or key > self._newest_key:
+                self._newest_key = key
         elif self.config.max_buffered_aiding > 0:
             self._hold_aiding(key, arrival, msg, source)
         if self._newest_ns is None:
             return []
         if len(self._heap) - len(self._evicted) > self.config.max_buffered:
             self._inc("released_on_overflow")
-            return self._release(self._heap[0][0][0])
-        return self._release(self._newest_ns - self.config.lag_ns)
+            out = self._release(self._heap[0][0][0])
+        else:
+            out = self._release(self._newest_ns - self.config.lag_ns)
+        if self.predictor is not None and pacer and predicted:
+            out.extend(self._predicted(msg))  # type: ignore[arg-type]
+        return out
+
+    def _beyond_bound(self, msg: Measurement, source: str) -> None:
+        """A source's input refused as older than the horizon: an event when the source crosses
+        the bound (not for each input)."""
+        if self._newest_ns is None:
+            return
+        self._last_refused_ns[msg.sensor] = self._newest_ns
+        if msg.sensor in self._over_bound:
+            return
+        self._over_bound.add(msg.sensor)
+        self._inc(f"latency_over_bound.{msg.sensor}")
+        late_s = (self._newest_ns - msg.stamp_ns) / 1e9
+        detail = (
+            f"{input_id(msg, source)} arrived {late_s:.3f} s after its time of validity, behind the "
+            f"fusion horizon ({self.config.lag_s:g} s behind the newest IMU sample): refused; raise "
+            f"the fusion's lag_s to fuse this source"
+        )
+        self._latency_events.append(Transition("latency_over_bound", msg.sensor, self._newest_ns, detail))
+
+    def _within_bound(self, msg: Measurement, source: str) -> None:
+        """An aiding input taken in: its latency (how far behind the newest IMU sample it came)
+        for the status, and the event when its source is back within the bound (none of its
+        inputs refused for ``BOUND_CLEAR_NS``: a latency wavering about the bound is one
+        episode, not an event per input)."""
+        if self._newest_ns is None:
+            return
+        late = self._newest_ns - msg.stamp_ns
+        if late > self._latency_max_ns.get(msg.sensor, -(2**62)):
+            self._latency_max_ns[msg.sensor] = late
+        refused = self._last_refused_ns.get(msg.sensor, -(2**62))
+        if msg.sensor in self._over_bound and self._newest_ns - refused >= BOUND_CLEAR_NS:
+            self._over_bound.discard(msg.sensor)
+            detail = f"{input_id(msg, source)} arrived {late / 1e9:.3f} s after its time of validity: fused"
+            event = Transition("latency_within_bound", msg.sensor, self._newest_ns, detail)
+            self._latency_events.append(event)
+
+    def take_latency_events(self) -> list[Transition]:
+        """Sources that crossed the latency bound (either way) since the last call."""
+        out, self._latency_events = self._latency_events, []
+        return out
+
+    def _predicted(self, msg: ImuSample) -> list[NavSolution]:
+        """The newest IMU sample into the predictor, and at every ``output_every``-th the
+        solutions there: each horizon state carried forward by the IMU's motion since."""
+        pred = self.predictor
+        assert pred is not None
+        d, v = msg.dtheta_b_rad, msg.dvel_b_mps
+        pred.step(msg.stamp_ns, (d[0], d[1], d[2]), (v[0], v[1], v[2]), msg.dt_ns * 1e-9, msg.seq)
+        if msg.seq % self.config.output_every:
+            return []
+        motion = pred.motion()
+        ins_nav = self._ins_nav
+        if ins_nav is None:  # no IMU step on the horizon yet: the initial state
+            ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        out: list[NavSolution] = []
+        try:
+            out.append(self._solution(FREE_INS, pred.predict(ins_nav, motion), msg.stamp_ns, msg.seq))
+        except ArithmeticError:
+            self._inc(f"errors.nonfinite.{FREE_INS}")
+        for est in self.estimators:
+            if est.name in self._failed:
+                continue
+            try:
+                nav = pred.predict(est.solution(), motion, imu_bias_of(est))
+                out.append(self._solution(est.name, nav, msg.stamp_ns, msg.seq))
+            except ArithmeticError:
+                self._inc(f"errors.nonfinite.{est.name}")
+        return out
 
     def _too_soon(self, stamp_ns: int, source: str) -> bool:
         """A fix of this publisher within the rate rule's gap of its last one taken in."""
@@ -363,17 +504,21 @@ class FusionCore:
             consumed=self.consumed,
             dropped=self.take_dropped(),
             gated=self.take_gated(),
+            unpredicted=self.take_unpredicted(),
         )
 
     def journals(self, seqs: Callable[[], int], stamp_ns: int) -> list[FusionJournal]:
         """``journal`` cut into messages of at most ``JOURNAL_MAX_ENTRIES`` names each (a flood
         is thousands a second; one message stays far below the bus's payload limit)."""
-        dropped, gated = self.take_dropped(), self.take_gated()
+        dropped, gated, unpredicted = self.take_dropped(), self.take_gated(), self.take_unpredicted()
         n = JOURNAL_MAX_ENTRIES
         out: list[FusionJournal] = []
         while True:
             take_d, dropped = dropped[:n], dropped[n:]
-            take_g, gated = gated[: n - len(take_d)], gated[n - len(take_d) :]
+            room = n - len(take_d)
+            take_u, unpredicted = unpredicted[:room], unpredicted[room:]
+            room -= len(take_u)
+            take_g, gated = gated[:room], gated[room:]
             out.append(
                 FusionJournal(
                     seq=seqs(),
@@ -382,9 +527,10 @@ class FusionCore:
                     consumed=self.consumed,
                     dropped=take_d,
                     gated=take_g,
+                    unpredicted=take_u,
                 )
             )
-            if not dropped and not gated:
+            if not dropped and not gated and not unpredicted:
                 return out
 
     def take_dropped(self) -> list[str]:
@@ -395,12 +541,19 @@ class FusionCore:
         out, self._gated = self._gated, []
         return out
 
+    def take_unpredicted(self) -> list[str]:
+        out, self._unpredicted = self._unpredicted, []
+        return out
+
     @property
     def watermark_ns(self) -> int:
         return self._last_key[0]
 
     def _release(self, watermark_ns: int) -> list[NavSolution]:
         out: list[NavSolution] = []
+        # everything at or before the watermark has now been taken: a later arrival stamped
+        # there is late (outputs already went out without it, so it must not be fused after)
+        self._horizon_ns = max(self._horizon_ns, watermark_ns)
         while self._heap and self._heap[0][0][0] <= watermark_ns:
             key, arrival, msg, source = heapq.heappop(self._heap)
             if arrival in self._evicted:
@@ -425,12 +578,14 @@ class FusionCore:
         return []
 
     def _on_imu(self, msg: ImuSample) -> list[NavSolution]:
+        if self.predictor is not None:
+            self.predictor.horizon_at(msg.stamp_ns)
         dt_s = msg.dt_ns * 1e-9
         dtheta = np.asarray(msg.dtheta_b_rad, dtype=np.float64)
         dvel = np.asarray(msg.dvel_b_mps, dtype=np.float64)
         self._ins = self._sd.strapdown_step(self._ins, dtheta, dvel, dt_s)
         self._last_imu_ns = msg.stamp_ns
-        ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
         imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
         for est in self.estimators:
             if est.name in self._failed:
@@ -440,7 +595,7 @@ class FusionCore:
             except Exception as err:
                 self._fail(est.name, err)
         self._last_imu_seq = msg.seq
-        if msg.seq % self.config.output_every:
+        if self.predictor is not None or msg.seq % self.config.output_every:
             return []
         out: list[NavSolution] = []
         for name, get in [(FREE_INS, lambda: ins_nav)] + [
@@ -516,7 +671,7 @@ class FusionCore:
         self._inc(f"errors.estimator_failed.{name}")
         self.last_error = f"estimator {name} failed: {type(err).__name__}: {err}"
 
-    def _solution(self, name: str, nav: NavState, stamp_ns: int) -> NavSolution:
+    def _solution(self, name: str, nav: NavState, stamp_ns: int, imu_seq: int | None = None) -> NavSolution:
         from hil.nav.earth import ned_to_lla
 
         parts = [nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb]
@@ -544,7 +699,7 @@ class FusionCore:
             pos_sigma_m=[] if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
             vel_sigma_mps=[] if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
             att_sigma_rad=[] if nav.att_sigma_rad is None else [float(v) for v in nav.att_sigma_rad],
-            imu_seq=self._last_imu_seq,
+            imu_seq=self._last_imu_seq if imu_seq is None else imu_seq,
             gnss_seq=self._last_gnss_seq,
         )
 
@@ -554,6 +709,9 @@ class FusionCore:
         out["buffered"] = len(self._heap) - len(self._evicted)
         out["buffered_aiding"] = len(self._aiding_live)
         out["consumed"] = self.consumed
+        out["horizon_lag_ms"] = round(self.config.lag_ns / 1e6)  # the latency bound
+        for sensor, late in self._latency_max_ns.items():
+            out[f"latency_max_ms.{sensor}"] = round(late / 1e6)
         return out
 
     def take_gate_events(self) -> list[Transition]:

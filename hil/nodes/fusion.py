@@ -1,7 +1,10 @@
 """The fusion: every estimator on the same synchronised inputs, each on ``nav/<estimator>``.
 
-Inputs go to the pure ``hil.fusion.core.FusionCore`` in arrival order; it releases them in the
-total order behind its watermark and journals what it dropped. Every half second of rig time
+Inputs go to the pure ``hil.fusion.core.FusionCore`` in arrival order; its estimators take them
+in the total order on a delayed horizon (``lag_s`` behind the newest IMU sample, which is also
+the bound on a source's latency), and at each IMU sample's arrival the output predictor publishes
+every estimator's state at that sample (docs/concepts.md, "Fusion"). It journals what it dropped;
+a source whose latency crosses the bound raises a ``latency_over_bound`` event. Every half second of rig time
 the node publishes that journal on ``fusion/journal`` -- with the recorded inputs, all
 ``hil rerun`` needs -- and every second each estimator's health as real numbers
 (``health/<estimator>``, ``hil.EstimatorHealth``). Its configuration goes out once at start as
@@ -48,7 +51,11 @@ DEFAULT_OUTPUT_EVERY = _DEFAULT.output_every
 class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
     # empty: the registry's defaults (hil.estimators.registry)
     estimators: list[str] = msgspec.field(default_factory=list)
-    lag_s: float = DEFAULT_LAG_S  # the watermark's lag behind the newest IMU stamp
+    # the fusion horizon's lag behind the newest IMU stamp: the bound on a source's latency
+    lag_s: float = DEFAULT_LAG_S
+    # publish at each IMU sample (the horizon's state carried forward by the IMU); False: the
+    # horizon's state, lag_s late (the fusion before the predictor)
+    output_predictor: bool = True
     output_every: int = DEFAULT_OUTPUT_EVERY  # publish every N-th IMU step
     # seed estimators in feedback form: "auto" (by the IMU grade), "none", or names (a,b)
     feedback: str = "auto"
@@ -94,6 +101,7 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
             output_every=self.output_every,
             feedback=feedback,
             ekf_calibration=cal,
+            output_predictor=self.output_predictor,
         )
 
 
@@ -131,10 +139,11 @@ class FusionNode(Node):
         node.core = FusionCore.for_scenario(node.scenario, config)
         return node
 
-    def replay(self, msg: Measurement, source: str = "") -> list[NavSolution]:
-        """One input already in the total order (``hil rerun``): the core's ``process``."""
+    def replay(self, msg: Measurement, source: str = "", predicted: bool = True) -> list[NavSolution]:
+        """One input the live fusion accepted, in the total order (``hil rerun``); ``predicted``
+        False for an IMU sample its journal names ``unpredicted``."""
         assert self.core is not None
-        return self.core.process(msg, source)
+        return self.core.replay(msg, source, predicted)
 
     def start(self, now_ns: int) -> list[Out]:
         return [("fusion/config", self.config.settings(self.next_seq("fusion/config"), now_ns))]
@@ -162,6 +171,8 @@ class FusionNode(Node):
             core.last_error = ""
         outs = _nav(sols)
         for t in core.take_gate_events():  # an integrity alarm raised or cleared
+            outs.append(self.event(t.kind, t.detail, t.stamp_ns))
+        for t in core.take_latency_events():  # a source crossed the latency bound
             outs.append(self.event(t.kind, t.detail, t.stamp_ns))
         return outs
 

@@ -130,6 +130,7 @@ class _FusionRerun:
     heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = field(default_factory=list)
     present: Counter[str] = field(default_factory=Counter)  # copies of each input still in the heap
     dropped: Counter[str] = field(default_factory=Counter)
+    unpredicted: set[str] = field(default_factory=set)  # IMU samples the live predictor did not take
     rerun_ids: SeqSet = field(default_factory=SeqSet)
     last_key: tuple[int, int, int] | None = None
     newest_ns: int = -(2**63)
@@ -209,6 +210,12 @@ class _FusionRerun:
             if seq.isdigit() and (_stream(sensor, source), int(seq)) in self.rerun_ids:
                 raise OutOfWindow(f"the journal drops {d} after it was rerun")
             self.dropped[f"{name}@{source}" if source else name] += 1
+        for u in j.unpredicted:
+            name, _, source = u.partition("@")
+            sensor, _, seq = name.partition(":")
+            if seq.isdigit() and (_stream(sensor, source), int(seq)) in self.rerun_ids:
+                raise OutOfWindow(f"the journal names {u} unpredicted after it was rerun")
+            self.unpredicted.add(u)
 
     def release(self, upto_ns: int | None) -> None:
         """Inputs older than ``upto_ns`` (all: None), in the total order, through the core."""
@@ -226,7 +233,7 @@ class _FusionRerun:
             if self.present.pop(i) - self.dropped[i] <= 0:
                 continue
             self.used += 1
-            for sol in node.replay(msg, source):
+            for sol in node.replay(msg, source, i not in self.unpredicted):
                 if self.keep_outputs:
                     self.outputs.append(sol)
                 if sol.estimator in self.produced:

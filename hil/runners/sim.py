@@ -74,6 +74,7 @@ class SimOptions:
     gnss_messages: list[str] = field(default_factory=list)
     lag_s: float = DEFAULT_LAG_S
     output_every: int = DEFAULT_OUTPUT_EVERY
+    output_predictor: bool = True  # False: the fusion publishes its horizon's state, lag_s late
     progress: bool = False
     on_progress: Any = None  # callable(rig_s_done, rig_s_total), called once per simulated second
     on_warning: Callable[[str], None] | None = None  # default: "hil sim: warning: ..." on stderr
@@ -294,6 +295,7 @@ def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
         estimators=list(opts.estimators),
         lag_s=opts.lag_s,
         output_every=opts.output_every,
+        output_predictor=opts.output_predictor,
         feedback=opts.feedback,
         ekf_calibration=opts.ekf_calibration,
     )

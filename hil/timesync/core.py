@@ -34,7 +34,7 @@ same tests as above) is only a *suspicion*: a step is declared when a tag innova
 gate agrees with it (whichever comes first), or by the filter's own two consistent outliers.
 A tag that fits dismisses the suspicion. Nothing is held: the stamp comes from the tag mapping,
 which added transport delay does not move, and holding until the next tag (1 s for the IMU) would
-outlast what the fusion accepts (a 0.2 s watermark). The price of a real step is the samples
+outlast what the fusion accepts (its 0.5 s horizon). The price of a real step is the samples
 between it and the confirming tag (at most one tag period), stamped with the old mapping.
 
 Start-up hold (``hold_until_locked_ns``, set for the IMU): before the tag filter has locked (three

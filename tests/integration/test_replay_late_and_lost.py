@@ -4,8 +4,10 @@ fusion process.
 
 The session is built from the golden recording's inputs the way the live rig would have seen
 them: every 97th IMU sample never arrives (lost upstream: neither fusion nor recorder has it),
-a few IMU samples arrive 300 ms late (behind the 200 ms watermark: the fusion drops and journals
-them), a few GNSS fixes arrive 100 ms late (inside the lag: fused at their time of validity).
+a few IMU samples arrive 600 ms late (behind the fusion's 0.5 s horizon: dropped and journaled),
+a few 300 ms late (behind newer ones but ahead of the horizon: the estimators take them, the
+output predictor, which has integrated past them, does not; journaled ``unpredicted``), a few
+GNSS fixes arrive 100 ms late (inside the horizon's lag: fused at their time of validity).
 The fusion core is pushed in that arrival order with the live service's journaling.
 """
 
@@ -39,21 +41,24 @@ def build_lossy_session(path: Path) -> tuple[int, int]:
     assert isinstance(run, RunInfo)
     inputs = [r.decode() for r in src.records if "/synced/" in r.topic]
     arrivals: list[tuple[int, int, ImuSample | GnssFix]] = []
-    late_imu = late_gnss = 0
+    late_imu = behind_imu = late_gnss = 0
     for i, m in enumerate(inputs):
         assert isinstance(m, ImuSample | GnssFix)
         t = m.stamp_ns
         if isinstance(m, ImuSample) and m.seq % 97 == 50:
             continue  # lost upstream
         if isinstance(m, ImuSample) and m.seq % 331 == 100:
-            t += 300_000_000
+            t += 600_000_000
             late_imu += 1
+        if isinstance(m, ImuSample) and m.seq % 331 == 200:
+            t += 300_000_000
+            behind_imu += 1
         if isinstance(m, GnssFix) and m.seq % 7 == 3:
             t += 100_000_000
             late_gnss += 1
         arrivals.append((t, i, m))
     arrivals.sort(key=lambda a: (a[0], a[1]))
-    assert late_imu >= 3 and late_gnss >= 3
+    assert late_imu >= 3 and behind_imu >= 3 and late_gnss >= 3
     k = Keys(RIG)
     core = FusionCore.for_scenario(scenario_for_run(run), cfg)
     w = SessionWriter(path)
@@ -67,16 +72,14 @@ def build_lossy_session(path: Path) -> tuple[int, int]:
         seq=0,
     )
     jseq = 0
-    dropped_total = 0
+    dropped_total = unpredicted_total = 0
     outputs = 0
 
     def journal(t: int) -> None:
-        nonlocal jseq, dropped_total
-        d = core.take_dropped()
-        dropped_total += len(d)
-        j = FusionJournal(
-            seq=jseq, stamp_ns=t, watermark_ns=core.watermark_ns, consumed=core.consumed, dropped=d
-        )
+        nonlocal jseq, dropped_total, unpredicted_total
+        j = core.journal(jseq, t)
+        dropped_total += len(j.dropped)
+        unpredicted_total += len(j.unpredicted)
         w.write(k.journal(), FusionJournal, encode(j), log_time_ns=t, publish_time_ns=t, seq=jseq)
         jseq += 1
 
@@ -97,6 +100,7 @@ def build_lossy_session(path: Path) -> tuple[int, int]:
     emit(core.flush(), t_end)
     journal(t_end)
     w.close()
+    assert unpredicted_total >= 3
     return dropped_total, outputs
 
 

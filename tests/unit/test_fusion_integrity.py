@@ -107,7 +107,10 @@ def _run() -> dict[str, object]:
             )
         )
     inputs.sort(key=lambda m: (m.stamp_ns, 0 if m.sensor == "imu" else 1, m.seq))
-    core = FusionCore.for_scenario(s, FusionConfig(estimators=("ekf15", "compvs"), output_every=20))
+    # the estimators' own solutions, as they reach each IMU step in the total order (process()):
+    # the horizon, without the output predictor's carrying forward
+    cfg = FusionConfig(estimators=("ekf15", "compvs"), output_every=20, output_predictor=False)
+    core = FusionCore.for_scenario(s, cfg)
     out = []
     health_before_pulse: dict[str, dict[str, float]] = {}
     compvs_restarts_in_outage = None

@@ -172,7 +172,7 @@ def test_imu_node_counts_a_bad_fault_command_and_applies_a_good_one_at_the_next_
 def test_fusion_node_publishes_its_config_journal_and_health_on_the_rig_clock() -> None:
     node = FusionNode(_run(), FusionOptions(estimators=["kfvel"]))
     ((key, cfg),) = node.start(0)
-    assert key == "fusion/config" and cfg.estimators == ["kfvel"] and cfg.lag_ns == 200_000_000
+    assert key == "fusion/config" and cfg.estimators == ["kfvel"] and cfg.lag_ns == FusionConfig().lag_ns
     assert node.next_tick_ns() == 500_000_000
     assert [k for k, _ in node.tick(500_000_000)] == ["fusion/journal"]
     assert [k for k, _ in node.tick(1_000_000_000)] == ["fusion/journal", "health/kfvel"]
