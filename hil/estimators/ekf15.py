@@ -84,8 +84,8 @@ small-angle model the update assumes, and the filter read velocity noise as head
   about the vertical and, with calibration states, the gyro error matrix's rate error about it:
   neither corrected nor their variance reduced, so the yaw σ grows with the z-gyro's, honestly
   (capped at a heading uniform on the circle, σ = π/√3);
-- meanwhile an in-motion alignment compares, over the fixes of the last
-  ``heading_align_window_s`` (2 s), the GNSS velocity change ``b`` with the integrated specific
+- meanwhile an in-motion alignment compares, from the most certain of the fixes of the last
+  ``heading_align_window_s`` (5 s), the GNSS velocity change ``b`` with the integrated specific
   force in NED ``a``: a heading error δ of any size rotates one into the other, so
   ``δ = atan2(a × b, a · b)``. Once the specific force has moved the velocity enough for δ to be
   known to ``heading_align_sigma_rad`` (0.05 rad; the noise of both fixes, the tilt and horizontal
@@ -216,8 +216,8 @@ class Ekf15(Estimator):
         gyro_cal_sigma: tuple[float, float] = (0.0, 0.0),
         accel_cal_sigma: tuple[float, float] = (0.0, 0.0),
         heading_small_angle_rad: float = 0.1,
-        heading_align_sigma_rad: float = 0.05,
-        heading_align_window_s: float = 2.0,
+        heading_align_sigma_rad: float = 0.1,
+        heading_align_window_s: float = 5.0,
     ) -> None:
         self.name = name
         self._init = init
@@ -390,34 +390,38 @@ class Ekf15(Estimator):
         return z
 
     def _align_heading(self, gnss: GnssInput) -> None:
-        """In-motion heading alignment while heading is held: over the last fixes within the
-        window, the change of GNSS velocity against the integrated specific force in NED. A
-        heading error δ rotates the one into the other, whatever its size, so
-        ``δ = atan2(a × b, a · b)``; when the specific force moved the velocity enough for δ to
-        be known to half the small-angle bound, the yaw is reset to it (PX4's yaw reset: σ set,
-        yaw decorrelated from the other states)."""
+        """In-motion heading alignment while heading is held: from each earlier fix within the
+        window to this one, the change of GNSS velocity against the integrated specific force in
+        NED. A heading error δ rotates the one into the other, whatever its size, so
+        ``δ = atan2(a × b, a · b)``; when for the most certain start the specific force moved the
+        velocity enough for δ to be known to ``heading_align_sigma_rad``, the yaw is reset to it
+        (PX4's yaw reset: σ set, yaw decorrelated from the other states)."""
         v = np.asarray(gnss.vel_ned_mps, float)[:2]
         sv = float(max(np.asarray(gnss.vel_sigma_mps, float)[:2]))
         win = self._align
         win.append((gnss.stamp_ns, v, self._sf_sum.copy(), sv))
         while win and gnss.stamp_ns - win[0][0] > self._align_window_ns:
             win.popleft()
-        t0, v0, sf0, sv0 = win[0]
-        a = self._sf_sum - sf0  # INS: ∫ C f dt, horizontal
-        b = v - v0  # GNSS: Δv (gravity and Coriolis add < 0.01 m/s over the window: neglected)
-        a2 = float(a[0] * a[0] + a[1] * a[1])
-        if a2 <= 0.0:
-            return
-        t = (gnss.stamp_ns - t0) * 1e-9
         d = self.p.diagonal()
-        tilt_var, ba_var = max(d[6], d[7]), max(d[9], d[10])
-        var_dv = sv * sv + sv0 * sv0 + (9.81 * 9.81 * tilt_var + ba_var) * t * t
-        var = var_dv / a2 + float(d[14]) * (0.5 * t) ** 2  # + the z-gyro bias's drift over it
-        if var > self.heading_align_sigma_rad**2:
+        drift_var = 9.81 * 9.81 * max(d[6], d[7]) + max(d[9], d[10])  # tilt and accel-bias σ², (m/s²)²
+        best: tuple[float, float, F64, F64] | None = None  # (var, var_dv, a, b) of the best start
+        for t0, v0, sf0, sv0 in win:  # every start in the window: the most certain δ wins
+            a = self._sf_sum - sf0  # INS: ∫ C f dt, horizontal
+            b = v - v0  # GNSS: Δv (gravity and Coriolis add < 0.02 m/s over the window: neglected)
+            a2 = float(a[0] * a[0] + a[1] * a[1])
+            if a2 <= 0.0:
+                continue
+            t = (gnss.stamp_ns - t0) * 1e-9
+            var_dv = sv * sv + sv0 * sv0 + drift_var * t * t
+            var = var_dv / a2 + float(d[14]) * (0.5 * t) ** 2  # + the z-gyro bias's drift over it
+            if best is None or var < best[0]:
+                best = (var, var_dv, a, b)
+        if best is None or best[0] > self.heading_align_sigma_rad**2:
             return
+        var, var_dv, a, b = best
         # A rotation keeps the length: a window whose velocity change is not the specific force's
         # (a GNSS jump, a spoofed velocity) aligns nothing.
-        if (math.sqrt(a2) - math.hypot(float(b[0]), float(b[1]))) ** 2 > 9.0 * var_dv:
+        if (math.hypot(float(a[0]), float(a[1])) - math.hypot(float(b[0]), float(b[1]))) ** 2 > 9.0 * var_dv:
             return
         delta = math.atan2(float(a[0] * b[1] - a[1] * b[0]), float(a[0] * b[0] + a[1] * b[1]))
         q_d = np.array([math.cos(0.5 * delta), 0.0, 0.0, math.sin(0.5 * delta)])
