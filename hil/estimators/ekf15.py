@@ -88,7 +88,7 @@ small-angle model the update assumes, and the filter read velocity noise as head
   ``heading_align_window_s`` (5 s), the GNSS velocity change ``b`` with the integrated specific
   force in NED ``a``: a heading error δ of any size rotates one into the other, so
   ``δ = atan2(a × b, a · b)``. Once the specific force has moved the velocity enough for δ to be
-  known to ``heading_align_sigma_rad`` (0.05 rad; the noise of both fixes, the tilt and horizontal
+  known to ``heading_align_sigma_rad`` (0.1 rad; the noise of both fixes, the tilt and horizontal
   accelerometer-bias σ over the window, the z-gyro drift over half of it), yaw is reset to it (σ
   set, yaw decorrelated: PX4's yaw reset) and velocity and position to the fix, as they were
   integrated with the wrong heading. The EKF refines heading through the rest of the manoeuvre.
