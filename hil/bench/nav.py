@@ -332,10 +332,12 @@ FIRST_LEG = (0.0, 150.0)  # uav_survey: 30 s + 120 s straight before the first t
 AFTER_TURN = (150.0, 320.0)  # the first turn (~17 s) and the second leg
 
 
-def _heading_worker(job: tuple[int, float, str]) -> dict[str, F64]:
-    """One run: ekf15 on uav_survey (sensor seed ``seed``) with calibration ``cal``; yaw error
-    and its reported σ at 10 Hz."""
-    seed, duration_s, cal = job
+def _heading_worker(job: tuple[int, float, str] | tuple[int, float, str, bool]) -> dict[str, F64]:
+    """One run: ekf15 on uav_survey (sensor seed ``seed``) with calibration ``cal``; yaw error,
+    its reported σ, horizontal position and velocity error at 10 Hz, and the heading resets.
+    ``hold`` False is the filter before issue 22.6 (heading never held back, never reset)."""
+    seed, duration_s, cal = job[:3]
+    hold = job[3] if len(job) > 3 else True
     sc = scenario_overrides(load_scenario("uav_survey"), seed=seed, duration_s=duration_s)
     truth = TruthGenerator(sc)
     init = truth.initial_state()
@@ -347,12 +349,16 @@ def _heading_worker(job: tuple[int, float, str]) -> dict[str, F64]:
     p = ekf15_params(sc.imu.params, cal.startswith("gyro"), cal == "gyro+accel") | ekf15_install_params(
         sc.gnss
     )
+    if not hold:
+        p["heading_small_angle_rad"] = 0.0
     ekf = Ekf15("ekf15", init, **p)
     dec = round(imu.rate_hz / 10)
     keep = np.arange(dec - 1, n, dec)
     tb = truth.sample(b.t_ns[keep])
     err = np.empty(keep.size)
     sig = np.empty(keep.size)
+    hpos = np.empty(keep.size)
+    vel = np.empty(keep.size)
     g, j = 0, 0
     ins = None
     for k in range(n):
@@ -372,8 +378,11 @@ def _heading_worker(job: tuple[int, float, str]) -> dict[str, F64]:
             s = ekf.solution()
             err[j] = attitude_error_rad(s.q_nb, tb.q_nb[j])[2]
             sig[j] = s.att_sigma_rad[2]  # type: ignore[index]
+            hpos[j] = float(np.hypot(*(s.pos_ned_m[:2] - tb.pos_ned_m[j, :2])))
+            vel[j] = float(np.linalg.norm(s.vel_ned_mps - tb.vel_ned_mps[j]))
             j += 1
-    return {"t": tb.t_ns * 1e-9, "err": err, "sig": sig}
+    resets = np.array([ekf.health()["heading_resets"]])
+    return {"t": tb.t_ns * 1e-9, "err": err, "sig": sig, "hpos": hpos, "vel": vel, "resets": resets}
 
 
 @dataclass
@@ -381,50 +390,80 @@ class HeadingMc:
     runs: int
     band: tuple[float, float]
     t: F64
-    nees: dict[str, F64] = field(default_factory=dict)  # calibration -> run-averaged NEES per epoch
+    nees: dict[str, F64] = field(default_factory=dict)  # variant -> run-averaged NEES per epoch
     err_rms: dict[str, F64] = field(default_factory=dict)  # RMS over runs per epoch, rad
     sig_mean: dict[str, F64] = field(default_factory=dict)
+    hpos_rms: dict[str, F64] = field(default_factory=dict)  # horizontal position, m
+    vel_rms: dict[str, F64] = field(default_factory=dict)  # velocity, m/s
+    resets: dict[str, list[int]] = field(default_factory=dict)
+
+
+#: (label, calibration, heading held back and reset): before and after issue 22.6
+HEADING_VARIANTS: tuple[tuple[str, str, bool], ...] = (
+    ("none (15 states), before", "", False),
+    ("none (15 states), after", "", True),
+    ("gyro+accel, before", "gyro+accel", False),
+    ("gyro+accel, after", "gyro+accel", True),
+)
 
 
 def heading_mc(
-    runs: int, duration_s: float = HEADING_RUN_S, cals: tuple[str, ...] = ("", "gyro+accel")
+    runs: int,
+    duration_s: float = HEADING_RUN_S,
+    variants: tuple[tuple[str, str, bool], ...] = HEADING_VARIANTS,
+    workers: int = 2,
 ) -> HeadingMc:
-    """Yaw NEES ``(ψ_err / σ_ψ)²`` averaged over ``runs`` sensor seeds, per epoch, per calibration.
+    """Yaw NEES ``(ψ_err / σ_ψ)²`` averaged over ``runs`` sensor seeds, per epoch, per variant.
     Its 95 % band for ``runs`` independent χ²(1) values is ``χ²(runs)/runs``."""
     lo, hi = chi2.ppf([0.025, 0.975], runs) / runs
-    jobs = [(1000 + i, duration_s, cal) for cal in cals for i in range(runs)]
-    with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as ex:
-        outs = list(ex.map(_heading_worker, jobs))
+    jobs = [(1000 + i, duration_s, cal, hold) for _, cal, hold in variants for i in range(runs)]
+    if workers > 1:
+        with ProcessPoolExecutor(max_workers=min(workers, os.cpu_count() or 1)) as ex:
+            outs = list(ex.map(_heading_worker, jobs))
+    else:
+        outs = [_heading_worker(j) for j in jobs]
     res = HeadingMc(runs, (float(lo), float(hi)), outs[0]["t"])
-    for c, cal in enumerate(cals):
+    for c, (label, _, _) in enumerate(variants):
         part = outs[c * runs : (c + 1) * runs]
         err = np.array([o["err"] for o in part])
         sig = np.array([o["sig"] for o in part])
-        res.nees[cal] = np.mean((err / sig) ** 2, axis=0)
-        res.err_rms[cal] = np.sqrt(np.mean(err**2, axis=0))
-        res.sig_mean[cal] = np.mean(sig, axis=0)
+        res.nees[label] = np.mean((err / sig) ** 2, axis=0)
+        res.err_rms[label] = np.sqrt(np.mean(err**2, axis=0))
+        res.sig_mean[label] = np.mean(sig, axis=0)
+        res.hpos_rms[label] = np.sqrt(np.mean(np.array([o["hpos"] for o in part]) ** 2, axis=0))
+        res.vel_rms[label] = np.sqrt(np.mean(np.array([o["vel"] for o in part]) ** 2, axis=0))
+        res.resets[label] = [int(o["resets"][0]) for o in part]
     return res
+
+
+def heading_windows(duration_s: float) -> tuple[tuple[str, float, float], ...]:
+    """The first leg, the first turn with the start of the second leg, and the rest."""
+    out = [
+        ("first leg 0–150 s", *FIRST_LEG),
+        (f"first turn and after 150–{min(duration_s, 200):.0f} s", 150.0, min(duration_s, 200.0)),
+    ]
+    if duration_s > 200.0:
+        out.append((f"200–{duration_s:.0f} s", 200.0, duration_s))
+    return tuple(out)
 
 
 def heading_rows(mc: HeadingMc) -> list[str]:
     lo, hi = mc.band
     rows = [
-        "| ekf15 calibration | window | yaw error RMS over runs, deg | reported yaw σ, deg | "
-        "yaw NEES, time mean | epochs in band / above / below, % |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| ekf15 calibration, heading | window | yaw error RMS over runs, deg | reported yaw σ, deg | "
+        "yaw NEES, time mean | epochs in band / above / below, % | horizontal RMS m | velocity RMS m/s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for cal in mc.nees:
-        for label, (a, b) in (
-            ("first leg 0–150 s", FIRST_LEG),
-            ("first turn and second leg 150–320 s", AFTER_TURN),
-        ):
+    for label in mc.nees:
+        for wlabel, a, b in heading_windows(float(mc.t[-1]) + 0.1):
             m = (mc.t >= a) & (mc.t < b)
-            nees = mc.nees[cal][m]
+            nees = mc.nees[label][m]
             rows.append(
-                f"| {cal or 'none (15 states)'} | {label} | {np.degrees(rms(mc.err_rms[cal][m])):.2f} | "
-                f"{np.degrees(np.mean(mc.sig_mean[cal][m])):.2f} | {np.mean(nees):.2f} | "
+                f"| {label} | {wlabel} | {np.degrees(rms(mc.err_rms[label][m])):.2f} | "
+                f"{np.degrees(np.mean(mc.sig_mean[label][m])):.2f} | {np.mean(nees):.2f} | "
                 f"{100 * np.mean((nees >= lo) & (nees <= hi)):.0f} / {100 * np.mean(nees > hi):.0f} / "
-                f"{100 * np.mean(nees < lo):.0f} |"
+                f"{100 * np.mean(nees < lo):.0f} | {rms(mc.hpos_rms[label][m]):.3f} | "
+                f"{rms(mc.vel_rms[label][m]):.3f} |"
             )
     return rows
 
@@ -580,7 +619,12 @@ def heading_text(mc: HeadingMc) -> str:
             f"Yaw NEES = (yaw error / reported yaw σ)², averaged over the {mc.runs} runs at each 10 Hz "
             f"epoch; its 95 % band for {mc.runs} independent χ²(1) values is χ²({mc.runs})/{mc.runs} = "
             f"[{lo:.2f}, {hi:.2f}]. Above the band the filter claims a heading it does not have; below, "
-            "it says it knows less than it does (the alignment prior of 0.57° at t = 0, on the truth).",
+            "it says it knows less than it does (the alignment prior of 0.57° at t = 0, on the truth). "
+            "Before: ekf15 as it was (heading always updated by the linear model); after: heading held "
+            "back while its σ is beyond 0.1 rad and reset by the in-motion alignment (heading resets "
+            "per run, after: "
+            + "; ".join(f"{k}: {v}" for k, v in mc.resets.items() if k.endswith("after"))
+            + ").",
         ]
     )
 

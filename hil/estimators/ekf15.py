@@ -71,11 +71,36 @@ Accelerometer scale factor and misalignment (optional, ``accel_cal_sigma`` > 0; 
 after the gyro's). The same construction: ``f_meas = (I + E_a) f + b_a``, the specific-force
 error ``δf = δb_a + N(f) δe_a``, so ``δv̇ = [f_n×]φ + C (δb_a + N(f̄) δe_a)``; ``Ê_a`` is removed
 from every increment (``Δv − Ê_a Δv``) and corrected like the biases.
+
+Heading. GNSS sees heading only through ``δv̇ = [f_n×] φ``: a yaw error turns the horizontal
+specific force into a velocity error. In level, unaccelerated motion that force is Coriolis-sized
+(~4 mm/s²), so heading is unobservable and drifts with the z-gyro; a consumer gyro (0.5 °/s
+turn-on bias) takes it to tens of degrees on a straight leg, where ``[f×]φ`` is no longer the
+small-angle model the update assumes, and the filter read velocity noise as heading information
+(its yaw σ levelled off at ~25° while the error went on to 130°). So:
+
+- while the yaw σ exceeds ``heading_small_angle_rad`` (0.1 rad), every GNSS update is a Schmidt
+  (consider) update that holds the heading part of the error state back -- yaw, the gyro bias
+  about the vertical and, with calibration states, the gyro error matrix's rate error about it:
+  neither corrected nor their variance reduced, so the yaw σ grows with the z-gyro's, honestly
+  (capped at a heading uniform on the circle, σ = π/√3);
+- meanwhile an in-motion alignment compares, from the most certain of the fixes of the last
+  ``heading_align_window_s`` (5 s), the GNSS velocity change ``b`` with the integrated specific
+  force in NED ``a``: a heading error δ of any size rotates one into the other, so
+  ``δ = atan2(a × b, a · b)``. Once the specific force has moved the velocity enough for δ to be
+  known to ``heading_align_sigma_rad`` (0.1 rad; the noise of both fixes, the tilt and horizontal
+  accelerometer-bias σ over the window, the z-gyro drift over half of it), yaw is reset to it (σ
+  set, yaw decorrelated: PX4's yaw reset) and velocity and position to the fix, as they were
+  integrated with the wrong heading. The EKF refines heading through the rest of the manoeuvre.
+
+A tactical IMU's yaw σ stays far below the bound, so its filter is numerically the one without
+this (the golden replay is unchanged). ``heading_small_angle_rad`` ≤ 0 turns it off.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -89,6 +114,7 @@ from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
 _RTH = 60.0  # sqrt(3600 s/h)
+_YAW_VAR_MAX = math.pi**2 / 3.0  # a heading uniform on the circle: σ = π/√3 (104°)
 
 
 def skew(v: F64) -> F64:
@@ -189,6 +215,9 @@ class Ekf15(Estimator):
         lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
         gyro_cal_sigma: tuple[float, float] = (0.0, 0.0),
         accel_cal_sigma: tuple[float, float] = (0.0, 0.0),
+        heading_small_angle_rad: float = 0.1,
+        heading_align_sigma_rad: float = 0.1,
+        heading_align_window_s: float = 5.0,
     ) -> None:
         self.name = name
         self._init = init
@@ -261,6 +290,15 @@ class Ekf15(Estimator):
         self._rejects = 0
         self._consecutive = 0
         self._fused = 0
+        # Heading beyond the small-angle range (module docstring, "Heading"): GNSS updates hold the
+        # heading part back and an in-motion alignment over a short window of fixes resets it.
+        self.heading_small_angle_rad = float(heading_small_angle_rad)
+        self.heading_align_sigma_rad = float(heading_align_sigma_rad)
+        self._align_window_ns = round(heading_align_window_s * 1e9)
+        self._sf_sum = np.zeros(2)  # Σ horizontal specific force × dt in NED (estimated attitude), m/s
+        self._align: deque[tuple[int, F64, F64, float]] = deque()  # (t_ns, v_gnss NE, Σ f dt, σ_v)
+        self._heading_held = 0  # GNSS fixes whose heading part was held back
+        self._heading_resets = 0
 
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
@@ -288,7 +326,9 @@ class Ekf15(Estimator):
             return
         dt = self._pending_dt
         c_nb = quat_to_dcm(self.ins.q_nb)
-        f = error_dynamics(c_nb, mv(c_nb, self._pending_dv_b / dt), self.ins.lat_rad)
+        f_n = mv(c_nb, self._pending_dv_b / dt)
+        self._sf_sum = self._sf_sum + f_n[:2] * dt
+        f = error_dynamics(c_nb, f_n, self.ins.lat_rad)
         if self._cal:
             f = gyro_cal_augmented(f, c_nb, self._pending_dth_b / dt)
         if self._acal:
@@ -301,6 +341,10 @@ class Ekf15(Estimator):
                 -s * self._slow_w * self.s_hat + c * self.sd_hat,
             )
         self._predict(transition(f, dt), self._qc * dt)  # Q_d = Q_c Δ
+        if self.p[8, 8] > _YAW_VAR_MAX:  # beyond a uniform heading's: shrink yaw's row and column
+            c = math.sqrt(_YAW_VAR_MAX / float(self.p[8, 8]))
+            self.p[8, :] *= c
+            self.p[:, 8] *= c
         self._pending_dt = 0.0
         self._pending_dv_b = np.zeros(3)
         self._pending_dth_b = np.zeros(3)
@@ -315,9 +359,130 @@ class Ekf15(Estimator):
         ddx, self.p, _ = kf_update(self.p, y, h, r)
         return ddx
 
+    def _update_holding(self, y: F64, h: F64, r: F64, z: F64) -> F64:
+        """Schmidt (consider) update: the optimal gain less its component along the orthonormal
+        columns of ``z``, so those directions of the error state are neither corrected nor have
+        their variance reduced; Joseph form, which is exact for any gain."""
+        ph = mmt(self.p, h)
+        k = mm(ph, inv(mm(h, ph) + r))
+        k = k - mm(z, mm(z.T, k))
+        ikh = np.eye(self.n) - mm(k, h)
+        p_new = mmt(mm(ikh, self.p), ikh) + mmt(mm(k, r), k)
+        self.p = 0.5 * (p_new + p_new.T)
+        return mv(k, y)
+
+    def heading_held(self) -> bool:
+        """Whether GNSS updates hold heading back: its σ is beyond the range where the linear
+        ``[f×]φ`` coupling holds, so a velocity mismatch would be read as heading it is not."""
+        return self.heading_small_angle_rad > 0.0 and float(self.p[8, 8]) > self.heading_small_angle_rad**2
+
+    def _heading_directions(self) -> F64:
+        """Orthonormal columns spanning the heading part of the error state: yaw, the gyro bias
+        about the vertical (body axes) and, with calibration states, the gyro error matrix's
+        rows weighted by that axis (the rate error about the vertical)."""
+        u = quat_to_dcm(self.ins.q_nb)[2, :]  # NED down in body axes: C_nb' e_D
+        z = np.zeros((self.n, 5 if self._cal else 2))
+        z[8, 0] = 1.0
+        z[12:15, 1] = u
+        if self._cal:
+            for j in range(3):  # δω_u = Σ_i u_i Σ_j δE_ij ω_j: e is E row by row
+                z[15 + j : 24 : 3, 2 + j] = u
+        return z
+
+    def _align_heading(self, gnss: GnssInput) -> None:
+        """In-motion heading alignment while heading is held: from each earlier fix within the
+        window to this one, the change of GNSS velocity against the integrated specific force in
+        NED. A heading error δ rotates the one into the other, whatever its size, so
+        ``δ = atan2(a × b, a · b)``; when for the most certain start the specific force moved the
+        velocity enough for δ to be known to ``heading_align_sigma_rad``, the yaw is reset to it
+        (PX4's yaw reset: σ set, yaw decorrelated from the other states)."""
+        v = np.asarray(gnss.vel_ned_mps, float)[:2]
+        sv = float(max(np.asarray(gnss.vel_sigma_mps, float)[:2]))
+        win = self._align
+        win.append((gnss.stamp_ns, v, self._sf_sum.copy(), sv))
+        while win and gnss.stamp_ns - win[0][0] > self._align_window_ns:
+            win.popleft()
+        d = self.p.diagonal()
+        drift_var = 9.81 * 9.81 * max(d[6], d[7]) + max(d[9], d[10])  # tilt and accel-bias σ², (m/s²)²
+        best: tuple[float, float, F64, F64] | None = None  # (var, var_dv, a, b) of the best start
+        for t0, v0, sf0, sv0 in win:  # every start in the window: the most certain δ wins
+            a = self._sf_sum - sf0  # INS: ∫ C f dt, horizontal
+            b = v - v0  # GNSS: Δv (gravity and Coriolis add < 0.02 m/s over the window: neglected)
+            a2 = float(a[0] * a[0] + a[1] * a[1])
+            if a2 <= 0.0:
+                continue
+            t = (gnss.stamp_ns - t0) * 1e-9
+            var_dv = sv * sv + sv0 * sv0 + drift_var * t * t
+            var = var_dv / a2 + float(d[14]) * (0.5 * t) ** 2  # + the z-gyro bias's drift over it
+            if best is None or var < best[0]:
+                best = (var, var_dv, a, b)
+        if best is None or best[0] > self.heading_align_sigma_rad**2:
+            return
+        var, var_dv, a, b = best
+        # A rotation keeps the length: a window whose velocity change is not the specific force's
+        # (a GNSS jump, a spoofed velocity) aligns nothing.
+        if (math.hypot(float(a[0]), float(a[1])) - math.hypot(float(b[0]), float(b[1]))) ** 2 > 9.0 * var_dv:
+            return
+        delta = math.atan2(float(a[0] * b[1] - a[1] * b[0]), float(a[0] * b[0] + a[1] * b[1]))
+        q_d = np.array([math.cos(0.5 * delta), 0.0, 0.0, math.sin(0.5 * delta)])
+        self.ins = replace(self.ins, q_nb=quat_normalise(quat_multiply(q_d, self.ins.q_nb)))
+        self.p[8, :] = 0.0
+        self.p[:, 8] = 0.0
+        self.p[8, 8] = var
+        self._nav_dirty = True
+        # The velocity and position were integrated with the wrong heading: reset them to the fix.
+        pos_tov, vel_pred, _, _ = self._predict_fix(gnss)
+        dx = np.zeros(self.n)
+        dx[0:3] = pos_tov + self.s_hat - gnss.pos_ned_m
+        dx[3:6] = vel_pred + self.sd_hat - gnss.vel_ned_mps
+        self._inject(dx)
+        self.p[0:6, :] = 0.0
+        self.p[:, 0:6] = 0.0
+        self.p[0:6, 0:6] = np.diag(np.square(np.concatenate([gnss.pos_sigma_m, gnss.vel_sigma_mps])))
+        self._heading_resets += 1
+        win.clear()
+
     # -- GNSS fusion -----------------------------------------------------------------------------
     def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
         self._propagate_covariance()
+        pos_tov, vel_pred, h_pos, h_vel = self._predict_fix(gnss)
+        dx = np.zeros(self.n)
+        z_hold = self._heading_directions() if self.heading_held() else None
+        if z_hold is not None:
+            self._heading_held += 1
+        else:
+            self._align.clear()
+        for h, y, sig, kind in (
+            (h_pos, pos_tov + self.s_hat - gnss.pos_ned_m, gnss.pos_sigma_m, "pos"),
+            (h_vel, vel_pred + self.sd_hat - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
+        ):
+            r = np.diag(np.square(np.asarray(sig, float)))
+            y = y - mv(h, dx)  # sequential: innovation against the already-updated error state
+            s = mmt(mm(h, self.p), h) + r
+            nis = dot(y, solve(s, y))
+            if kind == "pos":
+                self._nis_pos = nis
+            else:
+                self._nis_vel = nis
+            if nis > self.gate_chi2:
+                self._rejects += 1
+                self._consecutive += 1
+                if self._consecutive <= self.max_rejects:
+                    continue
+                # Locked out: trust the measurement again, with the covariance opened up.
+                idx = np.nonzero(h[:, :6].any(axis=0))[0]
+                self.p[idx, idx] += y * y
+            else:
+                self._consecutive = 0
+            dx = dx + (self._update(y, h, r) if z_hold is None else self._update_holding(y, h, r, z_hold))
+            self._fused += 1
+        self._inject(dx)
+        if z_hold is not None:  # every fix: the gate's S assumes the small angles this is not
+            self._align_heading(gnss)
+
+    def _predict_fix(self, gnss: GnssInput) -> tuple[F64, F64, F64, F64]:
+        """The fix as the INS predicts it (antenna position at the time of validity, antenna
+        velocity) and the measurement matrices of position and velocity."""
         nav = self._current_nav()
         lag_s = (gnss.stamp_ns - self._stamp_ns) * 1e-9
         pos_tov = nav.pos_ned_m + nav.vel_ned_mps * lag_s  # INS at the GNSS time of validity
@@ -341,32 +506,7 @@ class Ekf15(Estimator):
             i = self._i_slow
             h_pos[:, i : i + 3] = np.eye(3)
             h_vel[:, i + 3 : i + 6] = np.eye(3)
-        dx = np.zeros(self.n)
-        for h, y, sig, kind in (
-            (h_pos, pos_tov + self.s_hat - gnss.pos_ned_m, gnss.pos_sigma_m, "pos"),
-            (h_vel, vel_pred + self.sd_hat - gnss.vel_ned_mps, gnss.vel_sigma_mps, "vel"),
-        ):
-            r = np.diag(np.square(np.asarray(sig, float)))
-            y = y - mv(h, dx)  # sequential: innovation against the already-updated error state
-            s = mmt(mm(h, self.p), h) + r
-            nis = dot(y, solve(s, y))
-            if kind == "pos":
-                self._nis_pos = nis
-            else:
-                self._nis_vel = nis
-            if nis > self.gate_chi2:
-                self._rejects += 1
-                self._consecutive += 1
-                if self._consecutive <= self.max_rejects:
-                    continue
-                # Locked out: trust the measurement again, with the covariance opened up.
-                idx = np.nonzero(h[:, :6].any(axis=0))[0]
-                self.p[idx, idx] += y * y
-            else:
-                self._consecutive = 0
-            dx = dx + self._update(y, h, r)
-            self._fused += 1
-        self._inject(dx)
+        return pos_tov, vel_pred, h_pos, h_vel
 
     def _inject(self, dx: F64) -> None:
         """Closed loop: feed δx back into the strapdown and biases, then δx ← 0."""
@@ -416,4 +556,6 @@ class Ekf15(Estimator):
             "gnss_fused": float(self._fused),
             "accel_bias_norm_mps2": norm(self.b_a),
             "gyro_bias_norm_radps": norm(self.b_g),
+            "heading_held": 1.0 if self.heading_held() else 0.0,
+            "heading_resets": float(self._heading_resets),
         }
