@@ -10,7 +10,9 @@ order and the file are byte for byte those of one process; only the wall time di
 
 ``fork`` and a pipe: no ``multiprocessing.Process`` (a campaign runs sims inside daemonic
 workers, which may not start one). The child never returns into the caller's code: it leaves
-with ``os._exit``, whatever happens, and reports an exception as its text.
+with ``os._exit``, whatever happens, and reports an exception as its text. The two ends speak
+pickle: both are this process's own code and objects (a socketpair made before the fork), never a
+file or the wire, which is why tests/docker/test_compose_static.py allows it here and nowhere else.
 """
 
 from __future__ import annotations

@@ -112,6 +112,9 @@ def _python_files() -> list[Path]:
 
 # exec() of source generated from a DBC's parsed numbers (never from wire data): reviewed, allowed.
 EXEC_ALLOWED = {"hil/can/codec.py"}
+# pickle over a socketpair between hil sim and the child it forked itself (the fusion worker):
+# both ends are this process's own code and objects, never a file or the wire. Reviewed, allowed.
+PICKLE_ALLOWED = {"hil/runners/sim_worker.py"}
 
 
 def test_nothing_deserialises_with_pickle_or_eval() -> None:
@@ -120,7 +123,17 @@ def test_nothing_deserialises_with_pickle_or_eval() -> None:
     banned_modules = {"pickle", "cPickle", "marshal", "shelve", "dill"}
     for path in _python_files():
         tree = ast.parse(path.read_text(), filename=str(path))
+        pickle_ok = path.relative_to(REPO).as_posix() in PICKLE_ALLOWED
         for node in ast.walk(tree):
+            if pickle_ok and (
+                (isinstance(node, ast.Import) and [a.name for a in node.names] == ["pickle"])
+                or (
+                    isinstance(node, ast.Attribute)
+                    and isinstance(node.value, ast.Name)
+                    and node.value.id == "pickle"
+                )
+            ):
+                continue
             if isinstance(node, ast.Import):
                 bad += [
                     f"{path}:{node.lineno} import {a.name}" for a in node.names if a.name in banned_modules
