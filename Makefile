@@ -21,7 +21,7 @@ sim: $(VENV)/.installed
 	$(VENV)/bin/hil sim $(ARGS)
 
 test: $(VENV)/.installed
-	$(VENV)/bin/python -m pytest -n 2 --dist loadgroup $(ARGS)
+	$(VENV)/bin/python -m pytest -n 2 $(ARGS)
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check .

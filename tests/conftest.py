@@ -239,19 +239,27 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 #: Tests that start rigs, containers, user-mode-linux or network namespaces run one at a time on
-#: one pytest-xdist worker (``make test`` runs ``-n 2 --dist loadgroup``): two live rigs at once
-#: would measure each other. The pure tests (unit, replay) fill the other worker meanwhile, which
-#: shortens the suite by their time; on a plain ``pytest`` run the mark does nothing.
-SERIAL_GROUP = "live"
+#: one pytest-xdist worker (``make test`` runs ``-n 2``): two live rigs at once would measure each
+#: other. The pure tests (unit, replay) fill the other worker meanwhile, which shortens the suite
+#: by their time. A scheduler of our own rather than ``--dist loadgroup`` with marks: xdist 3.8
+#: renames grouped tests through ``item._nodeid``, which pytest 9's nodes no longer read, so
+#: loadgroup silently spread the live tests over both workers.
+SERIAL_SCOPE = "live"
 POOLED_DIRS = ("unit", "replay")
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    tests_dir = Path(__file__).resolve().parent
-    for item in items:
-        try:
-            top = Path(str(item.path)).resolve().relative_to(tests_dir).parts[0]
-        except ValueError:
-            top = ""
-        if top not in POOLED_DIRS:
-            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
+def xdist_scope(nodeid: str) -> str:
+    """The unit xdist hands a worker: one pooled test, or every live test together."""
+    parts = nodeid.split("/", 2)
+    return nodeid if len(parts) > 2 and parts[0] == "tests" and parts[1] in POOLED_DIRS else SERIAL_SCOPE
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    from xdist.scheduler import LoadScopeScheduling
+
+    class LiveSerialScheduling(LoadScopeScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_scope(nodeid)
+
+    return LiveSerialScheduling(config, log)
