@@ -35,6 +35,7 @@ from collections import deque
 
 import numpy as np
 
+from hil.nav.strapdown import _rotvec_quat  # the strapdown's own rotation-vector quaternion
 from hil.nav.types import F64, NavState
 
 REANCHOR_STEPS = 4096
@@ -44,16 +45,6 @@ _Entry = tuple[int, float, float, float, float, float, float, float, float, floa
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 Motion = tuple[float, Quat, Vec3, Vec3]  # ΔT, ΔR, Δv, Δp
-
-
-def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
-    a2 = x * x + y * y + z * z
-    if a2 < 1e-16:
-        c, k = 1.0 - a2 / 8.0, 0.5 - a2 / 48.0
-    else:
-        a = math.sqrt(a2)
-        c, k = math.cos(0.5 * a), math.sin(0.5 * a) / a
-    return c, k * x, k * y, k * z
 
 
 def _qmul(
