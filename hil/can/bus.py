@@ -7,12 +7,19 @@ user-mode-linux, in containers, or on a kernel without CAN at all.
 
 from __future__ import annotations
 
+import contextlib
+import socket
 from pathlib import Path
 from typing import Any
 
 import can
 
 INTERFACES = ("auto", "socketcan", "hilzenoh", "virtual", "udp_multicast")
+#: A SocketCAN reader's kernel queue (candump -r): at 1 Mbit/s a bus carries ~7,400 classic
+#: frames a second, and the default queue (~200 kB, a few hundred frames with their buffers)
+#: overflows -- silently, frames lost in the kernel -- when the reading process stalls for a
+#: fraction of a second (a loaded host, user-mode-linux's one slow vCPU).
+SOCKETCAN_RCVBUF_BYTES = 8 << 20
 
 
 class CanTransportError(RuntimeError):
@@ -67,7 +74,23 @@ def open_can_bus(
             else str(err)
         )
         raise CanTransportError(f"cannot open CAN {iface}:{channel} (fd={fd}): {why}") from err
+    if iface == "socketcan" and receive:
+        enlarge_receive_queue(bus, SOCKETCAN_RCVBUF_BYTES)
     auto = " (auto)" if (interface or "auto").lower() == "auto" else ""
     where = f"key hilcan/{rig}/{channel}" if iface == "hilzenoh" else f"channel {channel}"
     desc = f"{iface}{auto} {where}, {'CAN FD' if fd else 'CAN 2.0'}"
     return bus, desc
+
+
+def enlarge_receive_queue(bus: can.BusABC, size: int) -> int:
+    """Ask for a ``size``-byte kernel receive queue on a SocketCAN bus (beyond ``rmem_max`` when
+    privileged, as candump -r does); returns what the kernel granted (0: not a socket bus)."""
+    sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket):
+        return 0
+    # SO_RCVBUFFORCE (Linux 33; Python does not name it): past rmem_max, with CAP_NET_ADMIN
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, opt, size)
+            break
+    return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))

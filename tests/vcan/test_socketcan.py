@@ -285,3 +285,16 @@ def test_candump_log_of_the_emulator_decodes_with_cantools(fd: bool, tmp_path: P
     fields = dict(re.findall(r"(\w+): (-?[0-9.e+-]+)", last.split("::", 1)[1]))
     assert float(fields["DeltaAngleX"]) == pytest.approx(9e-5, abs=1e-12)
     assert float(fields["DeltaVelX"]) == pytest.approx(0.5, abs=1e-12)
+
+
+def test_a_socketcan_reader_gets_a_queue_that_outlasts_a_stall() -> None:
+    """The kernel drops frames silently when a reader's queue is full: every SocketCAN bus the
+    rig opens to receive asks for 8 MiB (granted as root, doubled by the kernel's bookkeeping)."""
+    import socket
+
+    bus = _socketcan(fd=False)
+    try:
+        granted = bus.socket.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)  # type: ignore[attr-defined]
+    finally:
+        bus.shutdown()
+    assert granted >= 1 << 20, granted
