@@ -263,3 +263,22 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
             return xdist_scope(nodeid)
 
     return LiveSerialScheduling(config, log)
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    """The figures the vcan tests recorded (``record_property``). Here, not in tests/vcan's
+    conftest: under xdist the controller, which writes the summary, loads only this one."""
+    lines, where = [], f"kernel {os.uname().release}"
+    for rep in terminalreporter.getreports("passed") + terminalreporter.getreports("failed"):
+        props = getattr(rep, "user_properties", [])
+        if "tests/vcan/" not in rep.nodeid:
+            continue
+        if ("ran_in", "user-mode-linux") in props:
+            where = "inside user-mode-linux"
+        shown = [p for p in props if p[0] != "ran_in"]
+        if shown:
+            lines.append(f"{rep.nodeid}: " + ", ".join(f"{k}={v}" for k, v in shown))
+    if lines:
+        terminalreporter.section(f"vcan figures ({where})")
+        for line in lines:
+            terminalreporter.write_line(line)

@@ -141,16 +141,3 @@ def pytest_pyfunc_call(pyfuncitem: pytest.Function) -> bool | None:
     if res["outcome"] == "skipped":
         pytest.skip(f"inside user-mode-linux: {res['text']}")
     return True
-
-
-def pytest_terminal_summary(terminalreporter: Any) -> None:
-    lines = []
-    for rep in terminalreporter.getreports("passed") + terminalreporter.getreports("failed"):
-        props = [p for p in getattr(rep, "user_properties", []) if p[0] != "ran_in"]
-        if props and "tests/vcan/" in rep.nodeid:
-            lines.append(f"{rep.nodeid}: " + ", ".join(f"{k}={v}" for k, v in props))
-    if lines:
-        where = "inside user-mode-linux" if MODE == "uml" else f"kernel {os.uname().release}"
-        terminalreporter.section(f"vcan figures ({where})")
-        for line in lines:
-            terminalreporter.write_line(line)
