@@ -211,6 +211,71 @@ def score(name: str, path: Path, window: tuple[float, float]) -> Run:
     return run
 
 
+def offline_ratios(
+    scenario: str, seeds: int, t0: float, spoof_s: float, duration_s: float, imu_rate: int | None
+) -> tuple[dict[str, dict[str, float]], str]:
+    """The spoof (and, beside it, an outage of the same window) through the fusion core on the
+    emulator cores with ideal timing, ``seeds`` sensor seeds: each estimator's horizontal RMS over
+    the window and the 10 s after it, pooled over the seeds, per case. What the live runs measure,
+    without the bus and the machine's load."""
+    from hil.estimators.registry import DEFAULT_ESTIMATORS
+    from hil.fusion.core import FusionConfig, FusionCore
+    from hil.fusion.ideal import ideal_inputs
+    from hil.nav.scenario import parse_scenario, scenario_overrides
+    from hil.nav.trajectory import TruthGenerator
+
+    base = _scenario(scenario, None)
+    events = {
+        "clean": "",
+        "outage": f'\n[[event]]\nkind = "gnss_outage"\nt_start_s = {t0}\nt_end_s = {t0 + spoof_s}\n',
+        "spoof": _scenario(scenario, (t0, t0 + spoof_s))[len(base) :],
+    }
+    sq: dict[str, dict[str, list[float]]] = {c: {} for c in events}
+    s0 = parse_scenario(base)
+    for k in range(seeds):
+        for case, ev in events.items():
+            kw: dict[str, Any] = {"seed": s0.seed + k, "duration_s": duration_s}
+            if imu_rate:
+                kw["imu_rate_hz"] = imu_rate
+            s = scenario_overrides(parse_scenario(base + ev), **kw)
+            truth = TruthGenerator(s)
+            core = FusionCore.for_scenario(s, FusionConfig(estimators=DEFAULT_ESTIMATORS, output_every=10))
+            out = [o for m in ideal_inputs(s, truth) for o in core.push(m, "receiver")] + core.flush()
+            by: dict[str, list[Any]] = {}
+            for o in out:
+                by.setdefault(o.estimator, []).append(o)
+            for name, sols in by.items():
+                t = np.array([o.stamp_ns for o in sols])
+                w = (t >= t0 * NS) & (t < (t0 + spoof_s + 10.0) * NS)
+                err = np.array([o.pos_ned_m[:2] for o in sols])[w] - truth.sample(t[w]).pos_ned_m[:, :2]
+                sq[case].setdefault(name, []).append(float(np.mean(np.sum(err**2, axis=1))))
+    rms = {c: {n: float(np.sqrt(np.mean(v))) for n, v in d.items()} for c, d in sq.items()}
+    how = (
+        f"`{scenario}` for {duration_s:g} s, {seeds} sensor seeds from the scenario's, "
+        f"IMU {imu_rate or s0.imu.rate_hz} Hz, the gap/spoof at {t0:g}-{t0 + spoof_s:g} s"
+    )
+    return rms, how
+
+
+def offline_section(rms: dict[str, dict[str, float]], how: str) -> str:
+    clean = rms["clean"]
+    ests = [e for e in ESTIMATOR_ORDER if e in clean] + sorted(set(clean) - set(ESTIMATOR_ORDER))
+    lines = [
+        f"### Offline: the fusion core on ideal inputs ({how})",
+        "",
+        "Horizontal RMS (m) over the spoof window and the 10 s after it, pooled over the seeds; "
+        "ratio to clean. The spoof is rejected by the gate, so it costs what an outage does.",
+        "",
+        "| estimator | clean | outage | spoof |",
+        "| --- | ---: | ---: | ---: |",
+    ]
+    for e in ests:
+        a = clean[e]
+        cells = [f"{rms[c][e]:.2f} ({rms[c][e] / a:.2f}×)" for c in ("outage", "spoof")]
+        lines.append(f"| {e} | {a:.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _fmt(x: float, nd: int = 1) -> str:
     return "–" if not np.isfinite(x) else f"{x:.{nd}f}"
 
@@ -268,6 +333,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--flood-n", type=int, default=20_000, help="fixes in the flood (half on each key)")
     ap.add_argument("--flood-s", type=float, default=5.0, help="the flood's length (s)")
     ap.add_argument("--spoof-s", type=float, default=10.0, help="the receiver spoof's length (s)")
+    ap.add_argument("--offline-seeds", type=int, default=6, help="seeds of the offline section (0: none)")
+    ap.add_argument("--offline-duration", type=float, default=50.0, help="the offline runs' length (s)")
+    ap.add_argument("--offline-imu-rate", type=int, default=100, help="the offline runs' IMU rate (Hz)")
+    ap.add_argument("--no-live", action="store_true", help="only the offline section")
     ap.add_argument("--keep", type=Path, default=None, help="keep the recordings in this directory")
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     a = ap.parse_args(argv)
@@ -286,36 +355,44 @@ def main(argv: list[str]) -> int:
         )
     if a.flood_n < 2:
         ap.error(f"--flood-n must be at least 2 (half go on each key), not {a.flood_n}")
-    load0 = os.getloadavg()
-    spoof = (a.start, a.start + a.spoof_s)
-    with tempfile.TemporaryDirectory(prefix="hil-attack-") as d:
-        tmp = a.keep or Path(d)
-        tmp.mkdir(parents=True, exist_ok=True)
-        paths = {
-            "clean": live("clean", _scenario(a.scenario, None), a.duration, None, tmp),
-            "flood": live(
-                "flood", _scenario(a.scenario, None), a.duration, (a.start, a.flood_n, a.flood_s), tmp
-            ),
-            "spoof": live("spoof", _scenario(a.scenario, spoof), a.duration, None, tmp),
-        }
-        runs = [score("clean", paths["clean"], (a.start, a.start + a.flood_s))]
-        fl = json.loads(paths["flood"].with_suffix(".json").read_text())["sent"]
-        flood_win = (
-            (fl["first_rig_ns"] / NS, fl["last_rig_ns"] / NS) if fl else (a.start, a.start + a.flood_s)
+    if a.offline_seeds < 0 or a.offline_duration < 2.0 * (a.spoof_s + 10.0):
+        ap.error("--offline-seeds must be >= 0 and --offline-duration at least twice the spoof + 10 s")
+    parts: list[str] = []
+    if a.offline_seeds:
+        t0 = a.offline_duration / 2.0  # the window ends 10 s after the spoof, before the run
+        rms, how = offline_ratios(
+            a.scenario, a.offline_seeds, t0, a.spoof_s, a.offline_duration, a.offline_imu_rate
         )
-        runs.append(score("flood", paths["flood"], flood_win))
-        runs.append(score("spoof", paths["spoof"], spoof))
-    load1 = os.getloadavg()
-    note = (
-        f"`{a.scenario}`, {a.duration:g} s per run, one seed; flood: {a.flood_n} fixes in "
-        f"{a.flood_s:g} s from a stranger on the bus; spoof: the receiver, 500 m north claiming σ 0.5 m "
-        f"for {a.spoof_s:g} s. "
-        f"The clean run's figures use the flood's window. Load average (1 min) {load0[0]:.2f} before, "
-        f"{load1[0]:.2f} after, on {os.cpu_count()} cores."
-    )
-    md = section(runs, note)
+        parts.append(offline_section(rms, how))
+    bad: list[str] = []
+    if not a.no_live:
+        load0 = os.getloadavg()
+        spoof = (a.start, a.start + a.spoof_s)
+        with tempfile.TemporaryDirectory(prefix="hil-attack-") as d:
+            tmp = a.keep or Path(d)
+            tmp.mkdir(parents=True, exist_ok=True)
+            flood = (a.start, a.flood_n, a.flood_s)
+            paths = {
+                "clean": live("clean", _scenario(a.scenario, None), a.duration, None, tmp),
+                "flood": live("flood", _scenario(a.scenario, None), a.duration, flood, tmp),
+                "spoof": live("spoof", _scenario(a.scenario, spoof), a.duration, None, tmp),
+            }
+            runs = [score("clean", paths["clean"], (a.start, a.start + a.flood_s))]
+            fl = json.loads(paths["flood"].with_suffix(".json").read_text())["sent"]
+            flood_win = (fl["first_rig_ns"] / NS, fl["last_rig_ns"] / NS) if fl else flood[::2]
+            runs.append(score("flood", paths["flood"], flood_win))
+            runs.append(score("spoof", paths["spoof"], spoof))
+        load1 = os.getloadavg()
+        note = (
+            f"`{a.scenario}`, {a.duration:g} s per run, one seed; flood: {a.flood_n} fixes in "
+            f"{a.flood_s:g} s from a stranger on the bus; spoof: the receiver, 500 m north claiming "
+            f"σ 0.5 m for {a.spoof_s:g} s. The clean run's figures use the flood's window. Load "
+            f"average (1 min) {load0[0]:.2f} before, {load1[0]:.2f} after, on {os.cpu_count()} cores."
+        )
+        parts.append("### Live `hil up`\n\n" + section(runs, note))
+        bad = [r.name for r in runs if r.rc != 0]
+    md = "\n\n".join(parts)
     print(md)
-    bad = [r.name for r in runs if r.rc != 0]
     if bad:
         print(f"hil bench attack: runs that did not exit 0: {', '.join(bad)}", file=sys.stderr)
     if not a.no_write:
