@@ -19,7 +19,7 @@ import pytest
 
 from hil.bus.session import BusConfig, open_session
 from hil.messages import Event, RunInfo, ServiceStatus, decode
-from hil.record.mcapio import read_session
+from hil.record.mcapio import Record, read_session
 from hil.runtime.clock import RigClock
 from tests.conftest import REPO, free_port, hil_cmd
 
@@ -147,6 +147,11 @@ def _events(*paths: Path) -> list[Event]:
     return out
 
 
+def _seq(r: Record) -> int:
+    """The payload's seq (generation included; MCAP's ``sequence`` holds its low 32 bits only)."""
+    return int(r.decode().seq)  # type: ignore[attr-defined]
+
+
 def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path: Path) -> None:
     # GIVEN a 14 s run that allows one restart per service
     out = tmp_path / "s.mcap"
@@ -179,12 +184,34 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
     assert {"gnss_emulator", "fusion"} <= restarted, events
     kinds = {(e.source, e.kind) for e in events}
     assert ("gnss_emulator", "resumed") in kinds and ("fusion", "realigned") in kinds, kinds
-    # seqs of the restarted publishers never repeat one from before the kill
+    # the two files end to end hold each message once: the restarted recorder asked the
+    # publishers' caches for their history and wrote none of what the killed one's file holds
+    # (a cache's replay once put truth from seq 410 and every GNSS fix in both files)
     both = [read_session(out), read_session(part)]
+    topics = {t for s in both for t, schema in s.topics().items() if schema.startswith("hil.")}
+    seqs = {t: [_seq(r) for s in both for r in s.by_topic(t)] for t in topics}
     for topic in ("sensor/gnss", "capture/gnss", "nav/ekf15", "nav/ins", "truth", "sensor/imu"):
-        seqs = [r.sequence for s in both for r in s.by_topic(f"hil/suprig/{topic}")]
-        dups = [k for k, n in Counter(seqs).items() if n > 1]
-        assert seqs and not dups, (topic, dups[:10])
+        assert seqs[f"hil/suprig/{topic}"], topic
+    dups = {t: [k for k, n in Counter(v).items() if n > 1][:10] for t, v in seqs.items()}
+    assert not {t: d for t, d in dups.items() if d}, dups
+    comp = both[1].meta("completeness", "topics")
+    cont = both[1].meta("completeness", "continues")
+    assert cont["files"] == [out.name] and cont["messages"] == sum(
+        1 for r in both[0].records if r.schema.startswith("hil.")
+    ), cont
+    # (the GNSS fixes since the start are in its cache: replayed, they are known, not written)
+    assert cont["already_recorded"] > 0, cont
+    # the part's accounting covers the whole session: what neither file holds is missing there
+    for topic, v in seqs.items():
+        tr = comp[topic]
+        assert tr["count"] == len(v) and tr["first"] == min(v) and tr["duplicates"] == 0, (topic, tr)
+        if not tr["restarts"]:
+            assert tr["missing"] == max(v) - min(v) + 1 - len(set(v)), (topic, tr)
+    # and what the caches held of the recorder's downtime is in the part: the 1 Hz statuses of
+    # services that were not restarted have no gap (their caches span minutes)
+    for svc in ("world", "imu_emulator", "can_bridge", "timesync"):
+        tr = comp[f"hil/suprig/status/{svc}"]
+        assert (tr["missing"], tr["first"]) == (0, 0), (svc, tr)
     # the restarted fusion publishes finite solutions on the same run
     assert len(both[1].by_topic("hil/suprig/nav/ekf15")) > 50
     # no service log holds a traceback
