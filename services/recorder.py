@@ -42,11 +42,11 @@ A recorder restarted by ``hil up --restart`` (option ``continues``: the files it
 wrote, oldest first) carries on the same session in its own file. Before it writes, it reads
 what those files hold (a killed recorder's file up to its last flushed chunk): every rig
 publisher's seqs go into this part's accounting, so its ``completeness`` covers the whole
-session and what the rig sent while no recorder was writing is counted as missing. Its
-subscriber asks the publishers' caches for their history, so what they still hold of that time
-is recovered -- always, not only when a heartbeat happens to come before a publisher's next
-sample -- and a message the earlier files already hold is not written again
-(``already_recorded``): the files end to end hold each message once.
+session and what the rig sent while no recorder was writing is counted as missing. Every
+recorder's subscriber asks the publishers' caches for their history when it starts, so what
+they still hold of that time is recovered -- always, not only when a heartbeat happens to come
+before a publisher's next sample -- and a message the earlier files already hold is not written
+again (``already_recorded``): the files end to end hold each message once.
 
 Optional splitting (options ``split_mb``, ``split_s``): at a flush boundary the current file is
 finished (summary, index, completeness so far) and the next part ``<stem>_0001.mcap`` opened with
@@ -202,16 +202,20 @@ class Recorder(Service):
             # Zenoh and the writer thread drops unless a lane overflows, and that is counted.
             # Heartbeat recovery: a gap in a publisher's sequence is queried from its cache before
             # it is reported as missed.
-            # A restarted recorder (``continues``) also asks every publisher's cache for its
-            # history at once: what the rig sent while no recorder was writing comes back as far
-            # as the caches reach (what the earlier files hold is not written twice, see
-            # ``_handle``). Without it, a publisher's cache was replayed only when its heartbeat
-            # came before its next sample: a race, with duplicates when it was won.
+            # History: every publisher's cache is asked at once for what it holds, so what was
+            # said before this subscription reached it is recorded too -- a service's first
+            # messages when it started before the recorder, and for a restarted recorder
+            # (``continues``) what the rig sent while no recorder was writing, as far as the
+            # caches reach (what the earlier files hold is not written twice, see ``_handle``).
+            # Without it, a cache was replayed only when the publisher's heartbeat came before
+            # its next sample: a race. Lost to it were a publisher's only message (the bridge's
+            # one event per life: its one heartbeat had gone out before the recorder listened)
+            # and, for a restarted recorder, nothing, or everything again (duplicates).
             self._sub = zext.declare_advanced_subscriber(
                 self.ctx.session,
                 self.keys.all(),
                 self._on_sample,
-                history=zext.HistoryConfig() if self.opts.continues else None,
+                history=zext.HistoryConfig(),
                 recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )

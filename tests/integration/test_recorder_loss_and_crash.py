@@ -18,8 +18,8 @@ import zenoh
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher
 from hil.bus.session import BusConfig, open_session
-from hil.messages import CaptureTruth, ImuSample, RunInfo, ServiceStatus, Truth, decode
-from hil.record.mcapio import read_session
+from hil.messages import CaptureTruth, Event, ImuSample, RunInfo, ServiceStatus, Truth, decode
+from hil.record.mcapio import RecordingError, read_session
 from tests.conftest import REPO, free_port, hil_cmd
 
 pytestmark = pytest.mark.slow
@@ -198,6 +198,14 @@ def test_sigkill_leaves_a_file_readable_up_to_the_last_flushed_chunk(hub: Hub, t
     assert seqs == list(range(len(seqs)))
 
 
+def _flushed(path: Path, topic: str) -> int:
+    """How many messages of ``topic`` a recorder's file holds so far (read as a crash leaves it)."""
+    try:
+        return len(read_session(path).by_topic(topic))
+    except RecordingError:  # nothing flushed yet
+        return 0
+
+
 def _stop(proc: subprocess.Popen[bytes]) -> None:
     if proc.poll() is None:
         proc.kill()
@@ -219,7 +227,7 @@ def test_a_restarted_recorder_continues_the_session_once_and_recovers_what_the_c
         for i in range(150):
             pub.put(truth(i))
         deadline = time.monotonic() + 60
-        while len(read_session(first).by_topic(k.truth())) < 150:  # read as a crash would leave it
+        while _flushed(first, k.truth()) < 150:
             assert time.monotonic() < deadline, "the first recorder never flushed truth 0..149"
             time.sleep(0.2)
         proc.send_signal(signal.SIGKILL)
@@ -255,6 +263,44 @@ def test_a_restarted_recorder_continues_the_session_once_and_recovers_what_the_c
     tr = json.loads(comp["topics"])[k.truth()]
     assert (tr["first"], tr["last"], tr["count"], tr["missing"], tr["duplicates"]) == (0, 299, 300, 0, 0), tr
     assert json.loads(comp["replay_ready"]) is True
+
+
+def test_a_publisher_that_spoke_once_before_the_recorder_listened_is_recorded(
+    hub: Hub, tmp_path: Path
+) -> None:
+    # GIVEN a service that published its one event (as a CAN bridge does once per life) and the
+    # one heartbeat that follows it, all before the recorder started (services start together)
+    k = Keys(RIG)
+    heartbeats: list[str] = []
+    hb = hub.session.declare_subscriber(
+        f"{k.event('bridge')}/@adv/pub/**", lambda s: heartbeats.append(str(s.key_expr))
+    )
+    try:
+        pub = Publisher(hub.session, k.event("bridge"), Event)
+        pub.put(Event(seq=0, stamp_ns=0, kind="can_transport", source="bridge", detail="vcan0"))
+        deadline = time.monotonic() + 60
+        while not heartbeats:
+            assert time.monotonic() < deadline, "the publisher's heartbeat never went out"
+            time.sleep(0.05)
+    finally:
+        hb.undeclare()
+    # WHEN the recorder starts, records a while and stops
+    path = tmp_path / "late.mcap"
+    proc = start_recorder(hub, str(path))
+    try:
+        deadline = time.monotonic() + 60  # the file is flushed every second
+        while not _flushed(path, k.event("bridge")):
+            assert time.monotonic() < deadline, "the event never reached the file"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        _stop(proc)
+    # THEN the event is in the file: the recorder asked the publisher's cache when it started
+    # (before, nothing would ever have brought it: no other sample, no other heartbeat)
+    assert proc.returncode == 0, out.decode()[-2000:]
+    events = [r.decode() for r in read_session(path).by_topic(k.event("bridge"))]
+    assert [(e.seq, e.kind) for e in events] == [(0, "can_transport")], events  # type: ignore[attr-defined]
 
 
 def test_unwritable_path_is_reported_in_status_and_the_process_keeps_serving(
