@@ -495,8 +495,9 @@ class Recorder(Service):
             for path in [first, *split_parts(first)]:
                 try:
                     n = self._account_file(path)
-                except (RecordingError, OSError) as err:
-                    self.stats.error("errors.previous_part", f"cannot read {path}: {err}")
+                except Exception as err:  # unreadable or not ours: said, and the recording goes on
+                    why = f"{type(err).__name__}: {err}"
+                    self.stats.error("errors.previous_part", f"cannot read {path}: {why}")
                     continue
                 self.previous_files.append(path.name)
                 self.previous_messages += n
