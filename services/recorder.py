@@ -38,6 +38,16 @@ costs the stranger's oldest messages (``dropped_foreign``), not the rig's; a rig
 (``dropped_rig``: the writer fell ``RIG_LANE_CAP`` messages of one key behind) is loss, and the
 file is not ``replay_ready``.
 
+A recorder restarted by ``hil up --restart`` (option ``continues``: the files its earlier lives
+wrote, oldest first) carries on the same session in its own file. Before it writes, it reads
+what those files hold (a killed recorder's file up to its last flushed chunk): every rig
+publisher's seqs go into this part's accounting, so its ``completeness`` covers the whole
+session and what the rig sent while no recorder was writing is counted as missing. Every
+recorder's subscriber asks the publishers' caches for their history when it starts, so what
+they still hold of that time is recovered -- always, not only when a heartbeat happens to come
+before a publisher's next sample -- and a message the earlier files already hold is not written
+again (``already_recorded``): the files end to end hold each message once.
+
 Optional splitting (options ``split_mb``, ``split_s``): at a flush boundary the current file is
 finished (summary, index, completeness so far) and the next part ``<stem>_0001.mcap`` opened with
 the same run metadata and attachments, so every part is a self-contained recording. No message
@@ -70,7 +80,9 @@ from hil.record.mcapio import (
     TIME_SEMANTICS,
     RecordingError,
     SessionWriter,
+    iter_records,
     split_part_path,
+    split_parts,
     wall_clock_log_time,
 )
 from hil.runners.live import options_parser
@@ -89,6 +101,9 @@ MAX_FOREIGN_TRACKED = 64  # strangers' publishers with their own seq accounting;
 class _Stamp(msgspec.Struct):
     seq: int
     stamp_ns: int
+
+
+_STAMP = msgspec.json.Decoder(_Stamp)
 
 
 class Recorder(Service):
@@ -148,6 +163,12 @@ class Recorder(Service):
         self._last_rx = time.monotonic()  # when the last sample came in (the stop waits for quiet)
         self._abort = threading.Event()  # the stop deadline passed: the writer stops
         self.unwritten_at_stop = 0
+        # What the files of this recorder's earlier lives hold (option ``continues``): read by the
+        # writer thread before it writes anything, so the callback never waits for it.
+        self.previous = Completeness()
+        self.previous_files: list[str] = []
+        self.previous_messages = 0
+        self.already_recorded = 0
 
     # The base class sets ``state`` to "running" after setup(); a recorder that cannot write must
     # keep saying "degraded" for as long as it lives, so the state is derived, not assigned.
@@ -181,10 +202,20 @@ class Recorder(Service):
             # Zenoh and the writer thread drops unless a lane overflows, and that is counted.
             # Heartbeat recovery: a gap in a publisher's sequence is queried from its cache before
             # it is reported as missed.
+            # History: every publisher's cache is asked at once for what it holds, so what was
+            # said before this subscription reached it is recorded too -- a service's first
+            # messages when it started before the recorder, and for a restarted recorder
+            # (``continues``) what the rig sent while no recorder was writing, as far as the
+            # caches reach (what the earlier files hold is not written twice, see ``_handle``).
+            # Without it, a cache was replayed only when the publisher's heartbeat came before
+            # its next sample: a race. Lost to it were a publisher's only message (the bridge's
+            # one event per life: its one heartbeat had gone out before the recorder listened)
+            # and, for a restarted recorder, nothing, or everything again (duplicates).
             self._sub = zext.declare_advanced_subscriber(
                 self.ctx.session,
                 self.keys.all(),
                 self._on_sample,
+                history=zext.HistoryConfig(),
                 recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
@@ -255,6 +286,7 @@ class Recorder(Service):
             "bytes_written": self.bytes_written,
             "queue_depth": depth,
             "queue_peak": self._peak_queue,
+            "already_recorded": self.already_recorded,
             "missing": self.completeness.total_missing(),
             "zenoh_missed": self.total_zenoh_missed(),
             "zenoh_unsequenced": self.zenoh_unsequenced,
@@ -305,6 +337,9 @@ class Recorder(Service):
             self._run = msg
             self._part_t0 = time.monotonic()
             self._write_run_metadata(msg)
+        if not foreign and self.previous.holds(key, msg.seq):
+            self.already_recorded += 1  # an earlier life's file holds it (a cache's replay)
+            return
         if foreign:
             self.foreign.see(key, source, msg.seq)
         else:
@@ -450,7 +485,40 @@ class Recorder(Service):
         if self._run is not None:
             self._write_run_metadata(self._run)
 
+    def _read_previous(self) -> None:
+        """Account what the files of this recorder's earlier lives hold (option ``continues``),
+        each with its split parts: their rig messages' seqs go into ``previous`` (what is not
+        written again) and into this part's ``completeness`` (which then covers the session).
+        A file that cannot be read is reported, and the recording goes on without it."""
+        for name in self.opts.continues:
+            first = Path(name)
+            for path in [first, *split_parts(first)]:
+                try:
+                    n = self._account_file(path)
+                except Exception as err:  # unreadable or not ours: said, and the recording goes on
+                    why = f"{type(err).__name__}: {err}"
+                    self.stats.error("errors.previous_part", f"cannot read {path}: {why}")
+                    continue
+                self.previous_files.append(path.name)
+                self.previous_messages += n
+
+    def _account_file(self, path: Path) -> int:
+        n = 0
+        for kind, rec in iter_records(path):
+            if kind != "message" or rec.foreign or not rec.schema.startswith("hil."):
+                continue
+            try:
+                seq = _STAMP.decode(rec.payload).seq
+            except (msgspec.ValidationError, msgspec.DecodeError):
+                continue  # the recorder that wrote it had checked it; a damaged tail, say
+            self.previous.see(rec.topic, seq)
+            self.completeness.see(rec.topic, seq)
+            n += 1
+        return n
+
     def _write_loop(self) -> None:
+        if self.opts.continues:
+            self._read_previous()
         last_flush = time.monotonic()
         while not self._abort.is_set():
             item = self.queue.get(timeout=0.2)
@@ -545,6 +613,13 @@ class Recorder(Service):
             and not self.dropped_rig
             and self._run is not None,
             "parts": self.part + 1,
+            # a restarted recorder: the files it continues, how many of the rig's messages they
+            # hold (``topics`` counts them too), and how many it received again and did not write
+            "continues": {
+                "files": self.previous_files,
+                "messages": self.previous_messages,
+                "already_recorded": self.already_recorded,
+            },
             "raw_written": self.raw_written,
             "excluded": self.excluded,
             "rejected": {k: v for k, v in self.stats.counters.items() if k.startswith("rejected")},

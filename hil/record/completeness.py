@@ -38,6 +38,13 @@ class _Generation:
     count: int = 1
     missing: int = 0
     gap_ranges: list[tuple[int, int]] = field(default_factory=list)
+    untracked_gaps: int = 0  # gaps past MAX_GAP_RANGES: where they are is not known
+
+    def holds(self, seq: int) -> bool:
+        """Whether ``seq`` was seen in this generation; False when that cannot be known."""
+        if not self.first <= seq <= self.last or self.untracked_gaps:
+            return False
+        return not any(a <= seq <= b for a, b in self.gap_ranges)
 
 
 @dataclass
@@ -79,6 +86,8 @@ class SeqTracker:
             gen.missing += n
             if len(gen.gap_ranges) < MAX_GAP_RANGES:
                 gen.gap_ranges.append((gen.last + 1, seq - 1))
+            else:
+                gen.untracked_gaps += 1
             if len(self.gap_ranges) < MAX_GAP_RANGES:
                 self.gap_ranges.append((gen.last + 1, seq - 1))
             gen.last = seq
@@ -109,6 +118,13 @@ class SeqTracker:
             self.out_of_order += 1
         else:  # a "generation" far ahead that does not start near 0: forged, not a restart
             self.outliers += 1
+
+    def holds(self, seq: int) -> bool:
+        """Whether ``seq`` was seen (a restarted recorder's test for "already recorded"): only a
+        seq inside its generation's seen span and in none of its open gaps; where gaps were too
+        many to track, False (better a message twice than one lost)."""
+        gen = self.generations.get(seq_generation(seq))
+        return gen is not None and gen.holds(seq)
 
     @property
     def generation(self) -> int:
@@ -165,6 +181,11 @@ class Completeness:
         if tr is None:
             tr = self.topics[topic] = SeqTracker()
         tr.see(seq)
+
+    def holds(self, topic: str, seq: int) -> bool:
+        """Whether ``topic``'s ``seq`` was seen (``SeqTracker.holds``)."""
+        tr = self.topics.get(topic)
+        return tr is not None and tr.holds(seq)
 
     def total_missing(self) -> int:
         return sum(t.missing for t in self.topics.values())

@@ -35,6 +35,9 @@ class RecorderOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fie
     exclude: list[str] = msgspec.field(default_factory=list)
     raw_unknown: bool = True  # keys outside the contract recorded as raw bytes (else refused)
     foxglove_types: bool = True  # Foxglove's well-known types beside the messages (hil.wellknown)
+    # the files this recorder's earlier lives wrote of the same session, oldest first (hil up
+    # --restart): what they hold is accounted in this part's completeness and not written again
+    continues: list[str] = msgspec.field(default_factory=list)
 
 
 OTHER_SERVICES: dict[str, type[NodeOptions]] = {"recorder": RecorderOptions}

@@ -405,6 +405,10 @@ class Supervisor:
                 derived["resume_run"] = {f: getattr(run, f) for f in run.__struct_fields__}
         elif name == "recorder":
             path = o.record if not restarts or o.record is None else restart_part_path(o.record, restarts)
+            if restarts and o.record is not None:  # the files of its earlier lives, oldest first
+                derived["continues"] = [str(o.record)] + [
+                    str(restart_part_path(o.record, k)) for k in range(1, restarts)
+                ]
             derived.update(
                 path=str(path),
                 zenoh_advanced=o.zenoh_miss_detection,

@@ -18,8 +18,8 @@ import zenoh
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher
 from hil.bus.session import BusConfig, open_session
-from hil.messages import CaptureTruth, ImuSample, RunInfo, ServiceStatus, Truth, decode
-from hil.record.mcapio import read_session
+from hil.messages import CaptureTruth, Event, ImuSample, RunInfo, ServiceStatus, Truth, decode
+from hil.record.mcapio import RecordingError, read_session
 from tests.conftest import REPO, free_port, hil_cmd
 
 pytestmark = pytest.mark.slow
@@ -69,7 +69,8 @@ def hub() -> Iterator[Hub]:
         h.session.close()
 
 
-def start_recorder(hub: Hub, path: str, **extra: float | bool) -> subprocess.Popen[bytes]:
+def start_recorder(hub: Hub, path: str, **extra: object) -> subprocess.Popen[bytes]:
+    hub.status.pop("recorder", None)  # a killed one's last word must not read as this one's
     opts = json.dumps({"path": path, "drain_s": 0.3, **extra})
     proc = subprocess.Popen(
         hil_cmd("service", "recorder", "--rig", RIG, "--options", opts),
@@ -195,6 +196,111 @@ def test_sigkill_leaves_a_file_readable_up_to_the_last_flushed_chunk(hub: Hub, t
     assert must_have > 100
     assert len(seqs) >= must_have, (len(seqs), must_have, i)
     assert seqs == list(range(len(seqs)))
+
+
+def _flushed(path: Path, topic: str) -> int:
+    """How many messages of ``topic`` a recorder's file holds so far (read as a crash leaves it)."""
+    try:
+        return len(read_session(path).by_topic(topic))
+    except RecordingError:  # nothing flushed yet
+        return 0
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate(timeout=30)
+
+
+def test_a_restarted_recorder_continues_the_session_once_and_recovers_what_the_caches_hold(
+    hub: Hub, tmp_path: Path
+) -> None:
+    # GIVEN a recorder whose file holds truth 0..149 (flushed), then is SIGKILLed
+    first, part = tmp_path / "s.mcap", tmp_path / "s.part1.mcap"
+    k = Keys(RIG)
+    proc = start_recorder(hub, str(first))
+    second: subprocess.Popen[bytes] | None = None
+    try:
+        run_pub = Publisher(hub.session, k.run(), RunInfo)
+        run_pub.put(run_info(0))
+        pub = Publisher(hub.session, k.truth(), Truth)  # an advanced publisher: a 256-sample cache
+        for i in range(150):
+            pub.put(truth(i))
+        deadline = time.monotonic() + 60
+        while _flushed(first, k.truth()) < 150:
+            assert time.monotonic() < deadline, "the first recorder never flushed truth 0..149"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        # WHEN truth 150..249 go out with no recorder, and a restarted one continues the session
+        for i in range(150, 250):
+            pub.put(truth(i))
+        second = start_recorder(hub, str(part), continues=[str(first)], resume=1)
+        for i in range(250, 300):
+            pub.put(truth(i))
+        hub.wait(lambda st: st.counter_map().get("written", 0) >= 150, timeout=60)
+        second.send_signal(signal.SIGTERM)
+        out, _ = second.communicate(timeout=60)
+        assert second.returncode == 0, out.decode()[-2000:]
+    finally:
+        _stop(proc)
+        if second is not None:
+            _stop(second)
+    # THEN the files end to end hold truth 0..299 once each: the downtime came back from the
+    # publisher's cache (asked at once, not when a heartbeat happened to come first), and the
+    # cache's replay of what the first file holds was not written again
+    a, b = read_session(first), read_session(part)
+    seqs_a = [r.sequence for r in a.by_topic(k.truth())]
+    seqs_b = [r.sequence for r in b.by_topic(k.truth())]
+    assert seqs_a == list(range(150)) and seqs_b == list(range(150, 300)), (seqs_a[-3:], seqs_b[:3])
+    assert [r.sequence for r in b.by_topic(k.run())] == []  # the RunInfo is in the first file only
+    comp = b.metadata["completeness"]
+    cont = json.loads(comp["continues"])
+    # (the first file also holds the first recorder's statuses, whose cache died with it)
+    held = sum(1 for r in a.records if r.schema.startswith("hil."))
+    assert cont == {"files": [first.name], "messages": held, "already_recorded": 151}, (cont, held)
+    # and the part's accounting covers the whole session: nothing missing, nothing twice
+    tr = json.loads(comp["topics"])[k.truth()]
+    assert (tr["first"], tr["last"], tr["count"], tr["missing"], tr["duplicates"]) == (0, 299, 300, 0, 0), tr
+    assert json.loads(comp["replay_ready"]) is True
+
+
+def test_a_publisher_that_spoke_once_before_the_recorder_listened_is_recorded(
+    hub: Hub, tmp_path: Path
+) -> None:
+    # GIVEN a service that published its one event (as a CAN bridge does once per life) and the
+    # one heartbeat that follows it, all before the recorder started (services start together)
+    k = Keys(RIG)
+    heartbeats: list[str] = []
+    hb = hub.session.declare_subscriber(
+        f"{k.event('bridge')}/@adv/pub/**", lambda s: heartbeats.append(str(s.key_expr))
+    )
+    try:
+        pub = Publisher(hub.session, k.event("bridge"), Event)
+        pub.put(Event(seq=0, stamp_ns=0, kind="can_transport", source="bridge", detail="vcan0"))
+        deadline = time.monotonic() + 60
+        while not heartbeats:
+            assert time.monotonic() < deadline, "the publisher's heartbeat never went out"
+            time.sleep(0.05)
+    finally:
+        hb.undeclare()
+    # WHEN the recorder starts, records a while and stops
+    path = tmp_path / "late.mcap"
+    proc = start_recorder(hub, str(path))
+    try:
+        deadline = time.monotonic() + 60  # the file is flushed every second
+        while not _flushed(path, k.event("bridge")):
+            assert time.monotonic() < deadline, "the event never reached the file"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        _stop(proc)
+    # THEN the event is in the file: the recorder asked the publisher's cache when it started
+    # (before, nothing would ever have brought it: no other sample, no other heartbeat)
+    assert proc.returncode == 0, out.decode()[-2000:]
+    events = [r.decode() for r in read_session(path).by_topic(k.event("bridge"))]
+    assert [(e.seq, e.kind) for e in events] == [(0, "can_transport")], events  # type: ignore[attr-defined]
 
 
 def test_unwritable_path_is_reported_in_status_and_the_process_keeps_serving(

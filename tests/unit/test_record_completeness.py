@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from hil.record.completeness import Completeness, SeqTracker
+from hil.messages import generation_seq
+from hil.record.completeness import MAX_GAP_RANGES, Completeness, SeqTracker
 from hil.record.lockstep import decode_ack, encode_ack
 
 
@@ -138,3 +139,24 @@ def test_foreign_traffic_is_accounted_apart_and_bounded() -> None:
     rep = f.report()
     assert rep["messages"] == 9 and rep["publishers"] == ["a:1", "b:1"] and rep["untracked"] == 3
     assert rep["topics"] == {"hil/r/synced/gnss": 6}
+
+
+def test_holds_is_what_was_seen_and_never_an_open_gap() -> None:
+    # what a restarted recorder asks of its earlier lives' files: "already recorded?"
+    c = Completeness()
+    for s in [*range(5, 10), *range(13, 20), generation_seq(1, 0), generation_seq(1, 1)]:
+        c.see("k", s)
+    held = [s for s in range(25) if c.holds("k", s)]
+    assert held == [*range(5, 10), *range(13, 20)]  # not before the first seen, not in 10..12
+    assert c.holds("k", generation_seq(1, 1)) and not c.holds("k", generation_seq(1, 2))
+    assert not c.holds("other", 5)
+    c.see("k", 11)  # a late fill: held from now on, its neighbours still not
+    assert [s for s in range(9, 14) if c.holds("k", s)] == [9, 11, 13]
+
+
+def test_holds_says_no_where_gaps_were_too_many_to_track() -> None:
+    # better a message twice than one lost: past MAX_GAP_RANGES, where the gaps are is unknown
+    t = SeqTracker()
+    for s in range(0, 2 * (MAX_GAP_RANGES + 2), 2):
+        t.see(s)
+    assert t.gaps == MAX_GAP_RANGES + 1 and not t.holds(0) and not t.holds(2)
