@@ -10,9 +10,13 @@ Names are short and stable: they become Zenoh keys ``hil/<rig>/nav/<name>``.
 | comp3f | compensation, forcing ``(3Tp+1)/(Tp+1)³`` | same |
 | compvs | compensation, variable structure (seed 000 table) | ``restart_after_s`` (3.0) |
 | cf2 | complementary ``W = (r1 s + r2)/(s² + r1 s + r2)`` as compensation | ``r1`` (0.07), ``r2`` (0.005) |
-| cf3 | complementary third order | ``k1`` (0.07), ``k2`` (0.005), ``k3`` (1e-4) |
+| cf3 | complementary third order, coasts | ``k1`` (0.07), ``k2`` (0.005), ``k3`` (1e-4), see below |
 | kfvel | lecture scalar KFs per axis, position and velocity | ``q_pos_m2ps``, ``q_vel_m2ps3``, ... |
 | ekf15 | 3-D loosely coupled error-state EKF | see :mod:`hil.estimators.ekf15` |
+
+cf3 also takes ``coast_after`` (2.5 input intervals; None: no coast, the last difference
+continued as before) and ``innovation_tau_s`` (5.0): its coast through a GNSS gap
+(:class:`hil.estimators.compensation.CompensationCore`).
 """
 
 from __future__ import annotations
@@ -50,7 +54,16 @@ def _cf2(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
 
 def _cf3(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
     tf = complementary3(float(p.get("k1", 0.07)), float(p.get("k2", 0.005)), float(p.get("k3", 1e-4)))
-    return CompensationEstimator(name, init, ((0.0, tf),), None, p.get("feedback"))
+    coast = p.get("coast_after", 2.5)  # None: the old continuation of the last difference
+    return CompensationEstimator(
+        name,
+        init,
+        ((0.0, tf),),
+        None,
+        p.get("feedback"),
+        None if coast is None else float(coast),
+        float(p.get("innovation_tau_s", 5.0)),
+    )
 
 
 def _kfvel(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
