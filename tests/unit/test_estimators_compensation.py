@@ -324,3 +324,16 @@ def test_a_late_fix_ends_a_coast_as_one_on_time() -> None:
 def test_a_coast_needs_a_strictly_proper_filter() -> None:
     with pytest.raises(ValueError, match="strictly proper"):
         CompensationCore(((0.0, aperiodic(1, 5.0)),), 1, coast_after=0.5)
+
+
+def test_cf3_coasts_in_the_open_loop_only() -> None:
+    """In the feedback form the corrector moves the INS behind the filter's integrators, so they
+    are no model of its error in a gap: the reset, bias-corrected INS coasts instead."""
+    from hil.estimators.tuning import params_for
+    from hil.nav.scenario import load_scenario
+
+    sc = load_scenario("car_drive")
+    fb = params_for(sc.imu.params, sc.gnss, feedback=("cf3",))["cf3"]
+    assert make_estimator("cf3", _init()).core.coast_after == 2.5  # type: ignore[attr-defined]
+    assert make_estimator("cf3", _init(), fb).core.coast_after is None  # type: ignore[attr-defined]
+    assert make_estimator("cf3", _init(), {"coast_after": None}).core.coast_after is None  # type: ignore[attr-defined]
