@@ -77,6 +77,9 @@ class FusionConfig:
     # publish each estimator's horizon state carried to the newest IMU sample (hil.fusion.predictor);
     # False: publish the horizon's state when it is reached, lag_ns late (the fusion before it)
     output_predictor: bool = True
+    # cf3 coasts through a GNSS gap (integrators and mean innovation held, open loop); False: it
+    # continues the last difference at its last rate (the fusion before it)
+    gnss_coast: bool = True
 
     @property
     def lag_s(self) -> float:
@@ -107,6 +110,7 @@ class FusionConfig:
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
+            gnss_coast=self.gnss_coast,
         )
 
     def gate_settings(self) -> GateSettings:
@@ -208,6 +212,8 @@ class FusionCore:
             accel_cal=config.ekf_calibration == "gyro+accel",
             feedback=config.feedback,
         )
+        if not config.gnss_coast:
+            params["cf3"] = params.get("cf3", {}) | {"coast_after": None}
 
         truth = TruthGenerator(scenario)
         init = truth.initial_state()

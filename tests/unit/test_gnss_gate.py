@@ -15,7 +15,6 @@ receiver's genuine fixes raises the alarm too.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from functools import cache
 
 import msgspec
@@ -122,9 +121,8 @@ def _run(
     case: str, estimators: tuple[str, ...] = DEFAULT_ESTIMATORS, cf3_coast: bool = True
 ) -> dict[str, object]:
     s, truth, inputs = _inputs(BASE + EVENTS[case], perfect=case == "perfect")
-    core = FusionCore.for_scenario(s, FusionConfig(estimators=estimators, output_every=10))
-    if not cf3_coast:
-        core = replace(core, params=core.params | {"cf3": {"coast_after": None}})
+    cfg = FusionConfig(estimators=estimators, output_every=10, gnss_coast=cf3_coast)
+    core = FusionCore.for_scenario(s, cfg)
     out = []
     for m in inputs:
         out += core.push(m, "receiver")
@@ -252,3 +250,18 @@ def test_a_strangers_spoof_alongside_the_genuine_receiver_raises_the_alarm_too()
     events = [(e.kind, e.stamp_ns / 1e9) for e in core.take_gate_events()]
     assert [k for k, _ in events] == ["gnss_integrity_alarm", "gnss_integrity_restored"]
     assert 10.0 <= events[0][1] <= 10.2 and 14.0 <= events[1][1] <= 14.3
+
+
+def test_a_recording_made_before_cf3s_coast_reruns_without_it() -> None:
+    """``fusion/config`` of a recording from before the coast has no ``gnss_coast``: its cf3
+    continued the last difference through a gap, and rerun builds it so (bit for bit)."""
+    s, _truth, _msgs = _inputs(BASE)
+    now = FusionConfig(estimators=("cf3",)).settings(0, 0)
+    old = msgspec.to_builtins(now)
+    del old["gnss_coast"]
+    before = FusionConfig.from_settings(msgspec.convert(old, FusionSettings))
+    assert now.gnss_coast and not before.gnss_coast
+    cores = [
+        FusionCore.for_scenario(s, cfg).estimators[0] for cfg in (FusionConfig.from_settings(now), before)
+    ]
+    assert cores[0].core.coast_after == 2.5 and cores[1].core.coast_after is None  # type: ignore[attr-defined]
