@@ -231,7 +231,7 @@ def _track_states(truth: TruthGenerator, t_ns: Any, sols: list[NavState]) -> Tra
         pos_err=np.array([s.pos_ned_m for s in sols]) - tb.pos_ned_m,
         vel_err=np.array([s.vel_ned_mps for s in sols]) - tb.vel_ned_mps,
         att_err=np.array([attitude_error_rad(s.q_nb, tb.q_nb[i]) for i, s in enumerate(sols)]),
-        att_sigma=np.array([s.att_sigma_rad or nan3 for s in sols]),
+        att_sigma=np.array([nan3 if s.att_sigma_rad is None else s.att_sigma_rad for s in sols]),
     )
 
 
