@@ -362,8 +362,8 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # the output predictor (hil.fusion.predictor); absent in recordings made before it, which
     # published the horizon's state lag_ns late
     output_predictor: bool = False
-    # cf3's coast through a GNSS gap (hil.estimators.compensation); absent in recordings made
-    # before it, whose cf3 continued the last difference
+    # the compensation filters' coast through a GNSS gap (hil.estimators.compensation); absent in
+    # recordings made before it, whose filters continued the last difference
     gnss_coast: bool = False
 
 

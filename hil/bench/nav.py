@@ -155,7 +155,7 @@ def _track(truth: TruthGenerator, sols: list[NavSolution]) -> Track:
         pos_err=np.array([s.pos_ned_m for s in sols]) - tb.pos_ned_m,
         vel_err=np.array([s.vel_ned_mps for s in sols]) - tb.vel_ned_mps,
         att_err=att,
-        att_sigma=np.array([s.att_sigma_rad or nan3 for s in sols]),
+        att_sigma=np.array([nan3 if s.att_sigma_rad is None else s.att_sigma_rad for s in sols]),
     )
 
 

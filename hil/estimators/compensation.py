@@ -299,11 +299,27 @@ class CompensationCore:
 
     def switch_to(self, stage: int) -> None:
         """Bumpless structure switch (see module docstring for the rule and why)."""
-        old, new = self.stages[self.stage], self.stages[stage]
+        old = self.stages[self.stage]
         y = self.output()
         # ẏ = C A x when C B = 0 and D = 0 (relative degree ≥ 2); else not carried (0)
         ca = mv(old.ss.a.T, old.ss.c)  # row C A
         ydot = mv(self.x.T, ca) if relative_degree(old.tf) >= 2 else np.zeros_like(y)
+        self._settle_on_line(stage, y, ydot)
+        self.switches += 1
+
+    def hold_line(self, t_ns: int, y: F64, ydot: F64) -> None:
+        """From ``t_ns`` on, the input is the line ``y + ẏ (t − t_ns)`` and the state the one the
+        filter has after tracking it (the switch's steady state): the output continues along the
+        line. For a GNSS gap (:class:`CompensationEstimator`); the schedule's clock and the
+        restart rule still go by the last real input."""
+        self.advance_to(t_ns)
+        y, ydot = np.asarray(y, dtype=float), np.asarray(ydot, dtype=float)
+        self._settle_on_line(self.stage, y, ydot)
+        self.u = y.copy()
+        self.slope = ydot.copy()
+
+    def _settle_on_line(self, stage: int, y: F64, ydot: F64) -> None:
+        new = self.stages[stage]
         n = new.ss.order
         targets = np.zeros((n, self.n_channels))
         targets[0] = y
@@ -323,13 +339,16 @@ class CompensationCore:
             targets[k] = targets[k] - feed
         self.x = solve(new.ss.observability(), targets)
         self.stage = stage
-        self.switches += 1
 
 
 def _ramp_state_terms(ss: StateSpace) -> tuple[F64, F64]:
     """``(A⁻¹B, A⁻²B)``: the steady state on a ramp input is ``−A⁻¹B u − A⁻²B u̇``."""
     a1b = solve(ss.a, ss.b)
     return a1b, solve(ss.a, a1b)
+
+
+#: A GNSS gap is this many of the receiver's fix intervals without a fix (10 Hz: 0.25 s).
+COAST_AFTER_INTERVALS = 2.5
 
 
 def seconds_since(t_ns: int, t0_ns: int | None) -> float:
@@ -356,12 +375,17 @@ class CompensationEstimator(Estimator):
         feedback: dict[str, Any] | None = None,
         coast_after: float | None = None,
         innovation_tau_s: float = 3.0,
+        line_coast: bool = True,
     ) -> None:
         self.name = name
-        # The coast is the open loop's: there the filter is the only model of the INS error. In
-        # the feedback form the corrector changes the INS behind the filter's integrators (they
-        # are no model of it: coasting on them took cf3 from 2.3 m to 8.2 m in car_drive's
-        # tunnel), and the INS, reset and bias-corrected, is itself what coasts.
+        # Two coasts through a GNSS gap. ``line_coast``: on the line the velocity channels'
+        # estimate draws (``_coast``), every filter's by default. ``coast_after`` (cf3): the
+        # third-order loop on its own integrators and mean innovation (``CompensationCore``),
+        # in the open loop only: there the filter is the only model of the INS error. In the
+        # feedback form the corrector changes the INS behind the filter's integrators (they are
+        # no model of it: coasting on them took cf3 from 2.3 m to 8.2 m in car_drive's tunnel),
+        # and the INS, reset and bias-corrected, is itself what coasts.
+        self.line_coast = line_coast and coast_after is None
         coast = coast_after if feedback is None else None
         self.core = CompensationCore(schedule, 6, restart_after_s, coast, innovation_tau_s)
         self.core.advance_to(init.stamp_ns)
@@ -372,8 +396,14 @@ class CompensationEstimator(Estimator):
         self._vel0 = np.asarray(init.vel_ned_mps, float).copy()
         self._gnss_count = 0
         self._last_diff_pos_m = 0.0
+        self._last_fix_ns: int | None = None
+        self._fix_interval_ns: int | None = None
+        self._coasting = False
+        self.coasts = 0
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
+        if self.line_coast and self._coast_due(imu.stamp_ns):
+            self._coast(imu.stamp_ns)
         self.core.advance_to(imu.stamp_ns)
         if self.loop is not None:
             self.loop.propagate(imu)
@@ -398,6 +428,32 @@ class CompensationEstimator(Estimator):
         self.core.set_input(gnss.stamp_ns, d, np.concatenate([dv, np.zeros(3)]))
         self._gnss_count += 1
         self._last_diff_pos_m = norm(dp)
+        if self._last_fix_ns is not None and gnss.stamp_ns > self._last_fix_ns and not self._coasting:
+            self._fix_interval_ns = gnss.stamp_ns - self._last_fix_ns
+        self._last_fix_ns = gnss.stamp_ns
+        self._coasting = False
+
+    def _coast_due(self, t_ns: int) -> bool:
+        return (
+            not self._coasting
+            and self._fix_interval_ns is not None
+            and self._last_fix_ns is not None
+            and t_ns - self._last_fix_ns > COAST_AFTER_INTERVALS * self._fix_interval_ns
+        )
+
+    def _coast(self, t_ns: int) -> None:
+        """GNSS gap: the last fix's difference, continued as a ramp, carries that one fix's noise
+        (σ of the receiver, metres) and its velocity difference's (σ 0.2 m/s: metres after 10 s)
+        into every second of the gap, and the filter converges onto it. Continue instead on the
+        filter's own estimate: the position error on the line the velocity channels' estimate of
+        the INS velocity error draws (δṗ = δv, the INS error dynamics to first order), the velocity
+        error held. That is what the filter had learnt from every fix before, not from the last."""
+        t_c = self._last_fix_ns + round(COAST_AFTER_INTERVALS * self._fix_interval_ns)  # type: ignore[operator]
+        self.core.advance_to(t_c)
+        y = self.core.output()
+        self.core.hold_line(t_c, y, np.concatenate([y[3:], np.zeros(3)]))
+        self._coasting = True
+        self.coasts += 1
 
     def _on_gnss_feedback(self, gnss: GnssInput, loop: ClosedLoopIns) -> None:
         """Feedback form: corrector, the filter on its own INS, then the INS reset by ``y``."""
@@ -429,6 +485,8 @@ class CompensationEstimator(Estimator):
             "restarts": float(core.restarts),
             "since_start_s": seconds_since(core.t_ns or 0, core.t_start_ns),
             "ins_minus_gnss_pos_m": self._last_diff_pos_m,
+            "coasting": float(self._coasting),
+            "coasts": float(self.coasts),
         }
         if core.coast_after is not None:
             out |= {"coasting": float(core.coasting), "coasts": float(core.coasts)}

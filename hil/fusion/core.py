@@ -77,8 +77,8 @@ class FusionConfig:
     # publish each estimator's horizon state carried to the newest IMU sample (hil.fusion.predictor);
     # False: publish the horizon's state when it is reached, lag_ns late (the fusion before it)
     output_predictor: bool = True
-    # cf3 coasts through a GNSS gap (integrators and mean innovation held, open loop); False: it
-    # continues the last difference at its last rate (the fusion before it)
+    # the compensation filters coast through a GNSS gap (hil.estimators.compensation); False: they
+    # continue the last difference at its last rate (the fusion before the coasts)
     gnss_coast: bool = True
 
     @property
@@ -212,8 +212,9 @@ class FusionCore:
             accel_cal=config.ekf_calibration == "gyro+accel",
             feedback=config.feedback,
         )
-        if not config.gnss_coast:
-            params["cf3"] = params.get("cf3", {}) | {"coast_after": None}
+        if not config.gnss_coast:  # a recording made before the compensation filters' coasts
+            for name in ("comp1", "comp2", "comp3", "comp3f", "compvs", "cf2", "cf3"):
+                params[name] = params.get(name, {}) | {"gnss_coast": False}
 
         truth = TruthGenerator(scenario)
         init = truth.initial_state()

@@ -158,7 +158,8 @@ def test_the_fused_output_kept_every_stamp_and_no_strangers_fix_reached_it(attac
         for e in [*j.dropped, *j.gated]:
             assert int(parse_journal_id(e.split(">")[0])[1].split(":")[1]) not in strangers, e
     # the figures, not asserted (wall time on a shared machine): latency before and after the flood
-    log = np.array([r.log_time_ns for r in recs]) / 1e9
+    # receive time on the rig clock: log_time and publish_time are both epoch + rig time
+    log = stamps + np.array([r.log_time_ns - r.publish_time_ns for r in recs]) / 1e9
     flood = attacked["sent"]["flood"]
     lat = log - stamps
     for name, (a, b) in {

@@ -16,13 +16,12 @@ from functools import cache
 import numpy as np
 
 from hil.fusion.core import FusionConfig, FusionCore
+from hil.fusion.ideal import ideal_streams
 from hil.fusion.predictor import OutputPredictor
 from hil.messages import GnssFix, ImuSample, NavSolution, encode
 from hil.nav.scenario import parse_scenario
 from hil.nav.strapdown import _gravity, strapdown_from_initial, strapdown_step, to_nav_state
 from hil.nav.trajectory import TruthGenerator
-from hil.sensors.gnss import GnssEmulatorCore
-from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
 SCENARIO = """
 name = "horizon"
@@ -60,43 +59,7 @@ ESTIMATORS = ("comp1", "compvs", "cf3", "kfvel", "ekf15")  # every kind that tak
 
 @cache
 def _inputs() -> tuple[list[ImuSample], list[GnssFix]]:
-    s = parse_scenario(SCENARIO)
-    truth = TruthGenerator(s)
-    imu = ImuEmulatorCore(s, truth, sensor_rng(s.seed, "imu")).next_batch(int(s.duration_s * s.imu.rate_hz))
-    gnss = GnssEmulatorCore(s, truth, sensor_rng(s.seed, "gnss")).next_batch(int(s.duration_s * 1e9))
-    dt_ns = round(1e9 / s.imu.rate_hz)
-    imus = [
-        ImuSample(
-            seq=k,
-            stamp_ns=int(imu.t_ns[k]),
-            device_stamp_ns=int(imu.t_ns[k]),
-            rx_stamp_ns=int(imu.t_ns[k]),
-            dt_ns=dt_ns,
-            dtheta_b_rad=imu.dtheta_b_rad[k].tolist(),
-            dvel_b_mps=imu.dvel_b_mps[k].tolist(),
-        )
-        for k in range(len(imu.t_ns))
-    ]
-    fixes = [
-        GnssFix(
-            seq=i,
-            stamp_ns=int(gnss.t_valid_ns[i]),
-            device_stamp_ns=int(gnss.t_valid_ns[i]),
-            rx_stamp_ns=int(gnss.t_valid_ns[i]),
-            lat_deg=float(gnss.lat_deg[i]),
-            lon_deg=float(gnss.lon_deg[i]),
-            alt_m=float(gnss.alt_m[i]),
-            pos_ned_m=gnss.pos_ned_m[i].tolist(),
-            vel_ned_mps=gnss.vel_ned_mps[i].tolist(),
-            pos_sigma_m=gnss.pos_sigma_m[i].tolist(),
-            vel_sigma_mps=gnss.vel_sigma_mps[i].tolist(),
-            fix_type=int(gnss.fix_type[i]),
-            num_sats=int(gnss.num_sats[i]),
-            hdop=float(gnss.hdop[i]),
-        )
-        for i in range(len(gnss.t_valid_ns))
-    ]
-    return imus, fixes
+    return ideal_streams(parse_scenario(SCENARIO))
 
 
 def _core(**cfg: object) -> FusionCore:
