@@ -362,6 +362,9 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # the output predictor (hil.fusion.predictor); absent in recordings made before it, which
     # published the horizon's state lag_ns late
     output_predictor: bool = False
+    # the compensation filters' coast through a GNSS gap (hil.estimators.compensation); absent in
+    # recordings made before it, whose filters continued the last difference
+    gnss_coast: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

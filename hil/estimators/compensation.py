@@ -19,6 +19,24 @@ Two rates, handled deliberately:
   after the IMU step that straddles it), the state is corrected retroactively with
   ``x += Γ0(δ)(d_new − d_old(t_g)) + Γ1(δ)(s_new − s_old)``, exact for an LTI filter.
 
+**Coast through a GNSS gap** (``coast_after``, cf3's default, open loop only): continuing the
+last difference at its last rate feeds a third-order loop one fix's noise (σ of a position, and
+of a velocity times the gap) for the whole gap, and the loop, whose poles are 40 s slow, carries
+it long after the fixes return. So once the input is ``coast_after`` expected intervals overdue,
+the filter coasts as a complementary filter does in a gap (seed 003's loop form ``y = (k1/s +
+k2/s² + k3/s³)·e``, ``e = u − y``): its integrators -- the INS error's rate and acceleration --
+are held and extrapolated, and the innovation ``e`` is held at its recent mean ``ē`` (over
+``innovation_tau_s``) instead of the last noisy one: ``u = y + ē``, ``ẋ = (A + B C) x + B ē``,
+exact per step. In steady state on a cubic INS error (a tilt growing from a gyro bias) the loop
+runs on a constant innovation (jerk/k3), so with ``ē`` it goes on as if the fixes had not
+stopped; with ``ē`` = 0 (a pure integrator hold) it would drop the cubic term. τ = 3 s (30 fixes
+at 10 Hz) is short enough to follow the innovation while the slow loop is still settling: over
+12 seeds of the gate scenario it took the gap's window error from 3.23 to 3.22 m RMS over the
+seeds, lower on 9 of 12 (5 s: 3.35 m, 6 of 12; 10 s: 3.63 m). The first fix back ends the coast
+at its time of validity (stepped back to it exactly if it arrives after the IMU step that
+straddles it). Regular fixes never reach the threshold, so the aided output is bit for bit the
+filter without a coast. Strictly proper filters only (``y`` must not read ``u``).
+
 Variable structure (the paper's time-scheduled table, restarting when GNSS returns after an
 outage) and its **bumpless transfer**: at each structure switch the new state is chosen so that
 the new filter is in the steady state it would have reached while tracking the straight line
@@ -38,6 +56,7 @@ state, so the switch injects no transient at all into a ramp-like INS error.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -96,11 +115,27 @@ class CompensationCore:
         schedule: Sequence[tuple[float, TransferFunction]],
         n_channels: int,
         restart_after_s: float | None = None,
+        coast_after: float | None = None,
+        innovation_tau_s: float = 3.0,
     ) -> None:
         if not schedule or schedule[0][0] != 0.0:
             raise ValueError(f"schedule must start at 0 s, got {[s for s, _ in schedule]}")
         self.stages = tuple(Stage(s, tf, StateSpace.from_tf(tf)) for s, tf in schedule)
         self._caches = tuple(ZohCache(st.ss) for st in self.stages)
+        if coast_after is not None and (
+            not coast_after > 1.0 or not innovation_tau_s > 0.0 or any(st.ss.d != 0.0 for st in self.stages)
+        ):
+            raise ValueError(
+                f"a coast needs coast_after > 1 input interval (got {coast_after!r}), innovation_tau_s > 0 "
+                f"(got {innovation_tau_s!r}) and strictly proper filters"
+            )
+        self.coast_after = coast_after
+        self.innovation_tau_s = innovation_tau_s
+        # the coast: the loop driven by its held mean innovation ē, u = y + ē: ẋ = (A + B C) x + B ē
+        self._coast_caches = tuple(
+            ZohCache(StateSpace(st.ss.a + np.outer(st.ss.b, st.ss.c), st.ss.b, st.ss.c, 0.0))
+            for st in self.stages
+        )
         self._ramp_states = tuple(_ramp_state_terms(st.ss) for st in self.stages)
         self._start_offsets_ns = tuple(round(st.start_s * 1e9) for st in self.stages)
         self.restart_after_ns = None if restart_after_s is None else round(restart_after_s * 1e9)
@@ -114,9 +149,17 @@ class CompensationCore:
         self.t_last_input_ns: int | None = None
         self.restarts = 0
         self.switches = 0
+        self.coasting = False
+        self.coasts = 0
+        self._interval_ns: int | None = None  # the input interval expected (see _coast_start_ns)
+        self._coast_from_ns: int | None = None
+        self.innovation_mean: F64 = np.zeros(n_channels)  # ē: the innovation u − y, averaged over τ
 
     # -- propagation ---------------------------------------------------------------------------
     def _step(self, h_ns: int) -> None:
+        if self.coasting:
+            self._coast_step(h_ns)
+            return
         phi, gamma0, gamma1 = self._caches[self.stage].get(h_ns)
         # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ)
         # column × row by broadcasting: what np.outer computes, without its per-call overhead
@@ -124,10 +167,23 @@ class CompensationCore:
         self.x = mm(phi, self.x) + gamma0[:, None] * self.u[None, :] + gamma1[:, None] * self.slope[None, :]
         self.u = self.u + self.slope * (h_ns * 1e-9)
 
+    def _coast_step(self, h_ns: int) -> None:
+        """``x+ = Φc(h) x + Γc(h) ē`` (h < 0 steps back exactly). The held ramp ``u, s`` stays as
+        it was when the coast began: a strictly proper filter's output does not read it."""
+        phi, gamma0, _ = self._coast_caches[self.stage].get(h_ns)
+        self.x = mm(phi, self.x) + gamma0[:, None] * self.innovation_mean[None, :]
+
     def _next_boundary_ns(self) -> int | None:
         if self.t_start_ns is None or self.stage + 1 >= len(self.stages):
             return None
         return self.t_start_ns + self._start_offsets_ns[self.stage + 1]
+
+    def _coast_start_ns(self) -> int | None:
+        """When the input is overdue: ``coast_after`` expected intervals after the last one."""
+        if self.coasting or self.coast_after is None or self._interval_ns is None:
+            return None
+        assert self.t_last_input_ns is not None
+        return self.t_last_input_ns + round(self.coast_after * self._interval_ns)
 
     def advance_to(self, t_ns: int) -> None:
         """Propagate the state to ``t_ns`` with the held input, switching structure on time."""
@@ -136,10 +192,15 @@ class CompensationCore:
             return
         while t_ns > self.t_ns:
             boundary = self._next_boundary_ns()
-            t_end = t_ns if boundary is None or boundary > t_ns else boundary
+            coast = self._coast_start_ns()
+            t_end = min(t for t in (t_ns, boundary, coast) if t is not None)
             if t_end > self.t_ns:
                 self._step(t_end - self.t_ns)
                 self.t_ns = t_end
+            if coast is not None and t_end == coast:
+                self.coasting = True
+                self.coasts += 1
+                self._coast_from_ns = max(coast, self.t_ns)
             if boundary is not None and t_end == boundary:
                 self.switch_to(self.stage + 1)
 
@@ -156,6 +217,16 @@ class CompensationCore:
             and self.restart_after_ns is not None
             and t_ns - self.t_last_input_ns > self.restart_after_ns
         )
+        if self.t_ns is not None and t_ns >= self.t_ns:
+            self.advance_to(t_ns)  # a coast that falls due before the input starts first
+        t_resume = self._end_coast(t_ns) if self.coasting else None
+        self._learn_interval(t_ns, ended_coast=t_resume is not None)
+        if self.coast_after is not None and self._interval_ns is not None:
+            # per input, the weight of one nominal interval in τ (an outage's length is not a
+            # weight: the first fix after it is one fix); y at the state's stamp, which is the
+            # fix's or at most one IMU step after it
+            w = 1.0 - math.exp(-self._interval_ns * 1e-9 / self.innovation_tau_s)
+            self.innovation_mean = self.innovation_mean + w * (d - self.output() - self.innovation_mean)
         if self.t_ns is None or t_ns >= self.t_ns:
             self.advance_to(t_ns)
         else:
@@ -176,6 +247,35 @@ class CompensationCore:
         self.u = d.copy()
         self.slope = s.copy()
         self.t_last_input_ns = t_ns
+        if t_resume is not None:
+            self.advance_to(t_resume)
+
+    def _end_coast(self, t_ns: int) -> int:
+        """Leave the coast for an input at ``t_ns``; returns the state's stamp to come back to.
+
+        An input stamped before the state (delivered just after the IMU step that straddles it)
+        rewinds the coast to it exactly -- ``Φ_coast(−δ)``, or to where the coast began if that
+        is later -- so the input then takes effect at its time of validity as it always does.
+        """
+        assert self.t_ns is not None and self._coast_from_ns is not None
+        t_now = self.t_ns
+        t_back = max(t_ns, self._coast_from_ns)
+        if t_back < t_now:
+            self._coast_step(t_back - t_now)
+            self.t_ns = t_back
+        self.coasting = False
+        return t_now
+
+    def _learn_interval(self, t_ns: int, ended_coast: bool) -> None:
+        """The input interval a coast waits for: the last one, unless it ended a coast (an
+        outage); then at most twice the one expected before, so a lower rate is learnt in a few
+        inputs and an outage is not taken for one."""
+        if self.t_last_input_ns is None or t_ns <= self.t_last_input_ns:
+            return
+        gap = t_ns - self.t_last_input_ns
+        if ended_coast and self._interval_ns is not None:
+            gap = min(gap, 2 * self._interval_ns)
+        self._interval_ns = gap
 
     def shift(self, c0: F64, c1: F64) -> None:
         """The input drops by ``c0 + c1 τ`` from now on (the INS was reset by that much): move the
@@ -273,9 +373,21 @@ class CompensationEstimator(Estimator):
         schedule: Sequence[tuple[float, TransferFunction]],
         restart_after_s: float | None = 3.0,
         feedback: dict[str, Any] | None = None,
+        coast_after: float | None = None,
+        innovation_tau_s: float = 3.0,
+        line_coast: bool = True,
     ) -> None:
         self.name = name
-        self.core = CompensationCore(schedule, 6, restart_after_s)
+        # Two coasts through a GNSS gap. ``line_coast``: on the line the velocity channels'
+        # estimate draws (``_coast``), every filter's by default. ``coast_after`` (cf3): the
+        # third-order loop on its own integrators and mean innovation (``CompensationCore``),
+        # in the open loop only: there the filter is the only model of the INS error. In the
+        # feedback form the corrector changes the INS behind the filter's integrators (they are
+        # no model of it: coasting on them took cf3 from 2.3 m to 8.2 m in car_drive's tunnel),
+        # and the INS, reset and bias-corrected, is itself what coasts.
+        self.line_coast = line_coast and coast_after is None
+        coast = coast_after if feedback is None else None
+        self.core = CompensationCore(schedule, 6, restart_after_s, coast, innovation_tau_s)
         self.core.advance_to(init.stamp_ns)
         self.loop = None if feedback is None else ClosedLoopIns(init, **feedback)
         self._ins: NavState | None = None
@@ -290,7 +402,7 @@ class CompensationEstimator(Estimator):
         self.coasts = 0
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
-        if self._coast_due(imu.stamp_ns):
+        if self.line_coast and self._coast_due(imu.stamp_ns):
             self._coast(imu.stamp_ns)
         self.core.advance_to(imu.stamp_ns)
         if self.loop is not None:
@@ -376,6 +488,8 @@ class CompensationEstimator(Estimator):
             "coasting": float(self._coasting),
             "coasts": float(self.coasts),
         }
+        if core.coast_after is not None:
+            out |= {"coasting": float(core.coasting), "coasts": float(core.coasts)}
         return out | (self.loop.health() if self.loop is not None else {})
 
 

@@ -77,6 +77,9 @@ class FusionConfig:
     # publish each estimator's horizon state carried to the newest IMU sample (hil.fusion.predictor);
     # False: publish the horizon's state when it is reached, lag_ns late (the fusion before it)
     output_predictor: bool = True
+    # the compensation filters coast through a GNSS gap (hil.estimators.compensation); False: they
+    # continue the last difference at its last rate (the fusion before the coasts)
+    gnss_coast: bool = True
 
     @property
     def lag_s(self) -> float:
@@ -107,6 +110,7 @@ class FusionConfig:
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
+            gnss_coast=self.gnss_coast,
         )
 
     def gate_settings(self) -> GateSettings:
@@ -208,6 +212,9 @@ class FusionCore:
             accel_cal=config.ekf_calibration == "gyro+accel",
             feedback=config.feedback,
         )
+        if not config.gnss_coast:  # a recording made before the compensation filters' coasts
+            for name in ("comp1", "comp2", "comp3", "comp3f", "compvs", "cf2", "cf3"):
+                params[name] = params.get(name, {}) | {"gnss_coast": False}
 
         truth = TruthGenerator(scenario)
         init = truth.initial_state()

@@ -241,3 +241,99 @@ def test_held_noise_gain_is_what_the_filter_leaves_of_held_white_noise() -> None
                 out.append(core.output().copy())
     rms = float(np.sqrt(np.mean(np.square(out))))
     assert rms == pytest.approx(gain, rel=0.03)
+
+
+# -- cf3's coast through a GNSS gap ----------------------------------------------------------------
+
+CF3 = ((0.0, complementary3(0.07, 0.005, 1e-4)),)
+
+
+def _cubic_run(core: CompensationCore, gap: tuple[float, float] | None, t_end_s: float = 420.0) -> np.ndarray:
+    """A noise-free INS error growing as a tilt from a gyro bias makes it (ξ = j t³/6), as the
+    compensation estimator sees it: 10 Hz differences continued at their rate, output at 100 Hz;
+    no fix inside ``gap``. Returns ξ − y at every 10 ms."""
+    jerk = 2e-4
+
+    def xi(t: float) -> float:
+        return jerk * t**3 / 6.0
+
+    out = []
+    for k in range(round(t_end_s * 100) + 1):
+        t = k * 0.01
+        t_ns = k * 10_000_000
+        core.advance_to(t_ns)
+        if k % 10 == 0 and not (gap is not None and gap[0] <= t < gap[1]):
+            core.set_input(t_ns, np.array([xi(t)]), np.array([jerk * t**2 / 2.0]))
+        out.append(xi(t) - core.output()[0])
+    return np.array(out)
+
+
+def test_cf3_coasts_through_a_gap_on_the_ins_error_it_was_tracking() -> None:
+    """The third-order loop tracks a cubic INS error with a constant innovation ē (jerk/k3);
+    held through a 10 s gap, the loop goes on as if the fixes had not stopped (its integrators
+    hold the error's rate and acceleration), where the last difference continued at its last
+    rate (no coast) misses the error's acceleration for the whole gap and rings after it."""
+    gap = (400.0, 410.0)
+    tracked = _cubic_run(CompensationCore(CF3, 1), None)
+    coasted = _cubic_run(CompensationCore(CF3, 1, coast_after=2.5), gap)
+    held = _cubic_run(CompensationCore(CF3, 1), gap)
+    window = slice(40_000, None)  # the gap and the 10 s after it
+    lag = np.abs(tracked[window]).max()
+    assert lag > 1.0  # the open loop's own lag on a cubic (1 − W = s³/(…)): what a gap must not add to
+    assert np.abs(coasted[window] - tracked[window]).max() < 1e-3 * lag
+    assert np.abs(held[window] - tracked[window]).max() > 0.05 * lag
+
+
+def test_regular_fixes_never_coast_so_the_aided_output_is_unchanged() -> None:
+    """A fix missing now and then (two intervals) is not a gap: bit for bit the filter without a coast."""
+    rng = np.random.default_rng(3)
+    plain, coast = CompensationCore(CF3, 2), CompensationCore(CF3, 2, coast_after=2.5)
+    for k in range(3000):
+        t_ns = k * 10_000_000
+        for c in (plain, coast):
+            c.advance_to(t_ns)
+        if k % 10 == 0 and k % 70 != 0:
+            d, s = rng.normal(0.0, 2.0, 2), rng.normal(0.0, 0.2, 2)
+            for c in (plain, coast):
+                c.set_input(t_ns, d, s)
+        assert np.array_equal(plain.output(), coast.output())
+    assert coast.coasts == 0 and not coast.coasting
+
+
+def test_a_late_fix_ends_a_coast_as_one_on_time() -> None:
+    """The fix that ends a gap, delivered just after the IMU step that straddles it, takes effect
+    at its time of validity: the coast is stepped back to it exactly."""
+    on_time, late = CompensationCore(CF3, 2, coast_after=2.5), CompensationCore(CF3, 2, coast_after=2.5)
+    rng = np.random.default_rng(5)
+    for k in range(0, 3000, 10):
+        d, s = rng.normal(0.0, 2.0, 2), rng.normal(0.0, 0.2, 2)
+        for c in (on_time, late):
+            c.advance_to(k * 10_000_000)
+            c.set_input(k * 10_000_000, d, s)
+    t_fix = 35_000_000_000 + 3_000_000  # 5 s gap; the fix between two IMU stamps
+    on_time.advance_to(t_fix)
+    assert on_time.coasting
+    on_time.set_input(t_fix, np.array([1.0, -2.0]), np.array([0.1, 0.0]))
+    on_time.advance_to(35_010_000_000)
+    late.advance_to(35_010_000_000)
+    late.set_input(t_fix, np.array([1.0, -2.0]), np.array([0.1, 0.0]))
+    assert not late.coasting and late.coasts == on_time.coasts == 1
+    np.testing.assert_allclose(late.output(), on_time.output(), rtol=1e-12, atol=1e-12)
+
+
+def test_a_coast_needs_a_strictly_proper_filter() -> None:
+    with pytest.raises(ValueError, match="strictly proper"):
+        CompensationCore(((0.0, aperiodic(1, 5.0)),), 1, coast_after=0.5)
+
+
+def test_cf3_coasts_in_the_open_loop_only() -> None:
+    """In the feedback form the corrector moves the INS behind the filter's integrators, so they
+    are no model of its error in a gap: the reset, bias-corrected INS coasts instead."""
+    from hil.estimators.tuning import params_for
+    from hil.nav.scenario import load_scenario
+
+    sc = load_scenario("car_drive")
+    fb = params_for(sc.imu.params, sc.gnss, feedback=("cf3",))["cf3"]
+    assert make_estimator("cf3", _init()).core.coast_after == 2.5  # type: ignore[attr-defined]
+    assert make_estimator("cf3", _init(), fb).core.coast_after is None  # type: ignore[attr-defined]
+    assert make_estimator("cf3", _init(), {"coast_after": None}).core.coast_after is None  # type: ignore[attr-defined]
