@@ -160,10 +160,17 @@ class Recorder(Service):
 
     @state.setter
     def state(self, value: str) -> None:
+        before = self.state if "_state" in self.__dict__ else None
         if value == "degraded":
             self.__dict__["_degraded"] = True
             value = "running"
         self.__dict__["_state"] = value
+        # as the base class: a change goes out at once, not at the next 1 Hz status. Without
+        # this the recorder said "running" up to a second after it was (1.0 s of the 2.9 s it
+        # took to be ready in `hil up`), and time zero waits for it.
+        wake = self.__dict__.get("_status_now")
+        if wake is not None and self.state != before:
+            wake.set()
 
     def needs_run(self) -> bool:
         return False  # record from boot: statuses before the run starts are evidence too
