@@ -73,7 +73,6 @@ from hil.record.mcapio import (
     split_part_path,
     wall_clock_log_time,
 )
-from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
 from hil.runtime.options import RecorderOptions
 from hil.runtime.service import Service, run_service
@@ -564,6 +563,10 @@ SERVICE = Recorder
 
 
 def main(argv: list[str] | None = None) -> int:
+    # here, not at the top: the live runner brings python-can and numpy, which the recorder
+    # process under `hil up` (run_service with --options) never needs
+    from hil.runners.live import options_parser
+
     ap = options_parser(
         RecorderOptions, "hil service recorder", {"--no-zenoh-miss-detection": "zenoh_advanced"}
     )
