@@ -255,6 +255,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     rc = sup.run()
     if sup.ready_line():
         print(f"hil up: {sup.ready_line()}")
+    if sup.ready_cpu_line():
+        print(f"hil up: {sup.ready_cpu_line()}")
     if sup.cpu_table():
         print(sup.cpu_table())
     for line in sup.restart_log:

@@ -29,6 +29,7 @@ from hil.runtime.argtypes import OneLineParser, bounded_int, duration_s
 
 RIG = "benchready"
 _READY = re.compile(r"ready after start \(s\): (.*)$", re.M)
+_CPU = re.compile(r"CPU to ready \(s\): (.*)$", re.M)  # a hil up that prints it (not older ones)
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 # streams that begin before the recorder listens (every service's status from its first
 # instant, events) are recorded from when it joins; every other stream begins after time zero
@@ -41,6 +42,7 @@ class UpRun:
 
     load: float  # 1-minute load average just before the run
     ready_s: dict[str, float]
+    cpu_s: dict[str, float] = field(default_factory=dict)  # the process's CPU when first seen ready
     streams: int = 0  # the rig's data streams in the recording
     heads_lost: list[str] = field(default_factory=list)  # streams whose first message is missing
     replay_ready: bool = False
@@ -53,9 +55,9 @@ class Side:
     runs: list[UpRun] = field(default_factory=list)
 
 
-def parse_ready(stdout: str) -> dict[str, float]:
+def parse_ready(stdout: str, line: re.Pattern[str] = _READY) -> dict[str, float]:
     """``hil up``'s ``ready after start (s): recorder 1.23, world 1.10, ...`` as a dict."""
-    m = _READY.search(stdout)
+    m = line.search(stdout)
     if m is None:
         return {}
     out: dict[str, float] = {}
@@ -92,7 +94,7 @@ def one_up(tree: Path, tmp: Path, duration: float, scenario: str, n: int) -> UpR
     )
     if r.returncode != 0:
         raise RuntimeError(f"hil up ({tree}) exited {r.returncode}:\n{r.stdout[-2000:]}{r.stderr[-2000:]}")
-    run = UpRun(load, parse_ready(r.stdout))
+    run = UpRun(load, parse_ready(r.stdout), parse_ready(r.stdout, _CPU))
     run.streams, run.heads_lost, run.replay_ready = stream_heads(rec, RIG)
     for p in tmp.glob(f"ready-{n}*"):
         if p.is_file():
@@ -123,17 +125,19 @@ def table(sides: list[Side]) -> list[str]:
         {n for s in sides for r in s.runs for n in r.ready_s},
         key=lambda n: -statistics.median([r.ready_s.get(n, 0.0) for r in sides[0].runs]),
     )
-    head = " | ".join(f"{s.label} median s | {s.label} max s" for s in sides)
-    lines = [f"| service | {head} |", "| --- |" + " ---: | ---: |" * len(sides)]
+    head = " | ".join(f"{s.label} median s | {s.label} max s | {s.label} CPU s" for s in sides)
+    lines = [f"| service | {head} |", "| --- |" + " ---: | ---: | ---: |" * len(sides)]
     for n in [*names, "slowest (time zero waits for it)"]:
         cells = []
         for s in sides:
+            slowest = n.startswith("slowest")
             xs = (
                 [max(r.ready_s.values()) for r in s.runs if r.ready_s]
-                if n.startswith("slowest")
+                if slowest
                 else [r.ready_s[n] for r in s.runs if n in r.ready_s]
             )
-            cells += _fmt(xs)
+            cpu = [r.cpu_s[n] for r in s.runs if n in r.cpu_s]
+            cells += [*_fmt(xs), f"{statistics.median(cpu):.2f}" if cpu and not slowest else "–"]
         label = f"**{n}**" if n.startswith("slowest") else n
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
@@ -187,7 +191,10 @@ def main(argv: list[str]) -> int:
             f"`hil up --duration {a.duration:g} --scenario {a.scenario} --quiet`, {a.runs} runs"
             + (f" of each tree, alternating ({sides[0].label} first)" if a.versus else "")
             + "; seconds from the supervisor spawning a service to its first ready status "
-            "(`hil up`'s `ready after start` line). Every service starts at once on this machine's "
+            "(`hil up`'s `ready after start` line); CPU s: the median of the service process's CPU "
+            "seconds when the supervisor first saw it ready (`CPU to ready`, printed by `hil up` "
+            "since this bench; – where the tree does not print it), which the machine's load does "
+            "not stretch. Every service starts at once on this machine's "
             f"{os.cpu_count()} cores, beside whatever else runs on them (load below).",
             "",
             *table(sides),
