@@ -31,6 +31,21 @@ RIG = "benchready"
 _READY = re.compile(r"ready after start \(s\): (.*)$", re.M)
 _CPU = re.compile(r"CPU to ready \(s\): (.*)$", re.M)  # a hil up that prints it (not older ones)
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
+# What `hil service NAME --options ...` does before the service runs (the interpreter, the
+# command line, every import), in a fresh process; its CPU from rusage. A tree from before
+# build_parser(service_only=...) builds every parser, as its `hil service` did.
+_ENTRY = """
+import inspect, resource, sys
+from hil.cli import build_parser
+fast = "service_only" in inspect.signature(build_parser).parameters
+ap = build_parser(service_only=True) if fast else build_parser()
+ap.parse_known_args(["service", NAME, "--rig", "x", "--options", "{}"])
+from hil.runtime.registry import service_module
+import hil.runtime.service
+service_module(NAME)
+r = resource.getrusage(resource.RUSAGE_SELF)
+print(r.ru_utime + r.ru_stime)
+"""
 # streams that begin before the recorder listens (every service's status from its first
 # instant, events) are recorded from when it joins; every other stream begins after time zero
 _BEFORE_READY = ("/status/", "/event/")
@@ -53,6 +68,39 @@ class Side:
     label: str
     tree: Path
     runs: list[UpRun] = field(default_factory=list)
+    entry_cpu: dict[str, list[float]] = field(default_factory=dict)  # service -> CPU s per try
+
+
+def entry_cpu(tree: Path, service: str) -> float:
+    """CPU seconds of a fresh ``hil service`` process of ``tree`` up to its service's entry."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
+    env["PYTHONPATH"] = str(tree)
+    code = _ENTRY.replace("NAME", repr(service))
+    r = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{service} ({tree}): {r.stderr.strip()[-500:]}")
+    return float(r.stdout.strip())
+
+
+def entry_table(sides: list[Side]) -> list[str]:
+    """Median CPU to the service's entry per tree, and the ratio to the first tree."""
+    names = sorted(sides[0].entry_cpu, key=lambda n: -statistics.median(sides[0].entry_cpu[n]))
+    head = " | ".join(f"{s.label} CPU s" for s in sides)
+    ratio = len(sides) > 1
+    lines = [
+        f"| service | {head} |" + (" ratio |" if ratio else ""),
+        "| --- |" + " ---: |" * (len(sides) + ratio),
+    ]
+    for n in [*names, "total"]:
+        meds = [
+            sum(statistics.median(v) for v in s.entry_cpu.values())
+            if n == "total"
+            else statistics.median(s.entry_cpu[n])
+            for s in sides
+        ]
+        cells = [f"{m:.3f}" for m in meds] + ([f"{meds[-1] / meds[0]:.2f}"] if ratio else [])
+        lines.append(f"| {'**total**' if n == 'total' else n} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def parse_ready(stdout: str, line: re.Pattern[str] = _READY) -> dict[str, float]:
@@ -163,6 +211,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--runs", type=bounded_int(1, 100), default=5, help="hil up runs (of each tree)")
     ap.add_argument("--duration", type=duration_s, default=3.0, help="rig seconds of each run")
     ap.add_argument("--scenario", default="straight_level")
+    ap.add_argument(
+        "--entry-tries",
+        type=bounded_int(0, 100),
+        default=7,
+        help="fresh processes per service and tree timed to the service's entry (0: skip)",
+    )
     ap.add_argument("--versus", default=None, metavar="REF", help="also REF's hil up, alternating")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
@@ -186,6 +240,15 @@ def main(argv: list[str]) -> int:
                     return 1
                 n += 1
                 print(f"{s.label} run {len(s.runs)}: {s.runs[-1].ready_s}", file=sys.stderr, flush=True)
+        services = sorted({name for s in sides for r in s.runs for name in r.ready_s})
+        for i in range(a.entry_tries):
+            for name in services:
+                for s in sides if i % 2 == 0 else sides[::-1]:
+                    try:
+                        s.entry_cpu.setdefault(name, []).append(entry_cpu(s.tree, name))
+                    except RuntimeError as err:
+                        print(f"hil bench ready: {err}", file=sys.stderr)
+                        return 1
     body = "\n".join(
         [
             f"`hil up --duration {a.duration:g} --scenario {a.scenario} --quiet`, {a.runs} runs"
@@ -201,6 +264,18 @@ def main(argv: list[str]) -> int:
             "",
             *checks(sides),
         ]
+        + (
+            [
+                "",
+                f"CPU seconds of a fresh `hil service NAME` process up to the service's entry (the "
+                "interpreter, the command line, every import; what each service pays before it can "
+                f"open its session), median of {a.entry_tries} per service and tree, alternating:",
+                "",
+                *entry_table(sides),
+            ]
+            if a.entry_tries
+            else []
+        )
     )
     print(body)
     if not a.no_write:
