@@ -386,6 +386,10 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     if a.name is None:
         a.parser.print_help()
         return 0 if a.help else 2
+    # One process of several on the machine, its matrices tiny (15x15 at most): OpenBLAS's
+    # threads would only compete with the rig's other processes, and starting them costs ~40 ms
+    # of CPU at numpy's import, before the service can say ready. Set it to use more.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     mod = service_module(a.name)
     if a.help:
         return int(mod.main(["--help"]) or 0)

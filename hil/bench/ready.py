@@ -32,17 +32,13 @@ _READY = re.compile(r"ready after start \(s\): (.*)$", re.M)
 _CPU = re.compile(r"CPU to ready \(s\): (.*)$", re.M)  # a hil up that prints it (not older ones)
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 # What `hil service NAME --options ...` does before the service runs (the interpreter, the
-# command line, every import), in a fresh process; its CPU from rusage. A tree from before
-# build_parser(service_only=...) builds every parser, as its `hil service` did.
+# command line, every import), in a fresh process; its CPU from rusage.
 _ENTRY = """
-import inspect, resource, sys
-from hil.cli import build_parser
-fast = "service_only" in inspect.signature(build_parser).parameters
-ap = build_parser(service_only=True) if fast else build_parser()
-ap.parse_known_args(["service", NAME, "--rig", "x", "--options", "{}"])
-from hil.runtime.registry import service_module
+import resource, sys
 import hil.runtime.service
-service_module(NAME)
+hil.runtime.service.run_service = lambda *a, **k: 0  # the service's entry: not run here
+from hil.cli import main
+main(["service", NAME, "--rig", "x", "--options", "{}"])
 r = resource.getrusage(resource.RUSAGE_SELF)
 print(r.ru_utime + r.ru_stime)
 """
