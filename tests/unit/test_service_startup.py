@@ -8,6 +8,7 @@ are ~0.1 s of CPU each at import; a service that does not use them must not pay 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -67,3 +68,25 @@ def test_hil_service_parses_the_same_with_its_own_parser_alone() -> None:
         k: v for k, v in vars(full).items() if k not in drop
     }
     assert alone.name == "recorder" and alone.options == '{"path": "x.mcap"}' and alone.rig == "r1"
+
+
+_THREADS = """
+import os
+import hil.runtime.service
+hil.runtime.service.run_service = lambda *a, **k: 0  # the service's entry: not run here
+from hil.cli import main
+main(["service", "fusion", "--rig", "x", "--options", "{}"])
+print(len(os.listdir("/proc/self/task")))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/task")
+@pytest.mark.parametrize(("setting", "threads"), [(None, 1), ("2", 2)])
+def test_a_service_starts_no_blas_threads_unless_asked(setting: str | None, threads: int) -> None:
+    # a service's matrices are too small for OpenBLAS's threads; starting them costs start-up CPU
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if setting is not None:
+        env["OPENBLAS_NUM_THREADS"] = setting  # the user's setting wins
+    out = subprocess.run([sys.executable, "-c", _THREADS], cwd=REPO, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert int(out.stdout.split()[-1]) == threads  # the main thread, and OpenBLAS's beyond it
