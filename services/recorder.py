@@ -85,7 +85,6 @@ from hil.record.mcapio import (
     split_parts,
     wall_clock_log_time,
 )
-from hil.runners.live import options_parser
 from hil.runtime.clock import wall_ns
 from hil.runtime.options import RecorderOptions
 from hil.runtime.service import Service, run_service
@@ -181,10 +180,17 @@ class Recorder(Service):
 
     @state.setter
     def state(self, value: str) -> None:
+        before = self.state if "_state" in self.__dict__ else None
         if value == "degraded":
             self.__dict__["_degraded"] = True
             value = "running"
         self.__dict__["_state"] = value
+        # as the base class: a change goes out at once, not at the next 1 Hz status. Without
+        # this the recorder said "running" up to a second after it was (1.0 s of the 2.9 s it
+        # took to be ready in `hil up`), and time zero waits for it.
+        wake = self.__dict__.get("_status_now")
+        if wake is not None and self.state != before:
+            wake.set()
 
     def needs_run(self) -> bool:
         return False  # record from boot: statuses before the run starts are evidence too
@@ -632,6 +638,10 @@ SERVICE = Recorder
 
 
 def main(argv: list[str] | None = None) -> int:
+    # here, not at the top: the live runner brings python-can and numpy, which the recorder
+    # process under `hil up` (run_service with --options) never needs
+    from hil.runners.live import options_parser
+
     ap = options_parser(
         RecorderOptions, "hil service recorder", {"--no-zenoh-miss-detection": "zenoh_advanced"}
     )

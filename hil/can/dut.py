@@ -42,12 +42,14 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
-import cantools
 
 from hil.messages import NavSolution
+
+if TYPE_CHECKING:
+    import cantools  # imported where a DBC is loaded: the bridge without a unit never needs it
 
 REQUIRED = ("lat_deg", "lon_deg", "alt_m", "vel_n_mps", "vel_e_mps", "vel_d_mps")
 EULER = ("roll_deg", "pitch_deg", "yaw_deg")
@@ -156,6 +158,8 @@ class DutNavDecoder:
     def from_files(
         cls, dbc: str | Path, mapping: str | Path, origin: tuple[float, float, float]
     ) -> DutNavDecoder:
+        import cantools
+
         return cls(cantools.database.load_file(str(dbc)), DutMapping.from_toml(mapping), *origin)
 
     def _fail(self, counter: str, text: str) -> None:

@@ -8,18 +8,23 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import can
-import cantools
 import numpy as np
 
 from hil.can.dut import EULER, DutMapping
 from hil.nav.attitude import quat_to_euler
 
+if TYPE_CHECKING:
+    import cantools  # imported where a DBC is loaded (load_dut)
+
 
 def load_dut(mapping_path: str | Path) -> tuple[cantools.database.Database, DutMapping]:
     """The mapping TOML and the DBC it names (``dbc = "..."``, relative to the mapping file)."""
     import tomllib
+
+    import cantools
 
     p = Path(mapping_path)
     with open(p, "rb") as fh:

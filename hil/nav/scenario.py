@@ -22,6 +22,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from hil.nav.limits import MAX_DURATION_S
 from hil.nav.sensor_specs import ImuParams, SpecError, resolve_imu_params
 from hil.sensor_table import SENSORS
 
@@ -34,12 +35,6 @@ Vec3 = tuple[float, float, float]
 RESERVED_TABLES = frozenset({"clock", *(set(SENSORS) - {"imu", "gnss"})})
 SEGMENT_KINDS = ("hold", "accelerate", "turn", "coordinated_turn", "climb", "rates")
 DEFAULT_SCENARIO = "straight_level"
-#: The longest run a scenario (or ``--duration``) may ask for: ~11.6 days of rig time. Longer is a
-#: typo: ``1e12`` once asked ``hil sim`` for a 14.6 TiB allocation.
-MAX_DURATION_S = 1e6
-#: The rig clock's speed (rig seconds per wall second): faster, no host keeps up (``hil up``
-#: holds ~4x on 2 cores); slower, one rig second takes over 16 minutes.
-MIN_SPEED, MAX_SPEED = 1e-3, 1000.0
 
 
 class ScenarioError(ValueError):

@@ -22,7 +22,8 @@ import msgspec
 import numpy as np
 
 from hil.messages import RunInfo
-from hil.nav.scenario import MAX_DURATION_S, MAX_SPEED, MIN_SPEED, scenario_for_run
+from hil.nav.limits import MAX_DURATION_S, MAX_SPEED, MIN_SPEED
+from hil.nav.scenario import scenario_for_run
 from hil.nav.trajectory import TruthGenerator
 from hil.nodes.base import Node, NodeOptions, Out
 from hil.nodes.builders import truth_msg

@@ -30,9 +30,8 @@ import types
 import typing
 from collections import deque
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
-import can
 import msgspec
 
 from hil.bus.describe import alive_key
@@ -40,9 +39,7 @@ from hil.bus.identity import FOREIGN, RigIdentity
 from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
-from hil.can.bus import open_can_bus
 from hil.messages import RunInfo, ServiceStatus
-from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nodes.base import (
     CAN_RX,
     CAN_TX,
@@ -54,13 +51,19 @@ from hil.nodes.base import (
     Out,
     decode_options,
 )
-from hil.nodes.world import run_info
-from hil.runners.can_sender import SenderProcess, pacing_config_dict
 from hil.runners.pacing import MonotonicRigClock, PacingConfig
-from hil.runners.serial import LineReader, LineWriter
 from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
 from hil.runtime.service import Service, ServiceContext, run_service
+
+if TYPE_CHECKING:
+    # imported where used: python-can (~0.1 s of CPU at import), the CAN sender, the serial line
+    # and the scenario loader are needed by some services only, and every service's start-up
+    # (which time zero waits for) paid for all of them
+    import can
+
+    from hil.runners.can_sender import SenderProcess
+    from hil.runners.serial import LineReader, LineWriter
 
 
 class _Ident(msgspec.Struct):
@@ -100,6 +103,7 @@ class NodeService(Service):
         self._pubs: dict[str, Publisher[Any]] = {}
         self._errors_seen = 0
         self.can_bus: can.BusABC | None = None
+        self._can_error: type[Exception] = Exception  # python-can's, once a bus is open
         self.transport = ""
         self.line_tx: LineWriter | None = None
         self.line_rx: LineReader | None = None
@@ -133,6 +137,8 @@ class NodeService(Service):
         bridge's (``rx``). A path that cannot be made stops the service with one line."""
         o: Any = self.opts
         if self.node_cls.serial == "tx" and getattr(o, "protocol", None):
+            from hil.runners.serial import LineWriter
+
             self.line_tx = LineWriter(
                 o.baud,
                 list(o.serial_links),
@@ -149,10 +155,17 @@ class NodeService(Service):
                 "line", f"{'+'.join(o.protocol)} at {o.baud} baud on {', '.join(where) or 'no line'}"
             )
         elif self.node_cls.serial == "rx":
+            from hil.runners.serial import LineReader
+
             self.line_rx = LineReader(o.baud, path=o.serial_path, tcp=o.tcp_connect)
 
     def _open_can(self) -> None:
+        import can
+
+        from hil.can.bus import open_can_bus
+
         o: Any = self.opts
+        self._can_error = can.CanError
         self.can_bus, self.transport = open_can_bus(
             o.channel,
             o.interface,
@@ -167,6 +180,8 @@ class NodeService(Service):
     def _start_can_sender(self) -> None:
         """The node's frames leave through a pacing process of their own (``hil.runners.can_sender``),
         started now so it has its bus and codec long before time zero."""
+        from hil.runners.can_sender import SenderProcess, pacing_config_dict
+
         o: Any = self.opts
         trace_dir = os.environ.get(PACING_TRACE_ENV)
         pacing = PacingConfig(
@@ -405,7 +420,7 @@ class NodeService(Service):
         assert self.can_bus is not None
         try:
             frame = self.can_bus.recv(timeout=wait_s)
-        except can.CanError as err:  # the bus went away: say so, keep trying until stopped
+        except self._can_error as err:  # the bus went away: say so, keep trying until stopped
             self.stats.error("errors.can.recv", f"{self.transport}: {err}")
             self.ctx.stop.wait(0.2)
             return
@@ -533,6 +548,9 @@ class WorldService(NodeService):
         o: Any = self.opts
         if o.resume_run:  # the same run again: time zero and scenario as announced
             return RunInfo(**o.resume_run)
+        from hil.nav.scenario import load_scenario, scenario_overrides
+        from hil.nodes.world import run_info
+
         s = load_scenario(o.scenario)
         if o.imu_rate_hz:
             s = scenario_overrides(s, imu_rate_hz=int(o.imu_rate_hz))

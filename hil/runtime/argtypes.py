@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
-from hil.nav.scenario import MAX_DURATION_S, MAX_SPEED, MIN_SPEED
+from hil.nav.limits import MAX_DURATION_S, MAX_SPEED, MIN_SPEED
 
 MAX_RESTARTS = 100  # restarts per service; more is a crash loop, not supervision
 MAX_SECONDS = 1e7  # any other span of seconds (monitor, fault, replay window): ~116 days

@@ -325,6 +325,7 @@ class Supervisor:
         self.view = LiveView()
         self.cpu_s: dict[str, float] = {}  # per service, sampled just before the stop
         self.spawned_at: dict[str, float] = {}  # per service, monotonic time of its (last) start
+        self.ready_cpu_s: dict[str, float] = {}  # per service, its process's CPU when first seen ready
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
         self._cpu_base_t = time.monotonic()
@@ -562,6 +563,7 @@ class Supervisor:
         self.spawned_at[name] = time.monotonic()
         with self.view.lock:
             self.view.ready_at.pop(name, None)  # a restart becomes ready again
+            self.ready_cpu_s.pop(name, None)
         self.children[name] = child
         return child
 
@@ -628,6 +630,7 @@ class Supervisor:
                 return
             self._check_degraded()
             self._check_restarts()
+            self._note_ready_cpu()
             run = self.view.run
             if run is not None and not self._cpu_base:
                 self._cpu_base_t = time.monotonic()
@@ -787,6 +790,27 @@ class Supervisor:
         with self.view.lock:
             ready = dict(self.view.ready_at)
         return {n: ready[n] - t for n, t in self.spawned_at.items() if n in ready}
+
+    def _note_ready_cpu(self) -> None:
+        """Each service's CPU seconds when it is first seen ready: what its start-up cost,
+        whatever the machine's load (sampled within this loop's 0.2 s, while it waits for the
+        run; its own process, not a CAN sender it started)."""
+        with self.view.lock:
+            ready = [n for n in self.view.ready_at if n not in self.ready_cpu_s]
+        for name in ready:
+            child = self.children.get(name)
+            if child is None or child.proc.returncode is not None:
+                continue
+            cpu = proc_cpu_seconds(child.proc.pid, tree=False)
+            if cpu is not None:
+                self.ready_cpu_s[name] = cpu
+
+    def ready_cpu_line(self) -> str:
+        r = self.ready_cpu_s
+        if not r:
+            return ""
+        parts = ", ".join(f"{n} {s:.2f}" for n, s in sorted(r.items(), key=lambda kv: -kv[1]))
+        return f"CPU to ready (s): {parts}"
 
     def ready_line(self) -> str:
         r = self.ready_s()

@@ -3,6 +3,7 @@ SIGTERM, a readable file after SIGKILL, and a clear status (not a crash) when it
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -165,6 +166,58 @@ def test_burst_is_recorded_without_loss_and_sigterm_writes_the_summary(hub: Hub,
     assert json.loads(comp["replay_ready"]) is True
     assert json.loads(comp["topics"])[k.truth()]["count"] == n
     print(f"burst of {3 * n} msgs in {burst_s:.2f} s ({3 * n / burst_s:.0f} msg/s) recorded with no loss")
+
+
+def test_what_is_sent_the_moment_the_recorder_says_ready_is_recorded_from_the_first_message(
+    hub: Hub, tmp_path: Path
+) -> None:
+    """Time zero waits for the recorder's ready status, and the streams start then: a recorder
+    that said "running" before its subscription reached the bus would lose the head of every
+    stream, which no seq gap shows (a stream's first seq seen is its baseline)."""
+    # GIVEN publishers on the hub, and a recorder process starting; its first "running" status
+    # wakes this thread at once (no polling, no grace period). Plain Zenoh publishers: an
+    # advanced one's cache could hand a late subscriber the head afterwards and hide the race.
+    k = Keys(RIG)
+    run_pub = Publisher(hub.session, k.run(), RunInfo, miss_detection=False)
+    imu_pub = Publisher(hub.session, k.sensor("imu"), ImuSample, miss_detection=False)
+    truth_pub = Publisher(hub.session, k.truth(), Truth, miss_detection=False)
+    ready = threading.Event()
+
+    def on_status(sample: zenoh.Sample) -> None:
+        if decode(ServiceStatus, sample.payload.to_bytes()).state == "running":
+            ready.set()
+
+    watch = hub.session.declare_subscriber(f"hil/{RIG}/status/recorder", on_status)
+    path = tmp_path / "head.mcap"
+    opts = json.dumps({"path": str(path), "drain_s": 0.3})
+    proc = subprocess.Popen(
+        hil_cmd("service", "recorder", "--rig", RIG, "--options", opts),
+        cwd=REPO,
+        env=hub.env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        assert ready.wait(60), f"the recorder never said it was running; last: {hub.status.get('recorder')}"
+        # WHEN the run starts right then: its announcement and 200 messages of two streams
+        run_pub.put(run_info(0))
+        n = 200
+        for i in range(n):
+            imu_pub.put(imu(i))
+            truth_pub.put(truth(i))
+        with contextlib.suppress(AssertionError):  # not the verdict: the stop drains what came
+            hub.wait(lambda st: st.counter_map().get("written", 0) >= 2 * n + 1, timeout=20)
+    finally:
+        watch.undeclare()
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    # THEN every stream is in the file from its first message on
+    assert proc.returncode == 0, out.decode()[-2000:]
+    s = read_session(path)
+    assert [r.sequence for r in s.by_topic(k.run())][:1] == [0]
+    for topic in (k.sensor("imu"), k.truth()):
+        seqs = [r.sequence for r in s.by_topic(topic)]
+        assert seqs == list(range(n)), (topic, seqs[:5], len(seqs))
 
 
 def test_sigkill_leaves_a_file_readable_up_to_the_last_flushed_chunk(hub: Hub, tmp_path: Path) -> None:

@@ -1,0 +1,92 @@
+"""What a service process loads before it can say ready (time zero waits for the slowest).
+
+Not timed (a loaded machine stretches any time): the modules themselves. python-can and numpy
+are ~0.1 s of CPU each at import; a service that does not use them must not pay for them, and
+``hil service`` must parse its command line the same with its own parser alone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from hil.cli import build_parser
+from tests.conftest import REPO
+
+# What `hil service NAME --options ...` does before the service runs, in a fresh interpreter.
+_ENTRY = """
+import json, sys
+from hil.cli import build_parser
+a, rest = build_parser(service_only=True).parse_known_args(["service", NAME, "--options", "{}"])
+from hil.runtime.registry import service_module
+import hil.runtime.service
+service_module(a.name)
+print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] in ("numpy", "can", "cantools"))))
+"""
+
+
+def loaded_by(service: str) -> set[str]:
+    out = subprocess.run(
+        [sys.executable, "-c", _ENTRY.replace("NAME", repr(service))],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    return {m.split(".")[0] for m in json.loads(out.stdout)}
+
+
+def test_the_recorder_starts_without_numpy_or_python_can() -> None:
+    assert loaded_by("recorder") == set()
+
+
+@pytest.mark.parametrize("service", ["fusion", "timesync", "world", "gnss_emulator"])
+def test_services_without_a_can_bus_start_without_python_can(service: str) -> None:
+    loaded = loaded_by(service)
+    assert "can" not in loaded and "cantools" not in loaded, loaded
+
+
+@pytest.mark.parametrize("service", ["can_bridge", "imu_emulator"])
+def test_the_dbc_reader_is_loaded_with_the_dbc_not_before(service: str) -> None:
+    # the DBC is read when the node is built (the run's announcement), after the service is ready
+    loaded = loaded_by(service)
+    assert "can" in loaded and "cantools" not in loaded, loaded
+
+
+def test_hil_service_parses_the_same_with_its_own_parser_alone() -> None:
+    argv = ["service", "recorder", "--rig", "r1", "--options", '{"path": "x.mcap"}', "--no-zenoh-advanced"]
+    full, rest_full = build_parser().parse_known_args(argv)
+    alone, rest_alone = build_parser(service_only=True).parse_known_args(argv)
+    assert rest_alone == rest_full == ["--no-zenoh-advanced"]
+    drop = {"parser"}  # the subparser object itself: one per build
+    assert {k: v for k, v in vars(alone).items() if k not in drop} == {
+        k: v for k, v in vars(full).items() if k not in drop
+    }
+    assert alone.name == "recorder" and alone.options == '{"path": "x.mcap"}' and alone.rig == "r1"
+
+
+_THREADS = """
+import os
+import hil.runtime.service
+hil.runtime.service.run_service = lambda *a, **k: 0  # the service's entry: not run here
+from hil.cli import main
+main(["service", "fusion", "--rig", "x", "--options", "{}"])
+print(len(os.listdir("/proc/self/task")))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/task")
+@pytest.mark.parametrize(("setting", "threads"), [(None, 1), ("2", 2)])
+def test_a_service_starts_no_blas_threads_unless_asked(setting: str | None, threads: int) -> None:
+    # a service's matrices are too small for OpenBLAS's threads; starting them costs start-up CPU
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if setting is not None:
+        env["OPENBLAS_NUM_THREADS"] = setting  # the user's setting wins
+    out = subprocess.run([sys.executable, "-c", _THREADS], cwd=REPO, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert int(out.stdout.split()[-1]) == threads  # the main thread, and OpenBLAS's beyond it
