@@ -72,10 +72,11 @@ class Run:
     missing: int = -1
 
 
-def _scenario(base: str, spoof: tuple[float, float] | None) -> str:
-    from hil.nav.scenario import load_scenario
+def _scenario(base: str, spoof: tuple[float, float] | None, seed_offset: int = 0) -> str:
+    from hil.nav.scenario import load_scenario, scenario_overrides
 
-    text = load_scenario(base).source_text
+    s = load_scenario(base)
+    text = scenario_overrides(s, seed=s.seed + seed_offset).source_text if seed_offset else s.source_text
     if spoof is not None:
         text += (
             f'\n[[event]]\nkind = "gnss_spoof"\nt_start_s = {spoof[0]}\nt_end_s = {spoof[1]}\n'
@@ -276,11 +277,33 @@ def offline_section(rms: dict[str, dict[str, float]], how: str) -> str:
     return "\n".join(lines)
 
 
+def seeds_section(spoofed: list[Run], clean: list[Run], scenario: str) -> str:
+    """The live spoof over several sensor seeds: per estimator the RMS pooled over the seeds (mean
+    of the squares), attacked against clean over the same window, and the per-seed ratios."""
+    ests = [e for e in ESTIMATOR_ORDER if e in clean[0].h_rms_m]
+    lines = [
+        f"**The live spoof over {len(spoofed)} sensor seeds** (`{scenario}`'s seed + 0..{len(spoofed) - 1}, "
+        "a clean and a spoofed `hil up` each): horizontal RMS over the spoof and the 10 s after it, "
+        "pooled over the seeds; the per-seed ratios beside it.",
+        "",
+        "| estimator | clean | spoof | ratio | per seed |",
+        "| --- | ---: | ---: | ---: | --- |",
+    ]
+    for e in ests:
+        a = np.array([r.h_rms_m.get(e, np.nan) for r in clean])
+        b = np.array([r.h_rms_m.get(e, np.nan) for r in spoofed])
+        pa, pb = float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2)))
+        per = ", ".join(f"{x:.2f}" for x in b / a)
+        lines.append(f"| {e} | {pa:.2f} | {pb:.2f} | {pb / pa:.2f}× | {per} |")
+    return "\n".join(lines)
+
+
 def _fmt(x: float, nd: int = 1) -> str:
     return "–" if not np.isfinite(x) else f"{x:.{nd}f}"
 
 
-def section(runs: list[Run], note: str) -> str:
+def section(runs: list[Run], baselines: dict[str, Run], note: str) -> str:
+    """``baselines``: the clean run scored over each attacked run's window, by its name."""
     clean = runs[0]
     lines = [note, "", "**Fused output (ekf15), by the recorder's receive time:** rate in solutions "
              "per second; latency p50 / p99 in ms (receive minus stamp).", "",
@@ -296,16 +319,17 @@ def section(runs: list[Run], note: str) -> str:
     ests = [e for e in ESTIMATOR_ORDER if e in clean.h_rms_m] + sorted(
         set(clean.h_rms_m) - set(ESTIMATOR_ORDER)
     )
-    lines += ["", "**Horizontal RMS over the attack window and the 10 s after it** (m; ratio to clean):", "",
-              "| estimator | clean | " + " | ".join(r.name for r in runs[1:]) + " |",
-              "| --- | ---: | " + " | ".join("---:" for _ in runs[1:]) + " |"]  # fmt: skip
+    lines += ["", "**Horizontal RMS over the attack window and the 10 s after it** (m), beside the clean "
+              "run's over the same window; ratio attacked / clean:", "",
+              "| estimator | " + " | ".join(f"clean, {r.name}'s window | {r.name}" for r in runs[1:]) + " |",
+              "| --- | " + " | ".join("---: | ---:" for _ in runs[1:]) + " |"]  # fmt: skip
     for e in ests:
-        a = clean.h_rms_m.get(e, float("nan"))
         cells = []
         for r in runs[1:]:
+            a = baselines[r.name].h_rms_m.get(e, float("nan"))
             b = r.h_rms_m.get(e, float("nan"))
-            cells.append(f"{_fmt(b, 2)} ({_fmt(b / a, 2)}×)")
-        lines.append(f"| {e} | {_fmt(a, 2)} | " + " | ".join(cells) + " |")
+            cells.append(f"{_fmt(a, 2)} | {_fmt(b, 2)} ({_fmt(b / a, 2)}×)")
+        lines.append(f"| {e} | " + " | ".join(cells) + " |")
     lines += ["", "**The fusion's status and the recorder** (largest value over the run):", "",
               "| run | inbox peak | RSS before → peak (MiB) | refused (foreign) | gated (ekf15) "
               "| recorder dropped |",
@@ -337,6 +361,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--offline-duration", type=float, default=50.0, help="the offline runs' length (s)")
     ap.add_argument("--offline-imu-rate", type=int, default=100, help="the offline runs' IMU rate (Hz)")
     ap.add_argument("--no-live", action="store_true", help="only the offline section")
+    ap.add_argument(
+        "--live-seeds", type=int, default=1, help="sensor seeds of the live spoof (clean + spoof each)"
+    )
     ap.add_argument("--keep", type=Path, default=None, help="keep the recordings in this directory")
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/benchmarks.md")
     a = ap.parse_args(argv)
@@ -355,6 +382,8 @@ def main(argv: list[str]) -> int:
         )
     if a.flood_n < 2:
         ap.error(f"--flood-n must be at least 2 (half go on each key), not {a.flood_n}")
+    if a.live_seeds < 1:
+        ap.error(f"--live-seeds must be at least 1, not {a.live_seeds}")
     if a.offline_seeds < 0 or a.offline_duration < 2.0 * (a.spoof_s + 10.0):
         ap.error("--offline-seeds must be >= 0 and --offline-duration at least twice the spoof + 10 s")
     parts: list[str] = []
@@ -368,6 +397,8 @@ def main(argv: list[str]) -> int:
     if not a.no_live:
         load0 = os.getloadavg()
         spoof = (a.start, a.start + a.spoof_s)
+        more_spoof: list[Run] = []
+        more_clean: list[Run] = []
         with tempfile.TemporaryDirectory(prefix="hil-attack-") as d:
             tmp = a.keep or Path(d)
             tmp.mkdir(parents=True, exist_ok=True)
@@ -382,6 +413,14 @@ def main(argv: list[str]) -> int:
             flood_win = (fl["first_rig_ns"] / NS, fl["last_rig_ns"] / NS) if fl else flood[::2]
             runs.append(score("flood", paths["flood"], flood_win))
             runs.append(score("spoof", paths["spoof"], spoof))
+            baselines = {r.name: score("clean", paths["clean"], r.window) for r in runs[1:]}
+            for k in range(1, a.live_seeds):  # the spoof again on more sensor seeds, each with its clean run
+                pair = {
+                    case: live(f"{case}{k}", _scenario(a.scenario, win, k), a.duration, None, tmp)
+                    for case, win in (("clean", None), ("spoof", spoof))
+                }
+                more_spoof.append(score("spoof", pair["spoof"], spoof))
+                more_clean.append(score("clean", pair["clean"], spoof))
         load1 = os.getloadavg()
         note = (
             f"`{a.scenario}`, {a.duration:g} s per run, one seed; flood: {a.flood_n} fixes in "
@@ -389,8 +428,10 @@ def main(argv: list[str]) -> int:
             f"σ 0.5 m for {a.spoof_s:g} s. The clean run's figures use the flood's window. Load "
             f"average (1 min) {load0[0]:.2f} before, {load1[0]:.2f} after, on {os.cpu_count()} cores."
         )
-        parts.append("### Live `hil up`\n\n" + section(runs, note))
-        bad = [r.name for r in runs if r.rc != 0]
+        parts.append("### Live `hil up`\n\n" + section(runs, baselines, note))
+        if more_spoof:
+            parts.append(seeds_section([runs[2], *more_spoof], [baselines["spoof"], *more_clean], a.scenario))
+        bad = [r.name for r in [*runs, *more_spoof, *more_clean] if r.rc != 0]
     md = "\n\n".join(parts)
     print(md)
     if bad:
