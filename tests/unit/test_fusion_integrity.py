@@ -16,11 +16,9 @@ import numpy as np
 from scipy import stats
 
 from hil.fusion.core import FusionConfig, FusionCore
-from hil.messages import GnssFix, ImuSample
+from hil.fusion.ideal import ideal_inputs
 from hil.nav.scenario import parse_scenario
 from hil.nav.trajectory import TruthGenerator
-from hil.sensors.gnss import GnssEmulatorCore
-from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
 SCENARIO = """
 name = "integrity"
@@ -71,42 +69,7 @@ PULSE_T = 120.0
 def _run() -> dict[str, object]:
     s = parse_scenario(SCENARIO)
     truth = TruthGenerator(s)
-    imu = ImuEmulatorCore(s, truth, sensor_rng(s.seed, "imu")).next_batch(int(s.duration_s * s.imu.rate_hz))
-    gnss = GnssEmulatorCore(s, truth, sensor_rng(s.seed, "gnss")).next_batch(int(s.duration_s * 1e9))
-    dt_ns = round(1e9 / s.imu.rate_hz)
-    inputs: list[ImuSample | GnssFix] = [
-        ImuSample(
-            seq=k,
-            stamp_ns=int(imu.t_ns[k]),
-            device_stamp_ns=int(imu.t_ns[k]),
-            rx_stamp_ns=int(imu.t_ns[k]),
-            dt_ns=dt_ns,
-            dtheta_b_rad=imu.dtheta_b_rad[k].tolist(),
-            dvel_b_mps=imu.dvel_b_mps[k].tolist(),
-        )
-        for k in range(len(imu.t_ns))
-    ]
-    for i in range(len(gnss.t_valid_ns)):
-        t = int(gnss.t_valid_ns[i])
-        inputs.append(
-            GnssFix(
-                seq=i,
-                stamp_ns=t,
-                device_stamp_ns=t,
-                rx_stamp_ns=t,
-                lat_deg=float(gnss.lat_deg[i]),
-                lon_deg=float(gnss.lon_deg[i]),
-                alt_m=float(gnss.alt_m[i]),
-                pos_ned_m=gnss.pos_ned_m[i].tolist(),
-                vel_ned_mps=gnss.vel_ned_mps[i].tolist(),
-                pos_sigma_m=gnss.pos_sigma_m[i].tolist(),
-                vel_sigma_mps=gnss.vel_sigma_mps[i].tolist(),
-                fix_type=int(gnss.fix_type[i]),
-                num_sats=int(gnss.num_sats[i]),
-                hdop=float(gnss.hdop[i]),
-            )
-        )
-    inputs.sort(key=lambda m: (m.stamp_ns, 0 if m.sensor == "imu" else 1, m.seq))
+    inputs = ideal_inputs(s, truth)
     # the estimators' own solutions, as they reach each IMU step in the total order (process()):
     # the horizon, without the output predictor's carrying forward
     cfg = FusionConfig(estimators=("ekf15", "compvs"), output_every=20, output_predictor=False)
