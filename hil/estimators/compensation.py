@@ -150,6 +150,7 @@ class CompensationCore:
         self.restarts = 0
         self.switches = 0
         self.coasting = False
+        self.holding_line = False  # on hold_line's line since an overdue input (the estimator's)
         self.coasts = 0
         self._interval_ns: int | None = None  # the input interval expected (see _coast_start_ns)
         self._coast_from_ns: int | None = None
@@ -220,7 +221,8 @@ class CompensationCore:
         if self.t_ns is not None and t_ns >= self.t_ns:
             self.advance_to(t_ns)  # a coast that falls due before the input starts first
         t_resume = self._end_coast(t_ns) if self.coasting else None
-        self._learn_interval(t_ns, ended_coast=t_resume is not None)
+        self._learn_interval(t_ns, ended_coast=t_resume is not None or self.holding_line)
+        self.holding_line = False
         if self.coast_after is not None and self._interval_ns is not None:
             # per input, the weight of one nominal interval in τ (an outage's length is not a
             # weight: the first fix after it is one fix); y at the state's stamp, which is the
@@ -317,6 +319,14 @@ class CompensationCore:
         self._settle_on_line(self.stage, y, ydot)
         self.u = y.copy()
         self.slope = ydot.copy()
+        self.holding_line = True
+
+    def overdue_ns(self, intervals: float) -> int | None:
+        """When the next input is ``intervals`` expected input intervals late (None: no interval
+        learnt yet, or already on a held line)."""
+        if self.holding_line or self.coasting or self._interval_ns is None or self.t_last_input_ns is None:
+            return None
+        return self.t_last_input_ns + round(intervals * self._interval_ns)
 
     def _settle_on_line(self, stage: int, y: F64, ydot: F64) -> None:
         new = self.stages[stage]
@@ -396,14 +406,15 @@ class CompensationEstimator(Estimator):
         self._vel0 = np.asarray(init.vel_ned_mps, float).copy()
         self._gnss_count = 0
         self._last_diff_pos_m = 0.0
-        self._last_fix_ns: int | None = None
-        self._fix_interval_ns: int | None = None
-        self._coasting = False
         self.coasts = 0
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
-        if self.line_coast and self._coast_due(imu.stamp_ns):
-            self._coast(imu.stamp_ns)
+        if (
+            self.line_coast
+            and (t_c := self.core.overdue_ns(COAST_AFTER_INTERVALS)) is not None
+            and imu.stamp_ns > t_c
+        ):
+            self._coast(t_c)
         self.core.advance_to(imu.stamp_ns)
         if self.loop is not None:
             self.loop.propagate(imu)
@@ -428,31 +439,17 @@ class CompensationEstimator(Estimator):
         self.core.set_input(gnss.stamp_ns, d, np.concatenate([dv, np.zeros(3)]))
         self._gnss_count += 1
         self._last_diff_pos_m = norm(dp)
-        if self._last_fix_ns is not None and gnss.stamp_ns > self._last_fix_ns and not self._coasting:
-            self._fix_interval_ns = gnss.stamp_ns - self._last_fix_ns
-        self._last_fix_ns = gnss.stamp_ns
-        self._coasting = False
 
-    def _coast_due(self, t_ns: int) -> bool:
-        return (
-            not self._coasting
-            and self._fix_interval_ns is not None
-            and self._last_fix_ns is not None
-            and t_ns - self._last_fix_ns > COAST_AFTER_INTERVALS * self._fix_interval_ns
-        )
-
-    def _coast(self, t_ns: int) -> None:
+    def _coast(self, t_c: int) -> None:
         """GNSS gap: the last fix's difference, continued as a ramp, carries that one fix's noise
         (σ of the receiver, metres) and its velocity difference's (σ 0.2 m/s: metres after 10 s)
         into every second of the gap, and the filter converges onto it. Continue instead on the
         filter's own estimate: the position error on the line the velocity channels' estimate of
         the INS velocity error draws (δṗ = δv, the INS error dynamics to first order), the velocity
         error held. That is what the filter had learnt from every fix before, not from the last."""
-        t_c = self._last_fix_ns + round(COAST_AFTER_INTERVALS * self._fix_interval_ns)  # type: ignore[operator]
         self.core.advance_to(t_c)
         y = self.core.output()
         self.core.hold_line(t_c, y, np.concatenate([y[3:], np.zeros(3)]))
-        self._coasting = True
         self.coasts += 1
 
     def _on_gnss_feedback(self, gnss: GnssInput, loop: ClosedLoopIns) -> None:
@@ -485,7 +482,7 @@ class CompensationEstimator(Estimator):
             "restarts": float(core.restarts),
             "since_start_s": seconds_since(core.t_ns or 0, core.t_start_ns),
             "ins_minus_gnss_pos_m": self._last_diff_pos_m,
-            "coasting": float(self._coasting),
+            "coasting": float(self.core.holding_line),
             "coasts": float(self.coasts),
         }
         if core.coast_after is not None:
