@@ -38,15 +38,8 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 
 from hil.nav.scenario import transport_delay_problem
-from hil.sensor_table import SENSORS
+from hil.sensor_table import FAULT_KINDS, SENSORS
 
-# kind -> (the service that applies it, params it takes): each sensor's run-time faults from the
-# sensor table (its emulator applies them), plus the two that belong to no one sensor
-FAULT_KINDS: dict[str, tuple[str, frozenset[str]]] = {
-    **{kind: (s.emulator, params) for s in SENSORS.values() for kind, params in s.commands.items()},
-    "clock_step": ("<target>_emulator", frozenset({"step_s"})),  # target: a sensor
-    "kill_service": ("supervisor", frozenset()),  # target: a service name
-}
 IMU_FAULTS = frozenset(SENSORS["imu"].commands)
 GNSS_FAULTS = frozenset(SENSORS["gnss"].commands)
 # Announced by the emulator on its timeline: its timed kinds (the run-time ones plus scenario-only

@@ -154,6 +154,17 @@ SENSORS: Mapping[str, SensorKind] = MappingProxyType(
 #: The sensors in rank order (the order the fusion breaks ties in, and the runners list them in).
 SENSOR_NAMES: tuple[str, ...] = tuple(sorted(SENSORS, key=lambda n: SENSORS[n].rank))
 
+#: Fault kind -> (the service that applies it, params it takes): each sensor's run-time faults
+#: (its emulator applies them), plus the two that belong to no one sensor. Here, not in
+#: :mod:`hil.faults`, so that ``hil``'s command line can offer them without numpy.
+FAULT_KINDS: Mapping[str, tuple[str, frozenset[str]]] = MappingProxyType(
+    {
+        **{kind: (s.emulator, params) for s in SENSORS.values() for kind, params in s.commands.items()},
+        "clock_step": ("<target>_emulator", frozenset({"step_s"})),  # target: a sensor
+        "kill_service": ("supervisor", frozenset()),  # target: a service name
+    }
+)
+
 
 def sensor_kind(name: str) -> SensorKind:
     """The kind of sensor ``name``; a ``KeyError`` that names the known ones otherwise."""

@@ -32,7 +32,7 @@ from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import zstandard
 from mcap.data_stream import ReadDataStream, RecordBuilder
@@ -45,12 +45,15 @@ from mcap.exceptions import (
 )
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, ChunkIndex, Header, MessageIndex, Metadata, Schema
-from mcap.writer import CompressionType, Writer
 
 from hil import __version__
 from hil.messages import TYPES_BY_NAME, Message, decode, json_schema, schema_name
-from hil.wellknown import MESSAGE_ENCODING, SCHEMAS, Derived
-from hil.wellknown import PREFIX as WELLKNOWN_PREFIX
+
+if TYPE_CHECKING:  # the writer side (mcap.writer, the Foxglove SDK's schemas) loads when a file is
+    # written: a reader (rerun, info, report) skips ~40 ms of imports
+    from mcap.writer import Writer
+
+    from hil.wellknown import Derived
 
 PROFILE = "hil"
 MAGIC = b"\x89MCAP0\r\n"
@@ -408,6 +411,8 @@ class SessionWriter:
             self._fh: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 - owned until close()
         except OSError as err:
             raise RecordingError(f"cannot open {self.path} for writing: {err.strerror}") from err
+        from mcap.writer import CompressionType, Writer
+
         self._writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self.chunk_index = _pack_chunk_indices(self._writer) if pack_index else None
         if self.chunk_index is not None and spill_index:
@@ -466,6 +471,8 @@ class SessionWriter:
         ``publish_time`` = its timestamp, ``sequence`` = its count on the topic."""
         chan = self._channels.get(d.topic)
         if chan is None:
+            from hil.wellknown import MESSAGE_ENCODING, SCHEMAS
+
             schema = SCHEMAS[d.schema]
             sid = self._schemas.get(schema.name)
             if sid is None:
@@ -611,7 +618,9 @@ PROGRESS_EVERY = 8192  # records between two progress callbacks of ``iter_record
 
 def is_derived(topic: str) -> bool:
     """A channel of Foxglove well-known types derived from the rig's messages (``hil.wellknown``)."""
-    return topic.startswith(WELLKNOWN_PREFIX)
+    from hil.wellknown import PREFIX
+
+    return topic.startswith(PREFIX)
 
 
 def iter_records(

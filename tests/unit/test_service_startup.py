@@ -90,3 +90,22 @@ def test_a_service_starts_no_blas_threads_unless_asked(setting: str | None, thre
     out = subprocess.run([sys.executable, "-c", _THREADS], cwd=REPO, env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     assert int(out.stdout.split()[-1]) == threads  # the main thread, and OpenBLAS's beyond it
+
+
+_READER = """
+import json, sys
+from hil.cli import build_parser
+build_parser()  # every command's parser, as `hil <anything>` builds it
+import hil.record.mcapio
+print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] in ("numpy", "foxglove", "mcap"))))
+"""
+
+
+def test_the_command_line_and_a_recordings_reader_load_neither_numpy_nor_the_writer_side() -> None:
+    # `hil rerun --core timesync`, `hil info`, ...: numpy (~0.1 s), mcap's writer and the Foxglove
+    # SDK's schemas (~40 ms) are a tenth of a 60 s time-sync rerun
+    out = subprocess.run([sys.executable, "-c", _READER], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    loaded = set(json.loads(out.stdout))
+    assert not {m for m in loaded if m.split(".")[0] in ("numpy", "foxglove")}, loaded
+    assert "mcap.writer" not in loaded and "mcap.data_stream" in loaded, loaded
