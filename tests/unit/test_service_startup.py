@@ -104,7 +104,9 @@ print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] in ("numpy", "
 def test_the_command_line_and_a_recordings_reader_load_neither_numpy_nor_the_writer_side() -> None:
     # `hil rerun --core timesync`, `hil info`, ...: numpy (~0.1 s), mcap's writer and the Foxglove
     # SDK's schemas (~40 ms) are a tenth of a 60 s time-sync rerun
-    out = subprocess.run([sys.executable, "-c", _READER], cwd=REPO, capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", _READER], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     loaded = set(json.loads(out.stdout))
     assert not {m for m in loaded if m.split(".")[0] in ("numpy", "foxglove")}, loaded
