@@ -64,7 +64,9 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
     )
     p.add_argument("--rig", default="bench", help="rig name: namespaces every key as hil/<rig>/...")
     p.add_argument(
-        "--estimators", default="", help="comma-separated estimator names (default: the registry's)"
+        "--estimators",
+        default="",
+        help="comma-separated estimator names (default: the registry's; ins alone: the free INS alone)",
     )
     p.add_argument(
         "--feedback",

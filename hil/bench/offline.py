@@ -60,6 +60,14 @@ def _env(tree: Path) -> dict[str, str]:
     return env
 
 
+def compile_bytecode(tree: Path) -> None:
+    """Both trees with their bytecode compiled, as an installed rig runs: where
+    ``PYTHONDONTWRITEBYTECODE`` is set (CI images, some sandboxes) every run would otherwise
+    compile each module it imports again, ~0.1 s of every command's CPU."""
+    dirs = [str(tree / d) for d in ("hil", "services") if (tree / d).is_dir()]
+    subprocess.run([sys.executable, "-m", "compileall", "-q", *dirs], check=False, stdout=subprocess.DEVNULL)
+
+
 def _cpu_of(tree: Path, argv: list[str]) -> tuple[float, int]:
     """CPU seconds (user + system) of one child and its exit code."""
     cpu, _wall, rc = _run(tree, argv)
@@ -220,6 +228,8 @@ def main(argv: list[str]) -> int:
             return 2
         try:
             trees = [Tree(a.ref[:10], ref_path), Tree("this tree", head_path)]
+            for t in trees:
+                compile_bytecode(t.path)
             same: list[str] = []
             differ: list[str] = []
             for i in range(a.repeat):

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.estimators.registry import DEFAULT_ESTIMATORS, ESTIMATORS
+from hil.fusion.core import FREE_INS
 from hil.nav.scenario import dump_toml
 from hil.nodes.fusion import DEFAULT_LAG_S, DEFAULT_OUTPUT_EVERY
 
@@ -196,9 +197,12 @@ def _config(name: str, raw: Any) -> FusionSetup:
         raise SpecError(f"{where}: {RECORDED!r} is reserved (a rerun with the recording's own configuration)")
     t = _keys(where, raw, _CONFIG_KEYS)
     est = _strs(f"{where}.estimators", t.get("estimators", list(DEFAULT_ESTIMATORS)))
-    unknown = [e for e in est if e not in ESTIMATORS]
+    unknown = [e for e in est if e not in ESTIMATORS and e != FREE_INS]
     if unknown:
-        raise SpecError(f"{where}.estimators: unknown estimator {unknown[0]!r}; known: {sorted(ESTIMATORS)}")
+        raise SpecError(
+            f"{where}.estimators: unknown estimator {unknown[0]!r}; known: {sorted(ESTIMATORS)} "
+            f"(and {FREE_INS!r}, the free INS alone)"
+        )
     lag = _float(f"{where}.lag_s", t.get("lag_s", DEFAULT_LAG_S), lo=0.0, hi=60.0)
     every = _int(f"{where}.output_every", t.get("output_every", DEFAULT_OUTPUT_EVERY), 1, 10**6)
     return FusionSetup(name, est, lag, every)

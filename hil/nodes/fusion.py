@@ -63,9 +63,12 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
     ekf_calibration: str = "auto"
 
     def __post_init__(self) -> None:
-        unknown = [e for e in self.estimators if e not in ESTIMATORS]
+        unknown = [e for e in self.estimators if e not in ESTIMATORS and e != FREE_INS]
         if unknown:
-            raise ValueError(f"unknown estimator(s) {unknown}; known: {', '.join(sorted(ESTIMATORS))}")
+            raise ValueError(
+                f"unknown estimator(s) {unknown}; known: {', '.join(sorted(ESTIMATORS))} "
+                f"(and {FREE_INS}, the free inertial solution, which always runs: name it alone for it alone)"
+            )
         if self.feedback not in ("auto", "none"):
             bad = [e for e in self.feedback.split(",") if e not in FEEDBACK_CAPABLE]
             if bad:
@@ -86,7 +89,9 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
     def config(self, grade: str = "tactical") -> FusionConfig:
         """The core's configuration; ``auto`` choices resolved for an IMU of ``grade``
         (``hil.nav.sensor_specs.imu_grade``: the fusion passes its scenario's)."""
-        estimators = tuple(self.estimators) or DEFAULT_ESTIMATORS
+        # none named: the registry's defaults; the free INS named alone: it alone (it always runs)
+        named = tuple(e for e in self.estimators if e != FREE_INS)
+        estimators = named if self.estimators else DEFAULT_ESTIMATORS
         if self.feedback == "auto":
             feedback = default_feedback(grade, estimators)
         elif self.feedback == "none":

@@ -325,3 +325,24 @@ def test_the_predictor_removes_an_estimators_bias_estimate_as_its_own_integratio
     assert np.linalg.norm(fixed.pos_ned_m - want.pos_ned_m) < 2e-3
     assert abs(float(np.dot(raw.q_nb, want.q_nb))) < np.cos(np.radians(0.2) / 2)  # > 0.2° apart
     assert abs(float(np.dot(fixed.q_nb, want.q_nb))) > np.cos(np.radians(0.01) / 2)
+
+
+def test_the_free_ins_named_alone_runs_alone_and_a_misspelt_name_is_refused_naming_it() -> None:
+    """``--estimators ins``: the free inertial solution alone (a Schuler-period check needs no
+    filter); ``ins`` beside others changes nothing, since it always runs."""
+    import pytest
+
+    from hil.nodes.fusion import FusionNode, FusionOptions
+    from hil.runners.sim import SimOptions, sim_run_info
+
+    assert FusionOptions(estimators=["ins"]).config().estimators == ()
+    assert FusionOptions(estimators=["ins", "ekf15"]).config().estimators == ("ekf15",)
+    assert FusionOptions().config().estimators != ()  # none named: the registry's defaults
+    node = FusionNode(
+        sim_run_info(SimOptions(scenario="straight_level", duration_s=5.0)), FusionOptions(estimators=["ins"])
+    )
+    imus, _fixes = _inputs()
+    outs = node.on_message("synced/imu", imus[0], imus[0].stamp_ns)
+    assert [k for k, _ in outs] == ["nav/ins"]
+    with pytest.raises(ValueError, match=r"unknown estimator.*'insx'"):
+        FusionOptions(estimators=["insx"])
