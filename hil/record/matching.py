@@ -8,6 +8,9 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import Protocol
+
+TAIL_NS = 5_000_000_000  # log time before a cut within which an output's inputs may lie beyond it
 
 
 class SeqSet:
@@ -122,3 +125,40 @@ class Matcher:
     def pending_before(self, log_ns: int) -> list[tuple[str, int]]:
         """Recorded outputs never recomputed that were recorded before ``log_ns``."""
         return sorted(k for k in self.recorded_pending if self.recorded_t.get(k, 0) < log_ns)
+
+
+class _Verdict(Protocol):
+    n_recorded: int
+    unverified: int
+
+    def first_difference(self, truncated: bool) -> str: ...
+
+
+def truncation_notes(res: _Verdict, truncated: bool, recomputed: str, inputs: str) -> list[str]:
+    """What a rerun of a truncated file says: how far it went, and which recorded ``recomputed``
+    (outputs, re-stamps) it could not check because their ``inputs`` lie beyond the cut."""
+    if not truncated:
+        return []
+    lines = [
+        "note: the file is truncated (its recorder did not finish it; hil recover FILE rewrites it "
+        "finished); rerun covers it up to its last complete chunk"
+    ]
+    if res.unverified:
+        lines.append(
+            f"note: {res.unverified} {recomputed} recorded in the last {TAIL_NS / 1e9:g} s before the cut "
+            f"have {inputs} beyond it: not verifiable"
+        )
+    return lines
+
+
+def verdict(
+    res: _Verdict, truncated: bool, lines: list[str], verify: bool, recomputed: str
+) -> tuple[int, list[str]]:
+    """``hil rerun``'s exit code and report: ``lines``, then ``--verify``'s outcome."""
+    if not verify:
+        return 0, lines
+    diff = res.first_difference(truncated)
+    if diff:
+        return 1, [*lines, f"VERIFY FAILED: {diff}"]
+    n = res.n_recorded - (res.unverified if truncated else 0)
+    return 0, [*lines, f"VERIFY OK: all {n} recorded {recomputed} are bit-identical"]

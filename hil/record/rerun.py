@@ -38,7 +38,7 @@ from hil.messages import (
     encode,
 )
 from hil.nodes.fusion import FusionNode
-from hil.record.matching import Matcher, SeqSet
+from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
@@ -335,8 +335,6 @@ def rerun_fusion(session: Session) -> RerunResult:
     return rerun_fusion_records(session.records, window_ns=None, keep_outputs=True, name=str(session.path))
 
 
-TAIL_NS = 5_000_000_000  # log time before a cut within which an output's inputs may lie beyond it
-
 RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fractions of a second of order
 
 
@@ -382,26 +380,11 @@ def rerun(
         lines.append(f"note: {note}")
     if len(stream.paths) > 1:
         lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
-    if stream.truncated:
-        lines.append(
-            "note: the file is truncated (its recorder did not finish it; hil recover FILE rewrites it "
-            "finished); rerun covers it up to its last complete chunk"
-        )
-        if res.unverified:
-            lines.append(
-                f"note: {res.unverified} outputs recorded in the last {TAIL_NS / 1e9:g} s before the cut "
-                "have inputs beyond it: not verifiable"
-            )
-    elif res.live_consumed >= 0 and res.live_consumed != res.inputs_used:
+    lines += truncation_notes(res, stream.truncated, "outputs", "inputs")
+    if not stream.truncated and res.live_consumed >= 0 and res.live_consumed != res.inputs_used:
         lines.append(
             f"note: the live fusion journaled {res.live_consumed} consumed inputs, the recording holds "
             f"{res.inputs_used} of them: inputs were lost between the fusion and the recorder "
             "(see hil info for seq gaps on synced/*)"
         )
-    if not verify:
-        return 0, lines
-    diff = res.first_difference(stream.truncated)
-    if diff:
-        return 1, [*lines, f"VERIFY FAILED: {diff}"]
-    n = res.n_recorded - (res.unverified if stream.truncated else 0)
-    return 0, [*lines, f"VERIFY OK: all {n} recorded outputs are bit-identical"]
+    return verdict(res, stream.truncated, lines, verify, "outputs")

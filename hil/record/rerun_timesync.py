@@ -34,7 +34,7 @@ import msgspec
 from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.base import Out
 from hil.nodes.timesync import TimeSyncNode
-from hil.record.matching import Matcher
+from hil.record.matching import TAIL_NS, Matcher, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message, rig_time_ns
 from hil.sensor_table import SENSORS
 
@@ -73,7 +73,6 @@ HORIZON_NS = 60_000_000_000  # log time a re-stamp waits for its recorded copy b
 # A file cut short: a re-stamp can be recorded before its raw measurement (they come from two
 # processes), so the cut may keep the one and lose the other; within this much log time of the
 # end such an output is not verifiable, and not a failure.
-TAIL_NS = 5_000_000_000
 
 
 def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -> TimesyncRerun:
@@ -200,20 +199,5 @@ def rerun_timesync_report(
     ]
     if len(stream.paths) > 1:
         lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
-    if stream.truncated:
-        lines.append(
-            "note: the file is truncated (hil recover FILE rewrites it finished); rerun covers it "
-            "up to its last complete chunk"
-        )
-        if res.unverified:
-            lines.append(
-                f"note: {res.unverified} re-stamps recorded in the last {TAIL_NS / 1e9:g} s before the cut "
-                "have their raw measurement beyond it: not verifiable"
-            )
-    if not verify:
-        return 0, lines
-    diff = res.first_difference(stream.truncated)
-    if diff:
-        return 1, [*lines, f"VERIFY FAILED: {diff}"]
-    n = res.n_recorded - (res.unverified if stream.truncated else 0)
-    return 0, [*lines, f"VERIFY OK: all {n} recorded re-stamps are bit-identical"]
+    lines += truncation_notes(res, stream.truncated, "re-stamps", "their raw measurement")
+    return verdict(res, stream.truncated, lines, verify, "re-stamps")
