@@ -204,15 +204,19 @@ class TagFilter:
 # arrivals: one-way-delay lower bound
 
 
-def _cross(o: tuple[int, int], a: tuple[int, int], b: tuple[int, int]) -> int:
-    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-
 def lower_hull(points: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    """Lower convex hull (Andrew's monotone chain) of points sorted by x."""
+    """Lower convex hull (Andrew's monotone chain) of points sorted by x.
+
+    The turn test (cross product of hull[-2] -> hull[-1] and hull[-2] -> p) is written out, not
+    called: it runs for every block of a sensor's window at each refit."""
     hull: list[tuple[int, int]] = []
     for p in points:
-        while len(hull) >= 2 and _cross(hull[-2], hull[-1], p) <= 0:
+        px, py = p
+        while len(hull) >= 2:
+            ox, oy = hull[-2]
+            ax, ay = hull[-1]
+            if (ax - ox) * (py - oy) - (ay - oy) * (px - ox) > 0:
+                break
             hull.pop()
         hull.append(p)
     return hull
