@@ -182,12 +182,14 @@ def _cpu_list(text: str) -> list[int]:
 def cmd_up(a: argparse.Namespace) -> int:
     from hil.bus.identity import rig_key_from_env
     from hil.bus.keys import check_name
+    from hil.bus.session import use_rig_runtime
     from hil.nav.scenario import load_scenario
     from hil.record.info import describe
     from hil.record.mcapio import split_parts
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
+    use_rig_runtime()  # the hub's process: before its session opens
     rig_key_from_env()  # a malformed HIL_RIG_KEY is one line, before anything starts
     _check_record_filter(a)
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
@@ -381,6 +383,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
 
 def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
+    from hil.bus.session import use_rig_runtime
     from hil.nodes.base import OptionsError
     from hil.runtime.registry import service_module
     from hil.runtime.service import options_from_json, run_service
@@ -392,6 +395,7 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     # threads would only compete with the rig's other processes, and starting them costs ~40 ms
     # of CPU at numpy's import, before the service can say ready. Set it to use more.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    use_rig_runtime()  # also when compose starts it: before its first Zenoh session
     mod = service_module(a.name)
     if a.help:
         return int(mod.main(["--help"]) or 0)

@@ -31,6 +31,7 @@ journals every input it never saw and ``hil rerun`` leaves out the same ones.
 
 from __future__ import annotations
 
+import heapq
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -156,6 +157,36 @@ class BoundedInbox(Generic[T]):
             assert best is not None
             self._size -= 1
             return best.popleft()[1]
+
+    def get_many(self, max_n: int, timeout: float | None = None) -> list[T]:
+        """Up to ``max_n`` messages, oldest first across lanes (what ``get`` would give one by
+        one), waiting up to ``timeout`` s for the first. One lock and one wake-up for a batch: a
+        consumer that need not answer each message at once (the recorder) pays them per batch."""
+        with self._cond:
+            if not self._size and timeout != 0:
+                self._cond.wait(timeout)
+            n = min(max_n, self._size)
+            if n <= 0:
+                return []
+            heads = [lane for lane in self._lanes.values() if lane]
+            out: list[T] = []
+            if len(heads) == 1:
+                lane = heads[0]
+                out = [lane.popleft()[1] for _ in range(n)]
+            else:
+                # merge the lanes' heads by arrival number (each lane is in arrival order)
+                heap = [(lane[0][0], i) for i, lane in enumerate(heads)]
+                heapq.heapify(heap)
+                while len(out) < n:
+                    _, i = heap[0]
+                    lane = heads[i]
+                    out.append(lane.popleft()[1])
+                    if lane:
+                        heapq.heapreplace(heap, (lane[0][0], i))
+                    else:
+                        heapq.heappop(heap)
+            self._size -= n
+            return out
 
     def take_dropped(self) -> list[T]:
         """The messages dropped since the last call (only with ``keep_dropped``)."""

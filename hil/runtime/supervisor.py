@@ -30,7 +30,7 @@ from hil.bus.endpoint import RigAccess
 from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_key_from_env, rig_zid
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
-from hil.bus.session import BusConfig, open_session
+from hil.bus.session import BusConfig, open_session, use_rig_runtime
 from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
 from hil.runtime.clock import RigClock
 from hil.runtime.options import fill_options
@@ -491,6 +491,7 @@ class Supervisor:
 
     def _child_env(self) -> dict[str, str]:
         env = dict(os.environ)
+        use_rig_runtime(env)
         env.update(self.child_bus.to_env())
         env["HIL_RIG"] = self.opts.rig
         env["HIL_SUPERVISOR_PID"] = str(os.getpid())  # children stop themselves if we vanish

@@ -9,6 +9,7 @@ with real threads as the Zenoh callbacks are.
 
 from __future__ import annotations
 
+import random
 import threading
 
 from hil.bus.inbox import AIDING_CAP, MAX_PUBLISHER_LANES, PACER_CAP, SHARED, BoundedInbox, key_kind, lane_cap
@@ -116,3 +117,24 @@ def test_real_threads_every_message_is_taken_or_counted_and_the_depth_stays_boun
     junk_taken = sum(1 for k, _ in taken if k == "junk")
     assert junk_taken + box.dropped.get("gnss", 0) == n_junk
     assert max_depth[0] <= 10_000 + 50
+
+
+def test_a_batch_is_what_get_gives_one_by_one_in_arrival_order_across_lanes() -> None:
+    rng = random.Random(5)
+    kinds = ["synced/imu", "sensor/gnss", "status/x", "can/vcan0"]
+    one: BoundedInbox[int] = BoundedInbox()
+    many: BoundedInbox[int] = BoundedInbox()
+    for i in range(5000):
+        kind, pub = rng.choice(kinds), rng.choice(["a", "b", "c"])
+        one.put(kind, pub, i)
+        many.put(kind, pub, i)
+    singles = [one.get(timeout=0) for _ in range(5000)]
+    batches: list[int] = []
+    while chunk := many.get_many(rng.randint(1, 700), timeout=0):
+        batches += chunk
+    assert batches == singles == list(range(5000))  # nothing dropped under the caps: arrival order
+    assert many.qsize() == 0 and many.get_many(10, timeout=0) == []
+    single_lane: BoundedInbox[int] = BoundedInbox()
+    for i in range(10):
+        single_lane.put("synced/imu", "a", i)
+    assert single_lane.get_many(4, timeout=0) == [0, 1, 2, 3] and single_lane.qsize() == 6
