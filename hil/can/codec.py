@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 
 DEVICE_TIME_BITS = 48
 DEVICE_TIME_MODULO = 1 << DEVICE_TIME_BITS
+_HALF_MODULO = DEVICE_TIME_MODULO >> 1
 
 # StatusWord bits (documented in the DBC comment of IMU_Status).
 GYRO_FAULT = 1 << 0
@@ -157,9 +158,12 @@ def _exec(src: str, filename: str, name: str, scope: dict[str, Any]) -> Any:
     return glb[name]
 
 
-def _value_expr(f: SignalField, word: str) -> str:
-    """The expression of ``f``'s value (scaled as cantools scales it) in the int ``word``."""
-    raw = f"(({word} >> {f.start}) & {f.mask:#x})"
+def _value_expr(f: SignalField, word: str, word_bits: int | None = None) -> str:
+    """The expression of ``f``'s value (scaled as cantools scales it) in the int ``word``;
+    ``word_bits``: ``word`` is known to be that wide, so a field at its top needs no mask."""
+    raw = f"({word} >> {f.start})"
+    if f.start + f.length != word_bits:
+        raw = f"({raw} & {f.mask:#x})"
     if f.signed:
         sign = 1 << (f.length - 1)
         raw = f"(({raw} ^ {sign:#x}) - {sign:#x})"
@@ -211,18 +215,29 @@ _ACCEL_SAT = ("AccelSatX", "AccelSatY", "AccelSatZ")
 def _compile_sample_decoder(layouts: Sequence[FrameLayout], *, fd: bool) -> Any:
     """Generate the assembler's decode of one complete sample.
 
-    ``fd``: ``decode_sample(word)`` of the one FD frame, returning ``(device_time_raw, dtheta, dvel,
-    gyro_saturated, accel_saturated, status_word)``; else ``decode_sample(words)`` of the parts
-    (``{frame_id: word}``), returning the first five. Values as the generic path made them:
-    ``float`` deltas, ``int`` time and status, truthy flags. A DBC whose sample lacks a flag (or
-    the FD frame its StatusWord) encodes but raises ``KeyError(name)`` here, as before.
+    ``fd``: ``decode_sample(word)`` of the one FD frame, returning ``(sample, status_word)``;
+    else ``decode_sample(words)`` of the parts (``{frame_id: word}``), returning ``sample``:
+    ``(device_time_raw, dtheta, dvel, gyro_saturated, accel_saturated)``. Values as the generic
+    path made them: ``float`` deltas, ``int`` time and status, flags tested for truth (integer
+    ones in place, one ``word & bits`` per frame). The words are whole frames of their layout's
+    length (the assembler checked it). A DBC whose sample lacks a flag (or the FD frame its
+    StatusWord) encodes but raises ``KeyError(name)`` here, as the generic decoder did.
     """
-    where = {f.name: (i, f) for i, lay in enumerate(layouts) for f in lay.fields}
+    where = {f.name: (i, f, lay.length * 8) for i, lay in enumerate(layouts) for f in lay.fields}
 
-    def value(name: str, kind: type | None = None) -> str:  # kind None: as decoded, for truth
-        i, f = where[name]
-        expr = _value_expr(f, f"w{i}")
-        return expr if kind is None or f.is_integer == (kind is int) else f"{kind.__name__}({expr})"
+    def value(name: str, kind: type) -> str:
+        i, f, bits = where[name]
+        expr = _value_expr(f, f"w{i}", bits)
+        return expr if f.is_integer == (kind is int) else f"{kind.__name__}({expr})"
+
+    def any_set(names: Sequence[str]) -> str:
+        if not all(where[n][1].is_integer for n in names):  # scaled flags: their values' truth
+            return "(" + " or ".join(_value_expr(where[n][1], f"w{where[n][0]}") for n in names) + ")"
+        bits: dict[int, int] = {}
+        for n in names:
+            i, f, _ = where[n]
+            bits[i] = bits.get(i, 0) | f.mask << f.start
+        return "(" + " or ".join(f"w{i} & {m:#x}" for i, m in bits.items()) + ")"
 
     lines = ["def decode_sample(w0):" if fd else "def decode_sample(g):"]
     if not fd:
@@ -234,10 +249,8 @@ def _compile_sample_decoder(layouts: Sequence[FrameLayout], *, fd: bool) -> Any:
     else:
         th = ", ".join(value(f"DeltaAngle{a}", float) for a in _AXES)
         dv = ", ".join(value(f"DeltaVel{a}", float) for a in _AXES)
-        gyro = " or ".join(value(n) for n in _GYRO_SAT)
-        accel = " or ".join(value(n) for n in _ACCEL_SAT)
-        status = f", {value('StatusWord', int)}" if fd else ""
-        lines.append(f"    return ({value('DeviceTime', int)}, ({th}), ({dv}), ({gyro}), ({accel}){status})")
+        sample = f"({value('DeviceTime', int)}, ({th}), ({dv}), {any_set(_GYRO_SAT)}, {any_set(_ACCEL_SAT)})"
+        lines.append(f"    return {sample}, {value('StatusWord', int)}" if fd else f"    return {sample}")
     name = "+".join(lay.name for lay in layouts)
     return _exec("\n".join(lines) + "\n", f"<dbc:{name}>", "decode_sample", {})
 
@@ -525,7 +538,7 @@ def _fast_init(cls: type) -> Callable[..., Any]:
     scope.update({f"set_{n}": getattr(cls, n).__set__ for n in names})
     body = "".join(f"    set_{n}(o, {n})\n" for n in names)
     src = f"def make({', '.join(names)}):\n    o = new(cls)\n{body}    return o\n"
-    return _exec(src, f"<{cls.__name__}>", "make", scope)  # type: ignore[no-any-return]
+    return _exec(src, f"<{cls.__name__}>", "make", scope)
 
 
 _new_sample = _fast_init(DecodedSample)
@@ -547,7 +560,7 @@ class DeviceTimeUnwrapper:
         self._last: int | None = None
 
     def __call__(self, raw: int) -> int:
-        half = DEVICE_TIME_MODULO >> 1
+        half = _HALF_MODULO
         if self._last is None:
             self._last = raw
             return raw
@@ -621,7 +634,7 @@ class ImuFrameAssembler:
         )
 
     def _sample(self, decoded: tuple[Any, ...], status: int, rx: float) -> DecodedSample:
-        device_time, dtheta, dvel, gyro_sat, accel_sat = decoded[:5]
+        device_time, dtheta, dvel, gyro_sat, accel_sat = decoded
         if gyro_sat or accel_sat:
             self.counters["saturated"] += 1
             status |= (GYRO_SATURATED if gyro_sat else 0) | (ACCEL_SATURATED if accel_sat else 0)
@@ -681,8 +694,8 @@ class ImuFrameAssembler:
             self._group_words = {}
             return [self._sample(self._decode_parts(group), self._status, rx)]
         if role == "sample_fd":
-            decoded = self._decode_fd(word)
-            return [self._sample(decoded, decoded[5], rx)]
+            decoded, status = self._decode_fd(word)
+            return [self._sample(decoded, status, rx)]
         if role == "sync":
             c["syncs"] += 1
             raw = lay.by_name["DeviceTime"].extract(word)
