@@ -3,9 +3,13 @@
 Nothing about the frame layout is typed here: identifiers, lengths, bit positions, scale
 factors, which frames make up a sample (the ``HilRole`` message attribute) and how many bytes the
 E2E CRC covers (``HilE2EDataLength``) are all read from the DBC with cantools. From those the
-codec precompiles shift/mask tables, because cantools' generic ``decode_message`` (a few µs per
-frame) is the wrong tool for a 2 kHz, four-frames-per-sample stream; the unit tests prove the fast
-path bit-identical to cantools' own encoder and decoder for every frame.
+codec generates straight-line Python once per layout (constant shifts and masks, the E2E CRC
+unrolled over the frame as one int): a sample's frames in one call, a frame's CRC in one
+expression, a complete sample's values in one call. cantools' generic ``decode_message`` (a few
+µs per frame) is the wrong tool for a 2 kHz, four-frames-per-sample stream, and so was a loop
+over field objects (issue 20: ~2.5x less CPU to encode, ~1.8x less to check and decode). The
+unit tests prove the frames bit-identical to cantools' own encoder and decoder, and frames,
+decoded samples and counters identical to the generic loop's.
 
 What the wire does to the signal (see docs/can-protocol.md): every delta is rounded to the
 nearest multiple of its DBC scale (error uniform in ±q/2, RMS q/√12, white: it does not
