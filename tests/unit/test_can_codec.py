@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
+from pathlib import Path
 
 import can
 import crccheck
@@ -214,3 +216,179 @@ def test_profile1_crc_fast_path_equals_bitwise_definition(crc_byte: int, length:
             + bytes(data[crc_byte + 1 : length])
         )
         assert e2e.p01_crc(data_id, data, length, crc_byte) == e2e.crc8_j1850_raw(covered, 0x00)
+
+
+# -- the generated fast paths (issue 20): same frames, values, counters and errors -----------
+
+
+def _scripted_stream(fd: bool) -> tuple[ImuCanCodec, list[can.Message]]:
+    """600 samples with saturation on both sensors, status changes, a device-time wrap,
+    unencodable samples in between, and sync frames with their re-stamped copies."""
+    rng = np.random.default_rng(SEED + 2)
+    codec = ImuCanCodec.from_dbc(fd=fd)
+    frames: list[can.Message] = []
+    t0 = DEVICE_TIME_MODULO - 300 * 2_500_000  # the device time wraps half-way
+    for i in range(600):
+        dth, dv = rng.normal(0, 1e-3, 3), rng.normal(0, 1e-2, 3)
+        if i % 50 == 3:
+            dth[i % 3] = (-1.0) ** i  # beyond full scale: saturates, flagged
+        if i % 70 == 5:
+            dv[(i + 1) % 3] = -100.0 * (-1.0) ** i
+        t = t0 + i * 2_500_000
+        kw = {"device_stamp_ns": t, "status": (i // 100) & 3}  # status changes every 100
+        if i % 97 == 11:  # an unencodable sample consumes nothing
+            with pytest.raises(EncodeError):
+                codec.encode_sample(dtheta_b_rad=dth, dvel_b_mps=[0.0, math.nan, 0.0], **kw)
+        frames += codec.encode_sample(dtheta_b_rad=dth, dvel_b_mps=list(dv), **kw)
+        if i % 200 == 0:
+            sync = codec.encode_sync(t)
+            frames += [sync, codec.restamp_sync(sync, t + 12_345)]
+    return codec, frames
+
+
+@pytest.mark.parametrize(
+    ("fd", "expect"), [(False, "9eaf94be8e0f5492"), (True, "fc8dc40e62e154da")], ids=["classic", "fd"]
+)
+def test_frames_and_decoded_samples_are_those_of_the_generic_codec(fd: bool, expect: str) -> None:
+    # GIVEN the scripted stream, WHEN encoded and fed back, THEN frames, decoded items and
+    # counters hash to what the generic (pre-issue-20, per-field loop) codec produced: the wire
+    # protocol and the bridge's output did not move. A change here is a protocol change.
+    codec, frames = _scripted_stream(fd)
+    h = hashlib.sha256()
+    for f in frames:
+        h.update(
+            repr(
+                (f.arbitration_id, f.is_extended_id, f.is_fd, f.bitrate_switch, f.dlc, bytes(f.data))
+            ).encode()
+        )
+    asm = ImuFrameAssembler(codec)
+    for k, f in enumerate(frames):
+        f.timestamp = 1.0 + k * 1e-4
+        h.update(repr(asm.feed(f)).encode())
+    h.update(repr(sorted(asm.counters.items())).encode())
+    assert (codec.samples_encoded, codec.saturated_samples, asm.counters["saturated"]) == (600, 21, 21)
+    assert h.hexdigest()[:16] == expect
+
+
+def test_random_samples_match_cantools_and_the_bitwise_crc(codec: ImuCanCodec) -> None:
+    # GIVEN random samples, a fifth of them beyond full scale on some axis
+    rng = np.random.default_rng(SEED + 3)
+    asm = ImuFrameAssembler(ImuCanCodec.from_dbc(fd=not codec.fd))  # the bridge's mode need not match
+    sent: dict[int, int] = {}
+    for i in range(400):
+        dth, dv = rng.uniform(-0.3, 0.3, 3), rng.uniform(-6.0, 6.0, 3)
+        if rng.random() < 0.2:
+            (dth if rng.random() < 0.5 else dv)[rng.integers(3)] *= 50.0
+        frames = codec.encode_sample(
+            device_stamp_ns=int(rng.integers(0, 1 << 40)) + i * (1 << 41), dtheta_b_rad=dth, dvel_b_mps=dv
+        )
+        decoded: list[DecodedSample | DecodedSync] = []
+        for f in frames:
+            lay = codec.layouts[f.arbitration_id]
+            # the E2E CRC from its definition, the counter one step on per identifier
+            covered = bytes([f.arbitration_id & 0xFF, f.arbitration_id >> 8]) + bytes(
+                f.data[1 : lay.e2e_length]
+            )
+            assert f.data[0] == e2e.crc8_j1850_raw(covered, 0x00)
+            assert f.data[1] & 0x0F == sent.get(f.arbitration_id, 0)
+            sent[f.arbitration_id] = e2e.next_counter(f.data[1] & 0x0F)
+            ref = codec.db.decode_message(f.arbitration_id, bytes(f.data), decode_choices=False, scaling=True)
+            assert bytes(codec.db.encode_message(f.arbitration_id, ref, scaling=True, strict=False)) == f.data
+            decoded += asm.feed(f)
+        # THEN the sample the assembler returns is the values cantools reads off the frames
+        (s,) = decoded
+        assert isinstance(s, DecodedSample)
+        sig: dict[str, float] = {}
+        for f in frames:
+            sig.update(codec.db.decode_message(f.arbitration_id, bytes(f.data), decode_choices=False))
+        assert s.dtheta_b_rad == tuple(pytest.approx(sig[f"DeltaAngle{a}"], abs=1e-15) for a in "XYZ")
+        assert s.dvel_b_mps == tuple(pytest.approx(sig[f"DeltaVel{a}"], abs=1e-15) for a in "XYZ")
+        gyro_sat = [abs(x) > codec.dtheta_max_rad for x in dth]
+        accel_sat = [abs(x) > codec.dvel_max_mps for x in dv]
+        assert [sig[f"GyroSat{a}"] for a in "XYZ"] == gyro_sat
+        assert [sig[f"AccelSat{a}"] for a in "XYZ"] == accel_sat
+        assert bool(s.status & GYRO_SATURATED) == any(gyro_sat)
+        assert bool(s.status & ACCEL_SATURATED) == any(accel_sat)
+    assert codec.saturated_samples == asm.counters["saturated"] > 40
+
+
+def test_frames_are_the_messages_python_can_builds_from_keywords(codec: ImuCanCodec) -> None:
+    # the encoder calls can.Message positionally (half the cost): pin every slot to the keyword form
+    first = codec.encode_sample(device_stamp_ns=7, dtheta_b_rad=[1e-4] * 3, dvel_b_mps=[-1e-3] * 3, status=5)
+    sync = codec.encode_sync(9)
+    for f in [*first, sync, codec.restamp_sync(sync, 11)]:
+        lay = codec.layouts[f.arbitration_id]
+        ref = can.Message(
+            arbitration_id=lay.frame_id,
+            is_extended_id=False,
+            is_fd=lay.is_fd,
+            bitrate_switch=lay.brs,
+            data=bytearray(f.data),
+            dlc=lay.length,
+        )
+        slots = [s for s in can.Message.__slots__ if s != "__weakref__"]
+        assert {s: getattr(f, s) for s in slots} == {s: getattr(ref, s) for s in slots}
+        assert type(f.data) is bytearray
+
+
+@pytest.mark.parametrize(
+    ("dtheta", "dvel", "error", "match"),
+    [
+        ([0.0, "abc", 0.0], [math.nan, 0.0, 0.0], EncodeError, "dvel=nan"),  # axis X's dvel first
+        ([math.inf, 0.0, 0.0], [math.nan, 0.0, 0.0], EncodeError, "dtheta=inf"),
+        ([0.0, "abc", math.nan], [0.0, 0.0, 0.0], ValueError, "could not convert"),
+        ([1.0, 0.0, None], [0.0, 0.0, 0.0], TypeError, "NoneType"),  # saturated, then not a number
+        ([0.0, 0.0, 0.0], [0.0, 0.0, -math.inf], EncodeError, "dvel=-inf"),
+        ([0.0, 0.0, 1e308], [0.0, 0.0, 0.0], OverflowError, "infinity"),  # finite, /LSB is not
+    ],
+)
+def test_the_first_bad_value_in_axis_order_is_the_error_and_nothing_is_consumed(
+    codec: ImuCanCodec, dtheta: list[object], dvel: list[object], error: type, match: str
+) -> None:
+    kw = {"dtheta_b_rad": [1e-5] * 3, "dvel_b_mps": [1e-3] * 3}
+    twin = ImuCanCodec.from_dbc(fd=codec.fd)
+    codec.encode_sample(device_stamp_ns=1, **kw)
+    twin.encode_sample(device_stamp_ns=1, **kw)
+    with pytest.raises(error, match=match):
+        codec.encode_sample(device_stamp_ns=2, dtheta_b_rad=dtheta, dvel_b_mps=dvel)  # type: ignore[arg-type]
+    assert (codec.samples_encoded, codec.saturated_samples) == (1, 0)
+    after = codec.encode_sample(device_stamp_ns=3, status=1, **kw)
+    assert [bytes(f.data) for f in after] == [
+        bytes(f.data) for f in twin.encode_sample(device_stamp_ns=3, status=1, **kw)
+    ]
+
+
+@pytest.mark.parametrize("frame_length", [2, 5, 8, 9, 32])
+def test_unrolled_crc_expression_equals_p01_crc(frame_length: int) -> None:
+    rng = np.random.default_rng(SEED + 4)
+    for data_length in range(2, frame_length + 1):
+        src = e2e.p01_crc_expr(0x1A5, data_length, frame_length, "w")
+        crc_of = eval(f"lambda w: {src}", dict(e2e.CRC_SCOPE))  # our own generated expression
+        for _ in range(50):
+            data = bytes(rng.integers(0, 256, frame_length, dtype=np.uint8))  # padding bytes too
+            assert crc_of(int.from_bytes(data, "little")) == e2e.p01_crc(0x1A5, data, data_length)
+
+
+def test_decoded_sample_fast_constructor_is_the_dataclass() -> None:
+    from hil.can.codec import _new_sample
+
+    args = (12, (1e-6, -2e-6, 0.0), (0.1, 0.2, -9.8e-3), 0x0C, 101.5)
+    fast, ref = _new_sample(*args), DecodedSample(*args)
+    assert type(fast) is DecodedSample and fast == ref and hash(fast) == hash(ref)
+    with pytest.raises(AttributeError):
+        fast.status = 0  # type: ignore[misc]  # still frozen
+
+
+def test_a_dbc_without_saturation_flags_encodes_but_its_samples_fail_to_decode(tmp_path: Path) -> None:
+    # as before the generated decoders: the bridge needs the flags, the sender does not
+    from hil.can.codec import default_dbc_path
+
+    text = default_dbc_path().read_text()
+    dbc = tmp_path / "noflags.dbc"
+    dbc.write_text("\n".join(line for line in text.splitlines() if "GyroSatY" not in line))
+    codec = ImuCanCodec.from_dbc(dbc)
+    frames = codec.encode_sample(device_stamp_ns=0, dtheta_b_rad=[0.0] * 3, dvel_b_mps=[0.0] * 3)
+    asm = ImuFrameAssembler(codec)
+    with pytest.raises(KeyError, match="GyroSatY"):
+        for f in frames:
+            asm.feed(f)
