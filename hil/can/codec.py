@@ -56,8 +56,13 @@ BIT_RUNNING = 1 << 6
 BIT_FAILED = 1 << 7
 
 _AXES = ("X", "Y", "Z")
+# every one a sample frame must carry: the bridge decodes the saturation flags of each sample,
+# so a DBC without them is refused when it is loaded, not at the first frame
 _SAMPLE_SIGNALS = frozenset(
-    [f"DeltaAngle{a}" for a in _AXES] + [f"DeltaVel{a}" for a in _AXES] + ["DeviceTime"]
+    [f"DeltaAngle{a}" for a in _AXES]
+    + [f"DeltaVel{a}" for a in _AXES]
+    + [f"{s}Sat{a}" for s in ("Gyro", "Accel") for a in _AXES]
+    + ["DeviceTime"]
 )
 ROLES = ("sync", "sample_part", "sample_fd", "status")
 _from_bytes = int.from_bytes  # bound once: looking it up on ``int`` costs ~0.1 µs a frame

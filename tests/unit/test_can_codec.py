@@ -379,16 +379,12 @@ def test_decoded_sample_fast_constructor_is_the_dataclass() -> None:
         fast.status = 0  # type: ignore[misc]  # still frozen
 
 
-def test_a_dbc_without_saturation_flags_encodes_but_its_samples_fail_to_decode(tmp_path: Path) -> None:
-    # as before the generated decoders: the bridge needs the flags, the sender does not
+def test_a_dbc_without_saturation_flags_is_refused_when_loaded_naming_them(tmp_path: Path) -> None:
+    # the bridge decodes every sample's flags: a DBC without one would fail at the first frame
     from hil.can.codec import default_dbc_path
 
     text = default_dbc_path().read_text()
     dbc = tmp_path / "noflags.dbc"
     dbc.write_text("\n".join(line for line in text.splitlines() if "GyroSatY" not in line))
-    codec = ImuCanCodec.from_dbc(dbc)
-    frames = codec.encode_sample(device_stamp_ns=0, dtheta_b_rad=[0.0] * 3, dvel_b_mps=[0.0] * 3)
-    asm = ImuFrameAssembler(codec)
-    with pytest.raises(KeyError, match="GyroSatY"):
-        for f in frames:
-            asm.feed(f)
+    with pytest.raises(CodecError, match="GyroSatY"):
+        ImuCanCodec.from_dbc(dbc)
