@@ -164,6 +164,7 @@ class Recorder(Service):
         self._last_rx = time.monotonic()  # when the last sample came in (the stop waits for quiet)
         self._abort = threading.Event()  # the stop deadline passed: the writer stops
         self.unwritten_at_stop = 0
+        self._in_hand = 0  # of the writer's last batch, what the stop deadline left unwritten
         # What the files of this recorder's earlier lives hold (option ``continues``): read by the
         # writer thread before it writes anything, so the callback never waits for it.
         self.previous = Completeness()
@@ -532,8 +533,9 @@ class Recorder(Service):
             items = self.queue.get_many(WRITE_BATCH, timeout=0.2)
             if not items and self._closing.is_set():
                 break
-            for item in items:
+            for i, item in enumerate(items):
                 if self._abort.is_set():
+                    self._in_hand = len(items) - i  # taken from the queue, not written: counted
                     break
                 try:
                     self._handle(*item)
@@ -579,7 +581,7 @@ class Recorder(Service):
         if self._writer_thread.is_alive():
             self._abort.set()  # the writer stops after the message in hand
             self._writer_thread.join(timeout=5.0)
-            self.unwritten_at_stop = self.queue.qsize()
+            self.unwritten_at_stop = self.queue.qsize() + self._in_hand
             self.stats.error(
                 "errors.stop_timeout",
                 f"{self.unwritten_at_stop} received messages were still queued at the stop deadline "
