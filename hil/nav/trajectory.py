@@ -28,6 +28,8 @@ import numpy as np
 
 from hil.nav.attitude import euler_rates_to_body_rate, euler_to_dcm, euler_to_quat, quat_normalise
 from hil.nav.earth import (
+    A_M,
+    E2,
     cross,
     earth_rate_ned,
     lla_to_ned,
@@ -210,9 +212,16 @@ class TruthGenerator:
         return euler, c_nb, w_nb_b, v_n, vdot_n
 
     @staticmethod
-    def _pos_rate(lat: float, h: float, v: F64) -> tuple[float, float, float]:
-        r_m, r_n = radii_of_curvature(lat)
-        return (float(v[0] / (r_m + h)), float(v[1] / ((r_n + h) * math.cos(lat))), float(-v[2]))
+    def _pos_rate(lat: float, h: float, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        """(lat, lon, h) rates in plain floats: the RK4 below calls this four times per knot, and
+        numpy's per-call cost on a scalar was most of a long scenario's start-up. The same IEEE
+        operations in the same order as ``radii_of_curvature``, so the knots are bit-identical."""
+        sl = math.sin(lat)
+        w = 1.0 - E2 * (sl * sl)
+        sw = math.sqrt(w)
+        r_m = A_M * (1.0 - E2) / (w * sw)
+        r_n = A_M / sw
+        return (v[0] / (r_m + h), v[1] / ((r_n + h) * math.cos(lat)), -v[2])
 
     def _build_position_knots(self) -> None:
         """RK4 of (lat, lon, h) over knots; the velocities at all stage times come in one call."""
@@ -229,20 +238,19 @@ class TruthGenerator:
         v_a = self._kinematics(t_k[:-1], seg_iv)[3]
         v_m = self._kinematics(t_k[:-1] + 0.5 * h_k, seg_iv)[3]
         v_b = self._kinematics(t_k[1:], seg_iv)[3]  # right end, still inside the left segment
-        m = len(t_k)
-        y = np.empty((m, 3))
-        y[0] = (self.origin_lat_rad, self.origin_lon_rad, self.origin_alt_m)
-        lat, lon, h = y[0]
-        for i in range(m - 1):
-            dt = h_k[i]
-            k1 = self._pos_rate(lat, h, v_a[i])
-            k2 = self._pos_rate(lat + 0.5 * dt * k1[0], h + 0.5 * dt * k1[2], v_m[i])
-            k3 = self._pos_rate(lat + 0.5 * dt * k2[0], h + 0.5 * dt * k2[2], v_m[i])
-            k4 = self._pos_rate(lat + dt * k3[0], h + dt * k3[2], v_b[i])
+        lat, lon, h = float(self.origin_lat_rad), float(self.origin_lon_rad), float(self.origin_alt_m)
+        rows = [(lat, lon, h)]
+        rate = self._pos_rate
+        for dt, va, vm, vb in zip(h_k.tolist(), v_a.tolist(), v_m.tolist(), v_b.tolist(), strict=True):
+            k1 = rate(lat, h, va)
+            k2 = rate(lat + 0.5 * dt * k1[0], h + 0.5 * dt * k1[2], vm)
+            k3 = rate(lat + 0.5 * dt * k2[0], h + 0.5 * dt * k2[2], vm)
+            k4 = rate(lat + dt * k3[0], h + dt * k3[2], vb)
             lat += dt / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
             lon += dt / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
             h += dt / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
-            y[i + 1] = (lat, lon, h)
+            rows.append((lat, lon, h))
+        y = np.array(rows)
         # exact derivatives at each knot, on both sides (velocity is continuous, so one set)
         r_m, r_n = radii_of_curvature(y[:, 0])
         v_all = np.concatenate([v_a, v_b[-1:]])
