@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import queue
 import select
 import socket
+import struct
 import termios
 import threading
 import time
@@ -49,6 +51,7 @@ _BAUDS = {
     921600: termios.B921600,
 }
 CHUNK_S = 0.001  # the writer hands the line a millisecond of bytes at a time
+UNREAD_WAIT_S = 1.0  # at close, how long a pty's reader gets to take the bytes still unread
 
 
 class LineError(OSError):
@@ -195,6 +198,21 @@ class LineWriter:
         except (BlockingIOError, OSError):
             return
 
+    def _let_readers_drain(self, wait_s: float) -> None:
+        """Closing a pty's master discards what its reader has not read yet (the reader gets EIO):
+        give a reader that is still there a moment to take the tail, which it does in
+        milliseconds; a line nobody reads is closed after ``wait_s``."""
+        deadline = time.monotonic() + wait_s
+        for _master, slave, _path in self._masters:
+            while time.monotonic() < deadline:
+                try:
+                    unread = struct.unpack("i", fcntl.ioctl(slave, termios.FIONREAD, b"\0\0\0\0"))[0]
+                except OSError:
+                    break
+                if unread == 0:
+                    break
+                time.sleep(0.01)
+
     def close(self, drain_s: float = 2.0) -> None:
         """Write what is queued (at its pace, for at most ``drain_s``), then close every line."""
         self._queue.put(None)
@@ -204,6 +222,7 @@ class LineWriter:
         self._stop.set()
         if thread is not None:
             thread.join(timeout=1.0)
+        self._let_readers_drain(UNREAD_WAIT_S)
         for master, slave, path in self._masters:
             for fd in (master, slave):
                 with contextlib.suppress(OSError):
