@@ -222,11 +222,82 @@ def lower_hull(points: list[tuple[int, int]]) -> list[tuple[int, int]]:
     return hull
 
 
+class _SlidingLowerHull:
+    """The lower hull of a window of points that come in increasing x and leave oldest first.
+
+    A queue of two stacks: the newer points (``back``) keep Andrew's chain, built left to right
+    as they come; the older ones (``front``) a chain built right to left when ``back`` is handed
+    over, with a log of what each point's arrival popped, so the leftmost point leaves by undoing
+    its arrival. Each point is pushed and handed over once: O(1) amortised per point, where a
+    refit from scratch is O(window) (200 blocks). Every vertex of the window's lower hull is a
+    vertex of one of the two chains, so ``lower_hull`` of the chains' vertices is the window's
+    ``lower_hull``, the same list (the points have distinct x: vertices are determined).
+    """
+
+    __slots__ = ("back", "back_hull", "front_hull", "front_log")
+
+    def __init__(self) -> None:
+        self.back: list[tuple[int, int]] = []  # the newer points, in x order
+        self.back_hull: list[tuple[int, int]] = []  # their lower hull, left to right
+        self.front_hull: list[tuple[int, int]] = []  # the older points' lower hull, right to left
+        self.front_log: list[list[tuple[int, int]]] = []  # per older point: what its arrival popped
+
+    def clear(self) -> None:
+        self.back.clear()
+        self.back_hull.clear()
+        self.front_hull.clear()
+        self.front_log.clear()
+
+    def push(self, p: tuple[int, int]) -> None:
+        """A point right of all others (``lower_hull``'s step)."""
+        self.back.append(p)
+        hull = self.back_hull
+        px, py = p
+        while len(hull) >= 2:
+            ox, oy = hull[-2]
+            ax, ay = hull[-1]
+            if (ax - ox) * (py - oy) - (ay - oy) * (px - ox) > 0:
+                break
+            hull.pop()
+        hull.append(p)
+
+    def pop_oldest(self) -> None:
+        """The leftmost point leaves."""
+        if not self.front_log:
+            self._hand_over()
+        self.front_hull.pop()  # the leftmost point is always on the hull: the last pushed there
+        self.front_hull.extend(reversed(self.front_log.pop()))
+
+    def _hand_over(self) -> None:
+        """``back`` becomes the front: its chain built right to left, each point's pops logged."""
+        hull, log = self.front_hull, self.front_log
+        for p in reversed(self.back):
+            px, py = p
+            popped: list[tuple[int, int]] = []
+            while len(hull) >= 2:
+                ox, oy = hull[-2]  # p < a < o in x: keep a if it is strictly below p -> o
+                ax, ay = hull[-1]
+                if (ax - px) * (oy - py) - (ay - py) * (ox - px) > 0:
+                    break
+                popped.append(hull.pop())
+            hull.append(p)
+            log.append(popped)
+        self.back.clear()
+        self.back_hull.clear()
+
+    def vertices(self) -> list[tuple[int, int]]:
+        """Left to right: a superset of the window's lower hull vertices, in x order."""
+        return [*reversed(self.front_hull), *self.back_hull]
+
+
 @dataclass
 class ArrivalHull:
     """Points (x = device ns, y = arrival - device ns), one minimum per block, in a window.
 
     ``line()`` -> (x0, y0, slope): y(x) = y0 + slope (x - x0) is the lower bound of offset+delay.
+    While blocks come in device-time order (always, short of a clock going backwards, which
+    resets the hull once declared) a sliding hull (``_SlidingLowerHull``) gives the refit at each
+    new block in O(1) amortised; otherwise the window is sorted and refitted whole, as before.
     """
 
     cfg: SyncConfig
@@ -237,10 +308,12 @@ class ArrivalHull:
     _line: tuple[int, float, float] | None = None
     n: int = 0
     _unordered: bool = False  # a block went back in device time since the last reset
+    _sliding: _SlidingLowerHull = field(default_factory=_SlidingLowerHull, repr=False, compare=False)
 
     def reset(self, prior_slope: float) -> None:
         self.prior_slope = prior_slope
         self.blocks.clear()
+        self._sliding.clear()
         self._unordered = False
         self.cur_block = None
         self.cur_min = None
@@ -251,11 +324,17 @@ class ArrivalHull:
         b = x // self.cfg.hull_block_ns
         if self.cur_block is None or b != self.cur_block:
             if self.cur_min is not None:
-                if self.blocks and self.cur_min[0] < self.blocks[-1][0]:
+                blocks = self.blocks
+                if blocks and self.cur_min[0] < blocks[-1][0]:
                     self._unordered = True
-                self.blocks.append(self.cur_min)
-                while self.blocks and self.blocks[0][0] < x - self.cfg.hull_window_ns:
-                    self.blocks.popleft()
+                blocks.append(self.cur_min)
+                if not self._unordered:
+                    self._sliding.push(self.cur_min)
+                oldest = x - self.cfg.hull_window_ns
+                while blocks and blocks[0][0] < oldest:
+                    blocks.popleft()
+                    if not self._unordered:
+                        self._sliding.pop_oldest()
             self.cur_block, self.cur_min = b, (x, y)
             self._fit()
         elif self.cur_min is None or y < self.cur_min[1]:
@@ -264,6 +343,22 @@ class ArrivalHull:
                 self._fit()
 
     def _fit(self) -> None:
+        blocks, cur = self.blocks, self.cur_min
+        if (
+            cur is not None
+            and len(blocks) >= 1
+            and not self._unordered
+            and cur[0] > blocks[-1][0]
+            and cur[0] - blocks[0][0] >= self.cfg.min_span_ns
+        ):
+            # the window in x order, blocks then the open one: its hull from the sliding one's
+            # vertices (the same list as lower_hull of every point, see _SlidingLowerHull)
+            self._fit_hull(lower_hull([*self._sliding.vertices(), cur]), blocks[0][0], cur[0])
+            return
+        self._fit_all()
+
+    def _fit_all(self) -> None:
+        """The fit from every point of the window, sorted: the reference the fast path equals."""
         pts = sorted([*self.blocks, *([self.cur_min] if self.cur_min is not None else [])])
         if not pts:
             self._line = None
@@ -275,8 +370,11 @@ class ArrivalHull:
             x0, y0 = min(pts, key=lambda p: p[1] - s * (p[0] - pts[0][0]))
             self._line = (x0, float(y0), s)
             return
-        hull = lower_hull(pts)
-        xm = (pts[0][0] + pts[-1][0]) // 2
+        self._fit_hull(lower_hull(pts), pts[0][0], pts[-1][0])
+
+    def _fit_hull(self, hull: list[tuple[int, int]], x_first: int, x_last: int) -> None:
+        """The hull edge that spans the window's middle, its slope clamped to a clock's."""
+        xm = (x_first + x_last) // 2
         for a, b in itertools.pairwise(hull):
             if a[0] <= xm <= b[0]:
                 break
