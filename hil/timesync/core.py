@@ -139,12 +139,14 @@ class TagFilter:
     outliers_in_row: int = 0
     last_outlier_nu: float = 0.0
     res_sq: deque[float] = field(default_factory=lambda: deque(maxlen=30))
+    version: int = 0  # counts resets and updates: the mapping drawn from it is the same until it moves
 
     @property
     def initialised(self) -> bool:
         return self.n > 0
 
     def reset(self, f_ppb: float, f_sigma_ppb: float) -> None:
+        self.version += 1
         self.n = 0
         self.f_ppb = f_ppb
         self.p = [0.0, 0.0, f_sigma_ppb**2]
@@ -165,6 +167,7 @@ class TagFilter:
 
     def update(self, device_ns: int, z_ns: float) -> str:
         """One tag; returns ``"init"``, ``"ok"``, ``"outlier"`` or ``"step"``."""
+        self.version += 1
         r = self.cfg.tag_sigma_ns**2
         if not self.initialised:
             self.ref_ns, self.theta_ns = device_ns, z_ns
@@ -443,6 +446,9 @@ class SensorSync(Generic[T]):
     run_min_ns: float = 0.0  # lowest residual of the run: ≈ -Δ of a step Δ (+ the least excess)
     last_tag: tuple[int, float] | None = None  # (device, z) of the last tag
     startup_hold: bool = True  # holding until the tag filter locks (cfg.hold_until_locked_ns > 0)
+    # the filter's ``version`` the mapping was last drawn from (-1: drawn from the arrivals):
+    # between tags the tag mapping is refreshed for every measurement, and stays what it was
+    _mapped_version: int = -1
 
     def __post_init__(self) -> None:
         self.kf = TagFilter(self.cfg)
@@ -620,28 +626,29 @@ class SensorSync(Generic[T]):
         self.recovering = True
 
     def _release_all(self) -> list[tuple[T, int]]:
-        out: list[tuple[T, int]] = []
-        learn = (
-            self.cfg.source == "timetag" and self.kf.initialised and self.kf.n >= 3 and not self.recovering
-        )
-        for h in self.held:
-            self.hull.add(h.device_ns, h.rx_ns - h.device_ns)
-            self.since_reset += 1
+        held, hull, cfg = self.held, self.hull, self.cfg
+        learn = cfg.source == "timetag" and self.kf.n >= 3 and not self.recovering
+        jitter, floor_ns = self.jitter_ns, cfg.step_floor_ns
+        gain = min(256.0, float(self.n_arrivals))
+        for h in held:
+            hull.add(h.device_ns, h.rx_ns - h.device_ns)
             if not h.count_jitter:
                 continue
             # jitter scale: a running mean of the (clipped) excess delay, cumulative at first
-            r = min(max(h.resid, 0.0), 10.0 * self.jitter_ns + self.cfg.step_floor_ns)
-            self.jitter_ns += (r - self.jitter_ns) / min(256.0, float(self.n_arrivals))
+            r = min(max(h.resid, 0.0), 10.0 * jitter + floor_ns)
+            jitter += (r - jitter) / gain
+        self.jitter_ns = jitter
+        self.since_reset += len(held)
         self._refresh()
-        for h in self.held:
-            out.append((h.item, self.mapping.to_rig(h.device_ns)))
-        if learn and self.held:
-            h = self.held[-1]
-            floor = self.hull.at(h.device_ns)
+        to_rig = self.mapping.to_rig
+        out: list[tuple[T, int]] = [(h.item, to_rig(h.device_ns)) for h in held]
+        if learn and held:
+            h = held[-1]
+            floor = hull.at(h.device_ns)
             if floor is not None:
-                tag_off = self.mapping.to_rig(h.device_ns) - h.device_ns
+                tag_off = out[-1][1] - h.device_ns  # the last one's rig stamp, under this mapping
                 self.delta_ns += (floor - tag_off - self.delta_ns) / 64.0
-        self.held.clear()
+        held.clear()
         self.mapping.n_samples = self.n_arrivals
         return out
 
@@ -652,6 +659,9 @@ class SensorSync(Generic[T]):
     def _refresh(self) -> None:
         m = self.mapping
         if self.cfg.source == "timetag" and self.kf.initialised and not self.recovering:
+            if self._mapped_version == self.kf.version:
+                return  # no tag since: the same mapping
+            self._mapped_version = self.kf.version
             m.offset_ns, m.drift_ppb, m.ref_device_ns = self.kf.mapping_terms()
             m.source = "timetag"
             m.residual_rms_ns = (
@@ -659,6 +669,7 @@ class SensorSync(Generic[T]):
             )
             m.state = "locked" if self.kf.n >= 3 else "converging"
             return
+        self._mapped_version = -1
         line = self.hull.line()
         if line is None:
             return
