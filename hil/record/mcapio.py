@@ -616,11 +616,14 @@ class Session:
 PROGRESS_EVERY = 8192  # records between two progress callbacks of ``iter_records``
 
 
+#: ``hil.wellknown.PREFIX``, written out: importing that module loads the Foxglove SDK (~15 ms),
+#: which a reader does not use (tests/unit/test_service_startup.py checks the two are equal)
+DERIVED_PREFIX = "/foxglove/"
+
+
 def is_derived(topic: str) -> bool:
     """A channel of Foxglove well-known types derived from the rig's messages (``hil.wellknown``)."""
-    from hil.wellknown import PREFIX
-
-    return topic.startswith(PREFIX)
+    return topic.startswith(DERIVED_PREFIX)
 
 
 def iter_records(

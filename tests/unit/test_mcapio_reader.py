@@ -143,7 +143,7 @@ def _short_records_file(path: Path) -> None:
         for i in range(3):
             w.add_message(a, log_time=10 + i, data=b'{"i": %d}' % i, publish_time=5 + i, sequence=i)
             b = w.register_channel("b", "", 0)  # written into the open chunk, at its end
-            w._Writer__finalize_chunk()  # type: ignore[attr-defined]  # noqa: SLF001
+            w._Writer__finalize_chunk()  # type: ignore[attr-defined]
             w.add_message(b, log_time=20 + i, data=b"", publish_time=20 + i, sequence=7)
         w.finish()
 
