@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from hil.messages import CanFrame, ClockModel, GnssFix, ImuSample, Truth
 
 if TYPE_CHECKING:  # python-can only for the annotation: the time-sync rerun need not import it
@@ -15,6 +13,8 @@ if TYPE_CHECKING:  # python-can only for the annotation: the time-sync rerun nee
 
 def truth_msg(seq: int, t_ns: int, b: Any, i: int) -> Truth:
     """``Truth`` from row ``i`` of a ``TruthBatch``."""
+    import numpy as np  # here, not at the top: the time-sync rerun imports this module, never numpy
+
     return Truth(
         seq=seq,
         stamp_ns=t_ns,
@@ -31,6 +31,8 @@ def truth_msg(seq: int, t_ns: int, b: Any, i: int) -> Truth:
 
 def gnss_fix_msg(seq: int, rx_ns: int, device_ns: int, b: Any, i: int) -> GnssFix:
     """A raw ``GnssFix`` (stamped at its arrival) from row ``i`` of a ``GnssBatch``."""
+    import numpy as np  # as in truth_msg
+
     return GnssFix(
         seq=seq,
         stamp_ns=rx_ns,

@@ -81,7 +81,10 @@ class TimeSyncNode(Node):
         return self._synced(self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns, msg))
 
     def _repeat(self, sensor: str, seq: int) -> bool:
-        seen, order = self._recent.setdefault(sensor, (set(), deque()))
+        recent = self._recent.get(sensor)
+        if recent is None:  # not setdefault: that built a set and a deque for every measurement
+            recent = self._recent[sensor] = (set(), deque())
+        seen, order = recent
         if seq in seen:
             return True
         seen.add(seq)

@@ -616,11 +616,14 @@ class Session:
 PROGRESS_EVERY = 8192  # records between two progress callbacks of ``iter_records``
 
 
+#: ``hil.wellknown.PREFIX``, written out: importing that module loads the Foxglove SDK (~15 ms),
+#: which a reader does not use (tests/unit/test_service_startup.py checks the two are equal)
+DERIVED_PREFIX = "/foxglove/"
+
+
 def is_derived(topic: str) -> bool:
     """A channel of Foxglove well-known types derived from the rig's messages (``hil.wellknown``)."""
-    from hil.wellknown import PREFIX
-
-    return topic.startswith(PREFIX)
+    return topic.startswith(DERIVED_PREFIX)
 
 
 def iter_records(
@@ -652,6 +655,25 @@ def iter_records(
     indexes skipped unparsed. A chunk is parsed whole before any of its records is given, as
     ``StreamReader`` does, so a damaged chunk yields nothing of itself.
     """
+    for kind, rec in _iter_items(path, on_progress, derived=derived, header=header, keep=keep):
+        if kind == "messages":
+            for r in rec:
+                yield "message", r
+        else:
+            yield kind, rec
+
+
+def _iter_items(
+    path: str | Path,
+    on_progress: Callable[[int, int], None] | None = None,
+    *,
+    derived: bool = False,
+    header: bool = False,
+    keep: Callable[[str], bool] | None = None,
+) -> Iterator[tuple[str, Any]]:
+    """``iter_records``' items, but a chunk's messages as one ``("messages", [Record, ...])``
+    item: a reader that takes them in a batch (``SessionStream``) skips a generator step and a
+    tuple per message."""
     try:
         fh = open(path, "rb")  # noqa: SIM115
         size = os.fstat(fh.fileno()).st_size
@@ -671,6 +693,7 @@ def iter_records(
 
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length
 _MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_MESSAGE_RECORD = struct.Struct("<BQHIQQ")  # the two above: a chunk's message record in one call
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
 _RECORD_SIZE_LIMIT = 4 * 2**30  # StreamReader's default
 _SKIPPED = ("", "", "", "")  # a channel whose messages ``keep`` leaves out (their log times count)
@@ -745,9 +768,9 @@ class _FastReader:
             body = read(length)
             self._count()
             if opcode == Opcode.CHUNK:
-                yield from self._chunk(body)
+                yield "messages", self._chunk(body)
             elif opcode == Opcode.MESSAGE:
-                yield from self._messages(body, 0, len(body), single=True)
+                yield "messages", self._messages(body, 0, len(body), single=True)
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
                 self._definition(opcode, body)
             elif opcode == Opcode.METADATA:
@@ -772,7 +795,7 @@ class _FastReader:
         else:
             self._channel(Channel.read(_stream(body)))
 
-    def _chunk(self, body: bytes) -> list[tuple[str, Any]]:
+    def _chunk(self, body: bytes) -> list[Record]:
         _start, _end, size, _crc, n_comp = _CHUNK_HEAD.unpack_from(body, 0)
         at = _CHUNK_HEAD.size
         compression = str(body[at : at + n_comp], "utf-8")
@@ -794,29 +817,42 @@ class _FastReader:
             raise UnsupportedCompressionError(compression)
         return self._messages(data, 0, len(data), single=False)
 
-    def _messages(self, data: bytes, pos: int, end: int, *, single: bool) -> list[tuple[str, Any]]:
+    def _messages(self, data: bytes, pos: int, end: int, *, single: bool) -> list[Record]:
         """The messages in ``data[pos:end]``: a chunk's records, or one message record's body
         (``single``). Schemas and channels among them are taken in as they come; what ``keep``
-        left out counts only once all of them parsed (a damaged chunk gives nothing)."""
-        out: list[tuple[str, Any]] = []
-        channels, unpack_msg, unpack_head = (
+        left out counts only once all of them parsed (a damaged chunk gives nothing).
+
+        A chunk's record is unpacked as a message record (head and fields in one ``struct``
+        call: most of a chunk is messages); the fields are used only if it is one, and a record
+        too near the chunk's end for that is unpacked head first, as any other record."""
+        out: list[Record] = []
+        channels, unpack_msg, unpack_head, unpack_record = (
             self.channels,
             _MESSAGE_FIELDS.unpack_from,
             _RECORD_HEAD.unpack_from,
+            _MESSAGE_RECORD.unpack_from,
         )
+        message = int(Opcode.MESSAGE)
         skipped_max, skipped_last = self.skipped_max, self.skipped_last
         n = 0
         while pos < end:
             if single:
-                opcode, length = Opcode.MESSAGE, end - pos
+                opcode, length = message, end - pos
+                cid, seq, log, pub = unpack_msg(data, pos)
             else:
-                opcode, length = unpack_head(data, pos)
+                try:
+                    opcode, length, cid, seq, log, pub = unpack_record(data, pos)
+                except struct.error:  # fewer than a message record's fixed bytes left
+                    opcode, length = unpack_head(data, pos)
+                    if pos + 9 + length > end:
+                        raise EndOfFile() from None
+                    if opcode == message:
+                        cid, seq, log, pub = unpack_msg(data, pos + 9)
                 pos += 9
                 if pos + length > end:
                     raise EndOfFile()
             n += 1
-            if opcode == Opcode.MESSAGE:
-                cid, seq, log, pub = unpack_msg(data, pos)
+            if opcode == message:
                 chan = channels[cid]
                 if chan is _SKIPPED:
                     skipped_last = log
@@ -829,7 +865,7 @@ class _FastReader:
                     if skipped_max >= 0:
                         rec.skipped_log_ns = skipped_max
                         skipped_max = -1
-                    out.append(("message", rec))
+                    out.append(rec)
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
                 self._definition(opcode, data[pos : pos + length])
             pos += length
@@ -896,13 +932,16 @@ class SessionStream:
         for k, path in enumerate(self.paths):
             n = 0
             progress = self._progress(sum(sizes[:k]), sum(sizes))
-            for kind, rec in iter_records(path, progress, keep=self.keep):
-                if kind == "message":
-                    n += 1
+            for kind, rec in _iter_items(path, progress, keep=self.keep):
+                if kind == "messages":  # a chunk's, in a batch
+                    if not rec:
+                        continue
+                    n += len(rec)
                     if self.skipped_tail is not None:  # the previous part's last messages
-                        rec.skipped_log_ns = max(rec.skipped_log_ns, self.skipped_tail[0])
+                        first = rec[0]
+                        first.skipped_log_ns = max(first.skipped_log_ns, self.skipped_tail[0])
                         self.skipped_tail = None
-                    yield rec
+                    yield from rec
                 elif kind == "skipped":
                     prev = self.skipped_tail
                     self.skipped_tail = rec if prev is None else (max(prev[0], rec[0]), rec[1])

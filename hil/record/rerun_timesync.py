@@ -95,24 +95,38 @@ def rerun_timesync_records(records: Iterable[Record], name: str = "recording") -
             matcher.recomputed((m.sensor, m.seq), encode(m), -1, now_ns)
             counts["out"] += 1
 
+    # topic -> (kind, sensor, the node's key): split once per topic, not per record
+    routes: dict[str, tuple[str, str, str] | None] = {}
+
+    def route(topic: str) -> tuple[str, str, str] | None:
+        parts = topic.split("/")
+        if len(parts) != 4:
+            return None
+        kind, sensor = parts[2], parts[3]
+        return kind, sensor, f"{kind}/{sensor}"
+
     def handle(r: Record) -> None:
         assert node is not None
-        parts = r.topic.split("/")
-        if len(parts) != 4:
+        topic = r.topic
+        if topic in routes:
+            rt = routes[topic]
+        else:
+            rt = routes[topic] = route(topic)
+        if rt is None:
             return
-        kind, sensor = parts[2], parts[3]
+        kind, sensor, key = rt
         if kind == "timetag":
-            keep(node.on_message(f"timetag/{sensor}", decode(TimeTag, r.payload), now_ns))
+            keep(node.on_message(key, decode(TimeTag, r.payload), now_ns))
             counts["tags"] += 1
         elif kind == "sensor" and r.schema in _RAW:
-            keep(node.on_message(f"sensor/{sensor}", decode(_RAW[r.schema], r.payload), now_ns))
+            keep(node.on_message(key, decode(_RAW[r.schema], r.payload), now_ns))
             counts["meas"] += 1
         elif kind == "synced" and r.schema in _RAW:
-            key = (sensor, r.sequence)
+            pair = (sensor, r.sequence)
             counts["order"] += 1
-            if key in matcher.released:
-                late.append((counts["order"], key))
-            matcher.recorded(key, r.payload, counts["order"], now_ns)  # rig time, as now_ns below
+            if pair in matcher.released:
+                late.append((counts["order"], pair))
+            matcher.recorded(pair, r.payload, counts["order"], now_ns)  # rig time, as now_ns below
         matcher.release_before(now_ns)
 
     start_ns = 0

@@ -40,12 +40,14 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
-
-import numpy as np
+from functools import cache
+from typing import TYPE_CHECKING, Any
 
 from hil.nav.scenario import Scenario, ScenarioError
 from hil.sensor_table import SENSORS
+
+if TYPE_CHECKING:  # numpy is imported where a clock is drawn: the time-sync rerun reads only the configs
+    import numpy as np
 
 _M64 = (1 << 64) - 1
 
@@ -197,6 +199,8 @@ def _gauss_of(key: int, t_ns: int) -> float:
 
 
 def _mix64_array(z: np.ndarray) -> np.ndarray:
+    import numpy as np
+
     with np.errstate(over="ignore"):
         z = z + np.uint64(0x9E3779B97F4A7C15)
         z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -204,16 +208,22 @@ def _mix64_array(z: np.ndarray) -> np.ndarray:
     return z ^ (z >> np.uint64(31))
 
 
-_LOG = np.frompyfunc(math.log, 1, 1)
+@cache
+def _log_ufunc() -> np.ufunc:
+    import numpy as np
+
+    return np.frompyfunc(math.log, 1, 1)
 
 
 def _gauss_array(key: int, t_ns: np.ndarray) -> np.ndarray:
+    import numpy as np
+
     h1 = _mix64_array(np.uint64(key) ^ t_ns.astype(np.int64).view(np.uint64))
     h2 = _mix64_array(h1)
     u1 = ((h1 >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
     u2 = (h2 >> np.uint64(11)).astype(np.float64) * 2.0**-53
     # math.log elementwise: numpy's log is SIMD-dispatched per CPU, and this must equal _gauss_of
-    return np.sqrt(-2.0 * np.asarray(_LOG(u1), dtype=float)) * np.cos(2.0 * np.pi * u2)
+    return np.sqrt(-2.0 * np.asarray(_log_ufunc()(u1), dtype=float)) * np.cos(2.0 * np.pi * u2)
 
 
 @dataclass
@@ -232,6 +242,8 @@ class DeviceClock:
     _key_latch: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        import numpy as np
+
         keys = self.rng.integers(0, 2**63, size=2, dtype=np.int64)
         self._key_stamp, self._key_latch = int(keys[0]), int(keys[1])
         self._knots_ppm = np.zeros(1)
@@ -245,6 +257,8 @@ class DeviceClock:
         n = len(self._knots_ppm)
         if k_max < n:
             return
+        import numpy as np
+
         m = ((k_max - n) // 1024 + 1) * 1024
         rw = self.cfg.drift_rw_ppm_per_sqrt_s
         inc = self.rng.standard_normal(m) * rw if rw else np.zeros(m)
@@ -295,6 +309,8 @@ class DeviceClock:
 
     def device_ns_array(self, true_ns: np.ndarray) -> np.ndarray:
         """Vectorised :meth:`device_ns` (identical results), for benches and tests."""
+        import numpy as np
+
         t = np.asarray(true_ns, dtype=np.int64)
         frac = self.cfg.drift_ppm * 1e-6 * t.astype(np.float64)
         if self.cfg.drift_rw_ppm_per_sqrt_s and len(t):

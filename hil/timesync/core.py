@@ -139,12 +139,14 @@ class TagFilter:
     outliers_in_row: int = 0
     last_outlier_nu: float = 0.0
     res_sq: deque[float] = field(default_factory=lambda: deque(maxlen=30))
+    version: int = 0  # counts resets and updates: the mapping drawn from it is the same until it moves
 
     @property
     def initialised(self) -> bool:
         return self.n > 0
 
     def reset(self, f_ppb: float, f_sigma_ppb: float) -> None:
+        self.version += 1
         self.n = 0
         self.f_ppb = f_ppb
         self.p = [0.0, 0.0, f_sigma_ppb**2]
@@ -165,6 +167,7 @@ class TagFilter:
 
     def update(self, device_ns: int, z_ns: float) -> str:
         """One tag; returns ``"init"``, ``"ok"``, ``"outlier"`` or ``"step"``."""
+        self.version += 1
         r = self.cfg.tag_sigma_ns**2
         if not self.initialised:
             self.ref_ns, self.theta_ns = device_ns, z_ns
@@ -222,11 +225,82 @@ def lower_hull(points: list[tuple[int, int]]) -> list[tuple[int, int]]:
     return hull
 
 
+class _SlidingLowerHull:
+    """The lower hull of a window of points that come in increasing x and leave oldest first.
+
+    A queue of two stacks: the newer points (``back``) keep Andrew's chain, built left to right
+    as they come; the older ones (``front``) a chain built right to left when ``back`` is handed
+    over, with a log of what each point's arrival popped, so the leftmost point leaves by undoing
+    its arrival. Each point is pushed and handed over once: O(1) amortised per point, where a
+    refit from scratch is O(window) (200 blocks). Every vertex of the window's lower hull is a
+    vertex of one of the two chains, so ``lower_hull`` of the chains' vertices is the window's
+    ``lower_hull``, the same list (the points have distinct x: vertices are determined).
+    """
+
+    __slots__ = ("back", "back_hull", "front_hull", "front_log")
+
+    def __init__(self) -> None:
+        self.back: list[tuple[int, int]] = []  # the newer points, in x order
+        self.back_hull: list[tuple[int, int]] = []  # their lower hull, left to right
+        self.front_hull: list[tuple[int, int]] = []  # the older points' lower hull, right to left
+        self.front_log: list[list[tuple[int, int]]] = []  # per older point: what its arrival popped
+
+    def clear(self) -> None:
+        self.back.clear()
+        self.back_hull.clear()
+        self.front_hull.clear()
+        self.front_log.clear()
+
+    def push(self, p: tuple[int, int]) -> None:
+        """A point right of all others (``lower_hull``'s step)."""
+        self.back.append(p)
+        hull = self.back_hull
+        px, py = p
+        while len(hull) >= 2:
+            ox, oy = hull[-2]
+            ax, ay = hull[-1]
+            if (ax - ox) * (py - oy) - (ay - oy) * (px - ox) > 0:
+                break
+            hull.pop()
+        hull.append(p)
+
+    def pop_oldest(self) -> None:
+        """The leftmost point leaves."""
+        if not self.front_log:
+            self._hand_over()
+        self.front_hull.pop()  # the leftmost point is always on the hull: the last pushed there
+        self.front_hull.extend(reversed(self.front_log.pop()))
+
+    def _hand_over(self) -> None:
+        """``back`` becomes the front: its chain built right to left, each point's pops logged."""
+        hull, log = self.front_hull, self.front_log
+        for p in reversed(self.back):
+            px, py = p
+            popped: list[tuple[int, int]] = []
+            while len(hull) >= 2:
+                ox, oy = hull[-2]  # p < a < o in x: keep a if it is strictly below p -> o
+                ax, ay = hull[-1]
+                if (ax - px) * (oy - py) - (ay - py) * (ox - px) > 0:
+                    break
+                popped.append(hull.pop())
+            hull.append(p)
+            log.append(popped)
+        self.back.clear()
+        self.back_hull.clear()
+
+    def vertices(self) -> list[tuple[int, int]]:
+        """Left to right: a superset of the window's lower hull vertices, in x order."""
+        return [*reversed(self.front_hull), *self.back_hull]
+
+
 @dataclass
 class ArrivalHull:
     """Points (x = device ns, y = arrival - device ns), one minimum per block, in a window.
 
     ``line()`` -> (x0, y0, slope): y(x) = y0 + slope (x - x0) is the lower bound of offset+delay.
+    While blocks come in device-time order (always, short of a clock going backwards, which
+    resets the hull once declared) a sliding hull (``_SlidingLowerHull``) gives the refit at each
+    new block in O(1) amortised; otherwise the window is sorted and refitted whole, as before.
     """
 
     cfg: SyncConfig
@@ -237,10 +311,12 @@ class ArrivalHull:
     _line: tuple[int, float, float] | None = None
     n: int = 0
     _unordered: bool = False  # a block went back in device time since the last reset
+    _sliding: _SlidingLowerHull = field(default_factory=_SlidingLowerHull, repr=False, compare=False)
 
     def reset(self, prior_slope: float) -> None:
         self.prior_slope = prior_slope
         self.blocks.clear()
+        self._sliding.clear()
         self._unordered = False
         self.cur_block = None
         self.cur_min = None
@@ -251,11 +327,17 @@ class ArrivalHull:
         b = x // self.cfg.hull_block_ns
         if self.cur_block is None or b != self.cur_block:
             if self.cur_min is not None:
-                if self.blocks and self.cur_min[0] < self.blocks[-1][0]:
+                blocks = self.blocks
+                if blocks and self.cur_min[0] < blocks[-1][0]:
                     self._unordered = True
-                self.blocks.append(self.cur_min)
-                while self.blocks and self.blocks[0][0] < x - self.cfg.hull_window_ns:
-                    self.blocks.popleft()
+                blocks.append(self.cur_min)
+                if not self._unordered:
+                    self._sliding.push(self.cur_min)
+                oldest = x - self.cfg.hull_window_ns
+                while blocks and blocks[0][0] < oldest:
+                    blocks.popleft()
+                    if not self._unordered:
+                        self._sliding.pop_oldest()
             self.cur_block, self.cur_min = b, (x, y)
             self._fit()
         elif self.cur_min is None or y < self.cur_min[1]:
@@ -264,6 +346,22 @@ class ArrivalHull:
                 self._fit()
 
     def _fit(self) -> None:
+        blocks, cur = self.blocks, self.cur_min
+        if (
+            cur is not None
+            and len(blocks) >= 1
+            and not self._unordered
+            and cur[0] > blocks[-1][0]
+            and cur[0] - blocks[0][0] >= self.cfg.min_span_ns
+        ):
+            # the window in x order, blocks then the open one: its hull from the sliding one's
+            # vertices (the same list as lower_hull of every point, see _SlidingLowerHull)
+            self._fit_hull(lower_hull([*self._sliding.vertices(), cur]), blocks[0][0], cur[0])
+            return
+        self._fit_all()
+
+    def _fit_all(self) -> None:
+        """The fit from every point of the window, sorted: the reference the fast path equals."""
         pts = sorted([*self.blocks, *([self.cur_min] if self.cur_min is not None else [])])
         if not pts:
             self._line = None
@@ -275,8 +373,11 @@ class ArrivalHull:
             x0, y0 = min(pts, key=lambda p: p[1] - s * (p[0] - pts[0][0]))
             self._line = (x0, float(y0), s)
             return
-        hull = lower_hull(pts)
-        xm = (pts[0][0] + pts[-1][0]) // 2
+        self._fit_hull(lower_hull(pts), pts[0][0], pts[-1][0])
+
+    def _fit_hull(self, hull: list[tuple[int, int]], x_first: int, x_last: int) -> None:
+        """The hull edge that spans the window's middle, its slope clamped to a clock's."""
+        xm = (x_first + x_last) // 2
         for a, b in itertools.pairwise(hull):
             if a[0] <= xm <= b[0]:
                 break
@@ -345,6 +446,9 @@ class SensorSync(Generic[T]):
     run_min_ns: float = 0.0  # lowest residual of the run: ≈ -Δ of a step Δ (+ the least excess)
     last_tag: tuple[int, float] | None = None  # (device, z) of the last tag
     startup_hold: bool = True  # holding until the tag filter locks (cfg.hold_until_locked_ns > 0)
+    # the filter's ``version`` the mapping was last drawn from (-1: drawn from the arrivals):
+    # between tags the tag mapping is refreshed for every measurement, and stays what it was
+    _mapped_version: int = -1
 
     def __post_init__(self) -> None:
         self.kf = TagFilter(self.cfg)
@@ -522,28 +626,29 @@ class SensorSync(Generic[T]):
         self.recovering = True
 
     def _release_all(self) -> list[tuple[T, int]]:
-        out: list[tuple[T, int]] = []
-        learn = (
-            self.cfg.source == "timetag" and self.kf.initialised and self.kf.n >= 3 and not self.recovering
-        )
-        for h in self.held:
-            self.hull.add(h.device_ns, h.rx_ns - h.device_ns)
-            self.since_reset += 1
+        held, hull, cfg = self.held, self.hull, self.cfg
+        learn = cfg.source == "timetag" and self.kf.n >= 3 and not self.recovering
+        jitter, floor_ns = self.jitter_ns, cfg.step_floor_ns
+        gain = min(256.0, float(self.n_arrivals))
+        for h in held:
+            hull.add(h.device_ns, h.rx_ns - h.device_ns)
             if not h.count_jitter:
                 continue
             # jitter scale: a running mean of the (clipped) excess delay, cumulative at first
-            r = min(max(h.resid, 0.0), 10.0 * self.jitter_ns + self.cfg.step_floor_ns)
-            self.jitter_ns += (r - self.jitter_ns) / min(256.0, float(self.n_arrivals))
+            r = min(max(h.resid, 0.0), 10.0 * jitter + floor_ns)
+            jitter += (r - jitter) / gain
+        self.jitter_ns = jitter
+        self.since_reset += len(held)
         self._refresh()
-        for h in self.held:
-            out.append((h.item, self.mapping.to_rig(h.device_ns)))
-        if learn and self.held:
-            h = self.held[-1]
-            floor = self.hull.at(h.device_ns)
+        to_rig = self.mapping.to_rig
+        out: list[tuple[T, int]] = [(h.item, to_rig(h.device_ns)) for h in held]
+        if learn and held:
+            h = held[-1]
+            floor = hull.at(h.device_ns)
             if floor is not None:
-                tag_off = self.mapping.to_rig(h.device_ns) - h.device_ns
+                tag_off = out[-1][1] - h.device_ns  # the last one's rig stamp, under this mapping
                 self.delta_ns += (floor - tag_off - self.delta_ns) / 64.0
-        self.held.clear()
+        held.clear()
         self.mapping.n_samples = self.n_arrivals
         return out
 
@@ -554,6 +659,9 @@ class SensorSync(Generic[T]):
     def _refresh(self) -> None:
         m = self.mapping
         if self.cfg.source == "timetag" and self.kf.initialised and not self.recovering:
+            if self._mapped_version == self.kf.version:
+                return  # no tag since: the same mapping
+            self._mapped_version = self.kf.version
             m.offset_ns, m.drift_ppb, m.ref_device_ns = self.kf.mapping_terms()
             m.source = "timetag"
             m.residual_rms_ns = (
@@ -561,6 +669,7 @@ class SensorSync(Generic[T]):
             )
             m.state = "locked" if self.kf.n >= 3 else "converging"
             return
+        self._mapped_version = -1
         line = self.hull.line()
         if line is None:
             return

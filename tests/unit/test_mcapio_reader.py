@@ -128,3 +128,33 @@ def test_filtered_stream_carries_skipped_times_across_parts(tmp_path: Path) -> N
     told = max(max(r.skipped_log_ns for r in records), stream.skipped_tail[0] if stream.skipped_tail else -1)
     assert told == max(r.log_time_ns for r in everything if not r.topic.endswith("/synced/imu"))
     assert stream.skipped_tail is None or stream.skipped_tail[1] == everything[-1].log_time_ns
+
+
+def _short_records_file(path: Path) -> None:
+    """Chunks whose last record is shorter than a message record's fixed part (a channel of a
+    one-letter topic, 26 bytes): the reader unpacks a chunk's records as messages first."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh, chunk_size=10**6, compression=CompressionType.NONE)
+        w.start("hil", "test")
+        s = w.register_schema("hil.X", "jsonschema", b"{}")
+        a = w.register_channel("hil/r/sensor/imu", "json", s)
+        for i in range(3):
+            w.add_message(a, log_time=10 + i, data=b'{"i": %d}' % i, publish_time=5 + i, sequence=i)
+            b = w.register_channel("b", "", 0)  # written into the open chunk, at its end
+            w._Writer__finalize_chunk()  # type: ignore[attr-defined]
+            w.add_message(b, log_time=20 + i, data=b"", publish_time=20 + i, sequence=7)
+        w.finish()
+
+
+def test_short_records_at_a_chunks_end_whole_and_cut_at_every_byte(tmp_path: Path) -> None:
+    path = tmp_path / "short.mcap"
+    _short_records_file(path)
+    data = path.read_bytes()
+    ours = list(_ours(path))
+    assert ours == list(_reference(path)) and sum(k[0] == "message" for k in ours) == 6
+    cut = tmp_path / "cut.mcap"
+    for n in range(len(data)):
+        cut.write_bytes(data[:n])
+        assert list(_ours(cut)) == list(_reference(cut)), n

@@ -10,7 +10,7 @@ import pytest
 
 from hil.nav.earth import normal_gravity
 from hil.nav.scenario import load_scenario, scenario_overrides
-from hil.nav.sensor_specs import DEG, UG_MPS2
+from hil.nav.sensor_specs import DEG, GM_PEAK_RATIO, UG_MPS2, gauss_markov_adev_peak_ratio
 from hil.nav.trajectory import TruthGenerator
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
@@ -67,6 +67,13 @@ def test_bias_instability_reads_back_as_the_allan_floor(key: str, value: float, 
         # THEN the Allan floor (the bump of the Gauss–Markov curve) is 0.664 B (IEEE 952)
         floor = _adev(x[:, axis] - x[:, axis].mean(), rate, taus).max()
         assert abs(floor / (0.664 * value * unit) - 1.0) < 0.10, (axis, floor / unit)
+
+
+def test_the_written_out_gauss_markov_peak_ratio_is_the_formulas() -> None:
+    # GM_PEAK_RATIO is a literal so that a scenario load does not import numpy; it must be the
+    # formula's value to the last bit, or every IMU's bias instability draw would change
+    assert gauss_markov_adev_peak_ratio() == GM_PEAK_RATIO
+    assert 0.6 < GM_PEAK_RATIO < 0.65
 
 
 def test_batches_of_any_size_give_the_same_stream() -> None:

@@ -45,6 +45,12 @@ def test_the_recorder_starts_without_numpy_or_python_can() -> None:
     assert loaded_by("recorder") == set()
 
 
+def test_the_time_sync_starts_without_numpy_or_python_can() -> None:
+    # its core is integer arithmetic on stamps; the scenario and clock configs it reads must not
+    # pull numpy in (sensor_specs' GM_PEAK_RATIO, hil.sensors.clock, hil.nodes.builders)
+    assert loaded_by("timesync") == set()
+
+
 @pytest.mark.parametrize("service", ["fusion", "timesync", "world", "gnss_emulator"])
 def test_services_without_a_can_bus_start_without_python_can(service: str) -> None:
     loaded = loaded_by(service)
@@ -90,6 +96,39 @@ def test_a_service_starts_no_blas_threads_unless_asked(setting: str | None, thre
     out = subprocess.run([sys.executable, "-c", _THREADS], cwd=REPO, env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     assert int(out.stdout.split()[-1]) == threads  # the main thread, and OpenBLAS's beyond it
+
+
+_RERUN_TIMESYNC = """
+import json, sys
+from hil.cli import main
+rc = main(["rerun", "--core", "timesync", "--verify", sys.argv[1]])
+print(json.dumps([rc, sorted(m for m in sys.modules if m.split(".")[0] in ("numpy", "foxglove"))]))
+"""
+
+
+def test_the_time_sync_rerun_does_not_import_numpy_or_the_foxglove_sdk() -> None:
+    # `hil rerun --core timesync`: numpy's import was ~40 % of a 60 s recording's rerun; the
+    # Foxglove SDK came with hil.wellknown, for the prefix of the channels a reader leaves out
+    from tests.replay.helpers import GOLDEN
+
+    out = subprocess.run(
+        [sys.executable, "-c", _RERUN_TIMESYNC, str(GOLDEN)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "VERIFY OK" in out.stdout, out.stdout
+    rc, loaded = json.loads(out.stdout.splitlines()[-1])
+    assert rc == 0 and loaded == [], (rc, loaded)
+
+
+def test_the_readers_copy_of_the_derived_channels_prefix_is_wellknowns() -> None:
+    from hil.record.mcapio import DERIVED_PREFIX
+    from hil.wellknown import PREFIX
+
+    assert DERIVED_PREFIX == PREFIX
 
 
 _READER = """

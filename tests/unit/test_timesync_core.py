@@ -13,7 +13,7 @@ import pytest
 
 from hil.bench.timesync import GNSS_BASE, IMU_BASE, gnss_case, imu_case, restamp_errors, run_stream
 from hil.sensors.clock import ClockStep
-from hil.timesync.core import SyncConfig, TimeSyncCore, lower_hull
+from hil.timesync.core import ArrivalHull, SyncConfig, TimeSyncCore, lower_hull
 from hil.timesync.sample_index import ImuSampleIndexer
 
 D = 30.0
@@ -122,6 +122,78 @@ def test_with_tags_a_real_step_is_confirmed_by_the_next_tag(step_ns: int) -> Non
 def test_lower_hull() -> None:
     pts = [(0, 5), (1, 1), (2, 3), (3, 0), (4, 4)]
     assert lower_hull(pts) == [(0, 5), (1, 1), (3, 0), (4, 4)]
+
+
+class _WholeRefit(ArrivalHull):
+    """The arrival hull as it was before the sliding hull: every refit sorts the whole window."""
+
+    def _fit(self) -> None:
+        self._fit_all()
+
+
+class _Counted(ArrivalHull):
+    """The arrival hull, counting its refits and those that took the whole window."""
+
+    fits: int = 0
+    whole: int = 0
+
+    def _fit(self) -> None:
+        self.fits += 1
+        super()._fit()
+
+    def _fit_all(self) -> None:
+        self.whole += 1
+        super()._fit_all()
+
+
+def _feed_both(hull: _Counted, ref: _WholeRefit, points: list[tuple[int, int]]) -> None:
+    """The same points to both; their lines must be equal after every point."""
+    for x, y in points:
+        hull.add(x, y)
+        ref.add(x, y)
+        assert hull.line() == ref.line(), (x, y)
+        if not hull._unordered:  # the sliding chains hold every vertex of the window's hull
+            window = sorted(hull.blocks)
+            assert set(lower_hull(window)) <= set(hull._sliding.vertices()) <= set(window)
+
+
+_HULL_CFG = SyncConfig(hull_window_ns=3_000_000_000, hull_block_ns=50_000_000, min_span_ns=1_000_000_000)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_sliding_arrival_hull_fits_what_a_whole_window_refit_fits(seed: int) -> None:
+    # a drifting clock, exponential delays with rare long stalls, a few silent stretches: the
+    # window slides over ~45 s of blocks, and every line equals the refit of the whole window
+    rng = np.random.default_rng(seed)
+    points, x = [], 1_000_000_000
+    for _ in range(8_000):
+        x += int(rng.integers(2_000_000, 8_000_000)) + (400_000_000 if rng.random() < 0.002 else 0)
+        delay = int(rng.exponential(300_000)) + (20_000_000 if rng.random() < 0.01 else 0)
+        points.append((x, 5_000_000 + int(x * 30e-6) + delay))
+    hull, ref = _Counted(_HULL_CFG), _WholeRefit(_HULL_CFG)
+    _feed_both(hull, ref, points)
+    assert not hull._unordered
+    assert hull.fits > 800 and hull.whole < hull.fits / 10  # the sliding hull did the refits
+
+
+def test_the_arrival_hull_falls_back_to_a_whole_refit_when_device_time_goes_back() -> None:
+    # device time jumps back 1.5 s (a step not yet declared): blocks come out of x order, the
+    # sliding hull no longer applies and every refit is the sorted window's, until a reset
+    rng = np.random.default_rng(7)
+    xs = [1_000_000_000 + 5_000_000 * i for i in range(1200)]
+    xs = xs[:600] + [x - 1_500_000_000 for x in xs[600:]]
+    points = [(x, 2_000_000 + int(rng.exponential(200_000))) for x in xs]
+    hull, ref = _Counted(_HULL_CFG), _WholeRefit(_HULL_CFG)
+    _feed_both(hull, ref, points)
+    assert hull._unordered
+    fits, whole = hull.fits, hull.whole
+    _feed_both(hull, ref, [(x + 10**10, y) for x, y in points[600:]])  # later, still unordered
+    assert hull.fits - fits == hull.whole - whole > 0
+    hull.reset(0.0)  # the step declared: in order again, the sliding hull is back
+    ref.reset(0.0)
+    fits, whole = hull.fits, hull.whole
+    _feed_both(hull, ref, [(x + 2 * 10**10, y) for x, y in points[:600]])
+    assert not hull._unordered and hull.whole - whole < (hull.fits - fits) / 2
 
 
 def test_sample_index_follows_sample_count_and_shows_loss_as_a_gap() -> None:
