@@ -62,7 +62,8 @@ def direct(runs: list[RunSpec]) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="hil-bench-campaign-") as tmp:
         for run in runs:
             t0 = time.perf_counter()
-            warnings = sim_recording(run, Path(tmp) / "run.mcap", Path(tmp))
+            # as a task does: only what the statistics read is recorded
+            warnings = sim_recording(run, Path(tmp) / "run.mcap", Path(tmp), everything=False)
             t1 = time.perf_counter()
             rows = sim_statistics(run, Path(tmp) / "run.mcap", warnings)
             t2 = time.perf_counter()
@@ -157,7 +158,8 @@ def _markdown(a: argparse.Namespace, d: dict[str, Any], rows: list[dict[str, Any
         "",
         "| how | wall s: best (median) | runs/min | vs 1 worker | CPU s per run | start-up s | runs ok |",
         "| --- | --- | --- | --- | --- | --- | --- |",
-        f"| directly: run_sim only (hil sim) | {d['sim_s']:.1f} ({d['median_sim_s']:.1f}) "
+        "| directly: run_sim only (what the statistics read recorded, as a task) "
+        f"| {d['sim_s']:.1f} ({d['median_sim_s']:.1f}) "
         f"| {60 * n / d['sim_s']:.1f} | – | – | – | {n}/{n} |",
         f"| directly: run_sim + statistics | {d['wall_s']:.1f} ({d['median_wall_s']:.1f}) "
         f"| {60 * n / d['wall_s']:.1f} | – | {d['median_cpu_s'] / n:.2f} | – | {n}/{n} |",

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from hil.campaign.execute import FAILED, OK, execute_run
+from hil.campaign.execute import FAILED, OK, execute_run, sim_recording
 from hil.campaign.runs import RERUN, RunSpec, derive_runs
 from hil.campaign.spec import spec_from_dict
 from hil.record.info import estimator_errors
@@ -57,13 +57,25 @@ def test_statistics_are_hil_infos(kept: tuple[Path, list[dict[str, Any]]]) -> No
 
 
 def test_same_run_same_rows(sim_run: RunSpec, kept: tuple[Path, list[dict[str, Any]]]) -> None:
-    """Deterministic from its spec: the temporary recording is deleted, the figures repeat."""
+    """Deterministic from its spec: the temporary recording (only what the statistics read) is
+    deleted, the figures are the kept complete recording's."""
     again = execute_run(sim_run)
     strip = ("wall_s", "cpu_s", "worker", "finished_utc", "recording")
     assert [{k: v for k, v in r.items() if k not in strip} for r in again] == [
         {k: v for k, v in r.items() if k not in strip} for r in kept[1]
     ]
     assert all(r["recording"] == "" for r in again)
+
+
+def test_a_temporary_recording_holds_what_the_statistics_read_a_kept_one_everything(
+    sim_run: RunSpec, kept: tuple[Path, list[dict[str, Any]]], tmp_path: Path
+) -> None:
+    small = tmp_path / "small.mcap"
+    sim_recording(sim_run, small, tmp_path, everything=False)
+    topics = {r.topic for r in read_session(small).records}
+    assert topics == {"hil/sim/run", "hil/sim/truth"} | {f"hil/sim/nav/{e}" for e in ("compvs", "ekf15", "ins")}
+    full = {r.topic for r in read_session(kept[0]).records}
+    assert topics < full and {"hil/sim/sensor/imu", "hil/sim/synced/gnss"} <= full
 
 
 def test_a_failing_run_is_a_result(sim_run: RunSpec) -> None:
