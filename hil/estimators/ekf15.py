@@ -101,12 +101,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import replace
 
 import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
-from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
+from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
 from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
@@ -325,7 +324,7 @@ class Ekf15(Estimator):
         if self._pending_n == 0:
             return
         dt = self._pending_dt
-        c_nb = quat_to_dcm(self.ins.q_nb)
+        c_nb = self.ins.c_nb()
         f_n = mv(c_nb, self._pending_dv_b / dt)
         self._sf_sum = self._sf_sum + f_n[:2] * dt
         f = error_dynamics(c_nb, f_n, self.ins.lat_rad)
@@ -380,7 +379,7 @@ class Ekf15(Estimator):
         """Orthonormal columns spanning the heading part of the error state: yaw, the gyro bias
         about the vertical (body axes) and, with calibration states, the gyro error matrix's
         rows weighted by that axis (the rate error about the vertical)."""
-        u = quat_to_dcm(self.ins.q_nb)[2, :]  # NED down in body axes: C_nb' e_D
+        u = self.ins.c_nb()[2, :]  # NED down in body axes: C_nb' e_D
         z = np.zeros((self.n, 5 if self._cal else 2))
         z[8, 0] = 1.0
         z[12:15, 1] = u
@@ -425,7 +424,7 @@ class Ekf15(Estimator):
             return
         delta = math.atan2(float(a[0] * b[1] - a[1] * b[0]), float(a[0] * b[0] + a[1] * b[1]))
         q_d = np.array([math.cos(0.5 * delta), 0.0, 0.0, math.sin(0.5 * delta)])
-        self.ins = replace(self.ins, q_nb=quat_normalise(quat_multiply(q_d, self.ins.q_nb)))
+        self.ins = self.ins.replace(q_nb=quat_normalise(quat_multiply(q_d, self.ins.q_nb)))
         self.p[8, :] = 0.0
         self.p[:, 8] = 0.0
         self.p[8, 8] = var
@@ -492,7 +491,7 @@ class Ekf15(Estimator):
         h_vel = np.zeros((3, self.n))
         h_vel[:, 3:6] = np.eye(3)
         if self._lever is not None:  # the fix is of the antenna: p + Ĉ l, v + Ĉ (ω̂ × l)
-            c_nb = quat_to_dcm(self.ins.q_nb)
+            c_nb = self.ins.c_nb()
             arm_n = mv(c_nb, self._lever)
             arm_rate_n = mv(c_nb, cross(self._w_b, self._lever))
             pos_tov = pos_tov + arm_n
@@ -520,7 +519,7 @@ class Ekf15(Estimator):
         vel = s.vel_ned_mps - dx[3:6]
         # C_true = (I + [φ×]) C_est: rotate the NED side by +φ
         q = quat_normalise(quat_multiply(quat_from_rotvec(dx[6:9]), s.q_nb))
-        self.ins = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
+        self.ins = s.replace(lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
         self.b_a = self.b_a + dx[9:12]
         self.b_g = self.b_g + dx[12:15]
         if self._cal:

@@ -42,14 +42,13 @@ INS is compared at the antenna, as ekf15 is. Pure numerics (hil.nav.portable), n
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuInput, InitialState
 from hil.estimators.ekf15 import skew
-from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
+from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
 from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step, to_nav_state
@@ -193,7 +192,7 @@ class ClosedLoopIns:
     def _predict(self) -> None:
         if self._pending_n == 0:
             return
-        c_nb = quat_to_dcm(self.state.q_nb)
+        c_nb = self.state.c_nb()
         f_n = mv(c_nb, self._pending_dv_b / self._pending_dt)
         self.corrector.predict(c_nb, f_n, self.state.lat_rad, self._pending_dt)
         self._pending_dv_b = np.zeros(3)
@@ -212,7 +211,7 @@ class ClosedLoopIns:
         pos = nav.pos_ned_m + nav.vel_ned_mps * ((gnss.stamp_ns - self.stamp_ns) * 1e-9)
         vel = nav.vel_ned_mps
         if self._lever is not None:
-            c_nb = quat_to_dcm(self.state.q_nb)
+            c_nb = self.state.c_nb()
             pos = pos + mv(c_nb, self._lever)
             vel = vel + mv(c_nb, cross(self._w_b, self._lever))
         return pos - gnss.pos_ned_m, vel - gnss.vel_ned_mps
@@ -226,7 +225,7 @@ class ClosedLoopIns:
         s = self.state
         # C_true = (I + [φ×]) C_est: rotate the NED side by +φ (ekf15's convention)
         q = quat_normalise(quat_multiply(quat_from_rotvec(dx[0:3]), s.q_nb))
-        self.state = replace(s, q_nb=q)
+        self.state = s.replace(q_nb=q)
         self.b_g = self.b_g + dx[3:6]
         self.b_a = self.b_a + dx[6:9]
         self._dirty = True
@@ -238,7 +237,7 @@ class ClosedLoopIns:
         lat = s.lat_rad - dp[0] / (float(r_m) + s.alt_m)
         lon = s.lon_rad - dp[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
         alt = s.alt_m + dp[2]  # δp_D = −δh
-        self.state = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=s.vel_ned_mps - dv)
+        self.state = s.replace(lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=s.vel_ned_mps - dv)
         self.corrector.dv = self.corrector.dv - dv
         self._dirty = True
 

@@ -451,7 +451,7 @@ class FusionCore:
         motion = pred.motion()
         ins_nav = self._ins_nav
         if ins_nav is None:  # no IMU step on the horizon yet: the initial state
-            ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+            ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
         out: list[NavSolution] = []
         try:
             out.append(self._solution(FREE_INS, pred.predict(ins_nav, motion), msg.stamp_ns, msg.seq))
@@ -588,11 +588,15 @@ class FusionCore:
         if self.predictor is not None:
             self.predictor.horizon_at(msg.stamp_ns)
         dt_s = msg.dt_ns * 1e-9
-        dtheta = np.asarray(msg.dtheta_b_rad, dtype=np.float64)
-        dvel = np.asarray(msg.dvel_b_mps, dtype=np.float64)
-        self._ins = self._sd.strapdown_step(self._ins, dtheta, dvel, dt_s)
+        d, v = msg.dtheta_b_rad, msg.dvel_b_mps
+        dtheta = np.asarray(d, dtype=np.float64)
+        dvel = np.asarray(v, dtype=np.float64)
+        self._ins = self._sd.strapdown_step_f(
+            self._ins, float(d[0]), float(d[1]), float(d[2]), float(v[0]), float(v[1]), float(v[2]), dt_s
+        )
         self._last_imu_ns = msg.stamp_ns
-        ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        # built lazily: most estimators read the free INS at a fix or an output only
+        ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
         imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
         for est in self.estimators:
             if est.name in self._failed:
@@ -628,7 +632,9 @@ class FusionCore:
         if msg.sensor == "gnss" and self.gate is not None and handlers:
             data, allowed = self._gate(data, [n for n, _ in handlers], msg, source)
         if handlers:
-            ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+            ins_nav = self._ins_nav
+            if ins_nav is None:  # no IMU step yet: the initial state
+                ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
             for name, handle in handlers:
                 if name in self._failed or not allowed.get(name, True):
                     continue
