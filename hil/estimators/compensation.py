@@ -73,8 +73,9 @@ from hil.estimators.lti import (
     complementary2,
     complementary3,
     forcing3,
+    stacked_step,
 )
-from hil.nav.portable import dot, mm, mv, norm, solve
+from hil.nav.portable import dot, mv, norm, solve
 from hil.nav.types import F64, NavState
 
 #: The variable-structure table of seed 000: (time since (re)start of fusion in s, F(p)).
@@ -133,7 +134,7 @@ class CompensationCore:
         self.innovation_tau_s = innovation_tau_s
         # the coast: the loop driven by its held mean innovation ē, u = y + ē: ẋ = (A + B C) x + B ē
         self._coast_caches = tuple(
-            ZohCache(StateSpace(st.ss.a + np.outer(st.ss.b, st.ss.c), st.ss.b, st.ss.c, 0.0))
+            ZohCache(StateSpace(st.ss.a + np.outer(st.ss.b, st.ss.c), st.ss.b, st.ss.c, 0.0), ramp=False)
             for st in self.stages
         )
         self._ramp_states = tuple(_ramp_state_terms(st.ss) for st in self.stages)
@@ -161,18 +162,15 @@ class CompensationCore:
         if self.coasting:
             self._coast_step(h_ns)
             return
-        phi, gamma0, gamma1 = self._caches[self.stage].get(h_ns)
-        # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ)
-        # column × row by broadcasting: what np.outer computes, without its per-call overhead
-        # (this runs per channel set at IMU rate)
-        self.x = mm(phi, self.x) + gamma0[:, None] * self.u[None, :] + gamma1[:, None] * self.slope[None, :]
+        # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ), as one product
+        # [Φ | Γ0 | Γ1] [x; u; s] (this runs per channel set at IMU rate)
+        self.x = stacked_step(self._caches[self.stage].stacked(h_ns), self.x, self.u, self.slope)
         self.u = self.u + self.slope * (h_ns * 1e-9)
 
     def _coast_step(self, h_ns: int) -> None:
         """``x+ = Φc(h) x + Γc(h) ē`` (h < 0 steps back exactly). The held ramp ``u, s`` stays as
         it was when the coast began: a strictly proper filter's output does not read it."""
-        phi, gamma0, _ = self._coast_caches[self.stage].get(h_ns)
-        self.x = mm(phi, self.x) + gamma0[:, None] * self.innovation_mean[None, :]
+        self.x = stacked_step(self._coast_caches[self.stage].stacked(h_ns), self.x, self.innovation_mean)
 
     def _next_boundary_ns(self) -> int | None:
         if self.t_start_ns is None or self.stage + 1 >= len(self.stages):

@@ -73,9 +73,7 @@ def _rot_t(qw: float, qx: float, qy: float, qz: float, x: float, y: float, z: fl
     return _rot(qw, -qx, -qy, -qz, x, y, z)
 
 
-def without_bias(
-    dt: float, dq: Quat, dv: Vec3, dp: Vec3, bias: tuple[F64, F64]
-) -> tuple[Quat, Vec3, Vec3]:
+def without_bias(dt: float, dq: Quat, dv: Vec3, dp: Vec3, bias: tuple[F64, F64]) -> tuple[Quat, Vec3, Vec3]:
     """The motion as the IMU without its biases ``b_g``, ``b_a`` would have measured it: to
     first order in the bias and in the rotation over the window (the pre-integration's bias
     Jacobians with the body axes held, as the window turns a few degrees at most)::
