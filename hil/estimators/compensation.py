@@ -189,6 +189,14 @@ class CompensationCore:
         if self.t_ns is None:
             self.t_ns = t_ns
             return
+        if t_ns <= self.t_ns:
+            return
+        boundary = self._next_boundary_ns()
+        coast = self._coast_start_ns()
+        if (boundary is None or boundary > t_ns) and (coast is None or coast > t_ns):
+            self._step(t_ns - self.t_ns)  # the IMU-rate case: neither a switch nor a coast falls due
+            self.t_ns = t_ns
+            return
         while t_ns > self.t_ns:
             boundary = self._next_boundary_ns()
             coast = self._coast_start_ns()

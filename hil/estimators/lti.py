@@ -187,7 +187,7 @@ def stacked_step(m: F64, x: F64, *rows: F64) -> F64:
     separate expression adds them (Φ x first, then Γ0 u, then Γ1 s); held to that on random
     matrices of the filters' orders in tests/unit/test_lti_stacked.py.
     """
-    return _einsum("ij,jk->ik", m, np.concatenate((x, *(r[None, :] for r in rows))))  # type: ignore[no-any-return]
+    return _einsum("ij,jk->ik", m, np.concatenate((x, *[r[None, :] for r in rows])))  # type: ignore[no-any-return]
 
 
 def aperiodic(order: int, t_s: float) -> TransferFunction:

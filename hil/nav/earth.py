@@ -247,16 +247,24 @@ def ned_to_lla(
     """Inverse of :func:`lla_to_ned`."""
     ned = np.asarray(pos_ned_m, dtype=float)
     if ned.shape == (3,):  # one point: the array path's operations on floats (``_SCALARS``)
-        (o0, o1, o2), c = _origin_floats(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
-        n, e, d = float(ned[0]), float(ned[1]), float(ned[2])
-        x = c[0][0] * n + c[1][0] * e + c[2][0] * d + o0
-        y = c[0][1] * n + c[1][1] * e + c[2][1] * d + o1
-        z = c[0][2] * n + c[1][2] * e + c[2][2] * d + o2
-        lat, lon, h = _ecef_to_lla_one(x, y, z)
+        lat, lon, h = ned_to_lla_one(
+            float(ned[0]), float(ned[1]), float(ned[2]), origin_lat_rad, origin_lon_rad, origin_alt_m
+        )
         return np.asarray(lat), np.asarray(lon), np.float64(h)
     o_ecef, c_en = _origin_frame(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
     xyz = mat_vec(c_en.T, ned) + o_ecef
     return ecef_to_lla(xyz)
+
+
+def ned_to_lla_one(
+    n: float, e: float, d: float, origin_lat_rad: float, origin_lon_rad: float, origin_alt_m: float
+) -> tuple[float, float, float]:
+    """:func:`ned_to_lla` of one point, in and out as Python floats (the same bits)."""
+    (o0, o1, o2), c = _origin_floats(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
+    x = c[0][0] * n + c[1][0] * e + c[2][0] * d + o0
+    y = c[0][1] * n + c[1][1] * e + c[2][1] * d + o1
+    z = c[0][2] * n + c[1][2] * e + c[2][2] * d + o2
+    return _ecef_to_lla_one(x, y, z)
 
 
 @lru_cache(maxsize=64)

@@ -391,3 +391,8 @@ class LazyNavState(NavState):
     @cached_property
     def q_nb(self) -> F64:  # type: ignore[override]
         return np.array(self._s[6:10])
+
+    def floats(self) -> tuple[list[float], tuple[float, ...], tuple[float, ...]]:
+        """Position, velocity and attitude as Python floats (the values of the arrays)."""
+        s = self._s
+        return self.pos_ned_m.tolist(), s[3:6], s[6:10]
