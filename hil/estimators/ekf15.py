@@ -108,7 +108,7 @@ from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
-from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.strapdown import strapdown_from_initial, strapdown_step_f, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -119,6 +119,26 @@ _YAW_VAR_MAX = math.pi**2 / 3.0  # a heading uniform on the circle: σ = π/√3
 def skew(v: F64) -> F64:
     """``[v×]`` such that ``[v×] w = v × w``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def kron_eye3(w: F64) -> F64:
+    """``np.kron(np.eye(3), w[None, :])`` (3, 9) for a 3-vector ``w``, with kron's very entries
+    (``1·w`` and ``0·w``, a signed zero where ``w`` is negative) without its general machinery."""
+    w = np.asarray(w, dtype=float)
+    z = 0.0 * w
+    return np.concatenate((w, z, z, z, w, z, z, z, w)).reshape(3, 9)
+
+
+def _mv3(m: list[list[float]], x: float, y: float, z: float) -> tuple[float, float, float]:
+    """``mv(m, [x, y, z])`` for a 3 × 3 ``m`` (rows as float lists), in einsum's order for a
+    3-vector: terms 0 and 2, then 1 (its two SIMD lanes), and the sum's zero start (``+ 0.0``
+    makes a −0 +0, as einsum's accumulator does). Held to ``mv`` in tests/unit/test_ekf15_floats.py."""
+    r0, r1, r2 = m
+    return (
+        (r0[0] * x + r0[2] * z) + r0[1] * y + 0.0,
+        (r1[0] * x + r1[2] * z) + r1[1] * y + 0.0,
+        (r2[0] * x + r2[2] * z) + r2[1] * y + 0.0,
+    )
 
 
 def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
@@ -170,7 +190,7 @@ def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    n_w = np.kron(np.eye(3), w_b[None, :])  # (3, 9): E ω = N(ω) e
+    n_w = kron_eye3(w_b)  # (3, 9): E ω = N(ω) e
     out[6:9, n : n + 9] = -mm(c_nb, n_w)
     return out
 
@@ -181,7 +201,7 @@ def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    out[3:6, n : n + 9] = mm(c_nb, np.kron(np.eye(3), f_b[None, :]))
+    out[3:6, n : n + 9] = mm(c_nb, kron_eye3(f_b))
     return out
 
 
@@ -278,8 +298,8 @@ class Ekf15(Estimator):
         self.gate_chi2 = gate_chi2
         self.max_rejects = max_rejects
         self._pending_dt = 0.0
-        self._pending_dv_b = np.zeros(3)
-        self._pending_dth_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]  # Σ Δv, Σ Δθ of the block (floats: added at IMU rate)
+        self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
         self._stamp_ns = init.stamp_ns
         self._nav = to_nav_state(self.ins, init)
@@ -301,20 +321,33 @@ class Ekf15(Estimator):
 
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
+        # Python floats, elementwise as the arrays did it (3-vectors: numpy's per-call cost is
+        # most of the work); Ê Δθ in einsum's order for a 3-vector (``_mv3``)
         dt = imu.dt_s
-        dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
+        bgx, bgy, bgz = self.b_g.tolist()
+        bax, bay, baz = self.b_a.tolist()
+        d, v = imu.dtheta_b_rad, imu.dvel_b_mps
+        tx, ty, tz = float(d[0]) - bgx * dt, float(d[1]) - bgy * dt, float(d[2]) - bgz * dt
         if self._cal:
-            dth = dth - mv(self.e_hat, dth)
-        dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
+            ex, ey, ez = _mv3(self.e_hat.tolist(), tx, ty, tz)
+            tx, ty, tz = tx - ex, ty - ey, tz - ez
+        ux, uy, uz = float(v[0]) - bax * dt, float(v[1]) - bay * dt, float(v[2]) - baz * dt
         if self._acal:
-            dv = dv - mv(self.ea_hat, dv)
-        self.ins = strapdown_step(self.ins, dth, dv, dt)
+            ex, ey, ez = _mv3(self.ea_hat.tolist(), ux, uy, uz)
+            ux, uy, uz = ux - ex, uy - ey, uz - ez
+        self.ins = strapdown_step_f(self.ins, tx, ty, tz, ux, uy, uz, dt)
         self._pending_dt += dt
-        self._pending_dv_b += dv
+        pv = self._pending_dv_b
+        pv[0] += ux
+        pv[1] += uy
+        pv[2] += uz
         self._pending_n += 1
         if self._cal or self._lever is not None:  # only these need the body rate
-            self._pending_dth_b += dth
-            self._w_b = dth / dt
+            pt = self._pending_dth_b
+            pt[0] += tx
+            pt[1] += ty
+            pt[2] += tz
+            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
         self._stamp_ns = imu.stamp_ns
         self._nav_dirty = True
         if self._pending_n >= self.cov_every:
@@ -325,13 +358,14 @@ class Ekf15(Estimator):
             return
         dt = self._pending_dt
         c_nb = self.ins.c_nb()
-        f_n = mv(c_nb, self._pending_dv_b / dt)
+        dv_b, dth_b = np.array(self._pending_dv_b), np.array(self._pending_dth_b)
+        f_n = mv(c_nb, dv_b / dt)
         self._sf_sum = self._sf_sum + f_n[:2] * dt
         f = error_dynamics(c_nb, f_n, self.ins.lat_rad)
         if self._cal:
-            f = gyro_cal_augmented(f, c_nb, self._pending_dth_b / dt)
+            f = gyro_cal_augmented(f, c_nb, dth_b / dt)
         if self._acal:
-            f = accel_cal_augmented(f, c_nb, self._pending_dv_b / dt)
+            f = accel_cal_augmented(f, c_nb, dv_b / dt)
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
@@ -345,8 +379,8 @@ class Ekf15(Estimator):
             self.p[8, :] *= c
             self.p[:, 8] *= c
         self._pending_dt = 0.0
-        self._pending_dv_b = np.zeros(3)
-        self._pending_dth_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]
+        self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
 
     def _predict(self, phi: F64, qd: F64) -> None:
@@ -500,7 +534,7 @@ class Ekf15(Estimator):
             h_vel[:, 6:9] = skew(arm_rate_n)
             h_vel[:, 12:15] = -mm(c_nb, skew(self._lever))  # ω̂ = ω + δb_g (+ N(ω) δe)
             if self._cal:
-                h_vel[:, 15:24] = mm(h_vel[:, 12:15], np.kron(np.eye(3), self._w_b[None, :]))
+                h_vel[:, 15:24] = mm(h_vel[:, 12:15], kron_eye3(self._w_b))
         if self._slow_w:  # z = truth + s + w: predicted z = INS + ŝ, so y = δp + δs − w
             i = self._i_slow
             h_pos[:, i : i + 3] = np.eye(3)
