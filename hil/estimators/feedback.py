@@ -51,7 +51,7 @@ from hil.estimators.ekf15 import skew
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step_f, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -167,7 +167,7 @@ class ClosedLoopIns:
         self._lever: F64 | None = lever if np.any(lever) else None
         self._w_b = np.zeros(3)  # corrected body rate of the last step (the arm's velocity)
         self.cov_every = int(cov_every)
-        self._pending_dv_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]  # Σ Δv of the block (floats: added at IMU rate)
         self._pending_dt = 0.0
         self._pending_n = 0
         self.stamp_ns = init.stamp_ns
@@ -175,13 +175,21 @@ class ClosedLoopIns:
         self._dirty = False
 
     def propagate(self, imu: ImuInput) -> None:
+        # Python floats, elementwise as the arrays did it (numpy's per-call cost on 3-vectors
+        # was most of this step's)
         dt = imu.dt_s
-        dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
-        dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
-        self.state = strapdown_step(self.state, dth, dv, dt)
+        bgx, bgy, bgz = self.b_g.tolist()
+        bax, bay, baz = self.b_a.tolist()
+        d, v = imu.dtheta_b_rad, imu.dvel_b_mps
+        tx, ty, tz = float(d[0]) - bgx * dt, float(d[1]) - bgy * dt, float(d[2]) - bgz * dt
+        ux, uy, uz = float(v[0]) - bax * dt, float(v[1]) - bay * dt, float(v[2]) - baz * dt
+        self.state = strapdown_step_f(self.state, tx, ty, tz, ux, uy, uz, dt)
         if self._lever is not None:
-            self._w_b = dth / dt
-        self._pending_dv_b += dv
+            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
+        pv = self._pending_dv_b
+        pv[0] += ux
+        pv[1] += uy
+        pv[2] += uz
         self._pending_dt += dt
         self._pending_n += 1
         if self._pending_n >= self.cov_every:
@@ -193,9 +201,9 @@ class ClosedLoopIns:
         if self._pending_n == 0:
             return
         c_nb = self.state.c_nb()
-        f_n = mv(c_nb, self._pending_dv_b / self._pending_dt)
+        f_n = mv(c_nb, np.array(self._pending_dv_b) / self._pending_dt)
         self.corrector.predict(c_nb, f_n, self.state.lat_rad, self._pending_dt)
-        self._pending_dv_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dt = 0.0
         self._pending_n = 0
 
