@@ -189,6 +189,16 @@ def _radii(lat: float) -> tuple[float, float]:
     return A_M * (1.0 - E2) / (w * sw), A_M / sw
 
 
+# constant subexpressions of _radii and _gravity, as Python evaluates them there (left to right)
+_AM_1ME2 = A_M * (1.0 - E2)
+_G_2A = 2.0 / A_M
+_G_1 = 1.0 + F + _M_RATIO
+_G_2F = 2.0 * F
+_AA = A_M * A_M
+_2W = 2.0 * OMEGA_IE_RADPS
+_M2W = -2.0 * OMEGA_IE_RADPS
+
+
 def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
     a2 = x * x + y * y + z * z
     if a2 < 1e-16:
@@ -224,21 +234,41 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     # first-order prediction to mid-interval with the full g and Coriolis/centripetal terms:
     # cheaper shortcuts here (constant g, no v²/R) leave a ~1e-9 m/s² vertical bias that the
     # unstable vertical channel grows to centimetres in an hour
-    r_m0, r_n0 = _radii(lat)
-    o_n = 2.0 * OMEGA_IE_RADPS * math.cos(lat) + ve / (r_n0 + h)
-    o_e = -vn / (r_m0 + h)
-    o_d = -2.0 * OMEGA_IE_RADPS * math.sin(lat) - ve * math.tan(lat) / (r_n0 + h)
+    # (_radii and _gravity written out, sharing sin L and √(1 − e² sin²L): the same operations)
+    s0 = math.sin(lat)
+    s2 = s0**2
+    w = 1.0 - E2 * s2
+    sw = math.sqrt(w)
+    rmh0, rnh0 = _AM_1ME2 / (w * sw) + h, A_M / sw + h
+    g_0 = (
+        GAMMA_E_MPS2
+        * (1.0 + _K_SOMIGLIANA * s2)
+        / sw
+        * (1.0 - _G_2A * (_G_1 - _G_2F * s2) * h + 3.0 * h * h / _AA)
+    )
+    o_n = _2W * math.cos(lat) + ve / rnh0
+    o_e = -vn / rmh0
+    o_d = _M2W * s0 - ve * math.tan(lat) / rnh0
     vn_m = vn + 0.5 * (fn - (o_e * vd - o_d * ve) * dt)
     ve_m = ve + 0.5 * (fe - (o_d * vn - o_n * vd) * dt)
-    vd_m = vd + 0.5 * (fd + (_gravity(lat, h) - (o_n * ve - o_e * vn)) * dt)
-    lat_m = lat + 0.5 * dt * vn_m / (r_m0 + h)
-    h_m = h - 0.5 * dt * vd_m
+    vd_m = vd + 0.5 * (fd + (g_0 - (o_n * ve - o_e * vn)) * dt)
+    hdt = 0.5 * dt
+    lat_m = lat + hdt * vn_m / rmh0
+    h_m = h - hdt * vd_m
 
     # mid-interval Earth quantities: radii, gravity, ω_ie, ω_en
-    r_m, r_n = _radii(lat_m)
     sl, cl = math.sin(lat_m), math.cos(lat_m)
+    s2 = sl**2
+    w = 1.0 - E2 * s2
+    sw = math.sqrt(w)
+    r_m, r_n = _AM_1ME2 / (w * sw), A_M / sw
     tl = sl / cl
-    g = _gravity(lat_m, h_m)
+    g = (
+        GAMMA_E_MPS2
+        * (1.0 + _K_SOMIGLIANA * s2)
+        / sw
+        * (1.0 - _G_2A * (_G_1 - _G_2F * s2) * h_m + 3.0 * h_m * h_m / _AA)
+    )
     rmh, rnh = r_m + h_m, r_n + h_m
     wie_n, wie_d = OMEGA_IE_RADPS * cl, -OMEGA_IE_RADPS * sl
     wen_n, wen_e, wen_d = ve_m / rnh, -vn_m / rmh, -ve_m * tl / rnh
