@@ -68,11 +68,11 @@ from hil.estimators.feedback import ClosedLoopIns
 from hil.estimators.lti import (
     StateSpace,
     TransferFunction,
-    ZohCache,
     aperiodic,
     complementary2,
     complementary3,
     forcing3,
+    shared_zoh_cache,
     stacked_step,
 )
 from hil.nav.portable import dot, mv, norm, solve
@@ -122,7 +122,7 @@ class CompensationCore:
         if not schedule or schedule[0][0] != 0.0:
             raise ValueError(f"schedule must start at 0 s, got {[s for s, _ in schedule]}")
         self.stages = tuple(Stage(s, tf, StateSpace.from_tf(tf)) for s, tf in schedule)
-        self._caches = tuple(ZohCache(st.ss) for st in self.stages)
+        self._caches = tuple(shared_zoh_cache(st.ss) for st in self.stages)
         if coast_after is not None and (
             not coast_after > 1.0 or not innovation_tau_s > 0.0 or any(st.ss.d != 0.0 for st in self.stages)
         ):
@@ -133,10 +133,8 @@ class CompensationCore:
         self.coast_after = coast_after
         self.innovation_tau_s = innovation_tau_s
         # the coast: the loop driven by its held mean innovation ē, u = y + ē: ẋ = (A + B C) x + B ē
-        self._coast_caches = tuple(
-            ZohCache(StateSpace(st.ss.a + np.outer(st.ss.b, st.ss.c), st.ss.b, st.ss.c, 0.0), ramp=False)
-            for st in self.stages
-        )
+        coast_ss = [StateSpace(s.ss.a + np.outer(s.ss.b, s.ss.c), s.ss.b, s.ss.c, 0.0) for s in self.stages]
+        self._coast_caches = tuple(shared_zoh_cache(ss, ramp=False) for ss in coast_ss)
         self._ramp_states = tuple(_ramp_state_terms(st.ss) for st in self.stages)
         self._start_offsets_ns = tuple(round(st.start_s * 1e9) for st in self.stages)
         self.restart_after_ns = None if restart_after_s is None else round(restart_after_s * 1e9)

@@ -179,6 +179,22 @@ class ZohCache:
         return hit
 
 
+_SHARED: dict[tuple[bytes, bytes, tuple[int, ...], bool], ZohCache] = {}
+
+
+def shared_zoh_cache(ss: StateSpace, ramp: bool = True) -> ZohCache:
+    """The process's one :class:`ZohCache` of the filter ``ss``: estimators running the same
+    filter (comp3f and compvs's last stage, say) compute each step's ``e^{A h}`` once. Its
+    entries are a function of ``(A, B, h)`` alone, so sharing changes no bit."""
+    key = (ss.a.tobytes(), ss.b.tobytes(), ss.a.shape, ramp)
+    cache = _SHARED.get(key)
+    if cache is None:
+        if len(_SHARED) >= 64:  # filters built with ever new parameters (tests, sweeps)
+            _SHARED.pop(next(iter(_SHARED)))
+        cache = _SHARED[key] = ZohCache(ss, ramp=ramp)
+    return cache
+
+
 def stacked_step(m: F64, x: F64, *rows: F64) -> F64:
     """``M [x; r1; r2; …]``: ``Φ x + Γ0 u + Γ1 s`` for ``M = [Φ | Γ0 | Γ1]`` and rows ``u, s``
     (one per channel), as one product instead of a product and two outer products.
