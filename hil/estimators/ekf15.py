@@ -121,6 +121,13 @@ def skew(v: F64) -> F64:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+_EYE15 = np.eye(15)
+_EYE15.flags.writeable = False
+_F15 = np.zeros((15, 15))
+_F15[0:3, 3:6] = np.eye(3)
+_F15.flags.writeable = False
+
+
 def kron_eye3(w: F64) -> F64:
     """``np.kron(np.eye(3), w[None, :])`` (3, 9) for a 3-vector ``w``, with kron's very entries
     (``1·w`` and ``0·w``, a signed zero where ``w`` is negative) without its general machinery."""
@@ -157,12 +164,13 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
     """The 15 × 15 ``F`` of the error state (module docstring), at attitude ``c_nb``, specific
     force ``f_n`` (NED) and latitude ``lat_rad``. A plain function so a peer filter (the ekf
     bench's filterpy run) can be stepped with exactly the model this filter uses."""
-    w_ie = np.array([OMEGA_IE_RADPS * math.cos(lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(lat_rad)])
-    f = np.zeros((15, 15))
-    f[0:3, 3:6] = np.eye(3)  # δṗ = δv
-    f[3:6, 6:9] = skew(f_n)  # δv̇ = [f_n×] φ + C δb_a
+    # the blocks written as floats: skew's entries, and the sign flips (signed zeros too) of -skew
+    w0, w2 = OMEGA_IE_RADPS * math.cos(lat_rad), -OMEGA_IE_RADPS * math.sin(lat_rad)  # ω_ie, w1 = 0
+    f0, f1, f2 = np.asarray(f_n, dtype=float).tolist()
+    f = _F15.copy()  # δṗ = δv: the identity block is in the template
+    f[3:6, 6:9] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f_n×] φ + C δb_a
     f[3:6, 9:12] = c_nb
-    f[6:9, 6:9] = -skew(w_ie)  # φ̇ = −[ω_ie×] φ − C δb_g
+    f[6:9, 6:9] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×] φ − C δb_g
     f[6:9, 12:15] = -c_nb
     return f  # δḃ = w_b: the bias rows are zero
 
@@ -170,7 +178,9 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
 def transition(f: F64, dt_s: float) -> F64:
     """``Φ = I + F Δ + (F Δ)²/2``: at Δ = 10 ms the neglected terms are O((FΔ)³) ~ 1e-9."""
     fd = f * dt_s
-    return np.eye(f.shape[0]) + fd + 0.5 * mm(fd, fd)
+    n = f.shape[0]
+    eye = _EYE15 if n == 15 else np.eye(n)
+    return eye + fd + 0.5 * mm(fd, fd)
 
 
 def slow_augmented(f: F64, w_radps: float) -> F64:

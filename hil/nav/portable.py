@@ -118,14 +118,15 @@ def expm(m: F64) -> F64:
     n = m.shape[0]
     out = np.eye(n)
     term = np.eye(n)
+    absolute = np.abs
     for k in range(1, 40):
-        term = mm(term, a) / k
-        if not np.any(np.abs(term) > np.abs(out) * 1e-18):
+        term = _einsum("ij,jk->ik", term, a) / k
+        if not (absolute(term) > absolute(out) * 1e-18).any():  # np.any's wrapper, without it
             break
         out = out + term
     for _ in range(s):
-        out = mm(out, out)
-    return out
+        out = _einsum("ij,jk->ik", out, out)
+    return out  # type: ignore[no-any-return]
 
 
 _ATAN2 = np.frompyfunc(math.atan2, 2, 1)
