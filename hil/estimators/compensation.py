@@ -75,7 +75,7 @@ from hil.estimators.lti import (
     shared_zoh_cache,
     stacked_step,
 )
-from hil.nav.portable import dot, mv, norm, solve
+from hil.nav.portable import c_einsum, dot, mv, norm, solve
 from hil.nav.types import F64, NavState
 
 #: The variable-structure table of seed 000: (time since (re)start of fusion in s, F(p)).
@@ -154,6 +154,7 @@ class CompensationCore:
         self._interval_ns: int | None = None  # the input interval expected (see _coast_start_ns)
         self._coast_from_ns: int | None = None
         self.innovation_mean: F64 = np.zeros(n_channels)  # ē: the innovation u − y, averaged over τ
+        self._bufs: dict[int, F64] = {}
 
     # -- propagation ---------------------------------------------------------------------------
     def _step(self, h_ns: int) -> None:
@@ -161,9 +162,23 @@ class CompensationCore:
             self._coast_step(h_ns)
             return
         # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ), as one product
-        # [Φ | Γ0 | Γ1] [x; u; s] (this runs per channel set at IMU rate)
-        self.x = stacked_step(self._caches[self.stage].stacked(h_ns), self.x, self.u, self.slope)
+        # [Φ | Γ0 | Γ1] [x; u; s] (stacked_step's, this runs per channel set at IMU rate: the
+        # rows are copied into a buffer kept for it, not concatenated anew)
+        x = self.x
+        n = x.shape[0]
+        z = self._stack_buf(n + 2)
+        z[:n] = x
+        z[n] = self.u
+        z[n + 1] = self.slope
+        self.x = c_einsum("ij,jk->ik", self._caches[self.stage].stacked(h_ns), z)
         self.u = self.u + self.slope * (h_ns * 1e-9)
+
+    def _stack_buf(self, rows: int) -> F64:
+        """The ``(rows, n_channels)`` buffer of :meth:`_step`'s stacked operand."""
+        buf = self._bufs.get(rows)
+        if buf is None:
+            buf = self._bufs[rows] = np.empty((rows, self.n_channels))
+        return buf
 
     def _coast_step(self, h_ns: int) -> None:
         """``x+ = Φc(h) x + Γc(h) ē`` (h < 0 steps back exactly). The held ramp ``u, s`` stays as

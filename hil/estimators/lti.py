@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hil.nav.portable import _einsum, expm, mv
+from hil.nav.portable import c_einsum, expm, mv
 from hil.nav.types import F64
 
 
@@ -203,7 +203,7 @@ def stacked_step(m: F64, x: F64, *rows: F64) -> F64:
     separate expression adds them (Φ x first, then Γ0 u, then Γ1 s); held to that on random
     matrices of the filters' orders in tests/unit/test_lti_stacked.py.
     """
-    return _einsum("ij,jk->ik", m, np.concatenate((x, *[r[None, :] for r in rows])))  # type: ignore[no-any-return]
+    return c_einsum("ij,jk->ik", m, np.concatenate((x, *[r[None, :] for r in rows])))  # type: ignore[no-any-return]
 
 
 def aperiodic(order: int, t_s: float) -> TransferFunction:

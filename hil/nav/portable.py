@@ -28,30 +28,30 @@ import numpy as np
 from hil.nav.types import F64
 
 try:  # numpy's einsum without its Python wrapper (what np.einsum calls when optimize is off)
-    from numpy._core.multiarray import c_einsum as _einsum
+    from numpy._core.multiarray import c_einsum
 except ImportError:  # pragma: no cover - numpy < 2
-    from numpy.core.multiarray import c_einsum as _einsum
+    from numpy.core.multiarray import c_einsum
 
 
 def mm(a: F64, b: F64) -> F64:
     """``a @ b`` for 2-D ``a``, 2-D ``b``."""
-    return _einsum("ij,jk->ik", a, b)  # type: ignore[no-any-return]
+    return c_einsum("ij,jk->ik", a, b)  # type: ignore[no-any-return]
 
 
 def mmt(a: F64, b: F64) -> F64:
     """``a @ b.T`` without forming the transpose."""
-    return _einsum("ij,kj->ik", a, b)  # type: ignore[no-any-return]
+    return c_einsum("ij,kj->ik", a, b)  # type: ignore[no-any-return]
 
 
 def mv(a: F64, x: F64) -> F64:
     """``a @ x`` for 2-D ``a`` and 1-D ``x`` (a row vector times a matrix, ``x @ a``, is
     ``mv(a.T, x)``)."""
-    return _einsum("ij,j->i", a, x)  # type: ignore[no-any-return]
+    return c_einsum("ij,j->i", a, x)  # type: ignore[no-any-return]
 
 
 def dot(x: F64, y: F64) -> float:
     """``x · y`` for 1-D vectors."""
-    return float(_einsum("i,i->", x, y))
+    return float(c_einsum("i,i->", x, y))
 
 
 def norm(x: F64) -> float:
@@ -120,12 +120,12 @@ def expm(m: F64) -> F64:
     term = np.eye(n)
     absolute = np.abs
     for k in range(1, 40):
-        term = _einsum("ij,jk->ik", term, a) / k
+        term = c_einsum("ij,jk->ik", term, a) / k
         if not (absolute(term) > absolute(out) * 1e-18).any():  # np.any's wrapper, without it
             break
         out = out + term
     for _ in range(s):
-        out = _einsum("ij,jk->ik", out, out)
+        out = c_einsum("ij,jk->ik", out, out)
     return out  # type: ignore[no-any-return]
 
 
