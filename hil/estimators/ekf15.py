@@ -101,6 +101,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -108,7 +109,7 @@ from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
-from hil.nav.strapdown import strapdown_from_initial, strapdown_step_f, to_nav_state
+from hil.nav.strapdown import c_nb_floats, strapdown_from_initial, strapdown_step_f, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -136,7 +137,7 @@ def kron_eye3(w: F64) -> F64:
     return np.concatenate((w, z, z, z, w, z, z, z, w)).reshape(3, 9)
 
 
-def _mv3(m: list[list[float]], x: float, y: float, z: float) -> tuple[float, float, float]:
+def _mv3(m: Sequence[Sequence[float]], x: float, y: float, z: float) -> tuple[float, float, float]:
     """``mv(m, [x, y, z])`` for a 3 × 3 ``m`` (rows as float lists), in einsum's order for a
     3-vector: terms 0 and 2, then 1 (its two SIMD lanes), and the sum's zero start (``+ 0.0``
     makes a −0 +0, as einsum's accumulator does). Held to ``mv`` in tests/unit/test_ekf15_floats.py."""
@@ -367,15 +368,18 @@ class Ekf15(Estimator):
         if self._pending_n == 0:
             return
         dt = self._pending_dt
-        c_nb = self.ins.c_nb()
-        dv_b, dth_b = np.array(self._pending_dv_b), np.array(self._pending_dth_b)
-        f_n = mv(c_nb, dv_b / dt)
-        self._sf_sum = self._sf_sum + f_n[:2] * dt
+        c9 = c_nb_floats(*self.ins.q)
+        c_nb = np.array(c9).reshape(3, 3)
+        pv = self._pending_dv_b
+        fbx, fby, fbz = pv[0] / dt, pv[1] / dt, pv[2] / dt
+        f_n = _mv3((c9[0:3], c9[3:6], c9[6:9]), fbx, fby, fbz)  # mv(C, Σ Δv / Δ), on floats
+        s0, s1 = self._sf_sum.tolist()
+        self._sf_sum = np.array((s0 + f_n[0] * dt, s1 + f_n[1] * dt))
         f = error_dynamics(c_nb, f_n, self.ins.lat_rad)
         if self._cal:
-            f = gyro_cal_augmented(f, c_nb, dth_b / dt)
+            f = gyro_cal_augmented(f, c_nb, np.array(self._pending_dth_b) / dt)
         if self._acal:
-            f = accel_cal_augmented(f, c_nb, dv_b / dt)
+            f = accel_cal_augmented(f, c_nb, np.array((fbx, fby, fbz)))
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
@@ -586,10 +590,8 @@ class Ekf15(Estimator):
 
     def solution(self) -> NavState:
         nav = self._current_nav()
-        d = np.diag(self.p)
-        return NavState(
-            nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, np.sqrt(d[0:3]), np.sqrt(d[3:6]), np.sqrt(d[6:9])
-        )
+        sd = np.sqrt(self.p.diagonal()[0:9])  # one ufunc call for the three σ (elementwise: same bits)
+        return NavState(nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, sd[0:3], sd[3:6], sd[6:9])
 
     def health(self) -> dict[str, float]:
         return {
