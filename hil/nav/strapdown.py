@@ -13,9 +13,10 @@ Mid-interval (k−½) quantities come from a first-order prediction of velocity 
 no older state than k−1 is needed. WGS84 normal gravity, Earth rate and transport rate come from
 :mod:`hil.nav.earth` (the same model the truth generator uses).
 
-The numerics are plain Python floats: one core, :func:`_step`, is shared by
-:func:`strapdown_step` (one interval, for the live services) and :func:`strapdown_run` (a whole
-array, for the offline executor), so both give bit-identical results.
+The numerics are plain Python floats, and so is the state (:class:`StrapdownState`, 16 floats):
+one core, :func:`_step`, is shared by :func:`strapdown_step` (one interval, for the live
+services; :func:`strapdown_step_f` with the increments as floats, the fusion's per-IMU path) and
+:func:`strapdown_run` (a whole array, for the offline executor), so all give bit-identical results.
 """
 
 from __future__ import annotations
