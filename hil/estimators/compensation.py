@@ -68,13 +68,14 @@ from hil.estimators.feedback import ClosedLoopIns
 from hil.estimators.lti import (
     StateSpace,
     TransferFunction,
-    ZohCache,
     aperiodic,
     complementary2,
     complementary3,
     forcing3,
+    shared_zoh_cache,
+    stacked_step,
 )
-from hil.nav.portable import dot, mm, mv, norm, solve
+from hil.nav.portable import c_einsum, dot, mv, norm, solve
 from hil.nav.types import F64, NavState
 
 #: The variable-structure table of seed 000: (time since (re)start of fusion in s, F(p)).
@@ -121,7 +122,7 @@ class CompensationCore:
         if not schedule or schedule[0][0] != 0.0:
             raise ValueError(f"schedule must start at 0 s, got {[s for s, _ in schedule]}")
         self.stages = tuple(Stage(s, tf, StateSpace.from_tf(tf)) for s, tf in schedule)
-        self._caches = tuple(ZohCache(st.ss) for st in self.stages)
+        self._caches = tuple(shared_zoh_cache(st.ss) for st in self.stages)
         if coast_after is not None and (
             not coast_after > 1.0 or not innovation_tau_s > 0.0 or any(st.ss.d != 0.0 for st in self.stages)
         ):
@@ -132,10 +133,8 @@ class CompensationCore:
         self.coast_after = coast_after
         self.innovation_tau_s = innovation_tau_s
         # the coast: the loop driven by its held mean innovation ē, u = y + ē: ẋ = (A + B C) x + B ē
-        self._coast_caches = tuple(
-            ZohCache(StateSpace(st.ss.a + np.outer(st.ss.b, st.ss.c), st.ss.b, st.ss.c, 0.0))
-            for st in self.stages
-        )
+        coast_ss = [StateSpace(s.ss.a + np.outer(s.ss.b, s.ss.c), s.ss.b, s.ss.c, 0.0) for s in self.stages]
+        self._coast_caches = tuple(shared_zoh_cache(ss, ramp=False) for ss in coast_ss)
         self._ramp_states = tuple(_ramp_state_terms(st.ss) for st in self.stages)
         self._start_offsets_ns = tuple(round(st.start_s * 1e9) for st in self.stages)
         self.restart_after_ns = None if restart_after_s is None else round(restart_after_s * 1e9)
@@ -155,24 +154,36 @@ class CompensationCore:
         self._interval_ns: int | None = None  # the input interval expected (see _coast_start_ns)
         self._coast_from_ns: int | None = None
         self.innovation_mean: F64 = np.zeros(n_channels)  # ē: the innovation u − y, averaged over τ
+        self._bufs: dict[int, F64] = {}
 
     # -- propagation ---------------------------------------------------------------------------
     def _step(self, h_ns: int) -> None:
         if self.coasting:
             self._coast_step(h_ns)
             return
-        phi, gamma0, gamma1 = self._caches[self.stage].get(h_ns)
-        # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ)
-        # column × row by broadcasting: what np.outer computes, without its per-call overhead
-        # (this runs per channel set at IMU rate)
-        self.x = mm(phi, self.x) + gamma0[:, None] * self.u[None, :] + gamma1[:, None] * self.slope[None, :]
+        # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ), as one product
+        # [Φ | Γ0 | Γ1] [x; u; s] (stacked_step's, this runs per channel set at IMU rate: the
+        # rows are copied into a buffer kept for it, not concatenated anew)
+        x = self.x
+        n = x.shape[0]
+        z = self._stack_buf(n + 2)
+        z[:n] = x
+        z[n] = self.u
+        z[n + 1] = self.slope
+        self.x = c_einsum("ij,jk->ik", self._caches[self.stage].stacked(h_ns), z)
         self.u = self.u + self.slope * (h_ns * 1e-9)
+
+    def _stack_buf(self, rows: int) -> F64:
+        """The ``(rows, n_channels)`` buffer of :meth:`_step`'s stacked operand."""
+        buf = self._bufs.get(rows)
+        if buf is None:
+            buf = self._bufs[rows] = np.empty((rows, self.n_channels))
+        return buf
 
     def _coast_step(self, h_ns: int) -> None:
         """``x+ = Φc(h) x + Γc(h) ē`` (h < 0 steps back exactly). The held ramp ``u, s`` stays as
         it was when the coast began: a strictly proper filter's output does not read it."""
-        phi, gamma0, _ = self._coast_caches[self.stage].get(h_ns)
-        self.x = mm(phi, self.x) + gamma0[:, None] * self.innovation_mean[None, :]
+        self.x = stacked_step(self._coast_caches[self.stage].stacked(h_ns), self.x, self.innovation_mean)
 
     def _next_boundary_ns(self) -> int | None:
         if self.t_start_ns is None or self.stage + 1 >= len(self.stages):
@@ -189,6 +200,14 @@ class CompensationCore:
     def advance_to(self, t_ns: int) -> None:
         """Propagate the state to ``t_ns`` with the held input, switching structure on time."""
         if self.t_ns is None:
+            self.t_ns = t_ns
+            return
+        if t_ns <= self.t_ns:
+            return
+        boundary = self._next_boundary_ns()
+        coast = self._coast_start_ns()
+        if (boundary is None or boundary > t_ns) and (coast is None or coast > t_ns):
+            self._step(t_ns - self.t_ns)  # the IMU-rate case: neither a switch nor a coast falls due
             self.t_ns = t_ns
             return
         while t_ns > self.t_ns:

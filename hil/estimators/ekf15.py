@@ -101,15 +101,15 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import replace
+from collections.abc import Sequence
 
 import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
-from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
+from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
-from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.strapdown import c_nb_floats, strapdown_from_initial, strapdown_step_f, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -120,6 +120,33 @@ _YAW_VAR_MAX = math.pi**2 / 3.0  # a heading uniform on the circle: σ = π/√3
 def skew(v: F64) -> F64:
     """``[v×]`` such that ``[v×] w = v × w``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+_EYE15 = np.eye(15)
+_EYE15.flags.writeable = False
+_F15 = np.zeros((15, 15))
+_F15[0:3, 3:6] = np.eye(3)
+_F15.flags.writeable = False
+
+
+def kron_eye3(w: F64) -> F64:
+    """``np.kron(np.eye(3), w[None, :])`` (3, 9) for a 3-vector ``w``, with kron's very entries
+    (``1·w`` and ``0·w``, a signed zero where ``w`` is negative) without its general machinery."""
+    w = np.asarray(w, dtype=float)
+    z = 0.0 * w
+    return np.concatenate((w, z, z, z, w, z, z, z, w)).reshape(3, 9)
+
+
+def _mv3(m: Sequence[Sequence[float]], x: float, y: float, z: float) -> tuple[float, float, float]:
+    """``mv(m, [x, y, z])`` for a 3 × 3 ``m`` (rows as float lists), in einsum's order for a
+    3-vector: terms 0 and 2, then 1 (its two SIMD lanes), and the sum's zero start (``+ 0.0``
+    makes a −0 +0, as einsum's accumulator does). Held to ``mv`` in tests/unit/test_ekf15_floats.py."""
+    r0, r1, r2 = m
+    return (
+        (r0[0] * x + r0[2] * z) + r0[1] * y + 0.0,
+        (r1[0] * x + r1[2] * z) + r1[1] * y + 0.0,
+        (r2[0] * x + r2[2] * z) + r2[1] * y + 0.0,
+    )
 
 
 def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
@@ -138,12 +165,13 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
     """The 15 × 15 ``F`` of the error state (module docstring), at attitude ``c_nb``, specific
     force ``f_n`` (NED) and latitude ``lat_rad``. A plain function so a peer filter (the ekf
     bench's filterpy run) can be stepped with exactly the model this filter uses."""
-    w_ie = np.array([OMEGA_IE_RADPS * math.cos(lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(lat_rad)])
-    f = np.zeros((15, 15))
-    f[0:3, 3:6] = np.eye(3)  # δṗ = δv
-    f[3:6, 6:9] = skew(f_n)  # δv̇ = [f_n×] φ + C δb_a
+    # the blocks written as floats: skew's entries, and the sign flips (signed zeros too) of -skew
+    w0, w2 = OMEGA_IE_RADPS * math.cos(lat_rad), -OMEGA_IE_RADPS * math.sin(lat_rad)  # ω_ie, w1 = 0
+    f0, f1, f2 = np.asarray(f_n, dtype=float).tolist()
+    f = _F15.copy()  # δṗ = δv: the identity block is in the template
+    f[3:6, 6:9] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f_n×] φ + C δb_a
     f[3:6, 9:12] = c_nb
-    f[6:9, 6:9] = -skew(w_ie)  # φ̇ = −[ω_ie×] φ − C δb_g
+    f[6:9, 6:9] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×] φ − C δb_g
     f[6:9, 12:15] = -c_nb
     return f  # δḃ = w_b: the bias rows are zero
 
@@ -151,7 +179,9 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
 def transition(f: F64, dt_s: float) -> F64:
     """``Φ = I + F Δ + (F Δ)²/2``: at Δ = 10 ms the neglected terms are O((FΔ)³) ~ 1e-9."""
     fd = f * dt_s
-    return np.eye(f.shape[0]) + fd + 0.5 * mm(fd, fd)
+    n = f.shape[0]
+    eye = _EYE15 if n == 15 else np.eye(n)
+    return eye + fd + 0.5 * mm(fd, fd)
 
 
 def slow_augmented(f: F64, w_radps: float) -> F64:
@@ -171,7 +201,7 @@ def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    n_w = np.kron(np.eye(3), w_b[None, :])  # (3, 9): E ω = N(ω) e
+    n_w = kron_eye3(w_b)  # (3, 9): E ω = N(ω) e
     out[6:9, n : n + 9] = -mm(c_nb, n_w)
     return out
 
@@ -182,7 +212,7 @@ def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    out[3:6, n : n + 9] = mm(c_nb, np.kron(np.eye(3), f_b[None, :]))
+    out[3:6, n : n + 9] = mm(c_nb, kron_eye3(f_b))
     return out
 
 
@@ -279,8 +309,8 @@ class Ekf15(Estimator):
         self.gate_chi2 = gate_chi2
         self.max_rejects = max_rejects
         self._pending_dt = 0.0
-        self._pending_dv_b = np.zeros(3)
-        self._pending_dth_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]  # Σ Δv, Σ Δθ of the block (floats: added at IMU rate)
+        self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
         self._stamp_ns = init.stamp_ns
         self._nav = to_nav_state(self.ins, init)
@@ -302,20 +332,33 @@ class Ekf15(Estimator):
 
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
+        # Python floats, elementwise as the arrays did it (3-vectors: numpy's per-call cost is
+        # most of the work); Ê Δθ in einsum's order for a 3-vector (``_mv3``)
         dt = imu.dt_s
-        dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
+        bgx, bgy, bgz = self.b_g.tolist()
+        bax, bay, baz = self.b_a.tolist()
+        d, v = imu.dtheta_b_rad, imu.dvel_b_mps
+        tx, ty, tz = float(d[0]) - bgx * dt, float(d[1]) - bgy * dt, float(d[2]) - bgz * dt
         if self._cal:
-            dth = dth - mv(self.e_hat, dth)
-        dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
+            ex, ey, ez = _mv3(self.e_hat.tolist(), tx, ty, tz)
+            tx, ty, tz = tx - ex, ty - ey, tz - ez
+        ux, uy, uz = float(v[0]) - bax * dt, float(v[1]) - bay * dt, float(v[2]) - baz * dt
         if self._acal:
-            dv = dv - mv(self.ea_hat, dv)
-        self.ins = strapdown_step(self.ins, dth, dv, dt)
+            ex, ey, ez = _mv3(self.ea_hat.tolist(), ux, uy, uz)
+            ux, uy, uz = ux - ex, uy - ey, uz - ez
+        self.ins = strapdown_step_f(self.ins, tx, ty, tz, ux, uy, uz, dt)
         self._pending_dt += dt
-        self._pending_dv_b += dv
+        pv = self._pending_dv_b
+        pv[0] += ux
+        pv[1] += uy
+        pv[2] += uz
         self._pending_n += 1
         if self._cal or self._lever is not None:  # only these need the body rate
-            self._pending_dth_b += dth
-            self._w_b = dth / dt
+            pt = self._pending_dth_b
+            pt[0] += tx
+            pt[1] += ty
+            pt[2] += tz
+            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
         self._stamp_ns = imu.stamp_ns
         self._nav_dirty = True
         if self._pending_n >= self.cov_every:
@@ -325,14 +368,18 @@ class Ekf15(Estimator):
         if self._pending_n == 0:
             return
         dt = self._pending_dt
-        c_nb = quat_to_dcm(self.ins.q_nb)
-        f_n = mv(c_nb, self._pending_dv_b / dt)
-        self._sf_sum = self._sf_sum + f_n[:2] * dt
+        c9 = c_nb_floats(*self.ins.q)
+        c_nb = np.array(c9).reshape(3, 3)
+        pv = self._pending_dv_b
+        fbx, fby, fbz = pv[0] / dt, pv[1] / dt, pv[2] / dt
+        f_n = _mv3((c9[0:3], c9[3:6], c9[6:9]), fbx, fby, fbz)  # mv(C, Σ Δv / Δ), on floats
+        s0, s1 = self._sf_sum.tolist()
+        self._sf_sum = np.array((s0 + f_n[0] * dt, s1 + f_n[1] * dt))
         f = error_dynamics(c_nb, f_n, self.ins.lat_rad)
         if self._cal:
-            f = gyro_cal_augmented(f, c_nb, self._pending_dth_b / dt)
+            f = gyro_cal_augmented(f, c_nb, np.array(self._pending_dth_b) / dt)
         if self._acal:
-            f = accel_cal_augmented(f, c_nb, self._pending_dv_b / dt)
+            f = accel_cal_augmented(f, c_nb, np.array((fbx, fby, fbz)))
         if self._slow_w:
             f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
@@ -346,8 +393,8 @@ class Ekf15(Estimator):
             self.p[8, :] *= c
             self.p[:, 8] *= c
         self._pending_dt = 0.0
-        self._pending_dv_b = np.zeros(3)
-        self._pending_dth_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]
+        self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
 
     def _predict(self, phi: F64, qd: F64) -> None:
@@ -380,7 +427,7 @@ class Ekf15(Estimator):
         """Orthonormal columns spanning the heading part of the error state: yaw, the gyro bias
         about the vertical (body axes) and, with calibration states, the gyro error matrix's
         rows weighted by that axis (the rate error about the vertical)."""
-        u = quat_to_dcm(self.ins.q_nb)[2, :]  # NED down in body axes: C_nb' e_D
+        u = self.ins.c_nb()[2, :]  # NED down in body axes: C_nb' e_D
         z = np.zeros((self.n, 5 if self._cal else 2))
         z[8, 0] = 1.0
         z[12:15, 1] = u
@@ -425,7 +472,7 @@ class Ekf15(Estimator):
             return
         delta = math.atan2(float(a[0] * b[1] - a[1] * b[0]), float(a[0] * b[0] + a[1] * b[1]))
         q_d = np.array([math.cos(0.5 * delta), 0.0, 0.0, math.sin(0.5 * delta)])
-        self.ins = replace(self.ins, q_nb=quat_normalise(quat_multiply(q_d, self.ins.q_nb)))
+        self.ins = self.ins.replace(q_nb=quat_normalise(quat_multiply(q_d, self.ins.q_nb)))
         self.p[8, :] = 0.0
         self.p[:, 8] = 0.0
         self.p[8, 8] = var
@@ -492,7 +539,7 @@ class Ekf15(Estimator):
         h_vel = np.zeros((3, self.n))
         h_vel[:, 3:6] = np.eye(3)
         if self._lever is not None:  # the fix is of the antenna: p + Ĉ l, v + Ĉ (ω̂ × l)
-            c_nb = quat_to_dcm(self.ins.q_nb)
+            c_nb = self.ins.c_nb()
             arm_n = mv(c_nb, self._lever)
             arm_rate_n = mv(c_nb, cross(self._w_b, self._lever))
             pos_tov = pos_tov + arm_n
@@ -501,7 +548,7 @@ class Ekf15(Estimator):
             h_vel[:, 6:9] = skew(arm_rate_n)
             h_vel[:, 12:15] = -mm(c_nb, skew(self._lever))  # ω̂ = ω + δb_g (+ N(ω) δe)
             if self._cal:
-                h_vel[:, 15:24] = mm(h_vel[:, 12:15], np.kron(np.eye(3), self._w_b[None, :]))
+                h_vel[:, 15:24] = mm(h_vel[:, 12:15], kron_eye3(self._w_b))
         if self._slow_w:  # z = truth + s + w: predicted z = INS + ŝ, so y = δp + δs − w
             i = self._i_slow
             h_pos[:, i : i + 3] = np.eye(3)
@@ -520,7 +567,7 @@ class Ekf15(Estimator):
         vel = s.vel_ned_mps - dx[3:6]
         # C_true = (I + [φ×]) C_est: rotate the NED side by +φ
         q = quat_normalise(quat_multiply(quat_from_rotvec(dx[6:9]), s.q_nb))
-        self.ins = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
+        self.ins = s.replace(lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
         self.b_a = self.b_a + dx[9:12]
         self.b_g = self.b_g + dx[12:15]
         if self._cal:
@@ -543,10 +590,8 @@ class Ekf15(Estimator):
 
     def solution(self) -> NavState:
         nav = self._current_nav()
-        d = np.diag(self.p)
-        return NavState(
-            nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, np.sqrt(d[0:3]), np.sqrt(d[3:6]), np.sqrt(d[6:9])
-        )
+        sd = np.sqrt(self.p.diagonal()[0:9])  # one ufunc call for the three σ (elementwise: same bits)
+        return NavState(nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, sd[0:3], sd[3:6], sd[6:9])
 
     def health(self) -> dict[str, float]:
         return {

@@ -42,17 +42,16 @@ INS is compared at the antenna, as ekf15 is. Pure numerics (hil.nav.portable), n
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuInput, InitialState
 from hil.estimators.ekf15 import skew
-from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise, quat_to_dcm
+from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step_f, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -168,7 +167,7 @@ class ClosedLoopIns:
         self._lever: F64 | None = lever if np.any(lever) else None
         self._w_b = np.zeros(3)  # corrected body rate of the last step (the arm's velocity)
         self.cov_every = int(cov_every)
-        self._pending_dv_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]  # Σ Δv of the block (floats: added at IMU rate)
         self._pending_dt = 0.0
         self._pending_n = 0
         self.stamp_ns = init.stamp_ns
@@ -176,13 +175,21 @@ class ClosedLoopIns:
         self._dirty = False
 
     def propagate(self, imu: ImuInput) -> None:
+        # Python floats, elementwise as the arrays did it (numpy's per-call cost on 3-vectors
+        # was most of this step's)
         dt = imu.dt_s
-        dth = np.asarray(imu.dtheta_b_rad, float) - self.b_g * dt
-        dv = np.asarray(imu.dvel_b_mps, float) - self.b_a * dt
-        self.state = strapdown_step(self.state, dth, dv, dt)
+        bgx, bgy, bgz = self.b_g.tolist()
+        bax, bay, baz = self.b_a.tolist()
+        d, v = imu.dtheta_b_rad, imu.dvel_b_mps
+        tx, ty, tz = float(d[0]) - bgx * dt, float(d[1]) - bgy * dt, float(d[2]) - bgz * dt
+        ux, uy, uz = float(v[0]) - bax * dt, float(v[1]) - bay * dt, float(v[2]) - baz * dt
+        self.state = strapdown_step_f(self.state, tx, ty, tz, ux, uy, uz, dt)
         if self._lever is not None:
-            self._w_b = dth / dt
-        self._pending_dv_b += dv
+            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
+        pv = self._pending_dv_b
+        pv[0] += ux
+        pv[1] += uy
+        pv[2] += uz
         self._pending_dt += dt
         self._pending_n += 1
         if self._pending_n >= self.cov_every:
@@ -193,10 +200,10 @@ class ClosedLoopIns:
     def _predict(self) -> None:
         if self._pending_n == 0:
             return
-        c_nb = quat_to_dcm(self.state.q_nb)
-        f_n = mv(c_nb, self._pending_dv_b / self._pending_dt)
+        c_nb = self.state.c_nb()
+        f_n = mv(c_nb, np.array(self._pending_dv_b) / self._pending_dt)
         self.corrector.predict(c_nb, f_n, self.state.lat_rad, self._pending_dt)
-        self._pending_dv_b = np.zeros(3)
+        self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dt = 0.0
         self._pending_n = 0
 
@@ -212,7 +219,7 @@ class ClosedLoopIns:
         pos = nav.pos_ned_m + nav.vel_ned_mps * ((gnss.stamp_ns - self.stamp_ns) * 1e-9)
         vel = nav.vel_ned_mps
         if self._lever is not None:
-            c_nb = quat_to_dcm(self.state.q_nb)
+            c_nb = self.state.c_nb()
             pos = pos + mv(c_nb, self._lever)
             vel = vel + mv(c_nb, cross(self._w_b, self._lever))
         return pos - gnss.pos_ned_m, vel - gnss.vel_ned_mps
@@ -226,7 +233,7 @@ class ClosedLoopIns:
         s = self.state
         # C_true = (I + [φ×]) C_est: rotate the NED side by +φ (ekf15's convention)
         q = quat_normalise(quat_multiply(quat_from_rotvec(dx[0:3]), s.q_nb))
-        self.state = replace(s, q_nb=q)
+        self.state = s.replace(q_nb=q)
         self.b_g = self.b_g + dx[3:6]
         self.b_a = self.b_a + dx[6:9]
         self._dirty = True
@@ -238,7 +245,7 @@ class ClosedLoopIns:
         lat = s.lat_rad - dp[0] / (float(r_m) + s.alt_m)
         lon = s.lon_rad - dp[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
         alt = s.alt_m + dp[2]  # δp_D = −δh
-        self.state = replace(s, lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=s.vel_ned_mps - dv)
+        self.state = s.replace(lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=s.vel_ned_mps - dv)
         self.corrector.dv = self.corrector.dv - dv
         self._dirty = True
 

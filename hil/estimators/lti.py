@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hil.nav.portable import expm, mv
+from hil.nav.portable import c_einsum, expm, mv
 from hil.nav.types import F64
 
 
@@ -150,7 +150,9 @@ class ZohCache:
 
     ss: StateSpace
     max_entries: int = 256
+    ramp: bool = True  # whether :meth:`stacked` carries Γ1 (a coast's input has no slope)
     _table: dict[int, tuple[F64, F64, F64]] = field(default_factory=dict)
+    _stacked: dict[int, F64] = field(default_factory=dict)
 
     def get(self, h_ns: int) -> tuple[F64, F64, F64]:
         hit = self._table.get(h_ns)
@@ -162,6 +164,46 @@ class ZohCache:
             hit = ramp_hold(self.ss, h_ns * 1e-9)
             self._table[h_ns] = hit
         return hit
+
+    def stacked(self, h_ns: int) -> F64:
+        """``[Φ | Γ0 | Γ1]`` (n, n + 2; without ``Γ1`` unless ``ramp``) for :func:`stacked_step`,
+        cached like :meth:`get`."""
+        hit = self._stacked.get(h_ns)
+        if hit is None:
+            if len(self._stacked) >= self.max_entries:
+                self._stacked.pop(next(iter(self._stacked)))
+            phi, gamma0, gamma1 = self.get(h_ns)
+            cols = (phi, gamma0[:, None], gamma1[:, None]) if self.ramp else (phi, gamma0[:, None])
+            hit = np.concatenate(cols, axis=1)
+            self._stacked[h_ns] = hit
+        return hit
+
+
+_SHARED: dict[tuple[bytes, bytes, tuple[int, ...], bool], ZohCache] = {}
+
+
+def shared_zoh_cache(ss: StateSpace, ramp: bool = True) -> ZohCache:
+    """The process's one :class:`ZohCache` of the filter ``ss``: estimators running the same
+    filter (comp3f and compvs's last stage, say) compute each step's ``e^{A h}`` once. Its
+    entries are a function of ``(A, B, h)`` alone, so sharing changes no bit."""
+    key = (ss.a.tobytes(), ss.b.tobytes(), ss.a.shape, ramp)
+    cache = _SHARED.get(key)
+    if cache is None:
+        if len(_SHARED) >= 64:  # filters built with ever new parameters (tests, sweeps)
+            _SHARED.pop(next(iter(_SHARED)))
+        cache = _SHARED[key] = ZohCache(ss, ramp=ramp)
+    return cache
+
+
+def stacked_step(m: F64, x: F64, *rows: F64) -> F64:
+    """``M [x; r1; r2; …]``: ``Φ x + Γ0 u + Γ1 s`` for ``M = [Φ | Γ0 | Γ1]`` and rows ``u, s``
+    (one per channel), as one product instead of a product and two outer products.
+
+    The same bits: einsum sums ``j`` in order, so the product's terms come in the order the
+    separate expression adds them (Φ x first, then Γ0 u, then Γ1 s); held to that on random
+    matrices of the filters' orders in tests/unit/test_lti_stacked.py.
+    """
+    return c_einsum("ij,jk->ik", m, np.concatenate((x, *[r[None, :] for r in rows])))  # type: ignore[no-any-return]
 
 
 def aperiodic(order: int, t_s: float) -> TransferFunction:

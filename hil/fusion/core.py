@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Callable
+import weakref
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,10 +34,12 @@ from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState, imu_b
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.fusion.predictor import OutputPredictor
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
+from hil.nav.earth import ned_to_lla_one
 from hil.nav.types import NavState
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
 FREE_INS = "ins"
+isfinite, degrees = math.isfinite, math.degrees
 
 
 @dataclass(frozen=True)
@@ -151,6 +154,17 @@ def implausible(msg: Measurement, cfg: FusionConfig) -> str:
     return ""
 
 
+_F64 = np.dtype(np.float64)
+
+
+def _floats(a: Any) -> list[float]:
+    """A float64 array (or any sequence of numbers) as a list of Python floats."""
+    if type(a) is np.ndarray and a.dtype == _F64:
+        out: list[float] = a.tolist()
+        return out
+    return [float(v) for v in a]
+
+
 def handler_of(est: Any, sensor: str) -> Any:
     """``est``'s handler of ``sensor``: ``Estimator.handler``, or ``on_<sensor>`` of an object
     that keeps the contract without deriving from the base class."""
@@ -180,6 +194,28 @@ def parse_journal_id(entry: str) -> tuple[str, str, str]:
     return "", body, source
 
 
+_TRUTHS: list[tuple[weakref.ref[Any], Any]] = []  # the last few scenarios' truth generators
+
+
+def _truth_of(scenario: Any) -> Any:
+    """The scenario's :class:`~hil.nav.trajectory.TruthGenerator`, one per scenario object in a
+    process: ``hil rerun`` builds the fusion twice (the node, then the recording's configuration)
+    and the generator integrates the whole trajectory when it is built. Its ``sample`` is a pure
+    function of time, so sharing it changes no bit."""
+    from hil.nav.trajectory import TruthGenerator
+
+    for ref, truth in _TRUTHS:
+        if ref() is scenario:
+            return truth
+    truth = TruthGenerator(scenario)
+    try:
+        _TRUTHS.insert(0, (weakref.ref(scenario), truth))
+    except TypeError:  # a scenario that takes no weak reference is not remembered
+        return truth
+    del _TRUTHS[4:]
+    return truth
+
+
 BOUND_CLEAR_NS = 1_000_000_000  # a source beyond the latency bound is back after this long without a refusal
 JOURNAL_MAX_ENTRIES = 1_000  # per journal message: a flood's decisions go out in several
 
@@ -202,7 +238,6 @@ class FusionCore:
         re-alignment. Its outputs then differ from an uninterrupted run's, and say so in an event.
         """
         from hil.estimators.tuning import params_for
-        from hil.nav.trajectory import TruthGenerator
 
         imu = scenario.imu.params
         params = params_for(
@@ -216,7 +251,7 @@ class FusionCore:
             for name in ("comp1", "comp2", "comp3", "comp3f", "compvs", "cf2", "cf3"):
                 params[name] = params.get(name, {}) | {"gnss_coast": False}
 
-        truth = TruthGenerator(scenario)
+        truth = _truth_of(scenario)
         init = truth.initial_state()
         if align_ns > 0:
             from dataclasses import replace as dc_replace
@@ -451,18 +486,22 @@ class FusionCore:
         motion = pred.motion()
         ins_nav = self._ins_nav
         if ins_nav is None:  # no IMU step on the horizon yet: the initial state
-            ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+            ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
         out: list[NavSolution] = []
         try:
-            out.append(self._solution(FREE_INS, pred.predict(ins_nav, motion), msg.stamp_ns, msg.seq))
+            pos, vel, q = pred.predict_floats(*ins_nav.floats(), motion)
+            out.append(self._publish(FREE_INS, pos, vel, q, None, None, None, msg.stamp_ns, msg.seq))
         except ArithmeticError:
             self._inc(f"errors.nonfinite.{FREE_INS}")
         for est in self.estimators:
             if est.name in self._failed:
                 continue
             try:
-                nav = pred.predict(est.solution(), motion, imu_bias_of(est))
-                out.append(self._solution(est.name, nav, msg.stamp_ns, msg.seq))
+                nav = est.solution()
+                pvq = _floats(nav.pos_ned_m), _floats(nav.vel_ned_mps), _floats(nav.q_nb)
+                pos, vel, q = pred.predict_floats(*pvq, motion, imu_bias_of(est))
+                sig = (nav.pos_sigma_m, nav.vel_sigma_mps, nav.att_sigma_rad)
+                out.append(self._publish(est.name, pos, vel, q, *sig, msg.stamp_ns, msg.seq))
             except ArithmeticError:
                 self._inc(f"errors.nonfinite.{est.name}")
         return out
@@ -588,11 +627,15 @@ class FusionCore:
         if self.predictor is not None:
             self.predictor.horizon_at(msg.stamp_ns)
         dt_s = msg.dt_ns * 1e-9
-        dtheta = np.asarray(msg.dtheta_b_rad, dtype=np.float64)
-        dvel = np.asarray(msg.dvel_b_mps, dtype=np.float64)
-        self._ins = self._sd.strapdown_step(self._ins, dtheta, dvel, dt_s)
+        d, v = msg.dtheta_b_rad, msg.dvel_b_mps
+        dtheta = np.asarray(d, dtype=np.float64)
+        dvel = np.asarray(v, dtype=np.float64)
+        self._ins = self._sd.strapdown_step_f(
+            self._ins, float(d[0]), float(d[1]), float(d[2]), float(v[0]), float(v[1]), float(v[2]), dt_s
+        )
         self._last_imu_ns = msg.stamp_ns
-        ins_nav = self._ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+        # built lazily: most estimators read the free INS at a fix or an output only
+        ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
         imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
         for est in self.estimators:
             if est.name in self._failed:
@@ -628,7 +671,9 @@ class FusionCore:
         if msg.sensor == "gnss" and self.gate is not None and handlers:
             data, allowed = self._gate(data, [n for n, _ in handlers], msg, source)
         if handlers:
-            ins_nav = self._sd.to_nav_state(self._ins, self._origin)
+            ins_nav = self._ins_nav
+            if ins_nav is None:  # no IMU step yet: the initial state
+                ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
             for name, handle in handlers:
                 if name in self._failed or not allowed.get(name, True):
                     continue
@@ -679,33 +724,46 @@ class FusionCore:
         self.last_error = f"estimator {name} failed: {type(err).__name__}: {err}"
 
     def _solution(self, name: str, nav: NavState, stamp_ns: int, imu_seq: int | None = None) -> NavSolution:
-        from hil.nav.earth import ned_to_lla
+        pos, vel, q = _floats(nav.pos_ned_m), _floats(nav.vel_ned_mps), _floats(nav.q_nb)
+        sig = (nav.pos_sigma_m, nav.vel_sigma_mps, nav.att_sigma_rad)
+        return self._publish(name, pos, vel, q, *sig, stamp_ns, imu_seq)
 
-        parts = [nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb]
-        if nav.pos_sigma_m is not None:
-            parts.append(nav.pos_sigma_m)
-        if nav.vel_sigma_mps is not None:
-            parts.append(nav.vel_sigma_mps)
-        if nav.att_sigma_rad is not None:
-            parts.append(nav.att_sigma_rad)
-        if not all(np.all(np.isfinite(p)) for p in parts):
-            raise ArithmeticError(f"{name}: non-finite solution")
-        lat, lon, alt = ned_to_lla(nav.pos_ned_m, *self._origin)
+    def _publish(
+        self,
+        name: str,
+        pos: Sequence[float],
+        vel: Sequence[float],
+        q: Sequence[float],
+        pos_sigma: Any,
+        vel_sigma: Any,
+        att_sigma: Any,
+        stamp_ns: int,
+        imu_seq: int | None = None,
+    ) -> NavSolution:
+        """The solution message of ``name``'s state (Python floats; sigmas arrays or None)."""
+        ps = [] if pos_sigma is None else _floats(pos_sigma)
+        vs = [] if vel_sigma is None else _floats(vel_sigma)
+        at = [] if att_sigma is None else _floats(att_sigma)
+        for part in (pos, vel, q, ps, vs, at):
+            for v in part:
+                if not isfinite(v):
+                    raise ArithmeticError(f"{name}: non-finite solution")
+        lat, lon, alt = ned_to_lla_one(pos[0], pos[1], pos[2], *self._origin)
         seq = self._out_seq.get(name, 0)
         self._out_seq[name] = seq + 1
         return NavSolution(
             seq=seq,
             stamp_ns=stamp_ns,
             estimator=name,
-            pos_ned_m=[float(v) for v in nav.pos_ned_m],
-            vel_ned_mps=[float(v) for v in nav.vel_ned_mps],
-            q_nb=[float(v) for v in nav.q_nb],
-            lat_deg=float(np.degrees(lat)),
-            lon_deg=float(np.degrees(lon)),
-            alt_m=float(alt),
-            pos_sigma_m=[] if nav.pos_sigma_m is None else [float(v) for v in nav.pos_sigma_m],
-            vel_sigma_mps=[] if nav.vel_sigma_mps is None else [float(v) for v in nav.vel_sigma_mps],
-            att_sigma_rad=[] if nav.att_sigma_rad is None else [float(v) for v in nav.att_sigma_rad],
+            pos_ned_m=list(pos),
+            vel_ned_mps=list(vel),
+            q_nb=list(q),
+            lat_deg=degrees(lat),  # numpy's degrees is the same product by 180/π
+            lon_deg=degrees(lon),
+            alt_m=alt,
+            pos_sigma_m=ps,
+            vel_sigma_mps=vs,
+            att_sigma_rad=at,
             imu_seq=self._last_imu_seq if imu_seq is None else imu_seq,
             gnss_seq=self._last_gnss_seq,
         )

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -73,9 +74,7 @@ def _rot_t(qw: float, qx: float, qy: float, qz: float, x: float, y: float, z: fl
     return _rot(qw, -qx, -qy, -qz, x, y, z)
 
 
-def without_bias(
-    dt: float, dq: Quat, dv: Vec3, dp: Vec3, bias: tuple[F64, F64]
-) -> tuple[Quat, Vec3, Vec3]:
+def without_bias(dt: float, dq: Quat, dv: Vec3, dp: Vec3, bias: tuple[F64, F64]) -> tuple[Quat, Vec3, Vec3]:
     """The motion as the IMU without its biases ``b_g``, ``b_a`` would have measured it: to
     first order in the bias and in the rotation over the window (the pre-integration's bias
     Jacobians with the body axes held, as the window turns a few degrees at most)::
@@ -181,14 +180,44 @@ class OutputPredictor:
     def predict(self, nav: NavState, motion: Motion, bias: tuple[F64, F64] | None = None) -> NavState:
         """``nav`` (an estimator's solution at the horizon) moved to the newest sample; with
         ``bias`` (the gyro's and accelerometer's, body axes) removed from the motion first."""
-        dt, dq, dv, dp = motion
+        dt, dq, _, _ = motion
         if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
             return nav
+        pos, vel, q = self.predict_floats(
+            np.asarray(nav.pos_ned_m, dtype=np.float64).tolist(),
+            np.asarray(nav.vel_ned_mps, dtype=np.float64).tolist(),
+            np.asarray(nav.q_nb, dtype=np.float64).tolist(),
+            motion,
+            bias,
+        )
+        return NavState(
+            pos_ned_m=np.array(pos),
+            vel_ned_mps=np.array(vel),
+            q_nb=np.array(q),
+            pos_sigma_m=nav.pos_sigma_m,
+            vel_sigma_mps=nav.vel_sigma_mps,
+            att_sigma_rad=nav.att_sigma_rad,
+        )
+
+    def predict_floats(
+        self,
+        pos: Sequence[float],
+        vel: Sequence[float],
+        q: Sequence[float],
+        motion: Motion,
+        bias: tuple[F64, F64] | None = None,
+    ) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+        """:meth:`predict` on position, velocity and attitude as Python floats (the fusion's
+        output path: no arrays built to be read back); the inputs come back as they are when
+        there is no motion."""
+        dt, dq, dv, dp = motion
+        if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
+            return pos, vel, q
         if bias is not None:
             dq, dv, dp = without_bias(dt, dq, dv, dp, bias)
-        qw, qx, qy, qz = np.asarray(nav.q_nb, dtype=np.float64).tolist()
-        vn, ve, vd = np.asarray(nav.vel_ned_mps, dtype=np.float64).tolist()
-        pn, pe, pd = np.asarray(nav.pos_ned_m, dtype=np.float64).tolist()
+        qw, qx, qy, qz = q
+        vn, ve, vd = vel
+        pn, pe, pd = pos
         cvx, cvy, cvz = _rot(qw, qx, qy, qz, *dv)
         cpx, cpy, cpz = _rot(qw, qx, qy, qz, *dp)
         rw, rx, ry, rz = _qmul(qw, qx, qy, qz, *dq)
@@ -196,12 +225,8 @@ class OutputPredictor:
         if rw < 0.0:
             inv = -inv
         g = self.g
-        pos = [pn + vn * dt + cpx, pe + ve * dt + cpy, pd + vd * dt + cpz + 0.5 * g * dt * dt]
-        return NavState(
-            pos_ned_m=np.array(pos),
-            vel_ned_mps=np.array([vn + cvx, ve + cvy, vd + cvz + g * dt]),
-            q_nb=np.array([rw * inv, rx * inv, ry * inv, rz * inv]),
-            pos_sigma_m=nav.pos_sigma_m,
-            vel_sigma_mps=nav.vel_sigma_mps,
-            att_sigma_rad=nav.att_sigma_rad,
+        return (
+            (pn + vn * dt + cpx, pe + ve * dt + cpy, pd + vd * dt + cpz + 0.5 * g * dt * dt),
+            (vn + cvx, ve + cvy, vd + cvz + g * dt),
+            (rw * inv, rx * inv, ry * inv, rz * inv),
         )

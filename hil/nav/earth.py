@@ -180,24 +180,25 @@ def lla_to_ned(
 
 
 # One point at a time (the fusion's every solution, the GNSS bridge's every fix): the array
-# path's very operations -- numpy's sin/cos/sqrt/hypot and ``**`` on float64 scalars, math's
-# atan2, then + - * / in the same order, which are IEEE the same on Python floats -- without
-# building 0-d arrays and stacking them (3-4x the cost at one point). Bit-identical: checked
-# on random points against the array path (tests/unit/test_earth_scalar.py) and by the golden
-# replay.
+# path's very operations on Python floats, without building 0-d arrays and stacking them (3-4x
+# the cost at one point): + - * / and sqrt are IEEE the same there; numpy's float64 sin and cos
+# are the C library's (its ufunc loops call libm's sin/cos, as math does: equal on millions of
+# points, tests/unit/test_earth_scalar.py); hypot stays numpy's (libm's hypot, which math.hypot
+# is not); atan2 is math's on both paths. Bit-identical: checked on random points against the
+# array path (tests/unit/test_earth_scalar.py) and by the golden replay.
 _SCALARS = (float, np.float64)
+_sin, _cos, _sqrt = math.sin, math.cos, math.sqrt
 
 
 def _ecef_one(lat: float, lon: float, h: float) -> tuple[float, float, float]:
-    lat64, lon64 = np.float64(lat), np.float64(lon)
-    s2 = np.sin(lat64) ** 2
-    r_n = float(A_M / np.sqrt(1.0 - E2 * s2))
-    h = float(h)
-    cl = float(np.cos(lat64))
+    lat, lon, h = float(lat), float(lon), float(h)
+    s2 = _sin(lat) ** 2
+    r_n = A_M / _sqrt(1.0 - E2 * s2)
+    cl = _cos(lat)
     return (
-        (r_n + h) * cl * float(np.cos(lon64)),
-        (r_n + h) * cl * float(np.sin(lon64)),
-        (r_n * (1.0 - E2) + h) * float(np.sin(lat64)),
+        (r_n + h) * cl * _cos(lon),
+        (r_n + h) * cl * _sin(lon),
+        (r_n * (1.0 - E2) + h) * _sin(lat),
     )
 
 
@@ -217,17 +218,17 @@ def _lla_to_ned_one(lat: float, lon: float, h: float, o_lat: float, o_lon: float
 def _ecef_to_lla_one(x: float, y: float, z: float) -> tuple[float, float, float]:
     lon = math.atan2(y, x)
     p = float(np.hypot(np.float64(x), np.float64(y)))
-    beta = np.float64(math.atan2(z * A_M, p * B_M))
-    sb, cb = float(np.sin(beta)), float(np.cos(beta))
+    beta = math.atan2(z * A_M, p * B_M)
+    sb, cb = _sin(beta), _cos(beta)
     lat = math.atan2(z + EP2 * B_M * (sb * sb * sb), p - E2 * A_M * (cb * cb * cb))
     for _ in range(2):
-        lat64 = np.float64(lat)
-        r_n = float(A_M / np.sqrt(1.0 - E2 * np.sin(lat64) ** 2))
-        h = p * float(np.cos(lat64)) + z * float(np.sin(lat64)) - A_M**2 / r_n
+        sl = _sin(lat)
+        r_n = A_M / _sqrt(1.0 - E2 * sl**2)
+        h = p * _cos(lat) + z * sl - A_M**2 / r_n
         lat = math.atan2(z, p * (1.0 - E2 * r_n / (r_n + h)))
-    lat64 = np.float64(lat)
-    r_n = float(A_M / np.sqrt(1.0 - E2 * np.sin(lat64) ** 2))
-    h = p * float(np.cos(lat64)) + z * float(np.sin(lat64)) - A_M**2 / r_n
+    sl = _sin(lat)
+    r_n = A_M / _sqrt(1.0 - E2 * sl**2)
+    h = p * _cos(lat) + z * sl - A_M**2 / r_n
     return lat, lon, h
 
 
@@ -247,16 +248,24 @@ def ned_to_lla(
     """Inverse of :func:`lla_to_ned`."""
     ned = np.asarray(pos_ned_m, dtype=float)
     if ned.shape == (3,):  # one point: the array path's operations on floats (``_SCALARS``)
-        (o0, o1, o2), c = _origin_floats(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
-        n, e, d = float(ned[0]), float(ned[1]), float(ned[2])
-        x = c[0][0] * n + c[1][0] * e + c[2][0] * d + o0
-        y = c[0][1] * n + c[1][1] * e + c[2][1] * d + o1
-        z = c[0][2] * n + c[1][2] * e + c[2][2] * d + o2
-        lat, lon, h = _ecef_to_lla_one(x, y, z)
+        lat, lon, h = ned_to_lla_one(
+            float(ned[0]), float(ned[1]), float(ned[2]), origin_lat_rad, origin_lon_rad, origin_alt_m
+        )
         return np.asarray(lat), np.asarray(lon), np.float64(h)
     o_ecef, c_en = _origin_frame(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
     xyz = mat_vec(c_en.T, ned) + o_ecef
     return ecef_to_lla(xyz)
+
+
+def ned_to_lla_one(
+    n: float, e: float, d: float, origin_lat_rad: float, origin_lon_rad: float, origin_alt_m: float
+) -> tuple[float, float, float]:
+    """:func:`ned_to_lla` of one point, in and out as Python floats (the same bits)."""
+    (o0, o1, o2), c = _origin_floats(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
+    x = c[0][0] * n + c[1][0] * e + c[2][0] * d + o0
+    y = c[0][1] * n + c[1][1] * e + c[2][1] * d + o1
+    z = c[0][2] * n + c[1][2] * e + c[2][2] * d + o2
+    return _ecef_to_lla_one(x, y, z)
 
 
 @lru_cache(maxsize=64)

@@ -14,7 +14,9 @@ So the pure cores that produce published outputs multiply with ``einsum`` (numpy
 compiled for the baseline, never BLAS), invert 3 × 3 by the adjugate and solve larger systems
 by Gauss–Jordan, both in plain arithmetic, and take
 transcendentals from :mod:`math` (the C library's, the same on every machine with that libm).
-At the rig's sizes ``einsum`` costs ~2.9 µs for a 15 × 15 product where BLAS costs ~1.2 µs.
+At the rig's sizes ``einsum`` costs ~2.9 µs for a 15 × 15 product where BLAS costs ~1.2 µs;
+the functions call its C entry directly (``np.einsum`` with ``optimize`` off does exactly
+that, through a Python wrapper that cost as much as a small product).
 """
 
 from __future__ import annotations
@@ -25,26 +27,31 @@ import numpy as np
 
 from hil.nav.types import F64
 
+try:  # numpy's einsum without its Python wrapper (what np.einsum calls when optimize is off)
+    from numpy._core.multiarray import c_einsum
+except ImportError:  # pragma: no cover - numpy < 2
+    from numpy.core.multiarray import c_einsum
+
 
 def mm(a: F64, b: F64) -> F64:
     """``a @ b`` for 2-D ``a``, 2-D ``b``."""
-    return np.einsum("ij,jk->ik", a, b)
+    return c_einsum("ij,jk->ik", a, b)  # type: ignore[no-any-return]
 
 
 def mmt(a: F64, b: F64) -> F64:
     """``a @ b.T`` without forming the transpose."""
-    return np.einsum("ij,kj->ik", a, b)
+    return c_einsum("ij,kj->ik", a, b)  # type: ignore[no-any-return]
 
 
 def mv(a: F64, x: F64) -> F64:
     """``a @ x`` for 2-D ``a`` and 1-D ``x`` (a row vector times a matrix, ``x @ a``, is
     ``mv(a.T, x)``)."""
-    return np.einsum("ij,j->i", a, x)
+    return c_einsum("ij,j->i", a, x)  # type: ignore[no-any-return]
 
 
 def dot(x: F64, y: F64) -> float:
     """``x · y`` for 1-D vectors."""
-    return float(np.einsum("i,i->", x, y))
+    return float(c_einsum("i,i->", x, y))
 
 
 def norm(x: F64) -> float:
@@ -111,14 +118,15 @@ def expm(m: F64) -> F64:
     n = m.shape[0]
     out = np.eye(n)
     term = np.eye(n)
+    absolute = np.abs
     for k in range(1, 40):
-        term = mm(term, a) / k
-        if not np.any(np.abs(term) > np.abs(out) * 1e-18):
+        term = c_einsum("ij,jk->ik", term, a) / k
+        if not (absolute(term) > absolute(out) * 1e-18).any():  # np.any's wrapper, without it
             break
         out = out + term
     for _ in range(s):
-        out = mm(out, out)
-    return out
+        out = c_einsum("ij,jk->ik", out, out)
+    return out  # type: ignore[no-any-return]
 
 
 _ATAN2 = np.frompyfunc(math.atan2, 2, 1)

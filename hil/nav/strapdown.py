@@ -13,15 +13,18 @@ Mid-interval (k−½) quantities come from a first-order prediction of velocity 
 no older state than k−1 is needed. WGS84 normal gravity, Earth rate and transport rate come from
 :mod:`hil.nav.earth` (the same model the truth generator uses).
 
-The numerics are plain Python floats: one core, :func:`_step`, is shared by
-:func:`strapdown_step` (one interval, for the live services) and :func:`strapdown_run` (a whole
-array, for the offline executor), so both give bit-identical results.
+The numerics are plain Python floats, and so is the state (:class:`StrapdownState`, 16 floats):
+one core, :func:`_step`, is shared by :func:`strapdown_step` (one interval, for the live
+services; :func:`strapdown_step_f` with the increments as floats, the fusion's per-IMU path) and
+:func:`strapdown_run` (a whole array, for the offline executor), so all give bit-identical results.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -38,18 +41,129 @@ from hil.nav.earth import (
 )
 from hil.nav.types import F64, InitialState, NavState
 
+_State = tuple[float, ...]  # lat, lon, h, vn, ve, vd, qw, qx, qy, qz, pθx, pθy, pθz, pvx, pvy, pvz
 
-@dataclass
-class StrapdownState:
-    """INS state after an interval; ``prev_*`` are the last increments (coning/sculling memory)."""
 
-    lat_rad: float
-    lon_rad: float
-    alt_m: float
-    vel_ned_mps: F64  # (3,)
-    q_nb: F64  # (4,) [w, x, y, z], body -> NED
-    prev_dtheta_b_rad: F64 = field(default_factory=lambda: np.zeros(3))
-    prev_dvel_b_mps: F64 = field(default_factory=lambda: np.zeros(3))
+class StrapdownState(tuple[float, ...]):
+    """INS state after an interval, as 16 plain floats (a tuple, so the core unpacks it at once):
+    ``lat, lon, h, vN, vE, vD, qw, qx, qy, qz`` then the last increments ``Δθ (3), Δv (3)``
+    (coning/sculling memory). Immutable: :meth:`replace` gives a changed copy.
+
+    Plain floats rather than small numpy arrays because the fusion steps several of these per
+    IMU sample and building and unpacking 3- and 4-element arrays cost more than the mechanisation
+    itself. ``vel_ned_mps``, ``q_nb`` and the ``prev_*`` increments read as new arrays.
+    """
+
+    __slots__ = ()
+
+    def __new__(
+        cls,
+        lat_rad: float,
+        lon_rad: float,
+        alt_m: float,
+        vel_ned_mps: Any,
+        q_nb: Any,
+        prev_dtheta_b_rad: Any = (0.0, 0.0, 0.0),
+        prev_dvel_b_mps: Any = (0.0, 0.0, 0.0),
+    ) -> StrapdownState:
+        v, q, p, u = (
+            [float(x) for x in vel_ned_mps],
+            [float(x) for x in q_nb],
+            [float(x) for x in prev_dtheta_b_rad],
+            [float(x) for x in prev_dvel_b_mps],
+        )
+        if (len(v), len(q), len(p), len(u)) != (3, 4, 3, 3):
+            raise ValueError("a strapdown state is vel (3,), q_nb (4,), prev_dtheta (3,), prev_dvel (3,)")
+        return _new(cls, (float(lat_rad), float(lon_rad), float(alt_m), *v, *q, *p, *u))
+
+    @classmethod
+    def of(cls, t: _State) -> StrapdownState:
+        """From the 16 floats in the module's order (no checks: the core's own tuples)."""
+        return _new(cls, t)
+
+    lat_rad = property(itemgetter(0), doc="geodetic latitude, rad")
+    lon_rad = property(itemgetter(1), doc="longitude, rad")
+    alt_m = property(itemgetter(2), doc="ellipsoidal height, m")
+
+    @property
+    def vel(self) -> tuple[float, float, float]:
+        """v_NED, m/s, as floats."""
+        return self[3], self[4], self[5]
+
+    @property
+    def q(self) -> tuple[float, float, float, float]:
+        """q_nb [w, x, y, z] as floats."""
+        return self[6], self[7], self[8], self[9]
+
+    @property
+    def vel_ned_mps(self) -> F64:
+        return np.array(self[3:6])
+
+    @property
+    def q_nb(self) -> F64:
+        return np.array(self[6:10])
+
+    @property
+    def prev_dtheta_b_rad(self) -> F64:
+        return np.array(self[10:13])
+
+    @property
+    def prev_dvel_b_mps(self) -> F64:
+        return np.array(self[13:16])
+
+    def c_nb(self) -> F64:
+        """C_nb (3, 3): :func:`hil.nav.attitude.quat_to_dcm` of ``q_nb``, the same operations
+        on floats (so the same bits) without the array round trip."""
+        return np.array(c_nb_floats(self[6], self[7], self[8], self[9])).reshape(3, 3)
+
+    def replace(
+        self,
+        lat_rad: float | None = None,
+        lon_rad: float | None = None,
+        alt_m: float | None = None,
+        vel_ned_mps: Any = None,
+        q_nb: Any = None,
+    ) -> StrapdownState:
+        """A copy with the given parts changed (``dataclasses.replace`` of the former dataclass)."""
+        t = list(self)
+        if lat_rad is not None:
+            t[0] = float(lat_rad)
+        if lon_rad is not None:
+            t[1] = float(lon_rad)
+        if alt_m is not None:
+            t[2] = float(alt_m)
+        if vel_ned_mps is not None:
+            t[3:6] = [float(x) for x in vel_ned_mps]
+        if q_nb is not None:
+            t[6:10] = [float(x) for x in q_nb]
+        if len(t) != 16:
+            raise ValueError("vel_ned_mps must have 3 elements and q_nb 4")
+        return _new(StrapdownState, t)
+
+    def __repr__(self) -> str:
+        return (
+            f"StrapdownState(lat_rad={self[0]!r}, lon_rad={self[1]!r}, alt_m={self[2]!r}, "
+            f"vel_ned_mps={list(self[3:6])!r}, q_nb={list(self[6:10])!r}, "
+            f"prev_dtheta_b_rad={list(self[10:13])!r}, prev_dvel_b_mps={list(self[13:16])!r})"
+        )
+
+
+_new = tuple.__new__
+
+
+def c_nb_floats(qw: float, qx: float, qy: float, qz: float) -> tuple[float, ...]:
+    """C_nb row by row (9 floats) of q_nb: quat_to_dcm's expressions in its order."""
+    return (
+        qw * qw + qx * qx - qy * qy - qz * qz,
+        2.0 * (qx * qy - qw * qz),
+        2.0 * (qx * qz + qw * qy),
+        2.0 * (qx * qy + qw * qz),
+        qw * qw - qx * qx + qy * qy - qz * qz,
+        2.0 * (qy * qz - qw * qx),
+        2.0 * (qx * qz - qw * qy),
+        2.0 * (qy * qz + qw * qx),
+        qw * qw - qx * qx - qy * qy + qz * qz,
+    )
 
 
 @dataclass(frozen=True)
@@ -64,9 +178,6 @@ class StrapdownTrack:
     q_nb: F64
 
 
-_State = tuple[float, ...]  # lat, lon, h, vn, ve, vd, qw, qx, qy, qz, pθx, pθy, pθz, pvx, pvy, pvz
-
-
 def _gravity(lat: float, h: float) -> float:
     s2 = math.sin(lat) ** 2
     g0 = GAMMA_E_MPS2 * (1.0 + _K_SOMIGLIANA * s2) / math.sqrt(1.0 - E2 * s2)
@@ -77,6 +188,16 @@ def _radii(lat: float) -> tuple[float, float]:
     w = 1.0 - E2 * math.sin(lat) ** 2
     sw = math.sqrt(w)
     return A_M * (1.0 - E2) / (w * sw), A_M / sw
+
+
+# constant subexpressions of _radii and _gravity, as Python evaluates them there (left to right)
+_AM_1ME2 = A_M * (1.0 - E2)
+_G_2A = 2.0 / A_M
+_G_1 = 1.0 + F + _M_RATIO
+_G_2F = 2.0 * F
+_AA = A_M * A_M
+_2W = 2.0 * OMEGA_IE_RADPS
+_M2W = -2.0 * OMEGA_IE_RADPS
 
 
 def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
@@ -114,21 +235,41 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     # first-order prediction to mid-interval with the full g and Coriolis/centripetal terms:
     # cheaper shortcuts here (constant g, no v²/R) leave a ~1e-9 m/s² vertical bias that the
     # unstable vertical channel grows to centimetres in an hour
-    r_m0, r_n0 = _radii(lat)
-    o_n = 2.0 * OMEGA_IE_RADPS * math.cos(lat) + ve / (r_n0 + h)
-    o_e = -vn / (r_m0 + h)
-    o_d = -2.0 * OMEGA_IE_RADPS * math.sin(lat) - ve * math.tan(lat) / (r_n0 + h)
+    # (_radii and _gravity written out, sharing sin L and √(1 − e² sin²L): the same operations)
+    s0 = math.sin(lat)
+    s2 = s0**2
+    w = 1.0 - E2 * s2
+    sw = math.sqrt(w)
+    rmh0, rnh0 = _AM_1ME2 / (w * sw) + h, A_M / sw + h
+    g_0 = (
+        GAMMA_E_MPS2
+        * (1.0 + _K_SOMIGLIANA * s2)
+        / sw
+        * (1.0 - _G_2A * (_G_1 - _G_2F * s2) * h + 3.0 * h * h / _AA)
+    )
+    o_n = _2W * math.cos(lat) + ve / rnh0
+    o_e = -vn / rmh0
+    o_d = _M2W * s0 - ve * math.tan(lat) / rnh0
     vn_m = vn + 0.5 * (fn - (o_e * vd - o_d * ve) * dt)
     ve_m = ve + 0.5 * (fe - (o_d * vn - o_n * vd) * dt)
-    vd_m = vd + 0.5 * (fd + (_gravity(lat, h) - (o_n * ve - o_e * vn)) * dt)
-    lat_m = lat + 0.5 * dt * vn_m / (r_m0 + h)
-    h_m = h - 0.5 * dt * vd_m
+    vd_m = vd + 0.5 * (fd + (g_0 - (o_n * ve - o_e * vn)) * dt)
+    hdt = 0.5 * dt
+    lat_m = lat + hdt * vn_m / rmh0
+    h_m = h - hdt * vd_m
 
     # mid-interval Earth quantities: radii, gravity, ω_ie, ω_en
-    r_m, r_n = _radii(lat_m)
     sl, cl = math.sin(lat_m), math.cos(lat_m)
+    s2 = sl**2
+    w = 1.0 - E2 * s2
+    sw = math.sqrt(w)
+    r_m, r_n = _AM_1ME2 / (w * sw), A_M / sw
     tl = sl / cl
-    g = _gravity(lat_m, h_m)
+    g = (
+        GAMMA_E_MPS2
+        * (1.0 + _K_SOMIGLIANA * s2)
+        / sw
+        * (1.0 - _G_2A * (_G_1 - _G_2F * s2) * h_m + 3.0 * h_m * h_m / _AA)
+    )
     rmh, rnh = r_m + h_m, r_n + h_m
     wie_n, wie_d = OMEGA_IE_RADPS * cl, -OMEGA_IE_RADPS * sl
     wen_n, wen_e, wen_d = ve_m / rnh, -vn_m / rmh, -ve_m * tl / rnh
@@ -189,39 +330,18 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     )
 
 
-def _pack(s: StrapdownState) -> _State:
-    v, q, p, u = s.vel_ned_mps, s.q_nb, s.prev_dtheta_b_rad, s.prev_dvel_b_mps
-    return (
-        float(s.lat_rad),
-        float(s.lon_rad),
-        float(s.alt_m),
-        float(v[0]),
-        float(v[1]),
-        float(v[2]),
-        float(q[0]),
-        float(q[1]),
-        float(q[2]),
-        float(q[3]),
-        float(p[0]),
-        float(p[1]),
-        float(p[2]),
-        float(u[0]),
-        float(u[1]),
-        float(u[2]),
-    )
-
-
-def _unpack(t: _State) -> StrapdownState:
-    return StrapdownState(
-        t[0], t[1], t[2], np.array(t[3:6]), np.array(t[6:10]), np.array(t[10:13]), np.array(t[13:16])
-    )
-
-
 def strapdown_step(s: StrapdownState, dtheta_b_rad: Any, dvel_b_mps: Any, dt_s: float) -> StrapdownState:
     """Advance by one IMU interval (increments (3,), interval dt_s). Pure: ``s`` is not changed."""
-    th = [float(x) for x in dtheta_b_rad]
-    dv = [float(x) for x in dvel_b_mps]
-    return _unpack(_step(_pack(s), th[0], th[1], th[2], dv[0], dv[1], dv[2], float(dt_s)))
+    tx, ty, tz = (float(x) for x in dtheta_b_rad)
+    ux, uy, uz = (float(x) for x in dvel_b_mps)
+    return _new(StrapdownState, _step(s, tx, ty, tz, ux, uy, uz, float(dt_s)))
+
+
+def strapdown_step_f(
+    s: StrapdownState, tx: float, ty: float, tz: float, ux: float, uy: float, uz: float, dt_s: float
+) -> StrapdownState:
+    """:func:`strapdown_step` with the increments as Python floats (the fusion's per-IMU path)."""
+    return _new(StrapdownState, _step(s, tx, ty, tz, ux, uy, uz, dt_s))
 
 
 def strapdown_run(
@@ -241,7 +361,7 @@ def strapdown_run(
     """
     th = np.asarray(dtheta_b_rad, dtype=float).tolist()
     dv = np.asarray(dvel_b_mps, dtype=float).tolist()
-    st = _pack(s)
+    st: _State = tuple(s)
     dt = float(dt_s)
     rows: list[_State] = []
     idx: list[int] = []
@@ -259,18 +379,12 @@ def strapdown_run(
     track = StrapdownTrack(
         np.array(idx, dtype=float), arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3:6], arr[:, 6:10]
     )
-    return _unpack(st), track
+    return StrapdownState.of(st), track
 
 
 def strapdown_from_initial(init: InitialState) -> StrapdownState:
     """The INS aligned to the rig's initial state (no increment memory yet)."""
-    return StrapdownState(
-        init.lat_rad,
-        init.lon_rad,
-        init.alt_m,
-        np.asarray(init.vel_ned_mps, dtype=float).copy(),
-        np.asarray(init.q_nb, dtype=float).copy(),
-    )
+    return StrapdownState(init.lat_rad, init.lon_rad, init.alt_m, init.vel_ned_mps, init.q_nb)
 
 
 def to_nav_state(s: StrapdownState, origin: InitialState | tuple[float, float, float]) -> NavState:
@@ -279,7 +393,37 @@ def to_nav_state(s: StrapdownState, origin: InitialState | tuple[float, float, f
         o = (origin.origin_lat_rad, origin.origin_lon_rad, origin.origin_alt_m)
     else:
         o = origin
-    pos = lla_to_ned(s.lat_rad, s.lon_rad, s.alt_m, o[0], o[1], o[2])
-    return NavState(
-        pos_ned_m=np.asarray(pos, dtype=float), vel_ned_mps=s.vel_ned_mps.copy(), q_nb=s.q_nb.copy()
-    )
+    pos = lla_to_ned(s[0], s[1], s[2], o[0], o[1], o[2])
+    return NavState(pos_ned_m=pos, vel_ned_mps=np.array(s[3:6]), q_nb=np.array(s[6:10]))
+
+
+class LazyNavState(NavState):
+    """:func:`to_nav_state` of a strapdown state, each part built when it is first read.
+
+    The fusion hands the free INS to every estimator at every IMU step, and most of them read it
+    only at a GNSS fix or an output: the NED position (an ECEF round trip) and the arrays are
+    then built for one step in eight, with the same values :func:`to_nav_state` gives.
+    """
+
+    def __init__(self, s: StrapdownState, origin: tuple[float, float, float]) -> None:
+        # a frozen dataclass: the fields are the properties below, the inputs go in __dict__
+        d = self.__dict__
+        d["_s"], d["_o"] = s, origin
+
+    @cached_property
+    def pos_ned_m(self) -> F64:  # type: ignore[override]
+        s, o = self._s, self._o
+        return lla_to_ned(s[0], s[1], s[2], o[0], o[1], o[2])
+
+    @cached_property
+    def vel_ned_mps(self) -> F64:  # type: ignore[override]
+        return np.array(self._s[3:6])
+
+    @cached_property
+    def q_nb(self) -> F64:  # type: ignore[override]
+        return np.array(self._s[6:10])
+
+    def floats(self) -> tuple[list[float], tuple[float, ...], tuple[float, ...]]:
+        """Position, velocity and attitude as Python floats (the values of the arrays)."""
+        s = self._s
+        return self.pos_ned_m.tolist(), s[3:6], s[6:10]

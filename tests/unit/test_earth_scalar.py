@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hil.nav import earth
@@ -26,3 +28,15 @@ def test_one_point_is_the_array_paths_bits() -> None:
             assert [np.asarray(v).tobytes() for v in back] == [np.asarray(v[0]).tobytes() for v in ref]
             n_checked += 1
     assert n_checked > 1000
+
+
+def test_numpys_float64_sin_and_cos_are_maths() -> None:
+    """The one-point paths take sin and cos from math: numpy's float64 loops call the C
+    library's, so they must agree bit for bit (arrays and scalars) wherever latitudes and
+    longitudes go."""
+    rng = np.random.default_rng(21)
+    x = np.concatenate([rng.uniform(-3.2, 3.2, 200_000), rng.normal(0.0, 1e-4, 20_000)])
+    xs = x.tolist()
+    assert np.sin(x).tolist() == [math.sin(v) for v in xs]
+    assert np.cos(x).tolist() == [math.cos(v) for v in xs]
+    assert [float(np.sin(np.float64(v))) for v in xs[:5000]] == [math.sin(v) for v in xs[:5000]]

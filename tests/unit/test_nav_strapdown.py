@@ -74,7 +74,7 @@ def test_schuler_oscillation_from_a_1_mrad_tilt() -> None:
     t = (np.arange(n + 1, dtype=np.int64) * 1_000_000_000) // rate
     dth, dv = tg.increments(t[:-1], t[1:])
     s0 = strapdown_from_initial(tg.initial_state())
-    s0.q_nb = quat_multiply(euler_to_quat([1e-3, 0.0, 0.0]), s0.q_nb)
+    s0 = s0.replace(q_nb=quat_multiply(euler_to_quat([1e-3, 0.0, 0.0]), s0.q_nb))
     # WHEN the free INS runs offline (height held: the free vertical channel diverges)
     wall = time.perf_counter()
     _, tr = strapdown_run(s0, dth, dv, 1 / rate, record_every=rate * 10, vertical_hold=True)
