@@ -71,6 +71,16 @@ def radii_of_curvature(lat_rad: ArrayLike) -> tuple[F64, F64]:
     return r_m, r_n
 
 
+def radii_of_curvature_one(lat_rad: float) -> tuple[float, float]:
+    """``radii_of_curvature`` of one latitude on Python floats: the same IEEE operations in the
+    same order (numpy's float64 sin is libm's, as math's: tests/unit/test_earth_scalar.py), at a
+    fraction of numpy's per-call cost on a scalar."""
+    sl = math.sin(lat_rad)
+    w = 1.0 - E2 * (sl * sl)
+    sw = math.sqrt(w)
+    return A_M * (1.0 - E2) / (w * sw), A_M / sw
+
+
 def normal_gravity(lat_rad: ArrayLike, alt_m: ArrayLike) -> F64:
     """Magnitude of normal gravity (gravitation + centrifugal), m/s², pointing down in NED.
 

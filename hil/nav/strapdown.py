@@ -184,13 +184,8 @@ def _gravity(lat: float, h: float) -> float:
     return g0 * (1.0 - 2.0 / A_M * (1.0 + F + _M_RATIO - 2.0 * F * s2) * h + 3.0 * h * h / (A_M * A_M))
 
 
-def _radii(lat: float) -> tuple[float, float]:
-    w = 1.0 - E2 * math.sin(lat) ** 2
-    sw = math.sqrt(w)
-    return A_M * (1.0 - E2) / (w * sw), A_M / sw
-
-
-# constant subexpressions of _radii and _gravity, as Python evaluates them there (left to right)
+# constant subexpressions of earth.radii_of_curvature_one and _gravity, as Python evaluates
+# them there (left to right)
 _AM_1ME2 = A_M * (1.0 - E2)
 _G_2A = 2.0 / A_M
 _G_1 = 1.0 + F + _M_RATIO
@@ -235,7 +230,8 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     # first-order prediction to mid-interval with the full g and Coriolis/centripetal terms:
     # cheaper shortcuts here (constant g, no v²/R) leave a ~1e-9 m/s² vertical bias that the
     # unstable vertical channel grows to centimetres in an hour
-    # (_radii and _gravity written out, sharing sin L and √(1 − e² sin²L): the same operations)
+    # (earth.radii_of_curvature_one and _gravity written out, sharing sin L and √(1 − e² sin²L):
+    # the same operations)
     s0 = math.sin(lat)
     s2 = s0**2
     w = 1.0 - E2 * s2

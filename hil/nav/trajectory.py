@@ -28,14 +28,13 @@ import numpy as np
 
 from hil.nav.attitude import euler_rates_to_body_rate, euler_to_dcm, euler_to_quat, quat_normalise
 from hil.nav.earth import (
-    A_M,
-    E2,
     cross,
     earth_rate_ned,
     lla_to_ned,
     mat_vec,
     normal_gravity,
     radii_of_curvature,
+    radii_of_curvature_one,
     transport_rate_ned,
 )
 from hil.nav.scenario import MotionSegment, Scenario
@@ -212,15 +211,10 @@ class TruthGenerator:
         return euler, c_nb, w_nb_b, v_n, vdot_n
 
     @staticmethod
-    def _pos_rate(lat: float, h: float, v: tuple[float, float, float]) -> tuple[float, float, float]:
+    def _pos_rate(lat: float, h: float, v: list[float]) -> tuple[float, float, float]:
         """(lat, lon, h) rates in plain floats: the RK4 below calls this four times per knot, and
-        numpy's per-call cost on a scalar was most of a long scenario's start-up. The same IEEE
-        operations in the same order as ``radii_of_curvature``, so the knots are bit-identical."""
-        sl = math.sin(lat)
-        w = 1.0 - E2 * (sl * sl)
-        sw = math.sqrt(w)
-        r_m = A_M * (1.0 - E2) / (w * sw)
-        r_n = A_M / sw
+        numpy's per-call cost on a scalar was most of a long scenario's start-up."""
+        r_m, r_n = radii_of_curvature_one(lat)
         return (v[0] / (r_m + h), v[1] / ((r_n + h) * math.cos(lat)), -v[2])
 
     def _build_position_knots(self) -> None:

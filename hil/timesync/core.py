@@ -207,21 +207,25 @@ class TagFilter:
 # arrivals: one-way-delay lower bound
 
 
-def lower_hull(points: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    """Lower convex hull (Andrew's monotone chain) of points sorted by x.
+def _chain_push(hull: list[tuple[int, int]], p: tuple[int, int]) -> None:
+    """One step of Andrew's monotone chain: ``p``, right of every point in ``hull``, joins the
+    lower hull. The turn test (cross product of hull[-2] -> hull[-1] and hull[-2] -> p) is
+    written out: it runs for every arrival block."""
+    px, py = p
+    while len(hull) >= 2:
+        ox, oy = hull[-2]
+        ax, ay = hull[-1]
+        if (ax - ox) * (py - oy) - (ay - oy) * (px - ox) > 0:
+            break
+        hull.pop()
+    hull.append(p)
 
-    The turn test (cross product of hull[-2] -> hull[-1] and hull[-2] -> p) is written out, not
-    called: it runs for every block of a sensor's window at each refit."""
+
+def lower_hull(points: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Lower convex hull (Andrew's monotone chain) of points sorted by x."""
     hull: list[tuple[int, int]] = []
     for p in points:
-        px, py = p
-        while len(hull) >= 2:
-            ox, oy = hull[-2]
-            ax, ay = hull[-1]
-            if (ax - ox) * (py - oy) - (ay - oy) * (px - ox) > 0:
-                break
-            hull.pop()
-        hull.append(p)
+        _chain_push(hull, p)
     return hull
 
 
@@ -254,15 +258,7 @@ class _SlidingLowerHull:
     def push(self, p: tuple[int, int]) -> None:
         """A point right of all others (``lower_hull``'s step)."""
         self.back.append(p)
-        hull = self.back_hull
-        px, py = p
-        while len(hull) >= 2:
-            ox, oy = hull[-2]
-            ax, ay = hull[-1]
-            if (ax - ox) * (py - oy) - (ay - oy) * (px - ox) > 0:
-                break
-            hull.pop()
-        hull.append(p)
+        _chain_push(self.back_hull, p)
 
     def pop_oldest(self) -> None:
         """The leftmost point leaves."""

@@ -40,3 +40,11 @@ def test_numpys_float64_sin_and_cos_are_maths() -> None:
     assert np.sin(x).tolist() == [math.sin(v) for v in xs]
     assert np.cos(x).tolist() == [math.cos(v) for v in xs]
     assert [float(np.sin(np.float64(v))) for v in xs[:5000]] == [math.sin(v) for v in xs[:5000]]
+
+
+def test_radii_of_one_latitude_are_the_array_paths_bits() -> None:
+    lat = np.random.default_rng(22).uniform(-1.57, 1.57, 20_000)
+    r_m, r_n = earth.radii_of_curvature(lat)
+    assert [earth.radii_of_curvature_one(v) for v in lat.tolist()] == list(
+        zip(r_m.tolist(), r_n.tolist(), strict=True)
+    )
