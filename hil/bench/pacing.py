@@ -113,7 +113,7 @@ def _last_counters(session: object) -> dict[str, int]:
     last: dict[str, int] = {}
     for r in session.records:  # type: ignore[attr-defined]
         if r.topic.endswith("/status/imu_emulator"):
-            last = dict(r.decode().counters)
+            last = r.decode().counter_map()
     return last
 
 

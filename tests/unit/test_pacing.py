@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
@@ -155,3 +156,14 @@ def test_a_time_tag_handed_over_late_is_stamped_with_its_stated_instant_or_dropp
         assert ps.counts["tx_sync_dropped"] == 0
     else:  # SocketCAN stamps at send: a tag that cannot meet its instant is not sent
         assert sink.sent == [] and ps.counts["tx_sync_dropped"] == 1
+
+
+def test_the_pacing_bench_reads_the_emulators_last_counters_from_a_recording() -> None:
+    """hil bench pacing took ServiceStatus.counters for a mapping (it is a list of Count) and died."""
+    from hil.bench.pacing import _last_counters
+    from hil.record.mcapio import read_session
+
+    golden = Path(__file__).parents[1] / "replay" / "golden" / "straight_level_4s.mcap"
+    counters = _last_counters(read_session(golden))
+    assert counters["tx_fault_dropped_samples"] == 0
+    assert set(counters) >= {"tx_corrupted_frames", "tx_saturated_samples"}
