@@ -173,7 +173,12 @@ def _markdown(a: argparse.Namespace, d: dict[str, Any], rows: list[dict[str, Any
             f"| {what} | {r['wall_s']:.1f}{med} | {rate:.1f} | {rate / rate1:.2f}x | {cpu / n:.2f} "
             f"| {r['startup_s']:.1f} | {r['ok']}/{n} ({r['lost']} without a result) |"
         )
-    lines += ["", *_overhead_lines(d, one, n), "", _conditions(loads, any(r["killed"] for r in rows))]
+    lines += [
+        "",
+        *_overhead_lines(d, one, n),
+        "",
+        _conditions(loads, any(r["killed"] for r in rows), max(r["workers"] for r in rows)),
+    ]
     return "\n".join(lines)
 
 
@@ -194,20 +199,20 @@ def _overhead_lines(d: dict[str, Any], one: dict[str, Any], n: int) -> list[str]
     ]
 
 
-def _conditions(loads: list[str], killed: bool) -> str:
+def _conditions(loads: list[str], killed: bool, workers: int) -> str:
+    cores = os.cpu_count() or 1
     text = (
-        f"Load average (1 min) at the start and after each repeat: {', '.join(loads)}. This machine has "
-        f"{os.cpu_count()} cores shared with other work (another engineer's tests and benchmarks ran at "
-        "the same time), so wall-clock figures and the 2-worker scaling are bounded by the cores left "
-        "free, not by Dask; on an idle machine with more cores the ratio approaches the worker count "
-        "(runs are independent, a run's result is a few kB)."
+        f"Load average (1 min) at the start and after each repeat: {', '.join(loads)}, on {cores} cores; "
+        f"the campaign's own processes count in it (up to {workers} workers busy). Wall-clock figures and "
+        "the scaling are bounded by the cores the machine leaves free, not by Dask; on an idle machine "
+        "with more cores the ratio approaches the worker count (runs are independent, a run's result is "
+        "a few kB)."
     )
-    if max(float(x) for x in loads) >= (os.cpu_count() or 1):
+    if max(float(x) for x in loads[1:] or loads) >= cores + 1:
         text += (
-            " Here the load average reached the core count or more, so no core was free: a second worker "
-            "only shared the same CPU with the first and with the other work (the 2-worker rows cost more "
-            "wall and more CPU per run), and the scaling ratio above is a measure of that load, not of "
-            "Dask. Rerun on an idle machine to measure the scaling."
+            " Here the load average stayed above the core count plus one through the repeats: other work "
+            "held cores, a second worker shared CPU with the first and with it, and the scaling ratio "
+            "above measures that load, not Dask. Rerun on an idle machine to measure the scaling."
         )
     if killed:
         text += (
