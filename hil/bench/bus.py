@@ -355,8 +355,8 @@ def main(argv: list[str]) -> int:
             *_fmt_table(results),
             "",
             f"Load average (1 min): {load:.2f} before, {load_after:.2f} after, on {os.cpu_count()} cores "
-            "(other engineers' suites running): throughput is what a process got of a busy machine, "
-            "CPU per message is the robust figure.",
+            "(whatever else ran on the machine counts in it): throughput is what a process got of the "
+            "machine, CPU per message is the robust figure.",
         ]
     )
     print(body)

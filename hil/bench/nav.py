@@ -557,8 +557,8 @@ def main(argv: list[str]) -> int:
         mc = heading_mc(args.heading_runs, args.heading_s)
         parts.append(heading_text(mc))
     md = "\n\n".join(parts) + (
-        f"\n\nWall time {time.perf_counter() - t_start:.0f} s on a shared machine (other engineers' "
-        "suites and simulations were running on its 2 cores)."
+        f"\n\nWall time {time.perf_counter() - t_start:.0f} s on {os.cpu_count()} cores, load average "
+        f"(1 min) {os.getloadavg()[0]:.1f} at the end."
     )
     print(md)
     if not args.no_write:

@@ -279,7 +279,8 @@ def report(
         "(what a second core gave, when one was free); this tree's `hil sim` puts the fusion in a worker "
         "when two CPUs are available, `--one-process` keeps it in one (REF's sim anchors both rows). "
         f"Load average (1 min) {load[0]:.1f} at the start, {load[1]:.1f} at the end on "
-        f"{os.cpu_count()} cores: other engineers' work shared the machine, so take the ratios.",
+        f"{os.cpu_count()} cores (the bench's own processes count in it): CPU time stretches when other "
+        "work shares the cores, for both trees alike, so the ratios are the figure to compare.",
         "",
         *table(trees, a.duration),
         "",

@@ -201,8 +201,8 @@ def main(argv: list[str]) -> int:
             "pacing process handed a sample's first frame to the bus, minus its ideal instant (the "
             "sample's tick + the frame's bit time at 1 Mbit/s + the controller latency), "
             "`CLOCK_MONOTONIC` on the host. 'bursts' = samples handed over less than half a period "
-            "after the previous one. Load = the 1-minute load average just before the run (other "
-            "engineers' work on the same 2 cores).",
+            "after the previous one. Load = the 1-minute load average just before the run (the "
+            "rig's own processes and whatever else ran on the machine).",
             "",
             md_table(rows),
             "",

@@ -200,7 +200,7 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
     lines += [
         "",
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores (the rigs "
-        "themselves and other engineers' work); an older revision's table may lack the supervisor row. "
+        "themselves and whatever else ran); an older revision's table may lack the supervisor row. "
         "A rig starved of CPU sends fewer samples than its rate: CPU per IMU sample (every process of "
         "the rig over the samples recorded) is the figure to compare.",
     ]
