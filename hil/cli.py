@@ -182,14 +182,12 @@ def _cpu_list(text: str) -> list[int]:
 def cmd_up(a: argparse.Namespace) -> int:
     from hil.bus.identity import rig_key_from_env
     from hil.bus.keys import check_name
-    from hil.bus.session import use_rig_runtime
     from hil.nav.scenario import load_scenario
     from hil.record.info import describe
     from hil.record.mcapio import split_parts
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
-    use_rig_runtime()  # the hub's process: before its session opens
     rig_key_from_env()  # a malformed HIL_RIG_KEY is one line, before anything starts
     _check_record_filter(a)
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message

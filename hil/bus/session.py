@@ -91,6 +91,11 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
 # same machine (load 4-6): the rig's CPU 115-122 % of a core in 5 runs against 129-149 % in 6, the
 # hub's own ~23 -> ~19 %, no sample lost, the median IMU-to-fused-output latency ~1 ms longer.
 # Giving rx a thread of its own saved less (119-149 %). ``ZENOH_RUNTIME`` set by the user wins.
+# Not the hub's (hil up's own process, as hil router and zenohd): it routes every message of the
+# rig, and on one worker it fell behind at 2 kHz with CAN FD (~10000 messages/s in, more out):
+# in 30 s the recorder missed 56000-98000 messages (12-43 % of the IMU topics, a quarter of the
+# truth) and the IMU reached the bridge at 1000-1400 Hz. On Zenoh's defaults it lost none, for
+# 0-5 % more of a core at 400 Hz (2026-12-03, 30 s runs of hil up on a quiet machine).
 RIG_ZENOH_RUNTIME = (
     "(rx: (handover: app), acc: (handover: app), net: (handover: app), "
     "app: (worker_threads: 1), tx: (worker_threads: 1))"
