@@ -42,7 +42,7 @@ from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher
 from hil.bus.session import BusConfig, open_session
 from hil.messages import CanFrame, ImuSample, RunInfo, ServiceStatus, Truth, decode, encode
-from hil.record.mcapio import Record, SessionStream, iter_records, read_session
+from hil.record.mcapio import Record, SessionStream, iter_records, read_session, rig_time_ns, run_start
 from hil.record.replay import ReplayOptions, replay
 from hil.record.rerun import RERUN_WINDOW_S, rerun_fusion_records
 from hil.runtime.argtypes import OneLineParser
@@ -221,10 +221,11 @@ def bench_rerun(path: Path, end_s: float | None) -> dict[str, float]:
             last["n"] += 1
             yield r
 
+    start_epoch, _ = run_start(path)  # the stamps are on the wall-clock timeline since the fox merge
     t0 = time.monotonic()
     res = rerun_fusion_records(records(), window_ns=round(RERUN_WINDOW_S * 1e9), name=str(path))
     wall = time.monotonic() - t0
-    span = last["imu_stamp"] * 1e-9
+    span = rig_time_ns(last["imu_stamp"], start_epoch or 0) * 1e-9
     return {
         "duration_s": span,
         "messages": last["n"],
