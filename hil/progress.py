@@ -10,7 +10,10 @@ Stdlib only, so any module may use it::
     # or bar.advance(n) for counts; total=None shows position and rate without a bar
 
 Pass ``enabled=True/False`` to override the TTY test (tests pass a ``StringIO`` and
-``enabled=True``). Output is ``\\r``-redrawn and ends with a newline on ``close()``.
+``enabled=True``). Output is ``\\r``-redrawn and ends with a newline on ``close()``. Work that runs
+for hours, often with stderr in a log file (a campaign under nohup or on a cluster's node), passes
+``log_every_s``: without a TTY it then writes the same line, newline-ended, at most that often and
+at ``close()``, instead of nothing.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ class Progress:
         stream: TextIO | None = None,
         enabled: bool | None = None,
         min_interval_s: float = 0.2,
+        log_every_s: float | None = None,
     ) -> None:
         self.label = label
         self.total = total if total and total > 0 else None
@@ -52,6 +56,8 @@ class Progress:
             enabled = bool(isatty and isatty())
         self.enabled = enabled
         self.min_interval_s = min_interval_s
+        self.log_every_s = None if enabled else log_every_s
+        self._last_log = -float("inf")
         self.done = 0.0
         self.stage = ""
         self._t0 = time.monotonic()
@@ -87,7 +93,15 @@ class Progress:
         )
 
     def _draw(self, force: bool) -> None:
-        if not self.enabled or self.closed:
+        if self.closed:
+            return
+        if not self.enabled:
+            if self.log_every_s is not None:
+                now = time.monotonic()
+                if force or now - self._last_log >= self.log_every_s:
+                    self._last_log = now
+                    self.stream.write(self.line() + "\n")
+                    self.stream.flush()
             return
         now = time.monotonic()
         if not force and now - self._last < self.min_interval_s:
@@ -107,6 +121,8 @@ class Progress:
             self._draw(force=True)
             self.stream.write("\n")
             self.stream.flush()
+        elif self.log_every_s is not None:
+            self._draw(force=True)
         self.closed = True
 
     def __enter__(self) -> Progress:

@@ -158,7 +158,9 @@ def _collect(
 
     by_key = {f.key: r for f, r in zip(futures, todo, strict=True)}
     keys = set(current_keys(opts.out_dir) or ())
-    bar = Progress("campaign", total=len(todo), unit="runs", enabled=opts.progress)
+    # without a terminal (nohup, a log file): a line a minute, so a run of hours shows its ETA
+    log_every = 60.0 if opts.progress is None else None
+    bar = Progress("campaign", total=len(todo), unit="runs", enabled=opts.progress, log_every_s=log_every)
     next_table = time.monotonic() + opts.table_every_s
     try:
         for fut in as_completed(futures, loop=client.loop):
