@@ -19,12 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from hil.bench import command_line, write_section
+from hil.bench.horizon import STARTUP_S  # the IMU is held until time sync locks (~3 s), then late
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
 from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
-
-STARTUP_S = 5.0  # as hil bench horizon: the IMU is held until time sync locks (~3 s), then arrives late
 
 
 def hop_latencies_ms(path: Path, rig: str, skip_s: float = 0.0) -> dict[str, np.ndarray]:
