@@ -10,14 +10,18 @@ recorder received a message, on the rig clock), not from the stamps a message cl
 from __future__ import annotations
 
 import json
+from array import array
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
 
 from hil.record.completeness import Completeness
-from hil.record.mcapio import Record, Session, read_session
+from hil.record.mcapio import Record, RecordingError, Session, iter_records
 
 
 class _Seq(msgspec.Struct):
@@ -50,76 +54,152 @@ class ChannelInfo:
     restarts: int = 0
 
 
+class Summary:
+    """One pass over a recording's messages, keeping what ``describe`` and ``info`` print and no
+    message: a 12000 s session is 36 M messages, and holding them (``read_session``) took 18.9 GB.
+    ``accuracy``: also the truth and every estimator's horizontal position, as float arrays."""
+
+    def __init__(self, accuracy: bool = True) -> None:
+        self.accuracy = accuracy
+        self.comp = Completeness()
+        self.spans: dict[str, list[int]] = {}
+        self.schemas: dict[str, str] = {}
+        self.counts: dict[str, int] = {}
+        self.foreign_topics: dict[str, int] = {}
+        self.publishers: set[str] = set()
+        self.truth: tuple[array[int], array[float], array[float]] = (array("q"), array("d"), array("d"))
+        self.nav: dict[str, tuple[array[int], array[float], array[float]]] = {}
+
+    def add(self, r: Record) -> None:
+        topic = r.topic
+        if r.foreign:
+            self.foreign_topics[topic] = self.foreign_topics.get(topic, 0) + 1
+            self.publishers.add(r.publisher)
+            return
+        self.comp.see(topic, record_seq(r))
+        t = r.log_time_ns
+        sp = self.spans.get(topic)
+        if sp is None:
+            self.spans[topic] = [t, t]
+            self.schemas[topic] = r.schema
+            self.counts[topic] = 1
+        else:
+            sp[0] = min(sp[0], t)
+            sp[1] = max(sp[1], t)
+            self.counts[topic] += 1
+        if not self.accuracy:
+            return
+        if r.schema == "hil.Truth":
+            self._row(self.truth, r.decode())
+        elif r.schema == "hil.NavSolution":
+            m = r.decode()
+            rows = self.nav.get(m.estimator)  # type: ignore[attr-defined]
+            if rows is None:
+                rows = self.nav[m.estimator] = (array("q"), array("d"), array("d"))  # type: ignore[attr-defined]
+            self._row(rows, m)
+
+    @staticmethod
+    def _row(rows: tuple[array[int], array[float], array[float]], m: Any) -> None:
+        rows[0].append(m.stamp_ns)
+        rows[1].append(m.pos_ned_m[0])
+        rows[2].append(m.pos_ned_m[1])
+
+    def channel_infos(self) -> list[ChannelInfo]:
+        """Per topic, the rig's messages (foreign ones left out: ``foreign_summary``)."""
+        out = []
+        for topic in sorted(self.counts):
+            a, b = self.spans[topic]
+            n = self.counts[topic]
+            rate = (n - 1) / ((b - a) * 1e-9) if n > 1 and b > a else 0.0
+            tr = self.comp.topics[topic]
+            out.append(
+                ChannelInfo(topic, self.schemas[topic], n, rate, a, b, tr.missing, tr.duplicates, tr.restarts)
+            )
+        return out
+
+    def foreign_summary(self) -> dict[str, object]:
+        """What publishers that are not the rig's sent: messages per topic, and who."""
+        topics = self.foreign_topics
+        return {"messages": sum(topics.values()), "publishers": sorted(self.publishers), "topics": topics}
+
+    def estimator_errors(self) -> dict[str, dict[str, float]]:
+        """Horizontal position error of every estimator vs truth (interpolated at the solution stamps)."""
+        if len(self.truth[0]) < 2:
+            return {}
+        tt = np.asarray(self.truth[0], dtype=np.float64)
+        tn, te = (np.frombuffer(c, dtype=np.float64) for c in self.truth[1:])
+        out: dict[str, dict[str, float]] = {}
+        for name, (ts, pn, pe) in self.nav.items():
+            t = np.asarray(ts, dtype=np.float64)
+            ok = (t >= tt[0]) & (t <= tt[-1])
+            if not ok.any():
+                continue
+            dn = np.frombuffer(pn, dtype=np.float64)[ok] - np.interp(t[ok], tt, tn)
+            de = np.frombuffer(pe, dtype=np.float64)[ok] - np.interp(t[ok], tt, te)
+            h = np.hypot(dn, de)
+            out[name] = {
+                "n": float(ok.sum()),
+                "rms_m": float(np.sqrt(np.mean(h**2))),
+                "p95_m": float(np.percentile(h, 95)),
+                "max_m": float(h.max()),
+                "final_m": float(h[-1]),
+            }
+        return out
+
+
+def summarise(records: Iterable[Record], accuracy: bool = True) -> Summary:
+    s = Summary(accuracy)
+    for r in records:
+        s.add(r)
+    return s
+
+
 def channel_infos(session: Session) -> list[ChannelInfo]:
     """Per topic, the rig's messages (foreign ones left out: ``foreign_summary``)."""
-    comp = Completeness()
-    spans: dict[str, list[int]] = {}
-    schemas: dict[str, str] = {}
-    counts: dict[str, int] = {}
-    for r in session.records:
-        if r.foreign:
-            continue
-        comp.see(r.topic, record_seq(r))
-        sp = spans.setdefault(r.topic, [r.log_time_ns, r.log_time_ns])
-        sp[0] = min(sp[0], r.log_time_ns)
-        sp[1] = max(sp[1], r.log_time_ns)
-        schemas.setdefault(r.topic, r.schema)
-        counts[r.topic] = counts.get(r.topic, 0) + 1
-    out = []
-    for topic in sorted(counts):
-        a, b = spans[topic]
-        n = counts[topic]
-        rate = (n - 1) / ((b - a) * 1e-9) if n > 1 and b > a else 0.0
-        tr = comp.topics[topic]
-        out.append(ChannelInfo(topic, schemas[topic], n, rate, a, b, tr.missing, tr.duplicates, tr.restarts))
-    return out
+    return summarise(session.records, accuracy=False).channel_infos()
 
 
 def foreign_summary(session: Session) -> dict[str, object]:
     """What publishers that are not the rig's sent: messages per topic, and who."""
-    topics: dict[str, int] = {}
-    publishers: set[str] = set()
-    for r in session.records:
-        if r.foreign:
-            topics[r.topic] = topics.get(r.topic, 0) + 1
-            publishers.add(r.publisher)
-    return {"messages": sum(topics.values()), "publishers": sorted(publishers), "topics": topics}
+    return summarise(session.records, accuracy=False).foreign_summary()
 
 
 def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
     """Horizontal position error of every estimator vs truth (interpolated at the solution stamps)."""
-    truth = [r.decode() for r in session.records if r.schema == "hil.Truth" and not r.foreign]
-    if len(truth) < 2:
-        return {}
-    tt = np.array([t.stamp_ns for t in truth], dtype=np.float64)
-    tp = np.array([t.pos_ned_m for t in truth])
-    sols: dict[str, list[tuple[int, list[float]]]] = {}
-    for r in session.records:
-        if r.schema == "hil.NavSolution" and not r.foreign:
-            m = r.decode()
-            sols.setdefault(m.estimator, []).append((m.stamp_ns, m.pos_ned_m))  # type: ignore[attr-defined]
-    out: dict[str, dict[str, float]] = {}
-    for name, rows in sols.items():
-        t = np.array([s for s, _ in rows], dtype=np.float64)
-        p = np.array([q for _, q in rows])
-        ok = (t >= tt[0]) & (t <= tt[-1])
-        if not ok.any():
-            continue
-        ref = np.column_stack([np.interp(t[ok], tt, tp[:, i]) for i in range(3)])
-        h = np.hypot(*(p[ok, :2] - ref[:, :2]).T)
-        out[name] = {
-            "n": float(ok.sum()),
-            "rms_m": float(np.sqrt(np.mean(h**2))),
-            "p95_m": float(np.percentile(h, 95)),
-            "max_m": float(h.max()),
-            "final_m": float(h[-1]),
-        }
-    return out
+    return summarise(session.records).estimator_errors()
+
+
+@dataclass
+class _Scan:
+    summary: Summary
+    metadata: dict[str, dict[str, str]]
+    truncated: bool
+    truncation_reason: str
+
+
+def _scan(path: str | Path, *, derived: bool, accuracy: bool) -> _Scan:
+    """The file streamed once (``read_session``'s reading, its errors, without keeping records)."""
+    path = Path(path)
+    if not path.is_file():
+        raise RecordingError(f"no recording at {path}")
+    scan = _Scan(Summary(accuracy), {}, False, "")
+    n = 0
+    for kind, rec in iter_records(path, derived=derived):
+        if kind == "message":
+            scan.summary.add(rec)
+            n += 1
+        elif kind == "metadata":
+            scan.metadata[rec.name] = dict(rec.metadata)
+        elif kind == "truncated":
+            scan.truncated, scan.truncation_reason = True, rec
+    if not n and scan.truncated and not scan.metadata:
+        raise RecordingError(f"{path} is not a readable MCAP file ({scan.truncation_reason})")
+    return scan
 
 
 def describe(path: str, *, accuracy: bool = True) -> str:
-    s = read_session(path, derived=True)  # the Foxglove channels are listed too
-    infos = channel_infos(s)
+    s = _scan(path, derived=True, accuracy=accuracy)  # the Foxglove channels are listed too
+    infos = s.summary.channel_infos()
     t0 = min((c.first_ns for c in infos), default=0)
     t1 = max((c.last_ns for c in infos), default=0)
     lines = [f"file:      {path}"]
@@ -131,7 +211,7 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         )
     n_rig = sum(c.count for c in infos)
     lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {n_rig}   channels: {len(infos)}")
-    foreign = foreign_summary(s)
+    foreign = s.summary.foreign_summary()
     if foreign["messages"]:
         topics = foreign["topics"]
         assert isinstance(topics, dict)
@@ -185,7 +265,7 @@ def describe(path: str, *, accuracy: bool = True) -> str:
             f"{c.topic:<34}{c.schema:<25}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}{rst}"
         )
     if accuracy:
-        errs = estimator_errors(s)
+        errs = s.summary.estimator_errors()
         if errs:
             lines.append("")
             lines.append(f"{'estimator':<12}{'horiz RMS m':>12}{'95% m':>10}{'max m':>10}{'final m':>10}")
@@ -197,14 +277,14 @@ def describe(path: str, *, accuracy: bool = True) -> str:
 
 
 def info_json(path: str) -> str:
-    s = read_session(path)
+    s = _scan(path, derived=False, accuracy=True)
     return json.dumps(
         {
-            "channels": [c.__dict__ for c in channel_infos(s)],
-            "foreign": foreign_summary(s),
+            "channels": [c.__dict__ for c in s.summary.channel_infos()],
+            "foreign": s.summary.foreign_summary(),
             "truncated": s.truncated,
             "metadata": s.metadata,
-            "errors": estimator_errors(s),
+            "errors": s.summary.estimator_errors(),
         },
         indent=2,
     )
