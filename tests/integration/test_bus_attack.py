@@ -70,9 +70,7 @@ def attacked(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any
     scenario.write_text(SCENARIO)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     hub = open_session(BusConfig(mode="router", listen=(endpoint,), connect=()))
-    env = dict(
-        os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN=""
-    )
+    env = dict(os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="")
     procs: list[subprocess.Popen[str]] = []
     try:
         up = subprocess.Popen(

@@ -65,9 +65,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     sub = hub.declare_subscriber(f"hil/{RIG}/status/*", on_status)
     fused = threading.Event()  # the fusion publishes (after time sync locks: a few seconds in)
     nav_sub = hub.declare_subscriber(f"hil/{RIG}/nav/ekf15", lambda _s: fused.set())
-    env = dict(
-        os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN=""
-    )
+    env = dict(os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_CONNECT=endpoint, HIL_ZENOH_LISTEN="")
     record = tmp / "live.mcap"
     args = ["up", "--rig", RIG, "--duration", "60", "--quiet", "--record", str(record)]
     up = subprocess.Popen(

@@ -263,7 +263,9 @@ def test_hil_up_runs_the_unit_on_the_wires_and_scores_it(tmp_path: Path) -> None
     sols = [r.decode() for r in s.by_topic(f"hil/{RIG}/nav/dut_navbox")]
     bridge = [decode(ServiceStatus, r.payload) for r in s.by_topic(f"hil/{RIG}/status/can_bridge")][-1]
     rejected = bridge.counter_map().get("rejected.dut", 0)  # a starved bridge may see a frame go stale
-    assert len(sols) + rejected == len(closing) and rejected <= max(3, 0.05 * len(closing)), bridge.counter_map()
+    assert len(sols) + rejected == len(closing) and rejected <= max(3, 0.05 * len(closing)), (
+        bridge.counter_map()
+    )
     assert len(sols) >= 50
     t = np.array([x.stamp_ns for x in sols]) * 1e-9
     assert 0.08 < float(np.median(np.diff(t))) < 0.12  # the unit's 10 Hz, by the rig's stamps

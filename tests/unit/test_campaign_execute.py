@@ -73,7 +73,9 @@ def test_a_temporary_recording_holds_what_the_statistics_read_a_kept_one_everyth
     small = tmp_path / "small.mcap"
     sim_recording(sim_run, small, tmp_path, everything=False)
     topics = {r.topic for r in read_session(small).records}
-    assert topics == {"hil/sim/run", "hil/sim/truth"} | {f"hil/sim/nav/{e}" for e in ("compvs", "ekf15", "ins")}
+    assert topics == {"hil/sim/run", "hil/sim/truth"} | {
+        f"hil/sim/nav/{e}" for e in ("compvs", "ekf15", "ins")
+    }
     full = {r.topic for r in read_session(kept[0]).records}
     assert topics < full and {"hil/sim/sensor/imu", "hil/sim/synced/gnss"} <= full
 
