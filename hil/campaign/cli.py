@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import tomllib
 from importlib import resources
@@ -105,8 +106,36 @@ def _execute(doc: dict[str, Any], base: Path, a: argparse.Namespace, default_nam
         connect_timeout_s=a.connect_timeout,
         progress=False if a.quiet else None,
     )
-    res = run_campaign(spec, opts)
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        res = run_campaign(spec, opts)
+    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (kill, timeout, a batch system's stop)
+        return _stopped(spec.name, out, isinstance(stop, _Terminated))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return _summary(spec.name, out, res)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM taken as Ctrl-C is: the driver closes the cluster and writes the table on its way out."""
+
+
+def _terminate(_signum: int, _frame: Any) -> None:
+    raise _Terminated
+
+
+def _stopped(name: str, out: Path, terminated: bool) -> int:
+    """Every result that came back is in the journal already; say so, and how to go on."""
+    from hil.campaign.results import current_keys, read_results
+
+    keys = set(current_keys(out) or ())
+    done = len(read_results(out).done_keys() & keys)
+    print(
+        f"hil campaign {name}: stopped ({'SIGTERM' if terminated else 'interrupted'}): {done} of "
+        f"{len(keys)} runs have a result in {out}; the same command runs the rest",
+        file=sys.stderr,
+    )
+    return 143 if terminated else 130
 
 
 def _summary(name: str, out: Path, res: Any) -> int:

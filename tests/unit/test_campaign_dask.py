@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -231,3 +232,35 @@ def test_a_killed_worker_loses_no_result(cluster: Any, tmp_path: Path) -> None:
     assert res.counts == {OK: 4} and not res.failures
     rows = read_results(tmp_path).table()
     assert len(rows) == 8 and all(r["status"] == OK for r in rows)
+
+
+def test_sigterm_stops_a_campaign_saying_what_is_in_and_the_same_command_runs_the_rest(
+    cluster: Any, tmp_path: Path
+) -> None:
+    """kill, timeout and batch systems stop with SIGTERM: taken as Ctrl-C, one line on stderr."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "hil.cli", "campaign", "sim", "--scenario", "static", "--runs", "8"]
+    cmd += ["--duration", "2", "--out", str(tmp_path), "--scheduler", cluster.scheduler_address]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+    try:
+        journal = tmp_path / "results.jsonl"
+        deadline = time.monotonic() + 240
+        while p.poll() is None and time.monotonic() < deadline:
+            if journal.is_file() and journal.read_text().strip():
+                break
+            time.sleep(0.2)
+        assert p.poll() is None, "the campaign ended before it could be stopped"
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 143, err
+    done = len(read_results(tmp_path).done_keys())
+    assert 1 <= done < 8
+    assert f"stopped (SIGTERM): {done} of 8 runs have a result in {tmp_path}" in err, err
+    assert "the same command runs the rest" in err and "Traceback" not in err
+    again = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO, timeout=300)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert f"8 runs, {done} already done, {8 - done} run" in again.stdout
