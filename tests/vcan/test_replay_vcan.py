@@ -82,7 +82,10 @@ def test_replayed_frames_decode_to_the_recorded_samples_with_their_spacing() -> 
     for _t, sample in got:  # bit-identical values for the same device stamps
         ref = recorded[sample.device_stamp_ns]
         assert list(sample.dtheta_b_rad) == ref.dtheta_b_rad and list(sample.dvel_b_mps) == ref.dvel_b_mps
-    # the recorded spacing, scaled by the rate: total span within 10 % (UML's scheduler jitters)
+    # the recorded spacing, scaled by the rate: never compressed (paced, not as fast as it can);
+    # late is what a busy machine does to one slow vCPU (4.5 s for 2.0 s beside the rest of the
+    # suite, 2.0 s alone), so the upper bound only catches a runaway, not a stall
     span_rec = (window[-1].log_time_ns - window[0].log_time_ns) * 1e-9 / float(rate)
     span_rx = rx_stamps[-1] - rx_stamps[0]
-    assert abs(span_rx - span_rec) < 0.1 * span_rec + 0.05, (span_rx, span_rec)
+    assert span_rx > 0.9 * span_rec - 0.05, (span_rx, span_rec)
+    assert span_rx < 5 * span_rec + 10.0, (span_rx, span_rec)
