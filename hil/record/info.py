@@ -21,7 +21,7 @@ import msgspec
 import numpy as np
 
 from hil.record.completeness import Completeness
-from hil.record.mcapio import Record, RecordingError, Session, iter_records
+from hil.record.mcapio import Record, Session, stream_session
 
 
 class _Seq(msgspec.Struct):
@@ -169,37 +169,15 @@ def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
     return summarise(session.records).estimator_errors()
 
 
-@dataclass
-class _Scan:
-    summary: Summary
-    metadata: dict[str, dict[str, str]]
-    truncated: bool
-    truncation_reason: str
-
-
-def _scan(path: str | Path, *, derived: bool, accuracy: bool) -> _Scan:
-    """The file streamed once (``read_session``'s reading, its errors, without keeping records)."""
-    path = Path(path)
-    if not path.is_file():
-        raise RecordingError(f"no recording at {path}")
-    scan = _Scan(Summary(accuracy), {}, False, "")
-    n = 0
-    for kind, rec in iter_records(path, derived=derived):
-        if kind == "message":
-            scan.summary.add(rec)
-            n += 1
-        elif kind == "metadata":
-            scan.metadata[rec.name] = dict(rec.metadata)
-        elif kind == "truncated":
-            scan.truncated, scan.truncation_reason = True, rec
-    if not n and scan.truncated and not scan.metadata:
-        raise RecordingError(f"{path} is not a readable MCAP file ({scan.truncation_reason})")
-    return scan
+def _scan(path: str | Path, *, derived: bool, accuracy: bool) -> tuple[Summary, Session]:
+    """The file streamed once into a Summary; the Session holds its metadata and truncation."""
+    summary = Summary(accuracy)
+    return summary, stream_session(path, summary.add, derived=derived)
 
 
 def describe(path: str, *, accuracy: bool = True) -> str:
-    s = _scan(path, derived=True, accuracy=accuracy)  # the Foxglove channels are listed too
-    infos = s.summary.channel_infos()
+    summary, s = _scan(path, derived=True, accuracy=accuracy)  # the Foxglove channels are listed too
+    infos = summary.channel_infos()
     t0 = min((c.first_ns for c in infos), default=0)
     t1 = max((c.last_ns for c in infos), default=0)
     lines = [f"file:      {path}"]
@@ -211,7 +189,7 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         )
     n_rig = sum(c.count for c in infos)
     lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {n_rig}   channels: {len(infos)}")
-    foreign = s.summary.foreign_summary()
+    foreign = summary.foreign_summary()
     if foreign["messages"]:
         topics = foreign["topics"]
         assert isinstance(topics, dict)
@@ -265,7 +243,7 @@ def describe(path: str, *, accuracy: bool = True) -> str:
             f"{c.topic:<34}{c.schema:<25}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}{rst}"
         )
     if accuracy:
-        errs = s.summary.estimator_errors()
+        errs = summary.estimator_errors()
         if errs:
             lines.append("")
             lines.append(f"{'estimator':<12}{'horiz RMS m':>12}{'95% m':>10}{'max m':>10}{'final m':>10}")
@@ -277,14 +255,14 @@ def describe(path: str, *, accuracy: bool = True) -> str:
 
 
 def info_json(path: str) -> str:
-    s = _scan(path, derived=False, accuracy=True)
+    summary, s = _scan(path, derived=False, accuracy=True)
     return json.dumps(
         {
-            "channels": [c.__dict__ for c in s.summary.channel_infos()],
-            "foreign": s.summary.foreign_summary(),
+            "channels": [c.__dict__ for c in summary.channel_infos()],
+            "foreign": summary.foreign_summary(),
             "truncated": s.truncated,
             "metadata": s.metadata,
-            "errors": s.summary.estimator_errors(),
+            "errors": summary.estimator_errors(),
         },
         indent=2,
     )

@@ -39,7 +39,6 @@ from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import (
     EndOfFile,
     InvalidMagic,
-    McapError,
     RecordLengthLimitExceeded,
     UnsupportedCompressionError,
 )
@@ -683,10 +682,7 @@ def _iter_items(
         reader = _FastReader(fh, size, on_progress, derived, header, keep)
         try:
             yield from reader.records()
-        except (McapError, EOFError, ValueError, KeyError, OSError) as err:
-            yield from reader.tail()
-            yield "truncated", f"{type(err).__name__}: {err}"
-        except Exception as err:  # zstd errors on a half-written chunk and similar
+        except Exception as err:  # McapError, EOF, zstd errors on a half-written chunk and similar
             yield from reader.tail()
             yield "truncated", f"{type(err).__name__}: {err}"
 
@@ -1005,14 +1001,27 @@ def read_session(path: str | Path, *, derived: bool = False) -> Session:
     """Read a whole recording; a file cut short by a crash reads up to its last complete chunk.
 
     ``derived``: also the Foxglove well-known channels (``iter_records``)."""
+    records: list[Record] = []
+    session = stream_session(path, records.append, derived=derived)
+    session.records = records
+    return session
+
+
+def stream_session(
+    path: str | Path, on_message: Callable[[Record], None], *, derived: bool = False
+) -> Session:
+    """``read_session`` without keeping the messages: each goes to ``on_message`` as it is read
+    (a 12000 s session is 36 M of them); the returned Session has the metadata, attachments and
+    truncation, and no records."""
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"no recording at {path}")
-    records: list[Record] = []
-    session = Session(path=path, records=records)
+    session = Session(path=path, records=[])
+    n = 0
     for kind, rec in iter_records(path, derived=derived):
         if kind == "message":
-            records.append(rec)
+            on_message(rec)
+            n += 1
         elif kind == "metadata":
             session.metadata[rec.name] = dict(rec.metadata)
         elif kind == "attachment":
@@ -1020,6 +1029,6 @@ def read_session(path: str | Path, *, derived: bool = False) -> Session:
         elif kind == "truncated":
             session.truncated = True
             session.truncation_reason = rec
-    if not records and session.truncated and not session.metadata:
+    if not n and session.truncated and not session.metadata:
         raise RecordingError(f"{path} is not a readable MCAP file ({session.truncation_reason})")
     return session
