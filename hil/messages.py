@@ -365,6 +365,9 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # the compensation filters' coast through a GNSS gap (hil.estimators.compensation); absent in
     # recordings made before it, whose filters continued the last difference
     gnss_coast: bool = False
+    # how ekf15 and the feedback INS are told the IMU's bias wander (hil.estimators.tuning);
+    # absent in recordings made before it, which told them the instability B and the gyro's τ
+    imu_bias_model: Annotated[str, msgspec.Meta(max_length=32)] = "instability"
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

@@ -216,6 +216,14 @@ def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
     return out
 
 
+def bias_walk_psd(sigma: float, corr_s: float, rate_rw: float = 0.0) -> float:
+    """Spectral density of a bias error's random walk: the wander's 2σ²/τ (module docstring)
+    plus the sensor's rate random walk. Written so that ``rate_rw = 0`` gives the same float as
+    ``2 * sigma**2 / corr_s`` (recordings made before the rate random walk rerun bit-exact)."""
+    q = 2 * sigma**2 / corr_s
+    return q + rate_rw**2 if rate_rw else q
+
+
 class Ekf15(Estimator):
     """The 3-D error-state EKF as an :class:`~hil.estimators.base.Estimator`.
 
@@ -248,6 +256,9 @@ class Ekf15(Estimator):
         heading_small_angle_rad: float = 0.1,
         heading_align_sigma_rad: float = 0.1,
         heading_align_window_s: float = 5.0,
+        accel_bias_corr_s: float | None = None,
+        accel_bias_rw_mps2_rts: float = 0.0,
+        gyro_bias_rw_radps_rts: float = 0.0,
     ) -> None:
         self.name = name
         self._init = init
@@ -267,8 +278,9 @@ class Ekf15(Estimator):
             [0.0] * 3
             + [accel_vrw_mps_rts**2] * 3
             + [gyro_arw_rad_rts**2] * 3
-            + [2 * accel_bias_sigma_mps2**2 / bias_corr_s] * 3
-            + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
+            + [bias_walk_psd(accel_bias_sigma_mps2, accel_bias_corr_s or bias_corr_s, accel_bias_rw_mps2_rts)]
+            * 3
+            + [bias_walk_psd(gyro_bias_sigma_radps, bias_corr_s, gyro_bias_rw_radps_rts)] * 3
         )
         # Optional states after the 15 (module docstring): gyro scale factor/misalignment [δe (9)],
         # then the GNSS slow error [δs (3), δṡ (3)]. Neither has process noise.

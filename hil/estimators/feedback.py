@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuInput, InitialState
-from hil.estimators.ekf15 import skew
+from hil.estimators.ekf15 import bias_walk_psd, skew
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
@@ -74,6 +74,9 @@ class Corrector:
         bias_corr_s: float = 300.0,
         p0_accel_bias_mps2: float = 1e-3 * 9.80665,
         p0_gyro_bias_radps: float = 1.0 * _DEG / 3600.0,
+        accel_bias_corr_s: float | None = None,
+        accel_bias_rw_mps2_rts: float = 0.0,
+        gyro_bias_rw_radps_rts: float = 0.0,
         p0_vel_mps: float = 0.3,
         p0_tilt_rad: float = 2e-3,
         p0_yaw_rad: float = 1e-2,
@@ -91,8 +94,9 @@ class Corrector:
         self.qc = np.diag(
             [accel_vrw_mps_rts**2] * 3
             + [gyro_arw_rad_rts**2] * 3
-            + [2 * gyro_bias_sigma_radps**2 / bias_corr_s] * 3
-            + [2 * accel_bias_sigma_mps2**2 / bias_corr_s] * 3
+            + [bias_walk_psd(gyro_bias_sigma_radps, bias_corr_s, gyro_bias_rw_radps_rts)] * 3
+            + [bias_walk_psd(accel_bias_sigma_mps2, accel_bias_corr_s or bias_corr_s, accel_bias_rw_mps2_rts)]
+            * 3
         )
         self.dv = np.zeros(3)  # the INS velocity error it believes in (not fed back: step 1 is)
         self.gate_chi2 = gate_chi2

@@ -11,7 +11,7 @@ import math
 from typing import Any
 
 from hil.nav.scenario import GnssConfig
-from hil.nav.sensor_specs import ImuParams
+from hil.nav.sensor_specs import GM_PEAK_RATIO, IEEE_BI_FACTOR, ImuParams
 
 
 def _rss_max(*vecs: tuple[float, float, float]) -> float:
@@ -19,38 +19,86 @@ def _rss_max(*vecs: tuple[float, float, float]) -> float:
     return max(math.sqrt(sum(v[i] ** 2 for v in vecs)) for i in range(3))
 
 
-def ekf15_params(imu: ImuParams, gyro_cal: bool = False, accel_cal: bool = False) -> dict[str, Any]:
+#: How the filters are told the IMU's bias wander (``FusionConfig.imu_bias_model``, journaled):
+#: ``gauss_markov`` -- the emulator's own model, the stationary σ of its first-order Gauss-Markov
+#: (1.0755 B) in the bias prior and in the random walk 2σ²/τ with each sensor's own τ, plus the
+#: rate random walk; ``instability`` -- the recordings made before it: B itself as σ, the gyro's
+#: τ for both sensors, the prior from the turn-on bias alone.
+GAUSS_MARKOV, INSTABILITY = "gauss_markov", "instability"
+BIAS_MODELS = (GAUSS_MARKOV, INSTABILITY)
+
+
+def _gm_sigma(b: tuple[float, float, float]) -> float:
+    """The largest axis's stationary σ of the Gauss-Markov the emulator realises for B (IEEE 952)."""
+    return IEEE_BI_FACTOR * max(b) / GM_PEAK_RATIO
+
+
+def ekf15_params(
+    imu: ImuParams, gyro_cal: bool = False, accel_cal: bool = False, bias_model: str = GAUSS_MARKOV
+) -> dict[str, Any]:
     """Priors and noise of ekf15 from the IMU's datasheet figures (SI).
 
-    Turn-on bias (fixed + random) sets the bias priors; bias instability and its correlation time
-    the bias random walk (2σ²/τ: the wander's variance over one correlation time, see ekf15);
+    The bias wander (``bias_model``, see ``BIAS_MODELS``) enters as a random walk of 2σ²/τ (the
+    wander's variance over one correlation time, see ekf15) and, since the emulator's wander
+    starts stationary, in the bias prior beside the turn-on bias: a filter told only the turn-on
+    part of an IMU whose bias is all wander (seed 004's model) starts sure of a bias it does not
+    know and stays over-confident for the whole run (NEES 12-23 against 6 over 900 s).
     ARW/VRW the white noise. Floors keep an ideal IMU's filter from
     becoming overconfident (zero noise would freeze its gains). ``gyro_cal`` adds the gyro
     scale-factor/misalignment states with the datasheet's σ (9 more states; see ekf15),
     ``accel_cal`` the accelerometers' (9 more).
     """
-    gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
-    accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2)
+    if bias_model not in BIAS_MODELS:
+        raise ValueError(f"unknown IMU bias model {bias_model!r}: one of {', '.join(BIAS_MODELS)}")
     cal: dict[str, Any] = {}
     if gyro_cal:  # scale factor / misalignment as states: the datasheet's σ as their priors
         cal["gyro_cal_sigma"] = (max(imu.gyro_scale_factor_sigma), imu.gyro_misalignment_sigma_rad)
     if accel_cal:
         cal["accel_cal_sigma"] = (max(imu.accel_scale_factor_sigma), imu.accel_misalignment_sigma_rad)
-    return cal | {
+    white = {
         "accel_vrw_mps_rts": max(max(imu.accel_vrw_mps_rts), 1e-4),
         "gyro_arw_rad_rts": max(max(imu.gyro_arw_rad_rts), 1e-6),
-        "accel_bias_sigma_mps2": max(max(imu.accel_bias_instability_mps2), 1e-5),
-        "gyro_bias_sigma_radps": max(max(imu.gyro_bias_instability_radps), 1e-7),
-        "bias_corr_s": float(imu.gyro_bias_corr_s),
-        "p0_accel_bias_mps2": max(accel_p0, 1e-4),
-        "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
     }
+    if bias_model == INSTABILITY:
+        gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
+        accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2)
+        return (
+            cal
+            | white
+            | {
+                "accel_bias_sigma_mps2": max(max(imu.accel_bias_instability_mps2), 1e-5),
+                "gyro_bias_sigma_radps": max(max(imu.gyro_bias_instability_radps), 1e-7),
+                "bias_corr_s": float(imu.gyro_bias_corr_s),
+                "p0_accel_bias_mps2": max(accel_p0, 1e-4),
+                "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
+            }
+        )
+    sg, sa = _gm_sigma(imu.gyro_bias_instability_radps), _gm_sigma(imu.accel_bias_instability_mps2)
+    gm_g, gm_a = (sg, sg, sg), (sa, sa, sa)
+    gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps, gm_g)
+    accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2, gm_a)
+    return (
+        cal
+        | white
+        | {
+            "accel_bias_sigma_mps2": max(sa, 1e-5),
+            "gyro_bias_sigma_radps": max(sg, 1e-7),
+            "bias_corr_s": float(imu.gyro_bias_corr_s),
+            "accel_bias_corr_s": float(imu.accel_bias_corr_s),
+            "accel_bias_rw_mps2_rts": max(imu.accel_rrw_mps2_rts),
+            "gyro_bias_rw_radps_rts": max(imu.gyro_rrw_radps_rts),
+            "p0_accel_bias_mps2": max(accel_p0, 1e-4),
+            "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
+        }
+    )
 
 
-def feedback_params(imu: ImuParams, gnss: GnssConfig | None = None) -> dict[str, Any]:
+def feedback_params(
+    imu: ImuParams, gnss: GnssConfig | None = None, bias_model: str = GAUSS_MARKOV
+) -> dict[str, Any]:
     """The feedback form's INS (:class:`hil.estimators.feedback.ClosedLoopIns`): its corrector
     told the IMU's datasheet figures as ekf15 is, and the antenna's lever arm."""
-    out = ekf15_params(imu)
+    out = ekf15_params(imu, bias_model=bias_model)
     if gnss is not None:
         out |= ekf15_install_params(gnss)
     return out
@@ -83,20 +131,22 @@ def params_for(
     gyro_cal: bool = False,
     accel_cal: bool = False,
     feedback: tuple[str, ...] = (),
+    bias_model: str = GAUSS_MARKOV,
 ) -> dict[str, dict[str, Any]]:
     """Per-estimator construction parameters for a rig with this IMU and GNSS installation.
 
     The lever arm comes with ``gnss``; ``receiver_model`` also tells ekf15 the receiver's slow
     error (bench variants), ``gyro_cal`` adds the gyro scale-factor/misalignment states,
     ``accel_cal`` the accelerometers';
-    ``feedback`` names the seed estimators that run in their feedback form.
+    ``feedback`` names the seed estimators that run in their feedback form; ``bias_model`` how
+    both are told the bias wander (``BIAS_MODELS``).
     """
-    ekf = ekf15_params(imu, gyro_cal, accel_cal)
+    ekf = ekf15_params(imu, gyro_cal, accel_cal, bias_model)
     if gnss is not None:
         ekf |= ekf15_install_params(gnss)
         if receiver_model:
             ekf |= ekf15_gnss_params(gnss)
     out: dict[str, dict[str, Any]] = {"ekf15": ekf}
     for name in feedback:
-        out[name] = {"feedback": feedback_params(imu, gnss)}
+        out[name] = {"feedback": feedback_params(imu, gnss, bias_model)}
     return out

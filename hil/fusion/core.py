@@ -83,6 +83,9 @@ class FusionConfig:
     # the compensation filters coast through a GNSS gap (hil.estimators.compensation); False: they
     # continue the last difference at its last rate (the fusion before the coasts)
     gnss_coast: bool = True
+    # how ekf15 and the feedback INS are told the IMU's bias wander (hil.estimators.tuning's
+    # BIAS_MODELS): the emulator's Gauss-Markov, or "instability", what recordings before it ran
+    imu_bias_model: str = "gauss_markov"
 
     @property
     def lag_s(self) -> float:
@@ -114,6 +117,7 @@ class FusionConfig:
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
             gnss_coast=self.gnss_coast,
+            imu_bias_model=self.imu_bias_model,
         )
 
     def gate_settings(self) -> GateSettings:
@@ -246,6 +250,7 @@ class FusionCore:
             gyro_cal=config.ekf_calibration.startswith("gyro"),
             accel_cal=config.ekf_calibration == "gyro+accel",
             feedback=config.feedback,
+            bias_model=config.imu_bias_model,
         )
         if not config.gnss_coast:  # a recording made before the compensation filters' coasts
             for name in ("comp1", "comp2", "comp3", "comp3f", "compvs", "cf2", "cf3"):
