@@ -34,6 +34,7 @@ from hil.estimators.registry import (
     default_ekf_calibration,
     default_feedback,
 )
+from hil.estimators.tuning import BIAS_MODELS
 from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import EstimatorHealth, ImuSample, Measurement, NavSolution
 from hil.nav.scenario import scenario_for_run
@@ -61,6 +62,10 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
     feedback: str = "auto"
     # ekf15's calibration states: "auto" (by the IMU grade), "none", "gyro", "gyro+accel"
     ekf_calibration: str = "auto"
+    # how ekf15 and the feedback INS are told the IMU's bias wander (hil.estimators.tuning):
+    # "instability" is what recordings made before the Gauss-Markov tuning ran, for replaying
+    # one into a fresh fusion configured as it was
+    imu_bias_model: str = _DEFAULT.imu_bias_model
 
     def __post_init__(self) -> None:
         unknown = [e for e in self.estimators if e not in ESTIMATORS and e != FREE_INS]
@@ -80,6 +85,10 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
             raise ValueError(
                 f"ekf_calibration must be auto, none, {' or '.join(EKF_CALIBRATIONS[1:])}; "
                 f"got {self.ekf_calibration!r}"
+            )
+        if self.imu_bias_model not in BIAS_MODELS:
+            raise ValueError(
+                f"imu_bias_model must be {' or '.join(BIAS_MODELS)}; got {self.imu_bias_model!r}"
             )
         if not 0.0 <= self.lag_s <= 60.0:
             raise ValueError(f"lag_s must be in [0, 60] s, got {self.lag_s}")
@@ -107,6 +116,7 @@ class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_field
             feedback=feedback,
             ekf_calibration=cal,
             output_predictor=self.output_predictor,
+            imu_bias_model=self.imu_bias_model,
         )
 
 

@@ -136,7 +136,12 @@ def test_lockstep_replay_of_a_session_with_loss_and_late_arrivals(
     cfg = fusion_config_from(s)
     recorded = {(r.topic.rsplit("/", 1)[1], r.sequence): r.payload for r in s.records if "/nav/" in r.topic}
     hub.collect("hil/replay2/nav/*")
-    opts = {"estimators": list(cfg.estimators), "lag_s": cfg.lag_ns / 1e9, "output_every": cfg.output_every}
+    opts = {
+        "estimators": list(cfg.estimators),
+        "lag_s": cfg.lag_ns / 1e9,
+        "output_every": cfg.output_every,
+        "imu_bias_model": cfg.imu_bias_model,  # the golden file's tuning: made before the wander was told
+    }
     fusion = hub.spawn("service", "fusion", "--rig", "replay2", "--options", json.dumps(opts))
     try:
         hub.wait_status("fusion", lambda st: st.state == "waiting_run")

@@ -33,7 +33,12 @@ def test_replay_into_a_fresh_fusion_reproduces_the_recorded_outputs(hub: Hub, ti
     recorded = {(r.topic.rsplit("/", 1)[1], r.sequence): r.payload for r in s.records if "/nav/" in r.topic}
     assert len(recorded) > 300
     hub.collect("hil/replay1/nav/*")
-    opts = {"estimators": list(cfg.estimators), "lag_s": cfg.lag_ns / 1e9, "output_every": cfg.output_every}
+    opts = {
+        "estimators": list(cfg.estimators),
+        "lag_s": cfg.lag_ns / 1e9,
+        "output_every": cfg.output_every,
+        "imu_bias_model": cfg.imu_bias_model,  # the golden file's tuning: made before the wander was told
+    }
     fusion = hub.spawn("service", "fusion", "--rig", "replay1", "--options", json.dumps(opts))
     try:
         hub.wait_status("fusion", lambda st: st.state == "waiting_run")

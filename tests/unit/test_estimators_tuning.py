@@ -144,3 +144,12 @@ def test_recordings_before_the_field_rerun_with_the_tuning_they_ran() -> None:
 def test_an_unknown_bias_model_is_refused_by_name() -> None:
     with pytest.raises(ValueError, match=r"unknown IMU bias model 'gm'.*gauss_markov, instability"):
         ekf15_params(load_scenario(SEED004).imu.params, bias_model="gm")
+
+
+def test_a_fresh_fusion_can_be_configured_as_an_old_recording_was() -> None:
+    from hil.nodes.fusion import FusionOptions
+
+    assert FusionOptions().config().imu_bias_model == GAUSS_MARKOV
+    assert FusionOptions(imu_bias_model=INSTABILITY).config().imu_bias_model == INSTABILITY
+    with pytest.raises(ValueError, match="imu_bias_model must be gauss_markov or instability; got 'gm'"):
+        FusionOptions(imu_bias_model="gm")
