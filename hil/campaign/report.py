@@ -358,9 +358,18 @@ def build_campaign_report(
     groups = summarise(rows, settle)
     codes = sorted({r.get("code") or "?" for r in rows})
     if len(codes) > 1:
+        first: dict[str, Any] = {}
+        for r in sorted(rows, key=lambda r: r["run"]):
+            first.setdefault(r.get("code") or "?", r["run"])
         page.notes.append(
-            f"the runs were made by {len(codes)} versions of hil's code ({', '.join(codes)}): a resumed "
-            "campaign after a code change mixes them"
+            f"the runs were made by {len(codes)} versions of hil's code ("
+            + ", ".join(f"{c}: {sum(1 for r in rows if (r.get('code') or '?') == c)} rows" for c in codes)
+            + "): a resumed campaign after a code change mixes them. Whether the change left this "
+            "campaign's figures alone: hil campaign repro "
+            + str(d)
+            + " --run N with today's code, for a run of each version ("
+            + ", ".join(f"{c}: run {first[c]}" for c in codes)
+            + "); 'identical to the campaign's row' means it did"
         )
     _failed_section(page, rows, str(d))
     if any(s.ok for s in groups):

@@ -125,6 +125,30 @@ def test_report_names_the_worst_runs_reproduce_command(
     assert (tmp_path / "rep" / "compare.csv").is_file() and rep.pngs
 
 
+def test_report_of_mixed_code_says_which_run_of_each_version_to_repro(
+    campaign: tuple[Path, Outcome], tmp_path: Path
+) -> None:
+    """A campaign resumed after a code change: the note names a run per version and the command."""
+    import json
+
+    out = tmp_path / "mixed"
+    shutil.copytree(campaign[0], out)
+    lines = (out / "results.jsonl").read_text().splitlines()
+    rows = [json.loads(line) for line in lines]
+    for r in rows:
+        if r["run"] >= 2:
+            r["code"] = "0123456789ab"  # runs 2 and 3 as if made by another version
+    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    rep = build_campaign_report(out, tmp_path / "rep")
+    note = next(n for n in rep.notes if "versions of hil's code" in n)
+    mine = rows[0]["code"]
+    assert (
+        "2 versions of hil's code (" in note and "0123456789ab: 4 rows" in note and f"{mine}: 4 rows" in note
+    )
+    assert f"hil campaign repro {out} --run N" in note
+    assert "0123456789ab: run 2" in note and f"{mine}: run 0" in note
+
+
 def test_repro_reproduces_a_run_alone(campaign: tuple[Path, Outcome], tmp_path: Path) -> None:
     out, _ = campaign
     rc, lines = reproduce(out, 2, tmp_path / "run2.mcap")
