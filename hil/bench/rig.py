@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,8 +46,16 @@ def hop_latencies_ms(path: Path, rig: str, skip_s: float = 0.0) -> dict[str, np.
     return out
 
 
-def _one_rig(a: argparse.Namespace, rig: str) -> tuple[int, list[str]]:
+def _one_rig(a: argparse.Namespace, rig: str, batch_ms: float = 0.0) -> tuple[int, list[str]]:
     """``hil up`` of one rig for ``--duration`` s: its figures as markdown lines (rc, lines)."""
+    rc, lines, _ = _measure_rig(a, rig, batch_ms)
+    return rc, lines
+
+
+def _measure_rig(
+    a: argparse.Namespace, rig: str, batch_ms: float = 0.0
+) -> tuple[int, list[str], dict[str, Any]]:
+    """:func:`_one_rig`, and its figures as numbers (CPU per service, fused latency)."""
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as d:
         rec = Path(d) / "bench.mcap"
@@ -58,13 +67,14 @@ def _one_rig(a: argparse.Namespace, rig: str) -> tuple[int, list[str]]:
                 rig=rig,
                 fd=a.fd,
                 imu_rate_hz=a.imu_rate,
+                input_batch_ms=batch_ms,
                 live=False,
                 log_dir=Path(d) / "logs",
             )
         )
         rc = sup.run()
         if rc != 0:
-            return rc, sup.failures
+            return rc, sup.failures, {}
         infos = channel_infos(read_session(rec))
         lat = hop_latencies_ms(rec, rig, STARTUP_S)
         whole = hop_latencies_ms(rec, rig)
@@ -113,7 +123,59 @@ def _one_rig(a: argparse.Namespace, rig: str) -> tuple[int, list[str]]:
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores; the tail "
         "(p99, max) is sensitive to other work on the machine.",
     ]
-    return 0, lines
+    fused = np.concatenate([v for k, v in lat.items() if k.startswith("fused")] or [np.zeros(0)])
+    figures = {
+        "cpu": {k: v / sup.cpu_window_s for k, v in sup.cpu_s.items()},
+        "all": total / sup.cpu_window_s,
+        "per_sample_ms": 1e3 * total / max(1, imu.count),
+        "fused": fused,
+        "gaps": gaps,
+        "load": load_before,
+    }
+    return 0, lines, figures
+
+
+def _batch_windows(a: argparse.Namespace, windows: list[float]) -> tuple[int, list[str]]:
+    """The same rig once per input batching window, ``--repeat`` rounds alternating: CPU against
+    fused-output latency, as ratios against the first window measured in the same run."""
+    rows: dict[float, list[dict[str, Any]]] = {w: [] for w in windows}
+    for _ in range(a.repeat):
+        for w in windows:
+            rc, lines, fig = _measure_rig(a, a.rig, w)
+            if rc != 0:
+                return rc, lines
+            rows[w].append(fig)
+    base = windows[0]
+
+    def mean(w: float, f: Any) -> float:
+        return float(np.mean([f(x) for x in rows[w]]))
+
+    out = [
+        f"`hil up` for {a.duration:g} s, scenario `{a.scenario}`, IMU {a.imu_rate or 'the scenario'} Hz, "
+        f"once per window and {a.repeat} round(s) alternating (`--input-batch-ms`: time sync and the fusion "
+        "take their inputs in batches this far apart). CPU as a share of one core (mean over rounds); "
+        f"fused-output latency after the first {STARTUP_S:g} s over every estimator and round.",
+        "",
+        "| window ms | fusion | timesync | all | CPU per IMU sample ms | vs first | fused latency median ms "
+        "| p99 ms | max ms | gaps |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for w in windows:
+        lat = np.concatenate([x["fused"] for x in rows[w]])
+        out.append(
+            f"| {w:g} | {100 * mean(w, lambda x: x['cpu'].get('fusion', 0.0)):.1f} % "
+            f"| {100 * mean(w, lambda x: x['cpu'].get('timesync', 0.0)):.1f} % "
+            f"| {100 * mean(w, lambda x: x['all']):.1f} % | {mean(w, lambda x: x['per_sample_ms']):.2f} "
+            f"| {mean(w, lambda x: x['per_sample_ms']) / mean(base, lambda x: x['per_sample_ms']):.3f} "
+            f"| {np.median(lat):.2f} | {np.percentile(lat, 99):.2f} | {lat.max():.2f} "
+            f"| {sum(x['gaps'] for x in rows[w])} |"
+        )
+    loads = [x["load"] for r in rows.values() for x in r]
+    out += [
+        "",
+        f"Load average (1 min) before each run: {min(loads):.2f}-{max(loads):.2f} on {os.cpu_count()} cores.",
+    ]
+    return 0, out
 
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
@@ -226,13 +288,33 @@ def main(argv: list[str]) -> int:
         help="then the same rig(s) from this checkout (a `git worktree` of an older revision): "
         "before/after in one run",
     )
-    ap.add_argument("--section", default="rig", help="the docs/benchmarks.md section to write")
+    ap.add_argument(
+        "--input-batch-ms",
+        default="0",
+        help="time sync's and the fusion's input batching window, ms; several (0,10): the rig once "
+        "per window, compared (section rig-batch unless --section)",
+    )
+    ap.add_argument("--repeat", type=int, default=1, help="rounds of the windows, alternating")
+    ap.add_argument("--section", default=None, help="the docs/benchmarks.md section to write")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     if a.rigs < 1 or a.rigs > 8:
         ap.error(f"--rigs {a.rigs}: use 1 to 8")
-    if a.rigs == 1 and not a.versus:
-        rc, lines = _one_rig(a, a.rig)
+    try:
+        windows = [float(x) for x in a.input_batch_ms.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--input-batch-ms {a.input_batch_ms!r}: give numbers of ms, comma-separated")
+    if not windows or any(not 0.0 <= w <= 100.0 for w in windows):
+        ap.error(f"--input-batch-ms {a.input_batch_ms!r}: each window in [0, 100] ms")
+    if not 1 <= a.repeat <= 20:
+        ap.error(f"--repeat {a.repeat}: use 1 to 20")
+    if len(windows) > 1 or windows[0]:
+        if a.rigs != 1 or a.versus:
+            ap.error("--input-batch-ms measures one rig: not with --rigs or --versus")
+        a.section = a.section or "rig-batch"
+        rc, lines = _batch_windows(a, windows)
+    elif a.rigs == 1 and not a.versus:
+        rc, lines = _one_rig(a, a.rig, windows[0])
     else:
         runs: list[tuple[str, str | None]] = [(chr(97 + i), None) for i in range(a.rigs)]
         if a.versus:
@@ -243,7 +325,7 @@ def main(argv: list[str]) -> int:
     if rc != 0:
         return rc
     if not a.no_write:
-        write_section(a.section, body, command_line())
+        write_section(a.section or "rig", body, command_line())
     return 0
 
 

@@ -39,7 +39,7 @@ from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
 from hil.messages import EstimatorHealth, ImuSample, Measurement, NavSolution
 from hil.nav.scenario import scenario_for_run
 from hil.nav.sensor_specs import imu_grade
-from hil.nodes.base import Input, Node, NodeOptions, Out
+from hil.nodes.base import BatchedInputOptions, Input, Node, Out
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 
 JOURNAL_PERIOD_NS = 500_000_000
@@ -49,7 +49,7 @@ DEFAULT_LAG_S = _DEFAULT.lag_s  # one default, FusionConfig's, for every caller
 DEFAULT_OUTPUT_EVERY = _DEFAULT.output_every
 
 
-class FusionOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
+class FusionOptions(BatchedInputOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
     # empty: the registry's defaults (hil.estimators.registry)
     estimators: list[str] = msgspec.field(default_factory=list)
     # the fusion horizon's lag behind the newest IMU stamp: the bound on a source's latency

@@ -32,13 +32,13 @@ end of input. Clock models go out once a second.
 from __future__ import annotations
 
 from collections import deque
-from typing import Any
+from typing import Any, ClassVar
 
 import msgspec
 
 from hil.messages import Measurement, TimeTag
 from hil.nav.scenario import scenario_for_run
-from hil.nodes.base import Input, Node, Out
+from hil.nodes.base import BatchedInputOptions, Input, Node, NodeOptions, Out
 from hil.nodes.builders import clock_model_msg
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.timesync.config import sync_configs_for
@@ -53,6 +53,7 @@ class TimeSyncNode(Node):
     inputs_move_timers = False  # its timers are its own: periodic, or none
     refuses_foreign = True  # a stranger's raw measurement must not come out as the rig's synced one
     name = "timesync"
+    Options: ClassVar[type[NodeOptions]] = BatchedInputOptions
     inputs = tuple(Input(f"*/{s}", {"sensor": SENSORS[s].message, "timetag": TimeTag}) for s in SENSOR_NAMES)
     outputs = tuple(f"synced/{s}" for s in SENSOR_NAMES)
 

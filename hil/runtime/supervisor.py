@@ -119,6 +119,8 @@ class UpOptions:
     estimators: list[str] = field(default_factory=list)
     feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
     ekf_calibration: str = "auto"  # ekf15's calibration states (same)
+    # time sync's and the fusion's input batching window (hil.nodes.base.BatchedInputOptions)
+    input_batch_ms: float = 0.0
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)
