@@ -64,8 +64,8 @@ class BatchedInputOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown
 
     # After a wake-up for an input, the live runner waits this long and then takes every input
     # queued meanwhile: fewer wake-ups of the process per IMU sample for up to this much more
-    # latency on its outputs (0: each input at once). At 400 Hz, 10 ms on the fusion cut its
-    # CPU by ~18 % for +9.6 ms p99 on the fused output (docs/benchmarks.md, issue 20's section)
+    # latency on its outputs (0: each input at once). At 400 Hz, 10 ms on both took the fusion
+    # from 20.2 to 14.3 % of a core for a fused p99 of 40.5 ms, not 19.1 (docs/benchmarks.md, rig-batch)
     input_batch_ms: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] = 0.0
 
 
