@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import html
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -356,18 +357,17 @@ def build_campaign_report(
     rows = _load(d, page.notes)
     settle = _settle_s(d, page.notes)
     groups = summarise(rows, settle)
-    codes = sorted({r.get("code") or "?" for r in rows})
+    code_of = [(r.get("code") or "?", r["run"]) for r in rows]
+    rows_of = Counter(c for c, _ in code_of)
+    codes = sorted(rows_of)
     if len(codes) > 1:
-        first: dict[str, Any] = {}
-        for r in sorted(rows, key=lambda r: r["run"]):
-            first.setdefault(r.get("code") or "?", r["run"])
+        first = {c: min(run for cc, run in code_of if cc == c) for c in codes}
         page.notes.append(
             f"the runs were made by {len(codes)} versions of hil's code ("
-            + ", ".join(f"{c}: {sum(1 for r in rows if (r.get('code') or '?') == c)} rows" for c in codes)
+            + ", ".join(f"{c}: {rows_of[c]} rows" for c in codes)
             + "): a resumed campaign after a code change mixes them. Whether the change left this "
-            "campaign's figures alone: hil campaign repro "
-            + str(d)
-            + " --run N with today's code, for a run of each version ("
+            f"campaign's figures alone: hil campaign repro {d} --run N with today's code, for a run of "
+            "each version ("
             + ", ".join(f"{c}: run {first[c]}" for c in codes)
             + "); 'identical to the campaign's row' means it did"
         )

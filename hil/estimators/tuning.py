@@ -55,42 +55,30 @@ def ekf15_params(
         cal["gyro_cal_sigma"] = (max(imu.gyro_scale_factor_sigma), imu.gyro_misalignment_sigma_rad)
     if accel_cal:
         cal["accel_cal_sigma"] = (max(imu.accel_scale_factor_sigma), imu.accel_misalignment_sigma_rad)
-    white = {
+    if bias_model == GAUSS_MARKOV:  # the wander as the emulator realises it (module comment above)
+        sg, sa = _gm_sigma(imu.gyro_bias_instability_radps), _gm_sigma(imu.accel_bias_instability_mps2)
+        wander_g, wander_a = (sg, sg, sg), (sa, sa, sa)  # in the prior too: it starts stationary
+        accel_corr_s = float(imu.accel_bias_corr_s)
+        rate_rw = (max(imu.accel_rrw_mps2_rts), max(imu.gyro_rrw_radps_rts))
+    else:  # INSTABILITY: what recordings before it ran (the same floats: ekf15.bias_walk_psd)
+        sg, sa = max(imu.gyro_bias_instability_radps), max(imu.accel_bias_instability_mps2)
+        wander_g = wander_a = (0.0, 0.0, 0.0)
+        accel_corr_s = float(imu.gyro_bias_corr_s)
+        rate_rw = (0.0, 0.0)
+    gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps, wander_g)
+    accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2, wander_a)
+    return cal | {
         "accel_vrw_mps_rts": max(max(imu.accel_vrw_mps_rts), 1e-4),
         "gyro_arw_rad_rts": max(max(imu.gyro_arw_rad_rts), 1e-6),
+        "accel_bias_sigma_mps2": max(sa, 1e-5),
+        "gyro_bias_sigma_radps": max(sg, 1e-7),
+        "bias_corr_s": float(imu.gyro_bias_corr_s),
+        "accel_bias_corr_s": accel_corr_s,
+        "accel_bias_rw_mps2_rts": rate_rw[0],
+        "gyro_bias_rw_radps_rts": rate_rw[1],
+        "p0_accel_bias_mps2": max(accel_p0, 1e-4),
+        "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
     }
-    if bias_model == INSTABILITY:
-        gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps)
-        accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2)
-        return (
-            cal
-            | white
-            | {
-                "accel_bias_sigma_mps2": max(max(imu.accel_bias_instability_mps2), 1e-5),
-                "gyro_bias_sigma_radps": max(max(imu.gyro_bias_instability_radps), 1e-7),
-                "bias_corr_s": float(imu.gyro_bias_corr_s),
-                "p0_accel_bias_mps2": max(accel_p0, 1e-4),
-                "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
-            }
-        )
-    sg, sa = _gm_sigma(imu.gyro_bias_instability_radps), _gm_sigma(imu.accel_bias_instability_mps2)
-    gm_g, gm_a = (sg, sg, sg), (sa, sa, sa)
-    gyro_p0 = _rss_max(imu.gyro_bias_radps, imu.gyro_turn_on_sigma_radps, gm_g)
-    accel_p0 = _rss_max(imu.accel_bias_mps2, imu.accel_turn_on_sigma_mps2, gm_a)
-    return (
-        cal
-        | white
-        | {
-            "accel_bias_sigma_mps2": max(sa, 1e-5),
-            "gyro_bias_sigma_radps": max(sg, 1e-7),
-            "bias_corr_s": float(imu.gyro_bias_corr_s),
-            "accel_bias_corr_s": float(imu.accel_bias_corr_s),
-            "accel_bias_rw_mps2_rts": max(imu.accel_rrw_mps2_rts),
-            "gyro_bias_rw_radps_rts": max(imu.gyro_rrw_radps_rts),
-            "p0_accel_bias_mps2": max(accel_p0, 1e-4),
-            "p0_gyro_bias_radps": max(gyro_p0, 1e-6),
-        }
-    )
 
 
 def feedback_params(

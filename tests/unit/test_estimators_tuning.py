@@ -103,7 +103,7 @@ def test_the_wander_is_in_the_prior_and_each_sensor_keeps_its_own_tau() -> None:
     assert (p["bias_corr_s"], p["accel_bias_corr_s"]) == (3600.0, 600.0)
     old = ekf15_params(imu, bias_model=INSTABILITY)
     assert old["p0_accel_bias_mps2"] == 1e-4  # the floor: "sure" of a bias of 0.5 mg
-    assert "accel_bias_corr_s" not in old
+    assert old["accel_bias_corr_s"] == old["bias_corr_s"] == 3600.0  # the gyro's τ for both, as it ran
     # a preset with a turn-on bias: the wander adds in quadrature to it
     tac = load_scenario("straight_level").imu.params
     t = ekf15_params(tac)
