@@ -14,7 +14,10 @@ pair of the same round:
   detection, rate meter) and a ``DispatchSubscriber`` (decode + validate into the type, counters)
   -- what every service's outputs and inputs go through;
 - ``hilzenoh``: ``can.Bus(interface="hilzenoh")``: ``send(can.Message)`` and ``recv()`` of classic
-  8-byte frames -- the IMU emulator's and the CAN bridge's path; ``hilzenoh fd``: 64-byte FD frames.
+  8-byte frames; ``hilzenoh burst``: each ``--burst`` of frames as one Zenoh message
+  (``send_burst_stamped``, each frame with its wire stamp) -- the IMU emulator's and the CAN
+  bridge's path (one sample's four classic frames); ``hilzenoh fd``: 64-byte FD frames.
+  A hilzenoh figure is per frame.
 
 The payload of ``raw`` and ``typed`` is a real ``ImuSample`` (~260 bytes of JSON).
 """
@@ -35,7 +38,7 @@ from hil.bus.session import BusConfig, open_session
 from hil.runtime.supervisor import free_port
 
 KEY = "hil/benchbus/sensor/imu"
-CASES = ("raw", "raw express", "raw direct", "typed", "hilzenoh", "hilzenoh fd")
+CASES = ("raw", "raw express", "raw direct", "typed", "hilzenoh", "hilzenoh burst", "hilzenoh fd")
 IDLE_END_S = 3.0  # the receiver stops this long after its last message
 
 
@@ -91,12 +94,15 @@ def _receiver(case: str, endpoint: str, n: int) -> dict[str, Any]:
         closer = DispatchSubscriber(session, KEY, {"sensor": (ImuSample, lambda _m, _k: seen())}, Stats())
     else:
         bus = can.Bus(interface="hilzenoh", channel="vcan0", rig="benchbus", fd=True, session=session)
+        stated = case == "hilzenoh burst"
 
         def pump() -> None:
             while not done.is_set():
                 frame = bus.recv(timeout=0.2)
                 if frame is not None:
-                    seen(frame.timestamp)  # the bus's receive stamp: what a reader gets
+                    # the bus's receive stamp: what a reader gets; a burst's frames carry their
+                    # sender-stated wire times, so there the arrival is the latency's end
+                    seen(None if stated else frame.timestamp)
 
         t = threading.Thread(target=pump, daemon=True)
         t.start()
@@ -168,7 +174,19 @@ def _sender(case: str, endpoint: str, n: int, rate: float, burst: int) -> dict[s
             )
             for i in range(64)
         ]
-        send = lambda i: bus.send(frames[i % len(frames)])  # noqa: E731
+        if case == "hilzenoh burst":
+            step = max(1, burst)
+
+            def send(i: int) -> None:
+                if i % step == 0:
+                    group = [frames[(i + j) % len(frames)] for j in range(min(step, n - i))]
+                    now = time.time_ns()
+                    bus.send_burst_stamped(
+                        group, [now - 135_000 * (len(group) - 1 - j) for j in range(len(group))]
+                    )
+
+        else:
+            send = lambda i: bus.send(frames[i % len(frames)])  # noqa: E731
     print("ready", flush=True)
     sys.stdin.readline()  # "go": the receiver has matched
     period = burst / rate if rate > 0 else 0.0
@@ -329,7 +347,10 @@ def main(argv: list[str]) -> int:
     runs: list[tuple[str, str, str | None]] = [(c, c, None) for c in cases]
     if a.versus:
         ref = _revision(a.versus)
-        runs += [(f"{c} ({ref})", c, a.versus) for c in cases if not c.startswith("raw")]
+        # an older checkout has no burst case: its single-frame hilzenoh row is the "before"
+        runs += [
+            (f"{c} ({ref})", c, a.versus) for c in cases if not c.startswith("raw") and c != "hilzenoh burst"
+        ]
     results: dict[str, list[dict[str, float]]] = {label: [] for label, _, _ in runs}
     try:
         for i in range(a.repeat):

@@ -94,6 +94,21 @@ class CanTransmitter:
         ``count_burst``."""
         return self._send(frame, stamp_epoch_ns)
 
+    def send_burst(self, frames: Sequence[can.Message], stamps_epoch_ns: Sequence[int]) -> bool:
+        """One sample's frames, each with its wire time (``send_frame``'s stamp): as one transport
+        message where the bus can (``hilzenoh``'s ``send_burst_stamped``: one put, one routing,
+        one wake-up of each reader for the sample), else frame by frame. Pair with
+        ``count_burst``."""
+        burst = getattr(self.bus, "send_burst_stamped", None)
+        if burst is None:
+            ok = True
+            for frame, stamp in zip(frames, stamps_epoch_ns, strict=True):
+                ok = self._send(frame, stamp) and ok
+            return ok
+        if not frames:
+            return True
+        return self._attempt(lambda: burst(frames, stamps_epoch_ns, timeout=self.send_timeout_s), frames)
+
     @property
     def carries_stamps(self) -> bool:
         """True if the bus carries the wire time ``send_frame`` is given (``hilzenoh``); a
@@ -128,35 +143,42 @@ class CanTransmitter:
                 self.stats.inc(f"can.{name.replace('_', '.', 1)}")
 
     def _send(self, frame: can.Message, stamp_epoch_ns: int | None = None) -> bool:
-        delay = self.backoff_s
         stamped = getattr(self.bus, "send_stamped", None) if stamp_epoch_ns is not None else None
+        if stamped is not None:
+            return self._attempt(lambda: stamped(frame, stamp_epoch_ns, timeout=self.send_timeout_s), [frame])
+        return self._attempt(lambda: self.bus.send(frame, timeout=self.send_timeout_s), [frame])
+
+    def _attempt(self, call: Callable[[], Any], frames: Sequence[can.Message]) -> bool:
+        """``call`` (one transport write of ``frames``) under the retry policy: a failure is retried
+        with a doubling back-off, then its frames are counted dropped."""
+        delay = self.backoff_s
+        what = f"send 0x{frames[0].arbitration_id:X}" + (
+            f" (+{len(frames) - 1} frames)" if len(frames) > 1 else ""
+        )
         for attempt in range(self.retries + 1):
             try:
-                if stamped is not None:
-                    stamped(frame, stamp_epoch_ns, timeout=self.send_timeout_s)
-                else:
-                    self.bus.send(frame, timeout=self.send_timeout_s)
+                call()
             except can.CanOperationError as err:
                 full = err.error_code == errno.ENOBUFS or "buffer" in str(err).lower()
-                self._count(
-                    "tx_buffer_full" if full else "tx_bus_error", f"send 0x{frame.arbitration_id:X}: {err}"
-                )
+                self._count("tx_buffer_full" if full else "tx_bus_error", f"{what}: {err}")
                 if attempt < self.retries:
                     self._counts["tx_retries"] += 1
                     self._sleep(delay)
                     delay *= 2
                 continue
             except can.CanError as err:  # any other python-can failure: same policy
-                self._count("tx_bus_error", f"send 0x{frame.arbitration_id:X}: {err}")
+                self._count("tx_bus_error", f"{what}: {err}")
                 if attempt < self.retries:
                     self._counts["tx_retries"] += 1
                     self._sleep(delay)
                     delay *= 2
                 continue
-            self._counts["tx_frames"] += 1
-            self._account(frame)
+            self._counts["tx_frames"] += len(frames)
+            for frame in frames:
+                self._account(frame)
             return True
-        self._count("tx_dropped_frames")
+        for _ in frames:
+            self._count("tx_dropped_frames")
         return False
 
     def _account(self, frame: can.Message) -> None:

@@ -197,8 +197,9 @@ counted, never raised. How to wire a real unit (CAN, its GNSS UART, the PPS), th
 `hil.can.bus.open_can_bus(channel, interface=None, fd=...)` picks SocketCAN when the kernel has
 the channel (`/sys/class/net/<channel>`), else `hilzenoh`: a python-can interface carrying frames
 over the rig's Zenoh network on `hilcan/<rig>/<channel>` (reliable, blocking congestion control,
-receive stamp taken on arrival, own frames not echoed, FD supported). Emulator and bridge code are
-the same `can.Bus` calls either way.
+receive stamp the sender's wire time or the arrival, own frames not echoed, FD supported; the
+live runner sends one sample's frames as one message, each with its own stamp). Emulator and
+bridge code are the same `can.Bus` calls either way.
 
 The SocketCAN path is proven by the vcan tier (`pytest -m vcan`), inside user-mode-linux when the
 host kernel has no CAN: on its one slow vCPU it sustains, with no lost sample, classic CAN at

@@ -39,10 +39,22 @@ express cost ~20 µs of CPU per frame on each side. Frames reach the other buses
 Zenoh session (a service's, shared) straight from ``send``; the subscription takes remote ones
 only, so a sender is not woken by the echo of its own frames (it was, once per frame).
 
-Wire format of one Zenoh payload (little-endian)::
+One sample's frames in one Zenoh message (``send_burst_stamped``): the live runner's pacing
+hands a sample's frames over together when its last frame is done on the wire, each frame with
+its own wire time. Sent one put each, four classic frames cost four puts, four routings through
+the hub and four wake-ups of every reader; as one message, one of each (``hil bench bus``, case
+``hilzenoh burst``). A receiver still gets each frame as its own ``can.Message`` with its own
+stamp, so readers cannot tell the difference, except that a burst's first frames arrive together
+with its last (a reader that completes a sample on its last frame loses nothing).
+
+Wire format of one Zenoh payload (little-endian), one or more frame records back to back::
 
     u64 sender id | u32 arbitration id | u8 flags | u8 length | data[length]
     flags: 1 extended, 2 FD, 4 bit-rate switch, 8 error-state indicator, 16 error frame, 32 remote
+
+and the attachment, when the sender states wire times: one ``i64`` epoch-ns stamp per record, in
+order. A payload with a truncated record, or stamps that do not match its records one to one, is
+counted whole in ``rx_malformed`` (none of its frames is delivered).
 """
 
 from __future__ import annotations
@@ -56,6 +68,7 @@ import struct
 import threading
 import time
 import weakref
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import can
@@ -116,12 +129,33 @@ def pack_frame(sender: int, msg: can.Message) -> bytes:
 
 def unpack_frame(payload: bytes) -> tuple[int, can.Message]:
     """The inverse of :func:`pack_frame`; raises ``ValueError`` on a malformed payload."""
-    if len(payload) < _HEADER.size:
-        raise ValueError(f"CAN payload of {len(payload)} B is shorter than its {_HEADER.size} B header")
-    sender, arb, flags, length = _HEADER.unpack_from(payload)
-    data = payload[_HEADER.size :]
-    if len(data) != length or length > 64:
-        raise ValueError(f"CAN payload announces {length} data bytes, carries {len(data)}")
+    frames = unpack_frames(payload)
+    if len(frames) != 1:
+        raise ValueError(f"CAN payload carries {len(frames)} frames, not one")
+    return frames[0]
+
+
+def unpack_frames(payload: bytes) -> list[tuple[int, can.Message]]:
+    """Every frame record of a payload (one, or a burst's); ``ValueError`` if any is malformed."""
+    out: list[tuple[int, can.Message]] = []
+    at, end = 0, len(payload)
+    while True:
+        if end - at < _HEADER.size:
+            raise ValueError(
+                f"CAN payload of {end} B: {end - at} B at offset {at}, short of a {_HEADER.size} B header"
+            )
+        sender, arb, flags, length = _HEADER.unpack_from(payload, at)
+        at += _HEADER.size
+        if length > 64 or at + length > end:
+            raise ValueError(f"CAN payload announces {length} data bytes, carries {min(end - at, length)}")
+        out.append((sender, _message(arb, flags, payload[at : at + length])))
+        at += length
+        if at == end:
+            return out
+
+
+def _message(arb: int, flags: int, data: bytes) -> can.Message:
+    length = len(data)
     msg = can.Message(
         arbitration_id=arb,
         is_extended_id=bool(flags & F_EXT),
@@ -134,7 +168,7 @@ def unpack_frame(payload: bytes) -> tuple[int, can.Message]:
         dlc=length,
         check=False,
     )
-    return sender, msg
+    return msg
 
 
 class ZenohCanBus(can.BusABC):
@@ -253,7 +287,7 @@ class ZenohCanBus(can.BusABC):
 
     # Runs on a Zenoh thread: stamp first, never raise.
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        stamp = time.time()
+        arrival = time.time()
         try:
             payload = sample.payload.to_bytes()
         except Exception:
@@ -261,40 +295,46 @@ class ZenohCanBus(can.BusABC):
             self.rx_malformed += 1
             return
         att = sample.attachment
-        if att is not None:
-            stamp = self._stated(att.to_bytes(), stamp)
-        self._on_payload(payload, stamp)
+        self._on_payload(payload, arrival, None if att is None else att.to_bytes())
 
-    def _stated(self, wire: bytes, arrival: float) -> float:
-        """The sender's wire time (``send_stamped``) unless it is after the arrival (clock skew)."""
-        if len(wire) != _STAMP.size:
-            return arrival
-        wire_s = _STAMP.unpack(wire)[0] * 1e-9
-        if wire_s <= arrival:
-            return wire_s
-        self.rx_stamp_skew += 1
-        return arrival
+    def _stamps(self, wire: bytes | None, n: int, arrival: float) -> list[float]:
+        """Each frame's receive stamp: the sender's wire time (``send_stamped``,
+        ``send_burst_stamped``) unless it is after the arrival (clock skew), else the arrival. An
+        attachment that is not one stamp per frame is not ours to read: arrival stamps."""
+        if wire is None or len(wire) != _STAMP.size * n:
+            return [arrival] * n
+        out = []
+        for (ns,) in _STAMP.iter_unpack(wire):
+            wire_s = ns * 1e-9
+            if wire_s <= arrival:
+                out.append(wire_s)
+            else:
+                self.rx_stamp_skew += 1
+                out.append(arrival)
+        return out
 
-    def _on_payload(self, payload: bytes, stamp: float) -> None:
-        """A frame on the key, from Zenoh or from a bus of this session (``send``)."""
+    def _on_payload(self, payload: bytes, arrival: float, wire: bytes | None = None) -> None:
+        """Frames on the key (one, or a burst's), from Zenoh or from a bus of this session."""
         self.rx_samples += 1
         try:
-            sender, msg = unpack_frame(payload)
+            frames = unpack_frames(payload)
         except Exception:
             self.rx_malformed += 1
             return
-        if sender == self._sender and not self.receive_own_messages:
-            return
-        if msg.is_fd and not self.fd:
-            self.rx_fd_ignored += 1
-            return
-        msg.timestamp = stamp
-        msg.channel = self.channel
-        msg.is_rx = sender != self._sender
-        if self._rx.qsize() >= self._rx_max:  # a bound on memory (a racing producer may pass it by one)
-            self.rx_overflow += 1
-            return
-        self._rx.put(msg)
+        stamps = self._stamps(wire, len(frames), arrival)
+        for (sender, msg), stamp in zip(frames, stamps, strict=True):
+            if sender == self._sender and not self.receive_own_messages:
+                continue
+            if msg.is_fd and not self.fd:
+                self.rx_fd_ignored += 1
+                continue
+            msg.timestamp = stamp
+            msg.channel = self.channel
+            msg.is_rx = sender != self._sender
+            if self._rx.qsize() >= self._rx_max:  # a bound on memory (a racing producer may pass it by one)
+                self.rx_overflow += 1
+                continue
+            self._rx.put(msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if self._closed.is_set():
@@ -308,14 +348,29 @@ class ZenohCanBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Publish ``msg``; raises ``CanOperationError`` on a closed bus or an illegal frame."""
-        self._put(msg, None)
+        self._publish(self._packed(msg), None, 1)
 
     def send_stamped(self, msg: can.Message, stamp_epoch_ns: int, timeout: float | None = None) -> None:
         """``send``, telling receivers the frame was on the wire at ``stamp_epoch_ns`` (their
         receive stamp; see the module docstring)."""
-        self._put(msg, int(stamp_epoch_ns))
+        self._publish(self._packed(msg), _STAMP.pack(int(stamp_epoch_ns)), 1)
 
-    def _put(self, msg: can.Message, stamp_ns: int | None) -> None:
+    def send_burst_stamped(
+        self, msgs: Sequence[can.Message], stamps_epoch_ns: Sequence[int], timeout: float | None = None
+    ) -> None:
+        """Frames that leave back to back (one sample's) as one Zenoh message, each with its own
+        wire time: all published or none (see the module docstring)."""
+        if len(msgs) != len(stamps_epoch_ns):
+            raise can.CanOperationError(
+                f"hilzenoh: a burst of {len(msgs)} frames with {len(stamps_epoch_ns)} stamps"
+            )
+        if not msgs:
+            return
+        payload = b"".join([self._packed(m) for m in msgs])
+        self._publish(payload, struct.pack(f"<{len(msgs)}q", *stamps_epoch_ns), len(msgs))
+
+    def _packed(self, msg: can.Message) -> bytes:
+        """The frame's record, or ``CanOperationError`` if this bus may not send it."""
         if self._closed.is_set():
             raise can.CanOperationError("hilzenoh: bus is shut down")
         n = len(msg.data or b"")
@@ -326,21 +381,23 @@ class ZenohCanBus(can.BusABC):
                 raise can.CanOperationError(f"hilzenoh: {n} data bytes is not a CAN FD length")
         elif n > 8:
             raise can.CanOperationError(f"hilzenoh: {n} data bytes in a classic CAN frame")
-        payload = pack_frame(self._sender, msg)
+        return pack_frame(self._sender, msg)
+
+    def _publish(self, payload: bytes, wire: bytes | None, frames: int) -> None:
         try:
-            if stamp_ns is None:
+            if wire is None:
                 self._pub.put(payload)
             else:
-                self._pub.put(payload, attachment=_STAMP.pack(stamp_ns))
+                self._pub.put(payload, attachment=wire)
         except Exception as err:
             raise can.CanOperationError(f"hilzenoh: publish on {self.key} failed: {err}") from err
-        self.tx_frames += 1
+        self.tx_frames += frames
         buses = self._local.buses
         if len(buses) > 1 or self.receive_own_messages:
-            stamp = time.time() if stamp_ns is None else min(time.time(), stamp_ns * 1e-9)
+            now = time.time()
             for bus in buses:
                 if bus is not self or self.receive_own_messages:
-                    bus._on_payload(payload, stamp)
+                    bus._on_payload(payload, now, wire)
 
     def shutdown(self) -> None:
         if self._closed.is_set():

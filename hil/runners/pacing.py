@@ -276,6 +276,8 @@ class FrameSink(Protocol):
 
     def send_frame(self, frame: Any, stamp_epoch_ns: int | None = None) -> bool: ...
 
+    def send_burst(self, frames: Sequence[Any], stamps_epoch_ns: Sequence[int]) -> bool: ...
+
     def count_burst(self, ok: bool, sync: bool) -> None: ...
 
 
@@ -347,8 +349,9 @@ class PacedSender:
 
         A bus that carries stamps gets the burst in one hand-over when its last frame is done,
         each frame stamped with its own end on the wire, counted back from the hand-over (one
-        wait per sample, not one per frame); SocketCAN, which stamps frames as they are sent,
-        gets each frame when it is done (the short gaps inside a burst are spun)."""
+        wait and one transport message per sample, not one per frame: ``send_burst``);
+        SocketCAN, which stamps frames as they are sent, gets each frame when it is done (the
+        short gaps inside a burst are spun)."""
         if not burst.frames:
             return
         now = self.clock.now_ns()
@@ -375,9 +378,8 @@ class PacedSender:
             left = self._wait_hand(ends[-1], behind)
             if left is None:
                 return
-            for frame, end in zip(burst.frames, ends, strict=True):
-                stamp = end if relaxed else left - (ends[-1] - end)
-                ok = self.sink.send_frame(frame, self.clock.epoch_ns(stamp)) and ok
+            stamps = [self.clock.epoch_ns(end if relaxed else left - (ends[-1] - end)) for end in ends]
+            ok = self.sink.send_burst(burst.frames, stamps)
             first = left - (ends[-1] - ends[0])
         else:
             for frame, end in zip(burst.frames, ends, strict=True):

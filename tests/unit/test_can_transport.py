@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from typing import Any
 
 import can
 import pytest
@@ -16,8 +17,8 @@ from hil.bus.session import BusConfig, open_session
 from hil.can.bus import open_can_bus, resolve_interface
 from hil.can.busload import frame_bits, sample_load
 from hil.can.codec import ImuCanCodec
-from hil.can.node import ImuCanNode
-from hil.can.zenoh_bus import pack_frame, unpack_frame
+from hil.can.node import CanTransmitter, ImuCanNode
+from hil.can.zenoh_bus import pack_frame, unpack_frame, unpack_frames
 
 CHILD = textwrap.dedent(
     """
@@ -129,6 +130,111 @@ def test_frame_payload_round_trip() -> None:
         unpack_frame(b"\x00" * 5)
     with pytest.raises(ValueError):
         unpack_frame(pack_frame(1, m)[:-1])
+
+
+def _sample_frames(k: int) -> list[can.Message]:
+    return [
+        can.Message(arbitration_id=0x181 + j, is_extended_id=False, data=bytes([k & 0xFF, j] * 4))
+        for j in range(4)
+    ]
+
+
+def test_burst_payload_round_trip_and_malformed_bursts_refused() -> None:
+    frames = _sample_frames(7)
+    payload = b"".join(pack_frame(9, m) for m in frames)
+    back = unpack_frames(payload)
+    assert [s for s, _m in back] == [9] * 4
+    assert all(b.equals(m, timestamp_delta=None) for (_s, b), m in zip(back, frames, strict=True))
+    with pytest.raises(ValueError, match="carries 4 frames"):
+        unpack_frame(payload)  # one frame was asked for
+    for cut in (1, 14, len(payload) - 1):  # a truncated record anywhere: the whole payload is refused
+        with pytest.raises(ValueError):
+            unpack_frames(payload[:-cut])
+
+
+def test_a_burst_is_one_zenoh_message_and_each_frame_keeps_its_wire_stamp(zenoh_hub: str) -> None:
+    rig = "t-canburst"
+    tx = can.Bus(interface="hilzenoh", channel="vcan0", rig=rig, receive=False)
+    rx = can.Bus(interface="hilzenoh", channel="vcan0", rig=rig)
+    stray = open_session(BusConfig.from_env())
+    try:
+        # until the subscription is matched, probe with single frames
+        deadline = time.time() + 10
+        while rx.recv(timeout=0.1) is None and time.time() < deadline:
+            tx.send(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"probe"))
+        while rx.recv(timeout=0.3) is not None:
+            pass
+        samples0 = rx.rx_samples  # type: ignore[attr-defined]
+        now_ns = time.time_ns()
+        n = 50
+        for k in range(n):
+            stamps = [now_ns - 10_000_000 + k * 100_000 + j * 135_000 for j in range(4)]
+            tx.send_burst_stamped(_sample_frames(k), stamps)  # type: ignore[attr-defined]
+        got: list[can.Message] = []
+        deadline = time.time() + 20
+        while len(got) < 4 * n and time.time() < deadline:
+            m = rx.recv(timeout=0.2)
+            if m is not None:
+                got.append(m)
+        assert len(got) == 4 * n
+        assert [(m.arbitration_id, m.data[0]) for m in got] == [
+            (0x181 + j, k) for k in range(n) for j in range(4)
+        ]
+        want = [(now_ns - 10_000_000 + k * 100_000 + j * 135_000) * 1e-9 for k in range(n) for j in range(4)]
+        assert [m.timestamp for m in got] == pytest.approx(want, abs=1e-6)
+        assert rx.rx_samples - samples0 == n  # type: ignore[attr-defined]  # one Zenoh message per burst
+        assert tx.tx_frames >= 4 * n  # type: ignore[attr-defined]
+        # a stamp in the future is the receiver's arrival, counted as clock skew
+        tx.send_burst_stamped(_sample_frames(1), [time.time_ns() + 10**10] * 4)  # type: ignore[attr-defined]
+        late = [rx.recv(timeout=5) for _ in range(4)]
+        assert all(m is not None and m.timestamp <= time.time() for m in late)
+        assert rx.rx_stamp_skew == 4  # type: ignore[attr-defined]
+        # a burst with one record cut short: counted once, none of its frames delivered
+        bad = b"".join(pack_frame(5, m) for m in _sample_frames(2))[:-3]
+        stray.put(f"hilcan/{rig}/vcan0", bad)
+        deadline = time.time() + 5
+        while rx.rx_malformed == 0 and time.time() < deadline:  # type: ignore[attr-defined]
+            assert rx.recv(timeout=0.1) is None
+        assert rx.rx_malformed == 1  # type: ignore[attr-defined]
+        with pytest.raises(can.CanOperationError, match="3 stamps"):
+            tx.send_burst_stamped(_sample_frames(0), [now_ns] * 3)  # type: ignore[attr-defined]
+    finally:
+        stray.close()
+        tx.shutdown()
+        rx.shutdown()
+
+
+def test_transmitter_sends_a_burst_in_one_write_and_drops_it_whole_on_failure() -> None:
+    class BurstBus(_FlakyBus):
+        def __init__(self, fail: int) -> None:
+            super().__init__(fail)
+            self.writes: list[list[tuple[int, int]]] = []
+
+        def send_burst_stamped(self, msgs: Any, stamps: Any, timeout: float | None = None) -> None:
+            if self.fail:
+                self.fail -= 1
+                raise can.CanOperationError("Transmit buffer full", error_code=errno.ENOBUFS)
+            self.writes.append([(m.arbitration_id, s) for m, s in zip(msgs, stamps, strict=True)])
+
+    sleeps: list[float] = []
+    bus = BurstBus(fail=1)
+    tx = CanTransmitter(bus, None, sleep=sleeps.append)
+    frames = _sample_frames(3)
+    assert tx.send_burst(frames, [10, 20, 30, 40]) is True
+    assert bus.writes == [[(0x181, 10), (0x182, 20), (0x183, 30), (0x184, 40)]] and sleeps == [0.0005]
+    c = tx.counters()
+    assert c["tx_frames"] == 4 and c["tx_retries"] == 1 and c["tx_buffer_full"] == 1
+    dead = BurstBus(fail=-1)
+    tx = CanTransmitter(dead, None, sleep=sleeps.append)
+    assert tx.send_burst(frames, [1, 2, 3, 4]) is False
+    c = tx.counters()
+    assert c["tx_dropped_frames"] == 4 and c["tx_frames"] == 0 and c["tx_retries"] == 3
+    # a bus without bursts (SocketCAN) gets the frames one by one
+    plain = _FlakyBus(fail=0)
+    tx = CanTransmitter(plain, None)
+    assert tx.send_burst(frames, [1, 2, 3, 4]) is True and len(plain.sent) == 4
+    for b in (bus, dead, plain):
+        b.shutdown()
 
 
 def test_auto_interface_resolution() -> None:

@@ -52,6 +52,7 @@ class Sink:
     stamps: bool = True
     sent: list[tuple[int, int | None, can.Message]] = field(default_factory=list)
     bursts: list[tuple[bool, bool]] = field(default_factory=list)
+    handovers: list[int] = field(default_factory=list)  # frames per send_burst call
 
     @property
     def carries_stamps(self) -> bool:
@@ -59,6 +60,13 @@ class Sink:
 
     def send_frame(self, frame: Any, stamp_epoch_ns: int | None = None) -> bool:
         self.sent.append((self.clock.t, stamp_epoch_ns, frame))
+        return True
+
+    def send_burst(self, frames: Any, stamps_epoch_ns: Any) -> bool:
+        assert self.stamps and len(frames) == len(stamps_epoch_ns)  # only a stamped bus gets bursts
+        self.handovers.append(len(frames))
+        for frame, stamp in zip(frames, stamps_epoch_ns, strict=True):
+            self.sent.append((self.clock.t, stamp, frame))
         return True
 
     def count_burst(self, ok: bool, sync: bool) -> None:
@@ -97,6 +105,8 @@ def test_samples_leave_on_their_grid_with_frames_at_wire_spacing(stamps: bool) -
         when = stamp if stamps else t
         assert when is not None and 0 <= when - due_end < 5_000
     assert ps.counts["tx_late_samples"] == 0 and len(sink.bursts) == 50
+    # a bus that carries stamps gets each sample's four frames in one hand-over
+    assert sink.handovers == ([4] * 50 if stamps else [])
 
 
 def test_a_stall_is_sent_late_at_wire_speed_and_counted_never_bunched() -> None:
