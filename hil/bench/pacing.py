@@ -4,7 +4,8 @@ Runs ``hil up`` (every service its own process, the CAN transport of this machin
 emulator's pacing process tracing every sample it sends (``HIL_PACING_TRACE``), then reports:
 
 - **lateness** of each sample's first frame, handed to the bus, against its ideal instant (the
-  sample's tick + that frame's bit time on the wire + the controller latency): p50/p99/max, the
+  sample's tick, or the end of the sync frame a device sends first on its edge, + that frame's
+  bit time on the wire + the controller latency): p50/p99/max, the
   first sample alone (bus and codec are ready before time zero), and how many were more than
   200 µs late;
 - **bursts**: samples handed over less than half a period after the previous one (a compressed
@@ -199,7 +200,8 @@ def main(argv: list[str]) -> int:
             f"`hil up` (scenario `{a.scenario}`, every service its own process, classic CAN on this "
             f"machine's transport) for {a.duration:g} s per rate. Lateness = when the IMU emulator's "
             "pacing process handed a sample's first frame to the bus, minus its ideal instant (the "
-            "sample's tick + the frame's bit time at 1 Mbit/s + the controller latency), "
+            "sample's tick -- on a sync edge the end of the sync frame, which goes first -- + the "
+            "frame's bit time at 1 Mbit/s + the controller latency), "
             "`CLOCK_MONOTONIC` on the host. 'bursts' = samples handed over less than half a period "
             "after the previous one. Load = the 1-minute load average just before the run (the "
             "rig's own processes and whatever else ran on the machine).",

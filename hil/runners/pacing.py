@@ -289,8 +289,10 @@ COUNTERS = (
     "tx_sync_dropped",
     "pacing.clock_steps",
 )
-# one row per sample sent (benches): device index, tick, ideal hand-over of its first frame (tick
-# + that frame's wire time + latency), actual hand-over, frames, when the node handed it over
+# one row per sample sent (benches): device index, tick, ideal hand-over of its first frame (on
+# the ideal wire: its tick, or the end of what a perfect device sent before it on the same bus,
+# e.g. the sync frame that goes first on its edge; + that frame's wire time + latency), actual
+# hand-over, frames, when the node handed it over
 TRACE_COLUMNS = ("index", "due_ns", "ideal_ns", "handed_ns", "frames", "submitted_ns")
 
 
@@ -321,6 +323,10 @@ class PacedSender:
         self.trace: list[tuple[int, ...]] | None = [] if trace else None
         self.waiter = Waiter(stop)
         self.bus_free_ns = -(2**62)
+        # the wire as a device that never stalls would use it: a sample is judged late only
+        # against this schedule (a sync frame sent first on the same tick delays the sample's
+        # frames on a real bus too), never against a schedule moved by the host's own lateness
+        self.ideal_free_ns = -(2**62)
 
     def counters(self, wall_s: float) -> dict[str, int]:
         out = dict(self.counts)
@@ -357,6 +363,8 @@ class PacedSender:
         now = self.clock.now_ns()
         if self.cfg.late_policy == "skip" and self.cfg.period_ns and now - due_ns >= self.cfg.period_ns:
             self.counts["tx_late_skipped_samples"] += 1  # its slot has passed: the next one is due
+            sched = max(due_ns, self.ideal_free_ns)  # a device that never stalls sent it
+            self.ideal_free_ns = sched + sum(self.wire.frame_ns(f) for f in burst.frames)
             return
         # on a bus that carries stamps, at normal priority, a late burst keeps its place on the
         # wire's schedule (stamps from its tick or the previous frame, never from when this
@@ -390,7 +398,9 @@ class PacedSender:
                 first = first or left
         self.bus_free_ns = t
         self.sink.count_burst(ok, False)
-        ideal = due_ns + self.wire.frame_ns(burst.frames[0]) + self.cfg.wire_latency_ns
+        sched = max(due_ns, self.ideal_free_ns)
+        ideal = sched + self.wire.frame_ns(burst.frames[0]) + self.cfg.wire_latency_ns
+        self.ideal_free_ns = sched + sum(self.wire.frame_ns(f) for f in burst.frames)
         self._account(burst, due_ns, ideal, first, submitted_ns)
 
     def _send_sync(self, burst: CanBurst, due_ns: int) -> None:
@@ -402,6 +412,7 @@ class PacedSender:
         meet the stated instant within ``SYNC_CLAIM_TOL_NS``, or the tag is re-stamped later
         (three tries) or dropped."""
         frames = list(burst.frames)
+        self.ideal_free_ns = max(due_ns, self.ideal_free_ns) + self.wire.frame_ns(frames[0])
         for _attempt in range(3):
             first = max(due_ns, self.bus_free_ns, self.clock.now_ns())
             if first != burst.capture_ns:

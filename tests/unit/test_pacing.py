@@ -177,3 +177,28 @@ def test_the_pacing_bench_reads_the_emulators_last_counters_from_a_recording() -
     counters = _last_counters(read_session(golden))
     assert counters["tx_fault_dropped_samples"] == 0
     assert set(counters) >= {"tx_corrupted_frames", "tx_saturated_samples"}
+
+
+def test_a_sample_behind_its_sync_frame_is_judged_on_the_ideal_wire_not_late() -> None:
+    """On a sync edge the time tag goes first and the sample's frames follow it on the wire, as
+    on a real bus: that is the ideal schedule, not lateness; a real stall still counts."""
+    ps, clock, sink = _sender()
+    codec = ImuCanCodec.from_dbc(None)
+    wire = CanWire()
+    for k in range(20):
+        due = (k + 1) * PERIOD
+        if k % 10 == 9:  # a sync edge on this tick
+            sync = codec.encode_sync(due)
+            ps.send(CanBurst([sync], due, k, sync=True, device_clock=(due, 1.0, 1_000)), due)
+        ps.send(_burst(k), due, backlog=True)
+    assert ps.counts["tx_late_samples"] == 0
+    rows = ps.trace or []
+    edge = rows[9]
+    sync_ns, frame_ns = wire.frame_ns(sink.sent[36][2]), wire.frame_ns(_burst(0).frames[0])
+    # the sample's first frame ends a sync frame and a frame after its tick, and that is on time
+    assert edge[2] == edge[1] + sync_ns + frame_ns
+    assert all(0 <= handed - ideal < 5_000 for _i, _d, ideal, handed, _f, _s in rows)
+    # a stall after it is still late against the same ideal wire
+    clock.t = 40 * PERIOD
+    ps.send(_burst(20), 21 * PERIOD, backlog=True)
+    assert ps.counts["tx_late_samples"] == 1
