@@ -200,17 +200,21 @@ def _cpu_of(out: str) -> tuple[float, dict[str, float]]:
     return window, cpu
 
 
-def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> tuple[int, list[str]]:
+def _measure_rigs(
+    a: argparse.Namespace, runs: list[tuple[str, str | None]]
+) -> tuple[int, list[Any], list[str]]:
     """``hil up`` of each rig, each with its own hub (``tree``: that checkout's code runs it). The
-    rigs of one checkout run at once; checkouts in turn (two revisions at once would starve each
-    other unevenly: the faster one gets more of the machine)."""
-    load_before = os.getloadavg()[0]
+    rigs of one checkout run at once; checkouts in turn, in the order of ``runs`` (two revisions
+    at once would starve each other unevenly: the faster one gets more of the machine). Rows
+    (rig, tree, wall s, CPU s per service, IMU samples, gaps), and notes; on failure the lines
+    that say why."""
     with tempfile.TemporaryDirectory() as d:
         procs: list[subprocess.Popen[str]] = []
         outs: list[str] = []
-        for group in dict.fromkeys(tree for _, tree in runs):
+        order = [r for group in dict.fromkeys(tree for _, tree in runs) for r in runs if r[1] == group]
+        for group in dict.fromkeys(tree for _, tree in order):
             started = []
-            for rig, tree in runs:
+            for rig, tree in order:
                 if tree != group:
                     continue
                 env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
@@ -225,9 +229,9 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
             outs += [p.communicate()[0] for p in started]
         rows = []
         where: list[str] = []
-        for (rig, tree), p, out in zip(runs, procs, outs, strict=True):
+        for (rig, tree), p, out in zip(order, procs, outs, strict=True):
             if not (Path(d) / f"{rig}.mcap").is_file():
-                return p.returncode or 1, [f"rig {rig}: hil up failed:", *out.splitlines()[-20:]]
+                return p.returncode or 1, [], [f"rig {rig}: hil up failed:", *out.splitlines()[-20:]]
             if p.returncode != 0:  # e.g. a service fell behind and lost samples: still a row
                 where.append(f"rig {rig}: hil up exited {p.returncode}")
             infos = channel_infos(read_session(Path(d) / f"{rig}.mcap"))
@@ -237,27 +241,67 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
             lossy = [f"{c.topic.split('/', 2)[-1]} {c.missing}" for c in infos if c.missing]
             if lossy:
                 where.append(f"rig {rig}: sequence gaps in " + ", ".join(lossy))
+    rank = {r: i for i, r in enumerate(runs)}
+    rows.sort(key=lambda r: rank[(r[0], r[1])])
+    return 0, rows, where
+
+
+def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> tuple[int, list[str]]:
+    """The rigs of ``runs`` (see ``_measure_rigs``), ``--repeat`` rounds with the checkouts'
+    order alternating (round 2 runs the reference first: a drift in the machine's load then
+    weighs on both alike); one table row per rig and round, and with ``--versus`` the CPU per
+    IMU sample of this tree over the reference's, per round and over all."""
+    load_before = os.getloadavg()[0]
+    rows: list[Any] = []
+    where: list[str] = []
+    for i in range(a.repeat):
+        ordered = runs if i % 2 == 0 else sorted(runs, key=lambda r: r[1] is None)
+        rc, got, notes = _measure_rigs(a, ordered)
+        if rc != 0:
+            return rc, notes
+        rows += [(*r, i + 1) for r in got]
+        where += [f"round {i + 1}: {n}" if a.repeat > 1 else n for n in notes]
     names = sorted({n for r in rows for n in r[3]}, key=lambda n: -max(r[3].get(n, 0.0) for r in rows))
     can = "CAN FD" if a.fd else "classic CAN"
+    rounds = f", {a.repeat} rounds with the checkouts' order alternating" if a.repeat > 1 else ""
     lines = [
-        f"{len(runs)} rigs (one checkout's at once, checkouts in turn), each `hil up` with its own hub, "
-        f"{a.duration:g} s of "
+        f"{len(runs)} rigs (one checkout's at once, checkouts in turn{rounds}), each `hil up` with its "
+        f"own hub, {a.duration:g} s of "
         f"`{a.scenario}`, {can}; share of one core per service (`hil up`'s CPU table), IMU samples "
         "recorded and sequence gaps over every recorded topic:",
         "",
-        "| rig | code | IMU Hz | gaps | " + " | ".join(names) + " | **all** | ms CPU per IMU sample |",
-        "| --- | --- | ---: | ---: | " + " | ".join("---:" for _ in names) + " | ---: | ---: |",
+        "| rig | code | round | IMU Hz | gaps | "
+        + " | ".join(names)
+        + " | **all** | ms CPU per IMU sample |",
+        "| --- | --- | ---: | ---: | ---: | " + " | ".join("---:" for _ in names) + " | ---: | ---: |",
     ]
-    for rig, tree, window, cpu, n_imu, gaps in rows:
+    per_sample: dict[tuple[bool, int], list[float]] = {}
+    for rig, tree, window, cpu, n_imu, gaps, rnd in rows:
         share = [f"{100 * cpu.get(n, 0.0) / window:.1f} %" if n in cpu else "-" for n in names]
         code = _revision(tree) if tree else _revision(os.getcwd())
+        ms = 1e3 * sum(cpu.values()) / max(1, n_imu)
+        per_sample.setdefault((tree is None, rnd), []).append(ms)
         lines.append(
-            f"| {rig} | {code} | {n_imu / a.duration:.1f} | {gaps} | "
+            f"| {rig} | {code} | {rnd} | {n_imu / a.duration:.1f} | {gaps} | "
             + " | ".join(share)
             + f" | **{100 * sum(cpu.values()) / window:.1f} %**"
-            + f" | {1e3 * sum(cpu.values()) / max(1, n_imu):.2f} |"
+            + f" | {ms:.2f} |"
         )
     lines += ["", *where] if where else []
+    if a.versus:
+        ratios = [
+            float(np.mean(per_sample[(True, r)])) / float(np.mean(per_sample[(False, r)]))
+            for r in range(1, a.repeat + 1)
+        ]
+        mine = float(np.mean([v for (t, _), vs in per_sample.items() if t for v in vs]))
+        ref = float(np.mean([v for (t, _), vs in per_sample.items() if not t for v in vs]))
+        lines += [
+            "",
+            f"CPU per IMU sample, this tree over {_revision(a.versus)}: **{mine / ref:.3f}** "
+            f"({mine:.2f} vs {ref:.2f} ms over {a.repeat} round(s); per round "
+            + ", ".join(f"{x:.3f}" for x in ratios)
+            + ").",
+        ]
     lines += [
         "",
         f"Load average (1 min) just before the run: {load_before:.2f} on {os.cpu_count()} cores (the rigs "
@@ -294,7 +338,12 @@ def main(argv: list[str]) -> int:
         help="time sync's and the fusion's input batching window, ms; several (0,10): the rig once "
         "per window, compared (section rig-batch unless --section)",
     )
-    ap.add_argument("--repeat", type=int, default=1, help="rounds of the windows, alternating")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="rounds of the windows, or of the rigs with --versus, alternating",
+    )
     ap.add_argument("--section", default=None, help="the docs/benchmarks.md section to write")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
