@@ -88,6 +88,12 @@ class CanWriterOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fi
     # compute a tick up to this long before it is due (a fault command applies after it); 1 s
     # absorbs a physics block computed late on a loaded machine (0.25 s did not, at load 24)
     lookahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=5.0)] = 1.0
+    # the live runner wakes at most this often (at most lookahead_s): the ticks that entered the
+    # look-ahead meanwhile are computed together, their bursts reach the pacing process in one
+    # message, and the other outputs that came due (capture truth, events) are published
+    # together, up to this much after their rig time; the frames still leave on their ticks.
+    # 0: a wake-up per tick and per output (two per sample)
+    compute_batch_ms: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] = 10.0
 
 
 @dataclass

@@ -11,7 +11,8 @@ process alone, p99 5.5 ms without and 49 µs with ``SCHED_FIFO``.
 The service process (``hil.runners.live``) starts it during set-up (``SenderProcess``), so it
 imports, opens its bus (its own Zenoh session for ``hilzenoh``, or a SocketCAN socket) and builds
 the codec before time zero, while the service already reports ready. It then sends it, over a
-pipe, each burst with the rig time it is due (computed up to ``lookahead_s`` ahead); this process
+pipe, each burst with the rig time it is due (computed up to ``lookahead_s`` ahead; the bursts
+computed at one wake-up of the service in one message, ``submit_many``); this process
 paces them (``hil.runners.pacing.PacedSender``) and reports its counters back once a second
 (merged into the service's status). SIGTERM: what was submitted still leaves at its time (at
 most ``lookahead_s``); it reports its final counters, writes its trace (benches) and exits. If
@@ -57,6 +58,20 @@ def _frame_tuple(f: Any) -> tuple[int, bool, bool, bool, bytes]:
 def _frame(t: tuple[int, bool, bool, bool, bytes]) -> can.Message:
     return can.Message(
         arbitration_id=t[0], is_extended_id=t[1], is_fd=t[2], bitrate_switch=t[3], data=t[4], dlc=len(t[4])
+    )
+
+
+def _burst_tuple(due_ns: int, submitted_ns: int, burst: Any) -> tuple[Any, ...]:
+    frames = [_frame_tuple(f) for f in burst.frames]
+    return (
+        due_ns,
+        submitted_ns,
+        burst.index,
+        burst.capture_ns,
+        burst.sync,
+        burst.device_clock,
+        burst.corrupted,
+        frames,
     )
 
 
@@ -121,20 +136,12 @@ class SenderProcess:
         self._send(("run", start_epoch_ns, speed, wire_latency_ns, period_ns))
 
     def submit(self, due_ns: int, submitted_ns: int, burst: Any) -> bool:
-        frames = [_frame_tuple(f) for f in burst.frames]
-        return self._send(
-            (
-                "burst",
-                due_ns,
-                submitted_ns,
-                burst.index,
-                burst.capture_ns,
-                burst.sync,
-                burst.device_clock,
-                burst.corrupted,
-                frames,
-            )
-        )
+        return self.submit_many([(due_ns, submitted_ns, burst)])
+
+    def submit_many(self, items: list[tuple[int, int, Any]]) -> bool:
+        """Bursts (due, computed at, burst) in one message: one pickle and one wake-up of the
+        pacing process for all of them; it sends each at its time."""
+        return self._send(("bursts", [_burst_tuple(due, sub, burst) for due, sub, burst in items]))
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -217,19 +224,21 @@ class _Child:
             # no stop event for its waits: at a stop what the service computed still leaves at its
             # time (the service sent at most lookahead_s ahead; it waits for our "done")
             self.sender = PacedSender(clock, pacing, self.tx, self.restamp, None, trace)
-        elif msg[0] == "burst" and self.sender is not None:
+        elif msg[0] == "bursts" and self.sender is not None:
             from hil.nodes.base import CanBurst
 
-            _, due, submitted, index, capture, sync, dclock, corrupted, frames = msg
-            burst = CanBurst(
-                [_frame(f) for f in frames],
-                capture,
-                index,
-                sync,
-                tuple(dclock) if dclock else None,
-                corrupted,
-            )
-            self.sender.send(burst, due, submitted, backlog)
+            items = msg[1]
+            for i, (due, submitted, index, capture, sync, dclock, corrupted, frames) in enumerate(items):
+                burst = CanBurst(
+                    [_frame(f) for f in frames],
+                    capture,
+                    index,
+                    sync,
+                    tuple(dclock) if dclock else None,
+                    corrupted,
+                )
+                # more of this message's bursts wait behind it: a backlog, as more messages are
+                self.sender.send(burst, due, submitted, backlog or i + 1 < len(items))
 
     def housekeeping(self) -> None:
         t = time.monotonic()

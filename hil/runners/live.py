@@ -114,6 +114,7 @@ class NodeService(Service):
         self._sender_error = ""
         self._sender_dead = False
         self._due: deque[tuple[int, list[Out], str]] = deque()  # outputs held for their rig time
+        self._bursts: list[tuple[int, int, Any]] = []  # (due, computed at, burst) not yet submitted
 
     # -- setup: subscriptions and publishers before time zero -----------------------------------
     def setup(self) -> None:
@@ -350,6 +351,10 @@ class NodeService(Service):
         o: Any = self.opts
         mono = self._mono = MonotonicRigClock(run.start_epoch_ns, run.speed)
         lookahead = max(0, round(float(o.lookahead_s) * 1e9))
+        # wake at most this often: the ticks that entered the look-ahead meanwhile are computed
+        # together and their bursts go to the pacing process in one message; the other outputs
+        # that came due are published together (up to this much after their time)
+        batch = min(lookahead, max(0, round(float(getattr(o, "compute_batch_ms", 0.0)) * 1e6)))
         sender.start_run(
             run.start_epoch_ns, run.speed, int(node.can_wire_latency_ns), int(getattr(node, "dt_ns", 0))
         )
@@ -359,6 +364,7 @@ class NodeService(Service):
             "cpu_affinity": list(o.cpu_affinity),
             "late_policy": o.late_policy,
             "lookahead_s": o.lookahead_s,
+            "compute_batch_ms": batch / 1e6,
             "bitrate": o.bitrate,
             "data_bitrate": o.data_bitrate,
             "wire_latency_ns": node.can_wire_latency_ns,
@@ -383,14 +389,21 @@ class NodeService(Service):
                         outs = node.tick(t_next)
                     horizon = max(horizon, t_next)
                     self._route(outs, t_next, "tick")
+                    self.stats.inc("paced.ticks")
                     continue
+                self._submit_bursts()
+                due = self._next_due()
                 wake = [
                     t
-                    for t in (None if t_next is None else t_next - lookahead, self._next_due())
+                    for t in (
+                        None if t_next is None else t_next - lookahead + batch,
+                        None if due is None else due + batch,
+                    )
                     if t is not None
                 ]
                 wait_s = min([MAX_WAIT_S, *((w - now) * 1e-9 / run.speed for w in wake)])
                 item = self.inbox.get(timeout=max(0.0, wait_s))
+                self.stats.inc("paced.wakeups")
                 if item is None:
                     continue
                 # a fault command applies from the first sample not yet computed
@@ -399,6 +412,7 @@ class NodeService(Service):
                     self._route(outs, None, "input")
             # stop: what was computed still leaves at its time (at most lookahead_s more: no seq
             # gap before the node's finish outputs), then the node finishes
+            self._submit_bursts()
             while self._due:
                 time.sleep(max(0.0, (self._due[0][0] - mono.now_ns()) * 1e-9 / run.speed))
                 self._publish_due(mono.now_ns())
@@ -413,13 +427,21 @@ class NodeService(Service):
         rest: list[Out] = []
         for key, msg in outs:
             if key == CAN_TX:
-                self.can_sender.submit(now if due_ns is None else due_ns, now, msg)
+                self._bursts.append((now if due_ns is None else due_ns, now, msg))
             else:
                 rest.append((key, msg))
+        if due_ns is None:  # not a tick's: on its way at once, behind what was computed before it
+            self._submit_bursts()
         if due_ns is None or due_ns <= now:
             self._publish(rest, why)
         elif rest:
             self._due.append((due_ns, rest, why))
+
+    def _submit_bursts(self) -> None:
+        """The bursts computed since the last wake-up, to the pacing process in one message."""
+        if self._bursts and self.can_sender is not None:
+            self.can_sender.submit_many(self._bursts)
+            self._bursts = []
 
     def _next_due(self) -> int | None:
         return self._due[0][0] if self._due else None
