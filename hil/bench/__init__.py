@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import platform
 import re
+import subprocess
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,6 +30,19 @@ def machine_line() -> str:
         f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"{datetime.now(UTC).strftime('%Y-%m-%d')}"
     )
+
+
+def tree_revision(tree: str) -> str:
+    """The short commit of a checkout, to label its rows; ``+edits`` when tracked files differ
+    from it (the figures are then of code no commit holds yet)."""
+    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tree, capture_output=True, text=True)
+    rev = out.stdout.strip()
+    if not rev:
+        return os.path.basename(os.path.abspath(tree))
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=no"], cwd=tree, capture_output=True, text=True
+    )
+    return f"{rev}+edits" if dirty.stdout.strip() else rev
 
 
 def write_section(name: str, body_md: str, command: str, doc: Path = DEFAULT_DOC) -> Path:

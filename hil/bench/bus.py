@@ -33,7 +33,7 @@ import threading
 import time
 from typing import Any
 
-from hil.bench import command_line, write_section
+from hil.bench import command_line, tree_revision, write_section
 from hil.bus.session import BusConfig, open_session
 from hil.runtime.supervisor import free_port
 
@@ -307,12 +307,6 @@ def _fmt_table(results: dict[str, list[dict[str, float]]]) -> list[str]:
     return lines
 
 
-def _revision(tree: str) -> str:
-    """The short commit of a checkout, to label its rows."""
-    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tree, capture_output=True, text=True)
-    return out.stdout.strip() or os.path.basename(os.path.abspath(tree))
-
-
 def _mean(xs: list[float]) -> float:
     return sum(xs) / len(xs)
 
@@ -346,7 +340,7 @@ def main(argv: list[str]) -> int:
     load = os.getloadavg()[0]
     runs: list[tuple[str, str, str | None]] = [(c, c, None) for c in cases]
     if a.versus:
-        ref = _revision(a.versus)
+        ref = tree_revision(a.versus)
         # an older checkout has no burst case: its single-frame hilzenoh row is the "before"
         runs += [
             (f"{c} ({ref})", c, a.versus) for c in cases if not c.startswith("raw") and c != "hilzenoh burst"

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.bench import command_line, write_section
+from hil.bench import command_line, tree_revision, write_section
 from hil.bench.horizon import STARTUP_S  # the IMU is held until time sync locks (~3 s), then late
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
@@ -278,7 +278,7 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
     per_sample: dict[tuple[bool, int], list[float]] = {}
     for rig, tree, window, cpu, n_imu, gaps, rnd in rows:
         share = [f"{100 * cpu.get(n, 0.0) / window:.1f} %" if n in cpu else "-" for n in names]
-        code = _revision(tree) if tree else _revision(os.getcwd())
+        code = tree_revision(tree) if tree else tree_revision(os.getcwd())
         ms = 1e3 * sum(cpu.values()) / max(1, n_imu)
         per_sample.setdefault((tree is None, rnd), []).append(ms)
         lines.append(
@@ -297,7 +297,7 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
         ref = float(np.mean([v for (t, _), vs in per_sample.items() if not t for v in vs]))
         lines += [
             "",
-            f"CPU per IMU sample, this tree over {_revision(a.versus)}: **{mine / ref:.3f}** "
+            f"CPU per IMU sample, this tree over {tree_revision(a.versus)}: **{mine / ref:.3f}** "
             f"({mine:.2f} vs {ref:.2f} ms over {a.repeat} round(s); per round "
             + ", ".join(f"{x:.3f}" for x in ratios)
             + ").",
@@ -310,12 +310,6 @@ def _rigs_at_once(a: argparse.Namespace, runs: list[tuple[str, str | None]]) -> 
         "the rig over the samples recorded) is the figure to compare.",
     ]
     return 0, lines
-
-
-def _revision(tree: str) -> str:
-    """The short commit of a checkout, to label its row."""
-    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tree, capture_output=True, text=True)
-    return out.stdout.strip() or tree
 
 
 def main(argv: list[str]) -> int:
