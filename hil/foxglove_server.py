@@ -37,6 +37,7 @@ from hil.messages import (
     Truth,
     decode,
     json_schema,
+    split_batch,
 )
 from hil.record.mcapio import wall_clock_log_time
 from hil.runtime.clock import wall_ns
@@ -105,7 +106,17 @@ class FoxgloveServer:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Zenoh's thread: never raise into it
         try:
-            self.handle(str(sample.key_expr), sample.payload.to_bytes(), wall_ns())
+            key, payload, now = str(sample.key_expr), sample.payload.to_bytes(), wall_ns()
+            if payload[:1] == b"[" and type_for_key(key) is not None:
+                try:
+                    parts = split_batch(payload)  # a batch (Publisher.put_many): message by message
+                except ValueError:
+                    self._count("rejected.invalid")
+                    return
+            else:
+                parts = [payload]
+            for part in parts:
+                self.handle(key, part, now)
         except Exception as err:
             self._count(f"errors.{type(err).__name__}")
 

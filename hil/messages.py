@@ -483,6 +483,34 @@ def encode(msg: Message) -> bytes:
     return _encoder.encode(msg)
 
 
+#: the most messages one batch payload may carry (``split_batch``): one CAN sample's frames are
+#: 1-5, a drained read a few samples'; more is an attack or a bug
+MAX_BATCH = 64
+_raw_list = msgspec.json.Decoder(list[msgspec.Raw])
+
+
+def encode_batch(msgs: list[Message]) -> bytes:
+    """Several messages of one key as one payload: a JSON array of them, each element the bytes
+    ``encode`` gives (``hil.bus.pubsub.Publisher.put_many``)."""
+    return b"[" + b",".join([_encoder.encode(m) for m in msgs]) + b"]"
+
+
+def split_batch(payload: bytes) -> list[bytes]:
+    """The message payloads in a sample's payload: itself, or the elements of a batch (a JSON
+    array, ``encode_batch``) as the bytes they were sent as. Raises ``ValueError`` on a batch
+    that is not a JSON array, is empty, or holds more than ``MAX_BATCH`` messages; each element
+    is then decoded and validated as a message on its own."""
+    if payload[:1] != b"[":
+        return [payload]
+    try:
+        items = _raw_list.decode(payload)
+    except msgspec.DecodeError as err:  # ValidationError too
+        raise ValueError(f"not a batch of messages: {err}") from None
+    if not 0 < len(items) <= MAX_BATCH:
+        raise ValueError(f"a batch of {len(items)} messages (1 to {MAX_BATCH} allowed)")
+    return [bytes(r) for r in items]
+
+
 def _decoder(cls: type[Any]) -> msgspec.json.Decoder[Any]:
     dec = _decoders.get(cls)
     if dec is None:

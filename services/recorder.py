@@ -72,7 +72,7 @@ from hil.bus.identity import FOREIGN, RigIdentity
 from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import type_for_key
 from hil.bus.pubsub import MAX_PAYLOAD_BYTES, source_id
-from hil.messages import RunInfo, decode
+from hil.messages import RunInfo, decode, split_batch
 from hil.nodes.base import OptionsError, decode_options
 from hil.record.completeness import Completeness, ForeignTraffic
 from hil.record.keyfilter import KeyFilter, KeyFilterError
@@ -334,6 +334,21 @@ class Recorder(Service):
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.stats.error(f"rejected.{kind}.oversized", f"{key}: {len(payload)} B")
             return
+        if payload[:1] == b"[":  # a batch (Publisher.put_many): each message recorded on its own
+            try:
+                parts = split_batch(payload)
+            except ValueError as err:
+                self.stats.error(f"rejected.{kind}.invalid", f"{key}: {err}")
+                return
+            for part in parts:
+                self._record(key, cls, kind, part, rx_wall_ns, source, origin)
+            return
+        self._record(key, cls, kind, payload, rx_wall_ns, source, origin)
+
+    def _record(
+        self, key: str, cls: type[Any], kind: str, payload: bytes, rx_wall_ns: int, source: str, origin: str
+    ) -> None:
+        """One contract message: decoded, checked, accounted, written with what it derives."""
         try:
             msg = decode(cls, payload)
         except (msgspec.ValidationError, msgspec.DecodeError) as err:

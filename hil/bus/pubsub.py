@@ -31,7 +31,7 @@ import zenoh
 import zenoh.ext as zext
 
 from hil.bus.describe import encoding_of
-from hil.messages import Message, decode, encode, generation_seq
+from hil.messages import MAX_BATCH, Message, decode, encode, encode_batch, generation_seq
 
 M = TypeVar("M", bound=Message)
 
@@ -191,14 +191,28 @@ class Publisher(Generic[M]):
     def put(self, msg: M) -> None:
         self.put_bytes(encode(msg))
 
-    def put_bytes(self, payload: bytes) -> None:
+    def put_many(self, msgs: list[M]) -> None:
+        """Messages of this key that are ready together as one Zenoh sample (a JSON array of
+        them, ``hil.messages.encode_batch``): one put, one routing, one wake-up of each
+        subscriber instead of one per message. Subscribers that take batches split them
+        (``hil.messages.split_batch``); each message keeps its own ``seq``."""
+        if not msgs:
+            return
+        if len(msgs) == 1:
+            self.put(msgs[0])
+            return
+        for i in range(0, len(msgs), MAX_BATCH):
+            part = msgs[i : i + MAX_BATCH]
+            self.put_bytes(encode_batch(part), len(part))
+
+    def put_bytes(self, payload: bytes, n: int = 1) -> None:
         if self._plain:  # an advanced publisher names itself; a plain one is told to
             self._pub.put(payload, source_info=zenoh.SourceInfo(self._pub.id, self._sn))
             self._sn += 1
         else:
             self._pub.put(payload)
         if self.stats is not None:
-            self.stats.count_rate(self._rate_name)
+            self.stats.count_rate(self._rate_name, n)
 
     def undeclare(self) -> None:
         self._pub.undeclare()

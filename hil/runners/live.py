@@ -78,6 +78,11 @@ _IDENT = msgspec.json.Decoder(_Ident)
 
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
+MAX_CAN_DRAIN = 64  # frames read off the bus before their outputs go out (a bound on one batch)
+# key kinds whose messages ready at once go out as one batch per key (``Publisher.put_many``):
+# the raw CAN frames, four per IMU sample -- on the bus their own messages were ~half the rig's,
+# each routed by the hub and woken up for in the recorder
+BATCHED_KINDS = frozenset({"can"})
 MAX_BATCH = 1024  # inputs taken in one wake-up of an input batching window (BatchedInputOptions)
 PACING_TRACE_ENV = "HIL_PACING_TRACE"  # benches: a directory for <service>.npy pacing traces
 RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the recorder
@@ -470,12 +475,24 @@ class NodeService(Service):
             self.stats.error("errors.can.recv", f"{self.transport}: {err}")
             self.ctx.stop.wait(0.2)
             return
-        if frame is None:
-            return
-        rx_ns = epoch_s_to_rig_ns(frame.timestamp, run.start_epoch_ns, run.speed)
-        with self.lock:
-            outs = node.on_message(f"{CAN_RX}/{frame.channel or ''}", frame, rx_ns)
-        self._publish(outs, "input")
+        outs: list[Out] = []
+        # the frames already queued are read before any output goes out (a sample's four arrive
+        # together on hilzenoh): their raw frames then leave as one batch (_publish)
+        n = 0
+        while frame is not None:
+            rx_ns = epoch_s_to_rig_ns(frame.timestamp, run.start_epoch_ns, run.speed)
+            with self.lock:
+                outs += node.on_message(f"{CAN_RX}/{frame.channel or ''}", frame, rx_ns)
+            n += 1
+            if n >= MAX_CAN_DRAIN:
+                break  # the rest on the next call: a bound on one batch and on the outputs' delay
+            try:
+                frame = self.can_bus.recv(timeout=0)
+            except self._can_error as err:
+                self.stats.error("errors.can.recv", f"{self.transport}: {err}")
+                break
+        if outs:
+            self._publish(outs, "input")
 
     def _read_line(self, node: Node, run: RunInfo, wait_s: float) -> None:
         assert self.line_rx is not None
@@ -507,6 +524,10 @@ class NodeService(Service):
             self._deliver(outs, "finish")
 
     def _publish(self, outs: list[Out], why: str) -> None:
+        """Outputs in order; those of a batched kind (``BATCHED_KINDS``: the raw CAN frames) go
+        as one batch per key, at the place of the key's first (``Publisher.put_many``)."""
+        sends: list[tuple[str, Any]] = []
+        batches: dict[str, list[Any]] = {}
         for key, msg in outs:
             if key == CAN_TX:
                 continue  # frames leave through the pacing process (_route), never from here
@@ -514,7 +535,19 @@ class NodeService(Service):
                 if self.line_tx is not None and self.clock is not None:
                     self.line_tx.write(msg.data, self.clock.wall_of(msg.start_ns))
                 continue
-            self._publisher(key, type(msg)).put(msg)
+            if key.split("/", 1)[0] in BATCHED_KINDS:
+                group = batches.get(key)
+                if group is None:
+                    group = batches[key] = []
+                    sends.append((key, group))
+                group.append(msg)
+            else:
+                sends.append((key, msg))
+        for key, item in sends:
+            if isinstance(item, list):
+                self._publisher(key, type(item[0])).put_many(item)
+            else:
+                self._publisher(key, type(item)).put(item)
         node = self.node
         if node is not None and node.errors_seen != self._errors_seen:
             self._errors_seen = node.errors_seen

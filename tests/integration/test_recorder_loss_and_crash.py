@@ -19,7 +19,17 @@ import zenoh
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher
 from hil.bus.session import BusConfig, open_session
-from hil.messages import CaptureTruth, Event, ImuSample, RunInfo, ServiceStatus, Truth, decode
+from hil.messages import (
+    CanFrame,
+    CaptureTruth,
+    Event,
+    ImuSample,
+    RunInfo,
+    ServiceStatus,
+    Truth,
+    decode,
+    encode,
+)
 from hil.record.mcapio import RecordingError, read_session
 from tests.conftest import REPO, free_port, hil_cmd
 
@@ -166,6 +176,41 @@ def test_burst_is_recorded_without_loss_and_sigterm_writes_the_summary(hub: Hub,
     assert json.loads(comp["replay_ready"]) is True
     assert json.loads(comp["topics"])[k.truth()]["count"] == n
     print(f"burst of {3 * n} msgs in {burst_s:.2f} s ({3 * n / burst_s:.0f} msg/s) recorded with no loss")
+
+
+def test_batches_are_recorded_message_by_message_and_a_bad_one_is_counted(hub: Hub, tmp_path: Path) -> None:
+    """The CAN bridge puts a sample's raw frames as one batch (``Publisher.put_many``): the file
+    keeps each frame as its own hil.CanFrame message, byte for byte as encoded alone; a batch
+    that is not one is refused and counted, an invalid frame inside a batch is refused alone."""
+    path = tmp_path / "batches.mcap"
+    proc = start_recorder(hub, str(path))
+    k = Keys(RIG)
+    key = f"{k.root}/can/vcan0"
+    Publisher(hub.session, k.run(), RunInfo).put(run_info(0))
+    pub = Publisher(hub.session, key, CanFrame)
+    frames = [
+        CanFrame(
+            seq=i, stamp_ns=i * 135_000, channel="vcan0", arbitration_id=0x181 + i % 4, data_hex="5a" * 8
+        )
+        for i in range(400)
+    ]
+    for i in range(0, 400, 4):
+        pub.put_many(frames[i : i + 4])
+    raw = hub.session.declare_publisher(key)
+    raw.put(b"[" + encode(frames[0]))  # a cut batch
+    bad = encode(frames[0]).replace(b'"data_hex":"5a', b'"data_hex":"zz')
+    raw.put(b"[" + encode(frames[399]).replace(b'"seq":399', b'"seq":400') + b"," + bad + b"]")
+    st = hub.wait(lambda st: st.counter_map().get("written", 0) >= 402, timeout=60)
+    counters = st.counter_map()
+    assert counters.get("rejected.can.invalid", 0) == 2, counters  # the cut batch, the bad frame
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out.decode()[-2000:]
+    s = read_session(path)
+    recs = s.by_topic(key)
+    assert [r.sequence for r in recs] == list(range(401))
+    assert [r.payload for r in recs[:400]] == [encode(f) for f in frames]
+    assert json.loads(s.metadata["completeness"]["missing"]) == 0
 
 
 def test_what_is_sent_the_moment_the_recorder_says_ready_is_recorded_from_the_first_message(

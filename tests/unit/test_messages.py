@@ -9,7 +9,19 @@ import jsonschema
 import msgspec
 import pytest
 
-from hil.messages import CONTRACT_TYPES, GnssFix, ImuSample, NavSolution, decode, encode, json_schema
+from hil.messages import (
+    CONTRACT_TYPES,
+    MAX_BATCH,
+    CanFrame,
+    GnssFix,
+    ImuSample,
+    NavSolution,
+    decode,
+    encode,
+    encode_batch,
+    json_schema,
+    split_batch,
+)
 from hil.schemas_io import SCHEMAS_DIR, check_schemas
 
 
@@ -137,3 +149,34 @@ def test_schema_and_codec_agree_on_optional_fields() -> None:
         hdop=0.9,
     )
     jsonschema.validate(json.loads(encode(fix)), json_schema(GnssFix))
+
+
+def _frame(seq: int) -> CanFrame:
+    return CanFrame(
+        seq=seq, stamp_ns=seq * 135_000, channel="vcan0", arbitration_id=0x181 + seq % 4, data_hex="0a" * 8
+    )
+
+
+def test_a_batch_splits_into_the_bytes_each_message_was_sent_as() -> None:
+    frames = [_frame(i) for i in range(4)]
+    batch = encode_batch(frames)
+    assert json.loads(batch) == [json.loads(encode(f)) for f in frames]  # a JSON array any client reads
+    parts = split_batch(batch)
+    assert parts == [encode(f) for f in frames]
+    assert [decode(CanFrame, p) for p in parts] == frames
+    single = encode(frames[0])
+    assert split_batch(single) == [single]  # one message passes as it is
+
+
+@pytest.mark.parametrize(
+    "payload, why",
+    [
+        (b"[", "not a batch"),
+        (b"[]", "a batch of 0"),
+        (b"[" + b",".join([b"{}"] * (MAX_BATCH + 1)) + b"]", f"a batch of {MAX_BATCH + 1}"),
+        (b'[{"seq": 1}', "not a batch"),
+    ],
+)
+def test_a_malformed_or_oversized_batch_is_refused_by_name(payload: bytes, why: str) -> None:
+    with pytest.raises(ValueError, match=why):
+        split_batch(payload)
