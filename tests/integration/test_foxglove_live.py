@@ -37,6 +37,7 @@ WANTED = (
     f"hil/{RIG}/truth",
     f"hil/{RIG}/nav/ekf15",
     f"hil/{RIG}/status/fusion",
+    f"hil/{RIG}/can/vcan0",  # on the bus a sample's frames in one batch; to a client one by one
     "/foxglove/fix/truth",
     "/foxglove/tf/truth",
     "/foxglove/fix/nav/ekf15",
