@@ -31,7 +31,7 @@ import zenoh
 import zenoh.ext as zext
 
 from hil.bus.describe import encoding_of
-from hil.messages import MAX_BATCH, Message, decode, encode, encode_batch, generation_seq
+from hil.messages import MAX_BATCH, Message, decode, encode, encode_batch, generation_seq, split_batch
 
 M = TypeVar("M", bound=Message)
 
@@ -236,24 +236,8 @@ class Subscriber(Generic[M]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        kind = _kind(key)
-        try:
-            raw = sample.payload.to_bytes()
-            if len(raw) > MAX_PAYLOAD_BYTES:
-                self.stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
-                return
-            msg = decode(self.cls, raw)
-        except (msgspec.ValidationError, msgspec.DecodeError) as err:
-            self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {self.cls.__name__}: {err}")
-            return
-        except Exception as err:  # never let a bad sample kill Zenoh's callback thread
-            self.stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
-            return
-        self.stats.count_rate("in." + kind)
-        try:
-            self.handler(msg, key)
-        except Exception as err:
-            self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
+        for raw in _payloads(sample, key, self.stats):
+            _deliver(self.cls, self.handler, key, raw, self.stats)
 
     def undeclare(self) -> None:
         self._sub.undeclare()
@@ -294,27 +278,39 @@ class DispatchSubscriber:
         if route is None:
             return
         cls, handler = route
-        kind = _kind(key)
-        try:
-            raw = sample.payload.to_bytes()
-            if len(raw) > MAX_PAYLOAD_BYTES:
-                self.stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
-                return
-            msg = decode(cls, raw)
-        except (msgspec.ValidationError, msgspec.DecodeError) as err:
-            self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
-            return
-        except Exception as err:
-            self.stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
-            return
-        self.stats.count_rate("in." + kind)
-        try:
-            handler(msg, key)
-        except Exception as err:
-            self.stats.error(f"errors.{kind}.handler", f"{key}: {type(err).__name__}: {err}")
+        for raw in _payloads(sample, key, self.stats):
+            _deliver(cls, handler, key, raw, self.stats)
 
     def undeclare(self) -> None:
         self._sub.undeclare()
+
+
+def _payloads(sample: zenoh.Sample, key: str, stats: Stats) -> list[bytes]:
+    """A sample's message payloads: one, or a batch's (``Publisher.put_many``); none, counted
+    (``rejected.<kind>.<why>``), when the sample is too big or not a batch it claims to be."""
+    kind = _kind(key)
+    try:
+        raw = sample.payload.to_bytes()
+        if len(raw) > MAX_PAYLOAD_BYTES:
+            stats.error(f"rejected.{kind}.oversized", f"{key}: payload of {len(raw)} B")
+            return []
+        return split_batch(raw)
+    except ValueError as err:
+        stats.error(f"rejected.{kind}.invalid", f"{key}: {err}")
+    except Exception as err:  # never let a bad sample kill Zenoh's callback thread
+        stats.error(f"rejected.{kind}.error", f"{key}: {type(err).__name__}: {err}")
+    return []
+
+
+def _deliver(cls: type[M], handler: Callable[[M, str], None], key: str, raw: bytes, stats: Stats) -> None:
+    """One payload decoded as a ``cls`` and handed on; what fails is counted, never raised."""
+    msg = decode_checked(cls, key, raw, stats)
+    if msg is None:
+        return
+    try:
+        handler(msg, key)
+    except Exception as err:
+        stats.error(f"errors.{_kind(key)}.handler", f"{key}: {type(err).__name__}: {err}")
 
 
 def decode_checked(cls: type[M], key: str, raw: bytes, stats: Stats) -> M | None:
@@ -366,7 +362,18 @@ class RawSubscriber:
         if cls is None:
             return
         try:
-            self.handler(key, sample.payload.to_bytes(), source_id(sample), cls)
+            raw = sample.payload.to_bytes()
+            if raw[:1] == b"[":  # a batch (Publisher.put_many): its messages one by one
+                try:
+                    parts = split_batch(raw)
+                except ValueError as err:
+                    self.stats.error(f"rejected.{_kind(key)}.invalid", f"{key}: {err}")
+                    return
+            else:
+                parts = [raw]
+            source = source_id(sample)
+            for part in parts:
+                self.handler(key, part, source, cls)
         except Exception as err:  # never into Zenoh's thread
             self.stats.error(f"errors.{_kind(key)}.enqueue", f"{key}: {type(err).__name__}: {err}")
 
