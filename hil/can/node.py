@@ -97,7 +97,7 @@ class CanTransmitter:
     def send_burst(self, frames: Sequence[can.Message], stamps_epoch_ns: Sequence[int]) -> bool:
         """One sample's frames, each with its wire time (``send_frame``'s stamp): as one transport
         message where the bus can (``hilzenoh``'s ``send_burst_stamped``: one put, one routing,
-        one wake-up of each reader for the sample), else frame by frame. Pair with
+        one callback in each reader for the sample), else frame by frame. Pair with
         ``count_burst``."""
         burst = getattr(self.bus, "send_burst_stamped", None)
         if burst is None:

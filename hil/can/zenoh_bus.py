@@ -41,11 +41,13 @@ only, so a sender is not woken by the echo of its own frames (it was, once per f
 
 One sample's frames in one Zenoh message (``send_burst_stamped``): the live runner's pacing
 hands a sample's frames over together when its last frame is done on the wire, each frame with
-its own wire time. Sent one put each, four classic frames cost four puts, four routings through
-the hub and four wake-ups of every reader; as one message, one of each (``hil bench bus``, case
-``hilzenoh burst``). A receiver still gets each frame as its own ``can.Message`` with its own
-stamp, so readers cannot tell the difference, except that a burst's first frames arrive together
-with its last (a reader that completes a sample on its last frame loses nothing).
+its own wire time -- one put, one routing through the hub and one callback in each reader, where
+four puts back to back already shared Zenoh's batch and mostly one wake-up (measured: ``hil
+bench bus`` case ``hilzenoh burst``, and docs/benchmarks.md ``rig-burst``: the CAN bridge ~2
+points of a core lower, the rig within its spread). A receiver still gets each frame as its own
+``can.Message`` with its own stamp, so readers cannot tell the difference, except that a
+burst's first frames arrive together with its last (a reader that completes a sample on its
+last frame loses nothing).
 
 Wire format of one Zenoh payload (little-endian), one or more frame records back to back::
 
@@ -53,8 +55,9 @@ Wire format of one Zenoh payload (little-endian), one or more frame records back
     flags: 1 extended, 2 FD, 4 bit-rate switch, 8 error-state indicator, 16 error frame, 32 remote
 
 and the attachment, when the sender states wire times: one ``i64`` epoch-ns stamp per record, in
-order. A payload with a truncated record, or stamps that do not match its records one to one, is
-counted whole in ``rx_malformed`` (none of its frames is delivered).
+order. A payload with a truncated record is counted whole in ``rx_malformed`` (none of its
+frames is delivered); an attachment that is not one stamp per record is not ours to read, and
+the frames get their arrival as stamp.
 """
 
 from __future__ import annotations
