@@ -107,14 +107,11 @@ class FoxgloveServer:
         # Zenoh's thread: never raise into it
         try:
             key, payload, now = str(sample.key_expr), sample.payload.to_bytes(), wall_ns()
-            if payload[:1] == b"[" and type_for_key(key) is not None:
-                try:
-                    parts = split_batch(payload)  # a batch (Publisher.put_many): message by message
-                except ValueError:
-                    self._count("rejected.invalid")
-                    return
-            else:
-                parts = [payload]
+            try:
+                parts = split_batch(payload)  # one message, or a batch's (Publisher.put_many) one by one
+            except ValueError:
+                self._count("rejected.invalid")
+                return
             for part in parts:
                 self.handle(key, part, now)
         except Exception as err:

@@ -334,16 +334,13 @@ class Recorder(Service):
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.stats.error(f"rejected.{kind}.oversized", f"{key}: {len(payload)} B")
             return
-        if payload[:1] == b"[":  # a batch (Publisher.put_many): each message recorded on its own
-            try:
-                parts = split_batch(payload)
-            except ValueError as err:
-                self.stats.error(f"rejected.{kind}.invalid", f"{key}: {err}")
-                return
-            for part in parts:
-                self._record(key, cls, kind, part, rx_wall_ns, source, origin)
+        try:
+            parts = split_batch(payload)  # one message, or a batch's (Publisher.put_many) one by one
+        except ValueError as err:
+            self.stats.error(f"rejected.{kind}.invalid", f"{key}: {err}")
             return
-        self._record(key, cls, kind, payload, rx_wall_ns, source, origin)
+        for part in parts:
+            self._record(key, cls, kind, part, rx_wall_ns, source, origin)
 
     def _record(
         self, key: str, cls: type[Any], kind: str, payload: bytes, rx_wall_ns: int, source: str, origin: str

@@ -362,18 +362,9 @@ class RawSubscriber:
         if cls is None:
             return
         try:
-            raw = sample.payload.to_bytes()
-            if raw[:1] == b"[":  # a batch (Publisher.put_many): its messages one by one
-                try:
-                    parts = split_batch(raw)
-                except ValueError as err:
-                    self.stats.error(f"rejected.{_kind(key)}.invalid", f"{key}: {err}")
-                    return
-            else:
-                parts = [raw]
             source = source_id(sample)
-            for part in parts:
-                self.handler(key, part, source, cls)
+            for raw in _payloads(sample, key, self.stats):  # a batch's messages one by one
+                self.handler(key, raw, source, cls)
         except Exception as err:  # never into Zenoh's thread
             self.stats.error(f"errors.{_kind(key)}.enqueue", f"{key}: {type(err).__name__}: {err}")
 

@@ -135,9 +135,6 @@ class SenderProcess:
         """The run's time zero and speed, and the node's wire latency and sample period."""
         self._send(("run", start_epoch_ns, speed, wire_latency_ns, period_ns))
 
-    def submit(self, due_ns: int, submitted_ns: int, burst: Any) -> bool:
-        return self.submit_many([(due_ns, submitted_ns, burst)])
-
     def submit_many(self, items: list[tuple[int, int, Any]]) -> bool:
         """Bursts (due, computed at, burst) in one message: one pickle and one wake-up of the
         pacing process for all of them; it sends each at its time."""

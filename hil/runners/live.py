@@ -83,7 +83,7 @@ MAX_CAN_DRAIN = 64  # frames read off the bus before their outputs go out (a bou
 # the raw CAN frames, four per IMU sample -- on the bus their own messages were ~half the rig's,
 # each routed by the hub and woken up for in the recorder
 BATCHED_KINDS = frozenset({"can"})
-MAX_BATCH = 1024  # inputs taken in one wake-up of an input batching window (BatchedInputOptions)
+MAX_INPUT_BATCH = 1024  # inputs taken in one wake-up of an input batching window (BatchedInputOptions)
 PACING_TRACE_ENV = "HIL_PACING_TRACE"  # benches: a directory for <service>.npy pacing traces
 RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the recorder
 
@@ -307,9 +307,9 @@ class NodeService(Service):
                 if outs is not None:
                     self._publish(outs, "input")
                 taken += 1
-                # a batch ends when the queue is empty, or after MAX_BATCH (timers and the stop
+                # a batch ends when the queue is empty, or after MAX_INPUT_BATCH (timers and the stop
                 # are looked at between batches, however fast the inputs come)
-                item = self.inbox.get(timeout=0) if batch_s and taken < MAX_BATCH else None
+                item = self.inbox.get(timeout=0) if batch_s and taken < MAX_INPUT_BATCH else None
             if batch_s:  # in the status: inputs per wake-up = in.batched_inputs / in.batches
                 self.stats.inc("in.batches")
                 self.stats.inc("in.batched_inputs", taken)
@@ -359,7 +359,7 @@ class NodeService(Service):
         # wake at most this often: the ticks that entered the look-ahead meanwhile are computed
         # together and their bursts go to the pacing process in one message; the other outputs
         # that came due are published together (up to this much after their time)
-        batch = min(lookahead, max(0, round(float(getattr(o, "compute_batch_ms", 0.0)) * 1e6)))
+        batch = min(lookahead, round(float(o.compute_batch_ms) * 1e6))  # CanWriterOptions, >= 0
         sender.start_run(
             run.start_epoch_ns, run.speed, int(node.can_wire_latency_ns), int(getattr(node, "dt_ns", 0))
         )

@@ -363,8 +363,7 @@ class PacedSender:
         now = self.clock.now_ns()
         if self.cfg.late_policy == "skip" and self.cfg.period_ns and now - due_ns >= self.cfg.period_ns:
             self.counts["tx_late_skipped_samples"] += 1  # its slot has passed: the next one is due
-            sched = max(due_ns, self.ideal_free_ns)  # a device that never stalls sent it
-            self.ideal_free_ns = sched + sum(self.wire.frame_ns(f) for f in burst.frames)
+            self._on_ideal_wire(due_ns, burst.frames)  # a device that never stalls sent it
             return
         # on a bus that carries stamps, at normal priority, a late burst keeps its place on the
         # wire's schedule (stamps from its tick or the previous frame, never from when this
@@ -398,10 +397,15 @@ class PacedSender:
                 first = first or left
         self.bus_free_ns = t
         self.sink.count_burst(ok, False)
-        sched = max(due_ns, self.ideal_free_ns)
+        sched = self._on_ideal_wire(due_ns, burst.frames)
         ideal = sched + self.wire.frame_ns(burst.frames[0]) + self.cfg.wire_latency_ns
-        self.ideal_free_ns = sched + sum(self.wire.frame_ns(f) for f in burst.frames)
         self._account(burst, due_ns, ideal, first, submitted_ns)
+
+    def _on_ideal_wire(self, due_ns: int, frames: Sequence[Any]) -> int:
+        """Put ``frames`` on the ideal wire from ``due_ns``; the instant their first bit starts."""
+        sched = max(due_ns, self.ideal_free_ns)
+        self.ideal_free_ns = sched + sum(self.wire.frame_ns(f) for f in frames)
+        return sched
 
     def _send_sync(self, burst: CanBurst, due_ns: int) -> None:
         """The time tag leaves on its edge, or states when it left, or does not leave.
@@ -412,7 +416,7 @@ class PacedSender:
         meet the stated instant within ``SYNC_CLAIM_TOL_NS``, or the tag is re-stamped later
         (three tries) or dropped."""
         frames = list(burst.frames)
-        self.ideal_free_ns = max(due_ns, self.ideal_free_ns) + self.wire.frame_ns(frames[0])
+        self._on_ideal_wire(due_ns, frames[:1])
         for _attempt in range(3):
             first = max(due_ns, self.bus_free_ns, self.clock.now_ns())
             if first != burst.capture_ns:
