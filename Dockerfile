@@ -30,7 +30,7 @@ RUN set -eu; \
 
 FROM ${BASE_IMAGE}
 ENV PATH=/opt/venv/bin:/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \
-    PYTHONUNBUFFERED=1 PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 PYTHONDONTWRITEBYTECODE=1 NUMBA_CACHE_DIR=/tmp/numba-cache \
     HIL_RIG=bench HIL_SERVICE= \
     HIL_ZENOH_MODE=client HIL_ZENOH_CONNECT=tcp/router:7447
 RUN (getent group hil || groupadd --system --gid 10001 hil) \

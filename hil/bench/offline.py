@@ -212,6 +212,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="runs of each tree (alternating order)")
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="add each tree's top N (cProfile)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
+    ap.add_argument("--section", default="offline", help="the docs/benchmarks.md section to write")
     a = ap.parse_args(argv)
     if a.duration <= 0 or a.repeat < 1:
         print("hil bench offline: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
@@ -254,7 +255,7 @@ def main(argv: list[str]) -> int:
     body = report(a, trees, sim_args, (load0[0], os.getloadavg()[0]), same, differ, profiles)
     print(body)
     if not a.no_write:
-        write_section("offline", body, command_line())
+        write_section(a.section, body, command_line())
     return 1 if differ or any(t.verify_failed for t in trees) else 0
 
 

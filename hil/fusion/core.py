@@ -279,8 +279,9 @@ class FusionCore:
             self._out_seq[name] = max(self._out_seq.get(name, 0), int(seq))
 
     def __post_init__(self) -> None:
-        from hil.nav import strapdown
+        from hil.nav import jit, strapdown
 
+        jit.enable()  # the strapdown compiled, same bits; before the first IMU sample, not on it
         self._sd = strapdown
         self._ins = strapdown.strapdown_from_initial(self.init)
         self._origin = (self.init.origin_lat_rad, self.init.origin_lon_rad, self.init.origin_alt_m)

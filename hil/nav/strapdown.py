@@ -17,6 +17,7 @@ The numerics are plain Python floats, and so is the state (:class:`StrapdownStat
 one core, :func:`_step`, is shared by :func:`strapdown_step` (one interval, for the live
 services; :func:`strapdown_step_f` with the increments as floats, the fusion's per-IMU path) and
 :func:`strapdown_run` (a whole array, for the offline executor), so all give bit-identical results.
+The fusion runs :func:`_step` compiled from this same source (:mod:`hil.nav.jit`), with the same bits.
 """
 
 from __future__ import annotations
@@ -149,6 +150,7 @@ class StrapdownState(tuple[float, ...]):
 
 
 _new = tuple.__new__
+_tuple = tuple  # a plain tuple of the state: what the compiled _step (hil.nav.jit) takes
 
 
 def c_nb_floats(qw: float, qx: float, qy: float, qz: float) -> tuple[float, ...]:
@@ -330,14 +332,14 @@ def strapdown_step(s: StrapdownState, dtheta_b_rad: Any, dvel_b_mps: Any, dt_s: 
     """Advance by one IMU interval (increments (3,), interval dt_s). Pure: ``s`` is not changed."""
     tx, ty, tz = (float(x) for x in dtheta_b_rad)
     ux, uy, uz = (float(x) for x in dvel_b_mps)
-    return _new(StrapdownState, _step(s, tx, ty, tz, ux, uy, uz, float(dt_s)))
+    return _new(StrapdownState, _step(_tuple(s), tx, ty, tz, ux, uy, uz, float(dt_s)))
 
 
 def strapdown_step_f(
     s: StrapdownState, tx: float, ty: float, tz: float, ux: float, uy: float, uz: float, dt_s: float
 ) -> StrapdownState:
     """:func:`strapdown_step` with the increments as Python floats (the fusion's per-IMU path)."""
-    return _new(StrapdownState, _step(s, tx, ty, tz, ux, uy, uz, dt_s))
+    return _new(StrapdownState, _step(_tuple(s), tx, ty, tz, ux, uy, uz, dt_s))
 
 
 def strapdown_run(

@@ -1,0 +1,98 @@
+"""Compiled twins of the navigation's pure-float kernels: the same source, the same bits.
+
+The fusion steps seven strapdown mechanisations per IMU sample (the free INS, the feedback
+estimators' own and ekf15's); in Python each step is ~7 µs of float arithmetic and
+``math`` calls. :func:`enable` compiles the kernels listed in ``_KERNELS`` with numba from their
+Python source, unchanged, and rebinds the module globals the callers look up: about 1.3 µs a
+step. Nothing else changes, so a recording made with the kernels compiled reruns bit for bit
+with them in Python and back (``tests/unit/test_jit.py``): numba compiles without fast-math, so
+LLVM neither reassociates nor fuses a multiply and an add, ``math.sin``/``cos``/``tan`` call the
+same libm, and ``sqrt`` is the IEEE one.
+
+``HIL_JIT=0`` keeps everything in Python (numba is then not even imported). The machine code is
+cached on disk (numba's cache: ``__pycache__`` beside the source, else the user's cache directory,
+or ``NUMBA_CACHE_DIR``): the first process compiles (~1.5 s), the next ones load it (~0.1 s).
+Where no cache directory is writable, every process compiles. The fusion calls :func:`enable`
+when it is built, so a live service has its kernels before it reports ready.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import types
+from collections.abc import Callable
+from typing import Any
+
+JIT_ENV = "HIL_JIT"
+
+#: What was done, for the fusion's status: "compiled", "python (HIL_JIT=0)", "python (<why>)".
+_state: str | None = None
+#: The Python kernels :func:`enable` replaced, by name (the reference the tests hold it to).
+_python: dict[str, Callable[..., Any]] = {}
+
+
+def _wanted(env: dict[str, str] | os._Environ[str]) -> tuple[bool, str]:
+    value = env.get(JIT_ENV, "").strip().lower()
+    if value in ("", "1", "on", "yes", "true"):
+        return True, ""
+    if value in ("0", "off", "no", "false"):
+        return False, f"python ({JIT_ENV}={value})"
+    sys.stderr.write(
+        f"hil: warning: {JIT_ENV}={value!r} is not 0 or 1; the navigation kernels are compiled "
+        f"(set {JIT_ENV}=0 to keep them in Python)\n"
+    )
+    return True, ""
+
+
+def _compile(numba: Any, fn: Callable[..., Any], signature: str, **callees: Any) -> Any:
+    """``fn`` compiled for ``signature``, its global names in ``callees`` bound to compiled
+    kernels (numba resolves a callee at compile time and needs it compiled too)."""
+    g = dict(fn.__globals__)
+    g.update(callees)
+    twin = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__, fn.__closure__)
+    twin.__module__, twin.__qualname__ = fn.__module__, fn.__qualname__
+    try:
+        return numba.njit(signature, cache=True)(twin)
+    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+        return numba.njit(signature, cache=False)(twin)
+
+
+def enable(env: dict[str, str] | os._Environ[str] | None = None) -> str:
+    """Compile (or load) the kernels once per process and put them in place; returns the state."""
+    global _state
+    if _state is not None:
+        return _state
+    on, why = _wanted(os.environ if env is None else env)
+    if not on:
+        _state = why
+        return _state
+    try:
+        import numba
+    except ImportError:
+        _state = "python (numba is not installed: pip install numba)"
+        return _state
+    from hil.nav import strapdown
+
+    f8 = "float64"
+    state16 = f"UniTuple({f8}, 16)"
+    rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})")
+    step = _compile(
+        numba, strapdown._step, f"{state16}({state16}, {', '.join([f8] * 7)})", _rotvec_quat=rotvec
+    )
+    _python.setdefault("_step", strapdown._step)
+    strapdown._step = step
+    _state = "compiled"
+    return _state
+
+
+def python_kernel(name: str) -> Callable[..., Any]:
+    """The Python kernel ``name`` as it was before :func:`enable` (itself when nothing was compiled)."""
+    from hil.nav import strapdown
+
+    return _python.get(name) or getattr(strapdown, name)
+
+
+def state() -> str:
+    """How the kernels run in this process ("not enabled": :func:`enable` was not called)."""
+    return _state or "not enabled"
