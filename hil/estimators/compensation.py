@@ -88,6 +88,19 @@ VS_SCHEDULE: tuple[tuple[float, TransferFunction], ...] = (
 )
 
 
+def _ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
+    """One step of the filter's state under the ramp input ``u + s τ``, exact over ``h``:
+    ``x+ = Φ(h) x + Γ0(h) u + Γ1(h) s`` for ``m = [Φ | Γ0 | Γ1]``, as one product (stacked_step's
+    order), and the input ``u + s h`` at the step's end. Runs at IMU rate for every channel set;
+    :mod:`hil.nav.jit` puts its loop form (:func:`hil.nav.kernels.ramp_step`) in its place."""
+    n = x.shape[0]
+    z = np.empty((n + 2, x.shape[1]))
+    z[:n] = x
+    z[n] = u
+    z[n + 1] = s
+    return c_einsum("ij,jk->ik", m, z), u + s * h_s
+
+
 def relative_degree(tf: TransferFunction) -> int:
     """deg(den) − deg(num): how many output derivatives are free of the raw input."""
     num = np.trim_zeros(np.asarray(tf.num, float), "f")
@@ -154,31 +167,15 @@ class CompensationCore:
         self._interval_ns: int | None = None  # the input interval expected (see _coast_start_ns)
         self._coast_from_ns: int | None = None
         self.innovation_mean: F64 = np.zeros(n_channels)  # ē: the innovation u − y, averaged over τ
-        self._bufs: dict[int, F64] = {}
 
     # -- propagation ---------------------------------------------------------------------------
     def _step(self, h_ns: int) -> None:
         if self.coasting:
             self._coast_step(h_ns)
             return
-        # x+ = Φ(h) x + Γ0(h) u + Γ1(h) s   (exact for the ramp input u + s τ), as one product
-        # [Φ | Γ0 | Γ1] [x; u; s] (stacked_step's, this runs per channel set at IMU rate: the
-        # rows are copied into a buffer kept for it, not concatenated anew)
-        x = self.x
-        n = x.shape[0]
-        z = self._stack_buf(n + 2)
-        z[:n] = x
-        z[n] = self.u
-        z[n + 1] = self.slope
-        self.x = c_einsum("ij,jk->ik", self._caches[self.stage].stacked(h_ns), z)
-        self.u = self.u + self.slope * (h_ns * 1e-9)
-
-    def _stack_buf(self, rows: int) -> F64:
-        """The ``(rows, n_channels)`` buffer of :meth:`_step`'s stacked operand."""
-        buf = self._bufs.get(rows)
-        if buf is None:
-            buf = self._bufs[rows] = np.empty((rows, self.n_channels))
-        return buf
+        self.x, self.u = _ramp_step(
+            self._caches[self.stage].stacked(h_ns), self.x, self.u, self.slope, h_ns * 1e-9
+        )
 
     def _coast_step(self, h_ns: int) -> None:
         """``x+ = Φc(h) x + Γc(h) ē`` (h < 0 steps back exactly). The held ramp ``u, s`` stays as

@@ -1,19 +1,26 @@
-"""Compiled twins of the navigation's pure-float kernels: the same source, the same bits.
+"""Compiled twins of the fusion's per-IMU-sample kernels, with the bits of the Python ones.
 
-The fusion steps seven strapdown mechanisations per IMU sample (the free INS, the feedback
-estimators' own and ekf15's); in Python each step is ~7 µs of float arithmetic and
-``math`` calls. :func:`enable` compiles the kernels listed in ``_KERNELS`` with numba from their
-Python source, unchanged, and rebinds the module globals the callers look up: about 1.3 µs a
-step. Nothing else changes, so a recording made with the kernels compiled reruns bit for bit
-with them in Python and back (``tests/unit/test_jit.py``): numba compiles without fast-math, so
-LLVM neither reassociates nor fuses a multiply and an add, ``math.sin``/``cos``/``tan`` call the
-same libm, and ``sqrt`` is the IEEE one.
+Per IMU sample the fusion steps seven strapdown mechanisations (the free INS, the five feedback
+INS and ekf15's) and every compensation filter's state; in Python a strapdown step is ~7.5 µs of
+float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3, 6) arrays.
+:func:`enable` compiles them with numba and rebinds the module globals their callers look up:
+
+- the strapdown's :func:`hil.nav.strapdown._step` and its rotation-vector quaternion, from their
+  own Python source, unchanged (~2 µs a step);
+- the compensation filter's :func:`hil.estimators.compensation._ramp_step`, an einsum in Python,
+  as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order.
+
+numba compiles without fast-math, so LLVM neither reassociates nor fuses a multiply and an add,
+``math.sin``/``cos``/``tan`` call the same libm and ``sqrt`` is the IEEE one: a recording made
+with the kernels compiled reruns bit for bit with them in Python and back, and each compiled
+kernel gives its Python one's bits on random inputs (``tests/unit/test_jit.py``).
 
 ``HIL_JIT=0`` keeps everything in Python (numba is then not even imported). The machine code is
 cached on disk (numba's cache: ``__pycache__`` beside the source, else the user's cache directory,
-or ``NUMBA_CACHE_DIR``): the first process compiles (~1.5 s), the next ones load it (~0.1 s).
-Where no cache directory is writable, every process compiles. The fusion calls :func:`enable`
-when it is built, so a live service has its kernels before it reports ready.
+or ``NUMBA_CACHE_DIR``): the first process compiles (a few seconds), the next ones import numba
+and load it (~0.5-0.7 s of CPU). Where no cache directory is writable, every process compiles.
+The fusion calls :func:`enable` when it is built, so a live service has its kernels before it
+reports ready.
 """
 
 from __future__ import annotations
@@ -82,15 +89,28 @@ def enable(env: dict[str, str] | os._Environ[str] | None = None) -> str:
     )
     _python.setdefault("_step", strapdown._step)
     strapdown._step = step
+
+    from hil.estimators import compensation
+    from hil.nav import kernels
+
+    mat, vec = f"{f8}[:, :]", f"{f8}[:]"
+    ramp = _compile(
+        numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})"
+    )
+    _python.setdefault("_ramp_step", compensation._ramp_step)
+    compensation._ramp_step = ramp
     _state = "compiled"
     return _state
 
 
 def python_kernel(name: str) -> Callable[..., Any]:
-    """The Python kernel ``name`` as it was before :func:`enable` (itself when nothing was compiled)."""
+    """The Python kernel ``name`` (``_step``, ``_ramp_step``) as it was before :func:`enable`."""
+    if name in _python:
+        return _python[name]
+    from hil.estimators import compensation
     from hil.nav import strapdown
 
-    return _python.get(name) or getattr(strapdown, name)
+    return getattr(strapdown if name == "_step" else compensation, name)  # type: ignore[no-any-return]
 
 
 def state() -> str:

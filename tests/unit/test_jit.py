@@ -97,3 +97,24 @@ def test_a_recording_reruns_bit_for_bit_with_the_kernels_the_other_way(
     res = _hil(["rerun", str(rec), "--core", "fusion", "--verify"], rerun)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "bit-identical" in res.stdout
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_the_compiled_filter_step_computes_einsums_bits(order: int) -> None:
+    """The compensation filters' orders (1 to 3), six channels, operands over 16 decades and
+    with signed zeros: the loop form adds einsum's terms in einsum's order."""
+    from hil.estimators import compensation
+
+    assert jit.enable() == "compiled"
+    python_ramp = jit.python_kernel("_ramp_step")
+    assert compensation._ramp_step is not python_ramp
+    rng = np.random.default_rng(order)
+    for _ in range(3000):
+        m = rng.normal(size=(order, order + 2)) * 10.0 ** rng.integers(-8, 8, size=(order, order + 2))
+        x = rng.normal(size=(order, 6)) * 10.0 ** rng.integers(-8, 8, size=(order, 6))
+        u, s = rng.normal(size=6), rng.normal(size=6) * 1e-3
+        x[rng.random(size=x.shape) < 0.1] = -0.0
+        h = float(rng.uniform(1e-4, 2.0))
+        xc, uc = compensation._ramp_step(m, x, u, s, h)
+        xp, up = python_ramp(m, x, u, s, h)
+        assert xc.tobytes() == xp.tobytes() and uc.tobytes() == up.tobytes()

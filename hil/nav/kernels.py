@@ -1,0 +1,36 @@
+"""Loop forms of numpy products the cores run at IMU rate, for :mod:`hil.nav.jit` to compile.
+
+numpy's ``einsum`` (:mod:`hil.nav.portable`) is what the cores multiply with in Python. Compiled
+code cannot call it, so each kernel here spells out the order in which einsum adds its terms, and
+the tests hold the compiled kernel to einsum's bits on random operands of every size the cores
+use (``tests/unit/test_jit.py``):
+
+- ``"ij,jk->ik"`` (:func:`hil.nav.portable.mm`): the reduction over ``j`` is strided, and einsum
+  adds its terms one by one in ``j``'s order onto a zero.
+
+Never called from Python: there the einsum forms are faster.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hil.nav.types import F64
+
+
+def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
+    """``(M [x; u; s], u + s h)``: :func:`hil.estimators.compensation._ramp_step`, in loops."""
+    n, c = x.shape
+    out = np.empty((n, c))
+    for i in range(n):
+        for k in range(c):
+            acc = 0.0
+            for j in range(n):
+                acc += m[i, j] * x[j, k]
+            acc += m[i, n] * u[k]
+            acc += m[i, n + 1] * s[k]
+            out[i, k] = acc
+    u2 = np.empty(c)
+    for k in range(c):
+        u2[k] = u[k] + s[k] * h_s
+    return out, u2
