@@ -281,7 +281,7 @@ class FusionCore:
     def __post_init__(self) -> None:
         from hil.nav import jit, strapdown
 
-        jit.enable()  # the strapdown compiled, same bits; before the first IMU sample, not on it
+        jit.enable(wait=False)  # compiled kernels, the same bits (a live service's may be on the way)
         self._sd = strapdown
         self._ins = strapdown.strapdown_from_initial(self.init)
         self._origin = (self.init.origin_lat_rad, self.init.origin_lon_rad, self.init.origin_alt_m)

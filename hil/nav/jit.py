@@ -19,14 +19,16 @@ kernel gives its Python one's bits on random inputs (``tests/unit/test_jit.py``)
 cached on disk (numba's cache: ``__pycache__`` beside the source, else the user's cache directory,
 or ``NUMBA_CACHE_DIR``): the first process compiles (a few seconds), the next ones import numba
 and load it (~0.5-0.7 s of CPU). Where no cache directory is writable, every process compiles.
-The fusion calls :func:`enable` when it is built, so a live service has its kernels before it
-reports ready.
+The fusion calls :func:`enable` when it is built (offline: at once); the live fusion service starts
+:func:`enable_in_background` before it reports ready, and its core runs the Python kernels until
+the compiled ones are in place -- the same bits, so nothing depends on when that happens.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+import threading
 import types
 from collections.abc import Callable
 from typing import Any
@@ -37,6 +39,9 @@ JIT_ENV = "HIL_JIT"
 _state: str | None = None
 #: The Python kernels :func:`enable` replaced, by name (the reference the tests hold it to).
 _python: dict[str, Callable[..., Any]] = {}
+_lock = threading.Lock()
+#: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``ramp_step``).
+_compiled: dict[str, Any] = {}
 
 
 def _wanted(env: dict[str, str] | os._Environ[str]) -> tuple[bool, str]:
@@ -65,42 +70,89 @@ def _compile(numba: Any, fn: Callable[..., Any], signature: str, **callees: Any)
         return numba.njit(signature, cache=False)(twin)
 
 
-def enable(env: dict[str, str] | os._Environ[str] | None = None) -> str:
-    """Compile (or load) the kernels once per process and put them in place; returns the state."""
+def _libm_pow(numba: Any) -> Any:
+    """``pow(x, y)`` of the C library, called as such: declared ``nobuiltin`` so that LLVM does
+    not rewrite ``pow(x, 2.0)`` into ``x * x`` (not CPython's bits; :func:`hil.nav.kernels.libm_square`)."""
+    from llvmlite import ir
+    from numba.core import cgutils
+    from numba.core import types as nbtypes
+
+    def libm_pow(typingctx: Any, x: Any, y: Any) -> Any:
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            fnty = ir.FunctionType(ir.DoubleType(), [ir.DoubleType(), ir.DoubleType()])
+            fn = cgutils.get_or_insert_function(builder.module, fnty, "pow")
+            fn.attributes.add("nobuiltin")
+            return builder.call(fn, args)
+
+        return nbtypes.float64(nbtypes.float64, nbtypes.float64), codegen
+
+    return numba.extending.intrinsic(libm_pow)
+
+
+def enable(env: dict[str, str] | os._Environ[str] | None = None, wait: bool = True) -> str:
+    """Compile (or load) the kernels once per process and put them in place; returns the state.
+
+    ``wait`` False: when another thread is compiling them (:func:`enable_in_background`), return
+    "compiling" at once; the kernels take over when they are ready, with the same bits."""
     global _state
     if _state is not None:
         return _state
-    on, why = _wanted(os.environ if env is None else env)
-    if not on:
-        _state = why
+    if not _lock.acquire(blocking=wait):
+        return "compiling"
+    try:
+        if _state is None:
+            _state = _enable(os.environ if env is None else env)
         return _state
+    finally:
+        _lock.release()
+
+
+def enable_in_background(env: dict[str, str] | os._Environ[str] | None = None) -> threading.Thread:
+    """:func:`enable` in a daemon thread: a live service loads its kernels while it starts, and is
+    ready without waiting for them (the first compile on a machine takes seconds)."""
+    t = threading.Thread(target=enable, args=(env,), name="hil-jit", daemon=True)
+    t.start()
+    return t
+
+
+def _enable(env: dict[str, str] | os._Environ[str]) -> str:
+    on, why = _wanted(env)
+    if not on:
+        return why
     try:
         import numba
     except ImportError:
-        _state = "python (numba is not installed: pip install numba)"
-        return _state
-    from hil.nav import strapdown
+        return "python (numba is not installed: pip install numba)"
+    from hil.estimators import compensation
+    from hil.nav import kernels, strapdown
 
     f8 = "float64"
     state16 = f"UniTuple({f8}, 16)"
-    rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})")
-    step = _compile(
-        numba, strapdown._step, f"{state16}({state16}, {', '.join([f8] * 7)})", _rotvec_quat=rotvec
-    )
-    _python.setdefault("_step", strapdown._step)
-    strapdown._step = step
-
-    from hil.estimators import compensation
-    from hil.nav import kernels
-
     mat, vec = f"{f8}[:, :]", f"{f8}[:]"
-    ramp = _compile(
-        numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})"
-    )
+    try:
+        square = _compile(numba, kernels.libm_square, f"{f8}({f8})", _pow=_libm_pow(numba))
+        rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})")
+        step = _compile(
+            numba,
+            strapdown._step,
+            f"{state16}({state16}, {', '.join([f8] * 7)})",
+            _rotvec_quat=rotvec,
+            _sq=square,
+        )
+        ramp = _compile(
+            numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})"
+        )
+    except Exception as err:  # a numba or LLVM that cannot build them: Python's kernels, said why
+        sys.stderr.write(
+            f"hil: warning: the navigation kernels stay in Python: {type(err).__name__}: {err}\n"
+        )
+        return f"python (compiling failed: {type(err).__name__})"
+    _compiled.update(libm_square=square, _rotvec_quat=rotvec, _step=step, ramp_step=ramp)
+    _python.setdefault("_step", strapdown._step)
     _python.setdefault("_ramp_step", compensation._ramp_step)
+    strapdown._step = step
     compensation._ramp_step = ramp
-    _state = "compiled"
-    return _state
+    return "compiled"
 
 
 def python_kernel(name: str) -> Callable[..., Any]:
@@ -111,6 +163,11 @@ def python_kernel(name: str) -> Callable[..., Any]:
     from hil.nav import strapdown
 
     return getattr(strapdown if name == "_step" else compensation, name)  # type: ignore[no-any-return]
+
+
+def compiled_kernel(name: str) -> Any:
+    """The compiled kernel ``name`` (after :func:`enable` compiled them)."""
+    return _compiled[name]
 
 
 def state() -> str:

@@ -8,14 +8,28 @@ use (``tests/unit/test_jit.py``):
 - ``"ij,jk->ik"`` (:func:`hil.nav.portable.mm`): the reduction over ``j`` is strided, and einsum
   adds its terms one by one in ``j``'s order onto a zero.
 
+- ``x**2`` (:func:`hil.nav.strapdown._sq`): CPython calls the C library's ``pow``, which is not
+  ``x * x`` in about one value in a thousand; numba (LLVM) turns ``x**2`` and ``pow(x, 2.0)`` into
+  ``x * x``. :func:`libm_square` calls ``pow`` through a name the compiler does not rewrite
+  (``_pow``, bound by :mod:`hil.nav.jit` to ``pow`` declared ``nobuiltin``).
+
 Never called from Python: there the einsum forms are faster.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hil.nav.types import F64
+
+_pow = math.pow  # Python's: the C library's pow, as float.__pow__ calls it; compiled: see jit
+
+
+def libm_square(x: float) -> float:
+    """``x**2`` with CPython's bits: ``pow(x, 2)`` of the C library."""
+    return _pow(x, 2.0)
 
 
 def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:

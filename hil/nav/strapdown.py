@@ -197,6 +197,13 @@ _2W = 2.0 * OMEGA_IE_RADPS
 _M2W = -2.0 * OMEGA_IE_RADPS
 
 
+def _sq(x: float) -> float:
+    """``x**2`` as Python computes it: the C library's ``pow(x, 2)``, which is not ``x * x`` in
+    about one value in a thousand (the last bit). A compiler turns ``x**2`` into ``x * x``, so
+    :mod:`hil.nav.jit` compiles this name to a call of ``pow`` itself."""
+    return x**2
+
+
 def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
     a2 = x * x + y * y + z * z
     if a2 < 1e-16:
@@ -235,7 +242,7 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     # (earth.radii_of_curvature_one and _gravity written out, sharing sin L and √(1 − e² sin²L):
     # the same operations)
     s0 = math.sin(lat)
-    s2 = s0**2
+    s2 = _sq(s0)
     w = 1.0 - E2 * s2
     sw = math.sqrt(w)
     rmh0, rnh0 = _AM_1ME2 / (w * sw) + h, A_M / sw + h
@@ -257,7 +264,7 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
 
     # mid-interval Earth quantities: radii, gravity, ω_ie, ω_en
     sl, cl = math.sin(lat_m), math.cos(lat_m)
-    s2 = sl**2
+    s2 = _sq(sl)
     w = 1.0 - E2 * s2
     sw = math.sqrt(w)
     r_m, r_n = _AM_1ME2 / (w * sw), A_M / sw

@@ -135,6 +135,10 @@ def test_rerun_verify_reproduces_the_live_fusion_bit_for_bit(
     up_recording: tuple[Path, subprocess.CompletedProcess[str]],
 ) -> None:
     path, _ = up_recording
+    # the live fusion ran its kernels compiled (loaded in the background while it started) by
+    # the end; the rerun below, compiled too, matches it as a Python one would (tests/unit/test_jit)
+    statuses = read_session(path).by_topic("hil/itest/status/fusion")
+    assert decode(ServiceStatus, statuses[-1].payload).counter_map()["kernels.compiled"] == 1
     for core in ("fusion", "timesync"):
         proc = subprocess.run(
             hil_cmd("rerun", str(path), "--core", core, "--verify"),
