@@ -163,3 +163,15 @@ def test_sin_and_cos_of_one_angle_keep_their_bits_when_the_compiler_pairs_them()
     rng = np.random.default_rng(11)
     xs = np.concatenate([rng.uniform(-1.6, 1.6, 200_000), rng.normal(0.0, 1e-3, 50_000)]).tolist()
     assert [x for x in xs if sin_cos_tan(x) != (math.sin(x), math.cos(x), math.tan(x))] == []
+
+
+def test_bench_jit_reruns_a_compiled_recording_in_python_and_compiled(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from hil.bench import jit as bench_jit
+
+    rc = bench_jit.main(["--duration", "3", "--repeat", "1", "--no-write"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "| Python (`HIL_JIT=0`) |" in out and "| compiled (`HIL_JIT=1`) |" in out
+    assert "FAILED" not in out and "state `compiled`" in out
