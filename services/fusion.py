@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from hil.nav import jit
 from hil.nodes.fusion import FusionNode
 from hil.record.lockstep import ack_key, encode_ack
 from hil.runners.live import NodeService, main_for, service_for
@@ -16,6 +17,7 @@ from hil.runners.live import NodeService, main_for, service_for
 
 class _FusionService(NodeService):
     def setup(self) -> None:
+        jit.enable_in_background()  # before ready; the core uses them once they are in place
         super().setup()
         self._ack: Any = self.ctx.session.declare_publisher(ack_key(self.ctx.rig))
 
