@@ -26,11 +26,13 @@ the compiled ones are in place -- the same bits, so nothing depends on when that
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 import threading
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 JIT_ENV = "HIL_JIT"
@@ -44,7 +46,7 @@ _lock = threading.Lock()
 _compiled: dict[str, Any] = {}
 
 
-def _wanted(env: dict[str, str] | os._Environ[str]) -> tuple[bool, str]:
+def _wanted(env: Mapping[str, str]) -> tuple[bool, str]:
     value = env.get(JIT_ENV, "").strip().lower()
     if value in ("", "1", "on", "yes", "true"):
         return True, ""
@@ -57,13 +59,28 @@ def _wanted(env: dict[str, str] | os._Environ[str]) -> tuple[bool, str]:
     return True, ""
 
 
-def _compile(numba: Any, fn: Callable[..., Any], signature: str, **callees: Any) -> Any:
+def _sources_digest(numba: Any) -> str:
+    """A digest of every file whose code the kernels compile or inline, and of numba's version.
+
+    numba's cache keys an entry on its own function's file and bytecode only: a kernel that calls
+    another (``_step`` calls ``_sq``) would keep the old callee's machine code after an edit of the
+    callee alone. The digest goes into each compiled twin's name, so any edit compiles anew."""
+    from hil.estimators import compensation
+    from hil.nav import kernels, strapdown
+
+    h = hashlib.sha256(numba.__version__.encode())
+    for mod in (strapdown, kernels, compensation, sys.modules[__name__]):
+        h.update(Path(str(mod.__file__)).read_bytes())
+    return h.hexdigest()[:12]
+
+
+def _compile(numba: Any, fn: Callable[..., Any], signature: str, digest: str, **callees: Any) -> Any:
     """``fn`` compiled for ``signature``, its global names in ``callees`` bound to compiled
     kernels (numba resolves a callee at compile time and needs it compiled too)."""
     g = dict(fn.__globals__)
     g.update(callees)
     twin = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__, fn.__closure__)
-    twin.__module__, twin.__qualname__ = fn.__module__, fn.__qualname__
+    twin.__module__, twin.__qualname__ = fn.__module__, f"{fn.__qualname__}_{digest}"
     try:
         return numba.njit(signature, cache=True)(twin)
     except RuntimeError:  # numba: "cannot cache function ...: no locator available"
@@ -89,7 +106,7 @@ def _libm_pow(numba: Any) -> Any:
     return numba.extending.intrinsic(libm_pow)
 
 
-def enable(env: dict[str, str] | os._Environ[str] | None = None, wait: bool = True) -> str:
+def enable(env: Mapping[str, str] | None = None, wait: bool = True) -> str:
     """Compile (or load) the kernels once per process and put them in place; returns the state.
 
     ``wait`` False: when another thread is compiling them (:func:`enable_in_background`), return
@@ -107,7 +124,7 @@ def enable(env: dict[str, str] | os._Environ[str] | None = None, wait: bool = Tr
         _lock.release()
 
 
-def enable_in_background(env: dict[str, str] | os._Environ[str] | None = None) -> threading.Thread:
+def enable_in_background(env: Mapping[str, str] | None = None) -> threading.Thread:
     """:func:`enable` in a daemon thread: a live service loads its kernels while it starts, and is
     ready without waiting for them (the first compile on a machine takes seconds)."""
     t = threading.Thread(target=enable, args=(env,), name="hil-jit", daemon=True)
@@ -115,7 +132,7 @@ def enable_in_background(env: dict[str, str] | os._Environ[str] | None = None) -
     return t
 
 
-def _enable(env: dict[str, str] | os._Environ[str]) -> str:
+def _enable(env: Mapping[str, str]) -> str:
     on, why = _wanted(env)
     if not on:
         return why
@@ -130,17 +147,19 @@ def _enable(env: dict[str, str] | os._Environ[str]) -> str:
     state16 = f"UniTuple({f8}, 16)"
     mat, vec = f"{f8}[:, :]", f"{f8}[:]"
     try:
-        square = _compile(numba, kernels.libm_square, f"{f8}({f8})", _pow=_libm_pow(numba))
-        rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})")
+        d = _sources_digest(numba)
+        square = _compile(numba, kernels.libm_square, f"{f8}({f8})", d, _pow=_libm_pow(numba))
+        rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})", d)
         step = _compile(
             numba,
             strapdown._step,
             f"{state16}({state16}, {', '.join([f8] * 7)})",
+            d,
             _rotvec_quat=rotvec,
             _sq=square,
         )
         ramp = _compile(
-            numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})"
+            numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})", d
         )
     except Exception as err:  # a numba or LLVM that cannot build them: Python's kernels, said why
         sys.stderr.write(

@@ -1,9 +1,10 @@
-"""Loop forms of numpy products the cores run at IMU rate, for :mod:`hil.nav.jit` to compile.
+"""What the cores compute with numpy or CPython at IMU rate, in the forms :mod:`hil.nav.jit`
+compiles with the same bits.
 
 numpy's ``einsum`` (:mod:`hil.nav.portable`) is what the cores multiply with in Python. Compiled
-code cannot call it, so each kernel here spells out the order in which einsum adds its terms, and
-the tests hold the compiled kernel to einsum's bits on random operands of every size the cores
-use (``tests/unit/test_jit.py``):
+code cannot call it, so a kernel here spells out the order in which einsum adds its terms; and
+where CPython and a compiler compute one expression differently, the kernel does it CPython's way.
+The tests hold each compiled kernel to the Python bits on random inputs (``tests/unit/test_jit.py``):
 
 - ``"ij,jk->ik"`` (:func:`hil.nav.portable.mm`): the reduction over ``j`` is strided, and einsum
   adds its terms one by one in ``j``'s order onto a zero.
@@ -13,7 +14,7 @@ use (``tests/unit/test_jit.py``):
   ``x * x``. :func:`libm_square` calls ``pow`` through a name the compiler does not rewrite
   (``_pow``, bound by :mod:`hil.nav.jit` to ``pow`` declared ``nobuiltin``).
 
-Never called from Python: there the einsum forms are faster.
+Never called from Python: there the einsum forms and ``x**2`` are faster.
 """
 
 from __future__ import annotations
