@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from hil.nav import jit
 from hil.nodes.fusion import FusionNode
 from hil.record.lockstep import ack_key, encode_ack
 from hil.runners.live import NodeService, main_for, service_for
+from hil.runtime import jit
 
 
 class _FusionService(NodeService):

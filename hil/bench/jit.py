@@ -3,7 +3,7 @@
 One ``hil sim --record`` (compiled, the default), then ``hil rerun --core fusion --verify`` of it
 by both, alternating (Python first on even repeats), each a child process measured by its own
 rusage (user + system: a busy machine slows it far less than wall time). The Python reruns verify
-the compiled recording bit for bit, which is the kernels' contract (:mod:`hil.nav.jit`). Also
+the compiled recording bit for bit, which is the kernels' contract (:mod:`hil.runtime.jit`). Also
 timed: ``import numba`` and loading the cached kernels, which every compiled process pays
 once (``--first-compile`` empties numba's cache first and times the compile).
 """
@@ -22,7 +22,7 @@ from hil.bench import command_line, write_section
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 _LOAD = (
-    "import time; t = time.process_time(); from hil.nav import jit; s = jit.enable(); "
+    "import time; t = time.process_time(); from hil.runtime import jit; s = jit.enable(); "
     "print(s, time.process_time() - t)"
 )
 _TREE = Path(__file__).resolve().parents[2]

@@ -92,7 +92,7 @@ def _ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
     """One step of the filter's state under the ramp input ``u + s τ``, exact over ``h``:
     ``x+ = Φ(h) x + Γ0(h) u + Γ1(h) s`` for ``m = [Φ | Γ0 | Γ1]``, as one product (stacked_step's
     order), and the input ``u + s h`` at the step's end. Runs at IMU rate for every channel set;
-    :mod:`hil.nav.jit` puts its loop form (:func:`hil.nav.kernels.ramp_step`) in its place."""
+    :mod:`hil.runtime.jit` puts its loop form (:func:`hil.nav.kernels.ramp_step`) in its place."""
     n = x.shape[0]
     z = np.empty((n + 2, x.shape[1]))
     z[:n] = x

@@ -279,9 +279,8 @@ class FusionCore:
             self._out_seq[name] = max(self._out_seq.get(name, 0), int(seq))
 
     def __post_init__(self) -> None:
-        from hil.nav import jit, strapdown
+        from hil.nav import strapdown
 
-        jit.enable(wait=False)  # compiled kernels, the same bits (a live service's may be on the way)
         self._sd = strapdown
         self._ins = strapdown.strapdown_from_initial(self.init)
         self._origin = (self.init.origin_lat_rad, self.init.origin_lon_rad, self.init.origin_alt_m)

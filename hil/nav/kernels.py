@@ -1,4 +1,4 @@
-"""What the cores compute with numpy or CPython at IMU rate, in the forms :mod:`hil.nav.jit`
+"""What the cores compute with numpy or CPython at IMU rate, in the forms :mod:`hil.runtime.jit`
 compiles with the same bits.
 
 numpy's ``einsum`` (:mod:`hil.nav.portable`) is what the cores multiply with in Python. Compiled
@@ -12,7 +12,7 @@ The tests hold each compiled kernel to the Python bits on random inputs (``tests
 - ``x**2`` (:func:`hil.nav.strapdown._sq`): CPython calls the C library's ``pow``, which is not
   ``x * x`` in about one value in a thousand; numba (LLVM) turns ``x**2`` and ``pow(x, 2.0)`` into
   ``x * x``. :func:`libm_square` calls ``pow`` through a name the compiler does not rewrite
-  (``_pow``, bound by :mod:`hil.nav.jit` to ``pow`` declared ``nobuiltin``).
+  (``_pow``, bound by :mod:`hil.runtime.jit` to ``pow`` declared ``nobuiltin``).
 
 Never called from Python: there the einsum forms and ``x**2`` are faster.
 """
@@ -24,6 +24,10 @@ import math
 import numpy as np
 
 from hil.nav.types import F64
+
+#: Whether :mod:`hil.runtime.jit` has put the compiled kernels in place in this process (the
+#: fusion's status counts it as ``kernels.compiled``).
+compiled = False
 
 _pow = math.pow  # Python's: the C library's pow, as float.__pow__ calls it; compiled: see jit
 

@@ -17,7 +17,7 @@ The numerics are plain Python floats, and so is the state (:class:`StrapdownStat
 one core, :func:`_step`, is shared by :func:`strapdown_step` (one interval, for the live
 services; :func:`strapdown_step_f` with the increments as floats, the fusion's per-IMU path) and
 :func:`strapdown_run` (a whole array, for the offline executor), so all give bit-identical results.
-The fusion runs :func:`_step` compiled from this same source (:mod:`hil.nav.jit`), with the same bits.
+The fusion runs :func:`_step` compiled from this same source (:mod:`hil.runtime.jit`), with the same bits.
 """
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ class StrapdownState(tuple[float, ...]):
 
 
 _new = tuple.__new__
-_tuple = tuple  # a plain tuple of the state: what the compiled _step (hil.nav.jit) takes
+_tuple = tuple  # a plain tuple of the state: what the compiled _step (hil.runtime.jit) takes
 
 
 def c_nb_floats(qw: float, qx: float, qy: float, qz: float) -> tuple[float, ...]:
@@ -200,7 +200,7 @@ _M2W = -2.0 * OMEGA_IE_RADPS
 def _sq(x: float) -> float:
     """``x**2`` as Python computes it: the C library's ``pow(x, 2)``, which is not ``x * x`` in
     about one value in a thousand (the last bit). A compiler turns ``x**2`` into ``x * x``, so
-    :mod:`hil.nav.jit` compiles this name to a call of ``pow`` itself."""
+    :mod:`hil.runtime.jit` compiles this name to a call of ``pow`` itself."""
     return x**2
 
 

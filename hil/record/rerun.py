@@ -40,6 +40,7 @@ from hil.messages import (
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
+from hil.runtime import jit
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
 
@@ -305,6 +306,7 @@ def rerun_fusion_records(
     of order by the fusion's lag (0.2 s) and journals follow within a second, so the default 30 s
     never trips on a rig session.
     """
+    jit.enable()  # the fusion's kernels compiled, the bits of the Python ones
     state = _FusionRerun(window_ns, keep_outputs)
     for r in records:
         state.feed(r)

@@ -51,6 +51,7 @@ from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
 from hil.runners.sim_worker import RemoteNode, drive, worker_possible
 from hil.runners.wire import CanWireModel
+from hil.runtime import jit
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.wellknown import WellKnown
@@ -420,6 +421,7 @@ def run_sim(opts: SimOptions) -> SimResult:
     t_wall = time.monotonic()
     run = sim_run_info(opts)
     s = scenario_for_run(run)
+    jit.enable()  # before the nodes (and the fusion worker, forked with them): the same bits
     nodes = sim_nodes(run, opts)
     sess = _Session(run, opts, nodes)
 

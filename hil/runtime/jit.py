@@ -8,7 +8,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
 - the strapdown's :func:`hil.nav.strapdown._step` and its rotation-vector quaternion, from their
   own Python source, unchanged (~2 µs a step);
 - the compensation filter's :func:`hil.estimators.compensation._ramp_step`, an einsum in Python,
-  as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order.
+  as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order;
+- the strapdown's ``x**2`` as CPython computes it, the C library's ``pow``
+  (:func:`hil.nav.kernels.libm_square`), where a compiler would multiply.
 
 numba compiles without fast-math, so LLVM neither reassociates nor fuses a multiply and an add,
 ``math.sin``/``cos``/``tan`` call the same libm and ``sqrt`` is the IEEE one: a recording made
@@ -19,9 +21,12 @@ kernel gives its Python one's bits on random inputs (``tests/unit/test_jit.py``)
 cached on disk (numba's cache: ``__pycache__`` beside the source, else the user's cache directory,
 or ``NUMBA_CACHE_DIR``): the first process compiles (a few seconds), the next ones import numba
 and load it (~0.5-0.7 s of CPU). Where no cache directory is writable, every process compiles.
-The fusion calls :func:`enable` when it is built (offline: at once); the live fusion service starts
-:func:`enable_in_background` before it reports ready, and its core runs the Python kernels until
-the compiled ones are in place -- the same bits, so nothing depends on when that happens.
+The runners call :func:`enable` before they build the fusion (``hil sim``, ``hil rerun``, and so a
+campaign's runs); the live fusion service starts :func:`enable_in_background` before it reports
+ready, and its core runs the Python kernels until the compiled ones are in place -- the same bits,
+so nothing depends on when that happens. The fusion's own (pure) code knows nothing of this: it
+calls the module functions it always called. Here, not in :mod:`hil.nav`, because it reads the
+environment and files and may start a thread.
 """
 
 from __future__ import annotations
@@ -106,22 +111,17 @@ def _libm_pow(numba: Any) -> Any:
     return numba.extending.intrinsic(libm_pow)
 
 
-def enable(env: Mapping[str, str] | None = None, wait: bool = True) -> str:
+def enable(env: Mapping[str, str] | None = None) -> str:
     """Compile (or load) the kernels once per process and put them in place; returns the state.
-
-    ``wait`` False: when another thread is compiling them (:func:`enable_in_background`), return
-    "compiling" at once; the kernels take over when they are ready, with the same bits."""
+    The runners call it before they build the fusion (``hil sim``, ``hil rerun``, a campaign's
+    runs); the fusion's own code does not know about it."""
     global _state
     if _state is not None:
         return _state
-    if not _lock.acquire(blocking=wait):
-        return "compiling"
-    try:
+    with _lock:
         if _state is None:
             _state = _enable(os.environ if env is None else env)
         return _state
-    finally:
-        _lock.release()
 
 
 def enable_in_background(env: Mapping[str, str] | None = None) -> threading.Thread:
@@ -171,6 +171,7 @@ def _enable(env: Mapping[str, str]) -> str:
     _python.setdefault("_ramp_step", compensation._ramp_step)
     strapdown._step = step
     compensation._ramp_step = ramp
+    kernels.compiled = True
     return "compiled"
 
 
