@@ -54,10 +54,10 @@ class Tree:
     verify_failed: list[str] = field(default_factory=list)
 
 
-def _env(tree: Path) -> dict[str, str]:
+def _env(tree: Path, extra: dict[str, str] | None = None) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
     env["PYTHONPATH"] = str(tree)
-    return env
+    return env | (extra or {})
 
 
 def compile_bytecode(tree: Path) -> None:
@@ -74,12 +74,16 @@ def _cpu_of(tree: Path, argv: list[str]) -> tuple[float, int]:
     return cpu, rc
 
 
-def _run(tree: Path, argv: list[str]) -> tuple[float, float, int]:
+def _run(tree: Path, argv: list[str], extra_env: dict[str, str] | None = None) -> tuple[float, float, int]:
     """CPU seconds (user + system, with the children it reaped), wall seconds and exit code of
-    one child."""
+    one child (``HIL_*`` from this environment left out, ``extra_env`` added)."""
     t0 = time.monotonic()
     proc = subprocess.Popen(
-        [sys.executable, *argv], cwd=tree, env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+        [sys.executable, *argv],
+        cwd=tree,
+        env=_env(tree, extra_env),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
     )
     _, status, ru = os.wait4(proc.pid, 0)
     wall = time.monotonic() - t0

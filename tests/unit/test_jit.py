@@ -181,4 +181,4 @@ def test_bench_jit_reruns_a_compiled_recording_in_python_and_compiled(
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "| Python (`HIL_JIT=0`) |" in out and "| compiled (`HIL_JIT=1`) |" in out
-    assert "FAILED" not in out and "state `compiled`" in out
+    assert "FAILED" not in out and "`jit.enable()` compiled them" in out
