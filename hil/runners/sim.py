@@ -421,7 +421,6 @@ def run_sim(opts: SimOptions) -> SimResult:
     t_wall = time.monotonic()
     run = sim_run_info(opts)
     s = scenario_for_run(run)
-    jit.enable()  # before the nodes (and the fusion worker, forked with them): the same bits
     nodes = sim_nodes(run, opts)
     sess = _Session(run, opts, nodes)
 
@@ -437,13 +436,17 @@ def run_sim(opts: SimOptions) -> SimResult:
             sys.stderr.write(f"hil sim: warning: {line}\n")
             sys.stderr.flush()
     wire = CanWireModel(s)
-    outs0 = [node.start(0) for node in nodes]
     use_worker = opts.fusion_worker
     if use_worker is None:  # worth it when the fusion is heavy: with one or two estimators the
         # pickling to and from the worker cost more than the second core gave (static, kfvel: +10 % CPU)
         heavy = len(getattr(getattr(nodes[-1], "config", None), "estimators", ())) >= WORKER_MIN_ESTIMATORS
         use_worker = heavy and worker_possible()
-    remote = RemoteNode(nodes[-1]) if use_worker else None  # forked after start: its state
+    # the fusion's kernels compiled where it runs (the same bits either way): with a worker, in
+    # the worker, so that this process (the pipeline's wall-clock bound) never imports numba
+    if not use_worker:
+        jit.enable()
+    outs0 = [node.start(0) for node in nodes]
+    remote = RemoteNode(nodes[-1], setup=jit.enable) if use_worker else None  # forked after start
     try:
         sched = Scheduler(nodes, sess.write, wire, remote)
         for i, outs in enumerate(outs0):

@@ -76,7 +76,9 @@ class RemoteNode:
     """A node run in a forked child; ``window`` sends a window's inputs, ``result`` waits for
     its outputs. Between the two the caller is free to work on the next window."""
 
-    def __init__(self, node: Node) -> None:
+    def __init__(self, node: Node, setup: Callable[[], object] | None = None) -> None:
+        """``setup``: called first in the child (the sim loads the fusion's compiled kernels
+        there, so that its own process, the pipeline's slower one, never imports numba)."""
         self.name = node.name
         self._counters: dict[str, int] = node.counters()
         self.last_error = node.last_error
@@ -86,6 +88,8 @@ class RemoteNode:
             code = 1
             try:
                 parent.close()
+                if setup is not None:
+                    setup()
                 _serve(node, child)
                 code = 0
             finally:
