@@ -184,6 +184,17 @@ def transition(f: F64, dt_s: float) -> F64:
     return eye + fd + 0.5 * mm(fd, fd)
 
 
+def covariance_step(f: F64, dt_s: float, p: F64, qc: F64) -> tuple[F64, F64]:
+    """``(Φ, Φ P Φ' + Q_c Δ)`` with ``Φ = transition(F, Δ)``: a covariance's prediction over Δ
+    (ekf15's and the feedback corrector's). :mod:`hil.runtime.jit` puts a compiled twin with
+    these bits in its place (:func:`hil.nav.kernels.covariance_step`)."""
+    fd = f * dt_s
+    n = f.shape[0]
+    eye = _EYE15 if n == 15 else np.eye(n)
+    phi = eye + fd + 0.5 * mm(fd, fd)
+    return phi, mmt(mm(phi, p), phi) + qc * dt_s
+
+
 def slow_augmented(f: F64, w_radps: float) -> F64:
     """``F`` with the GNSS slow-error states appended: ``δs̈ = −ω² δs`` per axis (a sine of
     angular frequency ω, the emulator's geometry component, which has no process noise)."""
@@ -399,7 +410,7 @@ class Ekf15(Estimator):
                 c * self.s_hat + s / self._slow_w * self.sd_hat,
                 -s * self._slow_w * self.s_hat + c * self.sd_hat,
             )
-        self._predict(transition(f, dt), self._qc * dt)  # Q_d = Q_c Δ
+        self._predict_over(f, dt)
         if self.p[8, 8] > _YAW_VAR_MAX:  # beyond a uniform heading's: shrink yaw's row and column
             c = math.sqrt(_YAW_VAR_MAX / float(self.p[8, 8]))
             self.p[8, :] *= c
@@ -408,6 +419,10 @@ class Ekf15(Estimator):
         self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
+
+    def _predict_over(self, f: F64, dt_s: float) -> None:
+        """``P`` over ``dt_s`` with error dynamics ``f`` (``Q_d = Q_c Δ``)."""
+        _phi, self.p = covariance_step(f, dt_s, self.p, self._qc)
 
     def _predict(self, phi: F64, qd: F64) -> None:
         """``P = Φ P Φ' + Q_d`` (the error state itself is zero between fixes: closed loop)."""

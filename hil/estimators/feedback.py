@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuInput, InitialState
-from hil.estimators.ekf15 import bias_walk_psd, skew
+from hil.estimators.ekf15 import bias_walk_psd, covariance_step, skew
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
@@ -113,9 +113,7 @@ class Corrector:
         f[0:3, 9:12] = c_nb
         f[3:6, 3:6] = -skew(w_ie)  # φ̇ = −[ω_ie×]φ − C δb_g
         f[3:6, 6:9] = -c_nb
-        fd = f * dt_s
-        phi = np.eye(12) + fd + 0.5 * mm(fd, fd)
-        self.p = mmt(mm(phi, self.p), phi) + self.qc * dt_s
+        phi, self.p = covariance_step(f, dt_s, self.p, self.qc)
         self.dv = mv(phi[0:3, 0:3], self.dv)  # φ, biases are zero between fixes (closed loop)
 
     def update(self, dv_meas: F64, sigma_mps: F64) -> F64 | None:

@@ -9,6 +9,13 @@ The tests hold each compiled kernel to the Python bits on random inputs (``tests
 - ``"ij,jk->ik"`` (:func:`hil.nav.portable.mm`): the reduction over ``j`` is strided, and einsum
   adds its terms one by one in ``j``'s order onto a zero.
 
+- ``"ij,kj->ik"`` (:func:`hil.nav.portable.mmt`) on C-contiguous operands: the reduction over
+  ``j`` is contiguous in both, and einsum runs numpy's SIMD dot product compiled for the x86-64
+  baseline (two-lane SSE2, no FMA): two lanes (even and odd ``j``), unrolled by four with the
+  last pair added first, a zero-padded tail, then the lanes' sum added onto the zero output.
+  :mod:`hil.runtime.jit` checks this against einsum when it loads the kernels and keeps the
+  Python one where a numpy built otherwise (wider lanes, FMA) adds differently.
+
 - ``x**2`` (:func:`hil.nav.strapdown._sq`): CPython calls the C library's ``pow``, which is not
   ``x * x`` in about one value in a thousand; numba (LLVM) turns ``x**2`` and ``pow(x, 2.0)`` into
   ``x * x``. :func:`libm_square` calls ``pow`` through a name the compiler does not rewrite
@@ -53,3 +60,117 @@ def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
     for k in range(c):
         u2[k] = u[k] + s[k] * h_s
     return out, u2
+
+
+
+def covariance_step(f: F64, dt_s: float, p: F64, qc: F64) -> tuple[F64, F64]:
+    """:func:`hil.estimators.ekf15.covariance_step` (``Φ = I + FΔ + (FΔ)²/2``, ``Φ P Φ' + Q_c Δ``)
+    in loops; ``f`` and ``p`` C-contiguous.
+
+    ``F`` is sparse (a sixth of a 15-state one is not zero), and so is ``Φ``: the products skip
+    zero terms. That keeps einsum's bits: its sums start at +0 and add ``x·y + s``, so a sum is
+    never −0, and adding a ±0 product to it changes nothing -- as long as the other factor is
+    finite (``0·∞`` is NaN): a term is skipped only where it is."""
+    n = f.shape[0]
+    fd = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            fd[i, j] = f[i, j] * dt_s
+    sq = _mm(fd, fd)
+    phi = np.empty((n, n))
+    for i in range(n):
+        for k in range(n):
+            phi[i, k] = ((1.0 if i == k else 0.0) + fd[i, k]) + 0.5 * sq[i, k]
+    out = _mmt(_mm(phi, p), phi)
+    for i in range(n):
+        for k in range(n):
+            out[i, k] = out[i, k] + qc[i, k] * dt_s
+    return phi, out
+
+
+def _finite_rows(a: F64) -> F64:
+    """Per row of ``a``, whether every entry is finite (1.0) or not (0.0)."""
+    out = np.ones(a.shape[0])
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            if not math.isfinite(a[i, j]):
+                out[i] = 0.0
+                break
+    return out
+
+
+def _mm(a: F64, b: F64) -> F64:
+    """``"ij,jk->ik"``: each output term added in ``j``'s order onto a zero; a zero ``a[i, j]``
+    skipped where row ``j`` of ``b`` is finite (:func:`covariance_step`)."""
+    n, m = a.shape
+    c = b.shape[1]
+    finite = _finite_rows(b)
+    out = np.zeros((n, c))
+    for i in range(n):
+        for j in range(m):
+            x = a[i, j]
+            if x == 0.0 and finite[j] == 1.0:
+                continue
+            for k in range(c):
+                out[i, k] += x * b[j, k]
+    return out
+
+
+def _lane_order(n: int) -> F64:
+    """The ``j`` of a length-``n`` reduction in the order numpy's baseline SIMD dot product takes
+    them (module docstring): blocks of eight, their pairs last first, then the tail in pairs.
+    Even ``j`` go to one lane, odd to the other."""
+    order = np.empty(n, dtype=np.int64)
+    t = 0
+    j = 0
+    while n - j >= 8:
+        for off in (6, 7, 4, 5, 2, 3, 0, 1):
+            order[t] = j + off
+            t += 1
+        j += 8
+    while j < n:
+        order[t] = j
+        t += 1
+        j += 1
+    return order
+
+
+def _mmt(a: F64, b: F64) -> F64:
+    """``"ij,kj->ik"`` on C-contiguous operands, as numpy's baseline SIMD dot product adds each
+    term (module docstring); a zero ``b[k, j]`` skipped where row ``i`` of ``a`` is finite."""
+    n = a.shape[1]
+    ni = a.shape[0]
+    nk = b.shape[0]
+    order = _lane_order(n)
+    nz = np.empty((nk, n), dtype=np.int64)  # per row of b: its non-zero j, in the lanes' order
+    count = np.zeros(nk, dtype=np.int64)
+    for k in range(nk):
+        c = 0
+        for t in range(n):
+            j = order[t]
+            if b[k, j] != 0.0:
+                nz[k, c] = j
+                c += 1
+        count[k] = c
+    finite = _finite_rows(a)
+    out = np.empty((ni, nk))
+    for i in range(ni):
+        for k in range(nk):
+            l0 = 0.0
+            l1 = 0.0
+            if finite[i] == 1.0:
+                for t in range(count[k]):
+                    j = nz[k, t]
+                    if j & 1:
+                        l1 = a[i, j] * b[k, j] + l1
+                    else:
+                        l0 = a[i, j] * b[k, j] + l0
+            else:
+                for t in range(n):
+                    j = order[t]
+                    if j & 1:
+                        l1 = a[i, j] * b[k, j] + l1
+                    else:
+                        l0 = a[i, j] * b[k, j] + l0
+            out[i, k] = 0.0 + (l0 + l1)
+    return out

@@ -9,6 +9,11 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
   own Python source, unchanged (~2 µs a step);
 - the compensation filter's :func:`hil.estimators.compensation._ramp_step`, an einsum in Python,
   as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order;
+- the covariance prediction of ekf15 and of the feedback INS's corrector
+  (:func:`hil.estimators.ekf15.covariance_step`, ``Φ P Φ' + Q``: einsum products in Python) as
+  :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders; checked against
+  einsum on random operands here before it is put in place (a numpy built for wider SIMD lanes
+  or FMA adds differently: then the Python one stays, said on stderr);
 - the strapdown's ``x**2`` as CPython computes it, the C library's ``pow``
   (:func:`hil.nav.kernels.libm_square`), where a compiler would multiply.
 
@@ -47,7 +52,8 @@ _state: str | None = None
 #: The Python kernels :func:`enable` replaced, by name (the reference the tests hold it to).
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
-#: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``ramp_step``).
+#: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``ramp_step``,
+#: ``covariance_step``).
 _compiled: dict[str, Any] = {}
 
 
@@ -79,17 +85,21 @@ def _sources_digest(numba: Any) -> str:
     return h.hexdigest()[:12]
 
 
-def _compile(numba: Any, fn: Callable[..., Any], signature: str, digest: str, **callees: Any) -> Any:
+def _compile(
+    numba: Any, fn: Callable[..., Any], signature: str, digest: str, inline: bool = False, **callees: Any
+) -> Any:
     """``fn`` compiled for ``signature``, its global names in ``callees`` bound to compiled
-    kernels (numba resolves a callee at compile time and needs it compiled too)."""
+    kernels (numba resolves a callee at compile time and needs it compiled too); ``inline``: into
+    its compiled callers (a small helper whose call would cost more than its work)."""
     g = dict(fn.__globals__)
     g.update(callees)
     twin = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__, fn.__closure__)
     twin.__module__, twin.__qualname__ = fn.__module__, f"{fn.__qualname__}_{digest}"
+    how = "always" if inline else "never"
     try:
-        return numba.njit(signature, cache=True)(twin)
+        return numba.njit(signature, cache=True, inline=how)(twin)
     except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return numba.njit(signature, cache=False)(twin)
+        return numba.njit(signature, cache=False, inline=how)(twin)
 
 
 def _libm_pow(numba: Any) -> Any:
@@ -140,7 +150,7 @@ def _enable(env: Mapping[str, str]) -> str:
         import numba
     except ImportError:
         return "python (numba is not installed: pip install numba)"
-    from hil.estimators import compensation
+    from hil.estimators import compensation, ekf15, feedback
     from hil.nav import kernels, strapdown
 
     f8 = "float64"
@@ -161,28 +171,85 @@ def _enable(env: Mapping[str, str]) -> str:
         ramp = _compile(
             numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})", d
         )
+        cmat = f"{f8}[:, ::1]"
+        finite = _compile(numba, kernels._finite_rows, f"{f8}[::1]({cmat})", d, inline=True)
+        order = _compile(numba, kernels._lane_order, "int64[::1](int64)", d, inline=True)
+        mm = _compile(numba, kernels._mm, f"{cmat}({cmat}, {cmat})", d, _finite_rows=finite)
+        mmt = _compile(
+            numba, kernels._mmt, f"{cmat}({cmat}, {cmat})", d, _finite_rows=finite, _lane_order=order
+        )
+        cov = _compile(
+            numba,
+            kernels.covariance_step,
+            f"Tuple(({cmat}, {cmat}))({cmat}, {f8}, {cmat}, {mat})",
+            d,
+            _mm=mm,
+            _mmt=mmt,
+        )
     except Exception as err:  # a numba or LLVM that cannot build them: Python's kernels, said why
         sys.stderr.write(
             f"hil: warning: the navigation kernels stay in Python: {type(err).__name__}: {err}\n"
         )
         return f"python (compiling failed: {type(err).__name__})"
-    _compiled.update(libm_square=square, _rotvec_quat=rotvec, _step=step, ramp_step=ramp)
+    _compiled.update(libm_square=square, _rotvec_quat=rotvec, _step=step, ramp_step=ramp, covariance_step=cov)
     _python.setdefault("_step", strapdown._step)
     _python.setdefault("_ramp_step", compensation._ramp_step)
+    _python.setdefault("covariance_step", ekf15.covariance_step)
     strapdown._step = step
     compensation._ramp_step = ramp
     kernels.compiled = True
+    differs = _covariance_differs(cov, _python["covariance_step"])
+    if differs:
+        sys.stderr.write(
+            f"hil: warning: the covariance prediction stays in Python: compiled, it differs from "
+            f"numpy's einsum in the last bits ({differs}; this numpy adds in another order)\n"
+        )
+        return "compiled (covariance in Python)"
+    ekf15.covariance_step = feedback.covariance_step = _with_fallback(cov, _python["covariance_step"])
     return "compiled"
 
 
+def _covariance_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """Which of a few random operands the compiled covariance prediction does not give einsum's
+    bytes for ("" when it does for all): sizes of every ekf15 configuration and the corrector's."""
+    import numpy as np
+
+    rng = np.random.default_rng(20)
+    for n in (12, 15, 21, 24, 33, 39):
+        f = rng.normal(0.0, 1.0, (n, n)) * (rng.random((n, n)) < 0.3)
+        f[rng.random((n, n)) < 0.1] = -0.0
+        a = rng.normal(0.0, 1.0, (n, n))
+        p = a @ a.T
+        qc = np.diag(rng.random(n))
+        got, want = compiled(f, 0.01, p, qc), python(f, 0.01, p, qc)
+        if any(g.tobytes() != w.tobytes() for g, w in zip(got, want, strict=True)):
+            return f"{n} x {n}"
+    return ""
+
+
+def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., Any]:
+    """The compiled kernel, or the Python one for operands it was not compiled for (a matrix that
+    is not C-contiguous: einsum may add those in another order too)."""
+
+    def covariance_step(f: Any, dt_s: float, p: Any, qc: Any) -> Any:
+        try:
+            return compiled(f, dt_s, p, qc)
+        except TypeError:  # numba: no matching definition for these operands
+            return python(f, dt_s, p, qc)
+
+    return covariance_step
+
+
 def python_kernel(name: str) -> Callable[..., Any]:
-    """The Python kernel ``name`` (``_step``, ``_ramp_step``) as it was before :func:`enable`."""
+    """The Python kernel ``name`` (``_step``, ``_ramp_step``, ``covariance_step``) as it was
+    before :func:`enable`."""
     if name in _python:
         return _python[name]
-    from hil.estimators import compensation
+    from hil.estimators import compensation, ekf15
     from hil.nav import strapdown
 
-    return getattr(strapdown if name == "_step" else compensation, name)  # type: ignore[no-any-return]
+    module = {"_step": strapdown, "covariance_step": ekf15}.get(name, compensation)
+    return getattr(module, name)  # type: ignore[no-any-return]
 
 
 def compiled_kernel(name: str) -> Any:

@@ -122,6 +122,68 @@ def test_the_compiled_filter_step_computes_einsums_bits(order: int) -> None:
         assert xc.tobytes() == xp.tobytes() and uc.tobytes() == up.tobytes()
 
 
+def _covariance_operands(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``F`` from dense to empty with signed zeros, a covariance ``P`` (some with zero entries)
+    and a diagonal ``Q_c``."""
+    f = (
+        rng.normal(size=(n, n))
+        * 10.0 ** rng.integers(-6, 3, size=(n, n))
+        * (rng.random((n, n)) < rng.random())
+    )
+    f[rng.random((n, n)) < 0.1] = -0.0
+    a = rng.normal(size=(n, n))
+    p = a @ a.T
+    if rng.random() < 0.2:
+        p[rng.random((n, n)) < 0.2] = 0.0
+    return f, p, np.diag(rng.random(n))
+
+
+def test_the_compiled_covariance_step_computes_einsums_bits() -> None:
+    """ekf15's and the corrector's ``Φ P Φ' + Q`` (every size to 40, ``F`` of any sparsity): the
+    products skip zero terms and still add einsum's terms in einsum's orders, byte for byte."""
+    from hil.estimators import ekf15, feedback
+
+    assert jit.enable() == "compiled"
+    python_cov = jit.python_kernel("covariance_step")
+    assert ekf15.covariance_step is not python_cov
+    assert feedback.covariance_step is ekf15.covariance_step  # the corrector's too
+    rng = np.random.default_rng(12)
+    differing = []
+    for trial in range(2000):
+        n = int(rng.integers(2, 41))
+        f, p, qc = _covariance_operands(rng, n)
+        dt = float(rng.uniform(1e-3, 0.1))
+        got, want = ekf15.covariance_step(f, dt, p, qc), python_cov(f, dt, p, qc)
+        if got[0].tobytes() != want[0].tobytes() or got[1].tobytes() != want[1].tobytes():
+            differing.append((trial, n))
+    assert differing == []
+
+
+def test_the_compiled_covariance_step_on_non_finite_and_non_contiguous_operands() -> None:
+    """A diverged ``P`` (∞, NaN): no zero term is skipped against a non-finite factor, so the
+    NaNs and infinities land where einsum's do. A Fortran-ordered operand (einsum may add it in
+    another order) goes to the Python kernel."""
+    from hil.estimators import ekf15
+
+    assert jit.enable() == "compiled"
+    python_cov = jit.python_kernel("covariance_step")
+    rng = np.random.default_rng(13)
+    for _ in range(300):
+        n = int(rng.integers(2, 25))
+        f, p, qc = _covariance_operands(rng, n)
+        p[rng.integers(n), rng.integers(n)] = rng.choice([np.inf, -np.inf, np.nan])
+        with np.errstate(invalid="ignore", over="ignore"):
+            got, want = ekf15.covariance_step(f, 0.01, p, qc), python_cov(f, 0.01, p, qc)
+        assert np.array_equal(got[1], want[1], equal_nan=True)
+        assert got[0].tobytes() == want[0].tobytes()
+    f, p, qc = _covariance_operands(rng, 15)
+    got, want = (
+        ekf15.covariance_step(np.asfortranarray(f), 0.01, p, qc),
+        python_cov(np.asfortranarray(f), 0.01, p, qc),
+    )
+    assert got[1].tobytes() == want[1].tobytes()
+
+
 def test_kernels_loaded_in_the_background_take_over_a_running_core() -> None:
     """The live service's way: the kernels load in a thread while the core already steps with the
     Python ones; the states the core reaches are the same bits either way."""
