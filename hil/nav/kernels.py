@@ -62,7 +62,6 @@ def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
     return out, u2
 
 
-
 def covariance_step(f: F64, dt_s: float, p: F64, qc: F64) -> tuple[F64, F64]:
     """:func:`hil.estimators.ekf15.covariance_step` (``Φ = I + FΔ + (FΔ)²/2``, ``Φ P Φ' + Q_c Δ``)
     in loops; ``f`` and ``p`` C-contiguous.
@@ -173,4 +172,44 @@ def _mmt(a: F64, b: F64) -> F64:
                     else:
                         l0 = a[i, j] * b[k, j] + l0
             out[i, k] = 0.0 + (l0 + l1)
+    return out
+
+
+def expm(m: F64) -> F64:
+    """:func:`hil.nav.portable.expm` in loops (the ZOH filters' ``e^{A h}``, at every step length
+    not seen before: the IMU's stamps are ns-exact, so most are new); ``m`` C-contiguous.
+
+    numpy's ``np.abs(m).sum(axis=0)`` adds each column's entries in row order, starting from the
+    first (no pairwise summation: the reduction is not along the contiguous axis)."""
+    n = m.shape[0]
+    norm1 = 0.0
+    for k in range(n):
+        col = abs(m[0, k])
+        for i in range(1, n):
+            col = col + abs(m[i, k])
+        if k == 0 or col > norm1:
+            norm1 = col
+    s = 0 if norm1 <= 0.125 else math.ceil(math.log2(norm1 / 0.125))
+    scale = float(2**s)
+    a = np.empty((n, n))
+    for i in range(n):
+        for k in range(n):
+            a[i, k] = m[i, k] / scale
+    out = np.eye(n)
+    term = np.eye(n)
+    for k in range(1, 40):
+        term = _mm(term, a)
+        significant = False
+        for i in range(n):
+            for j in range(n):
+                term[i, j] = term[i, j] / k
+                if abs(term[i, j]) > abs(out[i, j]) * 1e-18:
+                    significant = True
+        if not significant:
+            break
+        for i in range(n):
+            for j in range(n):
+                out[i, j] = out[i, j] + term[i, j]
+    for _ in range(s):
+        out = _mm(out, out)
     return out

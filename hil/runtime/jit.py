@@ -53,7 +53,7 @@ _state: str | None = None
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``ramp_step``,
-#: ``covariance_step``).
+#: ``covariance_step``, ``expm``).
 _compiled: dict[str, Any] = {}
 
 
@@ -150,7 +150,7 @@ def _enable(env: Mapping[str, str]) -> str:
         import numba
     except ImportError:
         return "python (numba is not installed: pip install numba)"
-    from hil.estimators import compensation, ekf15, feedback
+    from hil.estimators import compensation, ekf15, feedback, lti
     from hil.nav import kernels, strapdown
 
     f8 = "float64"
@@ -186,27 +186,56 @@ def _enable(env: Mapping[str, str]) -> str:
             _mm=mm,
             _mmt=mmt,
         )
+        expm = _compile(numba, kernels.expm, f"{cmat}({cmat})", d, _mm=mm)
     except Exception as err:  # a numba or LLVM that cannot build them: Python's kernels, said why
         sys.stderr.write(
             f"hil: warning: the navigation kernels stay in Python: {type(err).__name__}: {err}\n"
         )
         return f"python (compiling failed: {type(err).__name__})"
-    _compiled.update(libm_square=square, _rotvec_quat=rotvec, _step=step, ramp_step=ramp, covariance_step=cov)
+    _compiled.update(
+        libm_square=square, _rotvec_quat=rotvec, _step=step, ramp_step=ramp, covariance_step=cov, expm=expm
+    )
     _python.setdefault("_step", strapdown._step)
     _python.setdefault("_ramp_step", compensation._ramp_step)
     _python.setdefault("covariance_step", ekf15.covariance_step)
+    _python.setdefault("expm", lti.expm)
     strapdown._step = step
     compensation._ramp_step = ramp
     kernels.compiled = True
-    differs = _covariance_differs(cov, _python["covariance_step"])
-    if differs:
-        sys.stderr.write(
-            f"hil: warning: the covariance prediction stays in Python: compiled, it differs from "
-            f"numpy's einsum in the last bits ({differs}; this numpy adds in another order)\n"
-        )
-        return "compiled (covariance in Python)"
-    ekf15.covariance_step = feedback.covariance_step = _with_fallback(cov, _python["covariance_step"])
-    return "compiled"
+    kept = []
+    # the kernels whose products follow numpy's loops: each checked against them here first
+    for name, check in (("covariance_step", _covariance_differs), ("expm", _expm_differs)):
+        differs = check(_compiled[name], _python[name])
+        if differs:
+            kept.append(name)
+            sys.stderr.write(
+                f"hil: warning: {name} stays in Python: compiled, it differs from numpy's einsum in "
+                f"the last bits ({differs}; this numpy adds in another order)\n"
+            )
+    if "covariance_step" not in kept:
+        ekf15.covariance_step = feedback.covariance_step = _with_fallback(cov, _python["covariance_step"])
+    if "expm" not in kept:
+        lti.expm = _with_fallback(expm, _python["expm"])
+    return f"compiled ({', '.join(kept)} in Python)" if kept else "compiled"
+
+
+def _expm_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_covariance_differs`, for ``e^M``: the ZOH filters' ramp-hold matrices (orders 1
+    to 3, steps from a nanosecond to seconds) and dense ones whose norm needs squaring."""
+    import numpy as np
+
+    rng = np.random.default_rng(21)
+    for trial in range(60):
+        n = 2 + trial % 7
+        m = rng.normal(0.0, 1.0, (n, n)) * (rng.random((n, n)) < 0.6) * 10.0 ** rng.uniform(-9, 1)
+        if trial % 3 == 0:  # [[A, B, 0], [0, 0, 1], [0, 0, 0]] h
+            m[n - 2 :, :] = 0.0
+            m[n - 2, n - 1] = m[0, 0] or 1e-3
+            m[: n - 2, n - 1] = 0.0
+        got, want = compiled(m), python(m)
+        if got.tobytes() != want.tobytes():
+            return f"{n} x {n}"
+    return ""
 
 
 def _covariance_differs(compiled: Any, python: Callable[..., Any]) -> str:
@@ -231,24 +260,25 @@ def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., A
     """The compiled kernel, or the Python one for operands it was not compiled for (a matrix that
     is not C-contiguous: einsum may add those in another order too)."""
 
-    def covariance_step(f: Any, dt_s: float, p: Any, qc: Any) -> Any:
+    def kernel(*args: Any) -> Any:
         try:
-            return compiled(f, dt_s, p, qc)
+            return compiled(*args)
         except TypeError:  # numba: no matching definition for these operands
-            return python(f, dt_s, p, qc)
+            return python(*args)
 
-    return covariance_step
+    kernel.__name__ = kernel.__qualname__ = python.__name__
+    return kernel
 
 
 def python_kernel(name: str) -> Callable[..., Any]:
-    """The Python kernel ``name`` (``_step``, ``_ramp_step``, ``covariance_step``) as it was
-    before :func:`enable`."""
+    """The Python kernel ``name`` (``_step``, ``_ramp_step``, ``covariance_step``, ``expm``) as it
+    was before :func:`enable`."""
     if name in _python:
         return _python[name]
-    from hil.estimators import compensation, ekf15
+    from hil.estimators import compensation, ekf15, lti
     from hil.nav import strapdown
 
-    module = {"_step": strapdown, "covariance_step": ekf15}.get(name, compensation)
+    module = {"_step": strapdown, "covariance_step": ekf15, "expm": lti}.get(name, compensation)
     return getattr(module, name)  # type: ignore[no-any-return]
 
 
