@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from hil.nav.earth import A_M, B_M, E2, EP2
 from hil.nav.types import F64
 
 #: Whether :mod:`hil.runtime.jit` has put the compiled kernels in place in this process (the
@@ -213,3 +214,27 @@ def expm(m: F64) -> F64:
     for _ in range(s):
         out = _mm(out, out)
     return out
+
+
+_AM2 = A_M * A_M  # CPython's A_M**2: pow of an integer-valued float, exact either way
+
+
+def ecef_to_lla_one(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """:func:`hil.nav.earth._ecef_to_lla_one` (Bowring's start, two iterations; every published
+    solution's latitude, longitude and height). ``math.hypot`` compiled is the C library's
+    ``hypot``, which is numpy's ``np.hypot`` that the Python one calls (CPython's own
+    ``math.hypot`` is another algorithm); ``sl**2`` is CPython's ``pow`` (:func:`libm_square`)."""
+    lon = math.atan2(y, x)
+    p = math.hypot(x, y)
+    beta = math.atan2(z * A_M, p * B_M)
+    sb, cb = math.sin(beta), math.cos(beta)
+    lat = math.atan2(z + EP2 * B_M * (sb * sb * sb), p - E2 * A_M * (cb * cb * cb))
+    for _ in range(2):
+        sl = math.sin(lat)
+        r_n = A_M / math.sqrt(1.0 - E2 * libm_square(sl))
+        h = p * math.cos(lat) + z * sl - _AM2 / r_n
+        lat = math.atan2(z, p * (1.0 - E2 * r_n / (r_n + h)))
+    sl = math.sin(lat)
+    r_n = A_M / math.sqrt(1.0 - E2 * libm_square(sl))
+    h = p * math.cos(lat) + z * sl - _AM2 / r_n
+    return lat, lon, h

@@ -53,7 +53,7 @@ _state: str | None = None
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``ramp_step``,
-#: ``covariance_step``, ``expm``).
+#: ``covariance_step``, ``expm``, ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -77,10 +77,10 @@ def _sources_digest(numba: Any) -> str:
     another (``_step`` calls ``_sq``) would keep the old callee's machine code after an edit of the
     callee alone. The digest goes into each compiled twin's name, so any edit compiles anew."""
     from hil.estimators import compensation
-    from hil.nav import kernels, strapdown
+    from hil.nav import earth, kernels, strapdown
 
     h = hashlib.sha256(numba.__version__.encode())
-    for mod in (strapdown, kernels, compensation, sys.modules[__name__]):
+    for mod in (strapdown, kernels, compensation, earth, sys.modules[__name__]):
         h.update(Path(str(mod.__file__)).read_bytes())
     return h.hexdigest()[:12]
 
@@ -151,7 +151,7 @@ def _enable(env: Mapping[str, str]) -> str:
     except ImportError:
         return "python (numba is not installed: pip install numba)"
     from hil.estimators import compensation, ekf15, feedback, lti
-    from hil.nav import kernels, strapdown
+    from hil.nav import earth, kernels, strapdown
 
     f8 = "float64"
     state16 = f"UniTuple({f8}, 16)"
@@ -187,36 +187,66 @@ def _enable(env: Mapping[str, str]) -> str:
             _mmt=mmt,
         )
         expm = _compile(numba, kernels.expm, f"{cmat}({cmat})", d, _mm=mm)
+        lla = _compile(
+            numba, kernels.ecef_to_lla_one, f"UniTuple({f8}, 3)({f8}, {f8}, {f8})", d, libm_square=square
+        )
     except Exception as err:  # a numba or LLVM that cannot build them: Python's kernels, said why
         sys.stderr.write(
             f"hil: warning: the navigation kernels stay in Python: {type(err).__name__}: {err}\n"
         )
         return f"python (compiling failed: {type(err).__name__})"
     _compiled.update(
-        libm_square=square, _rotvec_quat=rotvec, _step=step, ramp_step=ramp, covariance_step=cov, expm=expm
+        libm_square=square,
+        _rotvec_quat=rotvec,
+        _step=step,
+        ramp_step=ramp,
+        covariance_step=cov,
+        expm=expm,
+        ecef_to_lla_one=lla,
     )
     _python.setdefault("_step", strapdown._step)
     _python.setdefault("_ramp_step", compensation._ramp_step)
     _python.setdefault("covariance_step", ekf15.covariance_step)
     _python.setdefault("expm", lti.expm)
+    _python.setdefault("ecef_to_lla_one", earth._ecef_to_lla_one)
     strapdown._step = step
     compensation._ramp_step = ramp
     kernels.compiled = True
     kept = []
     # the kernels whose products follow numpy's loops: each checked against them here first
-    for name, check in (("covariance_step", _covariance_differs), ("expm", _expm_differs)):
+    checks = (
+        ("covariance_step", _covariance_differs),
+        ("expm", _expm_differs),
+        ("ecef_to_lla_one", _lla_differs),
+    )
+    for name, check in checks:
         differs = check(_compiled[name], _python[name])
         if differs:
             kept.append(name)
             sys.stderr.write(
-                f"hil: warning: {name} stays in Python: compiled, it differs from numpy's einsum in "
-                f"the last bits ({differs}; this numpy adds in another order)\n"
+                f"hil: warning: {name} stays in Python: compiled, it differs from the Python one in "
+                f"the last bits ({differs}; this numpy or C library computes otherwise)\n"
             )
     if "covariance_step" not in kept:
         ekf15.covariance_step = feedback.covariance_step = _with_fallback(cov, _python["covariance_step"])
     if "expm" not in kept:
         lti.expm = _with_fallback(expm, _python["expm"])
+    if "ecef_to_lla_one" not in kept:
+        earth._ecef_to_lla_one = lla
     return f"compiled ({', '.join(kept)} in Python)" if kept else "compiled"
+
+
+def _lla_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_covariance_differs`, for the ECEF to latitude, longitude and height of one
+    point: numpy's ``hypot`` against the C library's, ``sin``/``cos``/``atan2``/``pow``."""
+    import numpy as np
+
+    rng = np.random.default_rng(22)
+    for _ in range(500):
+        x, y, z = (rng.normal(0.0, 1.0, 3) * 6.4e6 * rng.uniform(0.9, 1.1)).tolist()
+        if compiled(x, y, z) != python(x, y, z):
+            return f"({x!r}, {y!r}, {z!r})"
+    return ""
 
 
 def _expm_differs(compiled: Any, python: Callable[..., Any]) -> str:
@@ -271,13 +301,15 @@ def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., A
 
 
 def python_kernel(name: str) -> Callable[..., Any]:
-    """The Python kernel ``name`` (``_step``, ``_ramp_step``, ``covariance_step``, ``expm``) as it
-    was before :func:`enable`."""
+    """The Python kernel ``name`` (``_step``, ``_ramp_step``, ``covariance_step``, ``expm``,
+    ``ecef_to_lla_one``) as it was before :func:`enable`."""
     if name in _python:
         return _python[name]
     from hil.estimators import compensation, ekf15, lti
-    from hil.nav import strapdown
+    from hil.nav import earth, strapdown
 
+    if name == "ecef_to_lla_one":
+        return earth._ecef_to_lla_one  # type: ignore[no-any-return]
     module = {"_step": strapdown, "covariance_step": ekf15, "expm": lti}.get(name, compensation)
     return getattr(module, name)  # type: ignore[no-any-return]
 

@@ -214,6 +214,34 @@ def test_the_compiled_expm_computes_the_portable_bits() -> None:
         assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want, strict=True))
 
 
+def test_the_compiled_ecef_to_lla_computes_the_python_bits() -> None:
+    """Every published solution's latitude, longitude and height: over the whole Earth from 500 m
+    below the ellipsoid to 20 km above (and off it), the compiled conversion (the C library's
+    ``hypot``, CPython's ``pow``) gives the Python one's bits, through ``ned_to_lla_one`` too."""
+    from hil.nav import earth
+
+    assert jit.enable() == "compiled"
+    python_lla = jit.python_kernel("ecef_to_lla_one")
+    assert earth._ecef_to_lla_one is not python_lla
+    rng = np.random.default_rng(15)
+    points = [
+        earth._ecef_one(
+            rng.uniform(-1.5707, 1.5707), rng.uniform(-math.pi, math.pi), rng.uniform(-500.0, 2e4)
+        )
+        for _ in range(40000)
+    ]
+    points += [tuple(rng.normal(0.0, 7e6, 3).tolist()) for _ in range(10000)]
+    assert [p for p in points if earth._ecef_to_lla_one(*p) != python_lla(*p)] == []
+    ned = rng.normal(0.0, 5e4, (2000, 3)).tolist()
+    got = [earth.ned_to_lla_one(*d, 0.8, 0.1, 120.0) for d in ned]
+    earth._ecef_to_lla_one = python_lla
+    try:
+        want = [earth.ned_to_lla_one(*d, 0.8, 0.1, 120.0) for d in ned]
+    finally:
+        earth._ecef_to_lla_one = jit.compiled_kernel("ecef_to_lla_one")
+    assert got == want
+
+
 def test_kernels_loaded_in_the_background_take_over_a_running_core() -> None:
     """The live service's way: the kernels load in a thread while the core already steps with the
     Python ones; the states the core reaches are the same bits either way."""
