@@ -47,7 +47,8 @@ from typing import Any
 
 JIT_ENV = "HIL_JIT"
 
-#: What was done, for the fusion's status: "compiled", "python (HIL_JIT=0)", "python (<why>)".
+#: What was done, for the fusion's status: "compiled", "compiled (<kernels> in Python)" (a kernel that did
+#: not give the Python one's bits here), "python (HIL_JIT=0)", "python (<why>)".
 _state: str | None = None
 #: The Python kernels :func:`enable` replaced, by name (the reference the tests hold it to).
 _python: dict[str, Callable[..., Any]] = {}
