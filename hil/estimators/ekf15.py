@@ -188,10 +188,7 @@ def covariance_step(f: F64, dt_s: float, p: F64, qc: F64) -> tuple[F64, F64]:
     """``(Φ, Φ P Φ' + Q_c Δ)`` with ``Φ = transition(F, Δ)``: a covariance's prediction over Δ
     (ekf15's and the feedback corrector's). :mod:`hil.runtime.jit` puts a compiled twin with
     these bits in its place (:func:`hil.nav.kernels.covariance_step`)."""
-    fd = f * dt_s
-    n = f.shape[0]
-    eye = _EYE15 if n == 15 else np.eye(n)
-    phi = eye + fd + 0.5 * mm(fd, fd)
+    phi = transition(f, dt_s)
     return phi, mmt(mm(phi, p), phi) + qc * dt_s
 
 

@@ -442,7 +442,7 @@ def run_sim(opts: SimOptions) -> SimResult:
         heavy = len(getattr(getattr(nodes[-1], "config", None), "estimators", ())) >= WORKER_MIN_ESTIMATORS
         use_worker = heavy and worker_possible()
     # the fusion's kernels compiled where it runs (the same bits either way): with a worker, in
-    # the worker, so that this process (the pipeline's wall-clock bound) never imports numba
+    # the worker; this process, which runs no fusion, does not import numba
     if not use_worker:
         jit.enable()
     outs0 = [node.start(0) for node in nodes]

@@ -14,6 +14,12 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
   :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders; checked against
   einsum on random operands here before it is put in place (a numpy built for wider SIMD lanes
   or FMA adds differently: then the Python one stays, said on stderr);
+- the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
+  IMU's ns stamps make most step lengths new, so it runs after every fix and clock wander) as
+  :func:`hil.nav.kernels.expm` (~2 µs against ~70), checked the same way;
+- every published solution's latitude, longitude and height
+  (:func:`hil.nav.earth._ecef_to_lla_one`) as :func:`hil.nav.kernels.ecef_to_lla_one`, checked
+  the same way (it calls the C library's ``hypot``, which numpy's is);
 - the strapdown's ``x**2`` as CPython computes it, the C library's ``pow``
   (:func:`hil.nav.kernels.libm_square`), where a compiler would multiply.
 
@@ -25,7 +31,7 @@ kernel gives its Python one's bits on random inputs (``tests/unit/test_jit.py``)
 ``HIL_JIT=0`` keeps everything in Python (numba is then not even imported). The machine code is
 cached on disk (numba's cache: ``__pycache__`` beside the source, else the user's cache directory,
 or ``NUMBA_CACHE_DIR``): the first process compiles (a few seconds), the next ones import numba
-and load it (~0.5-0.7 s of CPU). Where no cache directory is writable, every process compiles.
+and load it (~0.7 s of CPU). Where no cache directory is writable, every process compiles.
 The runners call :func:`enable` before they build the fusion (``hil sim``, ``hil rerun``, and so a
 campaign's runs); the live fusion service starts :func:`enable_in_background` before it reports
 ready, and its core runs the Python kernels until the compiled ones are in place -- the same bits,
