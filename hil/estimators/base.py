@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,15 @@ class ImuInput:
     dt_s: float
     dtheta_b_rad: F64  # (3,) delta-angle over the interval
     dvel_b_mps: F64  # (3,) delta-velocity over the interval
+
+    @cached_property
+    def increments(self) -> tuple[float, float, float, float, float, float]:
+        """Delta-angle and delta-velocity as six Python floats, made once for every estimator
+        that steps a strapdown on them (six per sample on a consumer IMU: the same values as
+        ``float(dtheta_b_rad[i])``, without a numpy scalar each)."""
+        tx, ty, tz = np.asarray(self.dtheta_b_rad, dtype=np.float64).tolist()
+        ux, uy, uz = np.asarray(self.dvel_b_mps, dtype=np.float64).tolist()
+        return tx, ty, tz, ux, uy, uz
 
 
 @dataclass(frozen=True)

@@ -357,12 +357,12 @@ class Ekf15(Estimator):
         dt = imu.dt_s
         bgx, bgy, bgz = self.b_g.tolist()
         bax, bay, baz = self.b_a.tolist()
-        d, v = imu.dtheta_b_rad, imu.dvel_b_mps
-        tx, ty, tz = float(d[0]) - bgx * dt, float(d[1]) - bgy * dt, float(d[2]) - bgz * dt
+        tx, ty, tz, ux, uy, uz = imu.increments
+        tx, ty, tz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
         if self._cal:
             ex, ey, ez = _mv3(self.e_hat.tolist(), tx, ty, tz)
             tx, ty, tz = tx - ex, ty - ey, tz - ez
-        ux, uy, uz = float(v[0]) - bax * dt, float(v[1]) - bay * dt, float(v[2]) - baz * dt
+        ux, uy, uz = ux - bax * dt, uy - bay * dt, uz - baz * dt
         if self._acal:
             ex, ey, ez = _mv3(self.ea_hat.tolist(), ux, uy, uz)
             ux, uy, uz = ux - ex, uy - ey, uz - ez

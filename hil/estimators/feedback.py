@@ -182,9 +182,9 @@ class ClosedLoopIns:
         dt = imu.dt_s
         bgx, bgy, bgz = self.b_g.tolist()
         bax, bay, baz = self.b_a.tolist()
-        d, v = imu.dtheta_b_rad, imu.dvel_b_mps
-        tx, ty, tz = float(d[0]) - bgx * dt, float(d[1]) - bgy * dt, float(d[2]) - bgz * dt
-        ux, uy, uz = float(v[0]) - bax * dt, float(v[1]) - bay * dt, float(v[2]) - baz * dt
+        tx, ty, tz, ux, uy, uz = imu.increments
+        tx, ty, tz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
+        ux, uy, uz = ux - bax * dt, uy - bay * dt, uz - baz * dt
         self.state = strapdown_step_f(self.state, tx, ty, tz, ux, uy, uz, dt)
         if self._lever is not None:
             self._w_b = np.array((tx / dt, ty / dt, tz / dt))
