@@ -188,10 +188,21 @@ def expm(m: F64) -> F64:
         col = abs(m[0, k])
         for i in range(1, n):
             col = col + abs(m[i, k])
-        if k == 0 or col > norm1:
+        if k == 0 or col > norm1 or math.isnan(col):  # numpy's max: a NaN wins
             norm1 = col
-    s = 0 if norm1 <= 0.125 else math.ceil(math.log2(norm1 / 0.125))
-    scale = float(2**s)
+    # Python's exceptions where its int conversions fail (a non-finite or huge matrix): never a
+    # garbage exponent (the fusion takes an estimator that raises out, and says why)
+    s = 0
+    if not norm1 <= 0.125:
+        r = math.log2(norm1 / 0.125)
+        if math.isnan(r):
+            raise ValueError("cannot convert float NaN to integer")
+        if math.isinf(r):
+            raise OverflowError("cannot convert float infinity to integer")
+        s = math.ceil(r)
+        if s > 1023:
+            raise OverflowError("int too large to convert to float")
+    scale = math.ldexp(1.0, s)  # float(2**s), exactly
     a = np.empty((n, n))
     for i in range(n):
         for k in range(n):

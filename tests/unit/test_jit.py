@@ -202,6 +202,13 @@ def test_the_compiled_expm_computes_the_portable_bits() -> None:
         if lti.expm(m).tobytes() != python_expm(m).tobytes():
             differing.append((trial, n))
     assert differing == []
+    # a matrix Python cannot take raises Python's exception, never a garbage exponent
+    for bad, kind in ((np.nan, ValueError), (np.inf, OverflowError), (1e308, OverflowError)):
+        m = np.eye(3)
+        m[1, 2] = bad
+        for fn in (lti.expm, python_expm):
+            with pytest.raises(kind):
+                fn(m)
     ss = lti.StateSpace.from_tf(lti.forcing3(5.0))
     compiled_expm = lti.expm
     for h_ns in (1, 2_499_950, 2_500_000, 1_000_000_000, 7_300_000_001):
