@@ -112,6 +112,11 @@ def _nav_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
     return f"nav/{est} seq {seq}: payload bytes differ"
 
 
+def _nav_current_form(payload: bytes) -> bytes:
+    """A recorded solution in the form today's encoder writes: the same values, the same bytes."""
+    return current_form(NavSolution, payload)
+
+
 def _stream(sensor: str, publisher: str) -> str:
     """One publisher's stream of one sensor's inputs (what a seq is unique within)."""
     return f"{sensor}@{publisher}"
@@ -145,7 +150,7 @@ class _FusionRerun:
     matcher: Matcher = field(init=False)
 
     def __post_init__(self) -> None:
-        self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns)
+        self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns, _nav_current_form)
 
     def feed(self, r: Record) -> None:
         t = r.topic
@@ -197,8 +202,8 @@ class _FusionRerun:
         if self.last_key is not None and w is not None and r.publish_time_ns < self.last_key[0] - w:
             raise OutOfWindow(f"{r.topic} seq {r.sequence} is recorded long after its inputs")
         # a recording made before the current form of NavSolution (``null`` for an absent sigma)
-        # is compared in the current form: the same values, the bytes today's encoder writes
-        self.matcher.recorded((est, r.sequence), current_form(NavSolution, r.payload), -1, r.log_time_ns)
+        # is compared in the current form (the matcher's ``normalise``, where the bytes differ)
+        self.matcher.recorded((est, r.sequence), r.payload, -1, r.log_time_ns)
 
     def _journal(self, r: Record) -> None:
         j = r.decode()

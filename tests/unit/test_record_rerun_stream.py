@@ -89,6 +89,52 @@ def test_streaming_names_the_same_first_difference_as_the_whole_file(tmp_path: P
     assert rc == 1 and lines[-1] == f"VERIFY FAILED: {whole}"
 
 
+def _legacy_nav_copy(dst: Path, tamper_ins_seq: int | None = None) -> int:
+    """The golden with every solution in NavSolution's previous form (an absent sigma ``null``,
+    not ``[]``); ``tamper_ins_seq``: that one of nav/ins also moved. Returns how many changed form."""
+    s = read_session(GOLDEN)
+    w = SessionWriter(dst)
+    changed = 0
+    for r in s.records:
+        payload = r.payload
+        if "/nav/" in r.topic:
+            d = msgspec.json.decode(payload)
+            for k in ("pos_sigma_m", "vel_sigma_mps"):  # the previous form's two (_NavSolutionV0)
+                if d.get(k) == []:
+                    d[k] = None
+            if r.topic.endswith("/nav/ins") and r.sequence == tamper_ins_seq:
+                d["pos_ned_m"] = [1.0, 2.0, 3.0]
+            new = msgspec.json.encode(d)
+            changed += new != payload
+            payload = new
+        w.write(
+            r.topic,
+            TYPES_BY_NAME[r.schema],
+            payload,
+            log_time_ns=r.log_time_ns,
+            publish_time_ns=r.publish_time_ns,
+            seq=r.sequence,
+        )
+    w.close()
+    return changed
+
+
+def test_solutions_recorded_in_the_previous_form_verify_and_a_change_among_them_is_named(
+    tmp_path: Path,
+) -> None:
+    """The rerun compares recorded bytes first and brings a recorded solution to today's form only
+    where they differ: a recording of the previous form still verifies bit for bit, and a real
+    change in it is named by its field, not by the form."""
+    legacy = tmp_path / "legacy_form.mcap"
+    assert _legacy_nav_copy(legacy) > 100
+    rc, lines = rerun(str(legacy), verify=True)
+    assert rc == 0 and "VERIFY OK" in lines[-1], lines
+    bad = tmp_path / "legacy_form_tampered.mcap"
+    _legacy_nav_copy(bad, tamper_ins_seq=40)
+    rc, lines = rerun(str(bad), verify=True)
+    assert rc == 1 and lines[-1].startswith("VERIFY FAILED: nav/ins seq 40: field 'pos_ned_m' differs"), lines
+
+
 def test_timesync_streaming_names_a_changed_restamp_and_passes_the_original(tmp_path: Path) -> None:
     assert rerun_timesync(read_session(GOLDEN)).difference is None
     assert rerun_timesync_records(SessionStream(GOLDEN)).difference is None
