@@ -21,7 +21,14 @@ The tests hold each compiled kernel to the Python bits on random inputs (``tests
   ``x * x``. :func:`libm_square` calls ``pow`` through a name the compiler does not rewrite
   (``_pow``, bound by :mod:`hil.runtime.jit` to ``pow`` declared ``nobuiltin``).
 
-Never called from Python: there the einsum forms and ``x**2`` are faster.
+- ``math.hypot`` (:func:`ecef_to_lla_one`): compiled, the C library's ``hypot``, which is what
+  numpy's ``np.hypot`` in the Python one calls (CPython's own ``math.hypot`` is another algorithm).
+
+- numpy's reductions and Python's int conversions (:func:`expm`): a column sum adds in row order
+  from the first entry, ``max`` lets a NaN win, and where ``math.ceil`` or ``float(2**s)`` would
+  raise in Python the kernel raises the same exception.
+
+Only ever run compiled: in Python these loops are slower than the einsum forms they copy.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from hil.nav.earth import A_M, B_M, E2, EP2
 from hil.nav.types import F64
@@ -116,7 +124,7 @@ def _mm(a: F64, b: F64) -> F64:
     return out
 
 
-def _lane_order(n: int) -> F64:
+def _lane_order(n: int) -> npt.NDArray[np.int64]:
     """The ``j`` of a length-``n`` reduction in the order numpy's baseline SIMD dot product takes
     them (module docstring): blocks of eight, their pairs last first, then the tail in pairs.
     Even ``j`` go to one lane, odd to the other."""
