@@ -99,15 +99,12 @@ class FilterPyEkf15(Ekf15):
         self.kf.P = self.p.copy()
         self._zero = np.zeros((15, 1))
 
-    def _predict(self, phi: F64, qd: F64) -> None:
+    def _predict_over(self, f: F64, dt_s: float) -> None:
         kf = self.kf
         kf.P = self.p
         kf.x = self._zero
-        kf.predict(F=phi, Q=qd)
+        kf.predict(F=transition(f, dt_s), Q=self._qc * dt_s)
         self.p = kf.P
-
-    def _predict_over(self, f: F64, dt_s: float) -> None:
-        self._predict(transition(f, dt_s), self._qc * dt_s)
 
     def _update(self, y: F64, h: F64, r: F64) -> F64:
         kf = self.kf

@@ -2,8 +2,8 @@
 
 One ``hil sim --record`` (compiled, the default), then ``hil rerun --core fusion --verify`` of it
 by both, alternating (Python first on even repeats), each a child process measured by its own
-rusage (``hil bench offline``'s runner: user + system, which a busy machine slows far less than
-wall time). The Python reruns verify the compiled recording bit for bit, which is the kernels'
+rusage (:func:`hil.bench.offline.run_child`: user + system, which a busy machine slows far less
+than wall time). The Python reruns verify the compiled recording bit for bit, which is the kernels'
 contract (:mod:`hil.runtime.jit`). Also timed: a process that imports numba and loads the cached
 kernels, which every compiled process pays once, against one that only imports the switch.
 """
@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 
 from hil.bench import command_line, write_section
-from hil.bench.offline import _run
+from hil.bench.offline import run_child
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 # exits 3 (refused by the runner, named) unless the kernels compile: the ratio must not be Python's
@@ -51,11 +51,12 @@ def main(argv: list[str]) -> int:
             "--quiet",
         ]
         try:
-            sim_cpu, sim_wall, rc = _run(_TREE, ["-c", _RUN, *sim], {"HIL_JIT": "1"})
+            sim_cpu, sim_wall, rc = run_child(_TREE, ["-c", _RUN, *sim], {"HIL_JIT": "1"})
             if rc != 0:
                 print(f"hil bench jit: hil sim exited {rc}", file=sys.stderr)
                 return 1
-            load_cpu = _run(_TREE, ["-c", _LOAD], {"HIL_JIT": "1"})[0] - _run(_TREE, ["-c", _IMPORT])[0]
+            loaded = run_child(_TREE, ["-c", _LOAD], {"HIL_JIT": "1"})[0]
+            load_cpu = loaded - run_child(_TREE, ["-c", _IMPORT])[0]
         except RuntimeError as err:
             print(f"hil bench jit: {err}", file=sys.stderr)
             return 1
@@ -64,7 +65,7 @@ def main(argv: list[str]) -> int:
         for i in range(a.repeat):
             for j in ("0", "1") if i % 2 == 0 else ("1", "0"):
                 rerun = ["-c", _RUN, "rerun", str(rec), "--core", "fusion", "--verify"]
-                cpu, _wall, rc = _run(_TREE, rerun, {"HIL_JIT": j})
+                cpu, _wall, rc = run_child(_TREE, rerun, {"HIL_JIT": j})
                 rows[j].append(cpu)
                 verified[j].append(rc == 0)  # --verify exits 1 on the first differing output
     py, cc = sum(rows["0"]) / a.repeat, sum(rows["1"]) / a.repeat

@@ -70,11 +70,13 @@ def compile_bytecode(tree: Path) -> None:
 
 def _cpu_of(tree: Path, argv: list[str]) -> tuple[float, int]:
     """CPU seconds (user + system) of one child and its exit code."""
-    cpu, _wall, rc = _run(tree, argv)
+    cpu, _wall, rc = run_child(tree, argv)
     return cpu, rc
 
 
-def _run(tree: Path, argv: list[str], extra_env: dict[str, str] | None = None) -> tuple[float, float, int]:
+def run_child(
+    tree: Path, argv: list[str], extra_env: dict[str, str] | None = None
+) -> tuple[float, float, int]:
     """CPU seconds (user + system, with the children it reaped), wall seconds and exit code of
     one child (``HIL_*`` from this environment left out, ``extra_env`` added)."""
     t0 = time.monotonic()
@@ -114,7 +116,7 @@ def run_pair(trees: list[Tree], sim_args: list[str], tmp: Path, i: int) -> dict[
     recs = {}
 
     def measure(t: Tree, step: str, argv: list[str]) -> int:
-        cpu, wall, rc = _run(t.path, argv)
+        cpu, wall, rc = run_child(t.path, argv)
         t.cpu[step].append(cpu)
         t.wall[step].append(wall)
         return rc

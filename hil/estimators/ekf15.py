@@ -418,12 +418,9 @@ class Ekf15(Estimator):
         self._pending_n = 0
 
     def _predict_over(self, f: F64, dt_s: float) -> None:
-        """``P`` over ``dt_s`` with error dynamics ``f`` (``Q_d = Q_c Δ``)."""
+        """``P = Φ P Φ' + Q_d`` over ``dt_s`` with error dynamics ``f`` (``Q_d = Q_c Δ``; the error
+        state itself is zero between fixes: closed loop)."""
         _phi, self.p = covariance_step(f, dt_s, self.p, self._qc)
-
-    def _predict(self, phi: F64, qd: F64) -> None:
-        """``P = Φ P Φ' + Q_d`` (the error state itself is zero between fixes: closed loop)."""
-        self.p = mmt(mm(phi, self.p), phi) + qd
 
     def _update(self, y: F64, h: F64, r: F64) -> F64:
         """One measurement update of ``P`` for innovation ``y``; returns the error-state increment."""

@@ -43,6 +43,7 @@ environment and files and may start a thread.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import os
 import sys
 import threading
@@ -157,8 +158,7 @@ def _enable(env: Mapping[str, str]) -> str:
         import numba
     except ImportError:
         return "python (numba is not installed: pip install numba)"
-    from hil.estimators import compensation, ekf15, feedback, lti
-    from hil.nav import earth, kernels, strapdown
+    from hil.nav import kernels, strapdown
 
     f8 = "float64"
     state16 = f"UniTuple({f8}, 16)"
@@ -211,36 +211,34 @@ def _enable(env: Mapping[str, str]) -> str:
         expm=expm,
         ecef_to_lla_one=lla,
     )
-    _python.setdefault("_step", strapdown._step)
-    _python.setdefault("_ramp_step", compensation._ramp_step)
-    _python.setdefault("covariance_step", ekf15.covariance_step)
-    _python.setdefault("expm", lti.expm)
-    _python.setdefault("ecef_to_lla_one", earth._ecef_to_lla_one)
-    strapdown._step = step
-    compensation._ramp_step = ramp
+    for name, (_key, homes, _fallback) in _PLACES.items():
+        _python.setdefault(name, _get(homes[0]))
     kernels.compiled = True
     kept = []
-    # the kernels whose products follow numpy's loops: each checked against them here first
-    checks = (
-        ("covariance_step", _covariance_differs),
-        ("expm", _expm_differs),
-        ("ecef_to_lla_one", _lla_differs),
-    )
-    for name, check in checks:
-        differs = check(_compiled[name], _python[name])
+    for name, (key, homes, fallback) in _PLACES.items():
+        check = _CHECKS.get(name)  # the kernels that follow numpy's loops or libm: checked here first
+        differs = check(_compiled[key], _python[name]) if check is not None else ""
         if differs:
             kept.append(name)
             sys.stderr.write(
                 f"hil: warning: {name} stays in Python: compiled, it differs from the Python one in "
                 f"the last bits ({differs}; this numpy or C library computes otherwise)\n"
             )
-    if "covariance_step" not in kept:
-        ekf15.covariance_step = feedback.covariance_step = _with_fallback(cov, _python["covariance_step"])
-    if "expm" not in kept:
-        lti.expm = _with_fallback(expm, _python["expm"])
-    if "ecef_to_lla_one" not in kept:
-        earth._ecef_to_lla_one = lla
+            continue
+        kernel = _with_fallback(_compiled[key], _python[name]) if fallback else _compiled[key]
+        for home in homes:
+            _put(home, kernel)
     return f"compiled ({', '.join(kept)} in Python)" if kept else "compiled"
+
+
+def _get(home: str) -> Any:
+    module, attr = home.split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def _put(home: str, value: Any) -> None:
+    module, attr = home.split(":")
+    setattr(importlib.import_module(module), attr, value)
 
 
 def _lla_differs(compiled: Any, python: Callable[..., Any]) -> str:
@@ -307,18 +305,31 @@ def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., A
     return kernel
 
 
-def python_kernel(name: str) -> Callable[..., Any]:
-    """The Python kernel ``name`` (``_step``, ``_ramp_step``, ``covariance_step``, ``expm``,
-    ``ecef_to_lla_one``) as it was before :func:`enable`."""
-    if name in _python:
-        return _python[name]
-    from hil.estimators import compensation, ekf15, lti
-    from hil.nav import earth, strapdown
+#: Each kernel put in place, by the name of its Python one: the compiled kernel's key in
+#: ``_compiled``, the module attributes it replaces (the first holds the Python one, the
+#: reference), and whether a call with operands it was not compiled for goes to the Python one.
+_PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
+    "_step": ("_step", ("hil.nav.strapdown:_step",), False),
+    "_ramp_step": ("ramp_step", ("hil.estimators.compensation:_ramp_step",), False),
+    "covariance_step": (
+        "covariance_step",
+        ("hil.estimators.ekf15:covariance_step", "hil.estimators.feedback:covariance_step"),
+        True,
+    ),
+    "expm": ("expm", ("hil.estimators.lti:expm",), True),
+    "ecef_to_lla_one": ("ecef_to_lla_one", ("hil.nav.earth:_ecef_to_lla_one",), False),
+}
+#: The kernels checked against their Python ones before they are put in place.
+_CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
+    "covariance_step": _covariance_differs,
+    "expm": _expm_differs,
+    "ecef_to_lla_one": _lla_differs,
+}
 
-    if name == "ecef_to_lla_one":
-        return earth._ecef_to_lla_one  # type: ignore[no-any-return]
-    module = {"_step": strapdown, "covariance_step": ekf15, "expm": lti}.get(name, compensation)
-    return getattr(module, name)  # type: ignore[no-any-return]
+
+def python_kernel(name: str) -> Callable[..., Any]:
+    """The Python kernel ``name`` (a key of ``_PLACES``) as it was before :func:`enable`."""
+    return _python.get(name) or _get(_PLACES[name][1][0])  # type: ignore[no-any-return]
 
 
 def compiled_kernel(name: str) -> Any:

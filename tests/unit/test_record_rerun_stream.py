@@ -10,38 +10,48 @@ that inputs are released long before the end, on a recording whose order defeats
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
 
 from hil.messages import TYPES_BY_NAME
 from hil.record.matching import SeqSet
-from hil.record.mcapio import SessionStream, SessionWriter, read_session
+from hil.record.mcapio import Record, SessionStream, SessionWriter, read_session
 from hil.record.rerun import rerun, rerun_fusion, rerun_fusion_file
 from hil.record.rerun_timesync import rerun_timesync, rerun_timesync_records
 from tests.replay.helpers import GOLDEN
 
 
-def _copy(dst: Path, tamper: dict[tuple[str, int], dict[str, object]]) -> None:
-    """Rewrite the golden recording, changing fields of the (topic suffix, seq) records named."""
+def _rewrite(dst: Path, payload_of: Callable[[Record], bytes]) -> None:
+    """The golden recording written again, each record's payload as ``payload_of`` gives it."""
     s = read_session(GOLDEN)
     w = SessionWriter(dst)
     for r in s.records:
+        w.write(
+            r.topic,
+            TYPES_BY_NAME[r.schema],
+            payload_of(r),
+            log_time_ns=r.log_time_ns,
+            publish_time_ns=r.publish_time_ns,
+            seq=r.sequence,
+        )
+    w.close()
+
+
+def _copy(dst: Path, tamper: dict[tuple[str, int], dict[str, object]]) -> None:
+    """Rewrite the golden recording, changing fields of the (topic suffix, seq) records named."""
+
+    def payload_of(r: Record) -> bytes:
         payload = r.payload
         for (suffix, seq), fields in tamper.items():
             if r.topic.endswith(suffix) and r.sequence == seq:
                 d = msgspec.json.decode(payload)
                 d.update(fields)
                 payload = msgspec.json.encode(d)
-        w.write(
-            r.topic,
-            TYPES_BY_NAME[r.schema],
-            payload,
-            log_time_ns=r.log_time_ns,
-            publish_time_ns=r.publish_time_ns,
-            seq=r.sequence,
-        )
-    w.close()
+        return payload
+
+    _rewrite(dst, payload_of)
 
 
 def test_seqset_holds_dense_and_odd_seqs() -> None:
@@ -92,30 +102,23 @@ def test_streaming_names_the_same_first_difference_as_the_whole_file(tmp_path: P
 def _legacy_nav_copy(dst: Path, tamper_ins_seq: int | None = None) -> int:
     """The golden with every solution in NavSolution's previous form (an absent sigma ``null``,
     not ``[]``); ``tamper_ins_seq``: that one of nav/ins also moved. Returns how many changed form."""
-    s = read_session(GOLDEN)
-    w = SessionWriter(dst)
     changed = 0
-    for r in s.records:
-        payload = r.payload
-        if "/nav/" in r.topic:
-            d = msgspec.json.decode(payload)
-            for k in ("pos_sigma_m", "vel_sigma_mps"):  # the previous form's two (_NavSolutionV0)
-                if d.get(k) == []:
-                    d[k] = None
-            if r.topic.endswith("/nav/ins") and r.sequence == tamper_ins_seq:
-                d["pos_ned_m"] = [1.0, 2.0, 3.0]
-            new = msgspec.json.encode(d)
-            changed += new != payload
-            payload = new
-        w.write(
-            r.topic,
-            TYPES_BY_NAME[r.schema],
-            payload,
-            log_time_ns=r.log_time_ns,
-            publish_time_ns=r.publish_time_ns,
-            seq=r.sequence,
-        )
-    w.close()
+
+    def payload_of(r: Record) -> bytes:
+        nonlocal changed
+        if "/nav/" not in r.topic:
+            return r.payload
+        d = msgspec.json.decode(r.payload)
+        for k in ("pos_sigma_m", "vel_sigma_mps"):  # the previous form's two (_NavSolutionV0)
+            if d.get(k) == []:
+                d[k] = None
+        if r.topic.endswith("/nav/ins") and r.sequence == tamper_ins_seq:
+            d["pos_ned_m"] = [1.0, 2.0, 3.0]
+        new = msgspec.json.encode(d)
+        changed += new != r.payload
+        return new
+
+    _rewrite(dst, payload_of)
     return changed
 
 
