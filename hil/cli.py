@@ -209,6 +209,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         feedback=a.feedback,
         ekf_calibration=a.ekf_calibration,
         input_batch_ms=a.input_batch_ms,
+        can_batch_ms=a.can_batch_ms,
         live=not a.quiet,
         log_dir=record.resolve().with_suffix(".logs"),
         restart=a.restart,
@@ -841,6 +842,15 @@ def _add_up_parser(sub: Any) -> None:
         default=0.0,
         help="time sync and fusion take their inputs in batches this many ms apart: fewer wake-ups "
         "(less CPU) for up to twice this much more latency on the fused output (default 0: each at once)",
+    )
+    up.add_argument(
+        "--can-batch-ms",
+        type=bounded_float(0.0, 100.0, unit="ms"),
+        default=10.0,
+        help="the CAN bridge reads the IMU's frames in windows this many ms apart and publishes "
+        "each window's samples as one message: fewer messages and wake-ups in every service for up "
+        "to this much more latency downstream of the bridge; the wire and the samples' receive "
+        "stamps are unchanged (default 10; 0: each sample at once)",
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")

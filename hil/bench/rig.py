@@ -68,6 +68,7 @@ def _measure_rig(
                 fd=a.fd,
                 imu_rate_hz=a.imu_rate,
                 input_batch_ms=batch_ms,
+                can_batch_ms=a.can_batch_ms,
                 live=False,
                 log_dir=Path(d) / "logs",
             )
@@ -183,9 +184,11 @@ _CPU_ROW = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+([0-9.]+) %$")
 _CPU_HEAD = re.compile(r"^CPU over ([0-9.]+) s of wall time")
 
 
-def _up_args(a: argparse.Namespace, rig: str, rec: Path) -> list[str]:
+def _up_args(a: argparse.Namespace, rig: str, rec: Path, this_tree: bool = True) -> list[str]:
     args = ["up", "--quiet", "--duration", str(a.duration), "--scenario", a.scenario, "--rig", rig]
     args += ["--record", str(rec), *(["--imu-rate", str(a.imu_rate)] if a.imu_rate else [])]
+    if this_tree and a.can_batch_ms != UpOptions.can_batch_ms:  # an older tree may not know it
+        args += ["--can-batch-ms", str(a.can_batch_ms)]
     return [*args, "--fd"] if a.fd else args
 
 
@@ -219,7 +222,7 @@ def _measure_rigs(
                     continue
                 env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")}
                 env["PYTHONPATH"] = tree or os.getcwd()
-                cmd = [sys.executable, "-c", _RUN, *_up_args(a, rig, Path(d) / f"{rig}.mcap")]
+                cmd = [sys.executable, "-c", _RUN, *_up_args(a, rig, Path(d) / f"{rig}.mcap", tree is None)]
                 started.append(
                     subprocess.Popen(
                         cmd, cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
@@ -331,6 +334,12 @@ def main(argv: list[str]) -> int:
         default="0",
         help="time sync's and the fusion's input batching window, ms; several (0,10): the rig once "
         "per window, compared (section rig-batch unless --section)",
+    )
+    ap.add_argument(
+        "--can-batch-ms",
+        type=float,
+        default=UpOptions.can_batch_ms,
+        help="the CAN bridge's read window, ms (hil up --can-batch-ms; default its default)",
     )
     ap.add_argument(
         "--repeat",

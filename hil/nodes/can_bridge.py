@@ -21,7 +21,9 @@ numbers samples (the ones before are counted as ``dropped.can.unindexed_samples`
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
+
+import msgspec
 
 from hil.can.codec import DecodedSample, ImuCanCodec, ImuFrameAssembler
 from hil.can.dut import DutNavDecoder
@@ -40,6 +42,12 @@ class CanBridgeOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fi
     rate_hz: float | None = None  # nominal IMU rate for dt_ns; None: the run's scenario
     dbc: str | None = None  # the IMU's DBC (default: schemas/imu.dbc)
     publish_raw: bool = True  # publish every frame on can/<channel>
+    # After a wake-up for a frame, the live runner waits this long and reads every frame queued
+    # meanwhile before the outputs go out: each key's messages of that read (raw frames, IMU
+    # samples) leave as one batch, one Zenoh message and one wake-up of each subscriber, instead
+    # of one per sample. The samples keep their receive stamps (the frames'), so time sync and
+    # the fusion compute the same; only their delivery waits. 0: each sample's outputs at once.
+    can_batch_ms: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] = 10.0
     dut_mapping: str | None = None  # a device under test on this bus: its mapping TOML
 
 

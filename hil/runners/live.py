@@ -78,14 +78,39 @@ _IDENT = msgspec.json.Decoder(_Ident)
 
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
-MAX_CAN_DRAIN = 64  # frames read off the bus before their outputs go out (a bound on one batch)
+MAX_CAN_DRAIN = 512  # frames read off the bus before their outputs go out (a bound on one batch)
 # key kinds whose messages ready at once go out as one batch per key (``Publisher.put_many``):
-# the raw CAN frames, four per IMU sample -- on the bus their own messages were ~half the rig's,
-# each routed by the hub and woken up for in the recorder
-BATCHED_KINDS = frozenset({"can"})
+# the raw CAN frames (four per IMU sample), the IMU samples of a CAN read window (the bridge's
+# ``can_batch_ms``) and their synchronised copies, the emulator's capture truth of a compute
+# batch. Each message of its own was routed by the hub and woken up for in every subscriber (the
+# recorder reads them all). Not the solutions (``nav``): one per sample, as a client expects
+BATCHED_KINDS = frozenset({"can", "sensor", "synced", "capture"})
 MAX_INPUT_BATCH = 1024  # inputs taken in one wake-up of an input batching window (BatchedInputOptions)
+MAX_QUEUED_BATCH = 64  # without a window: inputs already queued taken in one wake-up (a batch's)
 PACING_TRACE_ENV = "HIL_PACING_TRACE"  # benches: a directory for <service>.npy pacing traces
 RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the recorder
+
+
+def batch_sends(outs: list[Out]) -> list[tuple[str, Any]]:
+    """The puts for outputs in order: those of a batched kind (``BATCHED_KINDS``) as one list per
+    key (``Publisher.put_many``) at the place of the key's first, as long as no output of another
+    kind comes between them -- a time tag made between two IMU samples still reaches time sync
+    between them. Batches of different batched kinds are independent streams and may pass each
+    other; within a key the order is kept."""
+    sends: list[tuple[str, Any]] = []
+    batches: dict[str, list[Any]] = {}
+    for key, msg in outs:
+        if key.split("/", 1)[0] in BATCHED_KINDS:
+            group = batches.get(key)
+            if group is None:
+                group = batches[key] = []
+                sends.append((key, group))
+            group.append(msg)
+        else:
+            sends.append((key, msg))
+            if batches:  # what comes after it goes after it
+                batches = {}
+    return sends
 
 
 class NodeService(Service):
@@ -120,6 +145,7 @@ class NodeService(Service):
         self._sender_dead = False
         self._due: deque[tuple[int, list[Out], str]] = deque()  # outputs held for their rig time
         self._bursts: list[tuple[int, int, Any]] = []  # (due, computed at, burst) not yet submitted
+        self._can_batch_s = float(getattr(self.opts, "can_batch_ms", 0.0)) / 1e3  # a CAN reader's window
 
     # -- setup: subscriptions and publishers before time zero -----------------------------------
     def setup(self) -> None:
@@ -301,15 +327,21 @@ class NodeService(Service):
                 pause = batch_s if t_next is None else min(batch_s, clock.wall_of(t_next) - time.time())
                 if pause > 0.0:
                     stop.wait(pause)
+            # every input already queued is taken in this wake-up and their outputs go out together
+            # (a batch of IMU samples in, a batch of synchronised ones out: ``batch_sends``); a
+            # batch ends when the queue is empty or at its bound (timers and the stop are looked at
+            # between batches, however fast the inputs come)
+            bound = MAX_INPUT_BATCH if batch_s else MAX_QUEUED_BATCH
             taken = 0
+            pending: list[Out] = []
             while item is not None:
                 outs = self._consume(node, item, clock.now_ns(), root_len)
-                if outs is not None:
-                    self._publish(outs, "input")
+                if outs:
+                    pending += outs
                 taken += 1
-                # a batch ends when the queue is empty, or after MAX_INPUT_BATCH (timers and the stop
-                # are looked at between batches, however fast the inputs come)
-                item = self.inbox.get(timeout=0) if batch_s and taken < MAX_INPUT_BATCH else None
+                item = self.inbox.get(timeout=0) if taken < bound else None
+            if pending:
+                self._publish(pending, "input")
             if batch_s:  # in the status: inputs per wake-up = in.batched_inputs / in.batches
                 self.stats.inc("in.batches")
                 self.stats.inc("in.batched_inputs", taken)
@@ -452,8 +484,14 @@ class NodeService(Service):
         return self._due[0][0] if self._due else None
 
     def _publish_due(self, now_ns: int) -> None:
+        """Every output group due by now in one call, so that a compute batch's capture truth
+        leaves as one batch (``BATCHED_KINDS``) in its order."""
+        outs: list[Out] = []
+        why = ""
         while self._due and self._due[0][0] <= now_ns:
-            _, outs, why = self._due.popleft()
+            _, group, why = self._due.popleft()
+            outs += group
+        if outs:
             self._publish(outs, why)
 
     def _pacing_note(self, text: str) -> None:
@@ -475,9 +513,14 @@ class NodeService(Service):
             self.stats.error("errors.can.recv", f"{self.transport}: {err}")
             self.ctx.stop.wait(0.2)
             return
+        if frame is not None and self._can_batch_s > 0.0:
+            # the read window (CanBridgeOptions.can_batch_ms): the frames of the next few ms queue
+            # on the bus, stamped as they arrive, and are read in this one wake-up
+            self.ctx.stop.wait(self._can_batch_s)
+            self.stats.inc("in.can_reads")
         outs: list[Out] = []
         # the frames already queued are read before any output goes out (a sample's four arrive
-        # together on hilzenoh): their raw frames then leave as one batch (_publish)
+        # together on hilzenoh): each key's outputs then leave as one batch (_publish)
         n = 0
         while frame is not None:
             rx_ns = epoch_s_to_rig_ns(frame.timestamp, run.start_epoch_ns, run.speed)
@@ -524,10 +567,8 @@ class NodeService(Service):
             self._deliver(outs, "finish")
 
     def _publish(self, outs: list[Out], why: str) -> None:
-        """Outputs in order; those of a batched kind (``BATCHED_KINDS``: the raw CAN frames) go
-        as one batch per key, at the place of the key's first (``Publisher.put_many``)."""
-        sends: list[tuple[str, Any]] = []
-        batches: dict[str, list[Any]] = {}
+        """Outputs in order, those of a batched kind as batches (:func:`batch_sends`)."""
+        rest: list[Out] = []
         for key, msg in outs:
             if key == CAN_TX:
                 continue  # frames leave through the pacing process (_route), never from here
@@ -535,15 +576,8 @@ class NodeService(Service):
                 if self.line_tx is not None and self.clock is not None:
                     self.line_tx.write(msg.data, self.clock.wall_of(msg.start_ns))
                 continue
-            if key.split("/", 1)[0] in BATCHED_KINDS:
-                group = batches.get(key)
-                if group is None:
-                    group = batches[key] = []
-                    sends.append((key, group))
-                group.append(msg)
-            else:
-                sends.append((key, msg))
-        for key, item in sends:
+            rest.append((key, msg))
+        for key, item in batch_sends(rest):
             if isinstance(item, list):
                 self._publisher(key, type(item[0])).put_many(item)
             else:

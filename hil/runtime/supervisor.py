@@ -121,6 +121,8 @@ class UpOptions:
     ekf_calibration: str = "auto"  # ekf15's calibration states (same)
     # time sync's and the fusion's input batching window (hil.nodes.base.BatchedInputOptions)
     input_batch_ms: float = 0.0
+    # the CAN bridge's read window (hil.nodes.can_bridge.CanBridgeOptions.can_batch_ms)
+    can_batch_ms: float = 10.0
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)

@@ -1,5 +1,7 @@
 """The input batching window (``input_batch_ms``): taken by time sync and the fusion only,
-bounded, and refused by name when out of range -- from the service options, hil up and the bench."""
+bounded, and refused by name when out of range -- from the service options, hil up and the bench.
+The CAN bridge's read window (``can_batch_ms``) likewise, and how a window's outputs are grouped
+into batches (``batch_sends``)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import pytest
 
 from hil.bench.rig import main as bench_rig
 from hil.nodes.base import BatchedInputOptions, OptionsError, decode_options
+from hil.runners.live import batch_sends
 from hil.runtime.options import fill_options, options_class
 from hil.runtime.supervisor import UpOptions
 
@@ -37,3 +40,47 @@ def test_bench_rig_refuses_bad_windows_in_one_line(
         bench_rig([*args, "--no-write"])
     assert e.value.code == 2
     assert "--input-batch-ms" in capsys.readouterr().err
+
+
+def test_the_can_bridge_takes_its_read_window_and_hil_up_fills_it() -> None:
+    assert UpOptions().can_batch_ms == 10.0  # on by default: the rig's messages per IMU sample
+    assert fill_options("can_bridge", UpOptions())["can_batch_ms"] == 10.0
+    assert fill_options("can_bridge", UpOptions(can_batch_ms=0.0))["can_batch_ms"] == 0.0
+    assert "can_batch_ms" not in fill_options("fusion", UpOptions())
+    with pytest.raises(OptionsError, match="can_batch_ms"):
+        decode_options(options_class("can_bridge"), {"can_batch_ms": 250.0}, "can_bridge")
+
+
+def test_hil_up_refuses_an_impossible_read_window(capsys: pytest.CaptureFixture[str]) -> None:
+    from hil.cli import main as hil_main
+
+    with pytest.raises(SystemExit) as e:
+        hil_main(["up", "--can-batch-ms", "-5", "--duration", "1"])
+    assert e.value.code == 2
+    assert "--can-batch-ms" in capsys.readouterr().err
+
+
+def test_batched_kinds_go_as_one_list_per_key_without_passing_other_outputs() -> None:
+    outs = [
+        ("can/vcan0", "f1"),
+        ("can/vcan0", "f2"),
+        ("sensor/imu", "s1"),
+        ("can/vcan0", "f3"),
+        ("sensor/imu", "s2"),
+        ("timetag/imu", "t"),  # not batched: what follows it goes after it
+        ("sensor/imu", "s3"),
+        ("capture/imu", "c1"),
+        ("capture/imu", "c2"),
+        ("nav/ekf15", "n1"),  # solutions go one by one
+        ("nav/ekf15", "n2"),
+    ]
+    assert batch_sends(outs) == [
+        ("can/vcan0", ["f1", "f2", "f3"]),
+        ("sensor/imu", ["s1", "s2"]),
+        ("timetag/imu", "t"),
+        ("sensor/imu", ["s3"]),
+        ("capture/imu", ["c1", "c2"]),
+        ("nav/ekf15", "n1"),
+        ("nav/ekf15", "n2"),
+    ]
+    assert batch_sends([]) == []
