@@ -60,11 +60,14 @@ class Listener:
     def _on_fix(self, kind: str, sample: zenoh.Sample) -> None:
         if sample.source_info is None:  # our own (plain) puts come back: not genuine
             return
-        msg = json.loads(sample.payload.to_bytes())
+        body = json.loads(sample.payload.to_bytes())
+        batch = body if isinstance(body, list) else [body]  # a batch (docs/topics.md): each in turn
+        if not batch:
+            return
         with self.lock:
-            self.fix[kind] = msg
+            self.fix[kind] = batch[-1]
             if kind == "synced":
-                self.synced_count += 1
+                self.synced_count += len(batch)
                 self.new_synced.notify_all()
 
     def rig_now_ns(self) -> int:

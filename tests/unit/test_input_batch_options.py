@@ -73,6 +73,9 @@ def test_batched_kinds_go_as_one_list_per_key_without_passing_other_outputs() ->
         ("capture/imu", "c2"),
         ("nav/ekf15", "n1"),  # solutions go one by one
         ("nav/ekf15", "n2"),
+        ("synced/gnss", "g1"),  # and GNSS fixes
+        ("synced/gnss", "g2"),
+        ("synced/imu", "y1"),
     ]
     assert batch_sends(outs) == [
         ("can/vcan0", ["f1", "f2", "f3"]),
@@ -82,5 +85,8 @@ def test_batched_kinds_go_as_one_list_per_key_without_passing_other_outputs() ->
         ("capture/imu", ["c1", "c2"]),
         ("nav/ekf15", "n1"),
         ("nav/ekf15", "n2"),
+        ("synced/gnss", "g1"),
+        ("synced/gnss", "g2"),
+        ("synced/imu", ["y1"]),
     ]
     assert batch_sends([]) == []
