@@ -481,7 +481,8 @@ def cmd_rerun(a: argparse.Namespace) -> int:
         else:
             from hil.record.rerun import rerun
 
-            rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress)
+            worker = False if a.one_process else None
+            rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress, worker=worker)
     print("\n".join(lines))
     return rc
 
@@ -944,6 +945,12 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     rr.add_argument("file")
     rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
     rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
+    rr.add_argument(
+        "--one-process",
+        action="store_true",
+        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs, "
+        "recomputing while this one reads; the same bits)",
+    )
     rr.set_defaults(func=cmd_rerun)
 
     camp = sub.add_parser(

@@ -35,11 +35,17 @@ from hil.messages import (
     RunInfo,
     current_form,
     decode,
-    encode,
 )
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
+from hil.runners.sim_worker import (
+    WORKER_MIN_ESTIMATORS,
+    RemoteNode,
+    Replayed,
+    replay_encoded,
+    worker_possible,
+)
 from hil.runtime import jit
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
@@ -122,12 +128,19 @@ def _stream(sensor: str, publisher: str) -> str:
     return f"{sensor}@{publisher}"
 
 
+RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fractions of a second of order
+# inputs a worker recomputes per message (~10 s of a 400 Hz IMU): while it runs them, this
+# process reads, decodes and orders the next ones and compares the last ones' solutions
+REPLAY_BATCH = 4096
+
+
 @dataclass
 class _FusionRerun:
     """The state of one fusion rerun over a stream of records (see ``rerun_fusion_records``)."""
 
     window_ns: int | None
     keep_outputs: bool
+    worker: bool | None = None  # the fusion in a forked worker; None: when it pays (``_start``)
     run: RunInfo | None = None
     cfg: FusionConfig | None = None
     node: FusionNode | None = None
@@ -148,6 +161,10 @@ class _FusionRerun:
     last_log_ns: int = 0
     last_journal_log_ns: int = -1  # log time of the last journal record read
     matcher: Matcher = field(init=False)
+    remote: RemoteNode | None = None
+    batch: list[tuple[Measurement, str, bool]] = field(default_factory=list)  # for the worker
+    batch_keys: list[tuple[int, int, int]] = field(default_factory=list)
+    in_flight: list[tuple[int, int, int]] | None = None  # the keys of the batch the worker runs
 
     def __post_init__(self) -> None:
         self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns, _nav_current_form)
@@ -179,7 +196,20 @@ class _FusionRerun:
                 self._recorded_nav(early)
             self.early_nav.clear()
         if self.node is None and self.run is not None and self.cfg is not None:
-            self.node = FusionNode.for_rerun(self.run, self.cfg)
+            self._start(FusionNode.for_rerun(self.run, self.cfg))
+
+    def _start(self, node: FusionNode) -> None:
+        """The core, here or in a worker (a fusion of ``WORKER_MIN_ESTIMATORS`` or more, two CPUs
+        free to this process): the kernels are compiled where it runs, with the same bits."""
+        self.node = node
+        use = self.worker
+        if use is None:
+            n = len(node.core.estimators) if node.core is not None else 0
+            use = n >= WORKER_MIN_ESTIMATORS and worker_possible()
+        if use:
+            self.remote = RemoteNode(node, setup=jit.enable)
+        else:
+            jit.enable()
 
     def _synced(self, r: Record) -> None:
         m = r.decode()
@@ -227,7 +257,7 @@ class _FusionRerun:
         """Inputs older than ``upto_ns`` (all: None), in the total order, through the core."""
         node = self.node
         assert node is not None
-        heap, m = self.heap, self.matcher
+        heap = self.heap
         while heap and (upto_ns is None or heap[0][0][0] < upto_ns):
             key, _n, msg, source = heapq.heappop(heap)
             self.last_key = key
@@ -239,13 +269,52 @@ class _FusionRerun:
             if self.present.pop(i) - self.dropped[i] <= 0:
                 continue
             self.used += 1
-            for sol in node.replay(msg, source, i not in self.unpredicted):
-                if self.keep_outputs:
-                    self.outputs.append(sol)
-                if sol.estimator in self.produced:
-                    m.recomputed((sol.estimator, sol.seq), encode(sol), self.n_out, sol.stamp_ns)
-                self.n_out += 1
-            m.release_before(key[0])
+            item = (msg, source, i not in self.unpredicted)
+            if self.remote is None:
+                self._compare(key, replay_encoded(node, [item], self.keep_outputs)[0])
+                continue
+            self.batch.append(item)
+            self.batch_keys.append(key)
+            if len(self.batch) >= REPLAY_BATCH:
+                self._send_batch()
+        if upto_ns is None:  # the end: what the worker still holds
+            self.drain()
+
+    def _compare(self, key: tuple[int, int, int], sols: list[Replayed]) -> None:
+        """One input's recomputed solutions against the recorded ones."""
+        m = self.matcher
+        for est, seq, payload, stamp_ns, sol in sols:
+            if sol is not None:
+                self.outputs.append(sol)
+            if est in self.produced:
+                m.recomputed((est, seq), payload, self.n_out, stamp_ns)
+            self.n_out += 1
+        m.release_before(key[0])
+
+    def _take_in_flight(self) -> None:
+        if self.in_flight is not None:
+            assert self.remote is not None
+            for key, sols in zip(self.in_flight, self.remote.replayed(), strict=True):
+                self._compare(key, sols)
+            self.in_flight = None
+
+    def _send_batch(self) -> None:
+        """The batch to the worker, once it is done with the one before (compared meanwhile)."""
+        assert self.remote is not None
+        self._take_in_flight()
+        if self.batch:
+            self.remote.replay(self.batch, self.keep_outputs)
+            self.in_flight, self.batch, self.batch_keys = self.batch_keys, [], []
+
+    def drain(self) -> None:
+        """Every input handed to the worker recomputed and compared."""
+        if self.remote is not None:
+            self._send_batch()
+            self._take_in_flight()
+
+    def close(self) -> None:
+        if self.remote is not None:
+            self.remote.close()
 
     def result(self) -> RerunResult:
         m = self.matcher
@@ -297,6 +366,7 @@ def rerun_fusion_records(
     window_ns: int | None,
     keep_outputs: bool = False,
     name: str = "recording",
+    worker: bool | None = None,
 ) -> RerunResult:
     """The fusion rerun over records in file order, holding ``window_ns`` of rig time at most.
 
@@ -310,20 +380,27 @@ def rerun_fusion_records(
     the window after its inputs; each is checked and raises ``OutOfWindow``. Live inputs are out
     of order by the fusion's lag (0.2 s) and journals follow within a second, so the default 30 s
     never trips on a rig session.
+
+    ``worker``: the core in a forked worker (``hil.runners.sim_worker``), fed ``REPLAY_BATCH``
+    inputs at a time, while this process reads and orders the next ones and compares the
+    solutions back; the same inputs in the same order through the same code, so the same bits.
+    None: when it pays (``_FusionRerun._start``); False: in this process.
     """
-    jit.enable()  # the fusion's kernels compiled, the bits of the Python ones
-    state = _FusionRerun(window_ns, keep_outputs)
-    for r in records:
-        state.feed(r)
-    if state.run is None:
-        raise RecordingError(no_run_message(name, records))
-    if state.node is None:
-        raise RecordingError(f"{name}: no fusion configuration (fusion/config): the fusion did not run")
-    tail = getattr(records, "skipped_tail", None)
-    if tail is not None:  # the file's last messages were left out by the reader
-        state.last_log_ns = max(state.last_log_ns, tail[0])
-    state.release(None)
-    return state.result()
+    state = _FusionRerun(window_ns, keep_outputs, worker)
+    try:
+        for r in records:
+            state.feed(r)
+        if state.run is None:
+            raise RecordingError(no_run_message(name, records))
+        if state.node is None:
+            raise RecordingError(f"{name}: no fusion configuration (fusion/config): the fusion did not run")
+        tail = getattr(records, "skipped_tail", None)
+        if tail is not None:  # the file's last messages were left out by the reader
+            state.last_log_ns = max(state.last_log_ns, tail[0])
+        state.release(None)
+        return state.result()
+    finally:
+        state.close()
 
 
 def fusion_topic(topic: str) -> bool:
@@ -342,11 +419,12 @@ def rerun_fusion(session: Session) -> RerunResult:
     return rerun_fusion_records(session.records, window_ns=None, keep_outputs=True, name=str(session.path))
 
 
-RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fractions of a second of order
-
-
 def rerun_fusion_file(
-    path: str | Path, *, window_s: float | None = RERUN_WINDOW_S, on_progress: Any = None
+    path: str | Path,
+    *,
+    window_s: float | None = RERUN_WINDOW_S,
+    on_progress: Any = None,
+    worker: bool | None = None,
 ) -> tuple[RerunResult, SessionStream, str]:
     """Stream a recording through the fusion rerun; if its order defeats the window, read it whole.
 
@@ -356,16 +434,21 @@ def rerun_fusion_file(
     stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
     window_ns = None if window_s is None else round(window_s * 1e9)
     try:
-        return rerun_fusion_records(stream, window_ns=window_ns, name=str(path)), stream, ""
+        return rerun_fusion_records(stream, window_ns=window_ns, name=str(path), worker=worker), stream, ""
     except OutOfWindow as why:
         stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
-        res = rerun_fusion_records(stream, window_ns=None, name=str(path))
+        res = rerun_fusion_records(stream, window_ns=None, name=str(path), worker=worker)
         note = f"{why} (out of order by more than {window_s:g} s): reran with the whole file in memory"
         return res, stream, note
 
 
 def rerun(
-    path: str, *, core: str = "fusion", verify: bool = False, on_progress: Any = None
+    path: str,
+    *,
+    core: str = "fusion",
+    verify: bool = False,
+    on_progress: Any = None,
+    worker: bool | None = None,
 ) -> tuple[int, list[str]]:
     """Exit code and report lines for ``hil rerun``.
 
@@ -378,7 +461,7 @@ def rerun(
         return rerun_timesync_report(path, verify, on_progress)
     if core != "fusion":
         return 2, [f"hil rerun: core {core!r} is not rerunnable (fusion, timesync)"]
-    res, stream, note = rerun_fusion_file(path, on_progress=on_progress)
+    res, stream, note = rerun_fusion_file(path, on_progress=on_progress, worker=worker)
     lines = [
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "
         f"{res.n_recomputed} outputs recomputed, {res.n_recorded} recorded"

@@ -49,7 +49,7 @@ from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
-from hil.runners.sim_worker import RemoteNode, drive, worker_possible
+from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteNode, drive, worker_possible
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
 from hil.runtime.scenario_io import run_attachments
@@ -312,8 +312,6 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
-WORKER_MIN_ESTIMATORS = 3  # ``fusion_worker=None``: a worker for a fusion of at least this many
-
 # The types ``WellKnown.convert`` derives Foxglove messages from: for any other it returns none
 # and keeps no state, so the CAN frames, IMU samples and capture times (three quarters of the
 # traffic) skip the call (tests/unit/test_sim_worker.py: the same file with every type offered)
@@ -437,8 +435,7 @@ def run_sim(opts: SimOptions) -> SimResult:
             sys.stderr.flush()
     wire = CanWireModel(s)
     use_worker = opts.fusion_worker
-    if use_worker is None:  # worth it when the fusion is heavy: with one or two estimators the
-        # pickling to and from the worker cost more than the second core gave (static, kfvel: +10 % CPU)
+    if use_worker is None:  # worth it when the fusion is heavy (WORKER_MIN_ESTIMATORS)
         heavy = len(getattr(getattr(nodes[-1], "config", None), "estimators", ())) >= WORKER_MIN_ESTIMATORS
         use_worker = heavy and worker_possible()
     # the fusion's kernels compiled where it runs (the same bits either way): with a worker, in

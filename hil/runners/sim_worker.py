@@ -26,9 +26,19 @@ import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from hil.messages import encode
 from hil.nodes.base import Node, Out
 
-__all__ = ["RemoteNode", "drive", "worker_possible"]
+__all__ = ["WORKER_MIN_ESTIMATORS", "RemoteNode", "Replayed", "drive", "worker_possible"]
+
+# a worker for a fusion of at least this many estimators (``hil sim``, ``hil rerun``): with one or
+# two the pickling to and from the worker cost more than the second core gave (static, kfvel:
+# +10 % CPU)
+WORKER_MIN_ESTIMATORS = 3
+
+# one recomputed solution as ``hil rerun`` matches it: estimator, seq, encoded bytes, time of
+# validity, and the solution itself when the caller keeps the outputs (else None)
+Replayed = tuple[str, int, bytes, int, Any]
 
 # one input as ``drive`` reads it: rig time first, key and message last (the scheduler's events
 # carry producer and publication order between)
@@ -105,7 +115,7 @@ class RemoteNode:
             pickle.dump(req, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
             self._wfile.flush()
         except OSError as err:
-            raise WorkerError(f"hil sim: the {self.name} worker process died ({err})") from err
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
 
     def window(self, now: list[tuple[int, str, Any]], t_end_ns: int) -> None:
         self._send(("window", now, t_end_ns))
@@ -113,17 +123,30 @@ class RemoteNode:
     def finish_request(self, now: list[tuple[int, str, Any]], t_end_ns: int, t_ns: int) -> None:
         self._send(("finish", now, t_end_ns, t_ns))
 
+    def replay(self, inputs: list[tuple[Any, str, bool]], keep: bool) -> None:
+        """``hil rerun``: these inputs (message, publisher, predicted) through the node's
+        ``replay`` in this order; ``replayed`` takes their solutions."""
+        self._send(("replay", inputs, keep))
+
+    def _reply(self) -> tuple[Any, ...]:
+        try:
+            reply: tuple[Any, ...] = pickle.load(self._rfile)
+        except (EOFError, OSError, pickle.UnpicklingError) as err:
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+        if reply[0] == "error":
+            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
+        return reply
+
     def result(self) -> tuple[list[tuple[list[Out], int]], bool]:
         """The outputs of the oldest window sent, as (outs, rig time) in publication order, and
         whether the node still wants a tick."""
-        try:
-            reply = pickle.load(self._rfile)
-        except (EOFError, OSError, pickle.UnpicklingError) as err:
-            raise WorkerError(f"hil sim: the {self.name} worker process died ({err})") from err
-        if reply[0] == "error":
-            raise WorkerError(f"hil sim: the {self.name} worker failed:\n{reply[1]}")
-        _ok, published, busy, self._counters, self.last_error = reply
+        _ok, published, busy, self._counters, self.last_error = self._reply()
         return published, busy
+
+    def replayed(self) -> list[list[Replayed]]:
+        """The solutions of the oldest ``replay`` sent, one list per input, encoded there."""
+        _ok, out = self._reply()
+        return out
 
     def counters(self) -> dict[str, int]:
         """The node's counters after the last window whose result was taken."""
@@ -154,16 +177,28 @@ def _serve(node: Node, sock: socket.socket) -> None:
         published: list[tuple[list[Out], int]] = []
         publish = _collector(published)
         try:
-            busy = drive(node, req[1], req[2], publish)
-            if req[0] == "finish":
-                publish(node.finish(req[3]), req[3])
-            reply: tuple[Any, ...] = ("ok", published, busy, node.counters(), node.last_error)
+            if req[0] == "replay":
+                reply: tuple[Any, ...] = ("ok", replay_encoded(node, req[1], req[2]))
+            else:
+                busy = drive(node, req[1], req[2], publish)
+                if req[0] == "finish":
+                    publish(node.finish(req[3]), req[3])
+                reply = ("ok", published, busy, node.counters(), node.last_error)
         except Exception:
             reply = ("error", traceback.format_exc())
         pickle.dump(reply, wfile, protocol=pickle.HIGHEST_PROTOCOL)
         wfile.flush()
         if reply[0] == "error":
             return
+
+
+def replay_encoded(node: Any, inputs: list[tuple[Any, str, bool]], keep: bool) -> list[list[Replayed]]:
+    """Inputs through ``node.replay`` (the fusion's, ``hil rerun``) in order: each one's
+    solutions encoded, as the rerun compares them -- in the worker, or inline without one."""
+    return [
+        [(s.estimator, s.seq, encode(s), s.stamp_ns, s if keep else None) for s in node.replay(*item)]
+        for item in inputs
+    ]
 
 
 def _collector(published: list[tuple[list[Out], int]]) -> Callable[[list[Out], int], None]:

@@ -5,21 +5,28 @@ Python objects). The rerun instead holds a window of rig time (inputs waiting fo
 the total order, outputs waiting for their counterpart). These tests check that streaming gives
 exactly what the whole-file rerun gives -- on the golden recording with windows small enough
 that inputs are released long before the end, on a recording whose order defeats the window
-(it falls back and says so), and on a tampered recording (the same first difference is named).
+(it falls back and says so), and on a tampered recording (the same first difference is named);
+and that the fusion in a worker process (``worker=True``) recomputes what one process does.
 """
 
 from __future__ import annotations
 
+import os
+import signal
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import msgspec
+import pytest
 
 from hil.messages import TYPES_BY_NAME
+from hil.record import rerun as rerun_module
 from hil.record.matching import SeqSet
 from hil.record.mcapio import Record, SessionStream, SessionWriter, read_session
-from hil.record.rerun import rerun, rerun_fusion, rerun_fusion_file
+from hil.record.rerun import rerun, rerun_fusion, rerun_fusion_file, rerun_fusion_records
 from hil.record.rerun_timesync import rerun_timesync, rerun_timesync_records
+from hil.runners.sim_worker import RemoteNode, WorkerError
 from tests.replay.helpers import GOLDEN
 
 
@@ -155,3 +162,60 @@ def test_progress_is_reported_in_bytes_of_the_file() -> None:
     assert rc == 0 and seen
     size = GOLDEN.stat().st_size
     assert all(0 < d <= t == size for d, t in seen)
+
+
+def _batches_seen(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The sizes of the input batches the rerun hands its worker (the worker path, observed)."""
+    sizes: list[int] = []
+    send = RemoteNode.replay
+
+    def replay(self: RemoteNode, inputs: list[Any], keep: bool) -> None:
+        sizes.append(len(inputs))
+        send(self, inputs, keep)
+
+    monkeypatch.setattr(RemoteNode, "replay", replay)
+    monkeypatch.setattr(rerun_module, "REPLAY_BATCH", 100)  # the golden's 4 s: several batches
+    return sizes
+
+
+def test_the_fusion_in_a_worker_recomputes_what_one_process_does(monkeypatch: pytest.MonkeyPatch) -> None:
+    records = read_session(GOLDEN).records
+    alone = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=False)
+    sizes = _batches_seen(monkeypatch)
+    forked = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=True)
+    assert len(sizes) > 3 and sum(sizes) == forked.inputs_used, sizes
+    assert forked.difference is None and alone.difference is None
+    assert forked.recomputed == alone.recomputed and len(alone.recomputed) > 1000
+    assert (forked.n_recorded, forked.n_recomputed, forked.inputs_used, forked.inputs_dropped) == (
+        alone.n_recorded,
+        alone.n_recomputed,
+        alone.inputs_used,
+        alone.inputs_dropped,
+    )
+    # streamed, and streamed past a window the order defeats (a second pass, a second worker)
+    res, _s, note = rerun_fusion_file(GOLDEN, window_s=3.75, worker=True)
+    assert note == "" and res.difference is None and res.n_recomputed == alone.n_recomputed
+    res, _s, note = rerun_fusion_file(GOLDEN, window_s=0.0, worker=True)
+    assert "reran with the whole file in memory" in note and res.difference is None
+
+
+def test_the_worker_names_the_same_first_difference(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    bad = tmp_path / "tampered.mcap"
+    _copy(bad, {("/nav/ekf15", 300): {"vel_ned_mps": [0.0] * 3}, ("/nav/ins", 90): {"pos_ned_m": [0.0] * 3}})
+    alone, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=False)
+    sizes = _batches_seen(monkeypatch)
+    forked, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True)
+    assert sizes and alone.difference is not None
+    assert forked.difference == alone.difference and forked.difference.startswith("nav/ins seq 90")
+
+
+def test_a_worker_that_dies_fails_the_rerun_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    send = RemoteNode.replay
+
+    def replay_then_die(self: RemoteNode, inputs: list[Any], keep: bool) -> None:
+        os.kill(self.pid, signal.SIGKILL)
+        send(self, inputs, keep)
+
+    monkeypatch.setattr(RemoteNode, "replay", replay_then_die)
+    with pytest.raises(WorkerError, match="worker process died"):
+        rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True)
