@@ -23,7 +23,7 @@ from hil.bench import command_line, tree_revision, write_section
 from hil.bench.horizon import STARTUP_S  # the IMU is held until time sync locks (~3 s), then late
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
-from hil.runtime.argtypes import OneLineParser, duration_s
+from hil.runtime.argtypes import OneLineParser, bounded_float, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
 
 
@@ -337,7 +337,7 @@ def main(argv: list[str]) -> int:
     )
     ap.add_argument(
         "--can-batch-ms",
-        type=float,
+        type=bounded_float(0.0, 100.0, unit="ms"),
         default=UpOptions.can_batch_ms,
         help="the CAN bridge's read window, ms (hil up --can-batch-ms; default its default)",
     )

@@ -39,13 +39,7 @@ from hil.messages import (
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
-from hil.runners.sim_worker import (
-    WORKER_MIN_ESTIMATORS,
-    RemoteNode,
-    Replayed,
-    replay_encoded,
-    worker_possible,
-)
+from hil.runners.sim_worker import RemoteNode, Replayed, replay_encoded, worker_pays
 from hil.runtime import jit
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
@@ -163,8 +157,7 @@ class _FusionRerun:
     matcher: Matcher = field(init=False)
     remote: RemoteNode | None = None
     batch: list[tuple[Measurement, str, bool]] = field(default_factory=list)  # for the worker
-    batch_keys: list[tuple[int, int, int]] = field(default_factory=list)
-    in_flight: list[tuple[int, int, int]] | None = None  # the keys of the batch the worker runs
+    in_flight: list[tuple[Measurement, str, bool]] | None = None  # the batch the worker runs
 
     def __post_init__(self) -> None:
         self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns, _nav_current_form)
@@ -199,14 +192,10 @@ class _FusionRerun:
             self._start(FusionNode.for_rerun(self.run, self.cfg))
 
     def _start(self, node: FusionNode) -> None:
-        """The core, here or in a worker (a fusion of ``WORKER_MIN_ESTIMATORS`` or more, two CPUs
-        free to this process): the kernels are compiled where it runs, with the same bits."""
+        """The core, here or in a worker (``worker_pays``, as ``hil sim`` decides): the kernels
+        are compiled where it runs, with the same bits."""
         self.node = node
-        use = self.worker
-        if use is None:
-            n = len(node.core.estimators) if node.core is not None else 0
-            use = n >= WORKER_MIN_ESTIMATORS and worker_possible()
-        if use:
+        if self.worker if self.worker is not None else worker_pays(node):
             self.remote = RemoteNode(node, setup=jit.enable)
         else:
             jit.enable()
@@ -271,16 +260,15 @@ class _FusionRerun:
             self.used += 1
             item = (msg, source, i not in self.unpredicted)
             if self.remote is None:
-                self._compare(key, replay_encoded(node, [item], self.keep_outputs)[0])
+                self._compare(msg, replay_encoded(node, [item], self.keep_outputs)[0])
                 continue
             self.batch.append(item)
-            self.batch_keys.append(key)
             if len(self.batch) >= REPLAY_BATCH:
                 self._send_batch()
         if upto_ns is None:  # the end: what the worker still holds
             self.drain()
 
-    def _compare(self, key: tuple[int, int, int], sols: list[Replayed]) -> None:
+    def _compare(self, msg: Measurement, sols: list[Replayed]) -> None:
         """One input's recomputed solutions against the recorded ones."""
         m = self.matcher
         for est, seq, payload, stamp_ns, sol in sols:
@@ -289,13 +277,13 @@ class _FusionRerun:
             if est in self.produced:
                 m.recomputed((est, seq), payload, self.n_out, stamp_ns)
             self.n_out += 1
-        m.release_before(key[0])
+        m.release_before(input_key(msg)[0])
 
     def _take_in_flight(self) -> None:
         if self.in_flight is not None:
             assert self.remote is not None
-            for key, sols in zip(self.in_flight, self.remote.replayed(), strict=True):
-                self._compare(key, sols)
+            for (msg, _source, _predicted), sols in zip(self.in_flight, self.remote.replayed(), strict=True):
+                self._compare(msg, sols)
             self.in_flight = None
 
     def _send_batch(self) -> None:
@@ -304,7 +292,7 @@ class _FusionRerun:
         self._take_in_flight()
         if self.batch:
             self.remote.replay(self.batch, self.keep_outputs)
-            self.in_flight, self.batch, self.batch_keys = self.batch_keys, [], []
+            self.in_flight, self.batch = self.batch, []
 
     def drain(self) -> None:
         """Every input handed to the worker recomputed and compared."""

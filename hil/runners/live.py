@@ -335,14 +335,16 @@ class NodeService(Service):
             # between batches, however fast the inputs come)
             bound = MAX_INPUT_BATCH if batch_s else MAX_QUEUED_BATCH
             taken = 0
-            pending: list[Out] | None = None  # None: no input decoded (nothing to acknowledge)
+            pending: list[Out] = []
+            consumed = False  # an input decoded: published even with no outputs (after_outputs acks it)
             while item is not None:
                 outs = self._consume(node, item, clock.now_ns(), root_len)
                 if outs is not None:
-                    pending = outs if pending is None else pending + outs
+                    pending += outs
+                    consumed = True
                 taken += 1
                 item = self.inbox.get(timeout=0) if taken < bound else None
-            if pending is not None:  # with none, too: after_outputs acknowledges what was consumed
+            if consumed:
                 self._publish(pending, "input")
             if batch_s:  # in the status: inputs per wake-up = in.batched_inputs / in.batches
                 self.stats.inc("in.batches")

@@ -49,7 +49,7 @@ from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
-from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteNode, drive, worker_possible
+from hil.runners.sim_worker import RemoteNode, drive, worker_pays
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
 from hil.runtime.scenario_io import run_attachments
@@ -435,9 +435,8 @@ def run_sim(opts: SimOptions) -> SimResult:
             sys.stderr.flush()
     wire = CanWireModel(s)
     use_worker = opts.fusion_worker
-    if use_worker is None:  # worth it when the fusion is heavy (WORKER_MIN_ESTIMATORS)
-        heavy = len(getattr(getattr(nodes[-1], "config", None), "estimators", ())) >= WORKER_MIN_ESTIMATORS
-        use_worker = heavy and worker_possible()
+    if use_worker is None:
+        use_worker = worker_pays(nodes[-1])
     # the fusion's kernels compiled where it runs (the same bits either way): with a worker, in
     # the worker; this process, which runs no fusion, does not import numba
     if not use_worker:

@@ -29,7 +29,7 @@ from typing import Any
 from hil.messages import encode
 from hil.nodes.base import Node, Out
 
-__all__ = ["WORKER_MIN_ESTIMATORS", "RemoteNode", "Replayed", "drive", "worker_possible"]
+__all__ = ["WORKER_MIN_ESTIMATORS", "RemoteNode", "Replayed", "drive", "worker_pays", "worker_possible"]
 
 # a worker for a fusion of at least this many estimators (``hil sim``, ``hil rerun``): with one or
 # two the pickling to and from the worker cost more than the second core gave (static, kfvel:
@@ -76,6 +76,13 @@ def worker_possible() -> bool:
         return len(os.sched_getaffinity(0)) >= 2
     except (AttributeError, OSError):
         return (os.cpu_count() or 1) >= 2
+
+
+def worker_pays(node: Node) -> bool:
+    """The fusion ``node`` in a worker, by default (``hil sim``, ``hil rerun``): it runs at
+    least ``WORKER_MIN_ESTIMATORS`` estimators and a second process is possible."""
+    estimators = getattr(getattr(node, "config", None), "estimators", ())
+    return len(estimators) >= WORKER_MIN_ESTIMATORS and worker_possible()
 
 
 class WorkerError(RuntimeError):

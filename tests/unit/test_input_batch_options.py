@@ -42,8 +42,20 @@ def test_bench_rig_refuses_bad_windows_in_one_line(
     assert "--input-batch-ms" in capsys.readouterr().err
 
 
+def test_bench_rig_refuses_an_impossible_read_window(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        bench_rig(["--can-batch-ms", "-1", "--no-write"])
+    assert e.value.code == 2
+    assert "--can-batch-ms" in capsys.readouterr().err
+
+
 def test_the_can_bridge_takes_its_read_window_and_hil_up_fills_it() -> None:
-    assert UpOptions().can_batch_ms == 10.0  # on by default: the rig's messages per IMU sample
+    # one default, on by default (the rig's messages per IMU sample), wherever it is written
+    from hil.cli import build_parser
+
+    up_args = build_parser().parse_args(["up"])
+    assert UpOptions().can_batch_ms == options_class("can_bridge")().can_batch_ms == 10.0  # type: ignore[attr-defined]
+    assert up_args.can_batch_ms == UpOptions().can_batch_ms
     assert fill_options("can_bridge", UpOptions())["can_batch_ms"] == 10.0
     assert fill_options("can_bridge", UpOptions(can_batch_ms=0.0))["can_batch_ms"] == 0.0
     assert "can_batch_ms" not in fill_options("fusion", UpOptions())
