@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
@@ -318,6 +318,16 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
 DERIVES: tuple[type[Message], ...] = (Truth, NavSolution, GnssFix, Event, ServiceStatus, RunInfo)
 
 
+class Prepared(NamedTuple):
+    """A message as the file takes it, made by the process that published it (``_Session.prepare``)."""
+
+    cls: type[Message]
+    payload: bytes
+    stamp_ns: int
+    seq: int
+    derived: list[Any]  # hil.wellknown.Derived
+
+
 class _Session:
     """The recording side of one sim: the writer, runner-owned seqs, status, progress."""
 
@@ -334,28 +344,46 @@ class _Session:
         self.part_t0_ns = 0
         self.n_written = 0
         self._seqs: dict[str, int] = {}
-        self._topics: dict[str, str] = {}
+        self._puts: dict[str, Callable[[bytes, int, int, int], None] | None] = {}  # per key, bound
 
-    def write(self, key: str, msg: Message, t_log: int) -> None:
-        topic = self._topics.get(key)
-        if topic is None:
-            topic = self._topics[key] = f"{self.root}/{key}"
-        if self.keep.active and not self.keep.keeps(topic):
-            return  # and nothing derived from it
+    def write(self, key: str, msg: Message | Prepared, t_log: int) -> None:
+        put = self._puts.get(key)
+        if put is None:
+            if key in self._puts:
+                return  # left out by the record filter, and nothing derived from it
+            put = self._bind(key, msg)
+            if put is None:
+                return
         epoch = self.epoch_ns
-        w = self.w
-        w.write(
-            topic,
-            type(msg),
-            encode(msg),
-            log_time_ns=epoch + t_log,
-            publish_time_ns=epoch + msg.stamp_ns,
-            seq=msg.seq,
-        )
-        if isinstance(msg, DERIVES):
-            for d in self.wellknown.convert(key, msg, epoch + t_log):
-                w.write_wellknown(d, log_time_ns=epoch + t_log)
+        if type(msg) is Prepared:  # encoded, and its Foxglove messages derived, by the worker
+            put(msg.payload, epoch + t_log, epoch + msg.stamp_ns, msg.seq)
+            for d in msg.derived:
+                self.w.write_wellknown(d, log_time_ns=epoch + t_log)
+        else:
+            put(encode(msg), epoch + t_log, epoch + msg.stamp_ns, msg.seq)  # type: ignore[union-attr]
+            if isinstance(msg, DERIVES):
+                for d in self.wellknown.convert(key, msg, epoch + t_log):
+                    self.w.write_wellknown(d, log_time_ns=epoch + t_log)
         self.n_written += 1
+
+    def _bind(self, key: str, msg: Message | Prepared) -> Callable[[bytes, int, int, int], None] | None:
+        """The writer of ``key``'s channel, registered at its first message (None: not kept)."""
+        topic = f"{self.root}/{key}"
+        if self.keep.active and not self.keep.keeps(topic):
+            self._puts[key] = None
+            return None
+        cls = msg.cls if type(msg) is Prepared else type(msg)  # type: ignore[union-attr]
+        put = self._puts[key] = self.w.bind(topic, cls)
+        return put
+
+    def prepare(self, key: str, msg: Message, t_log: int) -> Prepared:
+        """What ``write`` needs of a message, made where it was published (the fusion's worker):
+        its bytes, and the Foxglove messages derived from it -- the worker's copy of the
+        converter sees the keys of the worker's node only, as this process's sees the others'."""
+        derived: list[Any] = []
+        if isinstance(msg, DERIVES):
+            derived = self.wellknown.convert(key, msg, self.epoch_ns + t_log)
+        return Prepared(type(msg), encode(msg), msg.stamp_ns, msg.seq, derived)
 
     def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:
         """At a window boundary, as the recorder at a flush: finish the part once it reached
@@ -371,6 +399,7 @@ class _Session:
         self.part += 1
         self.part_t0_ns = t_ns
         self.w = SessionWriter(split_part_path(o.record, self.part))
+        self._puts.clear()  # the channels of the new part: registered at their first message
         self.w.add_metadata(
             "part", {"index": self.part, "previous": split_part_path(o.record, self.part - 1).name}
         )
@@ -442,7 +471,8 @@ def run_sim(opts: SimOptions) -> SimResult:
     if not use_worker:
         jit.enable()
     outs0 = [node.start(0) for node in nodes]
-    remote = RemoteNode(nodes[-1], setup=jit.enable) if use_worker else None  # forked after start
+    # forked after start; its outputs come back encoded for the file (``_Session.prepare``)
+    remote = RemoteNode(nodes[-1], setup=jit.enable, prepare=sess.prepare) if use_worker else None
     try:
         sched = Scheduler(nodes, sess.write, wire, remote)
         for i, outs in enumerate(outs0):

@@ -93,9 +93,16 @@ class RemoteNode:
     """A node run in a forked child; ``window`` sends a window's inputs, ``result`` waits for
     its outputs. Between the two the caller is free to work on the next window."""
 
-    def __init__(self, node: Node, setup: Callable[[], object] | None = None) -> None:
+    def __init__(
+        self,
+        node: Node,
+        setup: Callable[[], object] | None = None,
+        prepare: Callable[[str, Any, int], Any] | None = None,
+    ) -> None:
         """``setup``: called first in the child (the sim loads the fusion's compiled kernels
-        there, so that its own process, the pipeline's slower one, never imports numba)."""
+        there, so that its own process, the pipeline's slower one, never imports numba).
+        ``prepare(key, message, t)``: what each output is sent back as (the sim: its bytes for
+        the file, made in the worker, which has CPU to spare); default the message itself."""
         self.name = node.name
         self._counters: dict[str, int] = node.counters()
         self.last_error = node.last_error
@@ -107,7 +114,7 @@ class RemoteNode:
                 parent.close()
                 if setup is not None:
                     setup()
-                _serve(node, child)
+                _serve(node, child, prepare)
                 code = 0
             finally:
                 os._exit(code)
@@ -172,7 +179,7 @@ class RemoteNode:
             os.waitpid(self.pid, 0)
 
 
-def _serve(node: Node, sock: socket.socket) -> None:
+def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], Any] | None = None) -> None:
     rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
     while True:
         try:
@@ -182,7 +189,7 @@ def _serve(node: Node, sock: socket.socket) -> None:
         if req[0] == "stop":
             return
         published: list[tuple[list[Out], int]] = []
-        publish = _collector(published)
+        publish = _collector(published, prepare)
         try:
             if req[0] == "replay":
                 reply: tuple[Any, ...] = ("ok", replay_encoded(node, req[1], req[2]))
@@ -208,9 +215,11 @@ def replay_encoded(node: Any, inputs: list[tuple[Any, str, bool]], keep: bool) -
     ]
 
 
-def _collector(published: list[tuple[list[Out], int]]) -> Callable[[list[Out], int], None]:
+def _collector(
+    published: list[tuple[list[Out], int]], prepare: Callable[[str, Any, int], Any] | None = None
+) -> Callable[[list[Out], int], None]:
     def publish(outs: list[Out], t: int) -> None:
         if outs:
-            published.append((outs, t))
+            published.append((outs if prepare is None else [(k, prepare(k, m, t)) for k, m in outs], t))
 
     return publish
