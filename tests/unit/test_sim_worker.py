@@ -28,6 +28,32 @@ def test_worker_writes_the_one_process_file(tmp_path: Path) -> None:
     assert files[True] == files[False]
 
 
+def test_worker_outputs_encoded_there_keep_parts_and_filters(tmp_path: Path) -> None:
+    """The worker's outputs come back as bytes with their Foxglove messages: split parts (each
+    registering its channels anew) and a record filter (leaving some of the worker's keys and
+    what derives from them out) give the one-process files."""
+    from hil.record.info import describe
+
+    parts: dict[bool, list[bytes]] = {}
+    for worker in (False, True):
+        rec = tmp_path / f"p{int(worker)}" / "s.mcap"
+        opts = SimOptions(
+            scenario="uav_survey",
+            duration_s=4.0,
+            record=rec,
+            split_s=1.5,
+            record_exclude=["nav/comp1", "health/**"],
+            fusion_worker=worker,
+        )
+        run_sim(opts)
+        parts[worker] = [p.read_bytes() for p in sorted(rec.parent.glob("*.mcap"))]
+    assert len(parts[False]) == 3
+    assert parts[True] == parts[False]
+    summary = describe(str(max((tmp_path / "p1").glob("*.mcap"), key=lambda p: p.stat().st_size)))
+    assert "/nav/ekf15" in summary and "/foxglove/fix/nav/ekf15" in summary
+    assert "/nav/comp1" not in summary and "/foxglove/fix/nav/comp1" not in summary
+
+
 def test_only_the_types_that_derive_foxglove_messages_are_offered(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
