@@ -481,8 +481,13 @@ def cmd_rerun(a: argparse.Namespace) -> int:
         else:
             from hil.record.rerun import rerun
 
+            if a.one_process and a.workers is not None:
+                raise UserError("--one-process and --workers: choose one (the fusion here, or in workers)")
             worker = False if a.one_process else None
-            rc, lines = rerun(a.file, core=a.core, verify=a.verify, on_progress=on_progress, worker=worker)
+            split = None if a.workers is None else a.workers == 2
+            rc, lines = rerun(
+                a.file, core=a.core, verify=a.verify, on_progress=on_progress, worker=worker, split=split
+            )
     print("\n".join(lines))
     return rc
 
@@ -950,6 +955,14 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
         action="store_true",
         help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs, "
         "recomputing while this one reads; the same bits)",
+    )
+    rr.add_argument(
+        "--workers",
+        type=int,
+        choices=(1, 2),
+        default=None,
+        help="fusion workers: 2 share the estimators, each running the GNSS gate's reference too "
+        "(default: 2 on 3+ CPUs for 5+ estimators, else 1; the same bits)",
     )
     rr.set_defaults(func=cmd_rerun)
 

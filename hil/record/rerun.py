@@ -39,7 +39,7 @@ from hil.messages import (
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
-from hil.runners.sim_worker import RemoteNode, Replayed, replay_encoded, worker_pays
+from hil.runners.sim_worker import RemoteNode, Replayed, replay_encoded, worker_pays, worker_possible
 from hil.runtime import jit
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
@@ -126,6 +126,43 @@ RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fra
 # inputs a worker recomputes per message (~10 s of a 400 Hz IMU): while it runs them, this
 # process reads, decodes and orders the next ones and compares the last ones' solutions
 REPLAY_BATCH = 4096
+# two workers share the estimators when each gets at least this many besides the gate's reference,
+# by default on this many CPUs: the shares both run the core's common part and the gate's
+# reference, so on two CPUs (three busy processes) the rerun used 1.45x the CPU for 0.92x the
+# wall (uav_survey 120 s, four alternating pairs against one worker, 2026-12-04)
+SPLIT_MIN_EACH = 2
+SPLIT_MIN_CPUS = 3
+# a scalar Kalman filter's step costs about half a compensation filter's or a feedback INS's
+# (py-spy of ``hil rerun --one-process``, uav_survey): the shares are balanced by these weights
+_LIGHT_ESTIMATORS = ("kfvel",)
+
+
+def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
+    """Two shares of the configuration's estimators for two workers that each run the whole core
+    on every input (the free INS, the output predictor, the reorder buffer: the same in both).
+
+    Each estimator's state depends on the inputs and on the GNSS gate's verdicts only, and a
+    verdict depends on the gate's reference estimator (whose prediction decides for all) or, when
+    it has none, on each estimator's own: so the reference runs in both shares, and each share
+    computes every one of its estimators exactly as one core does. Only with the output predictor
+    (one solution per estimator per output, in the configuration's order; the merge relies on
+    it). None: nothing worth sharing."""
+    if not cfg.output_predictor:
+        return None
+    ref = cfg.gnss_gate_reference
+    shared = ref if ref and ref in cfg.estimators else ""
+    rest = [e for e in cfg.estimators if e != shared]
+    if len(rest) < 2 * SPLIT_MIN_EACH:
+        return None
+    shares: tuple[list[str], list[str]] = ([], [])
+    load = [1, 0]  # the first share also publishes the free INS's solutions
+    for e in sorted(rest, key=lambda e: e in _LIGHT_ESTIMATORS):  # heavier first, else config order
+        i = 0 if load[0] <= load[1] else 1
+        shares[i].append(e)
+        load[i] += 1 if e in _LIGHT_ESTIMATORS else 2
+    order = {name: i for i, name in enumerate(cfg.estimators)}
+    a, b = ([*share, shared] if shared else share for share in shares)
+    return tuple(sorted(a, key=order.__getitem__)), tuple(sorted(b, key=order.__getitem__))
 
 
 @dataclass
@@ -135,6 +172,9 @@ class _FusionRerun:
     window_ns: int | None
     keep_outputs: bool
     worker: bool | None = None  # the fusion in a forked worker; None: when it pays (``_start``)
+    # with a worker: two, the estimators shared between them (``split_estimators``); None: on
+    # SPLIT_MIN_CPUS CPUs, when the configuration has enough to share
+    split: bool | None = None
     run: RunInfo | None = None
     cfg: FusionConfig | None = None
     node: FusionNode | None = None
@@ -156,6 +196,11 @@ class _FusionRerun:
     last_journal_log_ns: int = -1  # log time of the last journal record read
     matcher: Matcher = field(init=False)
     remote: RemoteNode | None = None
+    # with two workers: the second, each one's estimators (``only``), and every solution's place
+    # in one core's output of an input (the free INS, then the configuration's order)
+    remote2: RemoteNode | None = None
+    shares: tuple[frozenset[str], frozenset[str]] | None = None
+    rank: dict[str, int] = field(default_factory=dict)
     batch: list[tuple[Measurement, str, bool]] = field(default_factory=list)  # for the worker
     in_flight: list[tuple[Measurement, str, bool]] | None = None  # the batch the worker runs
 
@@ -192,13 +237,25 @@ class _FusionRerun:
             self._start(FusionNode.for_rerun(self.run, self.cfg))
 
     def _start(self, node: FusionNode) -> None:
-        """The core, here or in a worker (``worker_pays``, as ``hil sim`` decides): the kernels
-        are compiled where it runs, with the same bits."""
+        """The core, here or in a worker (``worker_pays``, as ``hil sim`` decides), or in two
+        that share its estimators: the kernels are compiled where it runs, with the same bits."""
         self.node = node
-        if self.worker if self.worker is not None else worker_pays(node):
-            self.remote = RemoteNode(node, setup=jit.enable)
-        else:
+        if not (self.worker if self.worker is not None else worker_pays(node)):
             jit.enable()
+            return
+        cfg, run = self.cfg, self.run
+        split = self.split if self.split is not None else worker_possible(SPLIT_MIN_CPUS)
+        shares = split_estimators(cfg) if cfg is not None and split else None
+        if shares is None or cfg is None or run is None:
+            self.remote = RemoteNode(node, setup=jit.enable)
+            return
+        from dataclasses import replace
+
+        a, b = shares
+        self.shares = frozenset({FREE_INS, *a}), frozenset(b) - set(a)
+        self.rank = {name: i for i, name in enumerate((FREE_INS, *cfg.estimators))}
+        self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=jit.enable)
+        self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=jit.enable)
 
     def _synced(self, r: Record) -> None:
         m = r.decode()
@@ -282,16 +339,27 @@ class _FusionRerun:
     def _take_in_flight(self) -> None:
         if self.in_flight is not None:
             assert self.remote is not None
-            for (msg, _source, _predicted), sols in zip(self.in_flight, self.remote.replayed(), strict=True):
+            replayed = self.remote.replayed()
+            if self.remote2 is not None:  # each input's solutions in one core's order
+                rank = self.rank.__getitem__
+                replayed = [
+                    sorted(a + b, key=lambda sol: rank(sol[0]))
+                    for a, b in zip(replayed, self.remote2.replayed(), strict=True)
+                ]
+            for (msg, _source, _predicted), sols in zip(self.in_flight, replayed, strict=True):
                 self._compare(msg, sols)
             self.in_flight = None
 
     def _send_batch(self) -> None:
-        """The batch to the worker, once it is done with the one before (compared meanwhile)."""
+        """The batch to the worker(s), once done with the one before (compared meanwhile)."""
         assert self.remote is not None
         self._take_in_flight()
         if self.batch:
-            self.remote.replay(self.batch, self.keep_outputs)
+            if self.remote2 is not None and self.shares is not None:
+                self.remote.replay(self.batch, self.keep_outputs, self.shares[0])
+                self.remote2.replay(self.batch, self.keep_outputs, self.shares[1])
+            else:
+                self.remote.replay(self.batch, self.keep_outputs)
             self.in_flight, self.batch = self.batch, []
 
     def drain(self) -> None:
@@ -301,8 +369,9 @@ class _FusionRerun:
             self._take_in_flight()
 
     def close(self) -> None:
-        if self.remote is not None:
-            self.remote.close()
+        for remote in (self.remote, self.remote2):
+            if remote is not None:
+                remote.close()
 
     def result(self) -> RerunResult:
         m = self.matcher
@@ -355,6 +424,7 @@ def rerun_fusion_records(
     keep_outputs: bool = False,
     name: str = "recording",
     worker: bool | None = None,
+    split: bool | None = None,
 ) -> RerunResult:
     """The fusion rerun over records in file order, holding ``window_ns`` of rig time at most.
 
@@ -372,9 +442,11 @@ def rerun_fusion_records(
     ``worker``: the core in a forked worker (``hil.runners.sim_worker``), fed ``REPLAY_BATCH``
     inputs at a time, while this process reads and orders the next ones and compares the
     solutions back; the same inputs in the same order through the same code, so the same bits.
-    None: when it pays (``_FusionRerun._start``); False: in this process.
+    None: when it pays (``_FusionRerun._start``); False: in this process. ``split``: with a
+    worker, two that share the estimators (``split_estimators``), their solutions merged into
+    one core's order; None: on ``SPLIT_MIN_CPUS`` CPUs, if the configuration has enough to share.
     """
-    state = _FusionRerun(window_ns, keep_outputs, worker)
+    state = _FusionRerun(window_ns, keep_outputs, worker, split)
     try:
         for r in records:
             state.feed(r)
@@ -413,6 +485,7 @@ def rerun_fusion_file(
     window_s: float | None = RERUN_WINDOW_S,
     on_progress: Any = None,
     worker: bool | None = None,
+    split: bool | None = None,
 ) -> tuple[RerunResult, SessionStream, str]:
     """Stream a recording through the fusion rerun; if its order defeats the window, read it whole.
 
@@ -422,10 +495,11 @@ def rerun_fusion_file(
     stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
     window_ns = None if window_s is None else round(window_s * 1e9)
     try:
-        return rerun_fusion_records(stream, window_ns=window_ns, name=str(path), worker=worker), stream, ""
+        res = rerun_fusion_records(stream, window_ns=window_ns, name=str(path), worker=worker, split=split)
+        return res, stream, ""
     except OutOfWindow as why:
         stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
-        res = rerun_fusion_records(stream, window_ns=None, name=str(path), worker=worker)
+        res = rerun_fusion_records(stream, window_ns=None, name=str(path), worker=worker, split=split)
         note = f"{why} (out of order by more than {window_s:g} s): reran with the whole file in memory"
         return res, stream, note
 
@@ -437,6 +511,7 @@ def rerun(
     verify: bool = False,
     on_progress: Any = None,
     worker: bool | None = None,
+    split: bool | None = None,
 ) -> tuple[int, list[str]]:
     """Exit code and report lines for ``hil rerun``.
 
@@ -449,7 +524,7 @@ def rerun(
         return rerun_timesync_report(path, verify, on_progress)
     if core != "fusion":
         return 2, [f"hil rerun: core {core!r} is not rerunnable (fusion, timesync)"]
-    res, stream, note = rerun_fusion_file(path, on_progress=on_progress, worker=worker)
+    res, stream, note = rerun_fusion_file(path, on_progress=on_progress, worker=worker, split=split)
     lines = [
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "
         f"{res.n_recomputed} outputs recomputed, {res.n_recorded} recorded"

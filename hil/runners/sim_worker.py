@@ -66,16 +66,16 @@ def drive(node: Node, now: Sequence[Event], t_end_ns: int, publish: Callable[[li
             return t_tick is not None
 
 
-def worker_possible() -> bool:
-    """A second process is worth it: ``fork`` exists, this process may run on two CPUs, and it
-    is the main thread that asks (a sim embedded in a thread pool -- a campaign's Dask worker --
-    stays in one process: forking beside other threads can inherit their locks held)."""
+def worker_possible(cpus: int = 2) -> bool:
+    """More processes are worth it: ``fork`` exists, this process may run on ``cpus`` CPUs, and
+    it is the main thread that asks (a sim embedded in a thread pool -- a campaign's Dask worker
+    -- stays in one process: forking beside other threads can inherit their locks held)."""
     if not hasattr(os, "fork") or threading.current_thread() is not threading.main_thread():
         return False
     try:
-        return len(os.sched_getaffinity(0)) >= 2
+        return len(os.sched_getaffinity(0)) >= cpus
     except (AttributeError, OSError):
-        return (os.cpu_count() or 1) >= 2
+        return (os.cpu_count() or 1) >= cpus
 
 
 def worker_pays(node: Node) -> bool:
@@ -137,10 +137,13 @@ class RemoteNode:
     def finish_request(self, now: list[tuple[int, str, Any]], t_end_ns: int, t_ns: int) -> None:
         self._send(("finish", now, t_end_ns, t_ns))
 
-    def replay(self, inputs: list[tuple[Any, str, bool]], keep: bool) -> None:
+    def replay(
+        self, inputs: list[tuple[Any, str, bool]], keep: bool, only: frozenset[str] | None = None
+    ) -> None:
         """``hil rerun``: these inputs (message, publisher, predicted) through the node's
-        ``replay`` in this order; ``replayed`` takes their solutions."""
-        self._send(("replay", inputs, keep))
+        ``replay`` in this order; ``replayed`` takes their solutions (``only``: those of these
+        estimators)."""
+        self._send(("replay", inputs, keep, only))
 
     def _reply(self) -> tuple[Any, ...]:
         try:
@@ -192,7 +195,7 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
         publish = _collector(published, prepare)
         try:
             if req[0] == "replay":
-                reply: tuple[Any, ...] = ("ok", replay_encoded(node, req[1], req[2]))
+                reply: tuple[Any, ...] = ("ok", replay_encoded(node, req[1], req[2], req[3]))
             else:
                 busy = drive(node, req[1], req[2], publish)
                 if req[0] == "finish":
@@ -206,11 +209,18 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
             return
 
 
-def replay_encoded(node: Any, inputs: list[tuple[Any, str, bool]], keep: bool) -> list[list[Replayed]]:
+def replay_encoded(
+    node: Any, inputs: list[tuple[Any, str, bool]], keep: bool, only: frozenset[str] | None = None
+) -> list[list[Replayed]]:
     """Inputs through ``node.replay`` (the fusion's, ``hil rerun``) in order: each one's
-    solutions encoded, as the rerun compares them -- in the worker, or inline without one."""
+    solutions encoded, as the rerun compares them -- in the worker, or inline without one.
+    ``only``: the solutions of these estimators (a worker's share of a split rerun)."""
     return [
-        [(s.estimator, s.seq, encode(s), s.stamp_ns, s if keep else None) for s in node.replay(*item)]
+        [
+            (s.estimator, s.seq, encode(s), s.stamp_ns, s if keep else None)
+            for s in node.replay(*item)
+            if only is None or s.estimator in only
+        ]
         for item in inputs
     ]
 

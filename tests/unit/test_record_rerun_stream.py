@@ -169,9 +169,9 @@ def _batches_seen(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     sizes: list[int] = []
     send = RemoteNode.replay
 
-    def replay(self: RemoteNode, inputs: list[Any], keep: bool) -> None:
+    def replay(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None) -> None:
         sizes.append(len(inputs))
-        send(self, inputs, keep)
+        send(self, inputs, keep, only)
 
     monkeypatch.setattr(RemoteNode, "replay", replay)
     monkeypatch.setattr(rerun_module, "REPLAY_BATCH", 100)  # the golden's 4 s: several batches
@@ -182,7 +182,7 @@ def test_the_fusion_in_a_worker_recomputes_what_one_process_does(monkeypatch: py
     records = read_session(GOLDEN).records
     alone = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=False)
     sizes = _batches_seen(monkeypatch)
-    forked = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=True)
+    forked = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=True, split=False)
     assert len(sizes) > 3 and sum(sizes) == forked.inputs_used, sizes
     assert forked.difference is None and alone.difference is None
     assert forked.recomputed == alone.recomputed and len(alone.recomputed) > 1000
@@ -193,9 +193,9 @@ def test_the_fusion_in_a_worker_recomputes_what_one_process_does(monkeypatch: py
         alone.inputs_dropped,
     )
     # streamed, and streamed past a window the order defeats (a second pass, a second worker)
-    res, _s, note = rerun_fusion_file(GOLDEN, window_s=3.75, worker=True)
+    res, _s, note = rerun_fusion_file(GOLDEN, window_s=3.75, worker=True, split=False)
     assert note == "" and res.difference is None and res.n_recomputed == alone.n_recomputed
-    res, _s, note = rerun_fusion_file(GOLDEN, window_s=0.0, worker=True)
+    res, _s, note = rerun_fusion_file(GOLDEN, window_s=0.0, worker=True, split=False)
     assert "reran with the whole file in memory" in note and res.difference is None
 
 
@@ -204,18 +204,81 @@ def test_the_worker_names_the_same_first_difference(tmp_path: Path, monkeypatch:
     _copy(bad, {("/nav/ekf15", 300): {"vel_ned_mps": [0.0] * 3}, ("/nav/ins", 90): {"pos_ned_m": [0.0] * 3}})
     alone, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=False)
     sizes = _batches_seen(monkeypatch)
-    forked, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True)
+    forked, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True, split=False)
     assert sizes and alone.difference is not None
     assert forked.difference == alone.difference and forked.difference.startswith("nav/ins seq 90")
+    shared, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True, split=True)  # two workers
+    assert shared.difference == alone.difference
 
 
 def test_a_worker_that_dies_fails_the_rerun_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
     send = RemoteNode.replay
 
-    def replay_then_die(self: RemoteNode, inputs: list[Any], keep: bool) -> None:
+    def replay_then_die(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None) -> None:
         os.kill(self.pid, signal.SIGKILL)
-        send(self, inputs, keep)
+        send(self, inputs, keep, only)
 
     monkeypatch.setattr(RemoteNode, "replay", replay_then_die)
     with pytest.raises(WorkerError, match="worker process died"):
-        rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True)
+        rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True, split=False)
+    with pytest.raises(WorkerError, match="worker process died"):  # either of two
+        rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True, split=True)
+
+
+def test_two_workers_sharing_the_estimators_recompute_what_one_process_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each worker runs the whole core with its share of the estimators and the GNSS gate's
+    reference (whose verdicts decide for all): merged into one core's order, the same solutions,
+    the same count, every one compared."""
+    records = read_session(GOLDEN).records
+    alone = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=False)
+    shares: list[Any] = []
+    send = RemoteNode.replay
+
+    def replay(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None) -> None:
+        shares.append(only)
+        send(self, inputs, keep, only)
+
+    monkeypatch.setattr(RemoteNode, "replay", replay)
+    monkeypatch.setattr(rerun_module, "REPLAY_BATCH", 100)
+    shared = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=True, split=True)
+    assert shared.difference is None and shared.recomputed == alone.recomputed
+    assert (shared.n_recorded, shared.n_recomputed, shared.inputs_used) == (
+        alone.n_recorded,
+        alone.n_recomputed,
+        alone.inputs_used,
+    )
+    a, b = shares[0], shares[1]
+    assert len(shares) > 6 and set(shares[::2]) == {a} and set(shares[1::2]) == {b}
+    assert a | b == {"ins", "comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15"} and not a & b
+
+
+def test_the_shares_each_hold_the_gate_reference_and_split_the_rest() -> None:
+    from dataclasses import replace
+
+    from hil.fusion.core import FusionConfig
+    from hil.record.rerun import split_estimators
+
+    cfg = FusionConfig(estimators=("comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15"))
+    a, b = split_estimators(cfg) or ((), ())
+    assert "ekf15" in a and "ekf15" in b
+    assert sorted({*a, *b}) == sorted(cfg.estimators) and set(a) & set(b) == {"ekf15"}
+    order = list(cfg.estimators)
+    assert [order.index(e) for e in a] == sorted(order.index(e) for e in a)  # the configuration's order
+    assert [order.index(e) for e in b] == sorted(order.index(e) for e in b)
+    # no reference among the estimators: each decides for itself, nothing is shared
+    a, b = split_estimators(replace(cfg, estimators=("comp1", "comp3f", "compvs", "cf3"))) or ((), ())
+    assert sorted({*a, *b}) == ["cf3", "comp1", "comp3f", "compvs"] and not set(a) & set(b)
+    # too few to share, or the horizon's outputs (not one solution per estimator per output)
+    assert split_estimators(replace(cfg, estimators=("comp1", "cf3", "ekf15"))) is None
+    assert split_estimators(replace(cfg, output_predictor=False)) is None
+
+
+def test_hil_rerun_workers_option() -> None:
+    from tests.conftest import run_hil
+
+    proc = run_hil("rerun", str(GOLDEN), "--verify", "--workers", "2", timeout=300)
+    assert proc.returncode == 0 and "VERIFY OK" in proc.stdout, proc.stdout + proc.stderr
+    proc = run_hil("rerun", str(GOLDEN), "--one-process", "--workers", "2", timeout=120)
+    assert proc.returncode == 2 and "choose one" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
