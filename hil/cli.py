@@ -897,6 +897,28 @@ def _add_up_parser(sub: Any) -> None:
     up.set_defaults(func=cmd_up)
 
 
+def _add_rerun_parser(sub: Any) -> None:
+    rr = sub.add_parser("rerun", help="recompute a core's outputs from a recording's inputs")
+    rr.add_argument("file")
+    rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
+    rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
+    rr.add_argument(
+        "--one-process",
+        action="store_true",
+        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs, "
+        "recomputing while this one reads; the same bits)",
+    )
+    rr.add_argument(
+        "--workers",
+        type=int,
+        choices=(1, 2),
+        default=None,
+        help="fusion workers: 2 share the estimators, each running the GNSS gate's reference too "
+        "(default: 2 on 3+ CPUs for 5+ estimators, else 1; the same bits)",
+    )
+    rr.set_defaults(func=cmd_rerun)
+
+
 def _add_service_parser(sub: Any) -> None:
     svc = sub.add_parser("service", help="run one service alone (what docker compose runs)", add_help=False)
     svc.add_argument("name", nargs="?", help="a service; `hil service NAME --help` lists its flags")
@@ -946,25 +968,7 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     bench.add_argument("name")
     bench.set_defaults(func=cmd_bench, passthrough=True)
 
-    rr = sub.add_parser("rerun", help="recompute a core's outputs from a recording's inputs")
-    rr.add_argument("file")
-    rr.add_argument("--core", choices=["fusion", "timesync"], default="fusion")
-    rr.add_argument("--verify", action="store_true", help="exit 0 only if every output is bit-identical")
-    rr.add_argument(
-        "--one-process",
-        action="store_true",
-        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs, "
-        "recomputing while this one reads; the same bits)",
-    )
-    rr.add_argument(
-        "--workers",
-        type=int,
-        choices=(1, 2),
-        default=None,
-        help="fusion workers: 2 share the estimators, each running the GNSS gate's reference too "
-        "(default: 2 on 3+ CPUs for 5+ estimators, else 1; the same bits)",
-    )
-    rr.set_defaults(func=cmd_rerun)
+    _add_rerun_parser(sub)
 
     camp = sub.add_parser(
         "campaign", add_help=False, help="Monte-Carlo sims and rerun libraries on Dask (docs/campaigns.md)"
