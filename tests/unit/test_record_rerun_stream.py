@@ -281,4 +281,6 @@ def test_hil_rerun_workers_option() -> None:
     proc = run_hil("rerun", str(GOLDEN), "--verify", "--workers", "2", timeout=300)
     assert proc.returncode == 0 and "VERIFY OK" in proc.stdout, proc.stdout + proc.stderr
     proc = run_hil("rerun", str(GOLDEN), "--one-process", "--workers", "2", timeout=120)
-    assert proc.returncode == 2 and "choose one" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and "choose one" in proc.stderr and "Traceback" not in proc.stderr, (
+        proc.stderr
+    )
