@@ -23,6 +23,9 @@ With two CPUs and a fusion of several estimators (most of the CPU), the fusion n
 forked worker one window behind the rest (``hil.runners.sim_worker``): the same node object, the
 same inputs in the same order, its outputs merged into their window before it is written, so the
 file is the one-process file byte for byte (``fusion_worker=False`` / ``--one-process``: one).
+The worker sends each output back as the file takes it (``_Session.prepare``: its bytes and the
+Foxglove messages derived from it), since this process, which runs the rest of the pipeline
+and writes, is the slower of the two.
 """
 
 from __future__ import annotations
