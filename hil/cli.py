@@ -204,6 +204,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         fd=a.fd,
         rt_priority=a.rt_priority,
         cpu_affinity=_cpu_list(a.cpu_affinity),
+        sched_slice_us=a.sched_slice_us,
         late_policy=a.late_policy,
         estimators=[e for e in a.estimators.split(",") if e],
         feedback=a.feedback,
@@ -826,6 +827,13 @@ def _add_up_parser(sub: Any) -> None:
         "--cpu-affinity",
         default="",
         help="CPUs to pin the IMU's frame sender to, e.g. 1 or 0,1 (default: any)",
+    )
+    up.add_argument(
+        "--sched-slice-us",
+        type=bounded_int(0, 100_000),
+        default=100,
+        help="the IMU's frame sender's scheduler time slice at normal priority, µs (Linux 6.12+, "
+        "no privilege needed: it preempts on its tick; default 100, 0: the kernel's; docs/timing.md)",
     )
     up.add_argument(
         "--late-policy",

@@ -60,6 +60,7 @@ def run_live(
     rt_priority: int = 0,
     cpu_affinity: list[int] | None = None,
     fd: bool = False,
+    sched_slice_us: int = 100,
 ) -> LiveRun:
     """``hil up`` for ``duration_s`` with the pacing traced; the recording read back."""
     from hil.bench.capture import restamp_errors
@@ -81,6 +82,7 @@ def run_live(
                     imu_rate_hz=rate_hz,
                     rt_priority=rt_priority,
                     cpu_affinity=list(cpu_affinity or []),
+                    sched_slice_us=sched_slice_us,
                     fd=fd,
                 )
             )
@@ -181,16 +183,38 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--rt-priorities", default="0", help="SCHED_FIFO priorities of the sender, one run each (0: none)"
     )
+    ap.add_argument(
+        "--slices",
+        default="100",
+        help="the sender's scheduler time slices at normal priority (µs; 0: the kernel's), one run each",
+    )
+    ap.add_argument("--repeat", type=int, default=1, help="rounds of every run (alternating)")
+    ap.add_argument("--section", default="pacing", help="the docs/benchmarks.md section to write")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     rows, syncs, ready_lines = [], [], []
-    runs = [(int(r), int(p)) for p in a.rt_priorities.split(",") if p for r in a.rates.split(",") if r]
-    for rate, prio in runs:
-        run = run_live(a.duration, a.scenario, rate, prio)
+    try:
+        slices = [int(x) for x in a.slices.split(",") if x]
+        runs = [
+            (int(r), int(p), sl)
+            for _round in range(max(1, a.repeat))
+            for p in a.rt_priorities.split(",")
+            if p
+            for r in a.rates.split(",")
+            if r
+            for sl in (slices if not int(p) else [0])  # a real-time sender has no slice
+        ]
+    except ValueError as err:
+        print(f"hil bench pacing: --rates, --rt-priorities and --slices take integers: {err}")
+        return 2
+    for rate, prio, sl in runs:
+        run = run_live(a.duration, a.scenario, rate, prio, sched_slice_us=sl)
         if run.rc != 0:
             print("\n".join(run.failures))
             return run.rc
-        label = f"{rate} Hz, " + (f"SCHED_FIFO {prio}" if prio else "normal priority")
+        label = f"{rate} Hz, " + (
+            f"SCHED_FIFO {prio}" if prio else f"normal priority, slice {sl} µs" if sl else "normal priority"
+        )
         rows.append(describe(run, label))
         syncs.append({"run": label, **sync_row(run)})
         ready = ", ".join(f"{n} {s:.2f}" for n, s in sorted(run.ready_s.items(), key=lambda kv: -kv[1]))
@@ -204,7 +228,9 @@ def main(argv: list[str]) -> int:
             "frame's bit time at 1 Mbit/s + the controller latency), "
             "`CLOCK_MONOTONIC` on the host. 'bursts' = samples handed over less than half a period "
             "after the previous one. Load = the 1-minute load average just before the run (the "
-            "rig's own processes and whatever else ran on the machine).",
+            "rig's own processes and whatever else ran on the machine). 'slice' = the pacing "
+            "process's scheduler time slice at normal priority (`--sched-slice-us`, "
+            "`hil.runners.pacing.short_slice`; without it, the kernel's default).",
             "",
             md_table(rows),
             "",
@@ -221,5 +247,5 @@ def main(argv: list[str]) -> int:
     )
     print(body)
     if not a.no_write:
-        write_section("pacing", body, command_line())
+        write_section(a.section, body, command_line())
     return 0

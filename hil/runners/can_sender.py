@@ -46,6 +46,7 @@ from hil.runners.pacing import (
     cpu_affinity,
     fine_timer_slack,
     realtime_priority,
+    short_slice,
 )
 
 READY_TIMEOUT_S = 30.0
@@ -181,6 +182,7 @@ class _Child:
             for n in (
                 fine_timer_slack(),
                 realtime_priority(self.pacing.rt_priority),
+                short_slice(self.pacing.sched_slice_us),
                 cpu_affinity(self.pacing.cpu_affinity),
             )
             if n

@@ -224,6 +224,7 @@ class NodeService(Service):
             late_policy=o.late_policy,
             rt_priority=int(o.rt_priority),
             cpu_affinity=tuple(o.cpu_affinity),
+            sched_slice_us=int(o.sched_slice_us),
             bitrate=int(o.bitrate),
             data_bitrate=int(o.data_bitrate),
         )
@@ -403,6 +404,7 @@ class NodeService(Service):
             "origin": "runner",  # not the node's: how the live runner paces its frames
             "rt_priority": o.rt_priority,
             "cpu_affinity": list(o.cpu_affinity),
+            "sched_slice_us": o.sched_slice_us,
             "late_policy": o.late_policy,
             "lookahead_s": o.lookahead_s,
             "compute_batch_ms": batch / 1e6,

@@ -115,6 +115,7 @@ class UpOptions:
     # thread, and what a sample whose tick the host missed does
     rt_priority: int = 0
     cpu_affinity: list[int] = field(default_factory=list)
+    sched_slice_us: int = 100  # its time slice at normal priority (hil.runners.pacing.short_slice)
     late_policy: str = "send"
     estimators: list[str] = field(default_factory=list)
     feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
