@@ -167,15 +167,15 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
     return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
 
 
-def _cpu_list(text: str) -> list[int]:
+def _cpu_list(text: str, flag: str = "--cpu-affinity") -> list[int]:
     """``--cpu-affinity 0,1`` -> [0, 1]; a bad list is one line."""
     try:
         cpus = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise UserError(f"--cpu-affinity {text!r}: give CPU numbers, e.g. 1 or 0,1") from None
+        raise UserError(f"{flag} {text!r}: give CPU numbers, e.g. 1 or 0,1") from None
     bad = [c for c in cpus if not 0 <= c < (os.cpu_count() or 1)]
     if bad:
-        raise UserError(f"--cpu-affinity {text!r}: this machine has CPUs 0..{(os.cpu_count() or 1) - 1}")
+        raise UserError(f"{flag} {text!r}: this machine has CPUs 0..{(os.cpu_count() or 1) - 1}")
     return cpus
 
 
@@ -205,6 +205,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         rt_priority=a.rt_priority,
         cpu_affinity=_cpu_list(a.cpu_affinity),
         sched_slice_us=a.sched_slice_us,
+        rig_cpus=_cpu_list(a.rig_cpus, "--rig-cpus"),
         late_policy=a.late_policy,
         estimators=[e for e in a.estimators.split(",") if e],
         feedback=a.feedback,
@@ -396,6 +397,11 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     # threads would only compete with the rig's other processes, and starting them costs ~40 ms
     # of CPU at numpy's import, before the service can say ready. Set it to use more.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from hil.runners.pacing import rig_cpus_from_env
+
+    note = rig_cpus_from_env()  # hil up --rig-cpus: before any thread starts, so all inherit it
+    if note:
+        print(f"hil service {a.name}: {note}", file=sys.stderr)
     use_rig_runtime()  # also when compose starts it: before its first Zenoh session
     mod = service_module(a.name)
     if a.help:
@@ -827,6 +833,12 @@ def _add_up_parser(sub: Any) -> None:
         "--cpu-affinity",
         default="",
         help="CPUs to pin the IMU's frame sender to, e.g. 1 or 0,1 (default: any)",
+    )
+    up.add_argument(
+        "--rig-cpus",
+        default="",
+        help="CPUs for every process of the rig but the IMU's frame sender, e.g. 0 (default: any); "
+        "with --cpu-affinity on another, the sender has a CPU of its own (docs/timing.md)",
     )
     up.add_argument(
         "--sched-slice-us",

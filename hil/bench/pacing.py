@@ -61,6 +61,7 @@ def run_live(
     cpu_affinity: list[int] | None = None,
     fd: bool = False,
     sched_slice_us: int = 100,
+    rig_cpus: list[int] | None = None,
 ) -> LiveRun:
     """``hil up`` for ``duration_s`` with the pacing traced; the recording read back."""
     from hil.bench.capture import restamp_errors
@@ -83,6 +84,7 @@ def run_live(
                     rt_priority=rt_priority,
                     cpu_affinity=list(cpu_affinity or []),
                     sched_slice_us=sched_slice_us,
+                    rig_cpus=list(rig_cpus or []),
                     fd=fd,
                 )
             )
@@ -188,6 +190,8 @@ def main(argv: list[str]) -> int:
         default="100",
         help="the sender's scheduler time slices at normal priority (µs; 0: the kernel's), one run each",
     )
+    ap.add_argument("--cpu-affinity", default="", help="CPUs of the sender (hil up --cpu-affinity)")
+    ap.add_argument("--rig-cpus", default="", help="CPUs of the rest of the rig (hil up --rig-cpus)")
     ap.add_argument("--repeat", type=int, default=1, help="rounds of every run (alternating)")
     ap.add_argument("--section", default="pacing", help="the docs/benchmarks.md section to write")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
@@ -195,6 +199,8 @@ def main(argv: list[str]) -> int:
     rows, syncs, ready_lines = [], [], []
     try:
         slices = [int(x) for x in a.slices.split(",") if x]
+        sender_cpus = [int(x) for x in a.cpu_affinity.split(",") if x]
+        rig_cpus = [int(x) for x in a.rig_cpus.split(",") if x]
         runs = [
             (int(r), int(p), sl)
             for _round in range(max(1, a.repeat))
@@ -205,10 +211,10 @@ def main(argv: list[str]) -> int:
             for sl in (slices if not int(p) else [0])  # a real-time sender has no slice
         ]
     except ValueError as err:
-        print(f"hil bench pacing: --rates, --rt-priorities and --slices take integers: {err}")
+        print(f"hil bench pacing: --rates, --rt-priorities, --slices and the CPU lists take integers: {err}")
         return 2
     for rate, prio, sl in runs:
-        run = run_live(a.duration, a.scenario, rate, prio, sched_slice_us=sl)
+        run = run_live(a.duration, a.scenario, rate, prio, sender_cpus, sched_slice_us=sl, rig_cpus=rig_cpus)
         if run.rc != 0:
             print("\n".join(run.failures))
             return run.rc
@@ -230,7 +236,9 @@ def main(argv: list[str]) -> int:
             "after the previous one. Load = the 1-minute load average just before the run (the "
             "rig's own processes and whatever else ran on the machine). 'slice' = the pacing "
             "process's scheduler time slice at normal priority (`--sched-slice-us`, "
-            "`hil.runners.pacing.short_slice`; without it, the kernel's default).",
+            "`hil.runners.pacing.short_slice`; without it, the kernel's default)."
+            + (f" The sender on CPU(s) {a.cpu_affinity}." if sender_cpus else "")
+            + (f" The rest of the rig, the hub included, on CPU(s) {a.rig_cpus}." if rig_cpus else ""),
             "",
             md_table(rows),
             "",

@@ -69,6 +69,8 @@ def _measure_rig(
                 imu_rate_hz=a.imu_rate,
                 input_batch_ms=batch_ms,
                 can_batch_ms=a.can_batch_ms,
+                cpu_affinity=a.cpu_list,
+                rig_cpus=a.rig_cpu_list,
                 live=False,
                 log_dir=Path(d) / "logs",
             )
@@ -347,11 +349,20 @@ def main(argv: list[str]) -> int:
         default=1,
         help="rounds of the windows, or of the rigs with --versus, alternating",
     )
+    ap.add_argument("--cpu-affinity", default="", help="CPUs of the IMU's frame sender (as hil up's)")
+    ap.add_argument("--rig-cpus", default="", help="CPUs of the rest of the rig (hil up --rig-cpus)")
     ap.add_argument("--section", default=None, help="the docs/benchmarks.md section to write")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     a = ap.parse_args(argv)
     if a.rigs < 1 or a.rigs > 8:
         ap.error(f"--rigs {a.rigs}: use 1 to 8")
+    try:
+        a.cpu_list = [int(x) for x in a.cpu_affinity.split(",") if x.strip()]
+        a.rig_cpu_list = [int(x) for x in a.rig_cpus.split(",") if x.strip()]
+    except ValueError:
+        ap.error("--cpu-affinity and --rig-cpus take CPU numbers, e.g. 1 or 0,1")
+    if (a.cpu_list or a.rig_cpu_list) and (a.rigs != 1 or a.versus):
+        ap.error("--cpu-affinity and --rig-cpus place one rig of this tree: not with --rigs or --versus")
     try:
         windows = [float(x) for x in a.input_batch_ms.split(",") if x.strip()]
     except ValueError:
@@ -367,6 +378,13 @@ def main(argv: list[str]) -> int:
         rc, lines = _batch_windows(a, windows)
     elif a.rigs == 1 and not a.versus:
         rc, lines = _one_rig(a, a.rig, windows[0])
+        if a.cpu_list or a.rig_cpu_list:
+            lines = [
+                f"The IMU's frame sender on CPU(s) {a.cpu_affinity or 'any'}, the rest of the rig "
+                f"(the hub included) on CPU(s) {a.rig_cpus or 'any'} (`hil up --cpu-affinity --rig-cpus`).",
+                "",
+                *lines,
+            ]
     else:
         runs: list[tuple[str, str | None]] = [(chr(97 + i), None) for i in range(a.rigs)]
         if a.versus:

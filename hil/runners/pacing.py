@@ -51,6 +51,7 @@ recording of ``hil sim`` is the same bit for bit.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import math
 import os
@@ -145,6 +146,49 @@ def short_slice(slice_us: int) -> str | None:
     except (OSError, AttributeError) as err:
         return f"sched_setattr unavailable: {err}{default}"
     return None
+
+
+RIG_CPUS_ENV = "HIL_CPUS"  # hil up --rig-cpus: the CPUs of every rig process but the frame sender
+
+
+def rig_cpus_from_env(env: dict[str, str] | None = None) -> str | None:
+    """This process on the CPUs ``HIL_CPUS`` names ("0" or "0,2"; unset: left alone), before it
+    starts a thread (threads and children inherit it); None, or why not."""
+    text = (os.environ if env is None else env).get(RIG_CPUS_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        cpus = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        return f"{RIG_CPUS_ENV}={text!r} is not a list of CPU numbers; running on any CPU"
+    return cpu_affinity(cpus)
+
+
+def pin_process(cpus: Sequence[int]) -> tuple[set[int] | None, str | None]:
+    """Every thread of this process on ``cpus`` (those that start later inherit it): the mask
+    to restore (None: nothing changed), and None or why not. For ``hil up``'s own process, whose
+    hub routes the rig's messages on Zenoh's threads (there already when it runs in a bench)."""
+    if not cpus:
+        return None, None
+    try:
+        old = os.sched_getaffinity(0)
+        tids = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
+        for tid in tids:
+            with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+                os.sched_setaffinity(tid, set(cpus))
+    except (OSError, AttributeError) as err:
+        return None, f"rig_cpus {list(cpus)} not applied ({err}); running on any CPU"
+    return old, None
+
+
+def unpin_process(mask: set[int] | None) -> None:
+    """Undo :func:`pin_process` for every thread still running."""
+    if mask is None:
+        return
+    with contextlib.suppress(OSError):
+        for tid in [int(t) for t in os.listdir("/proc/self/task")]:
+            with contextlib.suppress(ProcessLookupError):
+                os.sched_setaffinity(tid, mask)
 
 
 def cpu_affinity(cpus: Sequence[int]) -> str | None:

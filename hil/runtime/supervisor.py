@@ -32,6 +32,7 @@ from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session, use_rig_runtime
 from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
+from hil.runners.pacing import RIG_CPUS_ENV, pin_process, unpin_process
 from hil.runtime.clock import RigClock
 from hil.runtime.options import fill_options
 from hil.runtime.registry import SERVICES, STOP_STAGES
@@ -116,6 +117,9 @@ class UpOptions:
     rt_priority: int = 0
     cpu_affinity: list[int] = field(default_factory=list)
     sched_slice_us: int = 100  # its time slice at normal priority (hil.runners.pacing.short_slice)
+    # the CPUs of every other process of the rig, the hub included (empty: any); with the
+    # sender's cpu_affinity elsewhere, the sender has a CPU of its own
+    rig_cpus: list[int] = field(default_factory=list)
     late_policy: str = "send"
     estimators: list[str] = field(default_factory=list)
     feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
@@ -506,6 +510,8 @@ class Supervisor:
         env[ZENOH_ID_ENV] = rig_zid(self.rig_key)
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
+        if self.opts.rig_cpus:  # each service takes it first thing (``hil service``)
+            env[RIG_CPUS_ENV] = ",".join(str(c) for c in self.opts.rig_cpus)
         env.setdefault("PYTHONUNBUFFERED", "1")
         return env
 
@@ -578,9 +584,14 @@ class Supervisor:
         hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
         if self.access is not None:
             self.access.write()  # before the hub opens: it reads the dictionary from there
+        # --rig-cpus: the hub's threads too (they route every message), restored at the end
+        mask, note = pin_process(o.rig_cpus)
+        if note:
+            print(f"hil up: {note}", file=sys.stderr)
         try:
             session = open_session(hub_cfg)
         except BaseException:
+            unpin_process(mask)
             if self.access is not None:
                 self.access.remove()
             raise
@@ -620,6 +631,7 @@ class Supervisor:
                 sub.undeclare()
             self._event_pub = None
             session.close()
+            unpin_process(mask)
             if self.access is not None:
                 self.access.remove()
         return 1 if self.failures else 0

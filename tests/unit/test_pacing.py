@@ -258,3 +258,102 @@ def test_the_slice_option_reaches_the_emulator_from_hil_up() -> None:
     assert fill_options("imu_emulator", UpOptions(sched_slice_us=0))["sched_slice_us"] == 0
     with pytest.raises(SystemExit):
         build_parser().parse_args(["up", "--sched-slice-us", "-1"])
+
+
+def test_a_service_takes_the_rigs_cpus_from_its_environment_or_says_why_not() -> None:
+    """``HIL_CPUS`` (``hil up --rig-cpus``) pins the thread that reads it -- first thing in
+    ``hil service``, so every thread after inherits it. In a thread of its own here."""
+    import os
+    import threading
+
+    from hil.runners.pacing import rig_cpus_from_env
+
+    got: dict[str, Any] = {}
+
+    def probe() -> None:
+        got["note"] = rig_cpus_from_env({"HIL_CPUS": "0"})
+        got["cpus"] = os.sched_getaffinity(0)
+        got["bad"] = rig_cpus_from_env({"HIL_CPUS": "zero"})
+        got["unset"] = rig_cpus_from_env({})
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join(10)
+    assert got["note"] is None and got["cpus"] == {0}, got
+    assert "HIL_CPUS" in got["bad"] and got["unset"] is None, got
+
+
+_PIN = """
+import json, os, threading, time
+from hil.runners.pacing import pin_process, unpin_process
+stop = threading.Event()
+t = threading.Thread(target=stop.wait); t.start()  # a thread that was there before
+before = os.sched_getaffinity(0)
+mask, note = pin_process([0])
+pinned = sorted({tuple(sorted(os.sched_getaffinity(int(x)))) for x in os.listdir("/proc/self/task")})
+late = []
+t2 = threading.Thread(target=lambda: late.append(sorted(os.sched_getaffinity(0)))); t2.start(); t2.join()
+unpin_process(mask)
+after = sorted({tuple(sorted(os.sched_getaffinity(int(x)))) for x in os.listdir("/proc/self/task")})
+stop.set(); t.join()
+print(json.dumps({"note": note, "pinned": pinned, "late": late, "after": after, "before": sorted(before)}))
+"""
+
+
+def test_hil_ups_own_threads_go_to_the_rigs_cpus_and_come_back() -> None:
+    """The supervisor's hub routes on Zenoh's threads, which may exist before it runs (a bench):
+    every thread is moved, one started later inherits it, and all are put back at the end."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    out = subprocess.run([sys.executable, "-c", _PIN], cwd=REPO, capture_output=True, text=True, timeout=60)
+    res = json.loads(out.stdout)
+    assert res["note"] is None and res["pinned"] == [[0]] and res["late"] == [[0]], res
+    assert res["after"] == [res["before"]], res
+
+
+def test_hil_up_refuses_cpus_this_machine_lacks() -> None:
+    from tests.conftest import run_hil
+
+    proc = run_hil("up", "--rig-cpus", "4096", "--duration", "1", timeout=60)
+    assert proc.returncode == 2 and "--rig-cpus" in proc.stderr and "Traceback" not in proc.stderr, (
+        proc.stderr
+    )
+
+
+_UP_CPUS = """
+import json, sys
+from hil.runtime import supervisor
+seen = {}
+def run(self):
+    seen["env"] = self._child_env().get("HIL_CPUS")
+    seen["slice"] = self.options_for("imu_emulator").get("sched_slice_us")
+    seen["sender"] = self.options_for("imu_emulator").get("cpu_affinity")
+    return 0
+supervisor.Supervisor.run = run
+from hil.cli import main
+main(["up", "--quiet", "--duration", "1", "--record", sys.argv[1], "--rig", "cpus", "--rig-cpus", "0",
+      "--cpu-affinity", "1", "--sched-slice-us", "250"])
+print(json.dumps(seen))
+"""
+
+
+def test_hil_up_hands_its_services_the_rigs_cpus_and_the_sender_its_own(tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    out = subprocess.run(
+        [sys.executable, "-c", _UP_CPUS, str(tmp_path / "x.mcap")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    assert seen == {"env": "0", "slice": 250, "sender": [1]}, out.stdout + out.stderr
