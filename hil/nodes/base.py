@@ -85,8 +85,8 @@ class CanWriterOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fi
     cpu_affinity: list[Annotated[int, msgspec.Meta(ge=0)]] = []  # CPUs of the sending thread (empty: any)
     # the sending thread's scheduler time slice at normal priority, µs (Linux 6.12+ EEVDF, any
     # user): woken on a sample's tick it preempts what runs instead of waiting for that one's
-    # slice to end (hil.runners.pacing.short_slice; 400 Hz here: samples over 200 µs late 624 and
-    # 479 -> 142 and 134 of 6400). 0: the kernel's default
+    # slice to end (hil.runners.pacing.short_slice; 400 Hz here, docs/benchmarks.md pacing-slice:
+    # samples over 200 µs late 516-1223 -> 124-336 of 8000). 0: the kernel's default
     sched_slice_us: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 100
     # a sample whose tick the host missed: "send" it late (a FIFO, at wire speed) or "skip" its slot
     late_policy: Literal["send", "skip"] = "send"

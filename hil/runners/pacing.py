@@ -38,6 +38,10 @@ bit time after another, starting on the sample's tick. The live runner reproduce
   instant it does leave (the codec's ``restamp_sync`` with ``CanBurst.device_clock``), and
   if the sender then misses that instant by more than ``SYNC_CLAIM_TOL_NS`` the frame is not
   sent (``tx_sync_dropped``): a wrong tag is worse than none;
+- **a short scheduler time slice** at normal priority (``sched_slice_us``, 100 µs by default,
+  ``short_slice``: Linux 6.12+, any user), so the sender preempts the running task on its tick;
+  and the rest of the rig kept off the sender's CPU where asked (``hil up --rig-cpus``,
+  ``rig_cpus_from_env``, ``pin_process``: pinning one's own processes needs no privilege);
 - **optional real-time priority and CPU affinity** for the sender process
   (``rt_priority``: ``SCHED_FIFO`` at that priority; ``cpu_affinity``: CPUs to pin it to): used
   where the OS permits (root or ``CAP_SYS_NICE``), otherwise one status line says why not and
