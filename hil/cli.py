@@ -265,6 +265,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: {sup.ready_cpu_line()}")
     if sup.cpu_table():
         print(sup.cpu_table())
+    if sup.pacing_line():
+        print(f"hil up: {sup.pacing_line()}")
     for line in sup.restart_log:
         print(f"hil up: restart: {line}")
     for f in sup.failures:

@@ -837,6 +837,26 @@ class Supervisor:
         parts = ", ".join(f"{n} {s:.2f}" for n, s in sorted(r.items(), key=lambda kv: -kv[1]))
         return f"ready after start (s): {parts}"
 
+    def pacing_line(self, min_late_share: float = 0.01) -> str:
+        """How many IMU samples the frame sender handed over more than 200 µs late (its last
+        status), with the placement that gives it a CPU of its own when enough were and the
+        machine has CPUs to spare ("" when on time, or nothing was counted)."""
+        emu, bridge = self.view.status.get("imu_emulator"), self.view.status.get("can_bridge")
+        if emu is None or bridge is None:
+            return ""
+        c = emu.counter_map()
+        late, worst_us = c.get("tx_late_samples"), c.get("tx_late_max_us", 0)
+        n = bridge.counter_map().get("can.samples", 0)
+        if late is None or n <= 0:
+            return ""
+        line = f"IMU frames: {late} of {n} samples handed to the bus more than 200 µs late"
+        line += f" (worst {worst_us / 1e3:.1f} ms)"
+        o = self.opts
+        spare = (os.cpu_count() or 1) >= 2 and not o.rig_cpus and not o.cpu_affinity and not o.rt_priority
+        if late > min_late_share * n and spare:
+            line += "; --cpu-affinity 1 --rig-cpus 0 gives the sender a CPU of its own (docs/timing.md)"
+        return line
+
     def cpu_table(self) -> str:
         if not self.cpu_s or self.cpu_window_s <= 0:
             return ""

@@ -5,6 +5,7 @@ speed, and a late time tag states when it left."""
 from __future__ import annotations
 
 import itertools
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -357,3 +358,29 @@ def test_hil_up_hands_its_services_the_rigs_cpus_and_the_sender_its_own(tmp_path
     )
     seen = json.loads(out.stdout.strip().splitlines()[-1])
     assert seen == {"env": "0", "slice": 250, "sender": [1]}, out.stdout + out.stderr
+
+
+def test_hil_up_says_how_many_samples_left_late_and_what_would_help() -> None:
+    from hil.messages import ServiceStatus, counts
+    from hil.runtime.supervisor import Supervisor, UpOptions
+
+    def status(name: str, c: dict[str, int]) -> ServiceStatus:
+        return ServiceStatus(
+            seq=0, stamp_ns=0, service=name, state="running", pid=1, uptime_s=1.0, counters=counts(c)
+        )
+
+    sup = Supervisor(UpOptions(live=False))
+    assert sup.pacing_line() == ""  # nothing counted yet
+    sup.view.status["can_bridge"] = status("can_bridge", {"can.samples": 8000})
+    sup.view.status["imu_emulator"] = status("imu_emulator", {"tx_late_samples": 536, "tx_late_max_us": 7448})
+    line = sup.pacing_line()
+    assert line.startswith("IMU frames: 536 of 8000 samples") and "7.4 ms" in line
+    assert ("--rig-cpus 0" in line) == ((os.cpu_count() or 1) >= 2)
+    sup.view.status["imu_emulator"] = status("imu_emulator", {"tx_late_samples": 20, "tx_late_max_us": 900})
+    assert "--rig-cpus" not in sup.pacing_line()  # on time: no advice
+    placed = Supervisor(UpOptions(live=False, rig_cpus=[0], cpu_affinity=[1]))
+    placed.view.status.update(sup.view.status)
+    placed.view.status["imu_emulator"] = status(
+        "imu_emulator", {"tx_late_samples": 536, "tx_late_max_us": 7448}
+    )
+    assert "--rig-cpus" not in placed.pacing_line()  # already placed: the figure alone
