@@ -169,8 +169,10 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
 
 def _cpu_list(text: str, flag: str = "--cpu-affinity") -> list[int]:
     """``--cpu-affinity 0,1`` -> [0, 1]; a bad list is one line."""
+    from hil.runners.pacing import parse_cpus
+
     try:
-        cpus = [int(x) for x in text.split(",") if x.strip()]
+        cpus = parse_cpus(text)
     except ValueError:
         raise UserError(f"{flag} {text!r}: give CPU numbers, e.g. 1 or 0,1") from None
     bad = [c for c in cpus if not 0 <= c < (os.cpu_count() or 1)]

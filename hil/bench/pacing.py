@@ -30,7 +30,7 @@ import numpy as np
 
 from hil.bench import command_line, write_section
 from hil.record.mcapio import read_session
-from hil.runners.pacing import TRACE_COLUMNS
+from hil.runners.pacing import TRACE_COLUMNS, parse_cpus
 from hil.runtime.supervisor import Supervisor, UpOptions
 
 RIG = "benchpace"
@@ -199,8 +199,7 @@ def main(argv: list[str]) -> int:
     rows, syncs, ready_lines = [], [], []
     try:
         slices = [int(x) for x in a.slices.split(",") if x]
-        sender_cpus = [int(x) for x in a.cpu_affinity.split(",") if x]
-        rig_cpus = [int(x) for x in a.rig_cpus.split(",") if x]
+        sender_cpus, rig_cpus = parse_cpus(a.cpu_affinity), parse_cpus(a.rig_cpus)
         runs = [
             (int(r), int(p), sl)
             for _round in range(max(1, a.repeat))

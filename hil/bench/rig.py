@@ -23,6 +23,7 @@ from hil.bench import command_line, tree_revision, write_section
 from hil.bench.horizon import STARTUP_S  # the IMU is held until time sync locks (~3 s), then late
 from hil.record.info import channel_infos
 from hil.record.mcapio import read_session
+from hil.runners.pacing import parse_cpus
 from hil.runtime.argtypes import OneLineParser, bounded_float, duration_s
 from hil.runtime.supervisor import Supervisor, UpOptions
 
@@ -357,8 +358,7 @@ def main(argv: list[str]) -> int:
     if a.rigs < 1 or a.rigs > 8:
         ap.error(f"--rigs {a.rigs}: use 1 to 8")
     try:
-        a.cpu_list = [int(x) for x in a.cpu_affinity.split(",") if x.strip()]
-        a.rig_cpu_list = [int(x) for x in a.rig_cpus.split(",") if x.strip()]
+        a.cpu_list, a.rig_cpu_list = parse_cpus(a.cpu_affinity), parse_cpus(a.rig_cpus)
     except ValueError:
         ap.error("--cpu-affinity and --rig-cpus take CPU numbers, e.g. 1 or 0,1")
     if (a.cpu_list or a.rig_cpu_list) and (a.rigs != 1 or a.versus):

@@ -52,6 +52,21 @@ _NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 SENSOR_TYPES: dict[str, type[Message]] = {name: kind.message for name, kind in SENSORS.items()}
 
 
+# keys whose messages ready together may travel as one sample, a JSON array (a batch:
+# ``hil.bus.pubsub.Publisher.put_many``, ``hil.messages.split_batch``): every key of these kinds
+# (the raw CAN frames, ``can/<channel>``, four per IMU sample) and these keys (the samples of a
+# CAN read window, their synchronised copies, the emulator's capture truth of a compute batch).
+# Not the solutions (``nav``) nor the GNSS fixes: one per sample, as a client expects of a
+# low-rate stream. Keys relative to ``hil/<rig>/``; docs/topics.md says it from here.
+BATCHED_KINDS = frozenset({"can"})
+BATCHED_KEYS = frozenset({"sensor/imu", "synced/imu", "capture/imu"})
+
+
+def may_batch(key: str) -> bool:
+    """Whether messages of ``key`` (relative to ``hil/<rig>/``) may travel as a batch."""
+    return key in BATCHED_KEYS or key.split("/", 1)[0] in BATCHED_KINDS
+
+
 def check_name(what: str, name: str) -> str:
     """Reject names that would break key expressions (``*``, ``/``, ``$``, empty)."""
     if not _NAME.match(name):

@@ -423,7 +423,7 @@ class SessionWriter:
         self._channels: dict[tuple[str, str], int] = {}
         self._publishers_per_topic: dict[str, int] = {}
         self._raw_channels: dict[tuple[str, str], int] = {}
-        self.counts: dict[str, int] = {}
+        self._wellknown_seq: dict[str, int] = {}  # each Foxglove topic's message count: its sequence
         self.closed = False
 
     def _channel(self, topic: str, cls: type[Message], publisher: str | None, origin: str) -> int:
@@ -463,7 +463,6 @@ class SessionWriter:
         go into the channel's metadata, one channel per topic and publisher."""
         chan = self._channel(topic, cls, publisher, origin)
         self._add_message(chan, _u64(log_time_ns), payload, _u64(publish_time_ns), seq & 0xFFFFFFFF)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def bind(
         self, topic: str, cls: type[Message], publisher: str | None = None, origin: str = ""
@@ -474,8 +473,6 @@ class SessionWriter:
         per-message lookups are done once. ``hil sim`` writes ~3300 messages a rig second."""
         chan = self._channel(topic, cls, publisher, origin)
         add = self._add_message
-        counts = self.counts
-        counts.setdefault(topic, 0)
 
         def put(payload: bytes, log_time_ns: int, publish_time_ns: int, seq: int) -> None:
             add(
@@ -485,7 +482,6 @@ class SessionWriter:
                 publish_time_ns if 0 <= publish_time_ns <= _U64_MAX else _u64(publish_time_ns),
                 seq & 0xFFFFFFFF,
             )
-            counts[topic] += 1
 
         return put
 
@@ -503,9 +499,9 @@ class SessionWriter:
                     schema.name, schema.encoding, schema.data
                 )
             chan = self._channels[d.topic] = self._writer.register_channel(d.topic, MESSAGE_ENCODING, sid)
-        n = self.counts.get(d.topic, 0)
+        n = self._wellknown_seq.get(d.topic, 0)
         self._add_message(chan, _u64(log_time_ns), d.data, _u64(d.stamp_ns), n & 0xFFFFFFFF)
-        self.counts[d.topic] = n + 1
+        self._wellknown_seq[d.topic] = n + 1
 
     def write_raw(
         self, topic: str, payload: bytes, *, log_time_ns: int, encoding: str, sequence: int
@@ -524,7 +520,6 @@ class SessionWriter:
                 topic, msg_encoding, 0, {"hil": RAW, "zenoh_encoding": encoding}
             )
         self._add_message(chan, _u64(log_time_ns), payload, _u64(log_time_ns), sequence)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def add_metadata(self, name: str, data: dict[str, Any]) -> None:
         """Metadata values must be strings in MCAP: non-strings are stored as JSON."""

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.bus import keys as keys_mod
+from hil.messages import MAX_BATCH
 from hil.schemas_io import SCHEMAS_DIR
 
 DOC_PATH = Path(__file__).resolve().parents[2] / "docs" / "topics.md"
@@ -71,6 +72,13 @@ with zenoh.open(conf) as session:
 """
 
 
+def _batched_keys() -> str:
+    """The keys that may carry a batch, as the bus says it (``hil.bus.keys``)."""
+    names = [f"`{k}/<channel>`" if k == "can" else f"`{k}/*`" for k in sorted(keys_mod.BATCHED_KINDS)]
+    names += [f"`{k}`" for k in sorted(keys_mod.BATCHED_KEYS)]
+    return ", ".join(names[:-1]) + " and " + names[-1]
+
+
 def _discovery() -> list[str]:
     return [
         "## Discover a rig's topics (no hil code needed)",
@@ -80,12 +88,13 @@ def _discovery() -> list[str]:
         "- every sample's Zenoh encoding names its type: `application/json;hil.NavSolution` (the",
         "  schema below with that title; the CAN transport `hilcan/<rig>/<channel>` carries",
         "  `application/octet-stream;hilzenoh.frame`, `hil/can/zenoh_bus.py`);",
-        "- a sample's payload is one message (a JSON object), or on `can/<channel>`, `sensor/imu`,",
-        "  `synced/imu` and `capture/imu` possibly a batch: a JSON array of up to 64 messages of",
-        "  the key's type that were ready together (a CAN read window's raw frames and IMU samples,",
-        "  `hil up --can-batch-ms`; `hil.messages.split_batch`), each with its own `seq`. The",
-        "  recording keeps them one MCAP message each; a solution (`nav/<name>`) or a GNSS fix is",
-        "  always one message;",
+        "- a sample's payload is one message (a JSON object), or possibly a batch on",
+        f"  {_batched_keys()}:",
+        f"  a JSON array of up to {MAX_BATCH} messages of the key's type that were ready",
+        "  together (a CAN read window's raw frames and IMU samples, `hil up --can-batch-ms`;",
+        "  `hil.bus.keys.may_batch`, `hil.messages.split_batch`), each with its own `seq`. The",
+        "  recording keeps them one MCAP message each; on any other key (a solution `nav/<name>`,",
+        "  a GNSS fix) a sample is always one message;",
         "- every service holds the liveliness token `hil/<rig>/@alive/<service>` while it runs",
         '  (`session.liveliness().get("hil/*/@alive/*")` lists the running services of every rig);',
         "- every service answers a query on `hil/<rig>/@topics/<service>` with one JSON reply",

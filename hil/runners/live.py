@@ -38,7 +38,7 @@ import msgspec
 from hil.bus.describe import alive_key
 from hil.bus.identity import FOREIGN, RigIdentity
 from hil.bus.inbox import BoundedInbox, key_kind
-from hil.bus.keys import type_for_key
+from hil.bus.keys import may_batch, type_for_key
 from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
 from hil.messages import RunInfo, ServiceStatus
 from hil.nodes.base import (
@@ -79,14 +79,6 @@ _IDENT = msgspec.json.Decoder(_Ident)
 STOP_DRAIN_S = 5.0  # at most this long consuming the backlog after SIGTERM
 MAX_WAIT_S = 0.5  # wake at least this often to notice a stop
 MAX_CAN_DRAIN = 512  # frames read off the bus before their outputs go out (a bound on one batch)
-# keys whose messages ready at once go out as one batch per key (``Publisher.put_many``): the
-# raw CAN frames (``can/<channel>``, four per IMU sample), and the IMU's streams -- the samples of
-# a CAN read window (the bridge's ``can_batch_ms``), their synchronised copies, the emulator's
-# capture truth of a compute batch. Each message of its own was routed by the hub and woken up
-# for in every subscriber (the recorder reads them all). Not the solutions (``nav``) nor the
-# GNSS fixes: one per sample, as a client expects of a low-rate stream
-BATCHED_KINDS = frozenset({"can"})
-BATCHED_KEYS = frozenset({"sensor/imu", "synced/imu", "capture/imu"})
 MAX_INPUT_BATCH = 1024  # inputs taken in one wake-up of an input batching window (BatchedInputOptions)
 MAX_QUEUED_BATCH = 64  # without a window: inputs already queued taken in one wake-up (a batch's)
 PACING_TRACE_ENV = "HIL_PACING_TRACE"  # benches: a directory for <service>.npy pacing traces
@@ -94,15 +86,16 @@ RECORDER_WAIT_S = 5.0  # a restarted node waits at most this long to meet the re
 
 
 def batch_sends(outs: list[Out]) -> list[tuple[str, Any]]:
-    """The puts for outputs in order: those of a batched key (``BATCHED_KINDS``, ``BATCHED_KEYS``)
-    as one list per key (``Publisher.put_many``) at the place of the key's first, as long as no
-    output of another key comes between them -- a time tag made between two IMU samples still
-    reaches time sync between them. Batches of different batched keys are independent streams
-    and may pass each other; within a key the order is kept."""
+    """The puts for outputs in order: those of a key that may batch (``hil.bus.keys.may_batch``:
+    the raw CAN frames, the IMU's streams; each message of its own was routed by the hub and
+    woken up for in every subscriber) as one list per key (``Publisher.put_many``) at the place
+    of the key's first, as long as no output of another key comes between them -- a time tag
+    made between two IMU samples still reaches time sync between them. Batches of different keys
+    are independent streams and may pass each other; within a key the order is kept."""
     sends: list[tuple[str, Any]] = []
     batches: dict[str, list[Any]] = {}
     for key, msg in outs:
-        if key in BATCHED_KEYS or key.split("/", 1)[0] in BATCHED_KINDS:
+        if may_batch(key):
             group = batches.get(key)
             if group is None:
                 group = batches[key] = []
@@ -491,7 +484,7 @@ class NodeService(Service):
 
     def _publish_due(self, now_ns: int) -> None:
         """Every output group due by now in one call, so that a compute batch's capture truth
-        leaves as one batch (``BATCHED_KEYS``) in its order."""
+        leaves as one batch (``hil.bus.keys.BATCHED_KEYS``) in its order."""
         outs: list[Out] = []
         why = ""
         while self._due and self._due[0][0] <= now_ns:

@@ -155,6 +155,15 @@ def short_slice(slice_us: int) -> str | None:
 RIG_CPUS_ENV = "HIL_CPUS"  # hil up --rig-cpus: the CPUs of every rig process but the frame sender
 
 
+def parse_cpus(text: str) -> list[int]:
+    """``"0,2"`` -> [0, 2] (``""``: none), as ``--cpu-affinity``, ``--rig-cpus`` and ``HIL_CPUS``
+    write them; ValueError for anything that is not CPU numbers."""
+    cpus = [int(x) for x in text.split(",") if x.strip()]
+    if any(c < 0 for c in cpus):
+        raise ValueError(f"{text!r}: a CPU number is 0 or more")
+    return cpus
+
+
 def rig_cpus_from_env(env: dict[str, str] | None = None) -> str | None:
     """This process on the CPUs ``HIL_CPUS`` names ("0" or "0,2"; unset: left alone), before it
     starts a thread (threads and children inherit it); None, or why not."""
@@ -162,7 +171,7 @@ def rig_cpus_from_env(env: dict[str, str] | None = None) -> str | None:
     if not text:
         return None
     try:
-        cpus = [int(x) for x in text.split(",") if x.strip()]
+        cpus = parse_cpus(text)
     except ValueError:
         return f"{RIG_CPUS_ENV}={text!r} is not a list of CPU numbers; running on any CPU"
     return cpu_affinity(cpus)

@@ -282,13 +282,20 @@ def test_a_service_takes_the_rigs_cpus_from_its_environment_or_says_why_not() ->
     t.join(10)
     assert got["note"] is None and got["cpus"] == {0}, got
     assert "HIL_CPUS" in got["bad"] and got["unset"] is None, got
+    # the one parser of CPU lists (--cpu-affinity, --rig-cpus, HIL_CPUS, the benches)
+    from hil.runners.pacing import parse_cpus
+
+    assert parse_cpus("0, 2") == [0, 2] and parse_cpus("") == []
+    for bad in ("x", "-1", "1.5"):
+        with pytest.raises(ValueError):
+            parse_cpus(bad)
 
 
 _PIN = """
 import json, os, threading, time
 from hil.runners.pacing import pin_process, unpin_process
 stop = threading.Event()
-t = threading.Thread(target=stop.wait); t.start()  # a thread that was there before
+t = threading.Thread(target=stop.wait, daemon=True); t.start()  # a thread that was there before
 before = os.sched_getaffinity(0)
 mask, note = pin_process([0])
 pinned = sorted({tuple(sorted(os.sched_getaffinity(int(x)))) for x in os.listdir("/proc/self/task")})
