@@ -88,17 +88,20 @@ VS_SCHEDULE: tuple[tuple[float, TransferFunction], ...] = (
 )
 
 
-def _ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
-    """One step of the filter's state under the ramp input ``u + s τ``, exact over ``h``:
-    ``x+ = Φ(h) x + Γ0(h) u + Γ1(h) s`` for ``m = [Φ | Γ0 | Γ1]``, as one product (stacked_step's
-    order), and the input ``u + s h`` at the step's end. Runs at IMU rate for every channel set;
-    :mod:`hil.runtime.jit` puts its loop form (:func:`hil.nav.kernels.ramp_step`) in its place."""
+def _ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> None:
+    """One step of the filter's state under the ramp input ``u + s τ``, exact over ``h``, in
+    place: ``x ← Φ(h) x + Γ0(h) u + Γ1(h) s`` for ``m = [Φ | Γ0 | Γ1]``, as one product
+    (stacked_step's order), and ``u ←`` the input ``u + s h`` at the step's end. Runs at IMU rate
+    for every channel set; :mod:`hil.runtime.jit` puts its loop form
+    (:func:`hil.nav.kernels.ramp_step`) in its place. ``x`` and ``u`` are the core's own arrays
+    (every other change of them makes new ones), so no one else sees them change."""
     n = x.shape[0]
     z = np.empty((n + 2, x.shape[1]))
     z[:n] = x
     z[n] = u
     z[n + 1] = s
-    return c_einsum("ij,jk->ik", m, z), u + s * h_s
+    x[...] = c_einsum("ij,jk->ik", m, z)
+    u += s * h_s
 
 
 def relative_degree(tf: TransferFunction) -> int:
@@ -173,9 +176,7 @@ class CompensationCore:
         if self.coasting:
             self._coast_step(h_ns)
             return
-        self.x, self.u = _ramp_step(
-            self._caches[self.stage].stacked(h_ns), self.x, self.u, self.slope, h_ns * 1e-9
-        )
+        _ramp_step(self._caches[self.stage].stacked(h_ns), self.x, self.u, self.slope, h_ns * 1e-9)
 
     def _coast_step(self, h_ns: int) -> None:
         """``x+ = Φc(h) x + Γc(h) ē`` (h < 0 steps back exactly). The held ramp ``u, s`` stays as

@@ -47,14 +47,17 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuInput, InitialState
-from hil.estimators.ekf15 import bias_walk_psd, covariance_step, skew
+from hil.estimators.ekf15 import bias_walk_psd, covariance_step
+from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import StrapdownState, strapdown_from_initial, strapdown_step_f, to_nav_state
+from hil.nav.strapdown import StrapdownState, strapdown_from_initial, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
+_F12 = np.zeros((12, 12))
+_F12.flags.writeable = False
 
 
 class Corrector:
@@ -83,6 +86,7 @@ class Corrector:
         gate_chi2: float = 16.27,
         max_rejects: int = 10,
     ) -> None:
+        self._att_sigma: F64 | None = None  # √diag(P) of the attitude, until P changes
         self.p = np.diag(
             np.square(
                 [p0_vel_mps] * 3
@@ -105,13 +109,31 @@ class Corrector:
         self.rejects = 0
         self._consecutive = 0
 
+    @property
+    def p(self) -> F64:
+        """The covariance of ``[δv, φ, δb_g, δb_a]``."""
+        return self._p
+
+    @p.setter
+    def p(self, value: F64) -> None:
+        self._p = value
+        self._att_sigma = None
+
+    def att_sigma_rad(self) -> F64:
+        """1σ of the attitude error about N, E, D (read at every output, changed every
+        ``cov_every`` samples and at a fix: kept until ``p`` is set again)."""
+        if self._att_sigma is None:
+            self._att_sigma = np.sqrt(np.diag(self._p)[3:6])
+        return self._att_sigma.copy()
+
     def predict(self, c_nb: F64, f_n: F64, lat_rad: float, dt_s: float) -> None:
         """Over ``dt_s`` at attitude ``c_nb`` and mean specific force ``f_n`` (NED)."""
-        w_ie = np.array([OMEGA_IE_RADPS * math.cos(lat_rad), 0.0, -OMEGA_IE_RADPS * math.sin(lat_rad)])
-        f = np.zeros((12, 12))
-        f[0:3, 3:6] = skew(f_n)  # δv̇ = [f×]φ + C δb_a
+        w0, w2 = OMEGA_IE_RADPS * math.cos(lat_rad), -OMEGA_IE_RADPS * math.sin(lat_rad)  # ω_ie (N, 0, D)
+        f0, f1, f2 = np.asarray(f_n, dtype=float).tolist()
+        f = _F12.copy()
+        f[0:3, 3:6] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f×]φ + C δb_a
         f[0:3, 9:12] = c_nb
-        f[3:6, 3:6] = -skew(w_ie)  # φ̇ = −[ω_ie×]φ − C δb_g
+        f[3:6, 3:6] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×]φ − C δb_g
         f[3:6, 6:9] = -c_nb
         phi, self.p = covariance_step(f, dt_s, self.p, self.qc)
         self.dv = mv(phi[0:3, 0:3], self.dv)  # φ, biases are zero between fixes (closed loop)
@@ -161,9 +183,12 @@ class ClosedLoopIns:
         **corrector: Any,
     ) -> None:
         self._init = init
-        self.state: StrapdownState = strapdown_from_initial(init)
-        self.b_g = np.zeros(3)
-        self.b_a = np.zeros(3)
+        # the state as the plain tuple the (compiled) strapdown step takes and gives, and the
+        # biases as floats: per IMU sample no conversion (``state``, ``b_g``, ``b_a`` read them)
+        self._st: tuple[float, ...] = tuple(strapdown_from_initial(init))
+        self._bias = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self._b_g = np.zeros(3)
+        self._b_a = np.zeros(3)
         self.corrector = Corrector(**corrector)
         lever = np.asarray(lever_arm_b_m, dtype=float)
         self._lever: F64 | None = lever if np.any(lever) else None
@@ -176,16 +201,44 @@ class ClosedLoopIns:
         self._nav = to_nav_state(self.state, init)
         self._dirty = False
 
+    @property
+    def state(self) -> StrapdownState:
+        return StrapdownState.of(self._st)
+
+    @state.setter
+    def state(self, s: StrapdownState) -> None:
+        self._st = tuple(s)
+
+    @property
+    def b_g(self) -> F64:
+        """Gyro bias estimate (rad/s, body axes), removed from every delta-angle."""
+        return self._b_g
+
+    @b_g.setter
+    def b_g(self, value: F64) -> None:
+        self._b_g = np.asarray(value, dtype=float)
+        self._bias = (*self._b_g.tolist(), *self._bias[3:])
+
+    @property
+    def b_a(self) -> F64:
+        """Accelerometer bias estimate (m/s², body axes), removed from every delta-velocity."""
+        return self._b_a
+
+    @b_a.setter
+    def b_a(self, value: F64) -> None:
+        self._b_a = np.asarray(value, dtype=float)
+        self._bias = (*self._bias[:3], *self._b_a.tolist())
+
     def propagate(self, imu: ImuInput) -> None:
         # Python floats, elementwise as the arrays did it (numpy's per-call cost on 3-vectors
-        # was most of this step's)
+        # was most of this step's); ``_sd._step``: the module's, which hil.runtime.jit may have
+        # replaced by its compiled twin
         dt = imu.dt_s
-        bgx, bgy, bgz = self.b_g.tolist()
-        bax, bay, baz = self.b_a.tolist()
+        bgx, bgy, bgz, bax, bay, baz = self._bias
         tx, ty, tz, ux, uy, uz = imu.increments
         tx, ty, tz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
         ux, uy, uz = ux - bax * dt, uy - bay * dt, uz - baz * dt
-        self.state = strapdown_step_f(self.state, tx, ty, tz, ux, uy, uz, dt)
+        self._st = _sd._step(self._st, tx, ty, tz, ux, uy, uz, dt)
         if self._lever is not None:
             self._w_b = np.array((tx / dt, ty / dt, tz / dt))
         pv = self._pending_dv_b
@@ -202,16 +255,17 @@ class ClosedLoopIns:
     def _predict(self) -> None:
         if self._pending_n == 0:
             return
-        c_nb = self.state.c_nb()
+        st = self._st
+        c_nb = np.array(_sd.c_nb_floats(st[6], st[7], st[8], st[9])).reshape(3, 3)
         f_n = mv(c_nb, np.array(self._pending_dv_b) / self._pending_dt)
-        self.corrector.predict(c_nb, f_n, self.state.lat_rad, self._pending_dt)
+        self.corrector.predict(c_nb, f_n, st[0], self._pending_dt)
         self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dt = 0.0
         self._pending_n = 0
 
     def nav(self) -> NavState:
         if self._dirty:
-            self._nav = to_nav_state(self.state, self._init)
+            self._nav = to_nav_state(self._st, self._init)  # type: ignore[arg-type]
             self._dirty = False
         return self._nav
 
@@ -253,7 +307,7 @@ class ClosedLoopIns:
 
     def att_sigma_rad(self) -> F64:
         """1σ of the attitude error about N, E, D from the corrector's covariance."""
-        return np.sqrt(np.diag(self.corrector.p)[3:6])
+        return self.corrector.att_sigma_rad()
 
     def health(self) -> dict[str, float]:
         c = self.corrector

@@ -53,8 +53,9 @@ def libm_square(x: float) -> float:
     return _pow(x, 2.0)
 
 
-def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
-    """``(M [x; u; s], u + s h)``: :func:`hil.estimators.compensation._ramp_step`, in loops."""
+def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> None:
+    """``x ← M [x; u; s]``, ``u ← u + s h``, in place: :func:`hil.estimators.compensation._ramp_step`,
+    in loops (in place: two arrays built and handed back to Python cost more than the step)."""
     n, c = x.shape
     out = np.empty((n, c))
     for i in range(n):
@@ -65,10 +66,11 @@ def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> tuple[F64, F64]:
             acc += m[i, n] * u[k]
             acc += m[i, n + 1] * s[k]
             out[i, k] = acc
-    u2 = np.empty(c)
+    for i in range(n):
+        for k in range(c):
+            x[i, k] = out[i, k]
     for k in range(c):
-        u2[k] = u[k] + s[k] * h_s
-    return out, u2
+        u[k] = u[k] + s[k] * h_s
 
 
 def covariance_step(f: F64, dt_s: float, p: F64, qc: F64) -> tuple[F64, F64]:

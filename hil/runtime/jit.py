@@ -110,6 +110,25 @@ def _compile(
         return numba.njit(signature, cache=False, inline=how)(twin)
 
 
+def _import_numba() -> Any:
+    """numba, told that there is no BLAS. Its array maths checks at import whether scipy's BLAS
+    is there (for ``np.dot`` in compiled code) by importing ``scipy.linalg``: ~0.2 s of every
+    start of a process that loads the kernels. They never call BLAS (whose sums differ by CPU:
+    :mod:`hil.nav.portable`), so ``scipy.linalg`` is hidden for that import only; a later
+    ``import scipy.linalg`` works as ever."""
+    blocked = "scipy.linalg"
+    hide = blocked not in sys.modules and "numba.np.arraymath" not in sys.modules
+    if hide:
+        sys.modules[blocked] = None  # type: ignore[assignment]  # import raises ImportError
+    try:
+        import numba
+        import numba.np.arraymath  # its BLAS check runs now, with the module hidden
+    finally:
+        if hide and sys.modules.get(blocked, 0) is None:
+            del sys.modules[blocked]
+    return numba
+
+
 def _libm_pow(numba: Any) -> Any:
     """``pow(x, y)`` of the C library, called as such: declared ``nobuiltin`` so that LLVM does
     not rewrite ``pow(x, 2.0)`` into ``x * x`` (not CPython's bits; :func:`hil.nav.kernels.libm_square`)."""
@@ -155,7 +174,7 @@ def _enable(env: Mapping[str, str]) -> str:
     if not on:
         return why
     try:
-        import numba
+        numba = _import_numba()
     except ImportError:
         return "python (numba is not installed: pip install numba)"
     from hil.nav import kernels, strapdown
@@ -175,9 +194,7 @@ def _enable(env: Mapping[str, str]) -> str:
             _rotvec_quat=rotvec,
             _sq=square,
         )
-        ramp = _compile(
-            numba, kernels.ramp_step, f"Tuple(({f8}[:, ::1], {f8}[::1]))({mat}, {mat}, {vec}, {vec}, {f8})", d
-        )
+        ramp = _compile(numba, kernels.ramp_step, f"none({mat}, {mat}, {vec}, {vec}, {f8})", d)
         cmat = f"{f8}[:, ::1]"
         finite = _compile(numba, kernels._finite_rows, f"{f8}[::1]({cmat})", d, inline=True)
         order = _compile(numba, kernels._lane_order, "int64[::1](int64)", d, inline=True)

@@ -117,9 +117,11 @@ def test_the_compiled_filter_step_computes_einsums_bits(order: int) -> None:
         u, s = rng.normal(size=6), rng.normal(size=6) * 1e-3
         x[rng.random(size=x.shape) < 0.1] = -0.0
         h = float(rng.uniform(1e-4, 2.0))
-        xc, uc = compensation._ramp_step(m, x, u, s, h)
-        xp, up = python_ramp(m, x, u, s, h)
+        xc, uc, xp, up = x.copy(), u.copy(), x.copy(), u.copy()
+        compensation._ramp_step(m, xc, uc, s, h)  # both in place
+        python_ramp(m, xp, up, s, h)
         assert xc.tobytes() == xp.tobytes() and uc.tobytes() == up.tobytes()
+        assert xc.tobytes() != x.tobytes() or not m.any()  # it did step
 
 
 def _covariance_operands(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
