@@ -76,7 +76,7 @@ from hil.estimators.lti import (
     stacked_step,
 )
 from hil.nav.portable import c_einsum, dot, mv, norm, solve
-from hil.nav.types import F64, NavState
+from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
 #: The variable-structure table of seed 000: (time since (re)start of fusion in s, F(p)).
 #: The last numerator (15 p + 1) is reconstructed from the 3 T p + 1 pattern (OCR lost it).
@@ -488,8 +488,11 @@ class CompensationEstimator(Estimator):
             return NavState(np.zeros(3), self._vel0.copy(), self._q0.copy())
         else:
             nav = self._ins
-        y = self.core.output()
-        return NavState(nav.pos_ned_m - y[:3], nav.vel_ned_mps - y[3:], nav.q_nb, att_sigma_rad=att_sigma)
+        y0, y1, y2, y3, y4, y5 = self.core.output().tolist()
+        (p0, p1, p2), (v0, v1, v2), q = nav_floats(nav)  # X_INS − y on floats: the arrays' values
+        return FloatNavState(
+            (p0 - y0, p1 - y1, p2 - y2), (v0 - y3, v1 - y4, v2 - y5), q, att_sigma_rad=att_sigma
+        )
 
     def health(self) -> dict[str, float]:
         core = self.core

@@ -109,8 +109,14 @@ from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
-from hil.nav.strapdown import c_nb_floats, strapdown_from_initial, strapdown_step_f, to_nav_state
-from hil.nav.types import F64, NavState
+from hil.nav.strapdown import (
+    LazyNavState,
+    c_nb_floats,
+    strapdown_from_initial,
+    strapdown_step_f,
+    to_nav_state,
+)
+from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
 _DEG = math.pi / 180.0
 _RTH = 60.0  # sqrt(3600 s/h)
@@ -270,6 +276,7 @@ class Ekf15(Estimator):
     ) -> None:
         self.name = name
         self._init = init
+        self._origin = (init.origin_lat_rad, init.origin_lon_rad, init.origin_alt_m)
         self.ins = strapdown_from_initial(init)
         self.b_a = np.zeros(3)
         self.b_g = np.zeros(3)
@@ -605,14 +612,14 @@ class Ekf15(Estimator):
     # -- outputs ---------------------------------------------------------------------------------
     def _current_nav(self) -> NavState:
         if self._nav_dirty:
-            self._nav = to_nav_state(self.ins, self._init)
+            self._nav = LazyNavState(self.ins, self._origin)  # to_nav_state's values, built on read
             self._nav_dirty = False
         return self._nav
 
     def solution(self) -> NavState:
         nav = self._current_nav()
         sd = np.sqrt(self.p.diagonal()[0:9])  # one ufunc call for the three σ (elementwise: same bits)
-        return NavState(nav.pos_ned_m, nav.vel_ned_mps, nav.q_nb, sd[0:3], sd[3:6], sd[6:9])
+        return FloatNavState(*nav_floats(nav), sd[0:3], sd[3:6], sd[6:9])
 
     def health(self) -> dict[str, float]:
         return {

@@ -52,7 +52,7 @@ from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import StrapdownState, strapdown_from_initial, to_nav_state
+from hil.nav.strapdown import LazyNavState, StrapdownState, strapdown_from_initial, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -198,7 +198,8 @@ class ClosedLoopIns:
         self._pending_dt = 0.0
         self._pending_n = 0
         self.stamp_ns = init.stamp_ns
-        self._nav = to_nav_state(self.state, init)
+        self._origin = (init.origin_lat_rad, init.origin_lon_rad, init.origin_alt_m)
+        self._nav: NavState = to_nav_state(self.state, init)
         self._dirty = False
 
     @property
@@ -265,7 +266,7 @@ class ClosedLoopIns:
 
     def nav(self) -> NavState:
         if self._dirty:
-            self._nav = to_nav_state(self._st, self._init)  # type: ignore[arg-type]
+            self._nav = LazyNavState(self._st, self._origin)  # type: ignore[arg-type]  # to_nav_state's values
             self._dirty = False
         return self._nav
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
 from hil.estimators.feedback import ClosedLoopIns
-from hil.nav.types import F64, NavState
+from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
 
 def scalar_kf_step(eps: F64, d: F64, innov: F64, q: float | F64, r: float | F64) -> tuple[F64, F64, F64]:
@@ -133,10 +133,12 @@ class ScalarKfEstimator(Estimator):
         # Variance grows between fixes: D(t) = D_k + q_rate (t − t_k)
         var = self.d + self.q_rate * max((self._ins_stamp_ns - self._t_last_ns) * 1e-9, 0.0)
         sig = np.sqrt(var)
-        return NavState(
-            nav.pos_ned_m - self.eps[:3],
-            nav.vel_ned_mps - self.eps[3:],
-            nav.q_nb,
+        e0, e1, e2, e3, e4, e5 = self.eps.tolist()
+        (p0, p1, p2), (v0, v1, v2), q = nav_floats(nav)  # X_INS − ε̂ on floats: the arrays' values
+        return FloatNavState(
+            (p0 - e0, p1 - e1, p2 - e2),
+            (v0 - e3, v1 - e4, v2 - e5),
+            q,
             sig[:3].copy(),
             sig[3:].copy(),
             None if self.loop is None else self.loop.att_sigma_rad(),

@@ -35,7 +35,7 @@ from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transiti
 from hil.fusion.predictor import OutputPredictor
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.earth import ned_to_lla_one
-from hil.nav.types import NavState
+from hil.nav.types import NavState, nav_floats
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
 FREE_INS = "ins"
@@ -503,8 +503,7 @@ class FusionCore:
                 continue
             try:
                 nav = est.solution()
-                pvq = _floats(nav.pos_ned_m), _floats(nav.vel_ned_mps), _floats(nav.q_nb)
-                pos, vel, q = pred.predict_floats(*pvq, motion, imu_bias_of(est))
+                pos, vel, q = pred.predict_floats(*nav_floats(nav), motion, imu_bias_of(est))
                 sig = (nav.pos_sigma_m, nav.vel_sigma_mps, nav.att_sigma_rad)
                 out.append(self._publish(est.name, pos, vel, q, *sig, msg.stamp_ns, msg.seq))
             except ArithmeticError:
@@ -729,7 +728,7 @@ class FusionCore:
         self.last_error = f"estimator {name} failed: {type(err).__name__}: {err}"
 
     def _solution(self, name: str, nav: NavState, stamp_ns: int, imu_seq: int | None = None) -> NavSolution:
-        pos, vel, q = _floats(nav.pos_ned_m), _floats(nav.vel_ned_mps), _floats(nav.q_nb)
+        pos, vel, q = nav_floats(nav)
         sig = (nav.pos_sigma_m, nav.vel_sigma_mps, nav.att_sigma_rad)
         return self._publish(name, pos, vel, q, *sig, stamp_ns, imu_seq)
 

@@ -9,7 +9,10 @@ origin, ``b`` = body (x forward, y right, z down). Stamps are integer nanosecond
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +46,56 @@ class NavState:
     pos_sigma_m: F64 | None = None  # (3,)
     vel_sigma_mps: F64 | None = None  # (3,)
     att_sigma_rad: F64 | None = None  # (3,) attitude error about N, E, D: tilt, tilt, heading
+
+
+class FloatNavState(NavState):
+    """A solution whose position, velocity and attitude were computed as Python floats: the
+    arrays are built when first read. The fusion publishes them as floats (the output
+    predictor moves them on floats) at every output of every estimator, where building three
+    arrays to read them back cost more than the arithmetic. Same values either way."""
+
+    def __init__(
+        self,
+        pos_ned_m: Sequence[float],
+        vel_ned_mps: Sequence[float],
+        q_nb: Sequence[float],
+        pos_sigma_m: F64 | None = None,
+        vel_sigma_mps: F64 | None = None,
+        att_sigma_rad: F64 | None = None,
+    ) -> None:
+        # a frozen dataclass: the fields are the properties below and __dict__ entries
+        d = self.__dict__
+        d["_pvq"] = (pos_ned_m, vel_ned_mps, q_nb)
+        d["pos_sigma_m"], d["vel_sigma_mps"], d["att_sigma_rad"] = pos_sigma_m, vel_sigma_mps, att_sigma_rad
+
+    @cached_property
+    def pos_ned_m(self) -> F64:  # type: ignore[override]
+        return np.array(self._pvq[0], dtype=np.float64)
+
+    @cached_property
+    def vel_ned_mps(self) -> F64:  # type: ignore[override]
+        return np.array(self._pvq[1], dtype=np.float64)
+
+    @cached_property
+    def q_nb(self) -> F64:  # type: ignore[override]
+        return np.array(self._pvq[2], dtype=np.float64)
+
+    def floats(self) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+        """Position, velocity and attitude as given (Python floats)."""
+        return self._pvq  # type: ignore[no-any-return]
+
+
+def nav_floats(nav: Any) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+    """Position, velocity and attitude of a solution as Python floats: its own where it keeps
+    floats (``floats()``: :class:`FloatNavState`, the strapdown's lazy state), else its arrays'."""
+    get = getattr(nav, "floats", None)
+    if get is not None:
+        return get()  # type: ignore[no-any-return]
+    return (
+        np.asarray(nav.pos_ned_m, dtype=np.float64).tolist(),
+        np.asarray(nav.vel_ned_mps, dtype=np.float64).tolist(),
+        np.asarray(nav.q_nb, dtype=np.float64).tolist(),
+    )
 
 
 @dataclass(frozen=True)
