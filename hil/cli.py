@@ -332,9 +332,19 @@ def _describe_can(channel: str, interface: str | None) -> str:
         return f"{channel} over python-can interface {interface!r} (as requested)"
     if Path(f"/sys/class/net/{channel}").exists():
         return f"{channel} over SocketCAN (the kernel has {channel})"
-    return (
-        f"{channel} over the rig's Zenoh CAN transport (hilzenoh): this kernel has no {channel}; "
+    make = (
         "create one (modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0) to use SocketCAN"
+    )
+    if (
+        os.environ.get("HIL_ZENOH_CONNECT")
+        or os.environ.get("HIL_ZENOH_MODE", "").strip().lower() == "client"
+    ):
+        return (
+            f"{channel} over the rig's Zenoh CAN transport (hilzenoh): this kernel has no {channel}; {make}"
+        )
+    return (
+        f"{channel} over the rig's local CAN sockets (hillocal, the rig's runtime directory): this kernel "
+        f"has no {channel}; {make}"
     )
 
 
@@ -824,7 +834,8 @@ def _add_up_parser(sub: Any) -> None:
     up.add_argument(
         "--can-interface",
         default=None,
-        help="python-can interface (default: socketcan if the channel exists, else hilzenoh)",
+        help="python-can interface (default: socketcan if the channel exists, else hillocal on one "
+        "machine, hilzenoh when joining a router)",
     )
     up.add_argument("--fd", action="store_true", help="CAN FD: one frame per IMU sample")
     up.add_argument(

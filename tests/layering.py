@@ -29,12 +29,13 @@ LAYERS: dict[int, tuple[str, ...]] = {
     2: ("hil.sensors", "hil.estimators", "hil.timesync", "hil.faults"),
     3: ("hil.fusion", "hil.can", "hil.wire", "hil.wellknown"),
     4: ("hil.nodes",),
-    # hil.can's transports and file adapters are I/O: python-can buses over Zenoh, the
-    # transmitter that sends a node's frames, MCAP as a python-can log
+    # hil.can's transports and file adapters are I/O: python-can buses over Zenoh and over
+    # local sockets, the transmitter that sends a node's frames, MCAP as a python-can log
     5: (
         "hil.can.bus",
         "hil.can.node",
         "hil.can.zenoh_bus",
+        "hil.can.local_bus",
         "hil.can.mcap_io",
         "hil.bus",
         "hil.campaign",

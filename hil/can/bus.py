@@ -1,4 +1,5 @@
-"""The one factory for CAN transports: SocketCAN where the kernel has the channel, else Zenoh.
+"""The one factory for CAN transports: SocketCAN where the kernel has the channel, else the rig's
+local sockets (``hillocal``, under ``hil up``), else Zenoh.
 
 Emulator, bridge and replayer all call :func:`open_can_bus` and then only use python-can's
 ``BusABC`` API, so the same code runs on a bench with a real or virtual SocketCAN interface, in
@@ -8,13 +9,18 @@ user-mode-linux, in containers, or on a kernel without CAN at all.
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import can
 
-INTERFACES = ("auto", "socketcan", "hilzenoh", "virtual", "udp_multicast")
+#: The rig's local CAN directory (``hil.can.local_bus``), set by ``hil up`` for its children.
+LOCAL_DIR_ENV = "HIL_CAN_DIR"
+
+INTERFACES = ("auto", "socketcan", "hillocal", "hilzenoh", "virtual", "udp_multicast")
 #: A SocketCAN reader's kernel queue (candump -r): at 1 Mbit/s a bus carries ~7,400 classic
 #: frames a second, and the default queue (~200 kB, a few hundred frames with their buffers)
 #: overflows -- silently, frames lost in the kernel -- when the reading process stalls for a
@@ -31,11 +37,25 @@ def channel_exists(channel: str) -> bool:
     return Path("/sys/class/net", channel).exists()
 
 
-def resolve_interface(channel: str, interface: str | None) -> str:
-    """``None``/``"auto"`` -> ``socketcan`` when the channel exists here, else ``hilzenoh``."""
+def resolve_interface(
+    channel: str, interface: str | None, env: Mapping[str, str] | None = None, rig: str | None = None
+) -> str:
+    """``None``/``"auto"`` -> ``socketcan`` when the channel exists here, else ``hillocal`` when the
+    process belongs to a rig that made a local CAN directory (``HIL_CAN_DIR``: ``hil up`` on one
+    machine) or ``rig`` names one running here, else ``hilzenoh`` (containers, hosts joined
+    through a router)."""
     iface = (interface or "auto").strip().lower()
     if iface == "auto":
-        return "socketcan" if channel_exists(channel) else "hilzenoh"
+        if channel_exists(channel):
+            return "socketcan"
+        if (os.environ if env is None else env).get(LOCAL_DIR_ENV):
+            return "hillocal"
+        if rig is not None:
+            from hil.can.local_bus import running_rig_dir
+
+            if running_rig_dir(rig, env) is not None:
+                return "hillocal"
+        return "hilzenoh"
     return iface
 
 
@@ -55,8 +75,10 @@ def open_can_bus(
     ``receive=False``: the caller only sends (``hilzenoh`` then subscribes to nothing).
     Extra keyword arguments go to ``can.Bus``.
     """
-    iface = resolve_interface(channel, interface)
+    iface = resolve_interface(channel, interface, rig=rig)
     kw: dict[str, Any] = dict(kwargs)
+    if iface == "hillocal":
+        kw.setdefault("rig", rig)
     if iface == "hilzenoh":
         kw.setdefault("rig", rig)
         kw.setdefault("no_traffic_warn_s", 0.0)  # the rig's own processes know their rig
@@ -66,7 +88,12 @@ def open_can_bus(
             kw["receive"] = False
             kw.setdefault("no_traffic_warn_s", 0)  # opened before time zero: silence is expected
     try:
-        bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)
+        if iface == "hillocal":  # ours: no need of python-can's registry (the entry point)
+            from hil.can.local_bus import LocalCanBus
+
+            bus: can.BusABC = LocalCanBus(channel=channel, fd=fd, receive=receive, **kw)
+        else:
+            bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)
     except (can.CanError, OSError, ValueError, ImportError) as err:
         why = (
             "the kernel has no such interface (try interface='hilzenoh')"
@@ -77,7 +104,13 @@ def open_can_bus(
     if iface == "socketcan" and receive:
         enlarge_receive_queue(bus, SOCKETCAN_RCVBUF_BYTES)
     auto = " (auto)" if (interface or "auto").lower() == "auto" else ""
-    where = f"key hilcan/{rig}/{channel}" if iface == "hilzenoh" else f"channel {channel}"
+    where = (
+        f"key hilcan/{rig}/{channel}"
+        if iface == "hilzenoh"
+        else f"channel {channel} in {getattr(bus, 'dir', '?')}"
+        if iface == "hillocal"
+        else f"channel {channel}"
+    )
     desc = f"{iface}{auto} {where}, {'CAN FD' if fd else 'CAN 2.0'}"
     return bus, desc
 

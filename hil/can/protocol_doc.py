@@ -195,11 +195,25 @@ counted, never raised. How to wire a real unit (CAN, its GNSS UART, the PPS), th
 ## Transports
 
 `hil.can.bus.open_can_bus(channel, interface=None, fd=...)` picks SocketCAN when the kernel has
-the channel (`/sys/class/net/<channel>`), else `hilzenoh`: a python-can interface carrying frames
-over the rig's Zenoh network on `hilcan/<rig>/<channel>` (reliable, blocking congestion control,
-receive stamp the sender's wire time or the arrival, own frames not echoed, FD supported; the
-live runner sends one sample's frames as one message, each with its own stamp). Emulator and
-bridge code are the same `can.Bus` calls either way.
+the channel (`/sys/class/net/<channel>`). Without it:
+
+- under `hil up` on one machine, `hillocal` (`hil.can.local_bus`): frames on Unix sockets
+  (`SOCK_SEQPACKET`) in a directory of the rig's own inside its private runtime directory
+  (`HIL_CAN_DIR`, 0700, removed at exit), kernel to kernel, not through the rig's Zenoh hub.
+  A sender writes each frame, or one sample's burst, to every listener of the channel without
+  waiting: a listener with no room loses the packet and the sender counts it (`can.tx_overflow`),
+  as a CAN controller's overflowing receive FIFO does, so a stalled reader never holds the IMU's
+  pacing back. Receive stamp the sender's wire time or the arrival, own frames not echoed, FD
+  supported, malformed packets counted (`rejected.can.transport_malformed` in the service's
+  status). It exists for speed: an isolated Zenoh message costs ~270 µs of CPU at its two ends
+  plus the hub's routing, once per IMU sample (docs/benchmarks.md, `rig-hillocal`);
+- otherwise (containers, hosts joined through a router: `HIL_ZENOH_CONNECT`), `hilzenoh`: a
+  python-can interface carrying frames over the rig's Zenoh network on `hilcan/<rig>/<channel>`
+  (reliable, blocking congestion control, receive stamp the sender's wire time or the arrival,
+  own frames not echoed, FD supported; the live runner sends one sample's frames as one message,
+  each with its own stamp). `hil up --can-interface hilzenoh` takes it on one machine too.
+
+Emulator and bridge code are the same `can.Bus` calls every way.
 
 The SocketCAN path is proven by the vcan tier (`pytest -m vcan`), inside user-mode-linux when the
 host kernel has no CAN: on its one slow vCPU it sustains, with no lost sample, classic CAN at

@@ -207,6 +207,9 @@ class _Child:
 
     def counters(self) -> dict[str, int]:
         out = self.tx.counters()
+        bus_counters = getattr(self.bus, "counters", None)  # the transport's own (hillocal)
+        if callable(bus_counters):
+            out.update(bus_counters())
         if self.sender is not None:
             out.update(self.sender.counters(time.monotonic() - self.t0))
         out["pacing.sender_cpu_permille"] = round(

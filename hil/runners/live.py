@@ -597,7 +597,7 @@ class NodeService(Service):
         if node is not None:
             with self.lock:
                 out.update(node.counters())
-        bus_counters = getattr(self.can_bus, "counters", None)  # the hilzenoh bus's receive queue
+        bus_counters = getattr(self.can_bus, "counters", None)  # the transport's own (hillocal)
         if callable(bus_counters):
             out.update(bus_counters())
         sender = self.can_sender

@@ -102,6 +102,22 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _remove_stale_can_dirs(runtime: Path) -> None:
+    """The CAN directories (``<rig>-<pid>.can``) of runs that were killed: their process is gone."""
+    from hil.can.local_bus import remove_can_dir
+
+    for d in runtime.glob("*-*.can"):
+        pid = d.name[: -len(".can")].rsplit("-", 1)[-1]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            remove_can_dir(d)
+        except OSError:  # alive (another user's pid cannot be here: the directory is private)
+            continue
+
+
 @dataclass
 class UpOptions:
     scenario: str = "straight_level"
@@ -356,6 +372,13 @@ class Supervisor:
             self.access = RigAccess.new(opts.rig, endpoint, authenticated=not opts.open_bus)
             self.hub_cfg = self.access.hub_config()
             self.child_bus = self.access.child_config()
+        # the IMU's CAN bus, where the kernel has no such channel and the rig is on one machine:
+        # Unix sockets in a directory of the rig's own (hil.can.local_bus), not through the hub
+        from hil.can.bus import channel_exists
+
+        self.can_dir: Path | None = None
+        if self.access is not None and not opts.interface and not channel_exists(opts.channel):
+            self.can_dir = self.access.dir / f"{opts.rig}-{self.access.pid}.can"
 
     def endpoint_line(self) -> str:
         """What ``hil up`` prints about its bus: where it is and how a viewer gets in."""
@@ -391,14 +414,15 @@ class Supervisor:
     def dut_command(self) -> list[str]:
         """The unit's program on the run's wires: the IMU's CAN bus (channel and interface, the
         hilzenoh transport configured by the environment every child gets) and its GNSS line."""
-        from hil.can.bus import resolve_interface
+        from hil.can.bus import LOCAL_DIR_ENV, resolve_interface
         from hil.can.codec import default_dbc_path
 
         o = self.opts
         if not o.dut_mapping:
             raise ValueError("--dut-emulator needs --dut MAPPING.toml")
         cmd = [sys.executable, str(dut_program(o.dut_mapping))]
-        cmd += ["--can-interface", resolve_interface(o.channel, o.interface), "--channel", o.channel]
+        can_env = {} if self.can_dir is None else {LOCAL_DIR_ENV: str(self.can_dir)}
+        cmd += ["--can-interface", resolve_interface(o.channel, o.interface, can_env), "--channel", o.channel]
         cmd += ["--fd"] if o.fd else []
         cmd += ["--gnss", self.dut_line(), "--gnss-baud", str(o.gnss_baud)]
         return [*cmd, "--imu-dbc", str(default_dbc_path()), "--stop-with-pid", str(os.getpid())]
@@ -510,6 +534,10 @@ class Supervisor:
         env[ZENOH_ID_ENV] = rig_zid(self.rig_key)
         if not self.opts.zenoh_miss_detection:
             env[MISS_DETECTION_ENV] = "0"  # plain Zenoh publishers in every service
+        if self.can_dir is not None:  # their CAN bus (hil.can.bus.resolve_interface: hillocal)
+            from hil.can.bus import LOCAL_DIR_ENV
+
+            env[LOCAL_DIR_ENV] = str(self.can_dir)
         if self.opts.rig_cpus:  # each service takes it first thing (``hil service``)
             env[RIG_CPUS_ENV] = ",".join(str(c) for c in self.opts.rig_cpus)
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -580,10 +608,21 @@ class Supervisor:
         return child
 
     def run(self) -> int:
+        from hil.can.local_bus import remove_can_dir
+
         o = self.opts
         hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
         if self.access is not None:
             self.access.write()  # before the hub opens: it reads the dictionary from there
+        if self.can_dir is not None:
+            _remove_stale_can_dirs(self.can_dir.parent)
+            remove_can_dir(self.can_dir)  # a killed run's with this pid
+            self.can_dir.mkdir(mode=0o700)
+            print(
+                f"hil up: CAN {o.channel} on hillocal sockets in {self.can_dir} (a python-can tool joins "
+                f"with -i hillocal -c {o.channel} --bus-kwargs directory={self.can_dir}; removed at exit)",
+                flush=True,
+            )
         # --rig-cpus: the hub's threads too (they route every message), restored at the end
         mask, note = pin_process(o.rig_cpus)
         if note:
@@ -594,6 +633,8 @@ class Supervisor:
             unpin_process(mask)
             if self.access is not None:
                 self.access.remove()
+            if self.can_dir is not None:
+                remove_can_dir(self.can_dir)
             raise
         keys = Keys(o.rig)
         stats = Stats()
@@ -634,6 +675,8 @@ class Supervisor:
             unpin_process(mask)
             if self.access is not None:
                 self.access.remove()
+            if self.can_dir is not None:
+                remove_can_dir(self.can_dir)
         return 1 if self.failures else 0
 
     def _wait(self, t_start: float) -> None:
