@@ -212,7 +212,8 @@ class ClosedLoopIns:
 
     @property
     def b_g(self) -> F64:
-        """Gyro bias estimate (rad/s, body axes), removed from every delta-angle."""
+        """Gyro bias estimate (rad/s, body axes), removed from every delta-angle (assigned
+        whole, never changed in place: the step reads the floats the setter keeps)."""
         return self._b_g
 
     @b_g.setter
@@ -222,7 +223,8 @@ class ClosedLoopIns:
 
     @property
     def b_a(self) -> F64:
-        """Accelerometer bias estimate (m/s², body axes), removed from every delta-velocity."""
+        """Accelerometer bias estimate (m/s², body axes), removed from every delta-velocity
+        (assigned whole, as ``b_g``)."""
         return self._b_a
 
     @b_a.setter

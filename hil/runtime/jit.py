@@ -31,7 +31,8 @@ kernel gives its Python one's bits on random inputs (``tests/unit/test_jit.py``)
 ``HIL_JIT=0`` keeps everything in Python (numba is then not even imported). The machine code is
 cached on disk (numba's cache: ``__pycache__`` beside the source, else the user's cache directory,
 or ``NUMBA_CACHE_DIR``): the first process compiles (a few seconds), the next ones import numba
-and load it (~0.7 s of CPU). Where no cache directory is writable, every process compiles.
+and load it (~0.6 s of CPU; numba is told there is no BLAS, :func:`_import_numba`). Where no
+cache directory is writable, every process compiles.
 The runners call :func:`enable` before they build the fusion (``hil sim``, ``hil rerun``, and so a
 campaign's runs); the live fusion service starts :func:`enable_in_background` before it reports
 ready, and its core runs the Python kernels until the compiled ones are in place -- the same bits,
