@@ -377,7 +377,10 @@ class Supervisor:
         from hil.can.bus import channel_exists
 
         self.can_dir: Path | None = None
-        if self.access is not None and not opts.interface and not channel_exists(opts.channel):
+        iface = (opts.interface or "auto").strip().lower()
+        if self.access is not None and (
+            iface == "hillocal" or (iface == "auto" and not channel_exists(opts.channel))
+        ):
             self.can_dir = self.access.dir / f"{opts.rig}-{self.access.pid}.can"
 
     def endpoint_line(self) -> str:

@@ -246,3 +246,24 @@ def test_a_process_started_by_hand_finds_the_running_rigs_bus_by_its_name(
         remove_can_dir(live_dir)
     with pytest.raises(can.CanInitializationError, match="no rig 'r2' running"):
         LocalCanBus(channel="vcan-x", rig="r2")
+
+
+def test_hil_up_gives_its_children_a_can_directory_unless_it_joins_a_router_or_is_told_otherwise(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from hil.runtime.supervisor import Supervisor, UpOptions
+
+    for var in ("HIL_ZENOH_CONNECT", "HIL_ZENOH_MODE", LOCAL_DIR_ENV):
+        monkeypatch.delenv(var, raising=False)
+    for iface, local in ((None, True), ("auto", True), ("hillocal", True), ("hilzenoh", False)):
+        sup = Supervisor(UpOptions(live=False, rig="cd", channel="vcan-none", interface=iface))
+        assert (sup.can_dir is not None) == local, iface
+        env = sup._child_env()
+        assert (env.get(LOCAL_DIR_ENV) == str(sup.can_dir)) if local else (LOCAL_DIR_ENV not in env)
+        if local:
+            assert sup.can_dir is not None and sup.can_dir.name == f"cd-{os.getpid()}.can"
+    # a kernel interface of that name (lo stands in for vcan0): SocketCAN, no directory
+    assert Supervisor(UpOptions(live=False, rig="cd", channel="lo")).can_dir is None
+    # joining a router: the rig may span hosts, so its CAN goes over Zenoh
+    monkeypatch.setenv("HIL_ZENOH_CONNECT", "tcp/127.0.0.1:1")
+    assert Supervisor(UpOptions(live=False, rig="cd", channel="vcan-none")).can_dir is None
