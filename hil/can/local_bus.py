@@ -44,7 +44,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import queue
 import secrets
 import selectors
 import shutil
@@ -61,7 +60,7 @@ from typing import Any
 import can
 from can import CanProtocol
 
-from hil.can.zenoh_bus import FD_LENGTHS, pack_frame, unpack_frames
+from hil.can.zenoh_bus import FrameQueueBus, unpack_frames
 
 DIR_ENV = "HIL_CAN_DIR"  # hil.can.bus.LOCAL_DIR_ENV
 _HEAD = struct.Struct("<BB")
@@ -164,7 +163,7 @@ def _private(path: Path) -> None:
             )
 
 
-class LocalCanBus(can.BusABC):
+class LocalCanBus(FrameQueueBus):
     """python-can bus over Unix sockets in a private directory. Keyword arguments beyond
     python-can's own:
 
@@ -176,6 +175,8 @@ class LocalCanBus(can.BusABC):
     - ``rx_queue_size``: frames held for ``recv`` before new ones are dropped and counted in
       ``rx_overflow`` (default 100 000).
     """
+
+    NAME = "hillocal"
 
     def __init__(
         self,
@@ -230,7 +231,7 @@ class LocalCanBus(can.BusABC):
         self.channel_info = f"hillocal {self.dir} ({'CAN FD' if self.fd else 'CAN 2.0'})"
         self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
         self._sender = secrets.randbits(64)
-        self._rx: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self._init_queue()
         self._rx_max = max(1, int(rx_queue_size))
         self._closed = threading.Event()
         self.rx_overflow = 0
@@ -314,43 +315,15 @@ class LocalCanBus(can.BusABC):
             self.rx_malformed += 1
             return
         for i, (sender, msg) in enumerate(frames):
-            if sender == self._sender and not self.receive_own_messages:
-                continue
-            if msg.is_fd and not self.fd:
-                self.rx_fd_ignored += 1
-                continue
-            stamp = arrival
-            if stamps is not None:
-                wire = stamps[i] * 1e-9
-                if wire <= arrival:
-                    stamp = wire
-                else:
-                    self.rx_stamp_skew += 1
-            msg.timestamp = stamp
-            msg.channel = self.channel
-            msg.is_rx = sender != self._sender
-            if self._rx.qsize() >= self._rx_max:
-                self.rx_overflow += 1
-                continue
-            self._rx.put(msg)
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        if self._closed.is_set():
-            raise can.CanOperationError("hillocal: bus is shut down")
-        try:
-            msg = self._rx.get(timeout=timeout) if timeout is None or timeout > 0 else self._rx.get_nowait()
-        except queue.Empty:
-            return None, False
-        self.rx_frames += 1
-        return msg, False
+            self._deliver(sender, msg, self._stamp(None if stamps is None else stamps[i], arrival))
 
     # -- sending ------------------------------------------------------------------------------------
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._send([self._record(msg)], None, [msg])
+        self._send([self._packed(msg)], None)
 
     def send_stamped(self, msg: can.Message, stamp_epoch_ns: int, timeout: float | None = None) -> None:
         """``send``, telling receivers the frame was on the wire at ``stamp_epoch_ns``."""
-        self._send([self._record(msg)], [int(stamp_epoch_ns)], [msg])
+        self._send([self._packed(msg)], [int(stamp_epoch_ns)])
 
     def send_burst_stamped(
         self, msgs: Sequence[can.Message], stamps_epoch_ns: Sequence[int], timeout: float | None = None
@@ -364,22 +337,9 @@ class LocalCanBus(can.BusABC):
             return
         if len(msgs) > 255:
             raise can.CanOperationError(f"hillocal: a burst of {len(msgs)} frames (at most 255)")
-        self._send([self._record(m) for m in msgs], [int(s) for s in stamps_epoch_ns], list(msgs))
+        self._send([self._packed(m) for m in msgs], [int(s) for s in stamps_epoch_ns])
 
-    def _record(self, msg: can.Message) -> bytes:
-        if self._closed.is_set():
-            raise can.CanOperationError("hillocal: bus is shut down")
-        n = len(msg.data or b"")
-        if msg.is_fd:
-            if not self.fd:
-                raise can.CanOperationError("hillocal: FD frame on a bus opened with fd=False")
-            if n not in FD_LENGTHS:
-                raise can.CanOperationError(f"hillocal: {n} data bytes is not a CAN FD length")
-        elif n > 8:
-            raise can.CanOperationError(f"hillocal: {n} data bytes in a classic CAN frame")
-        return pack_frame(self._sender, msg)
-
-    def _send(self, records: list[bytes], stamps: list[int] | None, msgs: list[can.Message]) -> None:
+    def _send(self, records: list[bytes], stamps: list[int] | None) -> None:
         data = packet(records, stamps)
         with self._tx_lock:
             self._refresh_peers()
@@ -392,24 +352,7 @@ class LocalCanBus(can.BusABC):
                     self._drop_peer(path)
         self.tx_frames += len(records)
         if self.receive_own_messages and self._listener is not None:
-            now = time.time()
-            for i, m in enumerate(msgs):
-                own = can.Message(
-                    arbitration_id=m.arbitration_id,
-                    is_extended_id=m.is_extended_id,
-                    is_fd=m.is_fd,
-                    bitrate_switch=m.bitrate_switch,
-                    error_state_indicator=m.error_state_indicator,
-                    is_error_frame=m.is_error_frame,
-                    is_remote_frame=m.is_remote_frame,
-                    data=bytes(m.data or b""),
-                    dlc=len(m.data or b""),
-                    channel=self.channel,
-                    timestamp=min(now, stamps[i] * 1e-9) if stamps else now,
-                    is_rx=False,
-                    check=False,
-                )
-                self._rx.put(own)
+            self._on_packet(data, time.time())  # its own frames, as a SocketCAN socket loops them back
 
     def _refresh_peers(self) -> None:
         """Connect to listeners that appeared, forget those that went (the directory changed)."""

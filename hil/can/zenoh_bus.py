@@ -174,7 +174,80 @@ def _message(arb: int, flags: int, data: bytes) -> can.Message:
     return msg
 
 
-class ZenohCanBus(can.BusABC):
+class FrameQueueBus(can.BusABC):
+    """What the rig's two python-can buses share (this one and ``hillocal``,
+    :mod:`hil.can.local_bus`): the frame rules of a SocketCAN socket on the way out, and on the
+    way in a bounded queue for ``recv`` fed with each frame's stamp. A subclass sets ``NAME`` and,
+    before it receives, ``channel``, ``fd``, ``receive_own_messages``, ``_sender``, ``_closed``,
+    ``_rx_max`` and the counters."""
+
+    NAME: ClassVar[str] = "hil"
+    channel: str
+    fd: bool
+    receive_own_messages: bool
+    _sender: int
+    _closed: threading.Event
+    _rx_max: int
+    rx_overflow: int
+    rx_fd_ignored: int
+    rx_stamp_skew: int
+    rx_frames: int
+
+    def _init_queue(self) -> None:
+        self._rx: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+
+    def _stamp(self, wire_ns: int | None, arrival: float) -> float:
+        """A frame's receive stamp: its sender's wire time unless that is after the arrival
+        (clock skew between hosts, counted), else the arrival."""
+        if wire_ns is None:
+            return arrival
+        wire_s = wire_ns * 1e-9
+        if wire_s <= arrival:
+            return wire_s
+        self.rx_stamp_skew += 1
+        return arrival
+
+    def _deliver(self, sender: int, msg: can.Message, stamp: float) -> None:
+        """One received frame into the queue, unless this bus may not see it."""
+        if sender == self._sender and not self.receive_own_messages:
+            return
+        if msg.is_fd and not self.fd:
+            self.rx_fd_ignored += 1
+            return
+        msg.timestamp = stamp
+        msg.channel = self.channel
+        msg.is_rx = sender != self._sender
+        if self._rx.qsize() >= self._rx_max:  # a bound on memory (a racing producer may pass it by one)
+            self.rx_overflow += 1
+            return
+        self._rx.put(msg)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._closed.is_set():
+            raise can.CanOperationError(f"{self.NAME}: bus is shut down")
+        try:
+            msg = self._rx.get(timeout=timeout) if timeout is None or timeout > 0 else self._rx.get_nowait()
+        except queue.Empty:
+            return None, False
+        self.rx_frames += 1
+        return msg, False
+
+    def _packed(self, msg: can.Message) -> bytes:
+        """The frame's record, or ``CanOperationError`` if this bus may not send it."""
+        if self._closed.is_set():
+            raise can.CanOperationError(f"{self.NAME}: bus is shut down")
+        n = len(msg.data or b"")
+        if msg.is_fd:
+            if not self.fd:
+                raise can.CanOperationError(f"{self.NAME}: FD frame on a bus opened with fd=False")
+            if n not in FD_LENGTHS:
+                raise can.CanOperationError(f"{self.NAME}: {n} data bytes is not a CAN FD length")
+        elif n > 8:
+            raise can.CanOperationError(f"{self.NAME}: {n} data bytes in a classic CAN frame")
+        return pack_frame(self._sender, msg)
+
+
+class ZenohCanBus(FrameQueueBus):
     """python-can bus over Zenoh. Keyword arguments beyond python-can's own:
 
     - ``rig``: rig namespace of the key (default ``$HIL_RIG`` or ``"default"``);
@@ -187,6 +260,8 @@ class ZenohCanBus(can.BusABC):
     - ``no_traffic_warn_s``: warn when nothing was sent or received this long after opening
       (default 5; 0: never).
     """
+
+    NAME = "hilzenoh"
 
     def __init__(
         self,
@@ -219,7 +294,7 @@ class ZenohCanBus(can.BusABC):
         self.channel_info = f"hilzenoh {self.key} ({'CAN FD' if self.fd else 'CAN 2.0'})"
         self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
         self._sender = secrets.randbits(64)
-        self._rx: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self._init_queue()
         self._rx_max = max(1, int(rx_queue_size))
         self._closed = threading.Event()
         self.rx_overflow = 0
@@ -306,15 +381,7 @@ class ZenohCanBus(can.BusABC):
         attachment that is not one stamp per frame is not ours to read: arrival stamps."""
         if wire is None or len(wire) != _STAMP.size * n:
             return [arrival] * n
-        out = []
-        for (ns,) in _STAMP.iter_unpack(wire):
-            wire_s = ns * 1e-9
-            if wire_s <= arrival:
-                out.append(wire_s)
-            else:
-                self.rx_stamp_skew += 1
-                out.append(arrival)
-        return out
+        return [self._stamp(ns, arrival) for (ns,) in _STAMP.iter_unpack(wire)]
 
     def _on_payload(self, payload: bytes, arrival: float, wire: bytes | None = None) -> None:
         """Frames on the key (one, or a burst's), from Zenoh or from a bus of this session."""
@@ -326,28 +393,7 @@ class ZenohCanBus(can.BusABC):
             return
         stamps = self._stamps(wire, len(frames), arrival)
         for (sender, msg), stamp in zip(frames, stamps, strict=True):
-            if sender == self._sender and not self.receive_own_messages:
-                continue
-            if msg.is_fd and not self.fd:
-                self.rx_fd_ignored += 1
-                continue
-            msg.timestamp = stamp
-            msg.channel = self.channel
-            msg.is_rx = sender != self._sender
-            if self._rx.qsize() >= self._rx_max:  # a bound on memory (a racing producer may pass it by one)
-                self.rx_overflow += 1
-                continue
-            self._rx.put(msg)
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        if self._closed.is_set():
-            raise can.CanOperationError("hilzenoh: bus is shut down")
-        try:
-            msg = self._rx.get(timeout=timeout) if timeout is None or timeout > 0 else self._rx.get_nowait()
-        except queue.Empty:
-            return None, False
-        self.rx_frames += 1
-        return msg, False
+            self._deliver(sender, msg, stamp)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Publish ``msg``; raises ``CanOperationError`` on a closed bus or an illegal frame."""
@@ -371,20 +417,6 @@ class ZenohCanBus(can.BusABC):
             return
         payload = b"".join([self._packed(m) for m in msgs])
         self._publish(payload, struct.pack(f"<{len(msgs)}q", *stamps_epoch_ns), len(msgs))
-
-    def _packed(self, msg: can.Message) -> bytes:
-        """The frame's record, or ``CanOperationError`` if this bus may not send it."""
-        if self._closed.is_set():
-            raise can.CanOperationError("hilzenoh: bus is shut down")
-        n = len(msg.data or b"")
-        if msg.is_fd:
-            if not self.fd:
-                raise can.CanOperationError("hilzenoh: FD frame on a bus opened with fd=False")
-            if n not in FD_LENGTHS:
-                raise can.CanOperationError(f"hilzenoh: {n} data bytes is not a CAN FD length")
-        elif n > 8:
-            raise can.CanOperationError(f"hilzenoh: {n} data bytes in a classic CAN frame")
-        return pack_frame(self._sender, msg)
 
     def _publish(self, payload: bytes, wire: bytes | None, frames: int) -> None:
         try:

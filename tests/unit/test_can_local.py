@@ -109,11 +109,21 @@ def test_classic_bus_refuses_fd_frames_and_does_not_see_them(can_dir: Path) -> N
         fd.send(can.Message(arbitration_id=2, is_fd=True, data=bytes(12)))
         fd.send(can.Message(arbitration_id=3, data=b"\x01"))
         got = classic.recv(timeout=10)
-        assert got is not None and got.arbitration_id == 3
+        assert got is not None and got.arbitration_id == 3 and got.is_rx
         assert classic.rx_fd_ignored == 1
     finally:
         classic.shutdown()
         fd.shutdown()
+    own = LocalCanBus(channel="vcan0", directory=can_dir, receive_own_messages=True)
+    try:  # as a SocketCAN socket with CAN_RAW_RECV_OWN_MSGS: its own frames back, not as received
+        own.send_stamped(
+            can.Message(arbitration_id=4, is_extended_id=False, data=b"me"), time.time_ns() - 10**6
+        )
+        got = own.recv(timeout=10)
+        assert got is not None and bytes(got.data) == b"me" and not got.is_rx
+        assert got.timestamp < time.time() - 5e-4  # the stated wire time
+    finally:
+        own.shutdown()
 
 
 def test_malformed_packets_are_counted_and_dropped_whole(can_dir: Path) -> None:
