@@ -44,7 +44,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import secrets
 import selectors
 import shutil
 import socket
@@ -58,7 +57,6 @@ from pathlib import Path
 from typing import Any
 
 import can
-from can import CanProtocol
 
 from hil.can.zenoh_bus import FrameQueueBus, unpack_frames
 
@@ -226,21 +224,8 @@ class LocalCanBus(FrameQueueBus):
         else:  # the short alias (a long directory path)
             _private(self.dir.parent)
             _private(self.dir)
-        self.fd = bool(fd)
-        self.receive_own_messages = receive_own_messages
-        self.channel_info = f"hillocal {self.dir} ({'CAN FD' if self.fd else 'CAN 2.0'})"
-        self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
-        self._sender = secrets.randbits(64)
-        self._init_queue()
-        self._rx_max = max(1, int(rx_queue_size))
-        self._closed = threading.Event()
-        self.rx_overflow = 0
-        self.rx_malformed = 0
-        self.rx_fd_ignored = 0
-        self.rx_stamp_skew = 0
-        self.rx_frames = 0
+        self._init_frames(fd, receive_own_messages, rx_queue_size, str(self.dir))
         self.rx_packets = 0
-        self.tx_frames = 0
         self.tx_overflow = 0  # packets a listener had no room for (lost for that listener)
         self.tx_peers_lost = 0
         self._peers: dict[str, socket.socket] = {}

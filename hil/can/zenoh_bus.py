@@ -193,8 +193,22 @@ class FrameQueueBus(can.BusABC):
     rx_stamp_skew: int
     rx_frames: int
 
-    def _init_queue(self) -> None:
+    def _init_frames(self, fd: bool, receive_own_messages: bool, rx_queue_size: int, where: str) -> None:
+        """The state both buses keep: frame rules, identity, the receive queue, the counters."""
+        self.fd = bool(fd)
+        self.receive_own_messages = receive_own_messages
+        self.channel_info = f"{self.NAME} {where} ({'CAN FD' if self.fd else 'CAN 2.0'})"
+        self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
+        self._sender = secrets.randbits(64)
         self._rx: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self._rx_max = max(1, int(rx_queue_size))
+        self._closed = threading.Event()
+        self.rx_overflow = 0
+        self.rx_malformed = 0
+        self.rx_fd_ignored = 0
+        self.rx_stamp_skew = 0
+        self.rx_frames = 0
+        self.tx_frames = 0
 
     def _stamp(self, wire_ns: int | None, arrival: float) -> float:
         """A frame's receive stamp: its sender's wire time unless that is after the arrival
@@ -289,21 +303,8 @@ class ZenohCanBus(FrameQueueBus):
         except ValueError as err:
             raise can.CanInitializationError(f"hilzenoh: {err} (from {self.rig_source})") from None
         self.key = Keys(self.rig).canbus(self.channel)
-        self.fd = bool(fd)
-        self.receive_own_messages = receive_own_messages
-        self.channel_info = f"hilzenoh {self.key} ({'CAN FD' if self.fd else 'CAN 2.0'})"
-        self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
-        self._sender = secrets.randbits(64)
-        self._init_queue()
-        self._rx_max = max(1, int(rx_queue_size))
-        self._closed = threading.Event()
-        self.rx_overflow = 0
-        self.rx_malformed = 0
-        self.rx_fd_ignored = 0
-        self.tx_frames = 0
-        self.rx_frames = 0
+        self._init_frames(fd, receive_own_messages, rx_queue_size, self.key)
         self.rx_samples = 0  # every sample on the key, own frames included: traffic on the rig
-        self.rx_stamp_skew = 0
         self._sub: Any = None
         self._own_session = session is None
         try:
