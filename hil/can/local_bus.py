@@ -360,19 +360,28 @@ class LocalCanBus(FrameQueueBus):
             if path == own:
                 continue
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            sock.setblocking(False)  # never wait here: this is the IMU's pacing thread
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER_BYTES)
                 sock.connect(path)
+            except BlockingIOError:  # its backlog is full (a stopped process): try again next send
+                sock.close()
+                self._dir_mtime = -1
+                continue
             except OSError:  # a socket file left by a process that is gone
                 sock.close()
                 continue
             self._peers[path] = sock
 
     def _drop_peer(self, path: str, lost: bool = True) -> None:
+        """Forget a listener; one whose connection failed (``lost``) is looked for again at the
+        next send, and reconnected if its socket still answers (a gone process's does not)."""
         sock = self._peers.pop(path, None)
         if sock is not None:
             sock.close()
             self.tx_peers_lost += int(lost)
+            if lost:
+                self._dir_mtime = -1
 
     def counters(self) -> dict[str, int]:
         """For the owning service's status: what the transport refused or lost (a malformed

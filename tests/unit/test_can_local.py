@@ -277,3 +277,30 @@ def test_hil_up_gives_its_children_a_can_directory_unless_it_joins_a_router_or_i
     # joining a router: the rig may span hosts, so its CAN goes over Zenoh
     monkeypatch.setenv("HIL_ZENOH_CONNECT", "tcp/127.0.0.1:1")
     assert Supervisor(UpOptions(live=False, rig="cd", channel="vcan-none")).can_dir is None
+
+
+def test_a_listener_that_dropped_the_connection_is_reconnected_at_the_next_send(can_dir: Path) -> None:
+    sender = LocalCanBus(channel="vcan0", directory=can_dir, receive=False)
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    listener.bind(str(can_dir / "vcan0" / "flaky.sock"))
+    listener.listen(4)
+    listener.settimeout(10)
+    frame = can.Message(arbitration_id=0x55, is_extended_id=False, data=b"\x01")
+    try:
+        sender.send(frame)  # connects, and the packet waits in the new connection
+        first, _ = listener.accept()
+        first.close()  # the listener drops this sender (as a reader that restarted would)
+        deadline = time.monotonic() + 10
+        while sender.tx_peers_lost == 0 and time.monotonic() < deadline:
+            sender.send(frame)  # fails once the close is seen: dropped, looked for again
+        assert sender.tx_peers_lost == 1
+        sender.send(frame)  # the socket still answers: connected again
+        second, _ = listener.accept()
+        second.settimeout(10)
+        data = second.recv(4096)
+        _stamps, frames = parse_packet(data)
+        assert [m.arbitration_id for _s, m in frames] == [0x55] and sender.peers == 1
+        second.close()
+    finally:
+        listener.close()
+        sender.shutdown()
