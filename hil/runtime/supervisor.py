@@ -415,8 +415,9 @@ class Supervisor:
         return str((self.opts.log_dir or Path("recordings/logs")) / "dut_gnss.tty")
 
     def dut_command(self) -> list[str]:
-        """The unit's program on the run's wires: the IMU's CAN bus (channel and interface, the
-        hilzenoh transport configured by the environment every child gets) and its GNSS line."""
+        """The unit's program on the run's wires: the IMU's CAN bus (channel and interface: the
+        rig's hillocal directory or hilzenoh network, which the environment every child gets
+        configures) and its GNSS line."""
         from hil.can.bus import LOCAL_DIR_ENV, resolve_interface
         from hil.can.codec import default_dbc_path
 
