@@ -18,6 +18,9 @@ pair of the same round:
   (``send_burst_stamped``, each frame with its wire stamp) -- the IMU emulator's and the CAN
   bridge's path (one sample's four classic frames); ``hilzenoh fd``: 64-byte FD frames.
   A hilzenoh figure is per frame.
+- ``hillocal``, ``hillocal burst``, ``hillocal fd``: the same on the rig's local CAN sockets
+  (:mod:`hil.can.local_bus`, what ``hil up`` on one machine uses), in a private directory the
+  bench makes; no Zenoh and no hub in the path.
 
 The payload of ``raw`` and ``typed`` is a real ``ImuSample`` (~260 bytes of JSON).
 """
@@ -29,6 +32,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import Any
@@ -38,7 +42,18 @@ from hil.bus.session import BusConfig, open_session
 from hil.runtime.supervisor import free_port
 
 KEY = "hil/benchbus/sensor/imu"
-CASES = ("raw", "raw express", "raw direct", "typed", "hilzenoh", "hilzenoh burst", "hilzenoh fd")
+CASES = (
+    "raw",
+    "raw express",
+    "raw direct",
+    "typed",
+    "hilzenoh",
+    "hilzenoh burst",
+    "hilzenoh fd",
+    "hillocal",
+    "hillocal burst",
+    "hillocal fd",
+)
 IDLE_END_S = 3.0  # the receiver stops this long after its last message
 
 
@@ -93,8 +108,8 @@ def _receiver(case: str, endpoint: str, n: int) -> dict[str, Any]:
     elif case == "typed":
         closer = DispatchSubscriber(session, KEY, {"sensor": (ImuSample, lambda _m, _k: seen())}, Stats())
     else:
-        bus = can.Bus(interface="hilzenoh", channel="vcan0", rig="benchbus", fd=True, session=session)
-        stated = case == "hilzenoh burst"
+        bus = _can_bus(case, session)
+        stated = case.endswith("burst")
 
         def pump() -> None:
             while not done.is_set():
@@ -130,6 +145,16 @@ def _receiver(case: str, endpoint: str, n: int) -> dict[str, Any]:
     }
 
 
+def _can_bus(case: str, session: Any) -> Any:
+    """The case's python-can bus: hilzenoh on the bench's session, or hillocal in the bench's
+    directory (``HIL_CAN_DIR``, set by :func:`run_case`)."""
+    import can
+
+    if case.startswith("hillocal"):
+        return can.Bus(interface="hillocal", channel="vcan0", fd=True)
+    return can.Bus(interface="hilzenoh", channel="vcan0", rig="benchbus", fd=True, session=session)
+
+
 def _idle_for(state: dict[str, float]) -> float:
     """Seconds since the receiver's count last moved (tracked on the 0.2 s poll)."""
     now = time.time()
@@ -149,6 +174,7 @@ def _sender(case: str, endpoint: str, n: int, rate: float, burst: int) -> dict[s
     session = _session(endpoint)
     msgs = [_sample_msg(i) for i in range(min(n, 1000))]
     send: Any
+    bus: Any = None
     if case.startswith("raw"):
         pub = session.declare_publisher(
             KEY,
@@ -162,8 +188,8 @@ def _sender(case: str, endpoint: str, n: int, rate: float, burst: int) -> dict[s
         tpub = Publisher(session, KEY, ImuSample, Stats())
         send = lambda i: tpub.put(msgs[i % len(msgs)])  # noqa: E731
     else:
-        fd = case == "hilzenoh fd"
-        bus = can.Bus(interface="hilzenoh", channel="vcan0", rig="benchbus", fd=True, session=session)
+        fd = case.endswith(" fd")
+        bus = _can_bus(case, session)
         frames = [
             can.Message(
                 arbitration_id=0x180 + (i % 4),
@@ -174,7 +200,7 @@ def _sender(case: str, endpoint: str, n: int, rate: float, burst: int) -> dict[s
             )
             for i in range(64)
         ]
-        if case == "hilzenoh burst":
+        if case.endswith("burst"):
             step = max(1, burst)
 
             def send(i: int) -> None:
@@ -205,6 +231,8 @@ def _sender(case: str, endpoint: str, n: int, rate: float, burst: int) -> dict[s
     t_put = time.time()
     time.sleep(0.5)  # non-express puts leave on Zenoh's tx thread: its CPU is the sender's too
     cpu = time.process_time() - cpu0 - _idle_cpu(0.5)
+    if bus is not None:
+        bus.shutdown()
     session.close()
     return {"sent": n, "cpu_s": cpu, "t0": t0, "t_put": t_put, "sent_at": sent}
 
@@ -258,14 +286,21 @@ def run_case(
     env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_ZENOH")}
     tree = os.path.abspath(tree or os.getcwd())
     env["PYTHONPATH"] = tree
-    rx = _spawn(["rx", case, endpoint, str(n), "0", "1"], env, tree)
-    tx = _spawn(["tx", case, endpoint, str(n), str(rate), str(burst)], env, tree)
-    time.sleep(1.0)  # the peers find each other
-    assert tx.stdin is not None
-    tx.stdin.write("go\n")
-    tx.stdin.flush()
-    tx_out, _ = tx.communicate(timeout=900)
-    rx_out, _ = rx.communicate(timeout=900)
+    can_dir = tempfile.mkdtemp(prefix="hil-benchbus-")  # 0700: the hillocal cases' directory
+    env["HIL_CAN_DIR"] = can_dir
+    try:
+        rx = _spawn(["rx", case, endpoint, str(n), "0", "1"], env, tree)
+        tx = _spawn(["tx", case, endpoint, str(n), str(rate), str(burst)], env, tree)
+        time.sleep(1.0)  # the peers find each other
+        assert tx.stdin is not None
+        tx.stdin.write("go\n")
+        tx.stdin.flush()
+        tx_out, _ = tx.communicate(timeout=900)
+        rx_out, _ = rx.communicate(timeout=900)
+    finally:
+        from hil.can.local_bus import remove_can_dir
+
+        remove_can_dir(can_dir)
     t = json.loads(tx_out.strip().splitlines()[-1])
     r = json.loads(rx_out.strip().splitlines()[-1])
     got = r["received"]
