@@ -36,6 +36,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "hil.can.node",
         "hil.can.zenoh_bus",
         "hil.can.local_bus",
+        "hil.can.frame_bus",
         "hil.can.mcap_io",
         "hil.bus",
         "hil.campaign",

@@ -88,7 +88,8 @@ def _write_private(path: Path, text: str) -> None:
         raise
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (another user's counts: it cannot be signalled, but is there)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -130,6 +131,11 @@ class RigAccess:
     def config_path(self) -> Path:
         """This run's Zenoh configuration (its services' and its viewers')."""
         return self.dir / f"{self.rig}-{self.pid}.json5"
+
+    @property
+    def can_dir(self) -> Path:
+        """This run's local CAN directory (``hil.can.local_bus``), where it has one."""
+        return self.dir / f"{self.rig}-{self.pid}.can"
 
     @property
     def users_path(self) -> Path:
@@ -247,7 +253,7 @@ def find_rig(rig: str, env: Mapping[str, str] | None = None) -> tuple[RigAccess 
     found = read_endpoint(path)
     if found is None:
         return None, f"no endpoint file {path} (is hil up --rig {rig} running as this user?)"
-    if not _pid_alive(found.pid):
+    if not pid_alive(found.pid):
         return None, f"{path} is left from a run that ended (pid {found.pid} is gone)"
     return found, ""
 

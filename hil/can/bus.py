@@ -17,8 +17,8 @@ from typing import Any
 
 import can
 
-#: The rig's local CAN directory (``hil.can.local_bus``), set by ``hil up`` for its children.
-LOCAL_DIR_ENV = "HIL_CAN_DIR"
+from hil.can.local_bus import DIR_ENV as LOCAL_DIR_ENV  # the rig's local CAN directory (hil up's)
+from hil.can.local_bus import LocalCanBus, running_rig_dir
 
 INTERFACES = ("auto", "socketcan", "hillocal", "hilzenoh", "virtual", "udp_multicast")
 #: A SocketCAN reader's kernel queue (candump -r): at 1 Mbit/s a bus carries ~7,400 classic
@@ -50,11 +50,8 @@ def resolve_interface(
             return "socketcan"
         if (os.environ if env is None else env).get(LOCAL_DIR_ENV):
             return "hillocal"
-        if rig is not None:
-            from hil.can.local_bus import running_rig_dir
-
-            if running_rig_dir(rig, env) is not None:
-                return "hillocal"
+        if rig is not None and running_rig_dir(rig, env) is not None:
+            return "hillocal"
         return "hilzenoh"
     return iface
 
@@ -77,10 +74,9 @@ def open_can_bus(
     """
     iface = resolve_interface(channel, interface, rig=rig)
     kw: dict[str, Any] = dict(kwargs)
-    if iface == "hillocal":
+    if iface in ("hillocal", "hilzenoh"):  # ours: the rig names the bus (hillocal: if no directory does)
         kw.setdefault("rig", rig)
     if iface == "hilzenoh":
-        kw.setdefault("rig", rig)
         kw.setdefault("no_traffic_warn_s", 0.0)  # the rig's own processes know their rig
         if session is not None:
             kw["session"] = session
@@ -89,8 +85,6 @@ def open_can_bus(
             kw.setdefault("no_traffic_warn_s", 0)  # opened before time zero: silence is expected
     try:
         if iface == "hillocal":  # ours: no need of python-can's registry (the entry point)
-            from hil.can.local_bus import LocalCanBus
-
             bus: can.BusABC = LocalCanBus(channel=channel, fd=fd, receive=receive, **kw)
         else:
             bus = can.Bus(interface=iface, channel=channel, fd=fd, **kw)

@@ -28,7 +28,7 @@ How it works:
   ``fd=False`` refuses FD frames and does not see them; ``receive=False`` only sends.
 
 Packet format (little-endian): ``u8 version (1) | u8 n | i64 wire time (epoch ns) × n`` then
-the frames' records as ``hilzenoh`` packs them (:func:`hil.can.zenoh_bus.pack_frame`); ``n`` is
+the frames' records as ``hilzenoh`` packs them (:func:`hil.can.frame_bus.pack_frame`); ``n`` is
 0 (arrival stamps) or the number of records. Anything else -- a packet another process of the
 user wrote into the directory -- is counted in ``rx_malformed`` and dropped whole.
 
@@ -47,7 +47,6 @@ import os
 import selectors
 import shutil
 import socket
-import stat
 import struct
 import tempfile
 import threading
@@ -58,9 +57,9 @@ from typing import Any
 
 import can
 
-from hil.can.zenoh_bus import FrameQueueBus, unpack_frames
+from hil.can.frame_bus import FrameQueueBus, unpack_frames
 
-DIR_ENV = "HIL_CAN_DIR"  # hil.can.bus.LOCAL_DIR_ENV
+DIR_ENV = "HIL_CAN_DIR"  # set by hil up for its children (hil.can.bus.LOCAL_DIR_ENV)
 _HEAD = struct.Struct("<BB")
 VERSION = 1
 MAX_PACKET = 1 + 1 + 8 * 255 + 255 * (14 + 64)  # what one burst can be; reads take this much
@@ -97,28 +96,15 @@ def parse_packet(data: bytes) -> tuple[list[int] | None, list[tuple[int, can.Mes
 
 
 def running_rig_dir(rig: str, env: Mapping[str, str] | None = None) -> Path | None:
-    """The CAN directory of the running ``hil up`` of this rig on this machine (its
-    ``<rig>-<pid>.can`` in the user's runtime directory, whose process is alive), or None: how a
-    process started by hand (``hil replay --can``, a python-can tool) finds the rig's bus."""
-    from hil.bus.endpoint import runtime_dir
+    """The CAN directory of the running ``hil up`` of this rig on this machine (found as a
+    viewer finds the rig: its endpoint file, whose process is alive), or None: how a process
+    started by hand (``hil replay --can``, a python-can tool) finds the rig's bus."""
+    from hil.bus.endpoint import find_rig
 
-    try:
-        base = runtime_dir(env)
-        found = sorted(base.glob(f"{rig}-*.can"), key=lambda p: p.stat().st_mtime_ns, reverse=True)
-    except Exception:  # no private runtime directory: no local rig
+    found, _why = find_rig(rig, env)
+    if found is None or not found.can_dir.is_dir():
         return None
-    for d in found:
-        pid = d.name[len(rig) + 1 : -len(".can")]
-        if not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            continue
-        except OSError:
-            pass
-        return d
-    return None
+    return found.can_dir
 
 
 def channel_dir(directory: str | os.PathLike[str], channel: str) -> Path:
@@ -148,17 +134,18 @@ def remove_can_dir(directory: str | os.PathLike[str]) -> None:
     shutil.rmtree(short_alias(directory), ignore_errors=True)
 
 
-def _private(path: Path) -> None:
-    """Make ``path`` (and a missing parent) 0700, or ``CanInitializationError`` if it is not private."""
-    for p in (path.parent, path):
-        with contextlib.suppress(FileExistsError):
-            p.mkdir(mode=0o700)
-        st = p.lstat()
-        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
-            raise can.CanInitializationError(
-                f"hillocal: {p} is not a private directory of this user "
-                f"(mode {oct(st.st_mode & 0o777)}): refused"
-            )
+def _private(path: Path, create: bool) -> None:
+    """``path`` as a directory only this user can enter (made so with ``create``), or
+    ``CanInitializationError`` (:func:`hil.bus.endpoint.private_dir`'s rule)."""
+    from hil.bus.endpoint import private_dir
+    from hil.bus.session import BusConfigError
+
+    try:
+        private_dir(path, create=create)
+    except BusConfigError as err:
+        raise can.CanInitializationError(f"hillocal: {err}") from None
+    if not path.is_dir():
+        raise can.CanInitializationError(f"hillocal: {path} is not a directory (is the rig running?)")
 
 
 class LocalCanBus(FrameQueueBus):
@@ -206,26 +193,17 @@ class LocalCanBus(FrameQueueBus):
         except ValueError as err:
             raise can.CanInitializationError(f"hillocal: {err}") from None
         base = Path(where)
-        if not base.is_dir():
-            raise can.CanInitializationError(f"hillocal: {base} is not a directory (is the rig running?)")
-        st = base.stat()
-        if st.st_uid != os.getuid() or st.st_mode & 0o077:
-            raise can.CanInitializationError(
-                f"hillocal: {base} is not private to this user (mode {oct(st.st_mode & 0o777)}): refused"
-            )
+        _private(base, create=False)
         if receive and len(os.fsencode(self.dir)) + 1 + _NAME_LEN > _MAX_PATH:  # a long channel name
             raise can.CanInitializationError(
                 f"hillocal: a socket in {self.dir} would be longer than a Unix socket path may be "
                 f"({_MAX_PATH} B): use a shorter channel name"
             )
-        if self.dir.parent == base:
-            with contextlib.suppress(FileExistsError):
-                self.dir.mkdir(mode=0o700)
-        else:  # the short alias (a long directory path)
-            _private(self.dir.parent)
-            _private(self.dir)
+        if self.dir.parent != base:  # the short alias (a long directory path)
+            _private(self.dir.parent.parent, create=True)
+            _private(self.dir.parent, create=True)
+        _private(self.dir, create=True)
         self._init_frames(fd, receive_own_messages, rx_queue_size, str(self.dir))
-        self.rx_packets = 0
         self.tx_overflow = 0  # packets a listener had no room for (lost for that listener)
         self.tx_peers_lost = 0
         self._peers: dict[str, socket.socket] = {}
@@ -293,7 +271,6 @@ class LocalCanBus(FrameQueueBus):
             sel.close()
 
     def _on_packet(self, data: bytes, arrival: float) -> None:
-        self.rx_packets += 1
         try:
             stamps, frames = parse_packet(data)
         except Exception:

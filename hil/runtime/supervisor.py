@@ -104,18 +104,13 @@ def free_port() -> int:
 
 def _remove_stale_can_dirs(runtime: Path) -> None:
     """The CAN directories (``<rig>-<pid>.can``) of runs that were killed: their process is gone."""
+    from hil.bus.endpoint import pid_alive
     from hil.can.local_bus import remove_can_dir
 
     for d in runtime.glob("*-*.can"):
         pid = d.name[: -len(".can")].rsplit("-", 1)[-1]
-        if not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
+        if pid.isdigit() and not pid_alive(int(pid)):
             remove_can_dir(d)
-        except OSError:  # alive (another user's pid cannot be here: the directory is private)
-            continue
 
 
 @dataclass
@@ -381,7 +376,7 @@ class Supervisor:
         if self.access is not None and (
             iface == "hillocal" or (iface == "auto" and not channel_exists(opts.channel))
         ):
-            self.can_dir = self.access.dir / f"{opts.rig}-{self.access.pid}.can"
+            self.can_dir = self.access.can_dir
 
     def endpoint_line(self) -> str:
         """What ``hil up`` prints about its bus: where it is and how a viewer gets in."""

@@ -17,8 +17,8 @@ import can
 import pytest
 
 from hil.can.bus import LOCAL_DIR_ENV, open_can_bus, resolve_interface
+from hil.can.frame_bus import pack_frame
 from hil.can.local_bus import LocalCanBus, packet, parse_packet, remove_can_dir
-from hil.can.zenoh_bus import pack_frame
 
 
 @pytest.fixture
@@ -122,12 +122,11 @@ def test_classic_bus_refuses_fd_frames_and_does_not_see_them(can_dir: Path) -> N
         fd.shutdown()
     own = LocalCanBus(channel="vcan0", directory=can_dir, receive_own_messages=True)
     try:  # as a SocketCAN socket with CAN_RAW_RECV_OWN_MSGS: its own frames back, not as received
-        own.send_stamped(
-            can.Message(arbitration_id=4, is_extended_id=False, data=b"me"), time.time_ns() - 10**6
-        )
+        stated_ns = time.time_ns() - 10**6
+        own.send_stamped(can.Message(arbitration_id=4, is_extended_id=False, data=b"me"), stated_ns)
         got = own.recv(timeout=10)
         assert got is not None and bytes(got.data) == b"me" and not got.is_rx
-        assert got.timestamp < time.time() - 5e-4  # the stated wire time
+        assert got.timestamp == pytest.approx(stated_ns * 1e-9, abs=1e-6)  # the stated wire time
     finally:
         own.shutdown()
 
@@ -197,7 +196,7 @@ def test_the_directory_must_be_private_and_exist(tmp_path: Path) -> None:
     open_dir = tmp_path / "open"
     open_dir.mkdir(mode=0o755)
     open_dir.chmod(0o755)
-    with pytest.raises(can.CanInitializationError, match="not private"):
+    with pytest.raises(can.CanInitializationError, match="not a private directory"):
         LocalCanBus(channel="vcan0", directory=open_dir)
     with pytest.raises(can.CanInitializationError, match="not a plain name"):
         LocalCanBus(channel="../x", directory=tmp_path)
@@ -233,17 +232,24 @@ def test_auto_resolution_takes_the_rigs_local_bus_where_it_has_one(
 def test_a_process_started_by_hand_finds_the_running_rigs_bus_by_its_name(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``hil replay --can`` or a python-can tool beside a running ``hil up --rig R``: the rig's
-    ``R-<pid>.can`` in the runtime directory, whose process is alive; a dead run's is passed over."""
+    """``hil replay --can`` or a python-can tool beside a running ``hil up --rig R``: found as a
+    viewer finds the rig (its endpoint file, whose process is alive); a dead run's is passed over."""
+    from hil.bus.endpoint import RigAccess
+
     runtime = tmp_path / "rt"
     runtime.mkdir(mode=0o700)
     monkeypatch.setenv("HIL_RUNTIME_DIR", str(runtime))
     monkeypatch.delenv(LOCAL_DIR_ENV, raising=False)
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    (runtime / f"r1-{dead.pid}.can").mkdir(mode=0o700)
+    gone = RigAccess("r1", "tcp/127.0.0.1:1", dead.pid, authenticated=False, directory=runtime)
+    gone.write()
+    gone.can_dir.mkdir(mode=0o700)
     assert resolve_interface("vcan-x", None, rig="r1") == "hilzenoh"  # only a dead run's
-    live_dir = runtime / f"r1-{os.getpid()}.can"
+    access = RigAccess("r1", "tcp/127.0.0.1:1", os.getpid(), authenticated=False, directory=runtime)
+    access.write()
+    assert resolve_interface("vcan-x", None, rig="r1") == "hilzenoh"  # running, but no CAN directory
+    live_dir = access.can_dir
     live_dir.mkdir(mode=0o700)
     assert resolve_interface("vcan-x", None, rig="r1") == "hillocal"
     assert resolve_interface("vcan-x", None, rig="r2") == "hilzenoh"

@@ -17,8 +17,8 @@ from hil.bus.session import BusConfig, open_session
 from hil.can.bus import open_can_bus, resolve_interface
 from hil.can.busload import frame_bits, sample_load
 from hil.can.codec import ImuCanCodec
+from hil.can.frame_bus import pack_frame, unpack_frame, unpack_frames
 from hil.can.node import CanTransmitter, ImuCanNode
-from hil.can.zenoh_bus import pack_frame, unpack_frame, unpack_frames
 
 CHILD = textwrap.dedent(
     """

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hil.can.codec import ImuCanCodec, ImuFrameAssembler
-from hil.can.zenoh_bus import unpack_frame
+from hil.can.frame_bus import unpack_frame
 from hil.estimators.base import InitialState
 from hil.fusion.core import FusionConfig, FusionCore
 from hil.messages import CONTRACT_TYPES, GnssFix, ImuSample, decode, encode
