@@ -160,6 +160,7 @@ def test_live_timed_and_commanded_can_latency_are_applied_and_recorded(tmp_path:
     out = tmp_path / "cl.mcap"
     rig = Rig("clrig", out, "--duration", "600", "--scenario", str(scen))  # stopped at 8 s or later
     rig.running_pid("imu_emulator")
+    rig.reach(1.0)  # the commanded fault lands inside the run, with fixes/samples before it
     env = dict(os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_LISTEN="")
     env["HIL_ZENOH_CONNECT"] = rig.endpoint
     run = {"cwd": REPO, "env": env, "capture_output": True, "text": True, "timeout": 60}

@@ -45,6 +45,7 @@ def test_timed_and_commanded_faults_are_applied_and_recorded(tmp_path: Path) -> 
     out = tmp_path / "f.mcap"
     rig = Rig("faultrig", out, "--duration", "600", "--scenario", str(scen))  # stopped at 11 s or later
     rig.running_pid("gnss_emulator")
+    rig.reach(1.0)  # the commanded fault lands inside the run, with fixes/samples before it
     env = dict(os.environ, HIL_ZENOH_MODE="client", HIL_ZENOH_LISTEN="")
     env["HIL_ZENOH_CONNECT"] = rig.endpoint
     sent = subprocess.run(
