@@ -55,11 +55,13 @@ SENSOR_TYPES: dict[str, type[Message]] = {name: kind.message for name, kind in S
 # keys whose messages ready together may travel as one sample, a JSON array (a batch:
 # ``hil.bus.pubsub.Publisher.put_many``, ``hil.messages.split_batch``): every key of these kinds
 # (the raw CAN frames, ``can/<channel>``, four per IMU sample) and these keys (the samples of a
-# CAN read window, their synchronised copies, the emulator's capture truth of a compute batch).
-# Not the solutions (``nav``) nor the GNSS fixes: one per sample, as a client expects of a
-# low-rate stream. Keys relative to ``hil/<rig>/``; docs/topics.md says it from here.
+# CAN read window, their synchronised copies, the emulator's capture truth of a compute batch,
+# the world's truth rows computed together: ten at 100 Hz, which went out as ten messages at
+# the same instant, each routed and woken up for). Not the solutions (``nav``) nor the GNSS
+# fixes: one per sample, as a client expects of a low-rate stream. Keys relative to
+# ``hil/<rig>/``; docs/topics.md says it from here.
 BATCHED_KINDS = frozenset({"can"})
-BATCHED_KEYS = frozenset({"sensor/imu", "synced/imu", "capture/imu"})
+BATCHED_KEYS = frozenset({"sensor/imu", "synced/imu", "capture/imu", "truth"})
 
 
 def may_batch(key: str) -> bool:

@@ -92,6 +92,7 @@ def _discovery() -> list[str]:
         f"  {_batched_keys()}:",
         f"  a JSON array of up to {MAX_BATCH} messages of the key's type that were ready",
         "  together (a CAN read window's raw frames and IMU samples, `hil up --can-batch-ms`;",
+        "  the world's truth rows of one block, ten at 100 Hz;",
         "  `hil.bus.keys.may_batch`, `hil.messages.split_batch`), each with its own `seq`. The",
         "  recording keeps them one MCAP message each; on any other key (a solution `nav/<name>`,",
         "  a GNSS fix) a sample is always one message;",
