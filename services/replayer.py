@@ -121,7 +121,9 @@ def run(a: argparse.Namespace) -> int:
         if a.can:
             from hil.can.bus import open_can_bus
 
-            bus, desc = open_can_bus(a.can, a.can_interface, rig=a.rig or "default", session=session)
+            bus, desc = open_can_bus(
+                a.can, a.can_interface, rig=a.rig or "default", session=session, receive=False
+            )
             sys.stderr.write(f"hil replay: CAN frames -> {desc}" + "\n")
         stats = replay(a.file, opts, session, can_bus=bus, line=line, stop=stop)
     except KeyboardInterrupt:

@@ -23,7 +23,12 @@ How it works:
   ``stat`` per send); a listener that went away is dropped at the first failed write;
 - a received frame's timestamp is its sender's wire time when it says so (``send_stamped``,
   ``send_burst_stamped``: the kernel stamps a ``vcan`` frame in the sender's ``send`` too), else
-  its arrival; a stated time after the arrival is replaced by it and counted (``rx_stamp_skew``);
+  its arrival, as the kernel stamped the packet (``SO_TIMESTAMPNS``); a stated time after the
+  arrival is replaced by it and counted (``rx_stamp_skew``); ``send`` states the time it sends;
+- a receiving bus reads its sockets in ``recv`` (no thread): what waits in the kernel is read in
+  one call, each packet with its kernel stamp; a bus that stops reading lets its senders' packets
+  wait in its socket buffers (1 MiB per sender), then lose them (their ``tx_overflow``), as a
+  CAN controller's full receive FIFO does;
 - own frames are not received back (unless ``receive_own_messages``); a bus opened with
   ``fd=False`` refuses FD frames and does not see them; ``receive=False`` only sends.
 
@@ -67,6 +72,9 @@ SOCKET_BUFFER_BYTES = 1 << 20  # per connection: ~10 000 classic frames, seconds
 _MAX_PATH = 107  # sun_path
 _NAME_LEN = len("0123456789abcdef.sock")
 _SEND_FLAGS = socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL  # never wait; a closed peer is an error, not a signal
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python names it from 3.13 on
+_TIMESPEC = struct.Struct("@qq")  # struct timespec: the kernel's stamp of a packet (realtime clock)
+_ANC_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
 
 
 def packet(records: Sequence[bytes], stamps_epoch_ns: Sequence[int] | None) -> bytes:
@@ -211,7 +219,9 @@ class LocalCanBus(FrameQueueBus):
         self._tx_lock = threading.Lock()
         self.path: Path | None = None
         self._listener: socket.socket | None = None
-        self._reader: threading.Thread | None = None
+        self._sel: selectors.BaseSelector | None = None
+        self._conns: list[socket.socket] = []
+        self._rx_lock = threading.Lock()  # one reader of the sockets at a time; shutdown waits for it
         self._wake_r, self._wake_w = socket.socketpair()
         if receive:
             self.path = self.dir / f"{self._sender:016x}.sock"
@@ -224,51 +234,81 @@ class LocalCanBus(FrameQueueBus):
                 raise can.CanInitializationError(f"hillocal: cannot listen on {self.path}: {err}") from err
             lst.setblocking(False)
             self._listener = lst
-            self._reader = threading.Thread(target=self._read, name=f"hillocal-{self.channel}", daemon=True)
-            self._reader.start()
+            self._sel = selectors.DefaultSelector()
+            self._sel.register(lst, selectors.EVENT_READ, "accept")
+            self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         super().__init__(channel=self.channel, can_filters=can_filters, **kwargs)
 
-    # -- receiving (a thread of its own: stamp at once, never raise) -------------------------------
-    def _read(self) -> None:
-        sel = selectors.DefaultSelector()
-        assert self._listener is not None
-        sel.register(self._listener, selectors.EVENT_READ, "accept")
-        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
-        conns: list[socket.socket] = []
-        try:
-            while not self._closed.is_set():
-                for key, _ in sel.select():
-                    what = key.data
-                    if what == "wake":
-                        return
-                    if what == "accept":
-                        with contextlib.suppress(OSError):
-                            conn, _addr = self._listener.accept()
-                            conn.setblocking(False)
-                            with contextlib.suppress(OSError):
-                                conn.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER_BYTES)
-                            sel.register(conn, selectors.EVENT_READ, "conn")
-                            conns.append(conn)
-                        continue
-                    conn = key.fileobj
-                    assert isinstance(conn, socket.socket)
-                    while True:
-                        try:
-                            data = conn.recv(MAX_PACKET)
-                        except BlockingIOError:
-                            break
-                        except OSError:
-                            data = b""
-                        if not data:  # the sender closed (or went away)
-                            sel.unregister(conn)
-                            conns.remove(conn)
-                            conn.close()
-                            break
-                        self._on_packet(data, time.time())
-        finally:
-            for c in conns:
-                c.close()
-            sel.close()
+    # -- receiving: in the caller's recv, no thread of its own ----------------------------------
+    # The kernel stamps each packet as it is sent (SO_TIMESTAMPNS), so a frame read late still
+    # has its arrival time, and the caller reads a read window's packets in one wake-up: a
+    # thread woken per packet to stamp it cost the bridge a wake-up and a hand-over per sample.
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._sel is None:  # a sender only: its own frames looped back, if asked for
+            return super()._recv_internal(timeout)
+        if self._rx.empty():
+            deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+            wait: float | None = 0.0 if timeout is not None and timeout <= 0 else timeout
+            while True:
+                self._read_ready(wait)
+                if not self._rx.empty() or self._closed.is_set():
+                    break
+                if deadline is not None:
+                    wait = deadline - time.monotonic()
+                    if wait <= 0:
+                        break
+        return super()._recv_internal(0)
+
+    def _read_ready(self, wait: float | None) -> None:
+        """Accept new senders and read every packet already queued in the kernel (waiting up to
+        ``wait`` s for the first): what one wake-up of the reader finds."""
+        with self._rx_lock:
+            if self._closed.is_set() or self._sel is None:
+                return
+            for key, _ in self._sel.select(wait):
+                what = key.data
+                if what == "wake":
+                    return
+                if what == "accept":
+                    self._accept()
+                    continue
+                self._drain(key.fileobj)  # type: ignore[arg-type]
+
+    def _accept(self) -> None:
+        assert self._listener is not None and self._sel is not None
+        while True:
+            try:
+                conn, _addr = self._listener.accept()
+            except OSError:  # none left (BlockingIOError), or the listener closed
+                return
+            conn.setblocking(False)
+            with contextlib.suppress(OSError):
+                conn.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER_BYTES)
+            with contextlib.suppress(OSError):
+                conn.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            self._sel.register(conn, selectors.EVENT_READ, "conn")
+            self._conns.append(conn)
+
+    def _drain(self, conn: socket.socket) -> None:
+        while True:
+            try:
+                data, anc, _flags, _addr = conn.recvmsg(MAX_PACKET, _ANC_SIZE)
+            except BlockingIOError:
+                return
+            except OSError:
+                data, anc = b"", []
+            if not data:  # the sender closed (or went away)
+                assert self._sel is not None
+                self._sel.unregister(conn)
+                self._conns.remove(conn)
+                conn.close()
+                return
+            arrival = None
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= _TIMESPEC.size:
+                    sec, nsec = _TIMESPEC.unpack_from(raw)
+                    arrival = sec + nsec * 1e-9
+            self._on_packet(data, time.time() if arrival is None else arrival)
 
     def _on_packet(self, data: bytes, arrival: float) -> None:
         try:
@@ -281,7 +321,9 @@ class LocalCanBus(FrameQueueBus):
 
     # -- sending ------------------------------------------------------------------------------------
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._send([self._packed(msg)], None)
+        # stamped as it leaves, as the kernel stamps a vcan frame in send: the receiver's kernel
+        # stamp misses the packets a new connection carries before the receiver accepts it
+        self._send([self._packed(msg)], [time.time_ns()])
 
     def send_stamped(self, msg: can.Message, stamp_epoch_ns: int, timeout: float | None = None) -> None:
         """``send``, telling receivers the frame was on the wire at ``stamp_epoch_ns``."""
@@ -382,9 +424,17 @@ class LocalCanBus(FrameQueueBus):
             return
         self._closed.set()
         with contextlib.suppress(OSError):
-            self._wake_w.send(b"x")
-        if self._reader is not None:
-            self._reader.join(2.0)
+            self._wake_w.send(b"x")  # a reader waiting in recv returns
+        locked = self._rx_lock.acquire(timeout=2.0)
+        try:
+            if self._sel is not None:
+                self._sel.close()
+            for conn in self._conns:
+                conn.close()
+            self._conns.clear()
+        finally:
+            if locked:
+                self._rx_lock.release()
         if self._listener is not None:
             self._listener.close()
         if self.path is not None:

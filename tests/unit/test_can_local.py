@@ -160,6 +160,43 @@ def test_malformed_packets_are_counted_and_dropped_whole(can_dir: Path) -> None:
         parse_packet(b"\x01\x01" + b"\x00" * 4)
 
 
+def test_a_packet_read_late_keeps_the_time_the_kernel_stamped_it(can_dir: Path) -> None:
+    """The bus reads its sockets in recv, not in a thread of its own: a frame without a stated
+    wire time (another tool's packet) is stamped with its arrival as the kernel stamped it, not
+    with when recv got round to it."""
+    bus = LocalCanBus(channel="vcan0", directory=can_dir)
+    raw = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        assert bus.path is not None
+        raw.connect(str(bus.path))
+        first = pack_frame(7, can.Message(arbitration_id=5, is_extended_id=False, data=b"1"))
+        raw.send(packet([first], None))
+        assert bus.recv(timeout=10) is not None  # the connection accepted: the kernel stamps from now
+        t_sent = time.time()
+        raw.send(
+            packet([pack_frame(7, can.Message(arbitration_id=6, is_extended_id=False, data=b"2"))], None)
+        )
+        time.sleep(0.3)  # read well after it arrived
+        t_read = time.time()
+        msg = bus.recv(timeout=10)
+        assert msg is not None and msg.arbitration_id == 6
+        assert t_sent <= msg.timestamp < t_read, (t_sent, msg.timestamp, t_read)
+        # and a plain send states its own time, which the receiver keeps
+        other = LocalCanBus(channel="vcan0", directory=can_dir, receive=False)
+        try:
+            t0 = time.time()
+            other.send(can.Message(arbitration_id=8, is_extended_id=False, data=b"3"))
+            time.sleep(0.3)
+            t1 = time.time()
+            msg = bus.recv(timeout=10)
+            assert msg is not None and msg.arbitration_id == 8 and t0 <= msg.timestamp < t1
+        finally:
+            other.shutdown()
+    finally:
+        raw.close()
+        bus.shutdown()
+
+
 def test_a_stalled_reader_never_holds_the_sender_and_a_vanished_one_is_dropped(can_dir: Path) -> None:
     sender = LocalCanBus(channel="vcan0", directory=can_dir, receive=False)
     # a listener that accepts nothing and reads nothing (a process stopped in a debugger)
