@@ -203,10 +203,12 @@ the channel (`/sys/class/net/<channel>`). Without it:
   A sender writes each frame, or one sample's burst, to every listener of the channel without
   waiting: a listener with no room loses the packet and the sender counts it (`can.tx_overflow`),
   as a CAN controller's overflowing receive FIFO does, so a stalled reader never holds the IMU's
-  pacing back. Receive stamp the sender's wire time or the arrival, own frames not echoed, FD
-  supported, malformed packets counted (`rejected.can.transport_malformed` in the service's
-  status). It exists for speed: an isolated Zenoh message costs ~270 µs of CPU at its two ends
-  plus the hub's routing, once per IMU sample (docs/benchmarks.md, `rig-hillocal`);
+  pacing back. Receive stamp the sender's wire time, or the arrival as the kernel stamped the
+  packet; a receiver reads its sockets inside `recv` (no thread of its own), so a read window's
+  packets cost it one wake-up. Own frames not echoed, FD supported, malformed packets counted
+  (`rejected.can.transport_malformed` in the service's status). It exists for speed: an
+  isolated Zenoh message costs ~270 µs of CPU at its two ends plus the hub's routing, once per
+  IMU sample (docs/benchmarks.md, `rig-hillocal`);
 - otherwise (containers, hosts joined through a router: `HIL_ZENOH_CONNECT`), `hilzenoh`: a
   python-can interface carrying frames over the rig's Zenoh network on `hilcan/<rig>/<channel>`
   (reliable, blocking congestion control, receive stamp the sender's wire time or the arrival,
