@@ -29,6 +29,20 @@ def can_dir(tmp_path: Path) -> Iterator[Path]:
     remove_can_dir(d)  # and its short alias, where this test's long path needed one
 
 
+@pytest.fixture
+def listener_and_raw(can_dir: Path) -> Iterator[tuple[LocalCanBus, socket.socket]]:
+    """A listening bus and a plain socket connected to it: another tool's packets, as written."""
+    bus = LocalCanBus(channel="vcan0", directory=can_dir)
+    raw = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        assert bus.path is not None
+        raw.connect(str(bus.path))
+        yield bus, raw
+    finally:
+        raw.close()
+        bus.shutdown()
+
+
 CHILD = textwrap.dedent(
     """
     import sys, time, can
@@ -131,70 +145,58 @@ def test_classic_bus_refuses_fd_frames_and_does_not_see_them(can_dir: Path) -> N
         own.shutdown()
 
 
-def test_malformed_packets_are_counted_and_dropped_whole(can_dir: Path) -> None:
-    bus = LocalCanBus(channel="vcan0", directory=can_dir)
-    raw = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    try:
-        assert bus.path is not None
-        raw.connect(str(bus.path))
-        good = pack_frame(7, can.Message(arbitration_id=5, is_extended_id=False, data=b"ok"))
-        bad = [
-            b"",
-            b"\x01",
-            b"\x02\x00" + good,  # another version
-            b"\x01\x02" + b"\x00" * 8 + good,  # two stamps, one frame
-            b"\x01\x00" + good[:-1],  # a truncated record
-            os.urandom(300),
-        ]
-        for p in bad:
-            if p:
-                raw.send(p)
-        raw.send(packet([good], None))  # then a good one: the bus is still reading
-        msg = bus.recv(timeout=10)
-        assert msg is not None and bytes(msg.data) == b"ok"
-        assert bus.rx_malformed == len([p for p in bad if p])
-    finally:
-        raw.close()
-        bus.shutdown()
+def test_malformed_packets_are_counted_and_dropped_whole(
+    listener_and_raw: tuple[LocalCanBus, socket.socket],
+) -> None:
+    bus, raw = listener_and_raw
+    good = pack_frame(7, can.Message(arbitration_id=5, is_extended_id=False, data=b"ok"))
+    bad = [
+        b"",
+        b"\x01",
+        b"\x02\x00" + good,  # another version
+        b"\x01\x02" + b"\x00" * 8 + good,  # two stamps, one frame
+        b"\x01\x00" + good[:-1],  # a truncated record
+        os.urandom(300),
+    ]
+    for p in bad:
+        if p:
+            raw.send(p)
+    raw.send(packet([good], None))  # then a good one: the bus is still reading
+    msg = bus.recv(timeout=10)
+    assert msg is not None and bytes(msg.data) == b"ok"
+    assert bus.rx_malformed == len([p for p in bad if p])
     with pytest.raises(ValueError):
         parse_packet(b"\x01\x01" + b"\x00" * 4)
 
 
-def test_a_packet_read_late_keeps_the_time_the_kernel_stamped_it(can_dir: Path) -> None:
+def test_a_packet_read_late_keeps_the_time_the_kernel_stamped_it(
+    can_dir: Path, listener_and_raw: tuple[LocalCanBus, socket.socket]
+) -> None:
     """The bus reads its sockets in recv, not in a thread of its own: a frame without a stated
     wire time (another tool's packet) is stamped with its arrival as the kernel stamped it, not
     with when recv got round to it."""
-    bus = LocalCanBus(channel="vcan0", directory=can_dir)
-    raw = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    bus, raw = listener_and_raw
+    first = pack_frame(7, can.Message(arbitration_id=5, is_extended_id=False, data=b"1"))
+    raw.send(packet([first], None))
+    assert bus.recv(timeout=10) is not None  # the connection accepted: the kernel stamps from now
+    t_sent = time.time()
+    raw.send(packet([pack_frame(7, can.Message(arbitration_id=6, is_extended_id=False, data=b"2"))], None))
+    time.sleep(0.3)  # read well after it arrived
+    t_read = time.time()
+    msg = bus.recv(timeout=10)
+    assert msg is not None and msg.arbitration_id == 6
+    assert t_sent <= msg.timestamp < t_read, (t_sent, msg.timestamp, t_read)
+    # and a plain send states its own time, which the receiver keeps
+    other = LocalCanBus(channel="vcan0", directory=can_dir, receive=False)
     try:
-        assert bus.path is not None
-        raw.connect(str(bus.path))
-        first = pack_frame(7, can.Message(arbitration_id=5, is_extended_id=False, data=b"1"))
-        raw.send(packet([first], None))
-        assert bus.recv(timeout=10) is not None  # the connection accepted: the kernel stamps from now
-        t_sent = time.time()
-        raw.send(
-            packet([pack_frame(7, can.Message(arbitration_id=6, is_extended_id=False, data=b"2"))], None)
-        )
-        time.sleep(0.3)  # read well after it arrived
-        t_read = time.time()
+        t0 = time.time()
+        other.send(can.Message(arbitration_id=8, is_extended_id=False, data=b"3"))
+        time.sleep(0.3)
+        t1 = time.time()
         msg = bus.recv(timeout=10)
-        assert msg is not None and msg.arbitration_id == 6
-        assert t_sent <= msg.timestamp < t_read, (t_sent, msg.timestamp, t_read)
-        # and a plain send states its own time, which the receiver keeps
-        other = LocalCanBus(channel="vcan0", directory=can_dir, receive=False)
-        try:
-            t0 = time.time()
-            other.send(can.Message(arbitration_id=8, is_extended_id=False, data=b"3"))
-            time.sleep(0.3)
-            t1 = time.time()
-            msg = bus.recv(timeout=10)
-            assert msg is not None and msg.arbitration_id == 8 and t0 <= msg.timestamp < t1
-        finally:
-            other.shutdown()
+        assert msg is not None and msg.arbitration_id == 8 and t0 <= msg.timestamp < t1
     finally:
-        raw.close()
-        bus.shutdown()
+        other.shutdown()
 
 
 def test_a_stalled_reader_never_holds_the_sender_and_a_vanished_one_is_dropped(can_dir: Path) -> None:
