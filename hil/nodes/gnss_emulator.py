@@ -182,7 +182,10 @@ class GnssEmulatorNode(Node):
         except FaultError as err:
             self.error("rejected.control.fault", str(err))
             return []
-        return self._apply(msg, now_ns) if mine else []
+        # a command that arrives before time zero (the rig's services are running a moment
+        # before the run starts) takes effect at time zero, as the IMU's does at its first sample:
+        # applied at its arrival, a 2 s outage covered the run's first 2 s and cut no hole
+        return self._apply(msg, max(now_ns, 0)) if mine else []
 
     def _apply(self, cmd: FaultCommand, now_ns: int) -> list[Out]:
         """A commanded fault from ``now_ns`` on: as a scenario event the core applies to the

@@ -170,6 +170,29 @@ def test_imu_node_counts_a_bad_fault_command_and_applies_a_good_one_at_the_next_
     assert node.counters()["fault.imu_samples_not_sent.bus_off"] == 4  # 2.5 .. 10 ms: [2.5, 12.5) ms
 
 
+def test_a_gnss_outage_commanded_before_time_zero_starts_at_time_zero() -> None:
+    """GIVEN a 2 s outage commanded 0.7 s before the run starts (services run before time zero)
+    THEN it is announced from 0 to 2 s and the receiver's first fix is valid at 2 s or later."""
+    import json
+
+    from hil.nodes.gnss_emulator import GnssEmulatorNode, GnssEmulatorOptions
+
+    node = GnssEmulatorNode(_run(5.0), GnssEmulatorOptions())
+    node.start(0)
+    cmd = FaultCommand(seq=0, stamp_ns=0, kind="gnss_outage", duration_s=2.0)
+    assert node.on_message("control/fault", cmd, -700_000_000) == []
+    outs = []
+    while (t := node.next_tick_ns()) is not None:
+        outs += node.tick(t)
+    edges = [(m.kind, json.loads(m.detail)) for k, m in outs if k == "event/gnss_emulator"]
+    assert [(k, d["t_start_s"], d["t_end_s"]) for k, d in edges] == [
+        ("fault_start", 0.0, 2.0),
+        ("fault_end", 0.0, 2.0),
+    ]
+    valid = [m.stamp_ns for k, m in outs if k == "capture/gnss"]
+    assert valid and min(valid) >= 2_000_000_000 and max(valid) > 4_000_000_000
+
+
 def test_fusion_node_publishes_its_config_journal_and_health_on_the_rig_clock() -> None:
     node = FusionNode(_run(), FusionOptions(estimators=["kfvel"]))
     ((key, cfg),) = node.start(0)
