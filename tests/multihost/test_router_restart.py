@@ -204,10 +204,13 @@ def test_rig_across_hosts_survives_a_router_restart(tmp_path: Path) -> None:
         assert after.get(kind, 0) > 0, f"nothing recorded on {kind} after the router restart: {after}"
     # what a publisher's cache (256 messages) still held is recovered after the restart, what
     # it no longer held is reported, not hidden. Truth goes out ten rows a message, so its cache
-    # spans ~25 s and the outage (4 s down, then the reconnect) leaves no hole in it; the raw
-    # IMU samples go out ~4 a message at 400 Hz, a cache of ~2.6 s: the rest of the outage is a
-    # seq gap of at least a second of samples
-    assert not a.gaps.get(f"hil/{RIG}/truth"), f"truth not recovered: {a.gaps[f'hil/{RIG}/truth'][:5]}"
+    # spans ~25 s and an outage shorter than that (4 s down, then the reconnect) leaves no hole
+    # in it; the raw IMU samples go out ~4 a message at 400 Hz, a cache of ~2.6 s: the rest of
+    # the outage is a seq gap of at least a second of samples
+    outage_s = t_back - t_kill
+    truth_gaps = a.gaps.get(f"hil/{RIG}/truth", [])
+    truth_lost = sum(n - p - 1 for p, n in truth_gaps)
+    assert truth_lost <= 100 * max(0.0, outage_s - 20.0), f"truth not recovered: {truth_gaps[:5]}"
     imu_gaps = a.gaps.get(f"hil/{RIG}/sensor/imu", [])
     biggest = max((n - p - 1 for p, n in imu_gaps), default=0)
     assert biggest >= 400 * 1.0, f"no IMU gap for the outage: {imu_gaps[:5]}"
