@@ -252,7 +252,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     print(
         f"hil up: rig {a.rig!r}, scenario {scenario.name!r}, {duration:g} s at speed {a.speed:g}x -> {record}"
     )
-    print(f"hil up: CAN {_describe_can(a.channel, a.can_interface)}")
+    print(f"hil up: CAN {_describe_can(a.channel, a.can_interface, sup.can_dir)}")
     print(f"hil up: {sup.endpoint_line()}", flush=True)
     if opts.foxglove:
         print(
@@ -326,25 +326,22 @@ def _check_writable(record: Path, log_dir: Path) -> None:
             ) from None
 
 
-def _describe_can(channel: str, interface: str | None) -> str:
-    """One line saying which CAN transport the IMU and bridge will use."""
+def _describe_can(channel: str, interface: str | None, can_dir: Path | None) -> str:
+    """One line saying which CAN transport the IMU and bridge will use. ``can_dir``: the local
+    CAN directory the supervisor decided to make (``Supervisor.can_dir``), which decides
+    ``hillocal`` against ``hilzenoh`` for its children too."""
+    if can_dir is not None:
+        return (
+            f"{channel} over the rig's local CAN sockets (hillocal) in {can_dir}, removed at exit "
+            f"(a python-can tool joins with -i hillocal -c {channel} --bus-kwargs directory={can_dir})"
+        )
     if interface:
         return f"{channel} over python-can interface {interface!r} (as requested)"
     if Path(f"/sys/class/net/{channel}").exists():
         return f"{channel} over SocketCAN (the kernel has {channel})"
-    make = (
-        "create one (modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0) to use SocketCAN"
-    )
-    if (
-        os.environ.get("HIL_ZENOH_CONNECT")
-        or os.environ.get("HIL_ZENOH_MODE", "").strip().lower() == "client"
-    ):
-        return (
-            f"{channel} over the rig's Zenoh CAN transport (hilzenoh): this kernel has no {channel}; {make}"
-        )
     return (
-        f"{channel} over the rig's local CAN sockets (hillocal, the rig's runtime directory): this kernel "
-        f"has no {channel}; {make}"
+        f"{channel} over the rig's Zenoh CAN transport (hilzenoh): this kernel has no {channel}; create "
+        "one (modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0) to use SocketCAN"
     )
 
 

@@ -47,6 +47,41 @@ def hil_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "hil.cli", *args]
 
 
+def exchange_with_child(
+    bus: Any,
+    child: subprocess.Popen[str],
+    want: int,
+    timeout_s: float,
+    credit_every: int = 0,
+    credits: int = 0,
+) -> tuple[list[Any], str, str]:
+    """The parent's side of a two-process python-can test: "go" (id 0x7FF) until the child
+    answers, ``want`` frames read (a "got them" 0x7FD after every ``credit_every`` of the first
+    ``credits``), then "ack" (0x7FE); returns the frames and the child's stdout and stderr. The
+    bus is shut down and a child still running killed and reaped, whatever fails."""
+    import can
+
+    got: list[Any] = []
+    try:
+        deadline = time.time() + timeout_s
+        while len(got) < want and time.time() < deadline:
+            if not got:  # the child joins the bus when it opens: until then "go" is lost
+                bus.send(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"go"))
+            msg = bus.recv(timeout=0.2)
+            if msg is not None:
+                got.append(msg)
+                if credit_every and len(got) <= credits and len(got) % credit_every == 0:
+                    bus.send(can.Message(arbitration_id=0x7FD, is_extended_id=False, data=b"got"))
+        bus.send(can.Message(arbitration_id=0x7FE, is_extended_id=False, data=b"ack"))
+        out, err = child.communicate(timeout=timeout_s)
+    finally:
+        bus.shutdown()
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    return got, out, err
+
+
 def run_hil(
     *args: str, timeout: float = 300, cwd: Path | None = None, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess[str]:

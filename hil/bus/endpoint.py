@@ -88,6 +88,12 @@ def _write_private(path: Path, text: str) -> None:
         raise
 
 
+def run_pid(path: Path) -> int | None:
+    """The pid in the name of a run's file (``<rig>-<pid>.<suffix>``, :class:`RigAccess`'s), or None."""
+    pid = path.stem.rsplit("-", 1)[-1]
+    return int(pid) if pid.isdigit() else None
+
+
 def pid_alive(pid: int) -> bool:
     """Whether process ``pid`` exists (another user's counts: it cannot be signalled, but is there)."""
     try:

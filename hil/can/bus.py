@@ -98,13 +98,11 @@ def open_can_bus(
     if iface == "socketcan" and receive:
         enlarge_receive_queue(bus, SOCKETCAN_RCVBUF_BYTES)
     auto = " (auto)" if (interface or "auto").lower() == "auto" else ""
-    where = (
-        f"key hilcan/{rig}/{channel}"
-        if iface == "hilzenoh"
-        else f"channel {channel} in {getattr(bus, 'dir', '?')}"
-        if iface == "hillocal"
-        else f"channel {channel}"
-    )
+    where = f"channel {channel}"
+    if iface == "hilzenoh":
+        where = f"key hilcan/{rig}/{channel}"
+    elif isinstance(bus, LocalCanBus):
+        where += f" in {bus.dir}"
     desc = f"{iface}{auto} {where}, {'CAN FD' if fd else 'CAN 2.0'}"
     return bus, desc
 

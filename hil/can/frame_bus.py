@@ -28,7 +28,7 @@ FD_LENGTHS = frozenset([*range(9), 12, 16, 20, 24, 32, 48, 64])
 
 
 def pack_frame(sender: int, msg: can.Message) -> bytes:
-    """One frame as a Zenoh payload (see the module docstring)."""
+    """One frame's record (see the module docstring): a hilzenoh payload or part of a hillocal packet."""
     flags = (
         (F_EXT if msg.is_extended_id else 0)
         | (F_FD if msg.is_fd else 0)

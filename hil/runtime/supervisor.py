@@ -104,12 +104,12 @@ def free_port() -> int:
 
 def _remove_stale_can_dirs(runtime: Path) -> None:
     """The CAN directories (``<rig>-<pid>.can``) of runs that were killed: their process is gone."""
-    from hil.bus.endpoint import pid_alive
+    from hil.bus.endpoint import pid_alive, run_pid
     from hil.can.local_bus import remove_can_dir
 
     for d in runtime.glob("*-*.can"):
-        pid = d.name[: -len(".can")].rsplit("-", 1)[-1]
-        if pid.isdigit() and not pid_alive(int(pid)):
+        pid = run_pid(d)
+        if pid is not None and not pid_alive(pid):
             remove_can_dir(d)
 
 
@@ -613,15 +613,10 @@ class Supervisor:
         hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
         if self.access is not None:
             self.access.write()  # before the hub opens: it reads the dictionary from there
-        if self.can_dir is not None:
+        if self.can_dir is not None:  # ``hil up`` says where (hil.cli._describe_can)
             _remove_stale_can_dirs(self.can_dir.parent)
             remove_can_dir(self.can_dir)  # a killed run's with this pid
             self.can_dir.mkdir(mode=0o700)
-            print(
-                f"hil up: CAN {o.channel} on hillocal sockets in {self.can_dir} (a python-can tool joins "
-                f"with -i hillocal -c {o.channel} --bus-kwargs directory={self.can_dir}; removed at exit)",
-                flush=True,
-            )
         # --rig-cpus: the hub's threads too (they route every message), restored at the end
         mask, note = pin_process(o.rig_cpus)
         if note:
@@ -629,11 +624,7 @@ class Supervisor:
         try:
             session = open_session(hub_cfg)
         except BaseException:
-            unpin_process(mask)
-            if self.access is not None:
-                self.access.remove()
-            if self.can_dir is not None:
-                remove_can_dir(self.can_dir)
+            self._remove_run_files(mask)
             raise
         keys = Keys(o.rig)
         stats = Stats()
@@ -671,12 +662,18 @@ class Supervisor:
                 sub.undeclare()
             self._event_pub = None
             session.close()
-            unpin_process(mask)
-            if self.access is not None:
-                self.access.remove()
-            if self.can_dir is not None:
-                remove_can_dir(self.can_dir)
+            self._remove_run_files(mask)
         return 1 if self.failures else 0
+
+    def _remove_run_files(self, mask: set[int] | None) -> None:
+        """What ``run`` made for this run, undone: the CPU mask, the endpoint file, the CAN directory."""
+        from hil.can.local_bus import remove_can_dir
+
+        unpin_process(mask)
+        if self.access is not None:
+            self.access.remove()
+        if self.can_dir is not None:
+            remove_can_dir(self.can_dir)
 
     def _wait(self, t_start: float) -> None:
         o = self.opts

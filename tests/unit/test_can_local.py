@@ -19,6 +19,7 @@ import pytest
 from hil.can.bus import LOCAL_DIR_ENV, open_can_bus, resolve_interface
 from hil.can.frame_bus import pack_frame
 from hil.can.local_bus import LocalCanBus, packet, parse_packet, remove_can_dir
+from tests.conftest import exchange_with_child
 
 
 @pytest.fixture
@@ -78,25 +79,8 @@ def test_frames_between_two_processes_in_order_with_the_senders_wire_time(can_di
         stderr=subprocess.PIPE,
         text=True,
     )
-    try:
-        got: list[can.Message] = []
-        t0 = time.time()
-        deadline = t0 + 30
-        while len(got) < n + 5 and time.time() < deadline:
-            if not got:  # "go" until the child listens (it joins the directory when it opens)
-                bus.send(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"go"))
-            msg = bus.recv(timeout=0.2)
-            if msg is not None:
-                got.append(msg)
-                if len(got) <= n and len(got) % 250 == 0:
-                    bus.send(can.Message(arbitration_id=0x7FD, is_extended_id=False, data=b"250"))
-        bus.send(can.Message(arbitration_id=0x7FE, is_extended_id=False, data=b"ack"))
-        out, err = child.communicate(timeout=30)
-    finally:
-        bus.shutdown()
-        if child.poll() is None:
-            child.kill()
-            child.wait()
+    t0 = time.time()
+    got, out, err = exchange_with_child(bus, child, n + 5, 30.0, credit_every=250, credits=n)
     assert child.returncode == 0, err
     assert "ack True" in out
     assert [int.from_bytes(m.data, "little") for m in got[:n]] == list(range(n))
@@ -355,3 +339,19 @@ def test_a_listener_that_dropped_the_connection_is_reconnected_at_the_next_send(
     finally:
         listener.close()
         sender.shutdown()
+
+
+def test_hil_up_removes_the_can_directories_of_killed_runs_only(tmp_path: Path) -> None:
+    """A run killed before it removed its directory leaves ``<rig>-<pid>.can``: the next ``hil up``
+    removes those whose process is gone, never a running rig's."""
+    from hil.runtime.supervisor import _remove_stale_can_dirs
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / f"old-rig-{gone.pid}.can"
+    live = tmp_path / f"bench-{os.getpid()}.can"
+    other = tmp_path / "notes.can"  # not a run's name: left alone
+    for d in (dead, live, other):
+        (d / "vcan0").mkdir(parents=True)
+    _remove_stale_can_dirs(tmp_path)
+    assert not dead.exists() and live.is_dir() and other.is_dir()

@@ -19,6 +19,7 @@ from hil.can.busload import frame_bits, sample_load
 from hil.can.codec import ImuCanCodec
 from hil.can.frame_bus import pack_frame, unpack_frame, unpack_frames
 from hil.can.node import CanTransmitter, ImuCanNode
+from tests.conftest import exchange_with_child
 
 CHILD = textwrap.dedent(
     """
@@ -47,22 +48,8 @@ def test_zenoh_can_bus_between_two_processes(zenoh_hub: str) -> None:
         [sys.executable, "-c", CHILD, str(n), rig], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     bus = can.Bus(interface="hilzenoh", channel="vcan0", rig=rig, fd=True)
-    try:
-        got: list[can.Message] = []
-        t0 = time.time()
-        deadline = t0 + 20
-        while len(got) < n + 1 and time.time() < deadline:
-            if not got:  # repeat "go" until the child's subscription is matched
-                bus.send(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"go"))
-            msg = bus.recv(timeout=0.2)
-            if msg is not None:
-                got.append(msg)
-        bus.send(can.Message(arbitration_id=0x7FE, is_extended_id=False, data=b"ack"))
-        out, err = child.communicate(timeout=20)
-    finally:
-        bus.shutdown()
-        if child.poll() is None:
-            child.kill()
+    t0 = time.time()
+    got, out, err = exchange_with_child(bus, child, n + 1, 20.0)
     assert child.returncode == 0, err
     assert "ack True" in out
     # every frame, in order, none of our own "go"/"ack" echoed back
