@@ -204,13 +204,7 @@ def _direct_worker(job: tuple[str, float, tuple[str, ...], tuple[str, ...], str]
             for e in ests.values():
                 e.on_imu(inp, ins)
             while g < fixes.t_valid_ns.size and fixes.t_valid_ns[g] <= t:
-                fx = GnssInput(
-                    int(fixes.t_valid_ns[g]),
-                    fixes.pos_ned_m[g],
-                    fixes.vel_ned_mps[g],
-                    fixes.pos_sigma_m[g],
-                    fixes.vel_sigma_mps[g],
-                )
+                fx = GnssInput.of_batch(fixes, g)
                 for e in ests.values():
                     e.on_gnss(fx, ins)
                 g += 1
@@ -365,13 +359,7 @@ def _heading_worker(job: tuple[int, float, str] | tuple[int, float, str, bool]) 
         ekf.on_imu(ImuInput(int(b.t_ns[k]), b.dt_s, b.dtheta_b_rad[k], b.dvel_b_mps[k]), ins)  # type: ignore[arg-type]
         t_next = int(b.t_ns[k + 1]) if k + 1 < n else int(b.t_ns[k]) + 1
         while g < fixes.t_valid_ns.size and fixes.t_valid_ns[g] < t_next:
-            fx = GnssInput(
-                int(fixes.t_valid_ns[g]),
-                fixes.pos_ned_m[g],
-                fixes.vel_ned_mps[g],
-                fixes.pos_sigma_m[g],
-                fixes.vel_sigma_mps[g],
-            )
+            fx = GnssInput.of_batch(fixes, g)
             ekf.on_gnss(fx, ins)  # type: ignore[arg-type]
             g += 1
         if j < keep.size and k == keep[j]:

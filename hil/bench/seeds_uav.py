@@ -220,13 +220,7 @@ def run_uav(
             cost[nm] += clock() - t0
         t_next = int(batch.t_ns[k + 1]) if k + 1 < n else t_ns + 1
         while g < fixes.t_valid_ns.size and fixes.t_valid_ns[g] < t_next:
-            fx = GnssInput(
-                int(fixes.t_valid_ns[g]),
-                fixes.pos_ned_m[g],
-                fixes.vel_ned_mps[g],
-                fixes.pos_sigma_m[g],
-                fixes.vel_sigma_mps[g],
-            )
+            fx = GnssInput.of_batch(fixes, g)
             for nm, e in ests.items():
                 t0 = clock()
                 e.on_gnss(fx, ins)

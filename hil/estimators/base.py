@@ -9,13 +9,14 @@ no threading).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
 import numpy as np
 
+from hil.nav import strapdown
 from hil.nav.types import F64, NavState
 from hil.nav.types import InitialState as InitialState  # re-exported: nav needs it, below us
 
@@ -39,6 +40,68 @@ class ImuInput:
         return tx, ty, tz, ux, uy, uz
 
 
+class ImuBlock:
+    """IMU intervals in the total order, handed to the estimators together (``on_imu_block``).
+
+    The fusion core defers its estimators' IMU steps until something reads them (a solution, an
+    aiding measurement, health): between two outputs at 400 Hz that is ~8 samples, and one call per
+    estimator for the run of them, with one compiled loop inside, replaces eight calls of Python
+    glue each. ``rows`` holds per interval ``dt_s`` then the six increments (Δθ, Δv) as the floats
+    ``ImuInput.increments`` gives; ``ins`` the shared free INS after each interval.
+    """
+
+    __slots__ = ("_array", "_inputs", "ins", "rows", "stamps_ns")
+
+    def __init__(self) -> None:
+        self.stamps_ns: list[int] = []
+        self.rows: list[tuple[float, float, float, float, float, float, float]] = []
+        self.ins: list[NavState] = []
+        self._inputs: list[ImuInput] | None = None
+        self._array: F64 | None = None
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    def append(
+        self, stamp_ns: int, row: tuple[float, float, float, float, float, float, float], ins: NavState
+    ) -> None:
+        self.stamps_ns.append(stamp_ns)
+        self.rows.append(row)
+        self.ins.append(ins)
+
+    def inputs(self) -> list[ImuInput]:
+        """Each interval as the ``ImuInput`` a per-sample ``on_imu`` takes (made once, shared)."""
+        if self._inputs is None:
+            self._inputs = [
+                ImuInput(t, r[0], np.array(r[1:4], dtype=np.float64), np.array(r[4:7], dtype=np.float64))
+                for t, r in zip(self.stamps_ns, self.rows, strict=True)
+            ]
+        return self._inputs
+
+    def strapdown_run(self) -> tuple[Callable[..., Any], Any]:
+        """The strapdown run kernel in place (:func:`hil.nav.strapdown._corrected_run`, read
+        once: the compiled one may be put in place meanwhile) and the rows as it takes them."""
+        run = strapdown._corrected_run
+        return run, (self.rows if run is strapdown._PY_CORRECTED_RUN else self.array())
+
+    def runs(self, every: int, pending: int) -> Iterator[tuple[int, int]]:
+        """``(start, stop)`` of the runs between two covariance predictions made every ``every``
+        intervals, ``pending`` of them taken since the last one (the caller predicts after each
+        run that reaches ``every``, which starts the count again)."""
+        start, n = 0, len(self.stamps_ns)
+        while start < n:
+            stop = min(n, start + max(1, every - pending))
+            yield start, stop
+            pending = 0 if pending + stop - start >= every else pending + stop - start
+            start = stop
+
+    def array(self) -> F64:
+        """``rows`` as a C-contiguous (n, 7) float64 array (what a compiled loop takes)."""
+        if self._array is None:
+            self._array = np.array(self.rows, dtype=np.float64).reshape(len(self.rows), 7)
+        return self._array
+
+
 @dataclass(frozen=True)
 class GnssInput:
     """One GNSS fix valid at ``stamp_ns`` (rig time of validity, earlier than its arrival)."""
@@ -49,6 +112,18 @@ class GnssInput:
     pos_sigma_m: F64  # (3,) receiver-reported 1-sigma, N E D
     vel_sigma_mps: F64  # (3,)
 
+    @classmethod
+    def of_batch(cls, fixes: Any, i: int) -> GnssInput:
+        """Fix ``i`` of a receiver model's batch (``hil.sensors.gnss.GnssBatch``), as estimators
+        take it: what a bench or test feeding estimators directly hands them."""
+        return cls(
+            int(fixes.t_valid_ns[i]),
+            fixes.pos_ned_m[i],
+            fixes.vel_ned_mps[i],
+            fixes.pos_sigma_m[i],
+            fixes.vel_sigma_mps[i],
+        )
+
 
 class Estimator:
     """Base of every estimator: what the fusion core calls, with a no-op per measurement kind.
@@ -56,7 +131,10 @@ class Estimator:
     ``on_imu`` propagates (every estimator must); ``on_<sensor>`` takes a measurement of that
     kind of ``hil.sensor_table`` and by default does nothing, so a sensor added to the table
     reaches the estimators that define its handler and leaves the others untouched.
-    ``ins`` is the shared free (uncorrected) INS after this step.
+    ``ins`` is the shared free (uncorrected) INS after this step. An estimator may also define
+    ``on_imu_block(block)``, taking an :class:`ImuBlock` of intervals at once (one compiled loop for
+    the run of them); it must leave the state ``on_imu`` of each would (the fusion core calls it
+    where defined: ``hil.fusion.core.block_step_of``).
     """
 
     name: str = "estimator"

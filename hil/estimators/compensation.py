@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
 from hil.estimators.feedback import ClosedLoopIns
 from hil.estimators.lti import (
     StateSpace,
@@ -438,6 +438,20 @@ class CompensationEstimator(Estimator):
             return
         self._ins = ins
         self._ins_stamp_ns = imu.stamp_ns
+
+    def on_imu_block(self, block: ImuBlock) -> None:
+        """``on_imu`` of each interval: the filter stepped per interval (its coast can fall due
+        between two), the feedback INS in one call for the block (the two share nothing)."""
+        core, line_coast = self.core, self.line_coast
+        for stamp_ns in block.stamps_ns:
+            if line_coast and (t_c := core.overdue_ns(COAST_AFTER_INTERVALS)) is not None and stamp_ns > t_c:
+                self._coast(t_c)
+            core.advance_to(stamp_ns)
+        if self.loop is not None:
+            self.loop.propagate_block(block)
+            return
+        self._ins = block.ins[-1]
+        self._ins_stamp_ns = block.stamps_ns[-1]
 
     def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
         if self.loop is not None:

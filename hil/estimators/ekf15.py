@@ -105,12 +105,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
+from hil.nav import strapdown
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
 from hil.nav.strapdown import (
     LazyNavState,
+    StrapdownState,
     c_nb_floats,
     strapdown_from_initial,
     strapdown_step_f,
@@ -121,6 +123,7 @@ from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 _DEG = math.pi / 180.0
 _RTH = 60.0  # sqrt(3600 s/h)
 _YAW_VAR_MAX = math.pi**2 / 3.0  # a heading uniform on the circle: σ = π/√3 (104°)
+_new_state = tuple.__new__  # a StrapdownState of the run's 16 floats, as strapdown_step_f makes it
 
 
 def skew(v: F64) -> F64:
@@ -390,6 +393,38 @@ class Ekf15(Estimator):
         self._nav_dirty = True
         if self._pending_n >= self.cov_every:
             self._propagate_covariance()
+
+    def on_imu_block(self, block: ImuBlock) -> None:
+        """``on_imu`` of each of the block's intervals, the runs between two covariance
+        predictions each in one call of the strapdown loop (compiled when the kernels are)."""
+        if not len(block):
+            return
+        run, rows = block.strapdown_run()
+        bias = (*self.b_g.tolist(), *self.b_a.tolist())
+        no_cal = strapdown.NO_CALIBRATION
+        e_g = tuple(self.e_hat.ravel().tolist()) if self._cal else no_cal
+        e_a = tuple(self.ea_hat.ravel().tolist()) if self._acal else no_cal
+        rate = self._cal or self._lever is not None  # only these need the body rate
+        for start, stop in block.runs(self.cov_every, self._pending_n):
+            pv, pt = self._pending_dv_b, self._pending_dth_b
+            st, sum_dv, sum_dth, self._pending_dt = run(
+                tuple(self.ins), rows, start, stop, bias, e_g, e_a, tuple(pv), tuple(pt),
+                self._pending_dt, self._cal, self._acal, rate,
+            )  # fmt: skip
+            self.ins = _new_state(StrapdownState, st)
+            self._pending_dv_b, self._pending_dth_b = list(sum_dv), list(sum_dth)
+            self._pending_n += stop - start
+            if self._pending_n >= self.cov_every:
+                self._propagate_covariance()
+        if rate:  # the body rate of the last interval
+            dt, tx, ty, tz = block.rows[-1][:4]
+            tx, ty, tz = tx - bias[0] * dt, ty - bias[1] * dt, tz - bias[2] * dt
+            if self._cal:
+                ex, ey, ez = _mv3(self.e_hat.tolist(), tx, ty, tz)
+                tx, ty, tz = tx - ex, ty - ey, tz - ez
+            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
+        self._stamp_ns = block.stamps_ns[-1]
+        self._nav_dirty = True
 
     def _propagate_covariance(self) -> None:
         if self._pending_n == 0:

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import GnssInput, ImuInput, InitialState
+from hil.estimators.base import GnssInput, ImuBlock, ImuInput, InitialState
 from hil.estimators.ekf15 import bias_walk_psd, covariance_step
 from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
@@ -253,6 +253,31 @@ class ClosedLoopIns:
         if self._pending_n >= self.cov_every:
             self._predict()
         self.stamp_ns = imu.stamp_ns
+        self._dirty = True
+
+    def propagate_block(self, block: ImuBlock) -> None:
+        """``propagate`` of each of the block's intervals, the runs between two covariance
+        predictions each in one call of the strapdown loop (compiled when the kernels are)."""
+        if not len(block):
+            return
+        run, rows = block.strapdown_run()
+        no_cal, zero = _sd.NO_CALIBRATION, (0.0, 0.0, 0.0)
+        for start, stop in block.runs(self.cov_every, self._pending_n):
+            pv = self._pending_dv_b
+            self._st, sum_dv, _, self._pending_dt = run(
+                self._st, rows, start, stop, self._bias, no_cal, no_cal, tuple(pv), zero,
+                self._pending_dt, False, False, False,
+            )  # fmt: skip
+            self._pending_dv_b = list(sum_dv)
+            self._pending_n += stop - start
+            if self._pending_n >= self.cov_every:
+                self._predict()
+        if self._lever is not None:  # the arm's velocity: the body rate of the last interval
+            bgx, bgy, bgz = self._bias[:3]
+            dt, tx, ty, tz = block.rows[-1][:4]
+            tx, ty, tz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
+            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
+        self.stamp_ns = block.stamps_ns[-1]
         self._dirty = True
 
     def _predict(self) -> None:

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import Estimator, GnssInput, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
 from hil.estimators.feedback import ClosedLoopIns
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
@@ -103,6 +103,13 @@ class ScalarKfEstimator(Estimator):
         else:
             self._ins = ins
         self._ins_stamp_ns = imu.stamp_ns
+
+    def on_imu_block(self, block: ImuBlock) -> None:
+        if self.loop is not None:
+            self.loop.propagate_block(block)
+        else:
+            self._ins = block.ins[-1]
+        self._ins_stamp_ns = block.stamps_ns[-1]
 
     def on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
         if self.loop is not None:

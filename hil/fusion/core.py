@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import INPUTS, Estimator, ImuInput, InitialState, imu_bias_of
+from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_bias_of
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.fusion.predictor import OutputPredictor
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
@@ -39,6 +39,9 @@ from hil.nav.types import NavState, nav_floats
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
 FREE_INS = "ins"
+#: The most IMU intervals the core defers before its estimators step them (``ImuBlock``): a bound
+#: on the block, whatever reads them or not.
+IMU_BLOCK_MAX = 64
 isfinite, degrees = math.isfinite, math.degrees
 
 
@@ -177,6 +180,20 @@ def handler_of(est: Any, sensor: str) -> Any:
     return getattr(est, f"on_{sensor}", None)
 
 
+def block_step_of(est: Any) -> Callable[[ImuBlock], None]:
+    """How ``est`` takes a block of IMU intervals: its ``on_imu_block``, or (an object keeping
+    the contract without deriving from ``Estimator``) its ``on_imu`` of each in turn."""
+    step = getattr(est, "on_imu_block", None)
+    if step is not None:
+        return step  # type: ignore[no-any-return]
+
+    def each(block: ImuBlock) -> None:
+        for imu, ins in zip(block.inputs(), block.ins, strict=True):
+            est.on_imu(imu, ins)
+
+    return each
+
+
 def input_key(msg: Measurement) -> tuple[int, int, int]:
     """The total order: rig time of validity, then the sensor's rank, then seq."""
     return (msg.stamp_ns, rank_of(msg.sensor), msg.seq)
@@ -293,20 +310,24 @@ class FusionCore:
 
         self._failed: set[str] = set()
         self.last_error = ""
-        self.estimators: list[Estimator] = []
+        self._ests: list[Estimator] = []
+        # the IMU intervals taken on the horizon and not yet stepped by the estimators: stepped
+        # together when something reads them (``_step_estimators``), never more than IMU_BLOCK_MAX
+        self._block = ImuBlock()
         for name in self.config.estimators:
             try:
-                self.estimators.append(maker(name, self.init))
+                self._ests.append(maker(name, self.init))
             except Exception as err:  # one broken estimator must not take the others down
                 self._inc(f"errors.estimator_init.{name}")
                 self.last_error = f"estimator {name} could not start: {type(err).__name__}: {err}"
         # per sensor (other than the IMU, which every estimator takes): the estimators' handlers,
         # in estimator order, resolved once
         self._handlers: dict[str, list[tuple[str, Any]]] = {
-            sensor: [(e.name, h) for e in self.estimators if (h := handler_of(e, sensor)) is not None]
+            sensor: [(e.name, h) for e in self._ests if (h := handler_of(e, sensor)) is not None]
             for sensor in SENSOR_NAMES
             if not SENSORS[sensor].paces_fusion
         }
+        self._block_steps = [(e.name, block_step_of(e)) for e in self._ests]
         self._pacer = {n for n in SENSOR_NAMES if SENSORS[n].paces_fusion}
         self._heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = []
         # the aiding entries in the heap (arrival ids), and the furthest-ahead first, lazily
@@ -349,6 +370,30 @@ class FusionCore:
         self._latency_events: list[Transition] = []
         self._latency_max_ns: dict[str, int] = {}
         self._last_refused_ns: dict[str, int] = {}
+
+    @property
+    def estimators(self) -> list[Estimator]:
+        """The estimators, their IMU steps taken up to the horizon (what a caller reads of them)."""
+        self._step_estimators()
+        return self._ests
+
+    def _step_estimators(self) -> None:
+        """Hand the deferred IMU intervals to every running estimator, in one call each.
+
+        Deferring changes no bits: each estimator still takes every interval in order before
+        anything reads it (a solution, an aiding input, health), and the estimators share no
+        state (the free INS is stepped at once, each interval's copy kept in the block)."""
+        block = self._block
+        if not len(block):
+            return
+        self._block = ImuBlock()
+        for name, step in self._block_steps:
+            if name in self._failed:
+                continue
+            try:
+                step(block)
+            except Exception as err:
+                self._fail(name, err)
 
     # -- arrival side (live) ---------------------------------------------------------------
     def push(self, msg: Measurement, source: str = "") -> list[NavSolution]:
@@ -498,7 +543,8 @@ class FusionCore:
             out.append(self._publish(FREE_INS, pos, vel, q, None, None, None, msg.stamp_ns, msg.seq))
         except ArithmeticError:
             self._inc(f"errors.nonfinite.{FREE_INS}")
-        for est in self.estimators:
+        self._step_estimators()
+        for est in self._ests:
             if est.name in self._failed:
                 continue
             try:
@@ -543,7 +589,9 @@ class FusionCore:
 
     def flush(self) -> list[NavSolution]:
         """End of input: release everything still buffered."""
-        return self._release(2**62)
+        out = self._release(2**62)
+        self._step_estimators()
+        return out
 
     def journal(self, seq: int, stamp_ns: int) -> FusionJournal:
         """What was decided since the last journal: the live service and hil sim publish this."""
@@ -632,28 +680,22 @@ class FusionCore:
             self.predictor.horizon_at(msg.stamp_ns)
         dt_s = msg.dt_ns * 1e-9
         d, v = msg.dtheta_b_rad, msg.dvel_b_mps
-        dtheta = np.asarray(d, dtype=np.float64)
-        dvel = np.asarray(v, dtype=np.float64)
-        self._ins = self._sd.strapdown_step_f(
-            self._ins, float(d[0]), float(d[1]), float(d[2]), float(v[0]), float(v[1]), float(v[2]), dt_s
-        )
+        row = (dt_s, float(d[0]), float(d[1]), float(d[2]), float(v[0]), float(v[1]), float(v[2]))
+        self._ins = self._sd.strapdown_step_f(self._ins, *row[1:], dt_s)
         self._last_imu_ns = msg.stamp_ns
         # built lazily: most estimators read the free INS at a fix or an output only
         ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
-        imu = ImuInput(stamp_ns=msg.stamp_ns, dt_s=dt_s, dtheta_b_rad=dtheta, dvel_b_mps=dvel)
-        for est in self.estimators:
-            if est.name in self._failed:
-                continue
-            try:
-                est.on_imu(imu, ins_nav)
-            except Exception as err:
-                self._fail(est.name, err)
+        block = self._block
+        block.append(msg.stamp_ns, row, ins_nav)
+        if len(block) >= IMU_BLOCK_MAX:
+            self._step_estimators()
         self._last_imu_seq = msg.seq
         if self.predictor is not None or msg.seq % self.config.output_every:
             return []
+        self._step_estimators()
         out: list[NavSolution] = []
         for name, get in [(FREE_INS, lambda: ins_nav)] + [
-            (e.name, e.solution) for e in self.estimators if e.name not in self._failed
+            (e.name, e.solution) for e in self._ests if e.name not in self._failed
         ]:
             try:
                 out.append(self._solution(name, get(), msg.stamp_ns))
@@ -670,6 +712,7 @@ class FusionCore:
         if data is None:
             self._inc(f"{msg.sensor}.unusable")
             return
+        self._step_estimators()
         handlers = [(n, h) for n, h in self._handlers.get(msg.sensor, ()) if n not in self._failed]
         allowed: dict[str, bool] = {}
         if msg.sensor == "gnss" and self.gate is not None and handlers:
@@ -699,7 +742,7 @@ class FusionCore:
             self._inc("gnss.sigma_floored")
         if not gate.enabled:
             return floored, {}
-        by_name = {e.name: e for e in self.estimators}
+        by_name = {e.name: e for e in self._ests}
 
         def solution(name: str) -> NavState | None:
             try:
@@ -774,6 +817,7 @@ class FusionCore:
 
     def status_counters(self) -> dict[str, int]:
         """What the status topic counts: rejections, drops, the buffer, inputs consumed."""
+        self._step_estimators()  # an estimator that fails on a deferred interval is counted now
         out = dict(self.counters)
         out["buffered"] = len(self._heap) - len(self._evicted)
         out["buffered_aiding"] = len(self._aiding_live)

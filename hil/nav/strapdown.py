@@ -335,6 +335,68 @@ def _step(st: _State, tx: float, ty: float, tz: float, ux: float, uy: float, uz:
     )
 
 
+def _corrected_run(
+    st: _State,
+    rows: Any,
+    start: int,
+    stop: int,
+    bias: tuple[float, float, float, float, float, float],
+    e_g: tuple[float, float, float, float, float, float, float, float, float],
+    e_a: tuple[float, float, float, float, float, float, float, float, float],
+    sum_dv: tuple[float, float, float],
+    sum_dth: tuple[float, float, float],
+    sum_dt: float,
+    gyro_cal: bool,
+    accel_cal: bool,
+    body_rate: bool,
+) -> tuple[_State, tuple[float, float, float], tuple[float, float, float], float]:
+    """Steps ``rows[start:stop]`` (``dt, Δθ, Δv`` each) with the sensor biases, and with
+    ``gyro_cal``/``accel_cal`` the calibration matrices ``E`` (rows of 3), taken out; the sums of
+    the corrected Δv, Δθ (with ``body_rate``) and dt carried on. An INS of its own's IMU steps
+    between two of its covariance predictions (ekf15's, a feedback INS's), in one call, the same
+    float operations in the same order as their per-interval ``on_imu``/``propagate``.
+
+    ``rows``: Python's, a list of 7-tuples of floats (never numpy scalars: ``x**2`` of one is not
+    the C library's ``pow``); compiled (:mod:`hil.runtime.jit`, with the compiled ``_step``), the
+    block's (n, 7) array. A caller reads the name once and compares it with
+    :data:`_PY_CORRECTED_RUN` to know which it holds (the kernels may be put in place meanwhile).
+    """
+    bgx, bgy, bgz, bax, bay, baz = bias
+    g0, g1, g2, g3, g4, g5, g6, g7, g8 = e_g
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = e_a
+    pvx, pvy, pvz = sum_dv
+    ptx, pty, ptz = sum_dth
+    for i in range(start, stop):
+        r = rows[i]
+        dt = r[0]
+        tx, ty, tz = r[1] - bgx * dt, r[2] - bgy * dt, r[3] - bgz * dt
+        if gyro_cal:  # E Δθ in einsum's order for a 3-vector (hil.estimators.ekf15._mv3)
+            ex = (g0 * tx + g2 * tz) + g1 * ty + 0.0
+            ey = (g3 * tx + g5 * tz) + g4 * ty + 0.0
+            ez = (g6 * tx + g8 * tz) + g7 * ty + 0.0
+            tx, ty, tz = tx - ex, ty - ey, tz - ez
+        ux, uy, uz = r[4] - bax * dt, r[5] - bay * dt, r[6] - baz * dt
+        if accel_cal:
+            ex = (a0 * ux + a2 * uz) + a1 * uy + 0.0
+            ey = (a3 * ux + a5 * uz) + a4 * uy + 0.0
+            ez = (a6 * ux + a8 * uz) + a7 * uy + 0.0
+            ux, uy, uz = ux - ex, uy - ey, uz - ez
+        st = _step(st, tx, ty, tz, ux, uy, uz, dt)
+        pvx += ux
+        pvy += uy
+        pvz += uz
+        if body_rate:
+            ptx += tx
+            pty += ty
+            ptz += tz
+        sum_dt += dt
+    return st, (pvx, pvy, pvz), (ptx, pty, ptz), sum_dt
+
+
+_PY_CORRECTED_RUN = _corrected_run
+NO_CALIBRATION = (0.0,) * 9  # the run's E where none is estimated
+
+
 def strapdown_step(s: StrapdownState, dtheta_b_rad: Any, dvel_b_mps: Any, dt_s: float) -> StrapdownState:
     """Advance by one IMU interval (increments (3,), interval dt_s). Pure: ``s`` is not changed."""
     tx, ty, tz = (float(x) for x in dtheta_b_rad)

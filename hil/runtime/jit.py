@@ -6,7 +6,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
 :func:`enable` compiles them with numba and rebinds the module globals their callers look up:
 
 - the strapdown's :func:`hil.nav.strapdown._step` and its rotation-vector quaternion, from their
-  own Python source, unchanged (~2 µs a step);
+  own Python source, unchanged (~2 µs a step), and a feedback INS's run of steps between two
+  covariance predictions (:func:`hil.nav.strapdown._corrected_run`: the fusion hands its estimators
+  the IMU samples since they were last read in one block, ``hil.estimators.base.ImuBlock``);
 - the compensation filter's :func:`hil.estimators.compensation._ramp_step`, an einsum in Python,
   as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order;
 - the covariance prediction of ekf15 and of the feedback INS's corrector
@@ -61,8 +63,8 @@ _state: str | None = None
 #: The Python kernels :func:`enable` replaced, by name (the reference the tests hold it to).
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
-#: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``ramp_step``,
-#: ``covariance_step``, ``expm``, ``ecef_to_lla_one``).
+#: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
+#: ``ramp_step``, ``covariance_step``, ``expm``, ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -195,6 +197,15 @@ def _enable(env: Mapping[str, str]) -> str:
             _rotvec_quat=rotvec,
             _sq=square,
         )
+        t3, t9 = f"UniTuple({f8}, 3)", f"UniTuple({f8}, 9)"
+        run = _compile(
+            numba,
+            strapdown._corrected_run,
+            f"Tuple(({state16}, {t3}, {t3}, {f8}))({state16}, {f8}[:, ::1], int64, int64, "
+            f"UniTuple({f8}, 6), {t9}, {t9}, {t3}, {t3}, {f8}, boolean, boolean, boolean)",
+            d,
+            _step=step,
+        )
         ramp = _compile(numba, kernels.ramp_step, f"none({mat}, {mat}, {vec}, {vec}, {f8})", d)
         cmat = f"{f8}[:, ::1]"
         finite = _compile(numba, kernels._finite_rows, f"{f8}[::1]({cmat})", d, inline=True)
@@ -224,6 +235,7 @@ def _enable(env: Mapping[str, str]) -> str:
         libm_square=square,
         _rotvec_quat=rotvec,
         _step=step,
+        _corrected_run=run,
         ramp_step=ramp,
         covariance_step=cov,
         expm=expm,
@@ -328,6 +340,7 @@ def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., A
 #: reference), and whether a call with operands it was not compiled for goes to the Python one.
 _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "_step": ("_step", ("hil.nav.strapdown:_step",), False),
+    "_corrected_run": ("_corrected_run", ("hil.nav.strapdown:_corrected_run",), False),
     "_ramp_step": ("ramp_step", ("hil.estimators.compensation:_ramp_step",), False),
     "covariance_step": (
         "covariance_step",

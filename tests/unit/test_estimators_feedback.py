@@ -133,13 +133,7 @@ def _consumer_run(seconds: float, names: tuple[str, ...]) -> dict[str, float]:
             e.on_imu(inp, ins)
         t_next = int(batch.t_ns[k + 1]) if k + 1 < n else t + 1
         while g < fixes.t_valid_ns.size and fixes.t_valid_ns[g] < t_next:
-            fx = GnssInput(
-                int(fixes.t_valid_ns[g]),
-                fixes.pos_ned_m[g],
-                fixes.vel_ned_mps[g],
-                fixes.pos_sigma_m[g],
-                fixes.vel_sigma_mps[g],
-            )
+            fx = GnssInput.of_batch(fixes, g)
             for e in ests.values():
                 e.on_gnss(fx, ins)
             g += 1

@@ -58,6 +58,48 @@ def test_the_compiled_strapdown_step_computes_the_python_bits() -> None:
 
 
 @pytest.mark.parametrize(
+    ("gyro_cal", "accel_cal", "body_rate"), [(False, False, False), (True, True, True), (True, False, True)]
+)
+def test_the_compiled_strapdown_run_computes_the_python_bits(
+    gyro_cal: bool, accel_cal: bool, body_rate: bool
+) -> None:
+    """The run of steps an estimator takes for a block of IMU intervals (biases, calibration
+    matrices, the sums it carries), compiled against Python's on a long chain of intervals."""
+    assert jit.enable() == "compiled"
+    python_run = jit.python_kernel("_corrected_run")
+    assert strapdown._corrected_run is not python_run
+    rng = np.random.default_rng(7)
+    cases = _random_states(3000, seed=5)
+    rows = [(a[6], *a[:6]) for _st, a in cases]  # dt first, then Δθ, Δv: the block's rows
+    array = np.array(rows, dtype=np.float64)
+    bias = tuple((rng.normal(0.0, 1e-3, 6) * (1.0, 1.0, 1.0, 50.0, 50.0, 50.0)).tolist())
+    e_g, e_a = tuple(rng.normal(0.0, 3e-3, 9).tolist()), tuple(rng.normal(0.0, 3e-3, 9).tolist())
+    st0 = cases[0][0]
+    got = want = (st0, (0.0, -0.0, 1e-3), (0.0, 0.0, 0.0), 0.0)
+    for start in range(0, len(rows), 20):  # runs of 20, each from where the last one stopped
+        stop = start + 20
+        want = python_run(
+            want[0], rows, start, stop, bias, e_g, e_a, *want[1:], gyro_cal, accel_cal, body_rate
+        )
+        got = strapdown._corrected_run(
+            got[0], array, start, stop, bias, e_g, e_a, *got[1:], gyro_cal, accel_cal, body_rate
+        )
+        assert got == want, f"differs after interval {stop}"
+    if gyro_cal or accel_cal:
+        return
+    # and without calibration the run is the per-interval step with the biases taken out
+    step = jit.python_kernel("_step")
+    bgx, bgy, bgz, bax, bay, baz = bias
+    st = st0
+    for dt, tx, ty, tz, ux, uy, uz in rows[:50]:
+        st = step(
+            st, tx - bgx * dt, ty - bgy * dt, tz - bgz * dt, ux - bax * dt, uy - bay * dt, uz - baz * dt, dt
+        )
+    zero = (0.0, 0.0, 0.0)
+    assert python_run(st0, rows, 0, 50, bias, e_g, e_a, zero, zero, 0.0, False, False, body_rate)[0] == st
+
+
+@pytest.mark.parametrize(
     ("value", "on", "warned"),
     [("", True, False), ("0", False, False), ("off", False, False), ("1", True, False), ("fast", True, True)],
 )
