@@ -222,6 +222,31 @@ class CompensationCore:
             if boundary is not None and t_end == boundary:
                 self.switch_to(self.stage + 1)
 
+    def advance_run(self, stamps_ns: Sequence[int], start: int, until_ns: int | None) -> int:
+        """``advance_to`` of ``stamps_ns[start:]`` in turn while each is a plain IMU-rate step
+        (before the next structure switch and the next coast, at or before ``until_ns``), their
+        conditions checked once for the run (per stamp they cost more than the compiled step);
+        the index of the first stamp not taken (the caller takes it with ``advance_to``, which
+        handles what falls due)."""
+        t = self.t_ns
+        if t is None or self.coasting:
+            return start
+        boundary, coast = self._next_boundary_ns(), self._coast_start_ns()
+        ends = [x for x in (boundary, coast) if x is not None]
+        end = min(ends) if ends else None  # the first instant a step may not reach
+        stacked, step = self._caches[self.stage].stacked, _ramp_step
+        x, u, slope = self.x, self.u, self.slope  # stepped in place
+        stop = start
+        for stamp in stamps_ns[start:]:
+            if (end is not None and stamp >= end) or (until_ns is not None and stamp > until_ns):
+                break
+            if stamp > t:
+                step(stacked(stamp - t), x, u, slope, (stamp - t) * 1e-9)
+                t = stamp
+            stop += 1
+        self.t_ns = t
+        return stop
+
     # -- inputs ----------------------------------------------------------------------------------
     def set_input(self, t_ns: int, d: F64, slope: F64 | None = None) -> None:
         """The difference ``d = X_INS − X_GNSS`` at ``t_ns``, continued as ``d + slope (t − t_ns)``.
@@ -442,11 +467,17 @@ class CompensationEstimator(Estimator):
     def on_imu_block(self, block: ImuBlock) -> None:
         """``on_imu`` of each interval: the filter stepped per interval (its coast can fall due
         between two), the feedback INS in one call for the block (the two share nothing)."""
-        core, line_coast = self.core, self.line_coast
-        for stamp_ns in block.stamps_ns:
-            if line_coast and (t_c := core.overdue_ns(COAST_AFTER_INTERVALS)) is not None and stamp_ns > t_c:
+        core, line_coast, stamps = self.core, self.line_coast, block.stamps_ns
+        i, n = 0, len(stamps)
+        while i < n:
+            t_c = core.overdue_ns(COAST_AFTER_INTERVALS) if line_coast else None
+            i = core.advance_run(stamps, i, t_c)  # the plain steps, up to what falls due
+            if i == n:
+                break
+            if t_c is not None and stamps[i] > t_c:
                 self._coast(t_c)
-            core.advance_to(stamp_ns)
+            core.advance_to(stamps[i])
+            i += 1
         if self.loop is not None:
             self.loop.propagate_block(block)
             return
