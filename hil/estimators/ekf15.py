@@ -174,10 +174,15 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
     """The 15 × 15 ``F`` of the error state (module docstring), at attitude ``c_nb``, specific
     force ``f_n`` (NED) and latitude ``lat_rad``. A plain function so a peer filter (the ekf
     bench's filterpy run) can be stepped with exactly the model this filter uses."""
+    return _write_error_dynamics(_F15.copy(), c_nb, f_n, lat_rad)  # δṗ = δv: in the template
+
+
+def _write_error_dynamics(f: F64, c_nb: F64, f_n: F64, lat_rad: float) -> F64:
+    """:func:`error_dynamics`'s input-dependent blocks written into ``f`` (15 × 15 or the
+    augmented matrix, whose top-left it is), which is returned; the rest of ``f`` is left as is."""
     # the blocks written as floats: skew's entries, and the sign flips (signed zeros too) of -skew
     w0, w2 = OMEGA_IE_RADPS * math.cos(lat_rad), -OMEGA_IE_RADPS * math.sin(lat_rad)  # ω_ie, w1 = 0
     f0, f1, f2 = np.asarray(f_n, dtype=float).tolist()
-    f = _F15.copy()  # δṗ = δv: the identity block is in the template
     f[3:6, 6:9] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f_n×] φ + C δb_a
     f[3:6, 9:12] = c_nb
     f[6:9, 6:9] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×] φ − C δb_g
@@ -218,9 +223,14 @@ def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    n_w = kron_eye3(w_b)  # (3, 9): E ω = N(ω) e
-    out[6:9, n : n + 9] = -mm(c_nb, n_w)
+    out[6:9, n : n + 9] = _gyro_cal_block(c_nb, w_b)
     return out
+
+
+def _gyro_cal_block(c_nb: F64, w_b: F64) -> F64:
+    """``−C N(ω)`` (3, 9): how the gyro calibration states drive the attitude error."""
+    n_w = kron_eye3(w_b)  # (3, 9): E ω = N(ω) e
+    return -mm(c_nb, n_w)  # type: ignore[no-any-return]
 
 
 def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
@@ -229,8 +239,13 @@ def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    out[3:6, n : n + 9] = mm(c_nb, kron_eye3(f_b))
+    out[3:6, n : n + 9] = _accel_cal_block(c_nb, f_b)
     return out
+
+
+def _accel_cal_block(c_nb: F64, f_b: F64) -> F64:
+    """``C N(f̄_b)`` (3, 9): how the accelerometer calibration states drive the velocity error."""
+    return mm(c_nb, kron_eye3(f_b))  # type: ignore[no-any-return]
 
 
 def bias_walk_psd(sigma: float, corr_s: float, rate_rw: float = 0.0) -> float:
@@ -332,6 +347,16 @@ class Ekf15(Estimator):
         qc = np.zeros((self.n, self.n))
         qc[:15, :15] = self._qc
         self._qc = qc
+        # F's constant entries (δṗ = δv, the slow states' oscillator), built as the functions build
+        # them; _propagate_covariance writes the rest in place (C-contiguous: the compiled step's)
+        f = _F15.copy()
+        if self._cal:
+            f = gyro_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
+        if self._acal:
+            f = accel_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
+        if self._slow_w:
+            f = slow_augmented(f, self._slow_w)
+        self._f = np.ascontiguousarray(f)
         lever = np.asarray(lever_arm_b_m, dtype=float)
         self._lever: F64 | None = lever if np.any(lever) else None
         self._w_b = np.zeros(3)  # corrected body rate of the last IMU step, rad/s (for the lever arm)
@@ -437,13 +462,15 @@ class Ekf15(Estimator):
         f_n = _mv3((c9[0:3], c9[3:6], c9[6:9]), fbx, fby, fbz)  # mv(C, Σ Δv / Δ), on floats
         s0, s1 = self._sf_sum.tolist()
         self._sf_sum = np.array((s0 + f_n[0] * dt, s1 + f_n[1] * dt))
-        f = error_dynamics(c_nb, f_n, self.ins.lat_rad)
+        # F of every state, written into the one matrix kept for it: the blocks that change (the
+        # same entries error_dynamics and the *_augmented functions build; the rest constant)
+        f = _write_error_dynamics(self._f, c_nb, f_n, self.ins.lat_rad)
         if self._cal:
-            f = gyro_cal_augmented(f, c_nb, np.array(self._pending_dth_b) / dt)
+            f[6:9, 15:24] = _gyro_cal_block(c_nb, np.array(self._pending_dth_b) / dt)
         if self._acal:
-            f = accel_cal_augmented(f, c_nb, np.array((fbx, fby, fbz)))
+            i = self._i_acal
+            f[3:6, i : i + 9] = _accel_cal_block(c_nb, np.array((fbx, fby, fbz)))
         if self._slow_w:
-            f = slow_augmented(f, self._slow_w)
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
             self.s_hat, self.sd_hat = (
                 c * self.s_hat + s / self._slow_w * self.sd_hat,

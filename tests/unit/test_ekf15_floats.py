@@ -2,13 +2,28 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
+import pytest
 
-from hil.estimators.ekf15 import _mv3, error_dynamics, kron_eye3, skew
+from hil.estimators.base import ImuInput
+from hil.estimators.ekf15 import (
+    Ekf15,
+    _mv3,
+    accel_cal_augmented,
+    error_dynamics,
+    gyro_cal_augmented,
+    kron_eye3,
+    skew,
+    slow_augmented,
+)
 from hil.nav.earth import OMEGA_IE_RADPS
 from hil.nav.portable import mv
+from hil.nav.scenario import load_scenario
+from hil.nav.strapdown import c_nb_floats
+from hil.nav.trajectory import TruthGenerator
 
 
 def test_mv3_is_portable_mv_bit_for_bit_signed_zeros_included() -> None:
@@ -58,3 +73,46 @@ def test_error_dynamics_has_the_array_constructions_bits_signed_zeros_included()
             lat = float(rng.choice([0.0, -0.0, math.pi / 2]))
         want, got = _error_dynamics_with_arrays(c, f_n, lat), error_dynamics(c, f_n, lat)
         assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+
+
+@pytest.mark.parametrize(("cal", "acal", "slow"), list(itertools.product((False, True), repeat=3)))
+def test_the_dynamics_written_in_place_are_the_augmenting_functions_bits(
+    cal: bool, acal: bool, slow: bool
+) -> None:
+    """ekf15 writes its F (every state) into one matrix kept for it: the same bytes, signed
+    zeros included, as ``error_dynamics`` augmented by ``gyro_cal_augmented``,
+    ``accel_cal_augmented`` and ``slow_augmented`` on the same inputs, at every prediction."""
+    init = TruthGenerator(load_scenario("uav_survey")).initial_state()
+    est = Ekf15(
+        "ekf15",
+        init,
+        gyro_cal_sigma=(1e-3, 1e-3) if cal else (0.0, 0.0),
+        accel_cal_sigma=(1e-3, 1e-3) if acal else (0.0, 0.0),
+        gnss_slow_sigma_m=2.0 if slow else 0.0,
+    )
+    checked = []
+
+    def check(f: np.ndarray, dt: float) -> None:
+        c9 = c_nb_floats(*est.ins.q)
+        c_nb = np.array(c9).reshape(3, 3)
+        pv = est._pending_dv_b
+        f_b = (pv[0] / dt, pv[1] / dt, pv[2] / dt)
+        want = error_dynamics(c_nb, _mv3((c9[0:3], c9[3:6], c9[6:9]), *f_b), est.ins.lat_rad)
+        if cal:
+            want = gyro_cal_augmented(want, c_nb, np.array(est._pending_dth_b) / dt)
+        if acal:
+            want = accel_cal_augmented(want, c_nb, np.array(f_b))
+        if slow:
+            want = slow_augmented(want, est._slow_w)
+        assert f.shape == want.shape and f.tobytes() == want.tobytes()
+        checked.append(dt)
+
+    est._predict_over = check  # type: ignore[method-assign]
+    rng = np.random.default_rng(8)
+    for k in range(200):
+        th = rng.normal(0.0, 2e-3, 3)
+        if k % 9 == 0:
+            th[rng.integers(3)] = -0.0
+        dv = rng.normal(0.0, 3e-2, 3) + np.array((0.0, 0.0, -9.81 * 0.0025))
+        est.on_imu(ImuInput(init.stamp_ns + (k + 1) * 2_500_000, 0.0025, th, dv), None)  # type: ignore[arg-type]
+    assert len(checked) == 50  # every fourth sample
