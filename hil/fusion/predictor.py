@@ -86,13 +86,91 @@ def without_bias(dt: float, dq: Quat, dv: Vec3, dp: Vec3, bias: tuple[F64, F64])
     ax, ay, az = np.asarray(bias[1], dtype=np.float64).tolist()
     if dt <= 0.0:
         return dq, dv, dp
-    fx, fy, fz = dv[0] / dt, dv[1] / dt, dv[2] / dt
+    r = _unbiased(dt, *dq, *dv, *dp, gx, gy, gz, ax, ay, az)
+    return r[0:4], r[4:7], r[7:10]
+
+
+def _unbiased(
+    dt: float,
+    qw: float, qx: float, qy: float, qz: float,
+    vx: float, vy: float, vz: float,
+    px: float, py: float, pz: float,
+    gx: float, gy: float, gz: float,
+    ax: float, ay: float, az: float,
+) -> tuple[float, float, float, float, float, float, float, float, float, float]:  # fmt: skip
+    """:func:`without_bias` on floats (``dt`` > 0): ΔR, Δv, Δp as ten floats."""
+    fx, fy, fz = vx / dt, vy / dt, vz / dt
     cx, cy, cz = fy * gz - fz * gy, fz * gx - fx * gz, fx * gy - fy * gx  # f × b_g
     t2, t3 = 0.5 * dt * dt, dt * dt * dt / 6.0
-    dv2 = (dv[0] - ax * dt + cx * t2, dv[1] - ay * dt + cy * t2, dv[2] - az * dt + cz * t2)
-    dp2 = (dp[0] - ax * t2 + cx * t3, dp[1] - ay * t2 + cy * t3, dp[2] - az * t2 + cz * t3)
-    dq2 = _qmul(*dq, *_rotvec_quat(-gx * dt, -gy * dt, -gz * dt))
-    return dq2, dv2, dp2
+    ew, ex, ey, ez = _rotvec_quat(-gx * dt, -gy * dt, -gz * dt)
+    rw, rx, ry, rz = _qmul(qw, qx, qy, qz, ew, ex, ey, ez)
+    return (
+        rw, rx, ry, rz,
+        vx - ax * dt + cx * t2, vy - ay * dt + cy * t2, vz - az * dt + cz * t2,
+        px - ax * t2 + cx * t3, py - ay * t2 + cy * t3, pz - az * t2 + cz * t3,
+    )  # fmt: skip
+
+
+def _advance(
+    tt: float,
+    qw: float, qx: float, qy: float, qz: float,
+    vx: float, vy: float, vz: float,
+    px: float, py: float, pz: float,
+    tx: float, ty: float, tz: float,
+    ux: float, uy: float, uz: float,
+    dt_s: float,
+) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:  # fmt: skip
+    """One IMU interval onto the running sums ``T, q, V, P`` (:meth:`OutputPredictor.step`'s
+    arithmetic on floats; :mod:`hil.runtime.jit` compiles it)."""
+    # the velocity increment with the rotation over the interval (first order)
+    sx = ux + 0.5 * (ty * uz - tz * uy)
+    sy = uy + 0.5 * (tz * ux - tx * uz)
+    sz = uz + 0.5 * (tx * uy - ty * ux)
+    dx, dy, dz = _rot(qw, qx, qy, qz, sx, sy, sz)
+    nx, ny, nz = vx + dx, vy + dy, vz + dz
+    px += (vx + 0.5 * dx) * dt_s
+    py += (vy + 0.5 * dy) * dt_s
+    pz += (vz + 0.5 * dz) * dt_s
+    ew, ex, ey, ez = _rotvec_quat(tx, ty, tz)
+    rw, rx, ry, rz = _qmul(qw, qx, qy, qz, ew, ex, ey, ez)
+    inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    return (tt + dt_s, rw * inv, rx * inv, ry * inv, rz * inv, nx, ny, nz, px, py, pz)
+
+
+def _carry(
+    pn: float, pe: float, pd: float,
+    vn: float, ve: float, vd: float,
+    qw: float, qx: float, qy: float, qz: float,
+    dt: float,
+    dqw: float, dqx: float, dqy: float, dqz: float,
+    dvx: float, dvy: float, dvz: float,
+    dpx: float, dpy: float, dpz: float,
+    g: float,
+    biased: bool,
+    gx: float, gy: float, gz: float,
+    ax: float, ay: float, az: float,
+) -> tuple[float, float, float, float, float, float, float, float, float, float]:  # fmt: skip
+    """A horizon state carried over the motion (:meth:`OutputPredictor.predict_floats`'s
+    arithmetic on floats, the biases taken out first when ``biased`` and ``dt`` > 0; compiled by
+    :mod:`hil.runtime.jit`): position, velocity, attitude as ten floats."""
+    if biased and dt > 0.0:
+        dqw, dqx, dqy, dqz, dvx, dvy, dvz, dpx, dpy, dpz = _unbiased(
+            dt, dqw, dqx, dqy, dqz, dvx, dvy, dvz, dpx, dpy, dpz, gx, gy, gz, ax, ay, az
+        )
+    cvx, cvy, cvz = _rot(qw, qx, qy, qz, dvx, dvy, dvz)
+    cpx, cpy, cpz = _rot(qw, qx, qy, qz, dpx, dpy, dpz)
+    rw, rx, ry, rz = _qmul(qw, qx, qy, qz, dqw, dqx, dqy, dqz)
+    inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    if rw < 0.0:
+        inv = -inv
+    return (
+        pn + vn * dt + cpx, pe + ve * dt + cpy, pd + vd * dt + cpz + 0.5 * g * dt * dt,
+        vn + cvx, ve + cvy, vd + cvz + g * dt,
+        rw * inv, rx * inv, ry * inv, rz * inv,
+    )  # fmt: skip
+
+
+_NO_BIAS = (0.0,) * 6
 
 
 class OutputPredictor:
@@ -112,22 +190,11 @@ class OutputPredictor:
 
     def step(self, stamp_ns: int, dtheta: Vec3, dvel: Vec3, dt_s: float, seq: int = -1) -> None:
         """One IMU interval ending at ``stamp_ns`` (the newest: stamps only increase here)."""
-        _t, tt, qw, qx, qy, qz, vx, vy, vz, px, py, pz = self.entries[-1]
-        tx, ty, tz = dtheta
-        ux, uy, uz = dvel
-        # the velocity increment with the rotation over the interval (first order)
-        sx = ux + 0.5 * (ty * uz - tz * uy)
-        sy = uy + 0.5 * (tz * ux - tx * uz)
-        sz = uz + 0.5 * (tx * uy - ty * ux)
-        dx, dy, dz = _rot(qw, qx, qy, qz, sx, sy, sz)
-        nx, ny, nz = vx + dx, vy + dy, vz + dz
-        px += (vx + 0.5 * dx) * dt_s
-        py += (vy + 0.5 * dy) * dt_s
-        pz += (vz + 0.5 * dz) * dt_s
-        rw, rx, ry, rz = _qmul(qw, qx, qy, qz, *_rotvec_quat(tx, ty, tz))
-        inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
-        q = (rw * inv, rx * inv, ry * inv, rz * inv)
-        self.entries.append((int(stamp_ns), tt + dt_s, *q, nx, ny, nz, px, py, pz))
+        e = self.entries[-1]
+        new = _advance(
+            e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8], e[9], e[10], e[11], *dtheta, *dvel, dt_s
+        )
+        self.entries.append((int(stamp_ns), *new))
         self.seqs.append(seq)
         self._since_anchor += 1
         if self._since_anchor >= REANCHOR_STEPS:
@@ -213,20 +280,11 @@ class OutputPredictor:
         dt, dq, dv, dp = motion
         if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
             return pos, vel, q
+        b = _NO_BIAS
         if bias is not None:
-            dq, dv, dp = without_bias(dt, dq, dv, dp, bias)
-        qw, qx, qy, qz = q
-        vn, ve, vd = vel
-        pn, pe, pd = pos
-        cvx, cvy, cvz = _rot(qw, qx, qy, qz, *dv)
-        cpx, cpy, cpz = _rot(qw, qx, qy, qz, *dp)
-        rw, rx, ry, rz = _qmul(qw, qx, qy, qz, *dq)
-        inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
-        if rw < 0.0:
-            inv = -inv
-        g = self.g
-        return (
-            (pn + vn * dt + cpx, pe + ve * dt + cpy, pd + vd * dt + cpz + 0.5 * g * dt * dt),
-            (vn + cvx, ve + cvy, vd + cvz + g * dt),
-            (rw * inv, rx * inv, ry * inv, rz * inv),
-        )
+            b = (
+                *np.asarray(bias[0], dtype=np.float64).tolist(),
+                *np.asarray(bias[1], dtype=np.float64).tolist(),
+            )
+        r = _carry(*pos, *vel, *q, dt, *dq, *dv, *dp, self.g, bias is not None, *b)
+        return r[0:3], r[3:6], r[6:10]

@@ -19,6 +19,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
 - the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
   IMU's ns stamps make most step lengths new, so it runs after every fix and clock wander) as
   :func:`hil.nav.kernels.expm` (~2 µs against ~70), checked the same way;
+- the output predictor's float arithmetic (:func:`hil.fusion.predictor._advance`, a sample onto its
+  running sums, and :func:`hil.fusion.predictor._carry`, a horizon state carried to the newest
+  sample, biases out), from their own Python source, unchanged;
 - every published solution's latitude, longitude and height
   (:func:`hil.nav.earth._ecef_to_lla_one`) as :func:`hil.nav.kernels.ecef_to_lla_one`, checked
   the same way (it calls the C library's ``hypot``, which numpy's is);
@@ -64,7 +67,7 @@ _state: str | None = None
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
-#: ``ramp_step``, ``covariance_step``, ``expm``, ``ecef_to_lla_one``).
+#: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``expm``, ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -88,10 +91,11 @@ def _sources_digest(numba: Any) -> str:
     another (``_step`` calls ``_sq``) would keep the old callee's machine code after an edit of the
     callee alone. The digest goes into each compiled twin's name, so any edit compiles anew."""
     from hil.estimators import compensation
+    from hil.fusion import predictor
     from hil.nav import earth, kernels, strapdown
 
     h = hashlib.sha256(numba.__version__.encode())
-    for mod in (strapdown, kernels, compensation, earth, sys.modules[__name__]):
+    for mod in (strapdown, kernels, compensation, earth, predictor, sys.modules[__name__]):
         h.update(Path(str(mod.__file__)).read_bytes())
     return h.hexdigest()[:12]
 
@@ -180,6 +184,7 @@ def _enable(env: Mapping[str, str]) -> str:
         numba = _import_numba()
     except ImportError:
         return "python (numba is not installed: pip install numba)"
+    from hil.fusion import predictor
     from hil.nav import kernels, strapdown
 
     f8 = "float64"
@@ -205,6 +210,28 @@ def _enable(env: Mapping[str, str]) -> str:
             f"UniTuple({f8}, 6), {t9}, {t9}, {t3}, {t3}, {f8}, boolean, boolean, boolean)",
             d,
             _step=step,
+        )
+        qmul = _compile(numba, predictor._qmul, f"UniTuple({f8}, 4)({', '.join([f8] * 8)})", d, inline=True)
+        rot = _compile(numba, predictor._rot, f"UniTuple({f8}, 3)({', '.join([f8] * 7)})", d, inline=True)
+        motion_callees = {"_qmul": qmul, "_rot": rot, "_rotvec_quat": rotvec}
+        unbiased = _compile(
+            numba,
+            predictor._unbiased,
+            f"UniTuple({f8}, 10)({', '.join([f8] * 17)})",
+            d,
+            True,
+            **motion_callees,
+        )
+        advance = _compile(
+            numba, predictor._advance, f"UniTuple({f8}, 11)({', '.join([f8] * 18)})", d, **motion_callees
+        )
+        carry = _compile(
+            numba,
+            predictor._carry,
+            f"UniTuple({f8}, 10)({', '.join([f8] * 22)}, boolean, {', '.join([f8] * 6)})",
+            d,
+            _unbiased=unbiased,
+            **motion_callees,
         )
         ramp = _compile(numba, kernels.ramp_step, f"none({mat}, {mat}, {vec}, {vec}, {f8})", d)
         cmat = f"{f8}[:, ::1]"
@@ -237,6 +264,8 @@ def _enable(env: Mapping[str, str]) -> str:
         _step=step,
         _corrected_run=run,
         ramp_step=ramp,
+        _advance=advance,
+        _carry=carry,
         covariance_step=cov,
         expm=expm,
         ecef_to_lla_one=lla,
@@ -342,6 +371,8 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "_step": ("_step", ("hil.nav.strapdown:_step",), False),
     "_corrected_run": ("_corrected_run", ("hil.nav.strapdown:_corrected_run",), False),
     "_ramp_step": ("ramp_step", ("hil.estimators.compensation:_ramp_step",), False),
+    "_advance": ("_advance", ("hil.fusion.predictor:_advance",), False),
+    "_carry": ("_carry", ("hil.fusion.predictor:_carry",), False),
     "covariance_step": (
         "covariance_step",
         ("hil.estimators.ekf15:covariance_step", "hil.estimators.feedback:covariance_step"),

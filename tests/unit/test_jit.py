@@ -166,6 +166,39 @@ def test_the_compiled_filter_step_computes_einsums_bits(order: int) -> None:
         assert xc.tobytes() != x.tobytes() or not m.any()  # it did step
 
 
+def test_the_compiled_output_predictor_computes_the_python_bits() -> None:
+    """The predictor's step onto its running sums and its carry of a horizon state (biases out or
+    not; a window of a few ms to the 0.5 s horizon), compiled against Python on random states."""
+    from hil.fusion import predictor
+
+    assert jit.enable() == "compiled"
+    py_advance, py_carry = jit.python_kernel("_advance"), jit.python_kernel("_carry")
+    assert predictor._advance is not py_advance and predictor._carry is not py_carry
+    rng = np.random.default_rng(11)
+    for k in range(20000):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        sums = (float(rng.uniform(0.0, 0.5)), *q.tolist(), *rng.normal(0.0, 5.0, 6).tolist())
+        incr = (
+            *rng.normal(0.0, 1e-9 if k % 7 == 0 else 2e-3, 3).tolist(),
+            *rng.normal(0.0, 3e-2, 3).tolist(),
+        )
+        got_a, want_a = predictor._advance(*sums, *incr, 0.0025), py_advance(*sums, *incr, 0.0025)
+        assert np.array(got_a).tobytes() == np.array(want_a).tobytes()  # signed zeros too
+        dq = rng.normal(size=4) * (0.05, 1.0, 1.0, 1.0) + (1.0, 0.0, 0.0, 0.0)
+        state = (*rng.normal(0.0, 1e3, 3).tolist(), *rng.normal(0.0, 30.0, 3).tolist(), *q.tolist())
+        motion = (
+            float(rng.uniform(0.0, 0.5)),
+            *(dq / np.linalg.norm(dq)).tolist(),
+            *rng.normal(0.0, 5.0, 6).tolist(),
+        )
+        bias = (*rng.normal(0.0, 1e-2, 3).tolist(), *rng.normal(0.0, 0.3, 3).tolist())
+        for biased in (False, True):
+            got = predictor._carry(*state, *motion, 9.81, biased, *bias)
+            want = py_carry(*state, *motion, 9.81, biased, *bias)
+            assert np.array(got).tobytes() == np.array(want).tobytes(), (k, biased)
+
+
 def _covariance_operands(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``F`` from dense to empty with signed zeros, a covariance ``P`` (some with zero entries)
     and a diagonal ``Q_c``."""
