@@ -213,15 +213,20 @@ def _ecef_one(lat: float, lon: float, h: float) -> tuple[float, float, float]:
 
 
 def _lla_to_ned_one(lat: float, lon: float, h: float, o_lat: float, o_lon: float, o_alt: float) -> F64:
+    return np.array(lla_to_ned_floats(lat, lon, h, o_lat, o_lon, o_alt))
+
+
+def lla_to_ned_floats(
+    lat: float, lon: float, h: float, o_lat: float, o_lon: float, o_alt: float
+) -> tuple[float, float, float]:
+    """:func:`lla_to_ned` of one point as Python floats (the values of its array)."""
     (o0, o1, o2), c = _origin_floats(o_lat, o_lon, o_alt)
     x, y, z = _ecef_one(lat, lon, h)
     d0, d1, d2 = x - o0, y - o1, z - o2
-    return np.array(
-        [
-            c[0][0] * d0 + c[0][1] * d1 + c[0][2] * d2,
-            c[1][0] * d0 + c[1][1] * d1 + c[1][2] * d2,
-            c[2][0] * d0 + c[2][1] * d1 + c[2][2] * d2,
-        ]
+    return (
+        c[0][0] * d0 + c[0][1] * d1 + c[0][2] * d2,
+        c[1][0] * d0 + c[1][1] * d1 + c[1][2] * d2,
+        c[2][0] * d0 + c[2][1] * d1 + c[2][2] * d2,
     )
 
 

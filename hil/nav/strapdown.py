@@ -39,6 +39,7 @@ from hil.nav.earth import (
     OMEGA_IE_RADPS,
     F,
     lla_to_ned,
+    lla_to_ned_floats,
 )
 from hil.nav.types import F64, InitialState, NavState
 
@@ -491,6 +492,17 @@ class LazyNavState(NavState):
         return np.array(self._s[6:10])
 
     def floats(self) -> tuple[list[float], tuple[float, ...], tuple[float, ...]]:
-        """Position, velocity and attitude as Python floats (the values of the arrays)."""
-        s = self._s
-        return self.pos_ned_m.tolist(), s[3:6], s[6:10]
+        """Position, velocity and attitude as Python floats (the values of the arrays; the
+        position's without building its array, when nothing read that yet)."""
+        s, d = self._s, self.__dict__
+        pos = d.get("_pos_floats")
+        if pos is None:
+            arr = d.get("pos_ned_m")
+            o = self._o
+            pos = (
+                arr.tolist()
+                if arr is not None
+                else list(lla_to_ned_floats(s[0], s[1], s[2], o[0], o[1], o[2]))
+            )
+            d["_pos_floats"] = pos
+        return list(pos), s[3:6], s[6:10]

@@ -13,6 +13,7 @@ from hil.nav import earth
 from hil.nav.attitude import attitude_error_rad, euler_to_quat, quat_multiply
 from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nav.strapdown import (
+    LazyNavState,
     strapdown_from_initial,
     strapdown_run,
     strapdown_step,
@@ -104,3 +105,23 @@ def test_schuler_oscillation_from_a_1_mrad_tilt() -> None:
     period_min = 2 * math.pi / best.x[0] / 60.0
     assert abs(period_min - 84.4) / 84.4 < 0.01, period_min
     assert np.sqrt(2 * best.cost / len(ts)) < 0.01 * np.abs(z).max()  # the model explains it
+
+
+def test_lazy_nav_state_floats_are_its_arrays_values_read_in_either_order() -> None:
+    """The position as floats (no array built) is the array's values, bit for bit, whether the
+    array was read first or not."""
+    rng = np.random.default_rng(12)
+    origin = (0.88, 0.53, 180.0)
+    for _ in range(2000):
+        st = (
+            float(origin[0] + rng.normal(0.0, 1e-3)),
+            float(origin[1] + rng.normal(0.0, 1e-3)),
+            float(rng.uniform(-100.0, 3000.0)),
+            *rng.normal(0.0, 30.0, 3).tolist(),
+            1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        )  # fmt: skip
+        floats_first = LazyNavState(st, origin).floats()[0]  # type: ignore[arg-type]
+        array_first = LazyNavState(st, origin)  # type: ignore[arg-type]
+        want = array_first.pos_ned_m
+        assert np.array(floats_first).tobytes() == want.tobytes()
+        assert np.array(array_first.floats()[0]).tobytes() == want.tobytes()
