@@ -82,6 +82,23 @@ def exchange_with_child(
     return got, out, err
 
 
+def communicate_or_dump(proc: subprocess.Popen[bytes], timeout: float) -> bytes:
+    """``proc.communicate(timeout)``'s output; a service that has not exited by then is asked for
+    its threads' stacks (SIGUSR1, ``hil.runtime.service.install_signal_handlers``), killed, and
+    the failure shows where it was stuck."""
+    try:
+        return proc.communicate(timeout=timeout)[0] or b""
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        proc.kill()
+        out = proc.communicate(timeout=30)[0] or b""
+        text = out.decode(errors="replace")[-8000:]
+        raise AssertionError(
+            f"pid {proc.pid} did not exit within {timeout} s; its output, stacks last:\n{text}"
+        ) from None
+
+
 def run_hil(
     *args: str, timeout: float = 300, cwd: Path | None = None, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess[str]:

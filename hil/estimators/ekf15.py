@@ -347,16 +347,7 @@ class Ekf15(Estimator):
         qc = np.zeros((self.n, self.n))
         qc[:15, :15] = self._qc
         self._qc = qc
-        # F's constant entries (δṗ = δv, the slow states' oscillator), built as the functions build
-        # them; _propagate_covariance writes the rest in place (C-contiguous: the compiled step's)
-        f = _F15.copy()
-        if self._cal:
-            f = gyro_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
-        if self._acal:
-            f = accel_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
-        if self._slow_w:
-            f = slow_augmented(f, self._slow_w)
-        self._f = np.ascontiguousarray(f)
+        self._f = self._dynamics_template()
         lever = np.asarray(lever_arm_b_m, dtype=float)
         self._lever: F64 | None = lever if np.any(lever) else None
         self._w_b = np.zeros(3)  # corrected body rate of the last IMU step, rad/s (for the lever arm)
@@ -384,6 +375,19 @@ class Ekf15(Estimator):
         self._align: deque[tuple[int, F64, F64, float]] = deque()  # (t_ns, v_gnss NE, Σ f dt, σ_v)
         self._heading_held = 0  # GNSS fixes whose heading part was held back
         self._heading_resets = 0
+
+    def _dynamics_template(self) -> F64:
+        """F's constant entries (δṗ = δv, the slow states' oscillator), built as the functions
+        build them; _propagate_covariance writes the rest in place (C-contiguous: the compiled
+        step's)."""
+        f = _F15.copy()
+        if self._cal:
+            f = gyro_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
+        if self._acal:
+            f = accel_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
+        if self._slow_w:
+            f = slow_augmented(f, self._slow_w)
+        return np.ascontiguousarray(f)
 
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:

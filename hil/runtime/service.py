@@ -18,6 +18,7 @@ of its last backlog.
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import logging
 import os
 import signal
@@ -299,11 +300,16 @@ class Service:
 
 
 def install_signal_handlers(stop: threading.Event) -> None:
+    """SIGTERM and SIGINT stop the service; SIGUSR1 prints the stack of every Python thread to
+    stderr and lets it run on (``kill -USR1 PID``: where a service that does not stop is stuck;
+    the supervisor's log and a test's captured output then hold it)."""
+
     def handler(_signum: int, _frame: object) -> None:
         stop.set()
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 def run_service(cls: type[Service], rig: str, options: dict[str, Any], bus: BusConfig | None = None) -> int:

@@ -31,7 +31,7 @@ from hil.messages import (
     encode,
 )
 from hil.record.mcapio import RecordingError, read_session
-from tests.conftest import REPO, free_port, hil_cmd
+from tests.conftest import REPO, communicate_or_dump, free_port, hil_cmd
 
 pytestmark = pytest.mark.slow
 
@@ -162,7 +162,7 @@ def test_burst_is_recorded_without_loss_and_sigterm_writes_the_summary(hub: Hub,
     assert st.counter_map()["missing"] == 0 and st.counter_map()["zenoh_missed"] == 0, st.counter_map()
     assert st.counter_map()["zenoh_unsequenced"] == 0  # every sample carried Zenoh's sequence number
     proc.send_signal(signal.SIGTERM)
-    out, _ = proc.communicate(timeout=60)
+    out = communicate_or_dump(proc, 60)
     # THEN the file is complete, finished (summary + index), and says so
     assert proc.returncode == 0, out.decode()[-2000:]
     s = read_session(path)
@@ -204,7 +204,7 @@ def test_batches_are_recorded_message_by_message_and_a_bad_one_is_counted(hub: H
     counters = st.counter_map()
     assert counters.get("rejected.can.invalid", 0) == 2, counters  # the cut batch, the bad frame
     proc.send_signal(signal.SIGTERM)
-    out, _ = proc.communicate(timeout=60)
+    out = communicate_or_dump(proc, 60)
     assert proc.returncode == 0, out.decode()[-2000:]
     s = read_session(path)
     recs = s.by_topic(key)
@@ -255,7 +255,7 @@ def test_what_is_sent_the_moment_the_recorder_says_ready_is_recorded_from_the_fi
     finally:
         watch.undeclare()
         proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
+        out = communicate_or_dump(proc, 60)
     # THEN every stream is in the file from its first message on
     assert proc.returncode == 0, out.decode()[-2000:]
     s = read_session(path)
@@ -338,7 +338,7 @@ def test_a_restarted_recorder_continues_the_session_once_and_recovers_what_the_c
             pub.put(truth(i))
         hub.wait(lambda st: st.counter_map().get("written", 0) >= 150, timeout=60)
         second.send_signal(signal.SIGTERM)
-        out, _ = second.communicate(timeout=60)
+        out = communicate_or_dump(second, 60)
         assert second.returncode == 0, out.decode()[-2000:]
     finally:
         _stop(proc)
@@ -391,7 +391,7 @@ def test_a_publisher_that_spoke_once_before_the_recorder_listened_is_recorded(
             assert time.monotonic() < deadline, "the event never reached the file"
             time.sleep(0.2)
         proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
+        out = communicate_or_dump(proc, 60)
     finally:
         _stop(proc)
     # THEN the event is in the file: the recorder asked the publisher's cache when it started
@@ -591,7 +591,7 @@ def test_sigterm_during_a_backlog_still_writes_every_received_message(hub: Hub, 
     n = 20_000
     _burst(hub, n)
     proc.send_signal(signal.SIGTERM)  # no wait for "written": the queue is full now
-    out, _ = proc.communicate(timeout=60)
+    out = communicate_or_dump(proc, 60)
     assert proc.returncode == 0, out.decode()[-2000:]
     s = read_session(path)
     k = Keys(RIG)
@@ -643,10 +643,24 @@ def test_sigterm_right_after_sigcont_stops_the_recorder_with_every_message(hub: 
     proc.send_signal(signal.SIGCONT)
     proc.send_signal(signal.SIGTERM)
     sender.join(timeout=60)
-    out, _ = proc.communicate(timeout=40)
+    out = communicate_or_dump(proc, 40)
     assert proc.returncode == 0, out.decode()[-2000:]
     s = read_session(path)
     k = Keys(RIG)
     for topic in (k.sensor("imu"), k.synced("imu")):
         assert [r.sequence for r in s.by_topic(topic)] == list(range(n)), topic
     assert json.loads(s.metadata["completeness"]["unwritten_at_stop"]) == 0
+
+
+def test_sigusr1_prints_every_threads_stack_and_the_service_runs_on(hub: Hub, tmp_path: Path) -> None:
+    """``kill -USR1`` of a service: the stack of each of its Python threads on stderr, and it goes
+    on (what a test or a user sees of a service that does not stop; ``communicate_or_dump``)."""
+    proc = start_recorder(hub, str(tmp_path / "usr1.mcap"))
+    proc.send_signal(signal.SIGUSR1)
+    time.sleep(1.0)
+    assert proc.poll() is None  # still running
+    proc.send_signal(signal.SIGTERM)
+    out = communicate_or_dump(proc, 60).decode(errors="replace")
+    assert proc.returncode == 0, out[-2000:]
+    assert "Current thread" in out or "Thread 0x" in out, out[-2000:]
+    assert "run_loop" in out and "_write_loop" in out, out[-3000:]  # the main thread and the writer
