@@ -17,6 +17,17 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> F64:
     """Hamilton product p ⊗ q, (..., 4)."""
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
+    if p.shape == (4,) and q.shape == (4,):  # one pair (a fix's attitude reset): the same
+        aw, ax, ay, az = p.tolist()  # products on floats, without the stack's machinery
+        bw, bx, by, bz = q.tolist()
+        return np.array(
+            (
+                aw * bw - ax * bx - ay * by - az * bz,
+                aw * bx + ax * bw + ay * bz - az * by,
+                aw * by - ax * bz + ay * bw + az * bx,
+                aw * bz + ax * by - ay * bx + az * bw,
+            )
+        )
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack(

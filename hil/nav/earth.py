@@ -49,6 +49,10 @@ def cross(a: ArrayLike, b: ArrayLike) -> F64:
     """a × b over leading axes, elementwise (batch-size independent)."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
+    if a.shape == (3,) and b.shape == (3,):  # one pair (the estimators' lever arms): the same
+        a0, a1, a2 = a.tolist()  # products on floats, without the stack's machinery
+        b0, b1, b2 = b.tolist()
+        return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
     return np.stack(
         [
             a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
