@@ -52,12 +52,49 @@ from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import LazyNavState, StrapdownState, strapdown_from_initial, to_nav_state
+from hil.nav.strapdown import LazyNavState, StrapdownState, c_nb_floats, strapdown_from_initial, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
-_F12 = np.zeros((12, 12))
-_F12.flags.writeable = False
+
+
+def _corrector_prediction(
+    qw: float, qx: float, qy: float, qz: float,
+    sx: float, sy: float, sz: float,
+    dt: float,
+    lat: float,
+    p: F64,
+    qc: F64,
+    dv0: float, dv1: float, dv2: float,
+) -> tuple[F64, float, float, float]:  # fmt: skip
+    """:class:`Corrector`'s prediction over ``dt`` (``P``, and ``δv`` moved by Φ) from the INS
+    attitude ``q`` and the body Δv ``s`` summed over ``dt``, on floats where the arrays cost more
+    than the sums: the specific force ``C s / dt`` and ``Φ δv`` in einsum's order for a 3-vector
+    (:func:`hil.estimators.ekf15._mv3`'s), F with ekf15's entries (signed zeros too), then
+    :func:`covariance_step`. Its Python form is the reference; :mod:`hil.runtime.jit` compiles
+    it with the compiled covariance step (tests/unit/test_jit.py holds it to Python's bits)."""
+    c0, c1, c2, c3, c4, c5, c6, c7, c8 = c_nb_floats(qw, qx, qy, qz)
+    bx, by, bz = sx / dt, sy / dt, sz / dt
+    f0 = (c0 * bx + c2 * bz) + c1 * by + 0.0
+    f1 = (c3 * bx + c5 * bz) + c4 * by + 0.0
+    f2 = (c6 * bx + c8 * bz) + c7 * by + 0.0
+    w0, w2 = OMEGA_IE_RADPS * math.cos(lat), -OMEGA_IE_RADPS * math.sin(lat)  # ω_ie (N, 0, D)
+    c = ((c0, c1, c2), (c3, c4, c5), (c6, c7, c8))
+    sk = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f×]φ + C δb_a
+    om = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×]φ − C δb_g
+    f = np.zeros((12, 12))
+    for i in range(3):
+        for j in range(3):
+            f[i, 3 + j] = sk[i][j]
+            f[i, 9 + j] = c[i][j]
+            f[3 + i, 3 + j] = om[i][j]
+            f[3 + i, 6 + j] = -c[i][j]
+    phi, p_new = covariance_step(f, dt, p, qc)
+    # φ, biases are zero between fixes (closed loop): only δv moves
+    d0 = (phi[0, 0] * dv0 + phi[0, 2] * dv2) + phi[0, 1] * dv1 + 0.0
+    d1 = (phi[1, 0] * dv0 + phi[1, 2] * dv2) + phi[1, 1] * dv1 + 0.0
+    d2 = (phi[2, 0] * dv0 + phi[2, 2] * dv2) + phi[2, 1] * dv1 + 0.0
+    return p_new, d0, d1, d2
 
 
 class Corrector:
@@ -126,17 +163,19 @@ class Corrector:
             self._att_sigma = np.sqrt(np.diag(self._p)[3:6])
         return self._att_sigma.copy()
 
-    def predict(self, c_nb: F64, f_n: F64, lat_rad: float, dt_s: float) -> None:
-        """Over ``dt_s`` at attitude ``c_nb`` and mean specific force ``f_n`` (NED)."""
-        w0, w2 = OMEGA_IE_RADPS * math.cos(lat_rad), -OMEGA_IE_RADPS * math.sin(lat_rad)  # ω_ie (N, 0, D)
-        f0, f1, f2 = np.asarray(f_n, dtype=float).tolist()
-        f = _F12.copy()
-        f[0:3, 3:6] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f×]φ + C δb_a
-        f[0:3, 9:12] = c_nb
-        f[3:6, 3:6] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×]φ − C δb_g
-        f[3:6, 6:9] = -c_nb
-        phi, self.p = covariance_step(f, dt_s, self.p, self.qc)
-        self.dv = mv(phi[0:3, 0:3], self.dv)  # φ, biases are zero between fixes (closed loop)
+    def predict(
+        self,
+        q_nb: tuple[float, float, float, float],
+        sum_dv_b: tuple[float, float, float],
+        dt_s: float,
+        lat_rad: float,
+    ) -> None:
+        """Over ``dt_s`` at attitude ``q_nb`` with the body Δv summed over it (the mean specific
+        force), at latitude ``lat_rad``: one call of :func:`_corrector_prediction`, which
+        :mod:`hil.runtime.jit` compiles."""
+        d = self.dv.tolist()
+        self.p, d0, d1, d2 = _corrector_prediction(*q_nb, *sum_dv_b, dt_s, lat_rad, self.p, self.qc, *d)
+        self.dv = np.array((d0, d1, d2))
 
     def update(self, dv_meas: F64, sigma_mps: F64) -> F64 | None:
         """One velocity difference (INS − GNSS at the antenna) of σ ``sigma_mps`` per axis.
@@ -283,10 +322,8 @@ class ClosedLoopIns:
     def _predict(self) -> None:
         if self._pending_n == 0:
             return
-        st = self._st
-        c_nb = np.array(_sd.c_nb_floats(st[6], st[7], st[8], st[9])).reshape(3, 3)
-        f_n = mv(c_nb, np.array(self._pending_dv_b) / self._pending_dt)
-        self.corrector.predict(c_nb, f_n, st[0], self._pending_dt)
+        st, pv = self._st, self._pending_dv_b
+        self.corrector.predict((st[6], st[7], st[8], st[9]), (pv[0], pv[1], pv[2]), self._pending_dt, st[0])
         self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dt = 0.0
         self._pending_n = 0

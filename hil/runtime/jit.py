@@ -13,7 +13,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
   as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order;
 - the covariance prediction of ekf15 and of the feedback INS's corrector
   (:func:`hil.estimators.ekf15.covariance_step`, ``Φ P Φ' + Q``: einsum products in Python) as
-  :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders; checked against
+  :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders, and the
+  feedback corrector's whole prediction around it (:func:`hil.estimators.feedback._corrector_prediction`,
+  from its own Python source, with the compiled step); checked against
   einsum on random operands here before it is put in place (a numpy built for wider SIMD lanes
   or FMA adds differently: then the Python one stays, said on stderr);
 - the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
@@ -67,7 +69,8 @@ _state: str | None = None
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
-#: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``expm``, ``ecef_to_lla_one``).
+#: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``_corrector_prediction``, ``expm``,
+#: ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -90,12 +93,12 @@ def _sources_digest(numba: Any) -> str:
     numba's cache keys an entry on its own function's file and bytecode only: a kernel that calls
     another (``_step`` calls ``_sq``) would keep the old callee's machine code after an edit of the
     callee alone. The digest goes into each compiled twin's name, so any edit compiles anew."""
-    from hil.estimators import compensation
+    from hil.estimators import compensation, feedback
     from hil.fusion import predictor
     from hil.nav import earth, kernels, strapdown
 
     h = hashlib.sha256(numba.__version__.encode())
-    for mod in (strapdown, kernels, compensation, earth, predictor, sys.modules[__name__]):
+    for mod in (strapdown, kernels, compensation, earth, predictor, feedback, sys.modules[__name__]):
         h.update(Path(str(mod.__file__)).read_bytes())
     return h.hexdigest()[:12]
 
@@ -184,92 +187,15 @@ def _enable(env: Mapping[str, str]) -> str:
         numba = _import_numba()
     except ImportError:
         return "python (numba is not installed: pip install numba)"
-    from hil.fusion import predictor
-    from hil.nav import kernels, strapdown
+    from hil.nav import kernels
 
-    f8 = "float64"
-    state16 = f"UniTuple({f8}, 16)"
-    mat, vec = f"{f8}[:, :]", f"{f8}[:]"
     try:
-        d = _sources_digest(numba)
-        square = _compile(numba, kernels.libm_square, f"{f8}({f8})", d, _pow=_libm_pow(numba))
-        rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})", d)
-        step = _compile(
-            numba,
-            strapdown._step,
-            f"{state16}({state16}, {', '.join([f8] * 7)})",
-            d,
-            _rotvec_quat=rotvec,
-            _sq=square,
-        )
-        t3, t9 = f"UniTuple({f8}, 3)", f"UniTuple({f8}, 9)"
-        run = _compile(
-            numba,
-            strapdown._corrected_run,
-            f"Tuple(({state16}, {t3}, {t3}, {f8}))({state16}, {f8}[:, ::1], int64, int64, "
-            f"UniTuple({f8}, 6), {t9}, {t9}, {t3}, {t3}, {f8}, boolean, boolean, boolean)",
-            d,
-            _step=step,
-        )
-        qmul = _compile(numba, predictor._qmul, f"UniTuple({f8}, 4)({', '.join([f8] * 8)})", d, inline=True)
-        rot = _compile(numba, predictor._rot, f"UniTuple({f8}, 3)({', '.join([f8] * 7)})", d, inline=True)
-        motion_callees = {"_qmul": qmul, "_rot": rot, "_rotvec_quat": rotvec}
-        unbiased = _compile(
-            numba,
-            predictor._unbiased,
-            f"UniTuple({f8}, 10)({', '.join([f8] * 17)})",
-            d,
-            True,
-            **motion_callees,
-        )
-        advance = _compile(
-            numba, predictor._advance, f"UniTuple({f8}, 11)({', '.join([f8] * 18)})", d, **motion_callees
-        )
-        carry = _compile(
-            numba,
-            predictor._carry,
-            f"UniTuple({f8}, 10)({', '.join([f8] * 22)}, boolean, {', '.join([f8] * 6)})",
-            d,
-            _unbiased=unbiased,
-            **motion_callees,
-        )
-        ramp = _compile(numba, kernels.ramp_step, f"none({mat}, {mat}, {vec}, {vec}, {f8})", d)
-        cmat = f"{f8}[:, ::1]"
-        finite = _compile(numba, kernels._finite_rows, f"{f8}[::1]({cmat})", d, inline=True)
-        order = _compile(numba, kernels._lane_order, "int64[::1](int64)", d, inline=True)
-        mm = _compile(numba, kernels._mm, f"{cmat}({cmat}, {cmat})", d, _finite_rows=finite)
-        mmt = _compile(
-            numba, kernels._mmt, f"{cmat}({cmat}, {cmat})", d, _finite_rows=finite, _lane_order=order
-        )
-        cov = _compile(
-            numba,
-            kernels.covariance_step,
-            f"Tuple(({cmat}, {cmat}))({cmat}, {f8}, {cmat}, {mat})",
-            d,
-            _mm=mm,
-            _mmt=mmt,
-        )
-        expm = _compile(numba, kernels.expm, f"{cmat}({cmat})", d, _mm=mm)
-        lla = _compile(
-            numba, kernels.ecef_to_lla_one, f"UniTuple({f8}, 3)({f8}, {f8}, {f8})", d, libm_square=square
-        )
+        _compiled.update(_compile_kernels(numba))
     except Exception as err:  # a numba or LLVM that cannot build them: Python's kernels, said why
         sys.stderr.write(
             f"hil: warning: the navigation kernels stay in Python: {type(err).__name__}: {err}\n"
         )
         return f"python (compiling failed: {type(err).__name__})"
-    _compiled.update(
-        libm_square=square,
-        _rotvec_quat=rotvec,
-        _step=step,
-        _corrected_run=run,
-        ramp_step=ramp,
-        _advance=advance,
-        _carry=carry,
-        covariance_step=cov,
-        expm=expm,
-        ecef_to_lla_one=lla,
-    )
     for name, (_key, homes, _fallback) in _PLACES.items():
         _python.setdefault(name, _get(homes[0]))
     kernels.compiled = True
@@ -288,6 +214,99 @@ def _enable(env: Mapping[str, str]) -> str:
         for home in homes:
             _put(home, kernel)
     return f"compiled ({', '.join(kept)} in Python)" if kept else "compiled"
+
+
+def _compile_kernels(numba: Any) -> dict[str, Any]:
+    """Every kernel compiled (or loaded from numba's cache), by its ``_compiled`` name."""
+    from hil.estimators import feedback
+    from hil.fusion import predictor
+    from hil.nav import kernels, strapdown
+
+    f8 = "float64"
+    state16 = f"UniTuple({f8}, 16)"
+    mat, vec = f"{f8}[:, :]", f"{f8}[:]"
+    d = _sources_digest(numba)
+    square = _compile(numba, kernels.libm_square, f"{f8}({f8})", d, _pow=_libm_pow(numba))
+    rotvec = _compile(numba, strapdown._rotvec_quat, f"UniTuple({f8}, 4)({f8}, {f8}, {f8})", d)
+    step = _compile(
+        numba,
+        strapdown._step,
+        f"{state16}({state16}, {', '.join([f8] * 7)})",
+        d,
+        _rotvec_quat=rotvec,
+        _sq=square,
+    )
+    t3, t9 = f"UniTuple({f8}, 3)", f"UniTuple({f8}, 9)"
+    run = _compile(
+        numba,
+        strapdown._corrected_run,
+        f"Tuple(({state16}, {t3}, {t3}, {f8}))({state16}, {f8}[:, ::1], int64, int64, "
+        f"UniTuple({f8}, 6), {t9}, {t9}, {t3}, {t3}, {f8}, boolean, boolean, boolean)",
+        d,
+        _step=step,
+    )
+    qmul = _compile(numba, predictor._qmul, f"UniTuple({f8}, 4)({', '.join([f8] * 8)})", d, inline=True)
+    rot = _compile(numba, predictor._rot, f"UniTuple({f8}, 3)({', '.join([f8] * 7)})", d, inline=True)
+    motion_callees = {"_qmul": qmul, "_rot": rot, "_rotvec_quat": rotvec}
+    unbiased = _compile(
+        numba,
+        predictor._unbiased,
+        f"UniTuple({f8}, 10)({', '.join([f8] * 17)})",
+        d,
+        True,
+        **motion_callees,
+    )
+    advance = _compile(
+        numba, predictor._advance, f"UniTuple({f8}, 11)({', '.join([f8] * 18)})", d, **motion_callees
+    )
+    carry = _compile(
+        numba,
+        predictor._carry,
+        f"UniTuple({f8}, 10)({', '.join([f8] * 22)}, boolean, {', '.join([f8] * 6)})",
+        d,
+        _unbiased=unbiased,
+        **motion_callees,
+    )
+    ramp = _compile(numba, kernels.ramp_step, f"none({mat}, {mat}, {vec}, {vec}, {f8})", d)
+    cmat = f"{f8}[:, ::1]"
+    finite = _compile(numba, kernels._finite_rows, f"{f8}[::1]({cmat})", d, inline=True)
+    order = _compile(numba, kernels._lane_order, "int64[::1](int64)", d, inline=True)
+    mm = _compile(numba, kernels._mm, f"{cmat}({cmat}, {cmat})", d, _finite_rows=finite)
+    mmt = _compile(numba, kernels._mmt, f"{cmat}({cmat}, {cmat})", d, _finite_rows=finite, _lane_order=order)
+    cov = _compile(
+        numba,
+        kernels.covariance_step,
+        f"Tuple(({cmat}, {cmat}))({cmat}, {f8}, {cmat}, {mat})",
+        d,
+        _mm=mm,
+        _mmt=mmt,
+    )
+    cnb = _compile(numba, strapdown.c_nb_floats, f"UniTuple({f8}, 9)({f8}, {f8}, {f8}, {f8})", d, True)
+    corrector = _compile(
+        numba,
+        feedback._corrector_prediction,
+        f"Tuple(({cmat}, {f8}, {f8}, {f8}))({', '.join([f8] * 9)}, {cmat}, {mat}, {f8}, {f8}, {f8})",
+        d,
+        c_nb_floats=cnb,
+        covariance_step=cov,
+    )
+    expm = _compile(numba, kernels.expm, f"{cmat}({cmat})", d, _mm=mm)
+    lla = _compile(
+        numba, kernels.ecef_to_lla_one, f"UniTuple({f8}, 3)({f8}, {f8}, {f8})", d, libm_square=square
+    )
+    return dict(
+        libm_square=square,
+        _rotvec_quat=rotvec,
+        _step=step,
+        _corrected_run=run,
+        ramp_step=ramp,
+        _advance=advance,
+        _carry=carry,
+        covariance_step=cov,
+        _corrector_prediction=corrector,
+        expm=expm,
+        ecef_to_lla_one=lla,
+    )
 
 
 def _get(home: str) -> Any:
@@ -350,6 +369,25 @@ def _covariance_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
+def _corrector_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_covariance_differs`, for the feedback corrector's prediction, which calls the
+    compiled covariance step: where that one stays in Python, this one must too."""
+    import numpy as np
+
+    rng = np.random.default_rng(25)
+    for trial in range(40):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        a = rng.normal(size=(12, 12)) * 10.0 ** rng.integers(-6, 0, size=(12, 12))
+        p, qc = a @ a.T, np.diag(rng.random(12) * 1e-6)
+        args = (*q.tolist(), *rng.normal(0.0, 0.5, 3).tolist(), 0.05, float(rng.uniform(-1.5, 1.5)))
+        dv = rng.normal(0.0, 0.1, 3).tolist()
+        got, want = compiled(*args, p, qc, *dv), python(*args, p, qc, *dv)
+        if got[0].tobytes() != want[0].tobytes() or got[1:] != want[1:]:
+            return f"operands {trial}"
+    return ""
+
+
 def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., Any]:
     """The compiled kernel, or the Python one for operands it was not compiled for (a matrix that
     is not C-contiguous: einsum may add those in another order too)."""
@@ -378,12 +416,18 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
         ("hil.estimators.ekf15:covariance_step", "hil.estimators.feedback:covariance_step"),
         True,
     ),
+    "_corrector_prediction": (
+        "_corrector_prediction",
+        ("hil.estimators.feedback:_corrector_prediction",),
+        True,
+    ),
     "expm": ("expm", ("hil.estimators.lti:expm",), True),
     "ecef_to_lla_one": ("ecef_to_lla_one", ("hil.nav.earth:_ecef_to_lla_one",), False),
 }
 #: The kernels checked against their Python ones before they are put in place.
 _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "covariance_step": _covariance_differs,
+    "_corrector_prediction": _corrector_differs,
     "expm": _expm_differs,
     "ecef_to_lla_one": _lla_differs,
 }

@@ -2,22 +2,28 @@
 
 from __future__ import annotations
 
+import math
+
 import msgspec
 import numpy as np
 import pytest
 
 from hil.estimators.base import GnssInput, ImuInput
 from hil.estimators.compensation import VS_SCHEDULE, CompensationCore, fixed_filter
+from hil.estimators.ekf15 import covariance_step
 from hil.estimators.lti import complementary2, complementary3
 from hil.estimators.registry import DEFAULT_ESTIMATORS, FEEDBACK_CAPABLE, make_estimator
 from hil.estimators.tuning import params_for
 from hil.fusion.core import FusionConfig
 from hil.messages import FusionSettings
+from hil.nav.earth import OMEGA_IE_RADPS
+from hil.nav.portable import mv
 from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nav.sensor_specs import imu_grade, resolve_imu_params
-from hil.nav.strapdown import strapdown_from_initial, strapdown_step, to_nav_state
+from hil.nav.strapdown import c_nb_floats, strapdown_from_initial, strapdown_step, to_nav_state
 from hil.nav.trajectory import TruthGenerator
 from hil.nodes.fusion import FusionOptions
+from hil.runtime import jit
 from hil.sensors.gnss import GnssEmulatorCore
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
@@ -165,3 +171,41 @@ def test_ekf15_carries_accelerometer_calibration_states_and_reports_attitude_sig
         )  # type: ignore[arg-type]
     sig = ekf.solution().att_sigma_rad
     assert sig is not None and sig.shape == (3,) and np.all(sig > 0)
+
+
+def _corrector_prediction_with_arrays(
+    q: np.ndarray, sum_dv: np.ndarray, dt: float, lat: float, p: np.ndarray, qc: np.ndarray, dv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The corrector's prediction as it was written with arrays (the reference for its bits)."""
+    c_nb = np.array(c_nb_floats(*q.tolist())).reshape(3, 3)
+    f_n = mv(c_nb, sum_dv / dt)
+    w0, w2 = OMEGA_IE_RADPS * math.cos(lat), -OMEGA_IE_RADPS * math.sin(lat)
+    f0, f1, f2 = f_n.tolist()
+    f = np.zeros((12, 12))
+    f[0:3, 3:6] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))
+    f[0:3, 9:12] = c_nb
+    f[3:6, 3:6] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))
+    f[3:6, 6:9] = -c_nb
+    phi, p_new = covariance_step(f, dt, p, qc)
+    return p_new, mv(phi[0:3, 0:3], dv)
+
+
+def test_the_corrector_prediction_on_floats_is_the_array_forms_bits() -> None:
+    """``_corrector_prediction`` (floats, one call, what the kernels compile) against the array
+    expressions it replaced, in Python, on random attitudes, specific forces and covariances."""
+    python_run = jit.python_kernel("_corrector_prediction")  # the reference, whatever was compiled
+    rng = np.random.default_rng(23)
+    for k in range(3000):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        sum_dv = rng.normal(0.0, 0.5, 3) + np.array((0.0, 0.0, -9.81 * 0.05))
+        dt, lat = float(rng.uniform(0.01, 0.1)), float(rng.uniform(-1.5, 1.5))
+        a = rng.normal(size=(12, 12)) * 10.0 ** rng.integers(-6, 0, size=(12, 12))
+        p = a @ a.T
+        qc = np.diag(rng.random(12) * 1e-6)
+        dv = rng.normal(0.0, 0.1, 3)
+        if k % 5 == 0:
+            dv[rng.integers(3)] = -0.0
+        want_p, want_dv = _corrector_prediction_with_arrays(q, sum_dv, dt, lat, p, qc, dv)
+        got_p, *got_dv = python_run(*q.tolist(), *sum_dv.tolist(), dt, lat, p, qc, *dv.tolist())
+        assert got_p.tobytes() == want_p.tobytes() and np.array(got_dv).tobytes() == want_dv.tobytes(), k

@@ -199,6 +199,35 @@ def test_the_compiled_output_predictor_computes_the_python_bits() -> None:
             assert np.array(got).tobytes() == np.array(want).tobytes(), (k, biased)
 
 
+def test_the_compiled_corrector_prediction_computes_the_python_bits() -> None:
+    """The feedback corrector's whole prediction (F, the covariance step, Φ δv), compiled with
+    the compiled covariance step, against Python on random attitudes and covariances."""
+    from hil.estimators import feedback
+
+    assert jit.enable() == "compiled"
+    python_run = jit.python_kernel("_corrector_prediction")
+    assert feedback._corrector_prediction is not python_run
+    rng = np.random.default_rng(24)
+    for k in range(3000):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        a = rng.normal(size=(12, 12)) * 10.0 ** rng.integers(-6, 0, size=(12, 12))
+        p = a @ a.T
+        qc = np.diag(rng.random(12) * 1e-6)
+        args = (
+            *q.tolist(),
+            *rng.normal(0.0, 0.5, 3).tolist(),
+            float(rng.uniform(0.01, 0.1)),
+            float(rng.uniform(-1.5, 1.5)),
+        )
+        dv = rng.normal(0.0, 0.1, 3).tolist()
+        if k % 5 == 0:
+            dv[int(rng.integers(3))] = -0.0
+        got_p, *got = feedback._corrector_prediction(*args, p, qc, *dv)
+        want_p, *want = python_run(*args, p, qc, *dv)
+        assert got_p.tobytes() == want_p.tobytes() and np.array(got).tobytes() == np.array(want).tobytes(), k
+
+
 def _covariance_operands(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``F`` from dense to empty with signed zeros, a covariance ``P`` (some with zero entries)
     and a diagonal ``Q_c``."""
