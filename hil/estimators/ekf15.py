@@ -190,6 +190,83 @@ def _write_error_dynamics(f: F64, c_nb: F64, f_n: F64, lat_rad: float) -> F64:
     return f  # δḃ = w_b: the bias rows are zero
 
 
+def _kron3(x: float, y: float, z: float) -> F64:
+    """:func:`kron_eye3` of ``(x, y, z)`` from floats (``0.0 * w``'s signed zeros too), in a
+    form :mod:`hil.runtime.jit` compiles."""
+    out = np.empty((3, 9))
+    w = (x, y, z)
+    for r in range(3):
+        for b in range(3):
+            for k in range(3):
+                out[r, 3 * b + k] = w[k] if b == r else 0.0 * w[k]
+    return out
+
+
+_Floats14 = tuple[float, ...]  # C_nb (9), the specific force (3), ω_ie N and D
+
+
+def _frame_terms(
+    qw: float, qx: float, qy: float, qz: float, sx: float, sy: float, sz: float, dt: float, lat: float
+) -> _Floats14:  # fmt: skip
+    """What an error model's F takes of the INS at a prediction, on floats: ``C_nb`` row by row,
+    the specific force ``C s / dt`` (NED; ``s`` the body Δv summed over ``dt``) in einsum's order
+    for a 3-vector (:func:`_mv3`'s), and ω_ie's N and D components at latitude ``lat``."""
+    c0, c1, c2, c3, c4, c5, c6, c7, c8 = c_nb_floats(qw, qx, qy, qz)
+    bx, by, bz = sx / dt, sy / dt, sz / dt
+    f0 = (c0 * bx + c2 * bz) + c1 * by + 0.0
+    f1 = (c3 * bx + c5 * bz) + c4 * by + 0.0
+    f2 = (c6 * bx + c8 * bz) + c7 * by + 0.0
+    w0, w2 = OMEGA_IE_RADPS * math.cos(lat), -OMEGA_IE_RADPS * math.sin(lat)  # ω_ie, w1 = 0
+    return c0, c1, c2, c3, c4, c5, c6, c7, c8, f0, f1, f2, w0, w2
+
+
+def _ekf_prediction(
+    f: F64,
+    qw: float, qx: float, qy: float, qz: float,
+    sx: float, sy: float, sz: float,
+    tx: float, ty: float, tz: float,
+    dt: float,
+    lat: float,
+    gyro_cal: bool,
+    accel_cal: bool,
+    i_acal: int,
+    p: F64,
+    qc: F64,
+) -> tuple[F64, float, float, float]:  # fmt: skip
+    """ekf15's covariance prediction over ``dt`` from the INS attitude ``q``, latitude and the
+    body Δv ``s`` and Δθ ``t`` summed over it: F's changing entries written into ``f`` (the
+    template of every state, :meth:`Ekf15._dynamics_template`) as :func:`error_dynamics`,
+    :func:`gyro_cal_augmented` and :func:`accel_cal_augmented` build them, then
+    :func:`covariance_step`; returns ``P`` and the specific force ``C s / dt`` (NED). Its Python
+    form is the reference; :mod:`hil.runtime.jit` compiles it (with the compiled products and
+    covariance step), checked against it when loaded."""
+    c0, c1, c2, c3, c4, c5, c6, c7, c8, f0, f1, f2, w0, w2 = _frame_terms(qw, qx, qy, qz, sx, sy, sz, dt, lat)
+    bx, by, bz = sx / dt, sy / dt, sz / dt
+    c = np.empty((3, 3))
+    cs = ((c0, c1, c2), (c3, c4, c5), (c6, c7, c8))
+    sk = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f_n×] φ + C δb_a
+    om = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×] φ − C δb_g
+    for i in range(3):
+        for j in range(3):
+            c[i, j] = cs[i][j]
+            f[3 + i, 6 + j] = sk[i][j]
+            f[3 + i, 9 + j] = cs[i][j]
+            f[6 + i, 6 + j] = om[i][j]
+            f[6 + i, 12 + j] = -cs[i][j]
+    if gyro_cal:  # φ̇ += −C N(ω̄) δe
+        g = mm(c, _kron3(tx / dt, ty / dt, tz / dt))
+        for i in range(3):
+            for j in range(9):
+                f[6 + i, 15 + j] = -g[i, j]
+    if accel_cal:  # δv̇ += C N(f̄_b) δe_a
+        a = mm(c, _kron3(bx, by, bz))
+        for i in range(3):
+            for j in range(9):
+                f[3 + i, i_acal + j] = a[i, j]
+    _phi, p_new = covariance_step(f, dt, p, qc)
+    return p_new, f0, f1, f2
+
+
 def transition(f: F64, dt_s: float) -> F64:
     """``Φ = I + F Δ + (F Δ)²/2``: at Δ = 10 ms the neglected terms are O((FΔ)³) ~ 1e-9."""
     fd = f * dt_s
@@ -459,28 +536,20 @@ class Ekf15(Estimator):
         if self._pending_n == 0:
             return
         dt = self._pending_dt
-        c9 = c_nb_floats(*self.ins.q)
-        c_nb = np.array(c9).reshape(3, 3)
-        pv = self._pending_dv_b
-        fbx, fby, fbz = pv[0] / dt, pv[1] / dt, pv[2] / dt
-        f_n = _mv3((c9[0:3], c9[3:6], c9[6:9]), fbx, fby, fbz)  # mv(C, Σ Δv / Δ), on floats
+        ins, pv, pt = self.ins, self._pending_dv_b, self._pending_dth_b
+        # F of every state written into the one matrix kept for it, and the covariance step
+        self.p, fn0, fn1, _ = _ekf_prediction(
+            self._f, *ins.q, pv[0], pv[1], pv[2], pt[0], pt[1], pt[2], dt, ins.lat_rad,
+            self._cal, self._acal, self._i_acal, self.p, self._qc,
+        )  # fmt: skip
         s0, s1 = self._sf_sum.tolist()
-        self._sf_sum = np.array((s0 + f_n[0] * dt, s1 + f_n[1] * dt))
-        # F of every state, written into the one matrix kept for it: the blocks that change (the
-        # same entries error_dynamics and the *_augmented functions build; the rest constant)
-        f = _write_error_dynamics(self._f, c_nb, f_n, self.ins.lat_rad)
-        if self._cal:
-            f[6:9, 15:24] = _gyro_cal_block(c_nb, np.array(self._pending_dth_b) / dt)
-        if self._acal:
-            i = self._i_acal
-            f[3:6, i : i + 9] = _accel_cal_block(c_nb, np.array((fbx, fby, fbz)))
+        self._sf_sum = np.array((s0 + fn0 * dt, s1 + fn1 * dt))
         if self._slow_w:
             c, s = math.cos(self._slow_w * dt), math.sin(self._slow_w * dt)
             self.s_hat, self.sd_hat = (
                 c * self.s_hat + s / self._slow_w * self.sd_hat,
                 -s * self._slow_w * self.s_hat + c * self.sd_hat,
             )
-        self._predict_over(f, dt)
         if self.p[8, 8] > _YAW_VAR_MAX:  # beyond a uniform heading's: shrink yaw's row and column
             c = math.sqrt(_YAW_VAR_MAX / float(self.p[8, 8]))
             self.p[8, :] *= c
@@ -489,11 +558,6 @@ class Ekf15(Estimator):
         self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
-
-    def _predict_over(self, f: F64, dt_s: float) -> None:
-        """``P = Φ P Φ' + Q_d`` over ``dt_s`` with error dynamics ``f`` (``Q_d = Q_c Δ``; the error
-        state itself is zero between fixes: closed loop)."""
-        _phi, self.p = covariance_step(f, dt_s, self.p, self._qc)
 
     def _update(self, y: F64, h: F64, r: F64) -> F64:
         """One measurement update of ``P`` for innovation ``y``; returns the error-state increment."""

@@ -47,12 +47,12 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuBlock, ImuInput, InitialState
-from hil.estimators.ekf15 import bias_walk_psd, covariance_step
+from hil.estimators.ekf15 import _frame_terms, bias_walk_psd, covariance_step
 from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
-from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
+from hil.nav.earth import cross, radii_of_curvature
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import LazyNavState, StrapdownState, c_nb_floats, strapdown_from_initial, to_nav_state
+from hil.nav.strapdown import LazyNavState, StrapdownState, strapdown_from_initial, to_nav_state
 from hil.nav.types import F64, NavState
 
 _DEG = math.pi / 180.0
@@ -73,12 +73,7 @@ def _corrector_prediction(
     (:func:`hil.estimators.ekf15._mv3`'s), F with ekf15's entries (signed zeros too), then
     :func:`covariance_step`. Its Python form is the reference; :mod:`hil.runtime.jit` compiles
     it with the compiled covariance step (tests/unit/test_jit.py holds it to Python's bits)."""
-    c0, c1, c2, c3, c4, c5, c6, c7, c8 = c_nb_floats(qw, qx, qy, qz)
-    bx, by, bz = sx / dt, sy / dt, sz / dt
-    f0 = (c0 * bx + c2 * bz) + c1 * by + 0.0
-    f1 = (c3 * bx + c5 * bz) + c4 * by + 0.0
-    f2 = (c6 * bx + c8 * bz) + c7 * by + 0.0
-    w0, w2 = OMEGA_IE_RADPS * math.cos(lat), -OMEGA_IE_RADPS * math.sin(lat)  # ω_ie (N, 0, D)
+    c0, c1, c2, c3, c4, c5, c6, c7, c8, f0, f1, f2, w0, w2 = _frame_terms(qw, qx, qy, qz, sx, sy, sz, dt, lat)
     c = ((c0, c1, c2), (c3, c4, c5), (c6, c7, c8))
     sk = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f×]φ + C δb_a
     om = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×]φ − C δb_g

@@ -14,8 +14,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
 - the covariance prediction of ekf15 and of the feedback INS's corrector
   (:func:`hil.estimators.ekf15.covariance_step`, ``Φ P Φ' + Q``: einsum products in Python) as
   :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders, and the
-  feedback corrector's whole prediction around it (:func:`hil.estimators.feedback._corrector_prediction`,
-  from its own Python source, with the compiled step); checked against
+  feedback corrector's and ekf15's whole predictions around it (F's entries written, then the
+  step: :func:`hil.estimators.feedback._corrector_prediction`,
+  :func:`hil.estimators.ekf15._ekf_prediction`, from their own Python source); checked against
   einsum on random operands here before it is put in place (a numpy built for wider SIMD lanes
   or FMA adds differently: then the Python one stays, said on stderr);
 - the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
@@ -69,8 +70,8 @@ _state: str | None = None
 _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
-#: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``_corrector_prediction``, ``expm``,
-#: ``ecef_to_lla_one``).
+#: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``_corrector_prediction``,
+#: ``_ekf_prediction``, ``expm``, ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -93,12 +94,12 @@ def _sources_digest(numba: Any) -> str:
     numba's cache keys an entry on its own function's file and bytecode only: a kernel that calls
     another (``_step`` calls ``_sq``) would keep the old callee's machine code after an edit of the
     callee alone. The digest goes into each compiled twin's name, so any edit compiles anew."""
-    from hil.estimators import compensation, feedback
+    from hil.estimators import compensation, ekf15, feedback
     from hil.fusion import predictor
     from hil.nav import earth, kernels, strapdown
 
     h = hashlib.sha256(numba.__version__.encode())
-    for mod in (strapdown, kernels, compensation, earth, predictor, feedback, sys.modules[__name__]):
+    for mod in (strapdown, kernels, compensation, earth, predictor, feedback, ekf15, sys.modules[__name__]):
         h.update(Path(str(mod.__file__)).read_bytes())
     return h.hexdigest()[:12]
 
@@ -218,7 +219,7 @@ def _enable(env: Mapping[str, str]) -> str:
 
 def _compile_kernels(numba: Any) -> dict[str, Any]:
     """Every kernel compiled (or loaded from numba's cache), by its ``_compiled`` name."""
-    from hil.estimators import feedback
+    from hil.estimators import ekf15, feedback
     from hil.fusion import predictor
     from hil.nav import kernels, strapdown
 
@@ -282,12 +283,27 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         _mmt=mmt,
     )
     cnb = _compile(numba, strapdown.c_nb_floats, f"UniTuple({f8}, 9)({f8}, {f8}, {f8}, {f8})", d, True)
+    frame = _compile(
+        numba, ekf15._frame_terms, f"UniTuple({f8}, 14)({', '.join([f8] * 9)})", d, True, c_nb_floats=cnb
+    )
     corrector = _compile(
         numba,
         feedback._corrector_prediction,
         f"Tuple(({cmat}, {f8}, {f8}, {f8}))({', '.join([f8] * 9)}, {cmat}, {mat}, {f8}, {f8}, {f8})",
         d,
-        c_nb_floats=cnb,
+        _frame_terms=frame,
+        covariance_step=cov,
+    )
+    kron3 = _compile(numba, ekf15._kron3, f"{cmat}({f8}, {f8}, {f8})", d, True)
+    ekf = _compile(
+        numba,
+        ekf15._ekf_prediction,
+        f"Tuple(({cmat}, {f8}, {f8}, {f8}))({cmat}, {', '.join([f8] * 12)}, boolean, boolean, int64, "
+        f"{cmat}, {mat})",
+        d,
+        _frame_terms=frame,
+        mm=mm,
+        _kron3=kron3,
         covariance_step=cov,
     )
     expm = _compile(numba, kernels.expm, f"{cmat}({cmat})", d, _mm=mm)
@@ -304,6 +320,7 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         _carry=carry,
         covariance_step=cov,
         _corrector_prediction=corrector,
+        _ekf_prediction=ekf,
         expm=expm,
         ecef_to_lla_one=lla,
     )
@@ -388,6 +405,35 @@ def _corrector_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
+def _ekf_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_corrector_differs`, for ekf15's prediction in every state layout (15, with the
+    gyro calibration, with both), on templates built as ekf15 builds them."""
+    import numpy as np
+
+    from hil.estimators.ekf15 import accel_cal_augmented, error_dynamics, gyro_cal_augmented
+
+    rng = np.random.default_rng(26)
+    for trial in range(30):
+        cal, acal = trial % 3 >= 1, trial % 3 == 2
+        f = error_dynamics(np.zeros((3, 3)), np.zeros(3), 0.0)
+        if cal:
+            f = gyro_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
+        if acal:
+            f = accel_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
+        n = f.shape[0]
+        a = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-6, 0, size=(n, n))
+        p, qc = a @ a.T, np.diag(rng.random(n) * 1e-6)
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        args = (*q.tolist(), *rng.normal(0.0, 0.1, 6).tolist(), 0.01, float(rng.uniform(-1.5, 1.5)))
+        f_c, f_p = np.ascontiguousarray(f), np.ascontiguousarray(f)
+        got = compiled(f_c, *args, cal, acal, 24 if cal else 15, p, qc)
+        want = python(f_p, *args, cal, acal, 24 if cal else 15, p, qc)
+        if got[0].tobytes() != want[0].tobytes() or got[1:] != want[1:] or f_c.tobytes() != f_p.tobytes():
+            return f"operands {trial}"
+    return ""
+
+
 def _with_fallback(compiled: Any, python: Callable[..., Any]) -> Callable[..., Any]:
     """The compiled kernel, or the Python one for operands it was not compiled for (a matrix that
     is not C-contiguous: einsum may add those in another order too)."""
@@ -421,6 +467,7 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
         ("hil.estimators.feedback:_corrector_prediction",),
         True,
     ),
+    "_ekf_prediction": ("_ekf_prediction", ("hil.estimators.ekf15:_ekf_prediction",), True),
     "expm": ("expm", ("hil.estimators.lti:expm",), True),
     "ecef_to_lla_one": ("ecef_to_lla_one", ("hil.nav.earth:_ecef_to_lla_one",), False),
 }
@@ -428,6 +475,7 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
 _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "covariance_step": _covariance_differs,
     "_corrector_prediction": _corrector_differs,
+    "_ekf_prediction": _ekf_differs,
     "expm": _expm_differs,
     "ecef_to_lla_one": _lla_differs,
 }

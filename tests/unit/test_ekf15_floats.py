@@ -13,6 +13,7 @@ from hil.estimators.ekf15 import (
     Ekf15,
     _mv3,
     accel_cal_augmented,
+    covariance_step,
     error_dynamics,
     gyro_cal_augmented,
     kron_eye3,
@@ -76,12 +77,11 @@ def test_error_dynamics_has_the_array_constructions_bits_signed_zeros_included()
 
 
 @pytest.mark.parametrize(("cal", "acal", "slow"), list(itertools.product((False, True), repeat=3)))
-def test_the_dynamics_written_in_place_are_the_augmenting_functions_bits(
-    cal: bool, acal: bool, slow: bool
-) -> None:
-    """ekf15 writes its F (every state) into one matrix kept for it: the same bytes, signed
-    zeros included, as ``error_dynamics`` augmented by ``gyro_cal_augmented``,
-    ``accel_cal_augmented`` and ``slow_augmented`` on the same inputs, at every prediction."""
+def test_the_prediction_on_floats_is_the_augmenting_functions_bits(cal: bool, acal: bool, slow: bool) -> None:
+    """ekf15's prediction (``_ekf_prediction``: F written into the one matrix kept for it, then
+    the covariance step) gives the bytes, signed zeros included, of ``error_dynamics`` augmented
+    by ``gyro_cal_augmented``, ``accel_cal_augmented`` and ``slow_augmented`` and the covariance
+    step on the same inputs, at every prediction; the specific force's sum too."""
     init = TruthGenerator(load_scenario("uav_survey")).initial_state()
     est = Ekf15(
         "ekf15",
@@ -90,24 +90,33 @@ def test_the_dynamics_written_in_place_are_the_augmenting_functions_bits(
         accel_cal_sigma=(1e-3, 1e-3) if acal else (0.0, 0.0),
         gnss_slow_sigma_m=2.0 if slow else 0.0,
     )
+    predict = est._propagate_covariance
     checked = []
 
-    def check(f: np.ndarray, dt: float) -> None:
+    def check() -> None:
+        dt = est._pending_dt
         c9 = c_nb_floats(*est.ins.q)
         c_nb = np.array(c9).reshape(3, 3)
         pv = est._pending_dv_b
         f_b = (pv[0] / dt, pv[1] / dt, pv[2] / dt)
-        want = error_dynamics(c_nb, _mv3((c9[0:3], c9[3:6], c9[6:9]), *f_b), est.ins.lat_rad)
+        f_n = _mv3((c9[0:3], c9[3:6], c9[6:9]), *f_b)
+        want = error_dynamics(c_nb, f_n, est.ins.lat_rad)
         if cal:
             want = gyro_cal_augmented(want, c_nb, np.array(est._pending_dth_b) / dt)
         if acal:
             want = accel_cal_augmented(want, c_nb, np.array(f_b))
         if slow:
             want = slow_augmented(want, est._slow_w)
-        assert f.shape == want.shape and f.tobytes() == want.tobytes()
+        _phi, want_p = covariance_step(want, dt, est.p, est._qc)
+        s0, s1 = est._sf_sum.tolist()
+        predict()
+        assert est._f.shape == want.shape and est._f.tobytes() == want.tobytes()
+        if want_p[8, 8] <= math.pi**2 / 3.0:  # no yaw clamp: the covariance step's bytes
+            assert est.p.tobytes() == want_p.tobytes()
+        assert est._sf_sum.tolist() == [s0 + f_n[0] * dt, s1 + f_n[1] * dt]
         checked.append(dt)
 
-    est._predict_over = check  # type: ignore[method-assign]
+    est._propagate_covariance = check  # type: ignore[method-assign]
     rng = np.random.default_rng(8)
     for k in range(200):
         th = rng.normal(0.0, 2e-3, 3)
