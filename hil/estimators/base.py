@@ -59,6 +59,13 @@ class ImuBlock:
         self._inputs: list[ImuInput] | None = None
         self._array: F64 | None = None
 
+    @classmethod
+    def of(cls, imu: ImuInput, ins: NavState | None = None) -> ImuBlock:
+        """One interval as a block: an estimator's ``on_imu`` is its ``on_imu_block`` of one."""
+        block = cls()
+        block.append(imu.stamp_ns, (imu.dt_s, *imu.increments), ins)  # type: ignore[arg-type]
+        return block
+
     def __len__(self) -> int:
         return len(self.stamps_ns)
 

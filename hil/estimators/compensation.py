@@ -451,21 +451,10 @@ class CompensationEstimator(Estimator):
         self.coasts = 0
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
-        if (
-            self.line_coast
-            and (t_c := self.core.overdue_ns(COAST_AFTER_INTERVALS)) is not None
-            and imu.stamp_ns > t_c
-        ):
-            self._coast(t_c)
-        self.core.advance_to(imu.stamp_ns)
-        if self.loop is not None:
-            self.loop.propagate(imu)
-            return
-        self._ins = ins
-        self._ins_stamp_ns = imu.stamp_ns
+        self.on_imu_block(ImuBlock.of(imu, ins))
 
     def on_imu_block(self, block: ImuBlock) -> None:
-        """``on_imu`` of each interval: the filter stepped per interval (its coast can fall due
+        """The block's intervals in order: the filter stepped per interval (its coast can fall due
         between two), the feedback INS in one call for the block (the two share nothing)."""
         core, line_coast, stamps = self.core, self.line_coast, block.stamps_ns
         i, n = 0, len(stamps)

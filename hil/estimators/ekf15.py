@@ -115,7 +115,6 @@ from hil.nav.strapdown import (
     StrapdownState,
     c_nb_floats,
     strapdown_from_initial,
-    strapdown_step_f,
     to_nav_state,
 )
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
@@ -174,20 +173,28 @@ def error_dynamics(c_nb: F64, f_n: F64, lat_rad: float) -> F64:
     """The 15 × 15 ``F`` of the error state (module docstring), at attitude ``c_nb``, specific
     force ``f_n`` (NED) and latitude ``lat_rad``. A plain function so a peer filter (the ekf
     bench's filterpy run) can be stepped with exactly the model this filter uses."""
-    return _write_error_dynamics(_F15.copy(), c_nb, f_n, lat_rad)  # δṗ = δv: in the template
-
-
-def _write_error_dynamics(f: F64, c_nb: F64, f_n: F64, lat_rad: float) -> F64:
-    """:func:`error_dynamics`'s input-dependent blocks written into ``f`` (15 × 15 or the
-    augmented matrix, whose top-left it is), which is returned; the rest of ``f`` is left as is."""
-    # the blocks written as floats: skew's entries, and the sign flips (signed zeros too) of -skew
     w0, w2 = OMEGA_IE_RADPS * math.cos(lat_rad), -OMEGA_IE_RADPS * math.sin(lat_rad)  # ω_ie, w1 = 0
-    f0, f1, f2 = np.asarray(f_n, dtype=float).tolist()
-    f[3:6, 6:9] = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f_n×] φ + C δb_a
-    f[3:6, 9:12] = c_nb
-    f[6:9, 6:9] = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×] φ − C δb_g
-    f[6:9, 12:15] = -c_nb
-    return f  # δḃ = w_b: the bias rows are zero
+    terms = (*np.asarray(c_nb, dtype=float).ravel().tolist(), *np.asarray(f_n, dtype=float).tolist(), w0, w2)
+    return _write_error_blocks(_F15.copy(), 3, 6, 9, 12, terms)  # δṗ = δv: in the template
+
+
+def _write_error_blocks(f: F64, v: int, a: int, ba: int, bg: int, terms: tuple[float, ...]) -> F64:
+    """The error model's input-dependent entries written into ``f`` (returned), for velocity
+    error rows ``v``, attitude error rows/columns ``a`` and the accelerometer and gyro bias
+    columns ``ba``, ``bg`` (ekf15's and the feedback corrector's layouts): ``δv̇ = [f_n×] φ + C
+    δb_a``, ``φ̇ = −[ω_ie×] φ − C δb_g``; ``terms``: :func:`_frame_terms`'s. Skew's entries and
+    the sign flips of −skew (signed zeros too) as floats; the rest of ``f`` is left as it is."""
+    c = ((terms[0], terms[1], terms[2]), (terms[3], terms[4], terms[5]), (terms[6], terms[7], terms[8]))
+    f0, f1, f2, w0, w2 = terms[9], terms[10], terms[11], terms[12], terms[13]
+    sk = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))
+    om = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))
+    for i in range(3):
+        for j in range(3):
+            f[v + i, a + j] = sk[i][j]
+            f[v + i, ba + j] = c[i][j]
+            f[a + i, a + j] = om[i][j]
+            f[a + i, bg + j] = -c[i][j]
+    return f
 
 
 def _kron3(x: float, y: float, z: float) -> F64:
@@ -220,7 +227,7 @@ def _frame_terms(
     return c0, c1, c2, c3, c4, c5, c6, c7, c8, f0, f1, f2, w0, w2
 
 
-def _ekf_prediction(
+def write_dynamics(
     f: F64,
     qw: float, qx: float, qy: float, qz: float,
     sx: float, sy: float, sz: float,
@@ -230,29 +237,21 @@ def _ekf_prediction(
     gyro_cal: bool,
     accel_cal: bool,
     i_acal: int,
-    p: F64,
-    qc: F64,
-) -> tuple[F64, float, float, float]:  # fmt: skip
-    """ekf15's covariance prediction over ``dt`` from the INS attitude ``q``, latitude and the
-    body Δv ``s`` and Δθ ``t`` summed over it: F's changing entries written into ``f`` (the
-    template of every state, :meth:`Ekf15._dynamics_template`) as :func:`error_dynamics`,
-    :func:`gyro_cal_augmented` and :func:`accel_cal_augmented` build them, then
-    :func:`covariance_step`; returns ``P`` and the specific force ``C s / dt`` (NED). Its Python
-    form is the reference; :mod:`hil.runtime.jit` compiles it (with the compiled products and
-    covariance step), checked against it when loaded."""
-    c0, c1, c2, c3, c4, c5, c6, c7, c8, f0, f1, f2, w0, w2 = _frame_terms(qw, qx, qy, qz, sx, sy, sz, dt, lat)
+) -> tuple[float, float, float]:  # fmt: skip
+    """F's changing entries written into ``f`` (the template of every state,
+    :func:`dynamics_template`) from the INS attitude ``q``, latitude and the body Δv ``s`` and Δθ
+    ``t`` summed over ``dt``, as :func:`error_dynamics`, :func:`gyro_cal_augmented` and
+    :func:`accel_cal_augmented` build them; returns the specific force ``C s / dt`` (NED). One
+    call where the blocks, their products and copies cost most of a prediction in Python; its
+    Python form is the reference, :mod:`hil.runtime.jit` compiles it (with the compiled products)
+    and checks it against it when loaded."""
+    terms = _frame_terms(qw, qx, qy, qz, sx, sy, sz, dt, lat)
+    _write_error_blocks(f, 3, 6, 9, 12, terms)
     bx, by, bz = sx / dt, sy / dt, sz / dt
     c = np.empty((3, 3))
-    cs = ((c0, c1, c2), (c3, c4, c5), (c6, c7, c8))
-    sk = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f_n×] φ + C δb_a
-    om = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×] φ − C δb_g
     for i in range(3):
         for j in range(3):
-            c[i, j] = cs[i][j]
-            f[3 + i, 6 + j] = sk[i][j]
-            f[3 + i, 9 + j] = cs[i][j]
-            f[6 + i, 6 + j] = om[i][j]
-            f[6 + i, 12 + j] = -cs[i][j]
+            c[i, j] = terms[3 * i + j]
     if gyro_cal:  # φ̇ += −C N(ω̄) δe
         g = mm(c, _kron3(tx / dt, ty / dt, tz / dt))
         for i in range(3):
@@ -263,8 +262,22 @@ def _ekf_prediction(
         for i in range(3):
             for j in range(9):
                 f[3 + i, i_acal + j] = a[i, j]
-    _phi, p_new = covariance_step(f, dt, p, qc)
-    return p_new, f0, f1, f2
+    return terms[9], terms[10], terms[11]
+
+
+def dynamics_template(gyro_cal: bool, accel_cal: bool, slow_w_radps: float) -> F64:
+    """F of a state layout with its constant entries (δṗ = δv, the slow states' oscillator),
+    built as :func:`error_dynamics` and the ``*_augmented`` functions build them, C-contiguous:
+    what :func:`write_dynamics` writes the rest into, at every prediction."""
+    zero3, zero = np.zeros((3, 3)), np.zeros(3)
+    f = _F15.copy()
+    if gyro_cal:
+        f = gyro_cal_augmented(f, zero3, zero)
+    if accel_cal:
+        f = accel_cal_augmented(f, zero3, zero)
+    if slow_w_radps:
+        f = slow_augmented(f, slow_w_radps)
+    return np.ascontiguousarray(f)
 
 
 def transition(f: F64, dt_s: float) -> F64:
@@ -300,14 +313,9 @@ def gyro_cal_augmented(f: F64, c_nb: F64, w_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    out[6:9, n : n + 9] = _gyro_cal_block(c_nb, w_b)
-    return out
-
-
-def _gyro_cal_block(c_nb: F64, w_b: F64) -> F64:
-    """``−C N(ω)`` (3, 9): how the gyro calibration states drive the attitude error."""
     n_w = kron_eye3(w_b)  # (3, 9): E ω = N(ω) e
-    return -mm(c_nb, n_w)  # type: ignore[no-any-return]
+    out[6:9, n : n + 9] = -mm(c_nb, n_w)
+    return out
 
 
 def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
@@ -316,13 +324,8 @@ def accel_cal_augmented(f: F64, c_nb: F64, f_b: F64) -> F64:
     n = f.shape[0]
     out = np.zeros((n + 9, n + 9))
     out[:n, :n] = f
-    out[3:6, n : n + 9] = _accel_cal_block(c_nb, f_b)
+    out[3:6, n : n + 9] = mm(c_nb, kron_eye3(f_b))
     return out
-
-
-def _accel_cal_block(c_nb: F64, f_b: F64) -> F64:
-    """``C N(f̄_b)`` (3, 9): how the accelerometer calibration states drive the velocity error."""
-    return mm(c_nb, kron_eye3(f_b))  # type: ignore[no-any-return]
 
 
 def bias_walk_psd(sigma: float, corr_s: float, rate_rw: float = 0.0) -> float:
@@ -424,7 +427,7 @@ class Ekf15(Estimator):
         qc = np.zeros((self.n, self.n))
         qc[:15, :15] = self._qc
         self._qc = qc
-        self._f = self._dynamics_template()
+        self._f = dynamics_template(self._cal, self._acal, self._slow_w)
         lever = np.asarray(lever_arm_b_m, dtype=float)
         self._lever: F64 | None = lever if np.any(lever) else None
         self._w_b = np.zeros(3)  # corrected body rate of the last IMU step, rad/s (for the lever arm)
@@ -453,56 +456,14 @@ class Ekf15(Estimator):
         self._heading_held = 0  # GNSS fixes whose heading part was held back
         self._heading_resets = 0
 
-    def _dynamics_template(self) -> F64:
-        """F's constant entries (δṗ = δv, the slow states' oscillator), built as the functions
-        build them; _propagate_covariance writes the rest in place (C-contiguous: the compiled
-        step's)."""
-        f = _F15.copy()
-        if self._cal:
-            f = gyro_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
-        if self._acal:
-            f = accel_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
-        if self._slow_w:
-            f = slow_augmented(f, self._slow_w)
-        return np.ascontiguousarray(f)
-
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
-        # Python floats, elementwise as the arrays did it (3-vectors: numpy's per-call cost is
-        # most of the work); Ê Δθ in einsum's order for a 3-vector (``_mv3``)
-        dt = imu.dt_s
-        bgx, bgy, bgz = self.b_g.tolist()
-        bax, bay, baz = self.b_a.tolist()
-        tx, ty, tz, ux, uy, uz = imu.increments
-        tx, ty, tz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
-        if self._cal:
-            ex, ey, ez = _mv3(self.e_hat.tolist(), tx, ty, tz)
-            tx, ty, tz = tx - ex, ty - ey, tz - ez
-        ux, uy, uz = ux - bax * dt, uy - bay * dt, uz - baz * dt
-        if self._acal:
-            ex, ey, ez = _mv3(self.ea_hat.tolist(), ux, uy, uz)
-            ux, uy, uz = ux - ex, uy - ey, uz - ez
-        self.ins = strapdown_step_f(self.ins, tx, ty, tz, ux, uy, uz, dt)
-        self._pending_dt += dt
-        pv = self._pending_dv_b
-        pv[0] += ux
-        pv[1] += uy
-        pv[2] += uz
-        self._pending_n += 1
-        if self._cal or self._lever is not None:  # only these need the body rate
-            pt = self._pending_dth_b
-            pt[0] += tx
-            pt[1] += ty
-            pt[2] += tz
-            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
-        self._stamp_ns = imu.stamp_ns
-        self._nav_dirty = True
-        if self._pending_n >= self.cov_every:
-            self._propagate_covariance()
+        self.on_imu_block(ImuBlock.of(imu, ins))
 
     def on_imu_block(self, block: ImuBlock) -> None:
-        """``on_imu`` of each of the block's intervals, the runs between two covariance
-        predictions each in one call of the strapdown loop (compiled when the kernels are)."""
+        """The block's intervals in order, the runs between two covariance predictions each in
+        one call of the strapdown loop (compiled when the kernels are); Ê Δθ and Ê_a Δv in
+        einsum's order for a 3-vector (``_mv3``)."""
         if not len(block):
             return
         run, rows = block.strapdown_run()
@@ -537,10 +498,10 @@ class Ekf15(Estimator):
             return
         dt = self._pending_dt
         ins, pv, pt = self.ins, self._pending_dv_b, self._pending_dth_b
-        # F of every state written into the one matrix kept for it, and the covariance step
-        self.p, fn0, fn1, _ = _ekf_prediction(
+        # F of every state, written into the one matrix kept for it
+        fn0, fn1, _ = write_dynamics(
             self._f, *ins.q, pv[0], pv[1], pv[2], pt[0], pt[1], pt[2], dt, ins.lat_rad,
-            self._cal, self._acal, self._i_acal, self.p, self._qc,
+            self._cal, self._acal, self._i_acal,
         )  # fmt: skip
         s0, s1 = self._sf_sum.tolist()
         self._sf_sum = np.array((s0 + fn0 * dt, s1 + fn1 * dt))
@@ -550,6 +511,7 @@ class Ekf15(Estimator):
                 c * self.s_hat + s / self._slow_w * self.sd_hat,
                 -s * self._slow_w * self.s_hat + c * self.sd_hat,
             )
+        self._predict_over(self._f, dt)
         if self.p[8, 8] > _YAW_VAR_MAX:  # beyond a uniform heading's: shrink yaw's row and column
             c = math.sqrt(_YAW_VAR_MAX / float(self.p[8, 8]))
             self.p[8, :] *= c
@@ -558,6 +520,12 @@ class Ekf15(Estimator):
         self._pending_dv_b = [0.0, 0.0, 0.0]
         self._pending_dth_b = [0.0, 0.0, 0.0]
         self._pending_n = 0
+
+    def _predict_over(self, f: F64, dt_s: float) -> None:
+        """``P = Φ P Φ' + Q_d`` over ``dt_s`` with error dynamics ``f`` (``Q_d = Q_c Δ``; the error
+        state itself is zero between fixes: closed loop). The ekf bench's filterpy peer
+        overrides it."""
+        _phi, self.p = covariance_step(f, dt_s, self.p, self._qc)
 
     def _update(self, y: F64, h: F64, r: F64) -> F64:
         """One measurement update of ``P`` for innovation ``y``; returns the error-state increment."""

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuBlock, ImuInput, InitialState
-from hil.estimators.ekf15 import _frame_terms, bias_walk_psd, covariance_step
+from hil.estimators.ekf15 import _frame_terms, _write_error_blocks, bias_walk_psd, covariance_step
 from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
 from hil.nav.earth import cross, radii_of_curvature
@@ -73,17 +73,8 @@ def _corrector_prediction(
     (:func:`hil.estimators.ekf15._mv3`'s), F with ekf15's entries (signed zeros too), then
     :func:`covariance_step`. Its Python form is the reference; :mod:`hil.runtime.jit` compiles
     it with the compiled covariance step (tests/unit/test_jit.py holds it to Python's bits)."""
-    c0, c1, c2, c3, c4, c5, c6, c7, c8, f0, f1, f2, w0, w2 = _frame_terms(qw, qx, qy, qz, sx, sy, sz, dt, lat)
-    c = ((c0, c1, c2), (c3, c4, c5), (c6, c7, c8))
-    sk = ((0.0, -f2, f1), (f2, 0.0, -f0), (-f1, f0, 0.0))  # δv̇ = [f×]φ + C δb_a
-    om = ((-0.0, w2, -0.0), (-w2, -0.0, w0), (0.0, -w0, -0.0))  # φ̇ = −[ω_ie×]φ − C δb_g
-    f = np.zeros((12, 12))
-    for i in range(3):
-        for j in range(3):
-            f[i, 3 + j] = sk[i][j]
-            f[i, 9 + j] = c[i][j]
-            f[3 + i, 3 + j] = om[i][j]
-            f[3 + i, 6 + j] = -c[i][j]
+    # [δv, φ, δb_g, δb_a]: δv̇ = [f×]φ + C δb_a, φ̇ = −[ω_ie×]φ − C δb_g
+    f = _write_error_blocks(np.zeros((12, 12)), 0, 3, 9, 6, _frame_terms(qw, qx, qy, qz, sx, sy, sz, dt, lat))
     phi, p_new = covariance_step(f, dt, p, qc)
     # φ, biases are zero between fixes (closed loop): only δv moves
     d0 = (phi[0, 0] * dv0 + phi[0, 2] * dv2) + phi[0, 1] * dv1 + 0.0
@@ -267,31 +258,11 @@ class ClosedLoopIns:
         self._bias = (*self._bias[:3], *self._b_a.tolist())
 
     def propagate(self, imu: ImuInput) -> None:
-        # Python floats, elementwise as the arrays did it (numpy's per-call cost on 3-vectors
-        # was most of this step's); ``_sd._step``: the module's, which hil.runtime.jit may have
-        # replaced by its compiled twin
-        dt = imu.dt_s
-        bgx, bgy, bgz, bax, bay, baz = self._bias
-        tx, ty, tz, ux, uy, uz = imu.increments
-        tx, ty, tz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
-        ux, uy, uz = ux - bax * dt, uy - bay * dt, uz - baz * dt
-        self._st = _sd._step(self._st, tx, ty, tz, ux, uy, uz, dt)
-        if self._lever is not None:
-            self._w_b = np.array((tx / dt, ty / dt, tz / dt))
-        pv = self._pending_dv_b
-        pv[0] += ux
-        pv[1] += uy
-        pv[2] += uz
-        self._pending_dt += dt
-        self._pending_n += 1
-        if self._pending_n >= self.cov_every:
-            self._predict()
-        self.stamp_ns = imu.stamp_ns
-        self._dirty = True
+        self.propagate_block(ImuBlock.of(imu))
 
     def propagate_block(self, block: ImuBlock) -> None:
-        """``propagate`` of each of the block's intervals, the runs between two covariance
-        predictions each in one call of the strapdown loop (compiled when the kernels are)."""
+        """The block's intervals in order, the runs between two covariance predictions each in
+        one call of the strapdown loop (compiled when the kernels are; ``_sd._corrected_run``)."""
         if not len(block):
             return
         run, rows = block.strapdown_run()

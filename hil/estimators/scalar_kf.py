@@ -98,11 +98,7 @@ class ScalarKfEstimator(Estimator):
         self.loop = None if feedback is None else ClosedLoopIns(init, **feedback)
 
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
-        if self.loop is not None:
-            self.loop.propagate(imu)
-        else:
-            self._ins = ins
-        self._ins_stamp_ns = imu.stamp_ns
+        self.on_imu_block(ImuBlock.of(imu, ins))
 
     def on_imu_block(self, block: ImuBlock) -> None:
         if self.loop is not None:

@@ -479,9 +479,13 @@ class LazyNavState(NavState):
         d["_s"], d["_o"] = s, origin
 
     @cached_property
-    def pos_ned_m(self) -> F64:  # type: ignore[override]
+    def _pos_floats(self) -> tuple[float, float, float]:
         s, o = self._s, self._o
-        return lla_to_ned(s[0], s[1], s[2], o[0], o[1], o[2])
+        return lla_to_ned_floats(s[0], s[1], s[2], o[0], o[1], o[2])
+
+    @cached_property
+    def pos_ned_m(self) -> F64:  # type: ignore[override]
+        return np.array(self._pos_floats)  # lla_to_ned's array: the same values
 
     @cached_property
     def vel_ned_mps(self) -> F64:  # type: ignore[override]
@@ -493,16 +497,6 @@ class LazyNavState(NavState):
 
     def floats(self) -> tuple[list[float], tuple[float, ...], tuple[float, ...]]:
         """Position, velocity and attitude as Python floats (the values of the arrays; the
-        position's without building its array, when nothing read that yet)."""
-        s, d = self._s, self.__dict__
-        pos = d.get("_pos_floats")
-        if pos is None:
-            arr = d.get("pos_ned_m")
-            o = self._o
-            pos = (
-                arr.tolist()
-                if arr is not None
-                else list(lla_to_ned_floats(s[0], s[1], s[2], o[0], o[1], o[2]))
-            )
-            d["_pos_floats"] = pos
-        return list(pos), s[3:6], s[6:10]
+        position without building its array)."""
+        s = self._s
+        return list(self._pos_floats), s[3:6], s[6:10]

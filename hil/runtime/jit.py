@@ -14,9 +14,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
 - the covariance prediction of ekf15 and of the feedback INS's corrector
   (:func:`hil.estimators.ekf15.covariance_step`, ``Φ P Φ' + Q``: einsum products in Python) as
   :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders, and the
-  feedback corrector's and ekf15's whole predictions around it (F's entries written, then the
-  step: :func:`hil.estimators.feedback._corrector_prediction`,
-  :func:`hil.estimators.ekf15._ekf_prediction`, from their own Python source); checked against
+  feedback corrector's whole prediction around it and ekf15's F written in place
+  (:func:`hil.estimators.feedback._corrector_prediction`,
+  :func:`hil.estimators.ekf15.write_dynamics`, from their own Python source); checked against
   einsum on random operands here before it is put in place (a numpy built for wider SIMD lanes
   or FMA adds differently: then the Python one stays, said on stderr);
 - the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
@@ -71,7 +71,7 @@ _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
 #: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``_corrector_prediction``,
-#: ``_ekf_prediction``, ``expm``, ``ecef_to_lla_one``).
+#: ``write_dynamics``, ``expm``, ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -286,25 +286,32 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
     frame = _compile(
         numba, ekf15._frame_terms, f"UniTuple({f8}, 14)({', '.join([f8] * 9)})", d, True, c_nb_floats=cnb
     )
+    blocks = _compile(
+        numba,
+        ekf15._write_error_blocks,
+        f"{cmat}({cmat}, int64, int64, int64, int64, UniTuple({f8}, 14))",
+        d,
+        True,
+    )
     corrector = _compile(
         numba,
         feedback._corrector_prediction,
         f"Tuple(({cmat}, {f8}, {f8}, {f8}))({', '.join([f8] * 9)}, {cmat}, {mat}, {f8}, {f8}, {f8})",
         d,
         _frame_terms=frame,
+        _write_error_blocks=blocks,
         covariance_step=cov,
     )
     kron3 = _compile(numba, ekf15._kron3, f"{cmat}({f8}, {f8}, {f8})", d, True)
     ekf = _compile(
         numba,
-        ekf15._ekf_prediction,
-        f"Tuple(({cmat}, {f8}, {f8}, {f8}))({cmat}, {', '.join([f8] * 12)}, boolean, boolean, int64, "
-        f"{cmat}, {mat})",
+        ekf15.write_dynamics,
+        f"UniTuple({f8}, 3)({cmat}, {', '.join([f8] * 12)}, boolean, boolean, int64)",
         d,
         _frame_terms=frame,
+        _write_error_blocks=blocks,
         mm=mm,
         _kron3=kron3,
-        covariance_step=cov,
     )
     expm = _compile(numba, kernels.expm, f"{cmat}({cmat})", d, _mm=mm)
     lla = _compile(
@@ -320,7 +327,7 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         _carry=carry,
         covariance_step=cov,
         _corrector_prediction=corrector,
-        _ekf_prediction=ekf,
+        write_dynamics=ekf,
         expm=expm,
         ecef_to_lla_one=lla,
     )
@@ -386,6 +393,16 @@ def _covariance_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
+def _prediction_operands(rng: Any, n: int) -> tuple[list[float], Any, Any]:
+    """A unit attitude quaternion, a covariance of ``n`` states over twelve decades and a
+    diagonal process noise: the operands of :func:`_corrector_differs` and :func:`_dynamics_differs`."""
+    import numpy as np
+
+    q = rng.normal(size=4)
+    a = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-6, 0, size=(n, n))
+    return (q / np.linalg.norm(q)).tolist(), a @ a.T, np.diag(rng.random(n) * 1e-6)
+
+
 def _corrector_differs(compiled: Any, python: Callable[..., Any]) -> str:
     """As :func:`_covariance_differs`, for the feedback corrector's prediction, which calls the
     compiled covariance step: where that one stays in Python, this one must too."""
@@ -393,11 +410,8 @@ def _corrector_differs(compiled: Any, python: Callable[..., Any]) -> str:
 
     rng = np.random.default_rng(25)
     for trial in range(40):
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        a = rng.normal(size=(12, 12)) * 10.0 ** rng.integers(-6, 0, size=(12, 12))
-        p, qc = a @ a.T, np.diag(rng.random(12) * 1e-6)
-        args = (*q.tolist(), *rng.normal(0.0, 0.5, 3).tolist(), 0.05, float(rng.uniform(-1.5, 1.5)))
+        q, p, qc = _prediction_operands(rng, 12)
+        args = (*q, *rng.normal(0.0, 0.5, 3).tolist(), 0.05, float(rng.uniform(-1.5, 1.5)))
         dv = rng.normal(0.0, 0.1, 3).tolist()
         got, want = compiled(*args, p, qc, *dv), python(*args, p, qc, *dv)
         if got[0].tobytes() != want[0].tobytes() or got[1:] != want[1:]:
@@ -405,31 +419,23 @@ def _corrector_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
-def _ekf_differs(compiled: Any, python: Callable[..., Any]) -> str:
-    """As :func:`_corrector_differs`, for ekf15's prediction in every state layout (15, with the
-    gyro calibration, with both), on templates built as ekf15 builds them."""
+def _dynamics_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_corrector_differs`, for ekf15's F written in place (its gyro calibration block
+    is a compiled einsum product) in every state layout: 15, with the gyro calibration, with
+    both, on templates built as ekf15 builds them."""
     import numpy as np
 
-    from hil.estimators.ekf15 import accel_cal_augmented, error_dynamics, gyro_cal_augmented
+    from hil.estimators.ekf15 import dynamics_template
 
     rng = np.random.default_rng(26)
     for trial in range(30):
         cal, acal = trial % 3 >= 1, trial % 3 == 2
-        f = error_dynamics(np.zeros((3, 3)), np.zeros(3), 0.0)
-        if cal:
-            f = gyro_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
-        if acal:
-            f = accel_cal_augmented(f, np.zeros((3, 3)), np.zeros(3))
-        n = f.shape[0]
-        a = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-6, 0, size=(n, n))
-        p, qc = a @ a.T, np.diag(rng.random(n) * 1e-6)
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        args = (*q.tolist(), *rng.normal(0.0, 0.1, 6).tolist(), 0.01, float(rng.uniform(-1.5, 1.5)))
-        f_c, f_p = np.ascontiguousarray(f), np.ascontiguousarray(f)
-        got = compiled(f_c, *args, cal, acal, 24 if cal else 15, p, qc)
-        want = python(f_p, *args, cal, acal, 24 if cal else 15, p, qc)
-        if got[0].tobytes() != want[0].tobytes() or got[1:] != want[1:] or f_c.tobytes() != f_p.tobytes():
+        f_c, f_p = dynamics_template(cal, acal, 0.0), dynamics_template(cal, acal, 0.0)
+        q, _p, _qc = _prediction_operands(rng, 1)
+        args = (*q, *rng.normal(0.0, 0.1, 6).tolist(), 0.01, float(rng.uniform(-1.5, 1.5)))
+        got = compiled(f_c, *args, cal, acal, 24 if cal else 15)
+        want = python(f_p, *args, cal, acal, 24 if cal else 15)
+        if got != want or f_c.tobytes() != f_p.tobytes():
             return f"operands {trial}"
     return ""
 
@@ -467,7 +473,7 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
         ("hil.estimators.feedback:_corrector_prediction",),
         True,
     ),
-    "_ekf_prediction": ("_ekf_prediction", ("hil.estimators.ekf15:_ekf_prediction",), True),
+    "write_dynamics": ("write_dynamics", ("hil.estimators.ekf15:write_dynamics",), True),
     "expm": ("expm", ("hil.estimators.lti:expm",), True),
     "ecef_to_lla_one": ("ecef_to_lla_one", ("hil.nav.earth:_ecef_to_lla_one",), False),
 }
@@ -475,7 +481,7 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
 _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "covariance_step": _covariance_differs,
     "_corrector_prediction": _corrector_differs,
-    "_ekf_prediction": _ekf_differs,
+    "write_dynamics": _dynamics_differs,
     "expm": _expm_differs,
     "ecef_to_lla_one": _lla_differs,
 }

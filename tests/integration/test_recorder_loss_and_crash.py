@@ -656,11 +656,14 @@ def test_sigusr1_prints_every_threads_stack_and_the_service_runs_on(hub: Hub, tm
     """``kill -USR1`` of a service: the stack of each of its Python threads on stderr, and it goes
     on (what a test or a user sees of a service that does not stop; ``communicate_or_dump``)."""
     proc = start_recorder(hub, str(tmp_path / "usr1.mcap"))
-    proc.send_signal(signal.SIGUSR1)
-    time.sleep(1.0)
-    assert proc.poll() is None  # still running
-    proc.send_signal(signal.SIGTERM)
-    out = communicate_or_dump(proc, 60).decode(errors="replace")
+    try:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        assert proc.poll() is None  # still running
+        proc.send_signal(signal.SIGTERM)
+        out = communicate_or_dump(proc, 60).decode(errors="replace")
+    finally:
+        _stop(proc)
     assert proc.returncode == 0, out[-2000:]
     assert "Current thread" in out or "Thread 0x" in out, out[-2000:]
     assert "run_loop" in out and "_write_loop" in out, out[-3000:]  # the main thread and the writer

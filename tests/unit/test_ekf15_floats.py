@@ -78,7 +78,7 @@ def test_error_dynamics_has_the_array_constructions_bits_signed_zeros_included()
 
 @pytest.mark.parametrize(("cal", "acal", "slow"), list(itertools.product((False, True), repeat=3)))
 def test_the_prediction_on_floats_is_the_augmenting_functions_bits(cal: bool, acal: bool, slow: bool) -> None:
-    """ekf15's prediction (``_ekf_prediction``: F written into the one matrix kept for it, then
+    """ekf15's prediction (``write_dynamics``: F written into the one matrix kept for it, then
     the covariance step) gives the bytes, signed zeros included, of ``error_dynamics`` augmented
     by ``gyro_cal_augmented``, ``accel_cal_augmented`` and ``slow_augmented`` and the covariance
     step on the same inputs, at every prediction; the specific force's sum too."""

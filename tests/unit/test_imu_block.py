@@ -1,5 +1,8 @@
 """Estimators stepped a block of IMU intervals at a time (``on_imu_block``, what the fusion core
-does between two reads of them) end where one ``on_imu`` per interval ends, bit for bit."""
+does between two reads of them) end where one ``on_imu`` per interval (a block of one) ends, bit
+for bit: the runs split at the covariance predictions, coasts and stage switches wherever a block
+boundary falls. The float arithmetic itself is held to the recordings made before blocks
+existed by the golden replay (tests/replay) and to Python's by tests/unit/test_jit.py."""
 
 from __future__ import annotations
 

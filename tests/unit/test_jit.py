@@ -209,13 +209,9 @@ def test_the_compiled_corrector_prediction_computes_the_python_bits() -> None:
     assert feedback._corrector_prediction is not python_run
     rng = np.random.default_rng(24)
     for k in range(3000):
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        a = rng.normal(size=(12, 12)) * 10.0 ** rng.integers(-6, 0, size=(12, 12))
-        p = a @ a.T
-        qc = np.diag(rng.random(12) * 1e-6)
+        q, p, qc = jit._prediction_operands(rng, 12)  # what jit's own check draws
         args = (
-            *q.tolist(),
+            *q,
             *rng.normal(0.0, 0.5, 3).tolist(),
             float(rng.uniform(0.01, 0.1)),
             float(rng.uniform(-1.5, 1.5)),
@@ -229,44 +225,33 @@ def test_the_compiled_corrector_prediction_computes_the_python_bits() -> None:
 
 
 @pytest.mark.parametrize(("cal", "acal"), [(False, False), (True, False), (True, True)])
-def test_the_compiled_ekf15_prediction_computes_the_python_bits(cal: bool, acal: bool) -> None:
-    """ekf15's whole prediction (F written in place, the covariance step), compiled, against
-    Python on random attitudes, increments and covariances of each state layout: P, the
-    specific force and the F left in the template, byte for byte."""
+def test_the_compiled_ekf15_dynamics_compute_the_python_bits(cal: bool, acal: bool) -> None:
+    """ekf15's F written in place (its frame terms, the calibration blocks' einsum products),
+    compiled, against Python on random attitudes and increments of each state layout: the F
+    left in the template and the specific force, byte for byte."""
     from hil.estimators import ekf15
 
     assert jit.enable() == "compiled"
-    python_run = jit.python_kernel("_ekf_prediction")
-    assert ekf15._ekf_prediction is not python_run
-    est = ekf15.Ekf15(
-        "ekf15",
-        _initial(),
-        gyro_cal_sigma=(1e-3, 1e-3) if cal else (0.0, 0.0),
-        accel_cal_sigma=(1e-3, 1e-3) if acal else (0.0, 0.0),
-    )
+    python_run = jit.python_kernel("write_dynamics")
+    assert ekf15.write_dynamics is not python_run
     rng = np.random.default_rng(27)
-    for k in range(1000):
-        n = est.n
-        a = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-6, 0, size=(n, n))
-        p, qc = a @ a.T, np.diag(rng.random(n) * 1e-6)
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
+    for k in range(2000):
+        q, _p, _qc = jit._prediction_operands(rng, 1)
         incr = rng.normal(0.0, 0.1, 6)
         if k % 7 == 0:
             incr[rng.integers(6)] = -0.0
-        args = (*q.tolist(), *incr.tolist(), 0.01, float(rng.uniform(-1.5, 1.5)), cal, acal, est._i_acal)
-        f_c, f_p = est._dynamics_template(), est._dynamics_template()
-        got_p, *got = ekf15._ekf_prediction(f_c, *args, p, qc)
-        want_p, *want = python_run(f_p, *args, p, qc)
-        assert got_p.tobytes() == want_p.tobytes() and f_c.tobytes() == f_p.tobytes(), k
-        assert np.array(got).tobytes() == np.array(want).tobytes(), k
-
-
-def _initial() -> object:
-    from hil.nav.scenario import load_scenario
-    from hil.nav.trajectory import TruthGenerator
-
-    return TruthGenerator(load_scenario("uav_survey")).initial_state()
+        args = (
+            *q,
+            *incr.tolist(),
+            0.01,
+            float(rng.uniform(-1.5, 1.5)),
+            cal,
+            acal,
+            24 if cal else 15,
+        )
+        f_c, f_p = ekf15.dynamics_template(cal, acal, 0.0), ekf15.dynamics_template(cal, acal, 0.0)
+        got, want = ekf15.write_dynamics(f_c, *args), python_run(f_p, *args)
+        assert f_c.tobytes() == f_p.tobytes() and np.array(got).tobytes() == np.array(want).tobytes(), k
 
 
 def _covariance_operands(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
