@@ -945,8 +945,9 @@ def _add_rerun_parser(sub: Any) -> None:
         type=int,
         choices=(1, 2),
         default=None,
-        help="fusion workers: 2 share the estimators, each running the GNSS gate's reference too "
-        "(default: 2 on 3+ CPUs for 5+ estimators, else 1; the same bits)",
+        help="fusion workers: 2 share the estimators, the first running the GNSS gate's reference "
+        "and handing its verdicts to the second (default: 2 on 3+ CPUs for 4+ estimators, else 1; "
+        "the same bits)",
     )
     rr.set_defaults(func=cmd_rerun)
 

@@ -339,6 +339,11 @@ class FusionCore:
         if self.receiver is not None and (cfg.gnss_gate_chi2 > 0 or cfg.gnss_sigma_floor):
             self.gate = GnssGate(cfg.gate_settings(), self.receiver)
         self._gated: list[str] = []
+        # a split ``hil rerun`` (hil.record.rerun.split_estimators): the core that runs the gate's
+        # reference keeps its verdicts by input (``gate_verdicts``, a dict), the core without it
+        # takes them (``gate_relay``) in place of its own reference-less ones
+        self.gate_verdicts: dict[str, bool | None] | None = None
+        self.gate_relay: dict[str, bool | None] | None = None
         self._last_imu_ns = self.init.stamp_ns
         # the stamp of each GNSS publisher's last fix taken in (the rate rule)
         self._gnss_min_gap_ns = 0
@@ -752,7 +757,14 @@ class FusionCore:
                 return None
 
         n_transitions = len(gate.transitions)
-        allowed = gate.verdicts(floored, names, solution, self._last_imu_ns, source)
+        relay, kept = self.gate_relay, self.gate_verdicts
+        key = "" if relay is None and kept is None else input_id(msg, source)
+        # none relayed for this fix: the reference core had no estimator left to take it, so
+        # the reference had failed, and each decides on its own (as it did there)
+        relayed = None if relay is None else (relay.pop(key, None),)
+        allowed = gate.verdicts(floored, names, solution, self._last_imu_ns, source, relayed)
+        if kept is not None:
+            kept[key] = gate.reference_ok
         for t in gate.transitions[n_transitions:]:
             self._inc(f"gnss_gate.{t.kind.removeprefix('gnss_integrity_')}")
         refused = [n for n in names if not allowed.get(n, True)]

@@ -131,6 +131,7 @@ class GnssGate:
         self.model = model
         self.tracks: dict[str, GateTrack] = {}
         self.decided_by: dict[str, str] = {}  # estimator -> the gate that decided its last fix
+        self.reference_ok: bool | None = None  # the reference's verdict on the last fix, for all
         self.transitions: list[Transition] = []
 
     @property
@@ -155,16 +156,30 @@ class GnssGate:
         solution: Callable[[str], NavState | None],
         imu_stamp_ns: int,
         publisher: str = "",
+        relayed: tuple[bool | None] | None = None,
     ) -> dict[str, bool]:
         """Which of the estimators ``names`` take ``gnss`` (already floored); ``solution(name)``
         is an estimator's solution at the last IMU stamp (None: it has none, it failed);
-        ``publisher`` who sent it ("" offline: one receiver)."""
+        ``publisher`` who sent it ("" offline: one receiver).
+
+        ``reference_ok`` says afterwards what the reference decided for all (None: it did not,
+        each decided on its own). ``relayed``: that verdict of another core that runs the
+        reference on the same inputs (a split ``hil rerun``): ``(ok,)`` decides for all as the
+        reference would have, ``(None,)`` lets each decide on its own, as there."""
         ref = self.settings.reference
-        ref_sol = solution(ref) if ref in names else None
-        if ref_sol is not None and ref_sol.pos_sigma_m is not None and ref_sol.vel_sigma_mps is not None:
-            ok = self._decide(self._track(ref), gnss, ref_sol, imu_stamp_ns, own=False, publisher=publisher)
-            self.decided_by.update((n, ref) for n in names)
-            return {n: ok for n in names}
+        if relayed is not None:
+            ok_all = self.reference_ok = relayed[0]
+            if ok_all is not None:
+                self.decided_by.update((n, ref) for n in names)
+                return {n: ok_all for n in names}
+        else:
+            sol = solution(ref) if ref in names else None
+            self.reference_ok = None
+            if sol is not None and sol.pos_sigma_m is not None and sol.vel_sigma_mps is not None:
+                ok = self._decide(self._track(ref), gnss, sol, imu_stamp_ns, own=False, publisher=publisher)
+                self.decided_by.update((n, ref) for n in names)
+                self.reference_ok = ok
+                return {n: ok for n in names}
         out: dict[str, bool] = {}
         for n in names:
             sol = solution(n)

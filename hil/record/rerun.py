@@ -126,15 +126,15 @@ RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fra
 # inputs a worker recomputes per message (~10 s of a 400 Hz IMU): while it runs them, this
 # process reads, decodes and orders the next ones and compares the last ones' solutions
 REPLAY_BATCH = 4096
-# two workers share the estimators when each gets at least this many besides the gate's reference,
-# by default on this many CPUs: the shares both run the core's common part and the gate's
-# reference, so on two CPUs (three busy processes) the rerun used 1.45x the CPU for 0.92x the
-# wall (uav_survey 120 s, four alternating pairs against one worker, 2026-12-04)
+# two workers share the estimators when there are at least twice this many, by default on this
+# many CPUs (see ``split_estimators``)
 SPLIT_MIN_EACH = 2
 SPLIT_MIN_CPUS = 3
-# a scalar Kalman filter's step costs about half a compensation filter's or a feedback INS's
-# (py-spy of ``hil rerun --one-process``, uav_survey): the shares are balanced by these weights
-_LIGHT_ESTIMATORS = ("kfvel",)
+# an estimator's share of the work per IMU sample, to balance the shares: in-process reruns of
+# 40 s of uav_survey with one estimator each, less the free INS alone (2026-12-05): ekf15
+# 0.35-0.47 s, a compensation filter with its feedback INS 0.28-0.38 s, kfvel 0.19-0.27 s
+_WEIGHTS = {"ekf15": 4, "kfvel": 2}
+_WEIGHT = 3
 
 
 def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
@@ -143,26 +143,25 @@ def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...
 
     Each estimator's state depends on the inputs and on the GNSS gate's verdicts only, and a
     verdict depends on the gate's reference estimator (whose prediction decides for all) or, when
-    it has none, on each estimator's own: so the reference runs in both shares, and each share
-    computes every one of its estimators exactly as one core does. Only with the output predictor
-    (one solution per estimator per output, in the configuration's order; the merge relies on
-    it). None: nothing worth sharing."""
-    if not cfg.output_predictor:
+    it has none, on each estimator's own. So the reference runs in the first share only, which
+    keeps its verdicts; the second takes them (``hil.runners.sim_worker.replay_split``) one
+    batch behind, and each share computes every one of its estimators exactly as one core does.
+    Only with the output predictor (one solution per estimator per output, in the
+    configuration's order; the merge relies on it). None: nothing worth sharing."""
+    if not cfg.output_predictor or len(cfg.estimators) < 2 * SPLIT_MIN_EACH:
         return None
-    ref = cfg.gnss_gate_reference
-    shared = ref if ref and ref in cfg.estimators else ""
-    rest = [e for e in cfg.estimators if e != shared]
-    if len(rest) < 2 * SPLIT_MIN_EACH:
-        return None
-    shares: tuple[list[str], list[str]] = ([], [])
-    load = [1, 0]  # the first share also publishes the free INS's solutions
-    for e in sorted(rest, key=lambda e: e in _LIGHT_ESTIMATORS):  # heavier first, else config order
-        i = 0 if load[0] <= load[1] else 1
+    ref = cfg.gnss_gate_reference if cfg.gnss_gate_reference in cfg.estimators else ""
+    shares: tuple[list[str], list[str]] = ([ref] if ref else [], [])
+    load = [1 + (_WEIGHTS.get(ref, _WEIGHT) if ref else 0), 0]  # the first publishes the free INS too
+    for e in sorted((e for e in cfg.estimators if e != ref), key=lambda e: -_WEIGHTS.get(e, _WEIGHT)):
+        i = 0 if load[0] < load[1] else 1
         shares[i].append(e)
-        load[i] += 1 if e in _LIGHT_ESTIMATORS else 2
+        load[i] += _WEIGHTS.get(e, _WEIGHT)
+    if len(shares[1]) < SPLIT_MIN_EACH:
+        return None
     order = {name: i for i, name in enumerate(cfg.estimators)}
-    a, b = ([*share, shared] if shared else share for share in shares)
-    return tuple(sorted(a, key=order.__getitem__)), tuple(sorted(b, key=order.__getitem__))
+    a, b = (tuple(sorted(share, key=order.__getitem__)) for share in shares)
+    return a, b
 
 
 @dataclass
@@ -203,6 +202,8 @@ class _FusionRerun:
     rank: dict[str, int] = field(default_factory=dict)
     batch: list[tuple[Measurement, str, bool]] = field(default_factory=list)  # for the worker
     in_flight: list[tuple[Measurement, str, bool]] | None = None  # the batch the worker runs
+    # split: the batch the second worker runs, with the first's solutions of it
+    in_flight_b: tuple[list[tuple[Measurement, str, bool]], list[list[Replayed]]] | None = None
 
     def __post_init__(self) -> None:
         self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns, _nav_current_form)
@@ -252,7 +253,7 @@ class _FusionRerun:
         from dataclasses import replace
 
         a, b = shares
-        self.shares = frozenset({FREE_INS, *a}), frozenset(b) - set(a)
+        self.shares = frozenset({FREE_INS, *a}), frozenset(b)
         self.rank = {name: i for i, name in enumerate((FREE_INS, *cfg.estimators))}
         self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=jit.enable)
         self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=jit.enable)
@@ -339,34 +340,51 @@ class _FusionRerun:
     def _take_in_flight(self) -> None:
         if self.in_flight is not None:
             assert self.remote is not None
-            replayed = self.remote.replayed()
-            if self.remote2 is not None:  # each input's solutions in one core's order
-                rank = self.rank.__getitem__
-                replayed = [
-                    sorted(a + b, key=lambda sol: rank(sol[0]))
-                    for a, b in zip(replayed, self.remote2.replayed(), strict=True)
-                ]
-            for (msg, _source, _predicted), sols in zip(self.in_flight, replayed, strict=True):
+            for (msg, _source, _predicted), sols in zip(self.in_flight, self.remote.replayed(), strict=True):
                 self._compare(msg, sols)
             self.in_flight = None
 
     def _send_batch(self) -> None:
-        """The batch to the worker(s), once done with the one before (compared meanwhile)."""
+        """The batch to the worker, once done with the one before (compared meanwhile)."""
         assert self.remote is not None
+        if self.remote2 is not None:
+            self._send_split()
+            return
         self._take_in_flight()
         if self.batch:
-            if self.remote2 is not None and self.shares is not None:
-                self.remote.replay(self.batch, self.keep_outputs, self.shares[0])
-                self.remote2.replay(self.batch, self.keep_outputs, self.shares[1])
-            else:
-                self.remote.replay(self.batch, self.keep_outputs)
+            self.remote.replay(self.batch, self.keep_outputs)
+            self.in_flight, self.batch = self.batch, []
+
+    def _send_split(self) -> None:
+        """Two workers: the first (with the gate's reference) one batch ahead of the second, which
+        takes that batch with the first's gate verdicts on it. Both replies are read before either
+        worker is sent more (a worker blocked writing a reply reads nothing): the first runs batch
+        N while the second runs N - 1 and this process reads N + 1 and compares N - 2."""
+        a, b, shares = self.remote, self.remote2, self.shares
+        assert a is not None and b is not None and shares is not None
+        done_a = None
+        if self.in_flight is not None:
+            done_a = (self.in_flight, *a.replayed_split())
+            self.in_flight = None
+        if self.in_flight_b is not None:
+            batch, sols_a = self.in_flight_b
+            rank = self.rank.__getitem__
+            for (msg, _source, _predicted), x, y in zip(batch, sols_a, b.replayed(), strict=True):
+                self._compare(msg, sorted(x + y, key=lambda sol: rank(sol[0])))  # one core's order
+            self.in_flight_b = None
+        if done_a is not None:
+            batch, sols_a, verdicts = done_a
+            b.replay(batch, self.keep_outputs, shares[1], relay=verdicts or {})
+            self.in_flight_b = (batch, sols_a)
+        if self.batch:
+            a.replay(self.batch, self.keep_outputs, shares[0], verdicts=True)
             self.in_flight, self.batch = self.batch, []
 
     def drain(self) -> None:
-        """Every input handed to the worker recomputed and compared."""
+        """Every input handed to the worker(s) recomputed and compared."""
         if self.remote is not None:
-            self._send_batch()
-            self._take_in_flight()
+            while self.batch or self.in_flight is not None or self.in_flight_b is not None:
+                self._send_batch()
 
     def close(self) -> None:
         for remote in (self.remote, self.remote2):

@@ -29,7 +29,15 @@ from typing import Any
 from hil.messages import encode
 from hil.nodes.base import Node, Out
 
-__all__ = ["WORKER_MIN_ESTIMATORS", "RemoteNode", "Replayed", "drive", "worker_pays", "worker_possible"]
+__all__ = [
+    "WORKER_MIN_ESTIMATORS",
+    "RemoteNode",
+    "Replayed",
+    "drive",
+    "replay_split",
+    "worker_pays",
+    "worker_possible",
+]
 
 # a worker for a fusion of at least this many estimators (``hil sim``, ``hil rerun``): with one or
 # two the pickling to and from the worker cost more than the second core gave (static, kfvel:
@@ -138,12 +146,18 @@ class RemoteNode:
         self._send(("finish", now, t_end_ns, t_ns))
 
     def replay(
-        self, inputs: list[tuple[Any, str, bool]], keep: bool, only: frozenset[str] | None = None
+        self,
+        inputs: list[tuple[Any, str, bool]],
+        keep: bool,
+        only: frozenset[str] | None = None,
+        relay: dict[str, bool | None] | None = None,
+        verdicts: bool = False,
     ) -> None:
         """``hil rerun``: these inputs (message, publisher, predicted) through the node's
         ``replay`` in this order; ``replayed`` takes their solutions (``only``: those of these
-        estimators)."""
-        self._send(("replay", inputs, keep, only))
+        estimators). ``relay`` and ``verdicts``: the GNSS gate's verdicts taken from, or kept
+        for, the other core of a split rerun (:func:`replay_split`)."""
+        self._send(("replay", inputs, keep, only, relay, verdicts))
 
     def _reply(self) -> tuple[Any, ...]:
         try:
@@ -162,8 +176,12 @@ class RemoteNode:
 
     def replayed(self) -> list[list[Replayed]]:
         """The solutions of the oldest ``replay`` sent, one list per input, encoded there."""
-        _ok, out = self._reply()
-        return out
+        return self.replayed_split()[0]
+
+    def replayed_split(self) -> tuple[list[list[Replayed]], dict[str, bool | None] | None]:
+        """``replayed``, and the gate's verdicts kept meanwhile (asked for with ``verdicts``)."""
+        _ok, out, verdicts = self._reply()
+        return out, verdicts
 
     def counters(self) -> dict[str, int]:
         """The node's counters after the last window whose result was taken."""
@@ -195,7 +213,7 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
         publish = _collector(published, prepare)
         try:
             if req[0] == "replay":
-                reply: tuple[Any, ...] = ("ok", replay_encoded(node, req[1], req[2], req[3]))
+                reply: tuple[Any, ...] = ("ok", *replay_split(node, *req[1:]))
             else:
                 busy = drive(node, req[1], req[2], publish)
                 if req[0] == "finish":
@@ -207,6 +225,29 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
         wfile.flush()
         if reply[0] == "error":
             return
+
+
+def replay_split(
+    node: Any,
+    inputs: list[tuple[Any, str, bool]],
+    keep: bool,
+    only: frozenset[str] | None = None,
+    relay: dict[str, bool | None] | None = None,
+    verdicts: bool = False,
+) -> tuple[list[list[Replayed]], dict[str, bool | None] | None]:
+    """:func:`replay_encoded` as one core of a split ``hil rerun`` (``split_estimators``): the
+    core that runs the GNSS gate's reference keeps its verdicts on these inputs' fixes
+    (``verdicts``) and hands them back; the core without it takes them (``relay``, every batch's
+    kept until its fix comes: both cores release a fix at the same input, so in the same batch)."""
+    core = node.core
+    if relay is not None:
+        if core.gate_relay is None:
+            core.gate_relay = {}
+        core.gate_relay.update(relay)
+    core.gate_verdicts = {} if verdicts else None
+    out = replay_encoded(node, inputs, keep, only)
+    kept, core.gate_verdicts = core.gate_verdicts, None
+    return out, kept
 
 
 def replay_encoded(

@@ -169,9 +169,9 @@ def _batches_seen(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     sizes: list[int] = []
     send = RemoteNode.replay
 
-    def replay(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None) -> None:
+    def replay(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None, **relay: Any) -> None:
         sizes.append(len(inputs))
-        send(self, inputs, keep, only)
+        send(self, inputs, keep, only, **relay)
 
     monkeypatch.setattr(RemoteNode, "replay", replay)
     monkeypatch.setattr(rerun_module, "REPLAY_BATCH", 100)  # the golden's 4 s: several batches
@@ -214,9 +214,11 @@ def test_the_worker_names_the_same_first_difference(tmp_path: Path, monkeypatch:
 def test_a_worker_that_dies_fails_the_rerun_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
     send = RemoteNode.replay
 
-    def replay_then_die(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None) -> None:
+    def replay_then_die(
+        self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None, **relay: Any
+    ) -> None:
         os.kill(self.pid, signal.SIGKILL)
-        send(self, inputs, keep, only)
+        send(self, inputs, keep, only, **relay)
 
     monkeypatch.setattr(RemoteNode, "replay", replay_then_die)
     with pytest.raises(WorkerError, match="worker process died"):
@@ -228,17 +230,19 @@ def test_a_worker_that_dies_fails_the_rerun_and_says_so(monkeypatch: pytest.Monk
 def test_two_workers_sharing_the_estimators_recompute_what_one_process_does(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Each worker runs the whole core with its share of the estimators and the GNSS gate's
-    reference (whose verdicts decide for all): merged into one core's order, the same solutions,
-    the same count, every one compared."""
+    """Each worker runs the whole core with its share of the estimators, the first with the GNSS
+    gate's reference (whose verdicts decide for all), the second taking its verdicts one batch
+    later: merged into one core's order, the same solutions, the same count, every one compared."""
     records = read_session(GOLDEN).records
     alone = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=False)
     shares: list[Any] = []
+    relays: list[Any] = []
     send = RemoteNode.replay
 
-    def replay(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None) -> None:
+    def replay(self: RemoteNode, inputs: list[Any], keep: bool, only: Any = None, **relay: Any) -> None:
         shares.append(only)
-        send(self, inputs, keep, only)
+        relays.append(relay)
+        send(self, inputs, keep, only, **relay)
 
     monkeypatch.setattr(RemoteNode, "replay", replay)
     monkeypatch.setattr(rerun_module, "REPLAY_BATCH", 100)
@@ -249,12 +253,18 @@ def test_two_workers_sharing_the_estimators_recompute_what_one_process_does(
         alone.n_recomputed,
         alone.inputs_used,
     )
-    a, b = shares[0], shares[1]
-    assert len(shares) > 6 and set(shares[::2]) == {a} and set(shares[1::2]) == {b}
+    a = shares[0]
+    b = next(s for s in shares if s != a)
+    assert len(shares) > 6 and set(shares) == {a, b} and shares.count(a) == shares.count(b)
     assert a | b == {"ins", "comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15"} and not a & b
+    assert "ekf15" in a  # the reference, in one share only
+    # the first keeps the gate's verdicts on each batch, the second takes them with that batch
+    assert all(r == {"verdicts": True} for o, r in zip(shares, relays, strict=True) if o == a)
+    to_b = [r["relay"] for o, r in zip(shares, relays, strict=True) if o == b]
+    assert all(isinstance(v, dict) for v in to_b) and sum(len(v) for v in to_b) > 0
 
 
-def test_the_shares_each_hold_the_gate_reference_and_split_the_rest() -> None:
+def test_the_first_share_holds_the_gate_reference_and_the_rest_is_balanced() -> None:
     from dataclasses import replace
 
     from hil.fusion.core import FusionConfig
@@ -262,8 +272,9 @@ def test_the_shares_each_hold_the_gate_reference_and_split_the_rest() -> None:
 
     cfg = FusionConfig(estimators=("comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15"))
     a, b = split_estimators(cfg) or ((), ())
-    assert "ekf15" in a and "ekf15" in b
-    assert sorted({*a, *b}) == sorted(cfg.estimators) and set(a) & set(b) == {"ekf15"}
+    assert "ekf15" in a and "ekf15" not in b
+    assert sorted({*a, *b}) == sorted(cfg.estimators) and not set(a) & set(b)
+    assert (len(a), len(b)) == (3, 3) and "kfvel" in a  # ekf15 4 + kfvel 2 + one of 3, against 3 x 3
     order = list(cfg.estimators)
     assert [order.index(e) for e in a] == sorted(order.index(e) for e in a)  # the configuration's order
     assert [order.index(e) for e in b] == sorted(order.index(e) for e in b)
@@ -272,6 +283,8 @@ def test_the_shares_each_hold_the_gate_reference_and_split_the_rest() -> None:
     assert sorted({*a, *b}) == ["cf3", "comp1", "comp3f", "compvs"] and not set(a) & set(b)
     # too few to share, or the horizon's outputs (not one solution per estimator per output)
     assert split_estimators(replace(cfg, estimators=("comp1", "cf3", "ekf15"))) is None
+    four = split_estimators(replace(cfg, estimators=("ekf15", "comp1", "cf3", "compvs")))
+    assert four == (("ekf15", "compvs"), ("comp1", "cf3"))
     assert split_estimators(replace(cfg, output_predictor=False)) is None
 
 
