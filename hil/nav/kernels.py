@@ -186,6 +186,60 @@ def _mmt(a: F64, b: F64) -> F64:
     return out
 
 
+def _inv3(a: F64) -> F64:
+    """:func:`hil.nav.portable.inv` of a 3 x 3: the adjugate over the determinant, each entry
+    divided as numpy divides an array by a float; a zero determinant raises as there."""
+    p, q, r = a[0, 0], a[0, 1], a[0, 2]
+    s, t, u = a[1, 0], a[1, 1], a[1, 2]
+    v, w, x = a[2, 0], a[2, 1], a[2, 2]
+    c0, c1, c2 = t * x - u * w, u * v - s * x, s * w - t * v
+    det = p * c0 + q * c1 + r * c2
+    if det == 0.0:
+        raise np.linalg.LinAlgError("singular matrix")
+    out = np.empty((3, 3))
+    out[0, 0], out[0, 1], out[0, 2] = c0 / det, (r * w - q * x) / det, (q * u - r * t) / det
+    out[1, 0], out[1, 1], out[1, 2] = c1 / det, (p * x - r * v) / det, (r * s - p * u) / det
+    out[2, 0], out[2, 1], out[2, 2] = c2 / det, (q * v - p * w) / det, (p * t - q * s) / det
+    return out
+
+
+def _mv(a: F64, x: F64) -> F64:
+    """``"ij,j->i"`` (:func:`hil.nav.portable.mv`) on C-contiguous operands: each row's reduction
+    is contiguous in both, numpy's SIMD dot product as in :func:`_mmt`."""
+    return _mmt(a, x.reshape((1, x.shape[0])))[:, 0].copy()
+
+
+def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
+    """:func:`hil.estimators.ekf15.kf_update` (the Joseph-form update of a GNSS position or
+    velocity fix) in loops, for a 3-row ``h``; operands C-contiguous. Any other ``h`` raises
+    ``TypeError``, as a call with operands a kernel was not compiled for does, so the caller
+    (:mod:`hil.runtime.jit`'s fallback) runs the Python one."""
+    n, m = p.shape[0], h.shape[0]
+    if m != 3 or h.shape[1] != n or y.shape[0] != 3 or r.shape[0] != 3 or r.shape[1] != 3:
+        raise TypeError("kf_update is compiled for a 3-row measurement only")
+    ph = _mmt(p, h)
+    s = _mm(h, ph)
+    for i in range(3):
+        for j in range(3):
+            s[i, j] = s[i, j] + r[i, j]
+    s_inv = _inv3(s)
+    v = _mv(s_inv, y)
+    nis = _mmt(y.reshape((1, 3)), v.reshape((1, 3)))[0, 0]
+    k = _mm(ph, s_inv)
+    kh = _mm(k, h)
+    ikh = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            ikh[i, j] = (1.0 if i == j else 0.0) - kh[i, j]
+    a = _mmt(_mm(ikh, p), ikh)
+    b = _mmt(_mm(k, r), k)
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * ((a[i, j] + b[i, j]) + (a[j, i] + b[j, i]))
+    return _mv(k, y), out, nis
+
+
 def expm(m: F64) -> F64:
     """:func:`hil.nav.portable.expm` in loops (the ZOH filters' ``e^{A h}``, at every step length
     not seen before: the IMU's stamps are ns-exact, so most are new); ``m`` C-contiguous.

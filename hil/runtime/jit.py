@@ -19,6 +19,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
   :func:`hil.estimators.ekf15.write_dynamics`, from their own Python source); checked against
   einsum on random operands here before it is put in place (a numpy built for wider SIMD lanes
   or FMA adds differently: then the Python one stays, said on stderr);
+- ekf15's Joseph-form update of a GNSS position or velocity fix
+  (:func:`hil.estimators.ekf15.kf_update`: einsum products, the 3 x 3 adjugate inverse) as
+  :func:`hil.nav.kernels.kf_update` (~10 µs against ~39 for 15 states), checked the same way;
 - the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
   IMU's ns stamps make most step lengths new, so it runs after every fix and clock wander) as
   :func:`hil.nav.kernels.expm` (~2 µs against ~70), checked the same way;
@@ -71,7 +74,7 @@ _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
 #: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``_corrector_prediction``,
-#: ``write_dynamics``, ``expm``, ``ecef_to_lla_one``).
+#: ``write_dynamics``, ``expm``, ``kf_update``, ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -329,7 +332,28 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         _corrector_prediction=corrector,
         write_dynamics=ekf,
         expm=expm,
+        kf_update=_compile_update(numba, d, mm, mmt),
         ecef_to_lla_one=lla,
+    )
+
+
+def _compile_update(numba: Any, digest: str, mm: Any, mmt: Any) -> Any:
+    """ekf15's Joseph-form update of a 3-row fix (:func:`hil.nav.kernels.kf_update`), on the
+    compiled einsum-order products ``mm`` and ``mmt``."""
+    from hil.nav import kernels
+
+    f8, cmat = "float64", "float64[:, ::1]"
+    inv3 = _compile(numba, kernels._inv3, f"{cmat}({cmat})", digest, True)
+    mv = _compile(numba, kernels._mv, f"{f8}[::1]({cmat}, {f8}[::1])", digest, True, _mmt=mmt)
+    return _compile(
+        numba,
+        kernels.kf_update,
+        f"Tuple(({f8}[::1], {cmat}, {f8}))({cmat}, {f8}[::1], {cmat}, {cmat})",
+        digest,
+        _mm=mm,
+        _mmt=mmt,
+        _inv3=inv3,
+        _mv=mv,
     )
 
 
@@ -419,6 +443,39 @@ def _corrector_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
+def update_operands(rng: Any, n: int, lever: bool) -> tuple[Any, Any, Any, Any]:
+    """A covariance of ``n`` states over twelve decades, an innovation, a GNSS fix's ``H`` (the
+    identity on 3 of the states; ``lever``: a skew block and a dense one besides, as ekf15's
+    velocity row with an antenna arm) and its diagonal ``R``: the operands of
+    :func:`_update_differs` and the tests."""
+    import numpy as np
+
+    a = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-6, 0, size=(n, n))
+    h = np.zeros((3, n))
+    h[:, 3:6] = np.eye(3)
+    if lever:
+        x, y, z = rng.normal(0.0, 0.5, 3).tolist()
+        h[:, 6:9] = ((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0))
+        h[:, 12:15] = rng.normal(0.0, 0.5, (3, 3))
+    r = np.diag(rng.uniform(0.01, 4.0, 3))
+    return a @ a.T + np.eye(n) * 1e-9, rng.normal(0.0, 1.0, 3), h, r
+
+
+def _update_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_covariance_differs`, for ekf15's Joseph-form update of a fix (every state layout,
+    with and without an antenna arm)."""
+    import numpy as np
+
+    rng = np.random.default_rng(27)
+    for trial in range(36):
+        n = (15, 21, 24, 27, 30, 33)[trial % 6]
+        p, y, h, r = update_operands(rng, n, lever=trial % 2 == 1)
+        got, want = compiled(p, y, h, r), python(p, y, h, r)
+        if [got[0].tobytes(), got[1].tobytes(), got[2]] != [want[0].tobytes(), want[1].tobytes(), want[2]]:
+            return f"operands {trial} ({n} states)"
+    return ""
+
+
 def _dynamics_differs(compiled: Any, python: Callable[..., Any]) -> str:
     """As :func:`_corrector_differs`, for ekf15's F written in place (its gyro calibration block
     is a compiled einsum product) in every state layout: 15, with the gyro calibration, with
@@ -475,6 +532,7 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
     ),
     "write_dynamics": ("write_dynamics", ("hil.estimators.ekf15:write_dynamics",), True),
     "expm": ("expm", ("hil.estimators.lti:expm",), True),
+    "kf_update": ("kf_update", ("hil.estimators.ekf15:kf_update",), True),
     "ecef_to_lla_one": ("ecef_to_lla_one", ("hil.nav.earth:_ecef_to_lla_one",), False),
 }
 #: The kernels checked against their Python ones before they are put in place.
@@ -483,6 +541,7 @@ _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "_corrector_prediction": _corrector_differs,
     "write_dynamics": _dynamics_differs,
     "expm": _expm_differs,
+    "kf_update": _update_differs,
     "ecef_to_lla_one": _lla_differs,
 }
 

@@ -316,6 +316,47 @@ def test_the_compiled_covariance_step_on_non_finite_and_non_contiguous_operands(
     assert got[1].tobytes() == want[1].tobytes()
 
 
+def test_the_compiled_fix_update_computes_the_python_bits() -> None:
+    """ekf15's Joseph-form update of a position or velocity fix (every state layout, with and
+    without an antenna arm, sparse and signed-zero covariances): ``δx``, ``P+`` and the NIS byte
+    for byte. A singular ``S`` raises as the Python one does, and a measurement of other than 3
+    rows or a Fortran-ordered operand goes to the Python kernel."""
+    from hil.estimators import ekf15
+
+    assert jit.enable() == "compiled"
+    python_update = jit.python_kernel("kf_update")
+    assert ekf15.kf_update is not python_update
+    rng = np.random.default_rng(14)
+    differing = []
+    for trial in range(600):
+        n = int(rng.choice([15, 21, 24, 27, 30, 33, 39]))
+        p, y, h, r = jit.update_operands(rng, n, lever=bool(trial % 2))
+        if trial % 5 == 0:
+            p[rng.random((n, n)) < 0.2] = 0.0
+            p[rng.random((n, n)) < 0.05] = -0.0
+        got, want = ekf15.kf_update(p, y, h, r), python_update(p, y, h, r)
+        if (
+            got[0].tobytes() != want[0].tobytes()
+            or got[1].tobytes() != want[1].tobytes()
+            or got[2] != want[2]
+        ):
+            differing.append((trial, n))
+    assert differing == []
+    p, y, h, r = jit.update_operands(rng, 15, lever=True)
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        ekf15.kf_update(p, y, np.zeros_like(h), np.zeros((3, 3)))
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        python_update(p, y, np.zeros_like(h), np.zeros((3, 3)))
+    two = h[:2].copy()
+    got, want = (
+        ekf15.kf_update(p, y[:2], two, r[:2, :2].copy()),
+        python_update(p, y[:2], two, r[:2, :2].copy()),
+    )
+    assert got[1].tobytes() == want[1].tobytes() and got[2] == want[2]
+    got, want = ekf15.kf_update(np.asfortranarray(p), y, h, r), python_update(np.asfortranarray(p), y, h, r)
+    assert got[1].tobytes() == want[1].tobytes()
+
+
 def test_the_compiled_expm_computes_the_portable_bits() -> None:
     """``e^M`` of the ZOH filters (orders to 3, plus the ramp's two states) and beyond, any
     sparsity and norm (scaling and squaring from a nanosecond step to norms of ~30): byte-equal
