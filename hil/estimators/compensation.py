@@ -104,6 +104,13 @@ def _ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> None:
     u += s * h_s
 
 
+def _filter_output(x: F64, c: F64, d: float, u: F64) -> F64:
+    """``y = C x + D u`` per channel (``x`` (n, channels), ``u`` (channels,)): read at every
+    published solution; :mod:`hil.runtime.jit` puts its loop form
+    (:func:`hil.nav.kernels.filter_output`) in its place where it gives these bits."""
+    return mv(x.T, c) + d * u
+
+
 def relative_degree(tf: TransferFunction) -> int:
     """deg(den) − deg(num): how many output derivatives are free of the raw input."""
     num = np.trim_zeros(np.asarray(tf.num, float), "f")
@@ -339,7 +346,7 @@ class CompensationCore:
     def output(self) -> F64:
         """``y = C x + D u``: the INS error estimate per channel."""
         ss = self.stages[self.stage].ss
-        return mv(self.x.T, ss.c) + ss.d * self.u
+        return _filter_output(self.x, ss.c, ss.d, self.u)
 
     def switch_to(self, stage: int) -> None:
         """Bumpless structure switch (see module docstring for the rule and why)."""

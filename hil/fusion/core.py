@@ -32,9 +32,9 @@ import numpy as np
 
 from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_bias_of
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
-from hil.fusion.predictor import OutputPredictor
+from hil.fusion.predictor import Motion, OutputPredictor, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
-from hil.nav.earth import ned_to_lla_one
+from hil.nav.earth import _origin_floats, ned_to_lla_one
 from hil.nav.types import NavState, nav_floats
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
@@ -162,6 +162,13 @@ def implausible(msg: Measurement, cfg: FusionConfig) -> str:
 
 
 _F64 = np.dtype(np.float64)
+
+
+#: A stream the output predictor carries: name, position, velocity, attitude (floats), the IMU
+#: biases it removes (None: none) and the solution's σ (position, velocity, attitude; None: none).
+_Stream = tuple[str, Sequence[float], Sequence[float], Sequence[float], Any, Any]
+_UNBIASED = (0.0,) * 7  # a row's bias flag and six biases, for a stream without biases
+_NO_SIGMA = (None, None, None)
 
 
 def _floats(a: Any) -> list[float]:
@@ -538,27 +545,58 @@ class FusionCore:
         pred.step(msg.stamp_ns, (d[0], d[1], d[2]), (v[0], v[1], v[2]), msg.dt_ns * 1e-9, msg.seq)
         if msg.seq % self.config.output_every:
             return []
-        motion = pred.motion()
         ins_nav = self._ins_nav
         if ins_nav is None:  # no IMU step on the horizon yet: the initial state
             ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
-        out: list[NavSolution] = []
-        try:
-            pos, vel, q = pred.predict_floats(*ins_nav.floats(), motion)
-            out.append(self._publish(FREE_INS, pos, vel, q, None, None, None, msg.stamp_ns, msg.seq))
-        except ArithmeticError:
-            self._inc(f"errors.nonfinite.{FREE_INS}")
-        self._step_estimators()
+        self._step_estimators()  # (the free INS's output does not depend on the estimators)
+        # every stream's horizon state: (name, position, velocity, attitude, biases, sigmas)
+        streams: list[_Stream] = [(FREE_INS, *ins_nav.floats(), None, None)]
         for est in self._ests:
             if est.name in self._failed:
                 continue
             try:
                 nav = est.solution()
-                pos, vel, q = pred.predict_floats(*nav_floats(nav), motion, imu_bias_of(est))
                 sig = (nav.pos_sigma_m, nav.vel_sigma_mps, nav.att_sigma_rad)
-                out.append(self._publish(est.name, pos, vel, q, *sig, msg.stamp_ns, msg.seq))
+                streams.append((est.name, *nav_floats(nav), imu_bias_of(est), sig))
             except ArithmeticError:
                 self._inc(f"errors.nonfinite.{est.name}")
+        return self._carried(streams, pred.motion(), msg)
+
+    def _carried(self, streams: list[_Stream], motion: Motion, msg: ImuSample) -> list[NavSolution]:
+        """Each stream carried to the newest sample and published: their arithmetic in one call
+        (``carry_rows``, compiled), or one by one as ``predict_floats`` and ``_publish`` where a
+        stream's numbers make it raise (a state gone non-finite: that one counted)."""
+        pred = self.predictor
+        assert pred is not None
+        rows = [
+            (*p, *v, *q, *(_UNBIASED if b is None else (1.0, *b[0].tolist(), *b[1].tolist())))
+            for _, p, v, q, b, _ in streams
+        ]
+        dt, dq, dv, dp = motion
+        (o0, o1, o2), c = _origin_floats(*self._origin)
+        table: list[list[float]] | None
+        try:
+            table = carry_rows(
+                np.array(rows), dt, *dq, *dv, *dp, pred.g, o0, o1, o2, *c[0], *c[1], *c[2]
+            ).tolist()
+        except ArithmeticError:
+            table = None
+        out: list[NavSolution] = []
+        for i, (name, pos, vel, q, bias, sig) in enumerate(streams):
+            try:
+                if table is None:
+                    pos, vel, q = pred.predict_floats(pos, vel, q, motion, bias)
+                    out.append(self._publish(name, pos, vel, q, *(sig or _NO_SIGMA), msg.stamp_ns, msg.seq))
+                    continue
+                t = table[i]
+                if t[13] == 0.0:
+                    raise ArithmeticError(f"{name}: non-finite solution")
+                ps, vs, at = self._sigma_lists(name, *(sig or _NO_SIGMA))
+                out.append(
+                    self._message(name, t[0:3], t[3:6], t[6:10], t[10:13], ps, vs, at, msg.stamp_ns, msg.seq)
+                )
+            except ArithmeticError:
+                self._inc(f"errors.nonfinite.{name}")
         return out
 
     def _too_soon(self, stamp_ns: int, source: str) -> bool:
@@ -800,26 +838,50 @@ class FusionCore:
         imu_seq: int | None = None,
     ) -> NavSolution:
         """The solution message of ``name``'s state (Python floats; sigmas arrays or None)."""
-        ps = [] if pos_sigma is None else _floats(pos_sigma)
-        vs = [] if vel_sigma is None else _floats(vel_sigma)
-        at = [] if att_sigma is None else _floats(att_sigma)
-        for part in (pos, vel, q, ps, vs, at):
+        for part in (pos, vel, q):
             for v in part:
                 if not isfinite(v):
                     raise ArithmeticError(f"{name}: non-finite solution")
-        lat, lon, alt = ned_to_lla_one(pos[0], pos[1], pos[2], *self._origin)
+        ps, vs, at = self._sigma_lists(name, pos_sigma, vel_sigma, att_sigma)
+        lla = ned_to_lla_one(pos[0], pos[1], pos[2], *self._origin)
+        return self._message(name, list(pos), list(vel), list(q), lla, ps, vs, at, stamp_ns, imu_seq)
+
+    @staticmethod
+    def _sigma_lists(name: str, *sigmas: Any) -> tuple[list[float], list[float], list[float]]:
+        """The σ of a solution as lists of floats ([] for None), all finite (else ArithmeticError)."""
+        ps, vs, at = [[] if s is None else _floats(s) for s in sigmas]
+        for part in (ps, vs, at):
+            for v in part:
+                if not isfinite(v):
+                    raise ArithmeticError(f"{name}: non-finite solution")
+        return ps, vs, at
+
+    def _message(
+        self,
+        name: str,
+        pos: list[float],
+        vel: list[float],
+        q: list[float],
+        lla: Sequence[float],
+        ps: list[float],
+        vs: list[float],
+        at: list[float],
+        stamp_ns: int,
+        imu_seq: int | None,
+    ) -> NavSolution:
+        """A finite solution as the message, numbered in ``name``'s stream."""
         seq = self._out_seq.get(name, 0)
         self._out_seq[name] = seq + 1
         return NavSolution(
             seq=seq,
             stamp_ns=stamp_ns,
             estimator=name,
-            pos_ned_m=list(pos),
-            vel_ned_mps=list(vel),
-            q_nb=list(q),
-            lat_deg=degrees(lat),  # numpy's degrees is the same product by 180/π
-            lon_deg=degrees(lon),
-            alt_m=alt,
+            pos_ned_m=pos,
+            vel_ned_mps=vel,
+            q_nb=q,
+            lat_deg=degrees(lla[0]),  # numpy's degrees is the same product by 180/π
+            lon_deg=degrees(lla[1]),
+            alt_m=lla[2],
             pos_sigma_m=ps,
             vel_sigma_mps=vs,
             att_sigma_rad=at,

@@ -36,6 +36,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from hil.nav.earth import _ecef_to_lla_one  # every solution's latitude, longitude, height
 from hil.nav.strapdown import _rotvec_quat  # the strapdown's own rotation-vector quaternion
 from hil.nav.types import F64, NavState
 
@@ -171,6 +172,59 @@ def _carry(
 
 
 _NO_BIAS = (0.0,) * 6
+
+
+def carry_rows(
+    rows: F64,
+    dt: float,
+    dqw: float, dqx: float, dqy: float, dqz: float,
+    dvx: float, dvy: float, dvz: float,
+    dpx: float, dpy: float, dpz: float,
+    g: float,
+    o0: float, o1: float, o2: float,
+    c00: float, c01: float, c02: float,
+    c10: float, c11: float, c12: float,
+    c20: float, c21: float, c22: float,
+) -> F64:  # fmt: skip
+    """The fusion's solutions at one IMU sample in one call (compiled by :mod:`hil.runtime.jit`):
+    each row ``[p, v, q, biased, b_g, b_a]`` (17) carried over the motion as
+    :meth:`OutputPredictor.predict_floats` carries it, its latitude, longitude and height as
+    :func:`hil.nav.earth.ned_to_lla_one` gives them for the origin ``o`` (ECEF) and ``c`` (its
+    ``C_en`` by rows), and whether the ten carried numbers are finite (1.0) or not (0.0, the
+    position not converted): (k, 14)."""
+    k = rows.shape[0]
+    out = np.empty((k, 14))
+    still = dt == 0.0 and dqw == 1.0 and dqx == 0.0 and dqy == 0.0 and dqz == 0.0
+    for i in range(k):
+        r = rows[i]
+        if still:  # no motion: the inputs as they are
+            s = (
+                float(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]),
+                float(r[5]), float(r[6]), float(r[7]), float(r[8]), float(r[9]),
+            )  # fmt: skip
+        else:
+            s = _carry(
+                float(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]),
+                float(r[5]), float(r[6]), float(r[7]), float(r[8]), float(r[9]),
+                dt, dqw, dqx, dqy, dqz, dvx, dvy, dvz, dpx, dpy, dpz, g, r[10] != 0.0,
+                float(r[11]), float(r[12]), float(r[13]), float(r[14]), float(r[15]), float(r[16]),
+            )  # fmt: skip
+        finite = True
+        for j in range(10):
+            out[i, j] = s[j]
+            if not math.isfinite(s[j]):
+                finite = False
+        lat, lon, h = math.nan, math.nan, math.nan
+        if finite:
+            n, e, d = s[0], s[1], s[2]
+            lat, lon, h = _ecef_to_lla_one(
+                c00 * n + c10 * e + c20 * d + o0,
+                c01 * n + c11 * e + c21 * d + o1,
+                c02 * n + c12 * e + c22 * d + o2,
+            )
+        out[i, 10], out[i, 11], out[i, 12] = lat, lon, h
+        out[i, 13] = 1.0 if finite else 0.0
+    return out
 
 
 class OutputPredictor:

@@ -73,6 +73,19 @@ def ramp_step(m: F64, x: F64, u: F64, s: F64, h_s: float) -> None:
         u[k] = u[k] + s[k] * h_s
 
 
+def filter_output(x: F64, c: F64, d: float, u: F64) -> F64:
+    """:func:`hil.estimators.compensation._filter_output` in loops: ``"ij,j->i"`` of ``x.T`` (whose
+    reduction is strided) adds its terms in ``j``'s order onto a zero, then ``+ d u``."""
+    n, k = x.shape
+    out = np.empty(k)
+    for i in range(k):
+        acc = 0.0
+        for j in range(n):
+            acc += x[j, i] * c[j]
+        out[i] = acc + d * u[i]
+    return out
+
+
 def covariance_step(f: F64, dt_s: float, p: F64, qc: F64) -> tuple[F64, F64]:
     """:func:`hil.estimators.ekf15.covariance_step` (``Φ = I + FΔ + (FΔ)²/2``, ``Φ P Φ' + Q_c Δ``)
     in loops; ``f`` and ``p`` C-contiguous.

@@ -223,7 +223,6 @@ def _enable(env: Mapping[str, str]) -> str:
 def _compile_kernels(numba: Any) -> dict[str, Any]:
     """Every kernel compiled (or loaded from numba's cache), by its ``_compiled`` name."""
     from hil.estimators import ekf15, feedback
-    from hil.fusion import predictor
     from hil.nav import kernels, strapdown
 
     f8 = "float64"
@@ -249,29 +248,8 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         d,
         _step=step,
     )
-    qmul = _compile(numba, predictor._qmul, f"UniTuple({f8}, 4)({', '.join([f8] * 8)})", d, inline=True)
-    rot = _compile(numba, predictor._rot, f"UniTuple({f8}, 3)({', '.join([f8] * 7)})", d, inline=True)
-    motion_callees = {"_qmul": qmul, "_rot": rot, "_rotvec_quat": rotvec}
-    unbiased = _compile(
-        numba,
-        predictor._unbiased,
-        f"UniTuple({f8}, 10)({', '.join([f8] * 17)})",
-        d,
-        True,
-        **motion_callees,
-    )
-    advance = _compile(
-        numba, predictor._advance, f"UniTuple({f8}, 11)({', '.join([f8] * 18)})", d, **motion_callees
-    )
-    carry = _compile(
-        numba,
-        predictor._carry,
-        f"UniTuple({f8}, 10)({', '.join([f8] * 22)}, boolean, {', '.join([f8] * 6)})",
-        d,
-        _unbiased=unbiased,
-        **motion_callees,
-    )
     ramp = _compile(numba, kernels.ramp_step, f"none({mat}, {mat}, {vec}, {vec}, {f8})", d)
+    output = _compile(numba, kernels.filter_output, f"{f8}[::1]({mat}, {vec}, {f8}, {vec})", d)
     cmat = f"{f8}[:, ::1]"
     finite = _compile(numba, kernels._finite_rows, f"{f8}[::1]({cmat})", d, inline=True)
     order = _compile(numba, kernels._lane_order, "int64[::1](int64)", d, inline=True)
@@ -326,8 +304,8 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         _step=step,
         _corrected_run=run,
         ramp_step=ramp,
-        _advance=advance,
-        _carry=carry,
+        filter_output=output,
+        **_compile_predictor(numba, d, rotvec, lla),
         covariance_step=cov,
         _corrector_prediction=corrector,
         write_dynamics=ekf,
@@ -335,6 +313,40 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         kf_update=_compile_update(numba, d, mm, mmt),
         ecef_to_lla_one=lla,
     )
+
+
+def _compile_predictor(numba: Any, d: str, rotvec: Any, lla: Any) -> dict[str, Any]:
+    """The output predictor's kernels (:mod:`hil.fusion.predictor`): its step onto the running
+    sums, the carry of one horizon state and of one sample's every stream with its geodesy
+    (``lla``: the compiled ECEF to latitude, longitude, height)."""
+    from hil.fusion import predictor
+
+    f8, cmat = "float64", "float64[:, ::1]"
+    qmul = _compile(numba, predictor._qmul, f"UniTuple({f8}, 4)({', '.join([f8] * 8)})", d, inline=True)
+    rot = _compile(numba, predictor._rot, f"UniTuple({f8}, 3)({', '.join([f8] * 7)})", d, inline=True)
+    motion_callees = {"_qmul": qmul, "_rot": rot, "_rotvec_quat": rotvec}
+    unbiased = _compile(
+        numba,
+        predictor._unbiased,
+        f"UniTuple({f8}, 10)({', '.join([f8] * 17)})",
+        d,
+        True,
+        **motion_callees,
+    )
+    advance = _compile(
+        numba, predictor._advance, f"UniTuple({f8}, 11)({', '.join([f8] * 18)})", d, **motion_callees
+    )
+    carry = _compile(
+        numba,
+        predictor._carry,
+        f"UniTuple({f8}, 10)({', '.join([f8] * 22)}, boolean, {', '.join([f8] * 6)})",
+        d,
+        _unbiased=unbiased,
+        **motion_callees,
+    )
+    rows_sig = f"{cmat}({cmat}, {', '.join([f8] * 24)})"
+    rows = _compile(numba, predictor.carry_rows, rows_sig, d, _carry=carry, _ecef_to_lla_one=lla)
+    return {"_advance": advance, "_carry": carry, "carry_rows": rows}
 
 
 def _compile_update(numba: Any, digest: str, mm: Any, mmt: Any) -> Any:
@@ -365,6 +377,23 @@ def _get(home: str) -> Any:
 def _put(home: str, value: Any) -> None:
     module, attr = home.split(":")
     setattr(importlib.import_module(module), attr, value)
+
+
+def _output_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_covariance_differs`, for a compensation filter's output ``C x + D u`` (orders 1
+    to 3, six channels; ``D`` zero or not, signed zeros in the state)."""
+    import numpy as np
+
+    rng = np.random.default_rng(28)
+    for trial in range(300):
+        n = 1 + trial % 3
+        x = rng.normal(size=(n, 6)) * 10.0 ** rng.uniform(-6, 3)
+        x[rng.random((n, 6)) < 0.1] = -0.0
+        c, u = rng.normal(size=n), rng.normal(size=6)
+        d = 0.0 if trial % 2 else float(rng.normal())
+        if compiled(x, c, d, u).tobytes() != python(x, c, d, u).tobytes():
+            return f"operands {trial}"
+    return ""
 
 
 def _lla_differs(compiled: Any, python: Callable[..., Any]) -> str:
@@ -518,8 +547,10 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "_step": ("_step", ("hil.nav.strapdown:_step",), False),
     "_corrected_run": ("_corrected_run", ("hil.nav.strapdown:_corrected_run",), False),
     "_ramp_step": ("ramp_step", ("hil.estimators.compensation:_ramp_step",), False),
+    "_filter_output": ("filter_output", ("hil.estimators.compensation:_filter_output",), False),
     "_advance": ("_advance", ("hil.fusion.predictor:_advance",), False),
     "_carry": ("_carry", ("hil.fusion.predictor:_carry",), False),
+    "carry_rows": ("carry_rows", ("hil.fusion.predictor:carry_rows", "hil.fusion.core:carry_rows"), False),
     "covariance_step": (
         "covariance_step",
         ("hil.estimators.ekf15:covariance_step", "hil.estimators.feedback:covariance_step"),
@@ -533,7 +564,11 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "write_dynamics": ("write_dynamics", ("hil.estimators.ekf15:write_dynamics",), True),
     "expm": ("expm", ("hil.estimators.lti:expm",), True),
     "kf_update": ("kf_update", ("hil.estimators.ekf15:kf_update",), True),
-    "ecef_to_lla_one": ("ecef_to_lla_one", ("hil.nav.earth:_ecef_to_lla_one",), False),
+    "ecef_to_lla_one": (
+        "ecef_to_lla_one",
+        ("hil.nav.earth:_ecef_to_lla_one", "hil.fusion.predictor:_ecef_to_lla_one"),
+        False,
+    ),
 }
 #: The kernels checked against their Python ones before they are put in place.
 _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
@@ -542,6 +577,7 @@ _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "write_dynamics": _dynamics_differs,
     "expm": _expm_differs,
     "kf_update": _update_differs,
+    "_filter_output": _output_differs,
     "ecef_to_lla_one": _lla_differs,
 }
 

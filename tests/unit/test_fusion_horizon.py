@@ -346,3 +346,57 @@ def test_the_free_ins_named_alone_runs_alone_and_a_misspelt_name_is_refused_nami
     assert [k for k, _ in outs] == ["nav/ins"]
     with pytest.raises(ValueError, match=r"unknown estimator.*'insx'"):
         FusionOptions(estimators=["insx"])
+
+
+def _replayed(core: FusionCore, spoil: dict[float, object]) -> list[NavSolution]:
+    """Every input through ``replay`` in the total order; at each rig second of ``spoil`` its
+    function is called on the core first (a state made non-finite)."""
+    imus, fixes = _inputs()
+    out: list[NavSolution] = []
+    for m in sorted([*imus, *fixes], key=lambda m: (m.stamp_ns, m.sensor != "imu")):
+        for t, act in list(spoil.items()):
+            if m.stamp_ns >= t * 1e9:
+                act(core)  # type: ignore[operator]
+                del spoil[t]
+        out += core.replay(m)
+    return out
+
+
+def test_a_stream_gone_non_finite_is_counted_not_published_and_the_others_go_on() -> None:
+    """The output predictor's streams are carried and converted in one call per sample: a stream
+    whose state is NaN (comp1's filter) or whose attitude is all zeros (kfvel's solution: the
+    carry's normalisation divides by zero, which takes that sample's streams one by one) is
+    counted in ``errors.nonfinite.<name>`` and not published; every other stream is published as
+    it is without the broken ones, bit for bit."""
+    import math
+
+    from hil.nav.types import FloatNavState, nav_floats
+
+    def nan_filter(core: FusionCore) -> None:
+        est = next(e for e in core._ests if e.name == "comp1")
+        est.core.x = est.core.x * math.nan  # type: ignore[attr-defined]
+
+    def zero_attitude(core: FusionCore) -> None:
+        est = next(e for e in core._ests if e.name == "kfvel")
+        real = est.solution
+
+        def solution() -> FloatNavState:
+            nav = real()
+            pos, vel, _q = nav_floats(nav)
+            return FloatNavState(pos, vel, (0.0, 0.0, 0.0, 0.0), nav.pos_sigma_m, nav.vel_sigma_mps)
+
+        est.solution = solution  # type: ignore[method-assign]
+
+    clean = _replayed(_core(), {})
+    core = _core()
+    spoilt = _replayed(core, {20.0: nan_filter, 30.0: zero_attitude})
+    counters = core.status_counters()
+    assert counters.get("errors.nonfinite.comp1", 0) > 100 and counters.get("errors.nonfinite.kfvel", 0) > 100
+    assert not [k for k in counters if k.startswith("errors.estimator_failed")]
+    assert not [s for s in spoilt if s.estimator == "comp1" and s.stamp_ns > 20e9]
+    assert not [s for s in spoilt if s.estimator == "kfvel" and s.stamp_ns > 30e9]
+    assert [s for s in spoilt if s.estimator == "kfvel" and 29e9 < s.stamp_ns < 30e9]
+    others = [encode(s) for s in clean if s.estimator not in ("comp1", "kfvel")]
+    assert (
+        len(others) > 1000 and [encode(s) for s in spoilt if s.estimator not in ("comp1", "kfvel")] == others
+    )

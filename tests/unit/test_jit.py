@@ -199,6 +199,68 @@ def test_the_compiled_output_predictor_computes_the_python_bits() -> None:
             assert np.array(got).tobytes() == np.array(want).tobytes(), (k, biased)
 
 
+def test_the_compiled_output_rows_compute_the_python_bits() -> None:
+    """One IMU sample's solutions in one call (``carry_rows``: every stream carried, biases out or
+    not, its latitude, longitude and height, and whether it is finite), compiled against Python:
+    the motionless case, a stream gone non-finite (not converted, flagged), and each row against
+    ``predict_floats`` and ``ned_to_lla_one`` one by one, the path it replaced."""
+    from hil.fusion import core, predictor
+    from hil.nav.earth import _origin_floats, ned_to_lla_one
+
+    assert jit.enable() == "compiled"
+    py_rows = jit.python_kernel("carry_rows")
+    assert predictor.carry_rows is not py_rows and core.carry_rows is predictor.carry_rows
+    origin = (0.8806, 0.5327, 300.0)
+    (o0, o1, o2), c = _origin_floats(*origin)
+    pred = predictor.OutputPredictor(0, 9.81)
+    rng = np.random.default_rng(15)
+    for k in range(400):
+        rows = []
+        for i in range(7):
+            q = rng.normal(size=4)
+            q /= np.linalg.norm(q)
+            bias = (1.0, *rng.normal(0.0, 1e-2, 3), *rng.normal(0.0, 0.3, 3)) if i % 2 else (0.0,) * 7
+            rows.append((*rng.normal(0.0, 1e3, 3), *rng.normal(0.0, 30.0, 3), *q, *bias))
+        if k % 10 == 1:
+            rows[3] = (*rows[3][:4], np.inf, *rows[3][5:])
+        dq = rng.normal(size=4) * (0.05, 1.0, 1.0, 1.0) + (1.0, 0.0, 0.0, 0.0)
+        motion = (
+            0.0 if k % 10 == 0 else float(rng.uniform(0.0, 0.5)),
+            (1.0, 0.0, 0.0, 0.0) if k % 10 == 0 else tuple((dq / np.linalg.norm(dq)).tolist()),
+            tuple(rng.normal(0.0, 5.0, 3).tolist()),
+            tuple(rng.normal(0.0, 5.0, 3).tolist()),
+        )
+        args = (motion[0], *motion[1], *motion[2], *motion[3], pred.g, o0, o1, o2, *c[0], *c[1], *c[2])
+        got, want = predictor.carry_rows(np.array(rows), *args), py_rows(np.array(rows), *args)
+        assert got.tobytes() == want.tobytes(), k
+        for row, t in zip(rows, got.tolist(), strict=True):
+            b = None if row[10] == 0.0 else (np.array(row[11:14]), np.array(row[14:17]))
+            pos, vel, q = pred.predict_floats(row[0:3], row[3:6], row[6:10], motion, b)  # type: ignore[arg-type]
+            assert t[0:10] == [*pos, *vel, *q]
+            finite = all(math.isfinite(v) for v in t[0:10])
+            assert t[13] == (1.0 if finite else 0.0)
+            if finite:
+                assert tuple(t[10:13]) == ned_to_lla_one(*pos, *origin)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_the_compiled_filter_output_computes_einsums_bits(order: int) -> None:
+    """A compensation filter's output ``C x + D u`` (read at every published solution), compiled
+    against einsum on random states, signed zeros and a ``D`` of zero or not."""
+    from hil.estimators import compensation
+
+    assert jit.enable() == "compiled"
+    python_output = jit.python_kernel("_filter_output")
+    assert compensation._filter_output is not python_output
+    rng = np.random.default_rng(16 + order)
+    for k in range(3000):
+        x = rng.normal(size=(order, 6)) * 10.0 ** rng.uniform(-9, 3)
+        x[rng.random((order, 6)) < 0.1] = -0.0
+        c, u = rng.normal(size=order), rng.normal(size=6)
+        d = 0.0 if k % 2 else float(rng.normal())
+        assert compensation._filter_output(x, c, d, u).tobytes() == python_output(x, c, d, u).tobytes(), k
+
+
 def test_the_compiled_corrector_prediction_computes_the_python_bits() -> None:
     """The feedback corrector's whole prediction (F, the covariance step, Φ δv), compiled with
     the compiled covariance step, against Python on random attitudes and covariances."""
