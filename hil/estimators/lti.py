@@ -121,12 +121,18 @@ def ramp_hold(ss: StateSpace, h_s: float) -> tuple[F64, F64, F64]:
     and its slope appended as states). ``Γ0`` equals the ZOH ``Γ`` of ``cont2discrete``.
     """
     n = ss.order
+    e = _ramp_expm(ss, h_s)
+    return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
+
+
+def _ramp_expm(ss: StateSpace, h_s: float) -> F64:
+    """``expm([[A, B, 0], [0, 0, 1], [0, 0, 0]] h)``: its first ``n`` rows are ``[Φ | Γ0 | Γ1]``."""
+    n = ss.order
     m = np.zeros((n + 2, n + 2))
     m[:n, :n] = ss.a
     m[:n, n] = ss.b
     m[n, n + 1] = 1.0
-    e = expm(m * h_s)  # portable: a replay on another machine gets the same Φ, Γ bit for bit
-    return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
+    return expm(m * h_s)  # type: ignore[no-any-return]  # portable: the same bits on any machine
 
 
 def held_noise_gain(tf: TransferFunction, hold_s: float) -> float:
@@ -172,9 +178,9 @@ class ZohCache:
         if hit is None:
             if len(self._stacked) >= self.max_entries:
                 self._stacked.pop(next(iter(self._stacked)))
-            phi, gamma0, gamma1 = self.get(h_ns)
-            cols = (phi, gamma0[:, None], gamma1[:, None]) if self.ramp else (phi, gamma0[:, None])
-            hit = np.concatenate(cols, axis=1)
+            n = self.ss.order  # ramp_hold's matrices side by side: the first n rows of its e^{M h}
+            cols = n + (2 if self.ramp else 1)
+            hit = _ramp_expm(self.ss, h_ns * 1e-9)[:n, :cols].copy()
             self._stacked[h_ns] = hit
         return hit
 

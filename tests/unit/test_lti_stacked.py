@@ -47,3 +47,25 @@ def test_stacked_step_is_bit_identical_with_the_filters_own_matrices() -> None:
                     stacked_step(ramp.stacked(h_ns), x, u, s), _separate(phi, x, g0, u, g1, s)
                 )
                 assert np.array_equal(stacked_step(coast.stacked(h_ns), x, u), _separate(phc, x, gc, u))
+
+
+def test_the_cached_stacked_matrix_is_ramp_holds_side_by_side() -> None:
+    """``ZohCache.stacked`` slices ``[Φ | Γ0 | Γ1]`` out of the one ``e^{M h}`` (no three copies
+    joined): byte for byte ``ramp_hold``'s matrices side by side, for the ramp and the coast."""
+    from hil.estimators.lti import ramp_hold
+
+    rng = np.random.default_rng(8)
+    for _, tf in [*VS_SCHEDULE, (0.0, complementary3(0.07, 0.005, 1e-4))]:
+        ss = StateSpace.from_tf(tf)
+        coast_ss = StateSpace(ss.a + np.outer(ss.b, ss.c), ss.b, ss.c, 0.0)
+        ramp, coast = ZohCache(ss), ZohCache(coast_ss, ramp=False)
+        for h_ns in [int(h) for h in rng.integers(-5_000_000, 50_000_000, 200)]:
+            phi, g0, g1 = ramp_hold(ss, h_ns * 1e-9)
+            want = np.concatenate((phi, g0[:, None], g1[:, None]), axis=1)
+            assert ramp.stacked(h_ns).tobytes() == want.tobytes() and ramp.stacked(h_ns).shape == want.shape
+            phc, gc, _ = ramp_hold(coast_ss, h_ns * 1e-9)
+            want_c = np.concatenate((phc, gc[:, None]), axis=1)
+            assert (
+                coast.stacked(h_ns).tobytes() == want_c.tobytes()
+                and coast.stacked(h_ns).shape == want_c.shape
+            )
