@@ -38,7 +38,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from hil.bench import command_line, write_section
-from hil.bench.versus import ref_tree, remove_ref_tree
+from hil.bench.versus import ref_tree, remove_ref_tree, warm_kernels
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 _IMPORT = "import hil.runners.sim, hil.record.rerun"
@@ -237,6 +237,7 @@ def main(argv: list[str]) -> int:
             trees = [Tree(a.ref[:10], ref_path), Tree("this tree", head_path)]
             for t in trees:
                 compile_bytecode(t.path)
+                warm_kernels(t.path)
             same: list[str] = []
             differ: list[str] = []
             for i in range(a.repeat):

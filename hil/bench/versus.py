@@ -146,6 +146,17 @@ def _cpu(side: Side, name: str) -> float:
     return _mean([sum(run.values()) if name == "total" else run.get(name, 0.0) for run in runs])
 
 
+def warm_kernels(tree: Path) -> None:
+    """The tree's compiled kernels in numba's cache (``hil.runtime.jit``), as on a machine that
+    has run the rig before: REF's fresh worktree would otherwise compile them (~10 s of CPU) in
+    its first timed run, whose mean then favoured this tree (until 2026-12-05: the sim rows of the
+    sections before ``offline-session21``, where REF's cache was cold, carry that bias)."""
+    code = "from hil.runtime import jit; jit.enable()"
+    subprocess.run(
+        [sys.executable, "-c", code], env=_env(tree), cwd=tree, check=False, stdout=subprocess.DEVNULL
+    )
+
+
 def ref_tree(ref: str, tmp: Path) -> Path:
     top = subprocess.run(
         ["git", "rev-parse", "--show-toplevel"], capture_output=True, text=True, cwd=Path(__file__).parent
@@ -197,6 +208,8 @@ def main(argv: list[str]) -> int:
             return 2
         try:
             sides = [Side(a.ref[:10], tree), Side("this tree", head_tree, sim_extra=a.this_args.split())]
+            for side in sides:  # both trees' kernels compiled before anything is timed
+                warm_kernels(side.tree)
             load = os.getloadavg()[0]
             sims_side_by_side(
                 sides, ["--scenario", a.scenario, "--duration", f"{a.duration:g}"], a.repeat, tmp
