@@ -10,7 +10,9 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
   covariance predictions (:func:`hil.nav.strapdown._corrected_run`: the fusion hands its estimators
   the IMU samples since they were last read in one block, ``hil.estimators.base.ImuBlock``);
 - the compensation filter's :func:`hil.estimators.compensation._ramp_step`, an einsum in Python,
-  as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order;
+  as the loop form :func:`hil.nav.kernels.ramp_step` that adds einsum's terms in einsum's order,
+  and its output ``C x + D u`` (:func:`hil.estimators.compensation._filter_output`, read at every
+  solution) as :func:`hil.nav.kernels.filter_output`, checked against einsum when it loads;
 - the covariance prediction of ekf15 and of the feedback INS's corrector
   (:func:`hil.estimators.ekf15.covariance_step`, ``Φ P Φ' + Q``: einsum products in Python) as
   :func:`hil.nav.kernels.covariance_step`, whose products add in einsum's orders, and the
@@ -26,8 +28,10 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
   IMU's ns stamps make most step lengths new, so it runs after every fix and clock wander) as
   :func:`hil.nav.kernels.expm` (~2 µs against ~70), checked the same way;
 - the output predictor's float arithmetic (:func:`hil.fusion.predictor._advance`, a sample onto its
-  running sums, and :func:`hil.fusion.predictor._carry`, a horizon state carried to the newest
-  sample, biases out), from their own Python source, unchanged;
+  running sums, :func:`hil.fusion.predictor._carry`, a horizon state carried to the newest
+  sample, biases out, and :func:`hil.fusion.predictor.carry_rows`, every stream of an output
+  sample carried and converted to latitude, longitude and height in one call), from their own
+  Python source, unchanged;
 - every published solution's latitude, longitude and height
   (:func:`hil.nav.earth._ecef_to_lla_one`) as :func:`hil.nav.kernels.ecef_to_lla_one`, checked
   the same way (it calls the C library's ``hypot``, which numpy's is);
