@@ -36,7 +36,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hil.nav.earth import _ecef_to_lla_one  # every solution's latitude, longitude, height
+from hil.nav.earth import _ecef_to_lla_one, ned_to_ecef_floats  # every solution's geodesy
 from hil.nav.strapdown import _rotvec_quat  # the strapdown's own rotation-vector quaternion
 from hil.nav.types import F64, NavState
 
@@ -174,6 +174,13 @@ def _carry(
 _NO_BIAS = (0.0,) * 6
 
 
+def bias_floats(bias: tuple[F64, F64] | None) -> tuple[float, ...]:
+    """An estimator's IMU bias estimates (``b_g``, ``b_a``) as the six floats the carry takes."""
+    if bias is None:
+        return _NO_BIAS
+    return (*np.asarray(bias[0], dtype=np.float64).tolist(), *np.asarray(bias[1], dtype=np.float64).tolist())
+
+
 def carry_rows(
     rows: F64,
     dt: float,
@@ -216,12 +223,10 @@ def carry_rows(
                 finite = False
         lat, lon, h = math.nan, math.nan, math.nan
         if finite:
-            n, e, d = s[0], s[1], s[2]
-            lat, lon, h = _ecef_to_lla_one(
-                c00 * n + c10 * e + c20 * d + o0,
-                c01 * n + c11 * e + c21 * d + o1,
-                c02 * n + c12 * e + c22 * d + o2,
+            x, y, z = ned_to_ecef_floats(
+                s[0], s[1], s[2], o0, o1, o2, c00, c01, c02, c10, c11, c12, c20, c21, c22
             )
+            lat, lon, h = _ecef_to_lla_one(x, y, z)
         out[i, 10], out[i, 11], out[i, 12] = lat, lon, h
         out[i, 13] = 1.0 if finite else 0.0
     return out
@@ -334,11 +339,5 @@ class OutputPredictor:
         dt, dq, dv, dp = motion
         if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
             return pos, vel, q
-        b = _NO_BIAS
-        if bias is not None:
-            b = (
-                *np.asarray(bias[0], dtype=np.float64).tolist(),
-                *np.asarray(bias[1], dtype=np.float64).tolist(),
-            )
-        r = _carry(*pos, *vel, *q, dt, *dq, *dv, *dp, self.g, bias is not None, *b)
+        r = _carry(*pos, *vel, *q, dt, *dq, *dv, *dp, self.g, bias is not None, *bias_floats(bias))
         return r[0:3], r[3:6], r[6:10]

@@ -280,11 +280,25 @@ def ned_to_lla_one(
     n: float, e: float, d: float, origin_lat_rad: float, origin_lon_rad: float, origin_alt_m: float
 ) -> tuple[float, float, float]:
     """:func:`ned_to_lla` of one point, in and out as Python floats (the same bits)."""
-    (o0, o1, o2), c = _origin_floats(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
-    x = c[0][0] * n + c[1][0] * e + c[2][0] * d + o0
-    y = c[0][1] * n + c[1][1] * e + c[2][1] * d + o1
-    z = c[0][2] * n + c[1][2] * e + c[2][2] * d + o2
-    return _ecef_to_lla_one(x, y, z)
+    o, c = _origin_floats(float(origin_lat_rad), float(origin_lon_rad), float(origin_alt_m))
+    return _ecef_to_lla_one(*ned_to_ecef_floats(n, e, d, *o, *c[0], *c[1], *c[2]))
+
+
+def ned_to_ecef_floats(
+    n: float, e: float, d: float,
+    o0: float, o1: float, o2: float,
+    c00: float, c01: float, c02: float,
+    c10: float, c11: float, c12: float,
+    c20: float, c21: float, c22: float,
+) -> tuple[float, float, float]:  # fmt: skip
+    """A NED point in ECEF for the origin ``o`` (ECEF) and its ``C_en`` by rows
+    (:func:`_origin_floats`): ``C_enᵀ p + o`` on floats, also compiled into the fusion's output
+    call (``hil.fusion.predictor.carry_rows``)."""
+    return (
+        c00 * n + c10 * e + c20 * d + o0,
+        c01 * n + c11 * e + c21 * d + o1,
+        c02 * n + c12 * e + c22 * d + o2,
+    )
 
 
 @lru_cache(maxsize=64)

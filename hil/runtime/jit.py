@@ -324,6 +324,7 @@ def _compile_predictor(numba: Any, d: str, rotvec: Any, lla: Any) -> dict[str, A
     sums, the carry of one horizon state and of one sample's every stream with its geodesy
     (``lla``: the compiled ECEF to latitude, longitude, height)."""
     from hil.fusion import predictor
+    from hil.nav import earth
 
     f8, cmat = "float64", "float64[:, ::1]"
     qmul = _compile(numba, predictor._qmul, f"UniTuple({f8}, 4)({', '.join([f8] * 8)})", d, inline=True)
@@ -349,7 +350,10 @@ def _compile_predictor(numba: Any, d: str, rotvec: Any, lla: Any) -> dict[str, A
         **motion_callees,
     )
     rows_sig = f"{cmat}({cmat}, {', '.join([f8] * 24)})"
-    rows = _compile(numba, predictor.carry_rows, rows_sig, d, _carry=carry, _ecef_to_lla_one=lla)
+    ecef = _compile(numba, earth.ned_to_ecef_floats, f"UniTuple({f8}, 3)({', '.join([f8] * 15)})", d, True)
+    rows = _compile(
+        numba, predictor.carry_rows, rows_sig, d, _carry=carry, _ecef_to_lla_one=lla, ned_to_ecef_floats=ecef
+    )
     return {"_advance": advance, "_carry": carry, "carry_rows": rows}
 
 

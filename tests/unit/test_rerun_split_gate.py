@@ -19,38 +19,20 @@ from hil.fusion.ideal import ideal_inputs
 from hil.messages import encode
 from hil.nav.scenario import parse_scenario
 from hil.nav.trajectory import TruthGenerator
+from tests.unit.test_fusion_horizon import SCENARIO as HORIZON_FLIGHT
 
-SCENARIO = """
-name = "split_gate"
-seed = 5
-duration_s = 40.0
-[origin]
-lat_deg = 50.45
-lon_deg = 30.52
-alt_m = 300.0
-[initial]
-attitude_deg = [0.0, 0.0, 0.0]
-speed_mps = 30.0
-[imu]
-preset = "tactical"
-rate_hz = 100
-[gnss]
-rate_hz = 10.0
-pos_sigma_m = 2.0
-vel_sigma_mps = 0.1
-latency_s = 0.0
+# the horizon tests' flight (hold, turn, hold; 10 Hz fixes) with a 15 m pulse at 25 s
+SCENARIO = (
+    HORIZON_FLIGHT
+    + """
 [[event]]
 kind = "gnss_pulse"
 t_start_s = 25.0
 amplitude_m = 15.0
 tau_s = 1.0
 direction_ned = [1.0, 0.0, 0.0]
-[[segment]]
-kind = "turn"
-yaw_rate_dps = 3.0
-duration_s = 40.0
 """
-
+)
 SHARE_A = ("ekf15", "compvs")
 SHARE_B = ("comp1", "kfvel")
 
@@ -83,7 +65,7 @@ def test_the_core_without_the_reference_recomputes_with_its_verdicts() -> None:
     assert len(out["full"]) >= 1000  # type: ignore[index]
     assert out["b"] == out["full"]  # type: ignore[index]
     relayed = r["relayed"]
-    assert relayed.count(False) >= 8 and relayed.count(True) > 300  # type: ignore[attr-defined]  # the pulse
+    assert relayed.count(False) >= 5 and relayed.count(True) > 300  # type: ignore[attr-defined]  # the pulse
     assert r["left"] == {}  # every verdict taken by the fix it was for
 
 
