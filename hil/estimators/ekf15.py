@@ -107,8 +107,14 @@ import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
 from hil.nav import strapdown
-from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
-from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature
+from hil.nav.attitude import (
+    quat_from_rotvec_floats,
+    quat_multiply,
+    quat_multiply_floats,
+    quat_normalise,
+    quat_normalise_floats,
+)
+from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
 from hil.nav.strapdown import (
     LazyNavState,
@@ -683,16 +689,19 @@ class Ekf15(Estimator):
 
     def _inject(self, dx: F64) -> None:
         """Closed loop: feed δx back into the strapdown and biases, then δx ← 0."""
-        if not np.any(dx):
+        if not dx.any():
             return
         s = self.ins
-        r_m, r_n = radii_of_curvature(s.lat_rad)
-        lat = s.lat_rad - dx[0] / (float(r_m) + s.alt_m)
-        lon = s.lon_rad - dx[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
-        alt = s.alt_m + dx[2]  # δp_D = −δh
-        vel = s.vel_ned_mps - dx[3:6]
+        # on floats, the numpy forms' operations in their order (one fix: ~100 -> ~20 µs)
+        dp_n, dp_e, dp_d, dv_n, dv_e, dv_d, phi_x, phi_y, phi_z = dx[0:9].tolist()
+        r_m, r_n = radii_of_curvature_one(s.lat_rad)
+        lat = s.lat_rad - dp_n / (r_m + s.alt_m)
+        lon = s.lon_rad - dp_e / ((r_n + s.alt_m) * math.cos(s.lat_rad))
+        alt = s.alt_m + dp_d  # δp_D = −δh
+        vn, ve, vd = s.vel
+        vel = (vn - dv_n, ve - dv_e, vd - dv_d)
         # C_true = (I + [φ×]) C_est: rotate the NED side by +φ
-        q = quat_normalise(quat_multiply(quat_from_rotvec(dx[6:9]), s.q_nb))
+        q = quat_normalise_floats(*quat_multiply_floats(*quat_from_rotvec_floats(phi_x, phi_y, phi_z), *s.q))
         self.ins = s.replace(lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=vel, q_nb=q)
         self.b_a = self.b_a + dx[9:12]
         self.b_g = self.b_g + dx[12:15]

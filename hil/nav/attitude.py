@@ -7,6 +7,8 @@ given and returned as [roll, pitch, yaw] in radians.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -18,16 +20,7 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> F64:
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
     if p.shape == (4,) and q.shape == (4,):  # one pair (a fix's attitude reset): the same
-        aw, ax, ay, az = p.tolist()  # products on floats, without the stack's machinery
-        bw, bx, by, bz = q.tolist()
-        return np.array(
-            (
-                aw * bw - ax * bx - ay * by - az * bz,
-                aw * bx + ax * bw + ay * bz - az * by,
-                aw * by - ax * bz + ay * bw + az * bx,
-                aw * bz + ax * by - ay * bx + az * bw,
-            )
-        )
+        return np.array(quat_multiply_floats(*p.tolist(), *q.tolist()))  # products, on floats
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack(
@@ -52,6 +45,35 @@ def quat_normalise(q: ArrayLike) -> F64:
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def quat_multiply_floats(
+    aw: float, ax: float, ay: float, az: float, bw: float, bx: float, by: float, bz: float
+) -> tuple[float, float, float, float]:
+    """``quat_multiply`` of one pair on floats: its products in its order."""
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def quat_normalise_floats(w: float, x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """``quat_normalise`` of one quaternion on floats, the same bits: numpy's norm of four adds
+    the squares in order (``tests/unit/test_nav_earth_attitude.py``)."""
+    n = math.sqrt(((w * w + x * x) + y * y) + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return (-w, -x, -y, -z) if w < 0.0 else (w, x, y, z)
+
+
+def quat_from_rotvec_floats(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """``quat_from_rotvec`` of one vector on floats, the same bits (its ``ang**2`` is numpy's
+    square, ``ang * ang``; numpy's float64 sin and cos are libm's, as math's)."""
+    ang = math.sqrt((x * x + y * y) + z * z)
+    half = 0.5 * ang
+    k = 0.5 - ang * ang / 48.0 if ang < 1e-4 else math.sin(half) / ang
+    return math.cos(half), k * x, k * y, k * z
 
 
 def quat_from_rotvec(phi: ArrayLike) -> F64:
