@@ -38,7 +38,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -46,11 +46,22 @@ import numpy as np
 from hil.estimators.base import GnssInput
 from hil.nav.attitude import quat_to_dcm
 from hil.nav.portable import dot, mv
-from hil.nav.types import F64, NavState
+from hil.nav.types import F64, NavState, nav_floats
 
 G0 = 9.80665
 UNAIDED_WINDOW_S = 60.0  # tilt a gyro bias builds unaided over this long sets the fallback growth
 EWMA_ALPHA = 0.1  # weight of one accepted innovation in an estimator's achieved-error mean
+
+
+def _maximum(a: float, b: float) -> float:
+    """``np.maximum`` of two floats: a NaN wins, and a tie keeps ``a`` (as numpy's does)."""
+    return a if a >= b or a != a else b
+
+
+def _ewma(mean: F64, excess: list[float]) -> F64:
+    """``(1 − α) m + α max(excess, 0)`` per axis on floats (numpy's operations, in its order)."""
+    keep, a = 1.0 - EWMA_ALPHA, EWMA_ALPHA
+    return np.array([keep * m + a * _maximum(e, 0.0) for m, e in zip(mean.tolist(), excess, strict=True)])
 
 
 @dataclass(frozen=True)
@@ -143,11 +154,17 @@ class GnssGate:
         if not self.settings.floor_sigma:
             return gnss
         m = self.model
-        pos = np.sqrt(np.maximum(np.square(gnss.pos_sigma_m), m.pos_var_floor_m2))
-        vel = np.sqrt(np.maximum(np.square(gnss.vel_sigma_mps), m.vel_var_floor_m2ps2))
-        if np.array_equal(pos, gnss.pos_sigma_m) and np.array_equal(vel, gnss.vel_sigma_mps):
+        # on floats: numpy's square, maximum and sqrt of each axis, the same bits (a fix: 29 -> 9 µs)
+        pos_in, vel_in = gnss.pos_sigma_m.tolist(), gnss.vel_sigma_mps.tolist()
+        pos = [
+            math.sqrt(_maximum(s * s, f)) for s, f in zip(pos_in, m.pos_var_floor_m2.tolist(), strict=True)
+        ]
+        vel = [
+            math.sqrt(_maximum(s * s, f)) for s, f in zip(vel_in, m.vel_var_floor_m2ps2.tolist(), strict=True)
+        ]
+        if all(a == b for a, b in zip(pos + vel, pos_in + vel_in, strict=True)):  # NaN: never equal
             return gnss
-        return replace(gnss, pos_sigma_m=pos, vel_sigma_mps=vel)
+        return GnssInput(gnss.stamp_ns, gnss.pos_ned_m, gnss.vel_ned_mps, np.array(pos), np.array(vel))
 
     def verdicts(
         self,
@@ -199,24 +216,30 @@ class GnssGate:
     def _decide(
         self, tr: GateTrack, gnss: GnssInput, sol: NavState, imu_ns: int, own: bool, publisher: str
     ) -> bool:
+        # Per axis on floats, numpy's elementwise operations in their order (the same bits, a
+        # fix: 74 -> ~25 µs); the two sums stay einsum's (:func:`hil.nav.portable.dot`).
         dt_s = (gnss.stamp_ns - imu_ns) * 1e-9
-        pred = sol.pos_ned_m + sol.vel_ned_mps * dt_s
-        if np.any(self.model.lever_arm_b_m):
-            pred = pred + mv(quat_to_dcm(sol.q_nb), self.model.lever_arm_b_m)
-        y_p = gnss.pos_ned_m - pred
-        y_v = gnss.vel_ned_mps - sol.vel_ned_mps
-        p_p = np.zeros(3) if sol.pos_sigma_m is None else np.square(sol.pos_sigma_m)
-        p_v = np.zeros(3) if sol.vel_sigma_mps is None else np.square(sol.vel_sigma_mps)
+        pos, vel, _q = nav_floats(sol)
+        pred = [p + v * dt_s for p, v in zip(pos, vel, strict=True)]
+        lever = self.model.lever_arm_b_m
+        if lever.any():
+            pred = [p + a for p, a in zip(pred, mv(quat_to_dcm(sol.q_nb), lever).tolist(), strict=True)]
+        y_p = [z - p for z, p in zip(gnss.pos_ned_m.tolist(), pred, strict=True)]
+        y_v = [z - v for z, v in zip(gnss.vel_ned_mps.tolist(), vel, strict=True)]
+        p_p = [0.0] * 3 if sol.pos_sigma_m is None else [s * s for s in sol.pos_sigma_m.tolist()]
+        p_v = [0.0] * 3 if sol.vel_sigma_mps is None else [s * s for s in sol.vel_sigma_mps.tolist()]
         if own:  # what the estimator achieves, and what it may have drifted since its last fix
             last = tr.last_accept_ns
             since_s = 0.0 if last is None else max(0.0, (gnss.stamp_ns - last) * 1e-9)
             a = self.model.unaided_accel_mps2
-            p_p = np.maximum(p_p, tr.m_pos) + (0.5 * a * since_s * since_s) ** 2
-            p_v = np.maximum(p_v, tr.m_vel) + (a * since_s) ** 2
-        r_p = np.square(gnss.pos_sigma_m)
-        r_v = np.square(gnss.vel_sigma_mps)
-        nis_p = dot(y_p * y_p, 1.0 / (r_p + p_p))
-        nis_v = dot(y_v * y_v, 1.0 / (r_v + p_v))
+            g_p, g_v = (0.5 * a * since_s * since_s) ** 2, (a * since_s) ** 2
+            p_p = [_maximum(p, m) + g_p for p, m in zip(p_p, tr.m_pos.tolist(), strict=True)]
+            p_v = [_maximum(p, m) + g_v for p, m in zip(p_v, tr.m_vel.tolist(), strict=True)]
+        r_p = [s * s for s in gnss.pos_sigma_m.tolist()]
+        r_v = [s * s for s in gnss.vel_sigma_mps.tolist()]
+        yy_p, yy_v = [y * y for y in y_p], [y * y for y in y_v]
+        nis_p = dot(np.array(yy_p), np.array([1.0 / (r + p) for r, p in zip(r_p, p_p, strict=True)]))
+        nis_v = dot(np.array(yy_v), np.array([1.0 / (r + p) for r, p in zip(r_v, p_v, strict=True)]))
         chi2 = self.settings.chi2
         tr.last_ratio = max(nis_p, nis_v) / chi2
         ok = nis_p <= chi2 and nis_v <= chi2
@@ -225,17 +248,19 @@ class GnssGate:
             ok = True
             tr.reacquired += 1
         if ok:
-            self._accepted(tr, gnss.stamp_ns, y_p * y_p - r_p, y_v * y_v - r_v)
+            excess_p = [y - r for y, r in zip(yy_p, r_p, strict=True)]
+            excess_v = [y - r for y, r in zip(yy_v, r_v, strict=True)]
+            self._accepted(tr, gnss.stamp_ns, excess_p, excess_v)
         else:
             self._rejected(tr, gnss.stamp_ns)
         self._alarm(tr, gnss.stamp_ns, publisher, ok)
         return ok
 
-    def _accepted(self, tr: GateTrack, stamp_ns: int, excess_p: F64, excess_v: F64) -> None:
+    def _accepted(self, tr: GateTrack, stamp_ns: int, excess_p: list[float], excess_v: list[float]) -> None:
         tr.accepted += 1
         tr.last_accept_ns = stamp_ns
-        tr.m_pos = (1.0 - EWMA_ALPHA) * tr.m_pos + EWMA_ALPHA * np.maximum(excess_p, 0.0)
-        tr.m_vel = (1.0 - EWMA_ALPHA) * tr.m_vel + EWMA_ALPHA * np.maximum(excess_v, 0.0)
+        tr.m_pos = _ewma(tr.m_pos, excess_p)
+        tr.m_vel = _ewma(tr.m_vel, excess_v)
         tr.reject_since_ns = None
 
     def _rejected(self, tr: GateTrack, stamp_ns: int) -> None:
