@@ -86,11 +86,12 @@ def imu_chain(scenario: Scenario, duration_s: float) -> tuple[list[ImuSample], l
     raw: list[ImuSample] = []
     synced: list[ImuSample] = []
 
-    def write(key: str, msg: Message, _t: int) -> None:
-        if key == "synced/imu":
-            synced.append(msg)  # type: ignore[arg-type]
-        elif key == "sensor/imu":
-            raw.append(msg)  # type: ignore[arg-type]
+    def write(events: list[tuple[int, int, int, str, Message]]) -> None:
+        for _t, _p, _o, key, msg in events:
+            if key == "synced/imu":
+                synced.append(msg)  # type: ignore[arg-type]
+            elif key == "sensor/imu":
+                raw.append(msg)  # type: ignore[arg-type]
 
     sched = Scheduler(nodes, write, CanWireModel(scenario))
     for i, node in enumerate(nodes):

@@ -34,7 +34,7 @@ import collections
 import operator
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -131,7 +131,7 @@ class Scheduler:
     def __init__(
         self,
         nodes: list[Node],
-        write: Callable[[str, Message, int], None],
+        write: Callable[[list[tuple[int, int, int, str, Message]]], None],
         wire: CanWireModel,
         remote: RemoteNode | None = None,
     ):
@@ -215,8 +215,7 @@ class Scheduler:
         if self.remote is not None:
             busy = self._take_remote(out)
         out.sort(key=_event_order)
-        for t, _p, _o, key, msg in out:
-            self.write(key, msg, t)
+        self.write(out)
         return busy
 
     def _take_remote(self, out: list[tuple[int, int, int, str, Message]]) -> bool:
@@ -350,24 +349,33 @@ class _Session:
         self._puts: dict[str, Callable[[bytes, int, int, int], None] | None] = {}  # per key, bound
 
     def write(self, key: str, msg: Message | Prepared, t_log: int) -> None:
-        put = self._puts.get(key)
-        if put is None:
-            if key in self._puts:
-                return  # left out by the record filter, and nothing derived from it
-            put = self._bind(key, msg)
+        self.write_events(((t_log, 0, 0, key, msg),))
+
+    def write_events(self, events: Iterable[tuple[int, int, int, str, Message | Prepared]]) -> None:
+        """Messages in file order, each ``(log time, _, _, key, message)`` (a window's, sorted:
+        ``Scheduler.complete``), their lookups made once for all (~3300 a rig second)."""
+        puts, epoch, w, convert = self._puts, self.epoch_ns, self.w, self.wellknown.convert
+        n = 0
+        for t_log, _p, _o, key, msg in events:
+            put = puts.get(key)
             if put is None:
-                return
-        epoch = self.epoch_ns
-        if type(msg) is Prepared:  # encoded, and its Foxglove messages derived, by the worker
-            put(msg.payload, epoch + t_log, epoch + msg.stamp_ns, msg.seq)
-            for d in msg.derived:
-                self.w.write_wellknown(d, log_time_ns=epoch + t_log)
-        else:
-            put(encode(msg), epoch + t_log, epoch + msg.stamp_ns, msg.seq)  # type: ignore[union-attr]
-            if isinstance(msg, DERIVES):
-                for d in self.wellknown.convert(key, msg, epoch + t_log):
-                    self.w.write_wellknown(d, log_time_ns=epoch + t_log)
-        self.n_written += 1
+                if key in puts:
+                    continue  # left out by the record filter, and nothing derived from it
+                put = self._bind(key, msg)
+                if put is None:
+                    continue
+            log_ns = epoch + t_log
+            if type(msg) is Prepared:  # encoded, and its Foxglove messages derived, by the worker
+                put(msg.payload, log_ns, epoch + msg.stamp_ns, msg.seq)
+                for d in msg.derived:
+                    w.write_wellknown(d, log_time_ns=log_ns)
+            else:
+                put(encode(msg), log_ns, epoch + msg.stamp_ns, msg.seq)  # type: ignore[union-attr]
+                if isinstance(msg, DERIVES):
+                    for d in convert(key, msg, log_ns):
+                        w.write_wellknown(d, log_time_ns=log_ns)
+            n += 1
+        self.n_written += n
 
     def _bind(self, key: str, msg: Message | Prepared) -> Callable[[bytes, int, int, int], None] | None:
         """The writer of ``key``'s channel, registered at its first message (None: not kept)."""
@@ -477,7 +485,7 @@ def run_sim(opts: SimOptions) -> SimResult:
     # forked after start; its outputs come back encoded for the file (``_Session.prepare``)
     remote = RemoteNode(nodes[-1], setup=jit.enable, prepare=sess.prepare) if use_worker else None
     try:
-        sched = Scheduler(nodes, sess.write, wire, remote)
+        sched = Scheduler(nodes, sess.write_events, wire, remote)
         for i, outs in enumerate(outs0):
             sched.publish(i, outs, 0)
         _windows(sched, sess, opts, ignored, header, remote)
