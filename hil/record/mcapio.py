@@ -144,6 +144,7 @@ def _u64(ns: int) -> int:
 # opcode, record length, channel id, sequence, log time, publish time: mcap's Message.write
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # the record length counts what follows opcode and length
+_OP_MESSAGE = int(Opcode.MESSAGE)  # an enum member's lookup, once
 
 
 class _MessageAppender:
@@ -186,7 +187,7 @@ class _MessageAppender:
     def add(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int) -> None:
         # packed first: a value out of range raises here, before any state changes
         head = _MESSAGE_HEAD.pack(
-            Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence, log_time, publish_time
+            _OP_MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence, log_time, publish_time
         )
         st = self._stats
         if st.message_count == 0 or log_time < st.message_start_time:
@@ -204,16 +205,15 @@ class _MessageAppender:
         if index is None:
             index = cb.message_indices[channel_id] = _FlatMessageIndex(channel_id)
         buf = cb.record_writer._buffer  # a new BytesIO after every chunk: looked up each time
+        offset = buf.tell()
         if type(index) is _FlatMessageIndex:
-            flat = index.flat
-            flat.append(log_time)
-            flat.append(buf.tell())
+            index.flat.extend((log_time, offset))
         else:  # made by mcap's own add_message in this chunk
-            index.records.append((log_time, buf.tell()))
+            index.records.append((log_time, offset))
         cb.num_messages += 1
         buf.write(head)
         buf.write(data)
-        if buf.tell() > self._chunk_size:
+        if offset + _MESSAGE_HEAD.size + len(data) > self._chunk_size:  # buf.tell(), uncalled
             self._finalize()
 
 
