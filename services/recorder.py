@@ -354,7 +354,7 @@ class Recorder(Service):
             self.stats.error(f"rejected.{kind}.invalid", f"{key}: not a valid {cls.__name__}: {err}")
             return
         foreign = origin == FOREIGN
-        if isinstance(msg, RunInfo) and self._start_epoch_ns is None and not foreign:
+        if self._start_epoch_ns is None and isinstance(msg, RunInfo) and not foreign:
             self._start_epoch_ns = msg.start_epoch_ns
             self._speed = msg.speed
             self._run = msg
