@@ -272,3 +272,40 @@ def test_a_recording_made_before_the_coasts_reruns_without_them() -> None:
     assert comp1.line_coast and cf3.core.coast_after == 2.5  # type: ignore[attr-defined]
     comp1, cf3 = FusionCore.for_scenario(s, before).estimators
     assert not comp1.line_coast and not cf3.line_coast and cf3.core.coast_after is None  # type: ignore[attr-defined]
+
+
+def test_the_gate_takes_any_sequence_of_numbers_as_it_takes_arrays() -> None:
+    """A solution or a fix whose vectors are tuples or lists (an estimator of a plugin, say) is
+    floored and judged exactly as the same numbers in arrays: the same σ, verdicts and ratios."""
+    from hil.estimators.base import GnssInput
+    from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel
+    from hil.nav.types import NavState
+
+    model = ReceiverModel(np.full(3, 0.8), np.full(3, 0.01), np.array([0.3, 0.0, -0.2]), 0.3)
+    settings = GateSettings(36.0, 2_000_000_000, 30_000_000_000, "", True)
+    gates = [GnssGate(settings, model), GnssGate(settings, model)]
+    rng = np.random.default_rng(7)
+    for k in range(40):
+        pos, vel = rng.normal(size=3) * 3.0 + (60.0 if k % 3 == 2 else 0.0), rng.normal(size=3) * 0.3
+        sig_p, sig_v = rng.uniform(0.2, 2.0, 3), rng.uniform(0.02, 0.2, 3)
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        nav_p, nav_v, nav_s = rng.normal(size=3) * 3.0, rng.normal(size=3) * 0.3, rng.uniform(0.5, 3.0, 3)
+        t = k * 100_000_000
+        as_arrays = (GnssInput(t, pos, vel, sig_p, sig_v), NavState(nav_p, nav_v, q, nav_s, nav_s / 10))
+        as_sequences = (
+            GnssInput(t, tuple(pos), list(vel), list(sig_p), tuple(sig_v)),  # type: ignore[arg-type]
+            NavState(nav_p, nav_v, q, tuple(nav_s), list(nav_s / 10)),  # type: ignore[arg-type]
+        )
+        verdicts = []
+        for gate, (fix, nav) in zip(gates, (as_arrays, as_sequences), strict=True):
+            floored = gate.floor(fix)
+            verdicts.append(
+                (
+                    np.asarray(floored.pos_sigma_m).tolist(),
+                    gate.verdicts(floored, ["a", "b"], lambda _n, nav=nav: nav, t - 2_000_000, "rx"),
+                    gate.tracks["a"].last_ratio,
+                )
+            )
+        assert verdicts[0] == verdicts[1]
+    assert gates[0].tracks["a"].accepted > 0 and gates[0].tracks["a"].rejected > 0
