@@ -36,6 +36,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from hil.nav.attitude import quat_multiply_floats as _qmul  # the Hamilton product on floats
 from hil.nav.earth import _ecef_to_lla_one, ned_to_ecef_floats  # every solution's geodesy
 from hil.nav.strapdown import _rotvec_quat  # the strapdown's own rotation-vector quaternion
 from hil.nav.types import F64, NavState
@@ -47,17 +48,6 @@ _Entry = tuple[int, float, float, float, float, float, float, float, float, floa
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 Motion = tuple[float, Quat, Vec3, Vec3]  # ΔT, ΔR, Δv, Δp
-
-
-def _qmul(
-    aw: float, ax: float, ay: float, az: float, bw: float, bx: float, by: float, bz: float
-) -> tuple[float, float, float, float]:
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
 
 
 def _rot(qw: float, qx: float, qy: float, qz: float, x: float, y: float, z: float) -> Vec3:

@@ -103,10 +103,11 @@ def _sources_digest(numba: Any) -> str:
     callee alone. The digest goes into each compiled twin's name, so any edit compiles anew."""
     from hil.estimators import compensation, ekf15, feedback
     from hil.fusion import predictor
-    from hil.nav import earth, kernels, strapdown
+    from hil.nav import attitude, earth, kernels, strapdown
 
     h = hashlib.sha256(numba.__version__.encode())
-    for mod in (strapdown, kernels, compensation, earth, predictor, feedback, ekf15, sys.modules[__name__]):
+    kernel_sources = (strapdown, kernels, compensation, earth, attitude, predictor, feedback, ekf15)
+    for mod in (*kernel_sources, sys.modules[__name__]):
         h.update(Path(str(mod.__file__)).read_bytes())
     return h.hexdigest()[:12]
 
