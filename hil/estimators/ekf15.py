@@ -693,10 +693,11 @@ class Ekf15(Estimator):
             return
         s = self.ins
         # on floats, the numpy forms' operations in their order (one fix: ~100 -> ~20 µs)
-        dp_n, dp_e, dp_d, dv_n, dv_e, dv_d, phi_x, phi_y, phi_z = dx[0:9].tolist()
+        _dp_n, _dp_e, dp_d, dv_n, dv_e, dv_d, phi_x, phi_y, phi_z = dx[0:9].tolist()
         r_m, r_n = radii_of_curvature_one(s.lat_rad)
-        lat = s.lat_rad - dp_n / (r_m + s.alt_m)
-        lon = s.lon_rad - dp_e / ((r_n + s.alt_m) * math.cos(s.lat_rad))
+        # numpy scalars divided, as before: a zero divisor of a diverged state gives inf, not a raise
+        lat = s.lat_rad - dx[0] / (r_m + s.alt_m)
+        lon = s.lon_rad - dx[1] / ((r_n + s.alt_m) * math.cos(s.lat_rad))
         alt = s.alt_m + dp_d  # δp_D = −δh
         vn, ve, vd = s.vel
         vel = (vn - dv_n, ve - dv_e, vd - dv_d)

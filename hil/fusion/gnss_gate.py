@@ -63,6 +63,12 @@ def _maximum(a: float, b: float) -> float:
     return a if a >= b or a != a else b
 
 
+def _recip(d: float) -> float:
+    """``1.0 / d`` as numpy divides: ±inf for a zero (a fix that claims σ 0 with the floor off),
+    where Python would raise."""
+    return 1.0 / d if d != 0.0 else math.copysign(math.inf, d)
+
+
 def _ewma(mean: F64, excess: list[float]) -> F64:
     """``(1 − α) m + α max(excess, 0)`` per axis on floats (numpy's operations, in its order)."""
     keep, a = 1.0 - EWMA_ALPHA, EWMA_ALPHA
@@ -243,8 +249,8 @@ class GnssGate:
         r_p = [s * s for s in _fl(gnss.pos_sigma_m)]
         r_v = [s * s for s in _fl(gnss.vel_sigma_mps)]
         yy_p, yy_v = [y * y for y in y_p], [y * y for y in y_v]
-        nis_p = dot(np.array(yy_p), np.array([1.0 / (r + p) for r, p in zip(r_p, p_p, strict=True)]))
-        nis_v = dot(np.array(yy_v), np.array([1.0 / (r + p) for r, p in zip(r_v, p_v, strict=True)]))
+        nis_p = dot(np.array(yy_p), np.array([_recip(r + p) for r, p in zip(r_p, p_p, strict=True)]))
+        nis_v = dot(np.array(yy_v), np.array([_recip(r + p) for r, p in zip(r_v, p_v, strict=True)]))
         chi2 = self.settings.chi2
         tr.last_ratio = max(nis_p, nis_v) / chi2
         ok = nis_p <= chi2 and nis_v <= chi2

@@ -63,6 +63,8 @@ def quat_normalise_floats(w: float, x: float, y: float, z: float) -> tuple[float
     """``quat_normalise`` of one quaternion on floats, the same bits: numpy's norm of four adds
     the squares in order (``tests/unit/test_nav_earth_attitude.py``)."""
     n = math.sqrt(((w * w + x * x) + y * y) + z * z)
+    if n == 0.0:  # numpy's NaN where Python would raise
+        return tuple(quat_normalise(np.array((w, x, y, z))).tolist())  # type: ignore[return-value]
     w, x, y, z = w / n, x / n, y / n, z / n
     return (-w, -x, -y, -z) if w < 0.0 else (w, x, y, z)
 
@@ -71,6 +73,8 @@ def quat_from_rotvec_floats(x: float, y: float, z: float) -> tuple[float, float,
     """``quat_from_rotvec`` of one vector on floats, the same bits (its ``ang**2`` is numpy's
     square, ``ang * ang``; numpy's float64 sin and cos are libm's, as math's)."""
     ang = math.sqrt((x * x + y * y) + z * z)
+    if ang == math.inf:  # numpy's NaN where math's sin and cos would raise
+        return tuple(quat_from_rotvec(np.array((x, y, z))).tolist())  # type: ignore[return-value]
     half = 0.5 * ang
     k = 0.5 - ang * ang / 48.0 if ang < 1e-4 else math.sin(half) / ang
     return math.cos(half), k * x, k * y, k * z

@@ -309,3 +309,21 @@ def test_the_gate_takes_any_sequence_of_numbers_as_it_takes_arrays() -> None:
             )
         assert verdicts[0] == verdicts[1]
     assert gates[0].tracks["a"].accepted > 0 and gates[0].tracks["a"].rejected > 0
+
+
+def test_a_fix_claiming_zero_sigma_with_the_floor_off_is_judged_not_raised() -> None:
+    """σ 0 from the receiver, no floor, a solution without a covariance: the innovation's weight
+    is infinite (numpy's 1/0), so any disagreement is rejected and an exact match is not
+    accepted either (0 · inf is NaN): the gate answers, it does not raise."""
+    from hil.estimators.base import GnssInput
+    from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel
+    from hil.nav.types import NavState
+
+    model = ReceiverModel(np.zeros(3), np.zeros(3), np.zeros(3), 0.3)
+    gate = GnssGate(GateSettings(36.0, 2_000_000_000, 30_000_000_000, "", False), model)
+    nav = NavState(np.zeros(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    off = GnssInput(0, np.array([0.5, 0.0, 0.0]), np.zeros(3), np.zeros(3), np.zeros(3))
+    exact = GnssInput(100_000_000, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    assert gate.verdicts(gate.floor(off), ["a"], lambda _n: nav, 0, "rx") == {"a": False}
+    assert gate.verdicts(gate.floor(exact), ["a"], lambda _n: nav, 0, "rx") == {"a": False}
+    assert gate.tracks["a"].rejected == 2

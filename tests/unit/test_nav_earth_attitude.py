@@ -70,3 +70,19 @@ def test_quaternion_float_twins_give_the_numpy_forms_bits() -> None:
         assert att.quat_normalise_floats(*p.tolist()) == tuple(att.quat_normalise(p).tolist())
         prod = att.quat_multiply(q_num, p)
         assert att.quat_multiply_floats(*q_num.tolist(), *p.tolist()) == tuple(prod.tolist())
+
+
+def test_the_quaternion_float_twins_keep_numpys_answer_where_math_would_raise() -> None:
+    """A diverged filter's reset (an infinite rotation vector, a zero quaternion) gives numpy's
+    NaN from the float forms too, not a ValueError or ZeroDivisionError."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for phi in ((math.inf, 0.0, 0.0), (1.0, -math.inf, 2.0), (math.nan, 0.0, 0.0)):
+            want = att.quat_from_rotvec(np.array(phi)).tolist()
+            got = list(att.quat_from_rotvec_floats(*phi))
+            assert np.array_equal(got, want, equal_nan=True)
+        for q in ((0.0, 0.0, 0.0, 0.0), (math.inf, 0.0, 0.0, 0.0), (math.nan, 1.0, 0.0, 0.0)):
+            want = att.quat_normalise(np.array(q)).tolist()
+            assert np.array_equal(list(att.quat_normalise_floats(*q)), want, equal_nan=True)
