@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from hil.messages import seq_generation, seq_in_generation
+from hil.messages import SEQ_GENERATION_SHIFT, seq_generation, seq_in_generation
 
 MAX_GAP_RANGES = 100
 MAX_SEQ_JUMP = 100_000  # further ahead than this is no gap (4 min of 400 Hz): an outlier
@@ -68,8 +68,14 @@ class SeqTracker:
 
     def see(self, seq: int) -> None:
         self.count += 1
-        g = seq_generation(seq)
+        g = seq >> SEQ_GENERATION_SHIFT  # seq_generation, inline: once per message recorded
         gen = self.generations.get(g)
+        if gen is not None and seq == gen.last + 1:  # the next one, as nearly every message is
+            gen.count += 1
+            gen.last = seq
+            if seq > self.last and g == self.last >> SEQ_GENERATION_SHIFT:
+                self.last = seq
+            return
         if gen is None:
             self._new_generation(g, seq)
             return
