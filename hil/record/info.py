@@ -84,8 +84,10 @@ class Summary:
             self.schemas[topic] = r.schema
             self.counts[topic] = 1
         else:
-            sp[0] = min(sp[0], t)
-            sp[1] = max(sp[1], t)
+            if t < sp[0]:
+                sp[0] = t
+            elif t > sp[1]:  # (t < first <= last: never both)
+                sp[1] = t
             self.counts[topic] += 1
         if not self.accuracy:
             return
