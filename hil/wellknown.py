@@ -241,10 +241,19 @@ def log(ts: Timestamp, level: LogLevel, name: str, message: str) -> bytes:
 
 
 #: The types :meth:`WellKnown.convert` derives messages from: for any other it returns none and
-#: keeps no state. ``isinstance`` against these six msgspec types costs ~0.6 µs when none matches,
-#: so each message type's answer is kept (``_DERIVES``).
+#: keeps no state.
 DERIVED_FROM: tuple[type[Message], ...] = (Truth, NavSolution, GnssFix, Event, ServiceStatus, RunInfo)
 _DERIVES: dict[type, bool] = {}
+
+
+def derives(cls: type) -> bool:
+    """Whether Foxglove messages derive from a message of ``cls`` (a subclass of one of
+    ``DERIVED_FROM``), one dict lookup a message: ``isinstance`` against those six msgspec types
+    costs ~0.6 µs when none matches, as for a CAN frame or an IMU sample, most of the traffic."""
+    got = _DERIVES.get(cls)
+    if got is None:
+        got = _DERIVES[cls] = issubclass(cls, DERIVED_FROM)
+    return got
 
 
 @dataclass
@@ -278,10 +287,7 @@ class WellKnown:
     def convert(self, key: str, msg: Message, log_time_ns: int) -> list[Derived]:
         """The well-known messages derived from ``msg`` on ``key`` (a rig key with or without its
         ``hil/<rig>/`` root); ``log_time_ns`` dates them while no start epoch is known."""
-        derives = _DERIVES.get(type(msg))
-        if derives is None:
-            derives = _DERIVES[type(msg)] = issubclass(type(msg), DERIVED_FROM)
-        if not derives:  # most of the traffic (CAN frames, IMU samples): decided in one lookup
+        if not derives(type(msg)):
             return []
         suffix = rig_suffix(key)
         kind = suffix.partition("/")[0]

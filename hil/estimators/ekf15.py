@@ -692,8 +692,8 @@ class Ekf15(Estimator):
         if not dx.any():
             return
         s = self.ins
-        # on floats, the numpy forms' operations in their order (one fix: ~100 -> ~20 µs)
-        _dp_n, _dp_e, dp_d, dv_n, dv_e, dv_d, phi_x, phi_y, phi_z = dx[0:9].tolist()
+        # on floats, the numpy forms' operations in their order (a fix: 103 -> 24 µs)
+        dp_d, dv_n, dv_e, dv_d, phi_x, phi_y, phi_z = dx[2:9].tolist()
         r_m, r_n = radii_of_curvature_one(s.lat_rad)
         # numpy scalars divided, as before: a zero divisor of a diverged state gives inf, not a raise
         lat = s.lat_rad - dx[0] / (r_m + s.alt_m)

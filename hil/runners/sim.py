@@ -57,7 +57,7 @@ from hil.runners.wire import CanWireModel
 from hil.runtime import jit
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
-from hil.wellknown import DERIVED_FROM, WellKnown
+from hil.wellknown import WellKnown, derives
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
@@ -314,12 +314,6 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
-# The types ``WellKnown.convert`` derives Foxglove messages from: for any other it returns none
-# and keeps no state, so the CAN frames, IMU samples and capture times (three quarters of the
-# traffic) skip the call (tests/unit/test_sim_worker.py: the same file with every type offered)
-DERIVES: tuple[type[Message], ...] = DERIVED_FROM
-
-
 class Prepared(NamedTuple):
     """A message as the file takes it, made by the process that published it (``_Session.prepare``)."""
 
@@ -347,9 +341,6 @@ class _Session:
         self.n_written = 0
         self._seqs: dict[str, int] = {}
         self._puts: dict[str, Callable[[bytes, int, int, int], None] | None] = {}  # per key, bound
-        # per message type, whether it is one of DERIVES: ``isinstance`` against those six msgspec
-        # types costs ~0.6 µs when none matches (a CAN frame: half the traffic), a lookup 0.03
-        self._derives: dict[type, bool] = {}
 
     def write(self, key: str, msg: Message | Prepared, t_log: int) -> None:
         self.write_events(((t_log, 0, 0, key, msg),))
@@ -358,7 +349,6 @@ class _Session:
         """Messages in file order, each ``(log time, _, _, key, message)`` (a window's, sorted:
         ``Scheduler.complete``), their lookups made once for all (~3300 a rig second)."""
         puts, epoch, w, convert = self._puts, self.epoch_ns, self.w, self.wellknown.convert
-        derives = self._derives
         n = 0
         for t_log, _p, _o, key, msg in events:
             put = puts.get(key)
@@ -375,21 +365,13 @@ class _Session:
                     w.write_wellknown(d, log_time_ns=log_ns)
             else:
                 put(encode(msg), log_ns, epoch + msg.stamp_ns, msg.seq)  # type: ignore[union-attr]
-                derived = derives.get(type(msg))
-                if derived is None:
-                    derived = self._derived_from(type(msg))
-                if derived:
+                # the CAN frames, IMU samples and capture times (most of the traffic) derive
+                # none: the converter is not called (test_sim_worker: the same file if it were)
+                if derives(type(msg)):
                     for d in convert(key, msg, log_ns):
                         w.write_wellknown(d, log_time_ns=log_ns)
             n += 1
         self.n_written += n
-
-    def _derived_from(self, cls: type) -> bool:
-        """Whether Foxglove messages derive from a message of ``cls`` (one of ``DERIVES``)."""
-        got = self._derives.get(cls)
-        if got is None:
-            got = self._derives[cls] = issubclass(cls, DERIVES)
-        return got
 
     def _bind(self, key: str, msg: Message | Prepared) -> Callable[[bytes, int, int, int], None] | None:
         """The writer of ``key``'s channel, registered at its first message (None: not kept)."""
@@ -406,7 +388,7 @@ class _Session:
         its bytes, and the Foxglove messages derived from it -- the worker's copy of the
         converter sees the keys of the worker's node only, as this process's sees the others'."""
         derived: list[Any] = []
-        if self._derived_from(type(msg)):
+        if derives(type(msg)):
             derived = self.wellknown.convert(key, msg, self.epoch_ns + t_log)
         return Prepared(type(msg), encode(msg), msg.stamp_ns, msg.seq, derived)
 

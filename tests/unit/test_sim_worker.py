@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.messages import Event, Message
+from hil.messages import Event
 from hil.nodes.base import Node, Out
 from hil.runners.sim import SimOptions, run_sim, sim_run_info
 from hil.runners.sim_worker import RemoteNode, WorkerError, drive
@@ -57,11 +57,14 @@ def test_worker_outputs_encoded_there_keep_parts_and_filters(tmp_path: Path) -> 
 def test_only_the_types_that_derive_foxglove_messages_are_offered(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from hil import wellknown
     from hil.runners import sim
 
     files = []
-    for derives in (sim.DERIVES, (Message,)):  # the sim's filter, then every message offered
-        monkeypatch.setattr(sim, "DERIVES", derives)
+    for every in (False, True):  # the filter (hil.wellknown.derives), then every message offered
+        if every:
+            monkeypatch.setattr(sim, "derives", lambda _cls: True)
+            monkeypatch.setattr(wellknown, "derives", lambda _cls: True)
         rec = tmp_path / f"d{len(files)}.mcap"
         run_sim(
             SimOptions(
