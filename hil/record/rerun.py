@@ -39,7 +39,14 @@ from hil.messages import (
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
-from hil.runners.sim_worker import RemoteNode, Replayed, replay_encoded, worker_pays, worker_possible
+from hil.runners.sim_worker import (
+    EncodedInput,
+    RemoteNode,
+    Replayed,
+    replay_encoded,
+    worker_pays,
+    worker_possible,
+)
 from hil.runtime import jit
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
@@ -164,6 +171,15 @@ def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...
     return a, b
 
 
+#: an input on its way to a worker: message, publisher, predicted, and its payload as recorded
+_Pending = tuple[Measurement, str, bool, bytes]
+
+
+def _encoded(batch: list[_Pending]) -> list[EncodedInput]:
+    """A batch as a worker is sent it (``EncodedInput``): the recorded bytes, decoded there."""
+    return [(payload, type(m), source, predicted) for m, source, predicted, payload in batch]
+
+
 @dataclass
 class _FusionRerun:
     """The state of one fusion rerun over a stream of records (see ``rerun_fusion_records``)."""
@@ -179,7 +195,8 @@ class _FusionRerun:
     node: FusionNode | None = None
     produced: set[str] = field(default_factory=set)
     early_nav: list[Record] = field(default_factory=list)  # outputs before the config said whose
-    heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = field(default_factory=list)
+    # (total-order key, push count, message, publisher, payload as recorded: what a worker is sent)
+    heap: list[tuple[tuple[int, int, int], int, Measurement, str, bytes]] = field(default_factory=list)
     present: Counter[str] = field(default_factory=Counter)  # copies of each input still in the heap
     dropped: Counter[str] = field(default_factory=Counter)
     unpredicted: set[str] = field(default_factory=set)  # IMU samples the live predictor did not take
@@ -200,10 +217,11 @@ class _FusionRerun:
     remote2: RemoteNode | None = None
     shares: tuple[frozenset[str], frozenset[str]] | None = None
     rank: dict[str, int] = field(default_factory=dict)
-    batch: list[tuple[Measurement, str, bool]] = field(default_factory=list)  # for the worker
-    in_flight: list[tuple[Measurement, str, bool]] | None = None  # the batch the worker runs
+    # for the worker: (message, publisher, predicted, payload as recorded)
+    batch: list[_Pending] = field(default_factory=list)
+    in_flight: list[_Pending] | None = None  # the batch the worker runs
     # split: the batch the second worker runs, with the first's solutions of it
-    in_flight_b: tuple[list[tuple[Measurement, str, bool]], list[list[Replayed]]] | None = None
+    in_flight_b: tuple[list[_Pending], list[list[Replayed]]] | None = None
 
     def __post_init__(self) -> None:
         self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns, _nav_current_form)
@@ -265,7 +283,7 @@ class _FusionRerun:
         if self.last_key is not None and (key < self.last_key or seen):
             raise OutOfWindow(f"{r.topic} seq {m.seq} comes after later inputs were rerun")  # type: ignore[attr-defined]
         self.present[input_id(m, r.publisher)] += 1  # type: ignore[arg-type]
-        heapq.heappush(self.heap, (key, self.pushed, m, r.publisher))  # type: ignore[arg-type]
+        heapq.heappush(self.heap, (key, self.pushed, m, r.publisher, r.payload))  # type: ignore[arg-type]
         self.pushed += 1
         self.newest_ns = max(self.newest_ns, m.stamp_ns)
         if self.node is not None and self.window_ns is not None:
@@ -306,7 +324,7 @@ class _FusionRerun:
         assert node is not None
         heap = self.heap
         while heap and (upto_ns is None or heap[0][0][0] < upto_ns):
-            key, _n, msg, source = heapq.heappop(heap)
+            key, _n, msg, source, payload = heapq.heappop(heap)
             self.last_key = key
             stream = _stream(msg.sensor, source)
             if (stream, msg.seq) in self.rerun_ids:
@@ -316,11 +334,11 @@ class _FusionRerun:
             if self.present.pop(i) - self.dropped[i] <= 0:
                 continue
             self.used += 1
-            item = (msg, source, i not in self.unpredicted)
+            predicted = i not in self.unpredicted
             if self.remote is None:
-                self._compare(msg, replay_encoded(node, [item], self.keep_outputs)[0])
+                self._compare(msg, replay_encoded(node, [(msg, source, predicted)], self.keep_outputs)[0])
                 continue
-            self.batch.append(item)
+            self.batch.append((msg, source, predicted, payload))
             if len(self.batch) >= REPLAY_BATCH:
                 self._send_batch()
         if upto_ns is None:  # the end: what the worker still holds
@@ -340,7 +358,7 @@ class _FusionRerun:
     def _take_in_flight(self) -> None:
         if self.in_flight is not None:
             assert self.remote is not None
-            for (msg, _source, _predicted), sols in zip(self.in_flight, self.remote.replayed(), strict=True):
+            for (msg, *_), sols in zip(self.in_flight, self.remote.replayed(), strict=True):
                 self._compare(msg, sols)
             self.in_flight = None
 
@@ -352,7 +370,7 @@ class _FusionRerun:
             return
         self._take_in_flight()
         if self.batch:
-            self.remote.replay(self.batch, self.keep_outputs)
+            self.remote.replay(_encoded(self.batch), self.keep_outputs)
             self.in_flight, self.batch = self.batch, []
 
     def _send_split(self) -> None:
@@ -369,15 +387,15 @@ class _FusionRerun:
         if self.in_flight_b is not None:
             batch, sols_a = self.in_flight_b
             rank = self.rank.__getitem__
-            for (msg, _source, _predicted), x, y in zip(batch, sols_a, b.replayed(), strict=True):
+            for (msg, *_), x, y in zip(batch, sols_a, b.replayed(), strict=True):
                 self._compare(msg, sorted(x + y, key=lambda sol: rank(sol[0])))  # one core's order
             self.in_flight_b = None
         if done_a is not None:
             batch, sols_a, verdicts = done_a
-            b.replay(batch, self.keep_outputs, shares[1], relay=verdicts or {})
+            b.replay(_encoded(batch), self.keep_outputs, shares[1], relay=verdicts or {})
             self.in_flight_b = (batch, sols_a)
         if self.batch:
-            a.replay(self.batch, self.keep_outputs, shares[0], verdicts=True)
+            a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
             self.in_flight, self.batch = self.batch, []
 
     def drain(self) -> None:
