@@ -48,6 +48,7 @@ from hil.runners.sim_worker import (
     worker_possible,
 )
 from hil.runtime import jit
+from hil.runtime.heap import freeze_startup
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
 
@@ -260,21 +261,24 @@ class _FusionRerun:
         that share its estimators: the kernels are compiled where it runs, with the same bits."""
         self.node = node
         if not (self.worker if self.worker is not None else worker_pays(node)):
-            jit.enable()
+            jit.enable_for_run()
             return
         cfg, run = self.cfg, self.run
         split = self.split if self.split is not None else worker_possible(SPLIT_MIN_CPUS)
         shares = split_estimators(cfg) if cfg is not None and split else None
         if shares is None or cfg is None or run is None:
-            self.remote = RemoteNode(node, setup=jit.enable)
+            self.remote = RemoteNode(node, setup=jit.enable_for_run)
+            freeze_startup()
             return
         from dataclasses import replace
 
         a, b = shares
         self.shares = frozenset({FREE_INS, *a}), frozenset(b)
         self.rank = {name: i for i, name in enumerate((FREE_INS, *cfg.estimators))}
-        self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=jit.enable)
-        self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=jit.enable)
+        setup = jit.enable_for_run
+        self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=setup)
+        self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=setup)
+        freeze_startup()
 
     def _synced(self, r: Record) -> None:
         m = r.decode()

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import gc
 import json
 import os
 import threading
@@ -55,6 +54,7 @@ from hil.nodes.base import (
 from hil.runners.pacing import MonotonicRigClock, PacingConfig
 from hil.runtime.argtypes import OneLineParser, finite_float
 from hil.runtime.clock import RigClock, epoch_s_to_rig_ns, wall_ns
+from hil.runtime.heap import freeze_startup
 from hil.runtime.service import Service, ServiceContext, run_service
 
 if TYPE_CHECKING:
@@ -280,8 +280,7 @@ class NodeService(Service):
         # Everything built so far (modules, the node, its estimators) lives as long as the process:
         # out of the collector's reach, a full collection scans only what the run makes, not the
         # ~27k objects a fusion service's imports leave: pauses that landed on the output's latency.
-        gc.collect()
-        gc.freeze()
+        freeze_startup()
         if self.can_sender is not None:
             self._run_paced(node, run)
             return

@@ -21,6 +21,7 @@ Elsewhere (musl, macOS) there is no such call and ``HeapTrimmer.available`` is F
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 import time
 from collections.abc import Callable
@@ -83,3 +84,13 @@ class HeapTrimmer:
             "heap_trim_max_us": round(self.max_ms * 1e3),
             "rss_kib": rss_kib() or 0,
         }
+
+
+def freeze_startup() -> None:
+    """Move everything built so far (modules, compiled kernels, the nodes and their estimators,
+    all living as long as the process) out of the cyclic collector's reach: its full collections
+    then scan only what the run makes. Without it ``hil rerun``'s fusion worker spent 0.56 of its
+    7.6 s of CPU on 300 s of straight_level in the collector (117k objects tracked, 7 full
+    collections), with it 0.19 s; a live service's pauses landed on the output's latency."""
+    gc.collect()
+    gc.freeze()
