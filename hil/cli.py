@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from hil import __version__
+from hil.runtime import heap
 from hil.runtime.argtypes import (
     OneLineParser,
     bounded_float,
@@ -495,7 +496,8 @@ def cmd_rerun(a: argparse.Namespace) -> int:
         if a.core == "timesync":  # without the fusion's modules: a tenth of its start-up
             from hil.record.rerun_timesync import rerun_timesync_report
 
-            rc, lines = rerun_timesync_report(a.file, a.verify, on_progress)
+            worker = False if a.one_process else None
+            rc, lines = rerun_timesync_report(a.file, a.verify, on_progress, worker)
         else:
             from hil.record.rerun import rerun
 
@@ -937,8 +939,8 @@ def _add_rerun_parser(sub: Any) -> None:
     rr.add_argument(
         "--one-process",
         action="store_true",
-        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs, "
-        "recomputing while this one reads; the same bits)",
+        help="keep the core in this process (default on 2+ CPUs: a worker for the fusion of 3+ "
+        "estimators, or the time sync, recomputing while this one reads; the same bits)",
     )
     rr.add_argument(
         "--workers",
@@ -1073,6 +1075,8 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the program itself, not a caller with arguments of its own (a test)
+        heap.command_process = True
     argv = sys.argv[1:] if argv is None else argv
     # `hil service NAME` is every process of `hil up`, whose start-up time zero waits for: the
     # whole command line's parsers (hil.faults, numpy with it) cost it ~0.2 s of CPU

@@ -48,7 +48,7 @@ from hil.runners.sim_worker import (
     worker_possible,
 )
 from hil.runtime import jit
-from hil.runtime.heap import freeze_startup
+from hil.runtime.heap import freeze_command_startup
 
 FUSION_CONFIG_EVENT = "fusion_config"  # how recordings before hil.FusionSettings said it
 
@@ -261,14 +261,15 @@ class _FusionRerun:
         that share its estimators: the kernels are compiled where it runs, with the same bits."""
         self.node = node
         if not (self.worker if self.worker is not None else worker_pays(node)):
-            jit.enable_for_run()
+            jit.enable()
+            freeze_command_startup()
             return
         cfg, run = self.cfg, self.run
         split = self.split if self.split is not None else worker_possible(SPLIT_MIN_CPUS)
         shares = split_estimators(cfg) if cfg is not None and split else None
         if shares is None or cfg is None or run is None:
             self.remote = RemoteNode(node, setup=jit.enable_for_run)
-            freeze_startup()
+            freeze_command_startup()
             return
         from dataclasses import replace
 
@@ -278,7 +279,7 @@ class _FusionRerun:
         setup = jit.enable_for_run
         self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=setup)
         self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=setup)
-        freeze_startup()
+        freeze_command_startup()
 
     def _synced(self, r: Record) -> None:
         m = r.decode()
@@ -561,7 +562,7 @@ def rerun(
     if core == "timesync":
         from hil.record.rerun_timesync import rerun_timesync_report
 
-        return rerun_timesync_report(path, verify, on_progress)
+        return rerun_timesync_report(path, verify, on_progress, worker)
     if core != "fusion":
         return 2, [f"hil rerun: core {core!r} is not rerunnable (fusion, timesync)"]
     res, stream, note = rerun_fusion_file(path, on_progress=on_progress, worker=worker, split=split)

@@ -55,7 +55,7 @@ from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
 from hil.runners.sim_worker import RemoteNode, drive, worker_pays
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
-from hil.runtime.heap import freeze_startup
+from hil.runtime.heap import freeze_command_startup
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.wellknown import WellKnown, derives
@@ -479,7 +479,7 @@ def run_sim(opts: SimOptions) -> SimResult:
     if not use_worker:
         jit.enable()
     outs0 = [node.start(0) for node in nodes]
-    freeze_startup()  # the nodes, the writer and the modules live as long as the run
+    freeze_command_startup()  # the nodes, the writer and the modules live as long as the run
     # forked after start; its outputs come back encoded for the file (``_Session.prepare``)
     remote = RemoteNode(nodes[-1], setup=jit.enable_for_run, prepare=sess.prepare) if use_worker else None
     try:

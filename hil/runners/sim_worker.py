@@ -166,6 +166,15 @@ class RemoteNode:
         for, the other core of a split rerun (:func:`replay_split`)."""
         self._send(("replay", inputs, keep, only, relay, verdicts))
 
+    def call(self, fn: Callable[..., Any], *args: Any) -> None:
+        """``fn(node, *args)`` in the worker; ``called`` takes what it returned. ``fn`` is a
+        module-level function (pickled by name): ``hil rerun --core timesync``'s node side."""
+        self._send(("call", fn, args))
+
+    def called(self) -> Any:
+        """What the oldest ``call`` sent returned."""
+        return self._reply()[1]
+
     def _reply(self) -> tuple[Any, ...]:
         try:
             reply: tuple[Any, ...] = pickle.load(self._rfile)
@@ -173,6 +182,8 @@ class RemoteNode:
             raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
         if reply[0] == "error":
             raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
+        if reply[0] == "raise":  # the worker has stopped
+            raise reply[1]
         return reply
 
     def result(self) -> tuple[list[tuple[list[Out], int]], bool]:
@@ -219,9 +230,14 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
         published: list[tuple[list[Out], int]] = []
         publish = _collector(published, prepare)
         try:
-            if req[0] == "replay":
+            if req[0] == "call":
+                try:
+                    reply: tuple[Any, ...] = ("ok", req[1](node, *req[2]))
+                except ValueError as err:  # bad input (a malformed payload): raised as the caller's
+                    reply = ("raise", err)
+            elif req[0] == "replay":
                 inputs = [(decode(cls, payload), source, p) for payload, cls, source, p in req[1]]
-                reply: tuple[Any, ...] = ("ok", *replay_split(node, inputs, *req[2:]))
+                reply = ("ok", *replay_split(node, inputs, *req[2:]))
             else:
                 busy = drive(node, req[1], req[2], publish)
                 if req[0] == "finish":
@@ -231,7 +247,7 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
             reply = ("error", traceback.format_exc())
         pickle.dump(reply, wfile, protocol=pickle.HIGHEST_PROTOCOL)
         wfile.flush()
-        if reply[0] == "error":
+        if reply[0] in ("error", "raise"):
             return
 
 

@@ -86,6 +86,18 @@ class HeapTrimmer:
         }
 
 
+#: Set by ``hil``'s command line (``hil.cli.main``): the process is the command's own, and what it
+#: has built by its run's start lives as long as it. A library caller (a test, a notebook) keeps
+#: its collector as it was: frozen objects in a cycle are never collected.
+command_process = False
+
+
+def freeze_command_startup() -> None:
+    """:func:`freeze_startup` in a command's own process only (``command_process``)."""
+    if command_process:
+        freeze_startup()
+
+
 def freeze_startup() -> None:
     """Move everything built so far (modules, compiled kernels, the nodes and their estimators,
     all living as long as the process) out of the cyclic collector's reach: its full collections

@@ -22,6 +22,7 @@ import pytest
 
 from hil.messages import TYPES_BY_NAME
 from hil.record import rerun as rerun_module
+from hil.record import rerun_timesync as rerun_timesync_module
 from hil.record.matching import SeqSet
 from hil.record.mcapio import Record, SessionStream, SessionWriter, read_session
 from hil.record.rerun import rerun, rerun_fusion, rerun_fusion_file, rerun_fusion_records
@@ -154,6 +155,53 @@ def test_timesync_streaming_names_a_changed_restamp_and_passes_the_original(tmp_
     assert diff is not None and diff.startswith("synced/imu seq 300: field 'stamp_ns' differs"), diff
     rc, lines = rerun(str(bad), core="timesync", verify=True)
     assert rc == 1 and "synced/imu seq 300" in lines[-1]
+
+
+def _timesync_batches_seen(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The sizes of the batches the time-sync rerun hands its worker (the worker path, observed)."""
+    sizes: list[int] = []
+    call = RemoteNode.call
+
+    def counted(self: RemoteNode, fn: Any, *args: Any) -> None:
+        if fn is rerun_timesync_module.restamps:
+            sizes.append(len(args[0]))
+        call(self, fn, *args)
+
+    monkeypatch.setattr(RemoteNode, "call", counted)
+    monkeypatch.setattr(rerun_timesync_module, "NODE_BATCH", 100)  # the golden's 4 s: many batches
+    return sizes
+
+
+def test_the_time_sync_in_a_worker_matches_what_one_process_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    alone = rerun_timesync_records(SessionStream(GOLDEN), worker=False)
+    sizes = _timesync_batches_seen(monkeypatch)
+    forked = rerun_timesync_records(SessionStream(GOLDEN), worker=True)
+    assert len(sizes) > 10 and sum(sizes) == forked.measurements + forked.timetags, sizes
+    assert alone == forked and forked.difference is None and forked.n_recorded > 1000
+    # a changed re-stamp and one recorded too late are named alike (the matcher's operations
+    # run in file order, however far behind the worker is)
+    bad = tmp_path / "tampered_ts.mcap"
+    _copy(bad, {("/synced/imu", 300): {"stamp_ns": 1}, ("/synced/imu", 900): {"stamp_ns": 2}})
+    alone = rerun_timesync_records(SessionStream(bad), worker=False)
+    forked = rerun_timesync_records(SessionStream(bad), worker=True)
+    assert alone == forked and (forked.difference or "").startswith("synced/imu seq 300: field 'stamp_ns'")
+
+
+def test_a_malformed_measurement_fails_the_time_sync_rerun_as_in_one_process(tmp_path: Path) -> None:
+    bad = tmp_path / "malformed_ts.mcap"
+
+    def payload_of(r: Record) -> bytes:
+        return b'{"seq": "nine"}' if r.topic.endswith("/sensor/imu") and r.sequence == 200 else r.payload
+
+    _rewrite(bad, payload_of)
+    errors = []
+    for worker in (False, True):
+        with pytest.raises(msgspec.ValidationError) as err:
+            rerun_timesync_records(SessionStream(bad), worker=worker)
+        errors.append(str(err.value))
+    assert errors[0] == errors[1] and "seq" in errors[0], errors
 
 
 def test_progress_is_reported_in_bytes_of_the_file() -> None:
