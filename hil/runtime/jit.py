@@ -68,7 +68,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from hil.runtime.heap import freeze_startup
+from hil.runtime.heap import freeze_startup, offline_collector
 
 JIT_ENV = "HIL_JIT"
 
@@ -183,11 +183,11 @@ def enable(env: Mapping[str, str] | None = None) -> str:
 
 
 def enable_for_run() -> str:
-    """:func:`enable`, then everything loaded so far frozen out of the collector's reach
-    (``hil.runtime.heap.freeze_startup``): what a process that runs the fusion offline does
-    before its first input (``hil sim``'s and ``hil rerun``'s workers)."""
+    """:func:`enable`, then everything loaded so far frozen out of the collector's reach and its
+    threshold raised (``hil.runtime.heap.offline_collector``): what a process that runs the
+    fusion offline does before its first input (``hil sim``'s and ``hil rerun``'s workers)."""
     how = enable()
-    freeze_startup()
+    offline_collector()
     return how
 
 

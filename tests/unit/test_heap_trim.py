@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import subprocess
 import sys
 import threading
@@ -12,7 +13,8 @@ import pytest
 from hil.bus.pubsub import Stats, Subscriber
 from hil.bus.session import BusConfig, open_session
 from hil.messages import ServiceStatus
-from hil.runtime.heap import HeapTrimmer, rss_kib
+from hil.runtime import heap
+from hil.runtime.heap import OFFLINE_GEN0_THRESHOLD, HeapTrimmer, rss_kib
 from hil.runtime.service import HEAP_TRIM_PERIOD_S, Service, ServiceContext, heap_trim_period
 
 # In a child, so the pytest process's heap is not the one measured: a worker thread (its own
@@ -20,7 +22,8 @@ from hil.runtime.service import HEAP_TRIM_PERIOD_S, Service, ServiceContext, hea
 # pymalloc's -- and keeps every 50th, which pins the arena's top; then one trim.
 _FRAGMENT = """
 import json, os, threading
-from hil.runtime.heap import HeapTrimmer, rss_kib
+from hil.runtime import heap
+from hil.runtime.heap import OFFLINE_GEN0_THRESHOLD, HeapTrimmer, rss_kib
 keep = []
 def work():
     objs = [bytes(600) + os.urandom(8) for _ in range(200_000)]
@@ -151,7 +154,7 @@ after = Node()
 ids = {id(o) for o in gc.get_objects()}
 print(json.dumps({"how": how, "junk_alive": junk_ref() is not None, "live_tracked": id(live) in ids,
                   "after_tracked": id(after) in ids, "frozen": gc.get_freeze_count(),
-                  "tracked_before": tracked_before, "tracked": len(ids)}))
+                  "tracked_before": tracked_before, "tracked": len(ids), "gen0": gc.get_threshold()[0]}))
 """
 
 
@@ -166,3 +169,13 @@ def test_a_run_freezes_its_start_up_out_of_the_collectors_reach() -> None:
     assert got["after_tracked"]
     # numba's objects (when it loads) join the modules': a full collection walks a few thousand
     assert got["frozen"] > got["tracked_before"] > got["tracked"]
+    assert got["gen0"] == OFFLINE_GEN0_THRESHOLD  # young collections as rare as a window's end
+
+
+def test_a_caller_of_the_offline_runs_keeps_its_collector(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only hil's own process freezes and retunes its collector: a test or a notebook that runs
+    ``hil sim`` or a rerun as a function keeps Python's (frozen objects in a cycle never go)."""
+    monkeypatch.setattr(heap, "command_process", False)
+    threshold, frozen = gc.get_threshold(), gc.get_freeze_count()
+    heap.freeze_command_startup()
+    assert gc.get_threshold() == threshold and gc.get_freeze_count() == frozen
