@@ -134,9 +134,9 @@ class _TimesyncMatch:
 
     def start(self, node: TimeSyncNode) -> None:
         self.node = node
+        freeze_command_startup()  # the node and the modules live as long as the rerun (a worker too)
         if self.worker if self.worker is not None else worker_possible():
             self.remote = RemoteNode(node)
-        freeze_command_startup()  # the node and the modules live as long as the rerun
 
     def handle(self, topic: str, schema: str, payload: bytes, sequence: int, now_ns: int) -> None:
         routes = self.routes
