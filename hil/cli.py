@@ -384,6 +384,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record_include=list(a.record_include),
                 record_exclude=list(a.record_exclude),
                 fusion_worker=False if a.one_process else None,
+                writer_process=False if a.one_process else None,
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )
@@ -983,7 +984,8 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     sim.add_argument(
         "--one-process",
         action="store_true",
-        help="keep the fusion in this process (default: a worker for 3+ estimators on 2+ CPUs; same file)",
+        help="keep the fusion and the recording in this process (default on 2+ CPUs: a worker for "
+        "the fusion of 3+ estimators, else a process that writes the file; the same file)",
     )
     sim.set_defaults(func=cmd_sim)
 

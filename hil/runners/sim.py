@@ -26,6 +26,12 @@ file is the one-process file byte for byte (``fusion_worker=False`` / ``--one-pr
 The worker sends each output back as the file takes it (``_Session.prepare``: its bytes and the
 Foxglove messages derived from it), since this process, which runs the rest of the pipeline
 and writes, is the slower of the two.
+
+Without a fusion worker (one or two estimators: ``--estimators ins`` for a Schuler check), a
+forked writer takes the file (``hil.runners.sim_writer``): the same ``SessionWriter`` calls in
+the same order, a window at a time, so the same bytes (``writer_process=False`` /
+``--one-process``: this process writes). Beside a fusion worker it is not used: a third busy
+process on two CPUs made the sim slower.
 """
 
 from __future__ import annotations
@@ -52,7 +58,8 @@ from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
-from hil.runners.sim_worker import RemoteNode, drive, worker_pays
+from hil.runners.sim_worker import RemoteNode, drive, worker_pays, worker_possible
+from hil.runners.sim_writer import RemoteWriter
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
 from hil.runtime.heap import freeze_command_startup
@@ -92,6 +99,10 @@ class SimOptions:
     # file is the same byte for byte. None: when fork exists, two CPUs are available and the
     # fusion runs at least WORKER_MIN_ESTIMATORS estimators
     fusion_worker: bool | None = None
+    # the recording written by a second process, a window behind (hil.runners.sim_writer); the
+    # same file byte for byte. None: when the fusion stays in this process, fork exists and two
+    # CPUs are available (beside a fusion worker, a third process on two CPUs was slower)
+    writer_process: bool | None = None
 
 
 @dataclass
@@ -328,13 +339,16 @@ class Prepared(NamedTuple):
 class _Session:
     """The recording side of one sim: the writer, runner-owned seqs, status, progress."""
 
-    def __init__(self, run: RunInfo, opts: SimOptions, nodes: list[Node]) -> None:
+    def __init__(
+        self, run: RunInfo, opts: SimOptions, nodes: list[Node], writer_process: bool = False
+    ) -> None:
         self.root = f"hil/{run.rig}"
         self.nodes = nodes
         self.opts = opts
         self.end_ns = int(run.duration_s * 1e9)
         self.epoch_ns = run.start_epoch_ns  # rig time zero on the wall-clock timeline
-        self.w = SessionWriter(opts.record)
+        self.writer_process = writer_process
+        self.w = self._open(opts.record)
         self.wellknown = WellKnown(start_epoch_ns=run.start_epoch_ns)  # Foxglove's types, as live
         self.keep = KeyFilter(run.rig, opts.record_include, opts.record_exclude)
         self.part = 0
@@ -342,6 +356,10 @@ class _Session:
         self.n_written = 0
         self._seqs: dict[str, int] = {}
         self._puts: dict[str, Callable[[bytes, int, int, int], None] | None] = {}  # per key, bound
+
+    def _open(self, path: Path) -> SessionWriter:
+        """The file's writer: in a second process (``writer_process``), or this one's."""
+        return RemoteWriter(path) if self.writer_process else SessionWriter(path)  # type: ignore[return-value]
 
     def write(self, key: str, msg: Message | Prepared, t_log: int) -> None:
         self.write_events(((t_log, 0, 0, key, msg),))
@@ -406,7 +424,7 @@ class _Session:
         self.w.close()
         self.part += 1
         self.part_t0_ns = t_ns
-        self.w = SessionWriter(split_part_path(o.record, self.part))
+        self.w = self._open(split_part_path(o.record, self.part))
         self._puts.clear()  # the channels of the new part: registered at their first message
         self.w.add_metadata(
             "part", {"index": self.part, "previous": split_part_path(o.record, self.part - 1).name}
@@ -457,7 +475,13 @@ def run_sim(opts: SimOptions) -> SimResult:
     run = sim_run_info(opts)
     s = scenario_for_run(run)
     nodes = sim_nodes(run, opts)
-    sess = _Session(run, opts, nodes)
+    use_worker = opts.fusion_worker
+    if use_worker is None:
+        use_worker = worker_pays(nodes[-1])
+    writer = opts.writer_process
+    if writer is None:  # with the fusion in a worker, a third process on two CPUs cost more
+        writer = not use_worker and worker_possible()
+    sess = _Session(run, opts, nodes, writer)
 
     def header(w: SessionWriter) -> None:
         _header(w, run, s)
@@ -471,9 +495,6 @@ def run_sim(opts: SimOptions) -> SimResult:
             sys.stderr.write(f"hil sim: warning: {line}\n")
             sys.stderr.flush()
     wire = CanWireModel(s)
-    use_worker = opts.fusion_worker
-    if use_worker is None:
-        use_worker = worker_pays(nodes[-1])
     # the fusion's kernels compiled where it runs (the same bits either way): with a worker, in
     # the worker; this process, which runs no fusion, does not import numba
     if not use_worker:
@@ -487,6 +508,9 @@ def run_sim(opts: SimOptions) -> SimResult:
         for i, outs in enumerate(outs0):
             sched.publish(i, outs, 0)
         _windows(sched, sess, opts, ignored, header, remote)
+    except BaseException:
+        sess.w.abandon()  # what was flushed stays readable; a writer process is stopped
+        raise
     finally:
         if remote is not None:
             remote.close()
