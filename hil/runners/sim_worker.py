@@ -32,6 +32,7 @@ from hil.nodes.base import Node, Out
 __all__ = [
     "WORKER_MIN_ESTIMATORS",
     "EncodedInput",
+    "ForkedChild",
     "RemoteNode",
     "Replayed",
     "drive",
@@ -104,7 +105,42 @@ class WorkerError(RuntimeError):
     """The worker failed; the message holds its traceback."""
 
 
-class RemoteNode:
+class ForkedChild:
+    """A forked child serving ``serve(sock)`` on its end of a socket pair (``RemoteNode``,
+    :class:`hil.runners.sim_writer.RemoteWriter`): this side's reader and writer on the other end,
+    and the child stopped and reaped by :meth:`_reap`. The child never returns into the caller's
+    code: it leaves with ``os._exit``, whatever happens."""
+
+    def __init__(self, serve: Callable[[socket.socket], None]) -> None:
+        parent, child = socket.socketpair()
+        pid = os.fork()
+        if pid == 0:
+            code = 1
+            try:
+                parent.close()
+                serve(child)
+                code = 0
+            finally:
+                os._exit(code)
+        child.close()
+        self.pid = pid
+        self._sock = parent
+        self._rfile = parent.makefile("rb")
+        self._wfile = parent.makefile("wb")
+
+    def _reap(self) -> None:
+        """A shutdown, not a message: a child blocked writing a large reply while this side is
+        not reading would never see one; it sees its socket end, and leaves."""
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)
+        for f in (self._wfile, self._rfile, self._sock):
+            with contextlib.suppress(OSError):
+                f.close()
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(self.pid, 0)
+
+
+class RemoteNode(ForkedChild):
     """A node run in a forked child; ``window`` sends a window's inputs, ``result`` waits for
     its outputs. Between the two the caller is free to work on the next window."""
 
@@ -121,23 +157,13 @@ class RemoteNode:
         self.name = node.name
         self._counters: dict[str, int] = node.counters()
         self.last_error = node.last_error
-        parent, child = socket.socketpair()
-        pid = os.fork()
-        if pid == 0:  # the worker: serve, then leave without running the caller's code
-            code = 1
-            try:
-                parent.close()
-                if setup is not None:
-                    setup()
-                _serve(node, child, prepare)
-                code = 0
-            finally:
-                os._exit(code)
-        child.close()
-        self.pid = pid
-        self._sock = parent
-        self._rfile = parent.makefile("rb")
-        self._wfile = parent.makefile("wb")
+
+        def serve(sock: socket.socket) -> None:  # the worker
+            if setup is not None:
+                setup()
+            _serve(node, sock, prepare)
+
+        super().__init__(serve)
 
     def _send(self, req: tuple[Any, ...]) -> None:
         try:
@@ -206,16 +232,8 @@ class RemoteNode:
         return self._counters
 
     def close(self) -> None:
-        """Stop the worker and reap it (also after a failure on either side). A shutdown, not a
-        message: a worker blocked writing a large reply while this side is not reading would
-        never see one; it sees its socket end, and leaves."""
-        with contextlib.suppress(OSError):
-            self._sock.shutdown(socket.SHUT_RDWR)
-        for f in (self._wfile, self._rfile, self._sock):
-            with contextlib.suppress(OSError):
-                f.close()
-        with contextlib.suppress(ChildProcessError):
-            os.waitpid(self.pid, 0)
+        """Stop the worker and reap it (also after a failure on either side)."""
+        self._reap()
 
 
 def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], Any] | None = None) -> None:

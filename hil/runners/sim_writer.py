@@ -11,13 +11,11 @@ already encoded here (their bytes go over), so the child never decodes.
 A failure in the child (a full disk) comes back as the same :class:`RecordingError` at the next
 flush or at ``close``; a child that died says so. What it flushed before stays in the file, as
 with :class:`SessionWriter`. ``fork`` and a socket pair, pickle between this process's own code,
-as :mod:`hil.runners.sim_worker`; the child leaves with ``os._exit`` whatever happens.
+as :mod:`hil.runners.sim_worker` (its ``ForkedChild``).
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
 import pickle
 import select
 import socket
@@ -28,12 +26,13 @@ from typing import Any
 
 from hil.messages import Message
 from hil.record.mcapio import RecordingError, SessionWriter
+from hil.runners.sim_worker import ForkedChild
 from hil.runtime import heap
 
 __all__ = ["RemoteWriter"]
 
 
-class RemoteWriter:
+class RemoteWriter(ForkedChild):
     """:class:`SessionWriter`'s interface for ``hil sim``, the calls made in a forked child."""
 
     def __init__(self, path: str | Path) -> None:
@@ -41,21 +40,7 @@ class RemoteWriter:
         self.closed = False
         self._ops: list[tuple[Any, ...]] = []
         self._tokens = 0
-        parent, child = socket.socketpair()
-        pid = os.fork()
-        if pid == 0:  # the child: write, then leave without running the caller's code
-            code = 1
-            try:
-                parent.close()
-                _serve(child, self.path)
-                code = 0
-            finally:
-                os._exit(code)
-        child.close()
-        self.pid = pid
-        self._sock = parent
-        self._rfile = parent.makefile("rb")
-        self._wfile = parent.makefile("wb")
+        super().__init__(lambda sock: _serve(sock, self.path))
         try:
             self._reply()  # the file is open (or the child's RecordingError is raised here)
         except BaseException:
@@ -142,15 +127,6 @@ class RemoteWriter:
         if reply[0] == "error":
             raise RecordingError(f"the writer process for {self.path} failed:\n{reply[1]}")
         return reply
-
-    def _reap(self) -> None:
-        with contextlib.suppress(OSError):
-            self._sock.shutdown(socket.SHUT_RDWR)
-        for f in (self._wfile, self._rfile, self._sock):
-            with contextlib.suppress(OSError):
-                f.close()
-        with contextlib.suppress(ChildProcessError):
-            os.waitpid(self.pid, 0)
 
 
 def _serve(sock: socket.socket, path: Path) -> None:
