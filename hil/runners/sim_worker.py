@@ -35,6 +35,7 @@ __all__ = [
     "ForkedChild",
     "RemoteNode",
     "Replayed",
+    "child_ends",
     "drive",
     "replay_split",
     "worker_pays",
@@ -128,6 +129,18 @@ class ForkedChild:
         self._rfile = parent.makefile("rb")
         self._wfile = parent.makefile("wb")
 
+    def _put(self, obj: Any) -> None:
+        """``obj`` to the child (pickled: this process's own objects, to its own fork)."""
+        pickle.dump(obj, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
+        self._wfile.flush()
+
+    def _get(self) -> Any:
+        """What the child sent next; ``EOFError`` when it is gone or sent half a message."""
+        try:
+            return pickle.load(self._rfile)
+        except pickle.UnpicklingError as err:
+            raise EOFError(str(err)) from err
+
     def _reap(self) -> None:
         """A shutdown, not a message: a child blocked writing a large reply while this side is
         not reading would never see one; it sees its socket end, and leaves."""
@@ -167,8 +180,7 @@ class RemoteNode(ForkedChild):
 
     def _send(self, req: tuple[Any, ...]) -> None:
         try:
-            pickle.dump(req, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
-            self._wfile.flush()
+            self._put(req)
         except OSError as err:
             raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
 
@@ -203,8 +215,8 @@ class RemoteNode(ForkedChild):
 
     def _reply(self) -> tuple[Any, ...]:
         try:
-            reply: tuple[Any, ...] = pickle.load(self._rfile)
-        except (EOFError, OSError, pickle.UnpicklingError) as err:
+            reply: tuple[Any, ...] = self._get()
+        except (EOFError, OSError) as err:
             raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
         if reply[0] == "error":
             raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
@@ -236,11 +248,26 @@ class RemoteNode(ForkedChild):
         self._reap()
 
 
-def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], Any] | None = None) -> None:
+def child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
+    """A ``ForkedChild``'s own end: ``receive()`` (``EOFError`` once the caller is gone) and
+    ``say(obj)``, pickled as :meth:`ForkedChild._put` and ``_get`` are."""
     rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
+
+    def receive() -> Any:
+        return pickle.load(rfile)
+
+    def say(obj: Any) -> None:
+        pickle.dump(obj, wfile, protocol=pickle.HIGHEST_PROTOCOL)
+        wfile.flush()
+
+    return receive, say
+
+
+def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], Any] | None = None) -> None:
+    receive, say = child_ends(sock)
     while True:
         try:
-            req = pickle.load(rfile)
+            req = receive()
         except EOFError:
             return
         if req[0] == "stop":
@@ -263,8 +290,7 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
                 reply = ("ok", published, busy, node.counters(), node.last_error)
         except Exception:
             reply = ("error", traceback.format_exc())
-        pickle.dump(reply, wfile, protocol=pickle.HIGHEST_PROTOCOL)
-        wfile.flush()
+        say(reply)
         if reply[0] in ("error", "raise"):
             return
 

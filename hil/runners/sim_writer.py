@@ -3,20 +3,20 @@
 Why: appending ~3300 messages a rig second to the open MCAP chunk, compressing each closed chunk
 with zstd and writing it is ~15 % of ``hil sim``'s own process, the pipeline's slower one on
 straight_level. Here that process makes every ``SessionWriter`` call as before, but each is
-kept as an operation and a window's operations go to a forked child in one pickle at the window's
+kept as an operation and a window's operations go to a forked child in one message at the window's
 flush; the child makes the same calls on a real :class:`SessionWriter` in the same order, so the
 file is byte for byte the one-process file (``tests/unit/test_sim_writer.py``). The messages are
 already encoded here (their bytes go over), so the child never decodes.
 
 A failure in the child (a full disk) comes back as the same :class:`RecordingError` at the next
 flush or at ``close``; a child that died says so. What it flushed before stays in the file, as
-with :class:`SessionWriter`. ``fork`` and a socket pair, pickle between this process's own code,
-as :mod:`hil.runners.sim_worker` (its ``ForkedChild``).
+with :class:`SessionWriter`. The fork, the socket pair and what goes over it are
+:mod:`hil.runners.sim_worker`'s (``ForkedChild``, ``child_ends``): this process's own objects to
+its own fork, never a file or the wire.
 """
 
 from __future__ import annotations
 
-import pickle
 import select
 import socket
 import traceback
@@ -26,7 +26,7 @@ from typing import Any
 
 from hil.messages import Message
 from hil.record.mcapio import RecordingError, SessionWriter
-from hil.runners.sim_worker import ForkedChild
+from hil.runners.sim_worker import ForkedChild, child_ends
 from hil.runtime import heap
 
 __all__ = ["RemoteWriter"]
@@ -108,8 +108,7 @@ class RemoteWriter(ForkedChild):
     def _send(self) -> None:
         ops = self._ops
         try:
-            pickle.dump(ops, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
-            self._wfile.flush()
+            self._put(ops)
         except OSError as err:
             if select.select([self._sock], [], [], 0)[0]:
                 self._reply()  # the child said why it stopped: that is the error
@@ -119,8 +118,8 @@ class RemoteWriter(ForkedChild):
 
     def _reply(self) -> tuple[Any, ...]:
         try:
-            reply: tuple[Any, ...] = pickle.load(self._rfile)
-        except (EOFError, OSError, pickle.UnpicklingError) as err:
+            reply: tuple[Any, ...] = self._get()
+        except (EOFError, OSError) as err:
             raise RecordingError(f"the writer process for {self.path} died ({err or 'no reply'})") from err
         if reply[0] == "raise":
             raise reply[1]
@@ -130,12 +129,7 @@ class RemoteWriter(ForkedChild):
 
 
 def _serve(sock: socket.socket, path: Path) -> None:
-    rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
-
-    def say(reply: tuple[Any, ...]) -> None:
-        pickle.dump(reply, wfile, protocol=pickle.HIGHEST_PROTOCOL)
-        wfile.flush()
-
+    receive, say = child_ends(sock)
     try:
         w = SessionWriter(path)
     except RecordingError as err:
@@ -148,7 +142,7 @@ def _serve(sock: socket.socket, path: Path) -> None:
     try:
         while True:
             try:
-                ops = pickle.load(rfile)
+                ops = receive()
             except EOFError:  # the caller is gone without closing: keep what was flushed
                 w.abandon()
                 return
