@@ -67,6 +67,9 @@ from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.wellknown import WellKnown, derives
 
+# what writes the file: here, or in a second process (``hil.runners.sim_writer``)
+FileWriter = SessionWriter | RemoteWriter
+
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
 
@@ -357,9 +360,9 @@ class _Session:
         self._seqs: dict[str, int] = {}
         self._puts: dict[str, Callable[[bytes, int, int, int], None] | None] = {}  # per key, bound
 
-    def _open(self, path: Path) -> SessionWriter:
+    def _open(self, path: Path) -> FileWriter:
         """The file's writer: in a second process (``writer_process``), or this one's."""
-        return RemoteWriter(path) if self.writer_process else SessionWriter(path)  # type: ignore[return-value]
+        return RemoteWriter(path) if self.writer_process else SessionWriter(path)
 
     def write(self, key: str, msg: Message | Prepared, t_log: int) -> None:
         self.write_events(((t_log, 0, 0, key, msg),))
@@ -411,7 +414,7 @@ class _Session:
             derived = self.wellknown.convert(key, msg, self.epoch_ns + t_log)
         return Prepared(type(msg), encode(msg), msg.stamp_ns, msg.seq, derived)
 
-    def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:
+    def maybe_split(self, t_ns: int, header: Callable[[FileWriter], None]) -> None:
         """At a window boundary, as the recorder at a flush: finish the part once it reached
         ``split_mb`` or ``split_s`` of rig time, and open the next with the same metadata."""
         o = self.opts
@@ -483,7 +486,7 @@ def run_sim(opts: SimOptions) -> SimResult:
         writer = not use_worker and worker_possible()
     sess = _Session(run, opts, nodes, writer)
 
-    def header(w: SessionWriter) -> None:
+    def header(w: FileWriter) -> None:
         _header(w, run, s)
 
     header(sess.w)
@@ -523,7 +526,7 @@ def _windows(
     sess: _Session,
     opts: SimOptions,
     ignored: list[tuple[int, str]],
-    header: Callable[[SessionWriter], None],
+    header: Callable[[FileWriter], None],
     remote: RemoteNode | None,
 ) -> None:
     """One rig second at a time until every node is done, then the end of input.
@@ -576,7 +579,7 @@ def _windows(
     sess.status(t_last, sess.snapshot(remote))
 
 
-def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:
+def _header(w: FileWriter, run: RunInfo, s: Any) -> None:
     w.add_metadata(
         "hil",
         {

@@ -23,9 +23,21 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the writer is f
 REPO = Path(__file__).resolve().parents[2]
 
 
-def test_the_writer_process_writes_this_process_file_and_its_parts(tmp_path: Path) -> None:
+def test_the_writer_process_writes_this_process_file_and_its_parts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Split parts (each a new writer, its channels registered anew), a record filter and the
     free INS alone (the fusion in this process, where the writer process is the default)."""
+    from hil.runners import sim
+
+    forked: list[int] = []
+
+    class Counted(RemoteWriter):  # the real writer process, counted: each part forks its own
+        def __init__(self, path: str | Path) -> None:
+            super().__init__(path)
+            forked.append(self.pid)
+
+    monkeypatch.setattr(sim, "RemoteWriter", Counted)
     parts: dict[bool, list[bytes]] = {}
     for remote in (False, True):
         rec = tmp_path / f"w{int(remote)}" / "s.mcap"
@@ -41,7 +53,7 @@ def test_the_writer_process_writes_this_process_file_and_its_parts(tmp_path: Pat
         res = run_sim(opts)
         assert res.messages > 10_000
         parts[remote] = [p.read_bytes() for p in sorted(rec.parent.glob("*.mcap"))]
-    assert len(parts[False]) == 3
+    assert len(parts[False]) == 3 and len(forked) == 3 and len(set(forked)) == 3
     assert parts[True] == parts[False]
 
 
