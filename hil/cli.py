@@ -984,8 +984,8 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     sim.add_argument(
         "--one-process",
         action="store_true",
-        help="keep the fusion and the recording in this process (default on 2+ CPUs: a worker for "
-        "the fusion of 3+ estimators, else a process that writes the file; the same file)",
+        help="run every node in this process (default on 2+ CPUs: a worker runs the fusion, and "
+        "with a light fusion the CAN bridge, GNSS emulator and time sync too; the same file)",
     )
     sim.set_defaults(func=cmd_sim)
 

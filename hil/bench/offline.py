@@ -284,8 +284,9 @@ def report(
         f"`hil rerun --core fusion|timesync --verify` of {trees[0].label}'s recording, by each tree in "
         f"turn, {a.repeat} run(s) each; × real time = {a.duration:g} rig s / CPU s of the child (user + "
         "system, with the fusion worker it reaps: all the work), and × real time (wall) = rig s / wall s "
-        "(what a second core gave, when one was free); this tree's `hil sim` puts the fusion in a worker "
-        "when two CPUs are available, `--one-process` keeps it in one (REF's sim anchors both rows). "
+        "(what a second core gave, when one was free); this tree's `hil sim` puts the pipeline's tail in "
+        "a worker when two CPUs are available (the fusion; with a light fusion the CAN bridge, GNSS "
+        "emulator and time sync too), `--one-process` keeps it in one (REF's sim anchors both rows). "
         f"Load average (1 min) {load[0]:.1f} at the start, {load[1]:.1f} at the end on "
         f"{os.cpu_count()} cores (the bench's own processes count in it): CPU time stretches when other "
         "work shares the cores, for both trees alike, so the ratios are the figure to compare.",

@@ -19,19 +19,19 @@ in one process: a warning line and a ``fault_ignored`` event on ``event/sim`` sa
 node stops by itself at the run's end; then each is told ``finish`` (end of input) in pipeline
 order at ``end + 1 ns``, so what the time sync and the fusion hold is released and journaled.
 
-With two CPUs and a fusion of several estimators (most of the CPU), the fusion node runs in a
-forked worker one window behind the rest (``hil.runners.sim_worker``): the same node object, the
-same inputs in the same order, its outputs merged into their window before it is written, so the
+With two CPUs the pipeline's tail runs in a forked worker one window behind the rest
+(``hil.runners.sim_worker.RemoteTail``): the fusion, and when the fusion is light the nodes
+between the CAN bridge and it too (``tail_split``: chosen to balance the two processes). The
+worker runs the same node objects through a scheduler of its own, with the same inputs in the
+same order; its outputs come back encoded for the file (``_Session.prepare``: their bytes and
+the Foxglove messages derived from them) and join their window before it is written, so the
 file is the one-process file byte for byte (``fusion_worker=False`` / ``--one-process``: one).
-The worker sends each output back as the file takes it (``_Session.prepare``: its bytes and the
-Foxglove messages derived from it), since this process, which runs the rest of the pipeline
-and writes, is the slower of the two.
 
-Without a fusion worker (one or two estimators: ``--estimators ins`` for a Schuler check), a
-forked writer takes the file (``hil.runners.sim_writer``): the same ``SessionWriter`` calls in
-the same order, a window at a time, so the same bytes (``writer_process=False`` /
-``--one-process``: this process writes). Beside a fusion worker it is not used: a third busy
-process on two CPUs made the sim slower.
+Without a worker but with two CPUs (``fusion_worker=False`` from Python), a forked writer takes
+the file (``hil.runners.sim_writer``): the same ``SessionWriter`` calls in the same order, a
+window at a time, so the same bytes (``writer_process=False`` / ``--one-process``: this process
+writes). Beside the worker it is not used: a third busy process on two CPUs made the sim slower
+(static, ``--estimators ins``, 600 s: 14.2-15.1 s against 12.8-13.5 s).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
-from hil.runners.sim_worker import RemoteNode, drive, worker_pays, worker_possible
+from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteTail, drive, portable, worker_possible
 from hil.runners.sim_writer import RemoteWriter
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
@@ -98,13 +98,13 @@ class SimOptions:
     split_s: float = 0.0  # ... or after this many seconds of rig time
     record_include: list[str] = field(default_factory=list)  # hil.record.keyfilter, as the recorder
     record_exclude: list[str] = field(default_factory=list)
-    # the fusion in a second process, one window behind the rest (hil.runners.sim_worker); the
-    # file is the same byte for byte. None: when fork exists, two CPUs are available and the
-    # fusion runs at least WORKER_MIN_ESTIMATORS estimators
+    # the pipeline's tail (the fusion, with a light fusion the nodes from the CAN bridge on) in a
+    # second process, one window behind the rest (tail_split, hil.runners.sim_worker); the file
+    # is the same byte for byte. None: when fork exists and two CPUs are available
     fusion_worker: bool | None = None
     # the recording written by a second process, a window behind (hil.runners.sim_writer); the
-    # same file byte for byte. None: when the fusion stays in this process, fork exists and two
-    # CPUs are available (beside a fusion worker, a third process on two CPUs was slower)
+    # same file byte for byte. None: when no worker runs the tail (fusion_worker=False), fork
+    # exists and two CPUs are available (beside the worker, a third process on two CPUs was slower)
     writer_process: bool | None = None
 
 
@@ -148,15 +148,16 @@ class Scheduler:
         nodes: list[Node],
         write: Callable[[list[tuple[int, int, int, str, Message]]], None],
         wire: CanWireModel,
-        remote: RemoteNode | None = None,
+        remote: RemoteTail | None = None,
+        first_order: int = 0,
     ):
         self.nodes = nodes
         self.write = write
         self.wire = wire
-        # the last node run by a worker process (``hil.runners.sim_worker``): its window's
-        # outputs come back while this process works on the next window
+        # the nodes from ``remote.split`` on, run by a worker process (``hil.runners.sim_worker``):
+        # their window's outputs come back while this process works on the next window
         self.remote = remote
-        self._remote_i = len(nodes) - 1 if remote is not None else -1
+        self._split = remote.split if remote is not None else len(nodes)
         self._routes: dict[str, list[int]] = {}
         self._can_readers = [i for i, n in enumerate(nodes) if n.reads_can]
         self._line_readers = [i for i, n in enumerate(nodes) if n.serial == "rx"]
@@ -164,7 +165,7 @@ class Scheduler:
         self._subs = [[(inp.key.split("/"), frozenset(inp.types)) for inp in type(n).inputs] for n in nodes]
         # per node: its inputs not handled yet, (rig time, producer, order, key, message)
         self._inbox: list[list[tuple[int, int, int, str, Any]]] = [[] for _ in nodes]
-        self._order = 0
+        self._order = first_order
         self._out: list[tuple[int, int, int, str, Message]] = []  # this window's messages to write
 
     def _route(self, key: str) -> list[int]:
@@ -214,9 +215,34 @@ class Scheduler:
         """Every node handles its events before ``t_end_ns`` (a remote one: they are sent to
         it). Whether one of this process's nodes wants a tick or anything is in flight."""
         busy = False
-        for i, node in enumerate(self.nodes):
+        for i, node in enumerate(self.nodes[: self._split]):
             busy = self._handle(i, node, t_end_ns) or busy
+        if self.remote is not None:
+            self.remote.window(self._ship(t_end_ns), t_end_ns)
         return busy or any(self._inbox)
+
+    def _ship(self, t_end_ns: int) -> list[list[tuple[Any, ...]]]:
+        """The remote nodes' inputs before ``t_end_ns``, as they cross to the worker."""
+        return [[portable(e) for e in self._now(j, t_end_ns)] for j in range(self._split, len(self.nodes))]
+
+    def run_tail(
+        self, split: int, boxes: list[list[Any]], t_end_ns: int, finish_ns: int | None
+    ) -> tuple[list[tuple[int, int, int, str, Message]], bool]:
+        """A worker's window (``hil.runners.sim_worker.RemoteTail``): nodes ``split`` on take
+        ``boxes``, their inputs from upstream, and handle the window as ``dispatch`` would here
+        (then, at ``finish_ns``, are told ``finish`` in turn, as ``finish`` would). Their
+        messages, in file order, and whether one still wants a tick or has input in flight."""
+        for j, box in enumerate(boxes, split):
+            self._inbox[j].extend(box)
+        busy = False
+        for i in range(split, len(self.nodes)):
+            node = self.nodes[i]
+            busy = self._handle(i, node, t_end_ns) or busy
+            if finish_ns is not None:
+                self.publish(i, node.finish(finish_ns), finish_ns)
+        out = self.take_out()
+        out.sort(key=_event_order)
+        return out, busy or any(self._inbox[split:])
 
     def take_out(self) -> list[tuple[int, int, int, str, Message]]:
         """The window's messages so far (the remote node's are added by ``complete``)."""
@@ -224,8 +250,8 @@ class Scheduler:
         return out
 
     def complete(self, out: list[tuple[int, int, int, str, Message]]) -> bool:
-        """The remote node's outputs of the window ``out`` belongs to (the oldest it was sent)
-        join ``out``, which is written sorted. Whether the remote node wants a tick."""
+        """The remote nodes' outputs of the window ``out`` belongs to (the oldest they were sent)
+        join ``out``, which is written sorted. Whether a remote node wants a tick."""
         busy = False
         if self.remote is not None:
             busy = self._take_remote(out)
@@ -235,13 +261,8 @@ class Scheduler:
 
     def _take_remote(self, out: list[tuple[int, int, int, str, Message]]) -> bool:
         assert self.remote is not None
-        published, busy = self.remote.result()
-        current, self._out = self._out, out
-        try:
-            for outs, t in published:
-                self.publish(self._remote_i, outs, t)
-        finally:
-            self._out = current
+        events, busy = self.remote.result()
+        out.extend([(t, p, o, key, Prepared(*prepared)) for t, p, o, key, *prepared in events])
         return busy
 
     def _now(self, i: int, t_end_ns: int) -> list[tuple[int, int, int, str, Any]]:
@@ -257,10 +278,6 @@ class Scheduler:
 
     def _handle(self, i: int, node: Node, t_end_ns: int) -> bool:
         now = self._now(i, t_end_ns)
-        if i == self._remote_i:
-            assert self.remote is not None
-            self.remote.window([(e[0], e[3], e[4]) for e in now], t_end_ns)
-            return False  # its own answer comes with its outputs (``complete``)
 
         def publish(outs: list[Out], t: int) -> None:
             self.publish(i, outs, t)
@@ -274,15 +291,12 @@ class Scheduler:
 
     def finish(self, t_ns: int) -> None:
         """End of input, in pipeline order: what one node releases, the next still takes in."""
-        for i, node in enumerate(self.nodes):
-            if i == self._remote_i:
-                assert self.remote is not None
-                now = self._now(i, t_ns + 1)
-                self.remote.finish_request([(e[0], e[3], e[4]) for e in now], t_ns + 1, t_ns)
-                self._take_remote(self._out)
-                continue
+        for i, node in enumerate(self.nodes[: self._split]):
             self._handle(i, node, t_ns + 1)  # what is still in flight for it
             self.publish(i, node.finish(t_ns), t_ns)
+        if self.remote is not None:  # the same, node after node, in the worker
+            self.remote.finish_request(self._ship(t_ns + 1), t_ns + 1, t_ns)
+            self._take_remote(self._out)
         self.window(2**62)
 
 
@@ -448,12 +462,13 @@ class _Session:
         self._seqs[key] = n + 1
         return n
 
-    def snapshot(self, remote: RemoteNode | None = None) -> list[tuple[str, list[Any], str]]:
-        """Each node's name, counters and last error now (``remote``: the last node's, as its
-        worker reported them with its latest window), for ``status``."""
-        snap = [(n.name, counts(n.counters()), n.last_error) for n in self.nodes]
+    def snapshot(self, remote: RemoteTail | None = None) -> list[tuple[str, list[Any], str]]:
+        """Each node's name, counters and last error now (``remote``: those of the nodes it
+        runs, as its worker reported them with its latest window), for ``status``."""
+        nodes = self.nodes if remote is None else self.nodes[: remote.split]
+        snap = [(n.name, counts(n.counters()), n.last_error) for n in nodes]
         if remote is not None:
-            snap[-1] = (remote.name, counts(remote.counters()), remote.last_error)
+            snap += [(name, counts(c), err) for name, c, err in remote.snapshot()]
         return snap
 
     def status(self, t_ns: int, snap: list[tuple[str, list[Any], str]]) -> None:
@@ -480,7 +495,8 @@ def run_sim(opts: SimOptions) -> SimResult:
     nodes = sim_nodes(run, opts)
     use_worker = opts.fusion_worker
     if use_worker is None:
-        use_worker = worker_pays(nodes[-1])
+        use_worker = worker_possible()
+    split = tail_split(nodes) if use_worker else len(nodes)
     writer = opts.writer_process
     if writer is None:  # with the fusion in a worker, a third process on two CPUs cost more
         writer = not use_worker and worker_possible()
@@ -505,7 +521,13 @@ def run_sim(opts: SimOptions) -> SimResult:
     outs0 = [node.start(0) for node in nodes]
     freeze_command_startup()  # the nodes, the writer and the modules live as long as the run
     # forked after start; its outputs come back encoded for the file (``_Session.prepare``)
-    remote = RemoteNode(nodes[-1], setup=jit.enable_for_run, prepare=sess.prepare) if use_worker else None
+    remote = None
+    if use_worker:
+
+        def tail_scheduler() -> Scheduler:  # the worker's: its events after those made here
+            return Scheduler(nodes, _unused_write, wire, first_order=_TAIL_ORDER)
+
+        remote = RemoteTail(nodes, split, tail_scheduler, setup=jit.enable_for_run, prepare=sess.prepare)
     try:
         sched = Scheduler(nodes, sess.write_events, wire, remote)
         for i, outs in enumerate(outs0):
@@ -521,13 +543,50 @@ def run_sim(opts: SimOptions) -> SimResult:
     return SimResult(opts.record, sess.n_written, run.duration_s, time.monotonic() - t_wall, warnings)
 
 
+def tail_split(nodes: list[Node]) -> int:
+    """Where the worker's part of the pipeline starts, to balance the two processes (the
+    world, the IMU emulator and the wire model always stay here: never a CAN writer there).
+
+    - A fusion of several estimators in feedback form or with ekf15's calibration states (a
+      consumer IMU's defaults): the fusion alone, which is then most of the work;
+    - several estimators without (a tactical IMU's): everything after the CAN bridges, the GNSS
+      emulator, time sync and fusion;
+    - one or two (``--estimators ins``): the CAN bridges too.
+
+    Measured on 2 CPUs (docs/benchmarks.md): straight_level 300 s 8.3-9.1 s with the GNSS
+    emulator on against 9.6-10.4 s with the fusion alone; uav_survey and car_drive 120 s 3-7 %
+    slower that way; static 300 s with ``--estimators ins`` 6.9-7.3 s from the CAN bridge on,
+    9.9-10.0 s with the fusion alone."""
+    fusion = nodes[-1]
+    readers = [i for i, n in enumerate(nodes) if n.reads_can]
+    writers = [i for i, n in enumerate(nodes) if n.writes_can]
+    after_writers = writers[-1] + 1 if writers else 0
+    if not readers:
+        return len(nodes) - 1
+    cfg = getattr(fusion, "config", None)
+    if len(getattr(cfg, "estimators", ())) >= WORKER_MIN_ESTIMATORS:
+        if getattr(cfg, "feedback", ()) or getattr(cfg, "ekf_calibration", ""):
+            return len(nodes) - 1
+        return min(len(nodes) - 1, max(readers[-1] + 1, after_writers))
+    return min(len(nodes) - 1, max(readers[0], after_writers))
+
+
+# the order numbers of the worker's messages start here: after those of the same node published
+# in this process before the fork (``start``), as in one process
+_TAIL_ORDER = 1 << 48
+
+
+def _unused_write(events: list[tuple[int, int, int, str, Message]]) -> None:
+    raise AssertionError("a tail's messages go back to the sim's process, which writes them")
+
+
 def _windows(
     sched: Scheduler,
     sess: _Session,
     opts: SimOptions,
     ignored: list[tuple[int, str]],
     header: Callable[[FileWriter], None],
-    remote: RemoteNode | None,
+    remote: RemoteTail | None,
 ) -> None:
     """One rig second at a time until every node is done, then the end of input.
 
@@ -542,8 +601,8 @@ def _windows(
         t, out, snap = window
         busy = sched.complete(out)
         if t < sess.end_ns:
-            if remote is not None:  # its counters came with the window just completed
-                snap[-1] = sess.snapshot(remote)[-1]
+            if remote is not None:  # their counters came with the window just completed
+                snap[remote.split :] = sess.snapshot(remote)[remote.split :]
             sess.status(t, snap)
         sess.w.flush()
         sess.maybe_split(t, header)

@@ -1,11 +1,12 @@
-"""The last node of ``hil sim``'s pipeline (the fusion) in a second process, one window behind.
+"""The tail of ``hil sim``'s pipeline in a second process, one window behind; ``hil rerun``'s cores.
 
-Why: the fusion's estimators are most of ``hil sim``'s CPU, and nothing in the sim consumes the
-fusion's outputs but the recording. So while the worker runs the fusion over window *k*, the
-sim's own process runs the world, emulators, bridges and time sync over window *k + 1*; window
-*k* is written once the worker's outputs for it are back. The worker drives the very node
-object the one-process sim would (forked after ``start``, so its state is that object's), with
-the same inputs in the same order through the same loop (``drive``), so the outputs, their
+Why: nothing in the sim consumes the tail's outputs but the recording (the nodes form a
+pipeline). So while the worker runs the fusion -- and, when the fusion is light, the CAN bridge,
+GNSS emulator and time sync before it (``hil.runners.sim.tail_split``) -- over window *k*, the
+sim's own process runs the world and the IMU emulator over window *k + 1*; window *k* is written
+once the worker's outputs for it are back. The worker runs the very node objects the
+one-process sim would (forked after ``start``, so their state is those objects'), with the same
+inputs in the same order through the same scheduler (``RemoteTail``), so the outputs, their
 order and the file are byte for byte those of one process; only the wall time differs.
 
 ``fork`` and a pipe: no ``multiprocessing.Process`` (a campaign runs sims inside daemonic
@@ -24,19 +25,24 @@ import socket
 import threading
 import traceback
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Protocol
+
+import can
 
 from hil.messages import decode, encode
-from hil.nodes.base import Node, Out
+from hil.nodes.base import CAN_RX, Node, Out
 
 __all__ = [
     "WORKER_MIN_ESTIMATORS",
     "EncodedInput",
     "ForkedChild",
     "RemoteNode",
+    "RemoteTail",
     "Replayed",
+    "TailScheduler",
     "child_ends",
     "drive",
+    "portable",
     "replay_split",
     "worker_pays",
     "worker_possible",
@@ -96,7 +102,8 @@ def worker_possible(cpus: int = 2) -> bool:
 
 
 def worker_pays(node: Node) -> bool:
-    """The fusion ``node`` in a worker, by default (``hil sim``, ``hil rerun``): it runs at
+    """The fusion ``node`` in a worker, by default (``hil rerun``; ``hil sim`` always uses a
+    second process when it can, ``hil.runners.sim.tail_split`` says for which nodes): it runs at
     least ``WORKER_MIN_ESTIMATORS`` estimators and a second process is possible."""
     estimators = getattr(getattr(node, "config", None), "estimators", ())
     return len(estimators) >= WORKER_MIN_ESTIMATORS and worker_possible()
@@ -154,27 +161,18 @@ class ForkedChild:
 
 
 class RemoteNode(ForkedChild):
-    """A node run in a forked child; ``window`` sends a window's inputs, ``result`` waits for
-    its outputs. Between the two the caller is free to work on the next window."""
+    """A node run in a forked child (``hil rerun``): ``replay`` or ``call`` sends a batch of
+    work, ``replayed`` or ``called`` waits for its answer; between the two the caller is free
+    to work on the next batch."""
 
-    def __init__(
-        self,
-        node: Node,
-        setup: Callable[[], object] | None = None,
-        prepare: Callable[[str, Any, int], Any] | None = None,
-    ) -> None:
-        """``setup``: called first in the child (the sim loads the fusion's compiled kernels
-        there, so that its own process, the pipeline's slower one, never imports numba).
-        ``prepare(key, message, t)``: what each output is sent back as (the sim: its bytes for
-        the file, made in the worker, which has CPU to spare); default the message itself."""
+    def __init__(self, node: Node, setup: Callable[[], object] | None = None) -> None:
+        """``setup``: called first in the child (the fusion's compiled kernels loaded there)."""
         self.name = node.name
-        self._counters: dict[str, int] = node.counters()
-        self.last_error = node.last_error
 
         def serve(sock: socket.socket) -> None:  # the worker
             if setup is not None:
                 setup()
-            _serve(node, sock, prepare)
+            _serve(node, sock)
 
         super().__init__(serve)
 
@@ -183,12 +181,6 @@ class RemoteNode(ForkedChild):
             self._put(req)
         except OSError as err:
             raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
-
-    def window(self, now: list[tuple[int, str, Any]], t_end_ns: int) -> None:
-        self._send(("window", now, t_end_ns))
-
-    def finish_request(self, now: list[tuple[int, str, Any]], t_end_ns: int, t_ns: int) -> None:
-        self._send(("finish", now, t_end_ns, t_ns))
 
     def replay(
         self,
@@ -224,12 +216,6 @@ class RemoteNode(ForkedChild):
             raise reply[1]
         return reply
 
-    def result(self) -> tuple[list[tuple[list[Out], int]], bool]:
-        """The outputs of the oldest window sent, as (outs, rig time) in publication order, and
-        whether the node still wants a tick."""
-        _ok, published, busy, self._counters, self.last_error = self._reply()
-        return published, busy
-
     def replayed(self) -> list[list[Replayed]]:
         """The solutions of the oldest ``replay`` sent, one list per input, encoded there."""
         return self.replayed_split()[0]
@@ -239,13 +225,152 @@ class RemoteNode(ForkedChild):
         _ok, out, verdicts = self._reply()
         return out, verdicts
 
-    def counters(self) -> dict[str, int]:
-        """The node's counters after the last window whose result was taken."""
-        return self._counters
+    def close(self) -> None:
+        """Stop the worker and reap it (also after a failure on either side)."""
+        self._reap()
+
+
+# a python-can frame as shipped to a tail (``portable``): pickling can.Message itself costs
+# ~2.6 µs a side, four frames an IMU sample; these fields, rebuilt there, a tenth of that
+_FRAME_FIELDS = (
+    "timestamp",
+    "arbitration_id",
+    "is_extended_id",
+    "is_remote_frame",
+    "is_error_frame",
+    "channel",
+    "dlc",
+    "data",
+    "is_fd",
+    "is_rx",
+    "bitrate_switch",
+    "error_state_indicator",
+)
+
+
+def portable(event: Sequence[Any]) -> tuple[Any, ...]:
+    """An inbox event as it crosses to a tail: a CAN frame as its fields, anything else as is."""
+    msg = event[-1]
+    if type(msg) is can.Message:
+        fields = [getattr(msg, f) for f in _FRAME_FIELDS]
+        fields[7] = bytes(fields[7])
+        return (*event[:-1], tuple(fields))
+    return tuple(event)
+
+
+def _rebuilt(event: tuple[Any, ...]) -> tuple[Any, ...]:
+    f = event[-1]
+    if type(f) is tuple and event[3].startswith(CAN_RX):  # a frame's fields (``portable``)
+        frame = can.Message(*f[:7], bytearray(f[7]), *f[8:])
+        return (*event[:-1], frame)
+    return event
+
+
+class TailScheduler(Protocol):
+    """What a tail's worker runs (``hil.runners.sim.Scheduler``, made in the child)."""
+
+    nodes: list[Node]
+
+    def run_tail(
+        self, split: int, boxes: list[list[Any]], t_end_ns: int, finish_ns: int | None
+    ) -> tuple[list[tuple[int, int, int, str, Any]], bool]: ...
+
+
+class RemoteTail(ForkedChild):
+    """The nodes of a pipeline from ``split`` on, run in a forked child by a scheduler of their own.
+
+    ``window`` sends the inputs this process's nodes published to them before ``t_end_ns``;
+    ``result`` waits for what they published in that window, ready for the file, in file order;
+    between the two the caller works on its next window. Nothing flows back upstream (the sim
+    checks its nodes form a pipeline), so the child's outputs only join the file."""
+
+    def __init__(
+        self,
+        nodes: list[Node],
+        split: int,
+        make_scheduler: Callable[[], TailScheduler],
+        setup: Callable[[], object] | None = None,
+        prepare: Callable[[str, Any, int], tuple[Any, ...]] | None = None,
+    ) -> None:
+        """``make_scheduler()``: the child's scheduler over the same (forked) ``nodes``.
+        ``setup``: called first in the child (the fusion's compiled kernels loaded there, so
+        that this process never imports numba). ``prepare(key, message, t)``: what each output
+        is sent back as, a tuple (the sim: its bytes for the file, made there); default
+        ``(message,)``."""
+        self.split = split
+        self.names = [n.name for n in nodes[split:]]
+        self.name = "+".join(self.names)
+        self._snapshot = [(n.name, n.counters(), n.last_error) for n in nodes[split:]]
+
+        def serve(sock: socket.socket) -> None:  # the worker
+            if setup is not None:
+                setup()
+            _serve_tail(make_scheduler(), split, sock, prepare)
+
+        super().__init__(serve)
+
+    def _send(self, req: tuple[Any, ...]) -> None:
+        try:
+            self._put(req)
+        except OSError as err:
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+
+    def window(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int) -> None:
+        """Each tail node's inputs from upstream (``portable`` events), before ``t_end_ns``."""
+        self._send(("window", boxes, t_end_ns, None))
+
+    def finish_request(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int, t_ns: int) -> None:
+        """As ``window``, then each tail node told ``finish(t_ns)`` in pipeline order."""
+        self._send(("finish", boxes, t_end_ns, t_ns))
+
+    def result(self) -> tuple[list[tuple[Any, ...]], bool]:
+        """The oldest window's outputs, ``(t, producer, order, key, *prepared)`` in file order,
+        and whether a tail node still wants a tick or has input in flight."""
+        try:
+            reply: tuple[Any, ...] = self._get()
+        except (EOFError, OSError) as err:
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+        if reply[0] == "error":
+            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
+        _ok, events, busy, self._snapshot = reply
+        return events, busy
+
+    def snapshot(self) -> list[tuple[str, Any, str]]:
+        """Each tail node's name, counters and last error after the last window taken."""
+        return list(self._snapshot)
 
     def close(self) -> None:
         """Stop the worker and reap it (also after a failure on either side)."""
         self._reap()
+
+
+def _serve_tail(
+    sched: TailScheduler,
+    split: int,
+    sock: socket.socket,
+    prepare: Callable[[str, Any, int], tuple[Any, ...]] | None,
+) -> None:
+    receive, say = child_ends(sock)
+    tail = sched.nodes[split:]
+    while True:
+        try:
+            _kind, boxes, t_end, finish_ns = receive()
+        except EOFError:
+            return
+        try:
+            boxes = [[_rebuilt(e) for e in box] for box in boxes]
+            out, busy = sched.run_tail(split, boxes, t_end, finish_ns)
+            if prepare is None:
+                events = [(*e[:4], e[4]) for e in out]
+            else:
+                events = [(*e[:4], *prepare(e[3], e[4], e[0])) for e in out]
+            snap = [(n.name, n.counters(), n.last_error) for n in tail]
+            reply: tuple[Any, ...] = ("ok", events, busy, snap)
+        except Exception:
+            reply = ("error", traceback.format_exc())
+        say(reply)
+        if reply[0] == "error":
+            return
 
 
 def child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
@@ -263,7 +388,7 @@ def child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], 
     return receive, say
 
 
-def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], Any] | None = None) -> None:
+def _serve(node: Node, sock: socket.socket) -> None:
     receive, say = child_ends(sock)
     while True:
         try:
@@ -272,22 +397,15 @@ def _serve(node: Node, sock: socket.socket, prepare: Callable[[str, Any, int], A
             return
         if req[0] == "stop":
             return
-        published: list[tuple[list[Out], int]] = []
-        publish = _collector(published, prepare)
         try:
             if req[0] == "call":
                 try:
                     reply: tuple[Any, ...] = ("ok", req[1](node, *req[2]))
                 except ValueError as err:  # bad input (a malformed payload): raised as the caller's
                     reply = ("raise", err)
-            elif req[0] == "replay":
+            else:  # replay
                 inputs = [(decode(cls, payload), source, p) for payload, cls, source, p in req[1]]
                 reply = ("ok", *replay_split(node, inputs, *req[2:]))
-            else:
-                busy = drive(node, req[1], req[2], publish)
-                if req[0] == "finish":
-                    publish(node.finish(req[3]), req[3])
-                reply = ("ok", published, busy, node.counters(), node.last_error)
         except Exception:
             reply = ("error", traceback.format_exc())
         say(reply)
@@ -332,13 +450,3 @@ def replay_encoded(
         ]
         for item in inputs
     ]
-
-
-def _collector(
-    published: list[tuple[list[Out], int]], prepare: Callable[[str, Any, int], Any] | None = None
-) -> Callable[[list[Out], int], None]:
-    def publish(outs: list[Out], t: int) -> None:
-        if outs:
-            published.append((outs if prepare is None else [(k, prepare(k, m, t)) for k, m in outs], t))
-
-    return publish

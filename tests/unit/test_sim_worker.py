@@ -7,24 +7,62 @@ import os
 import signal
 from pathlib import Path
 
+import can
 import pytest
 
 from hil.messages import Event
 from hil.nodes.base import Node, Out
-from hil.runners.sim import SimOptions, run_sim, sim_run_info
-from hil.runners.sim_worker import RemoteNode, WorkerError, drive
+from hil.runners.sim import Scheduler, SimOptions, run_sim, sim_run_info
+from hil.runners.sim_worker import RemoteTail, WorkerError, portable
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the worker is forked")
 
 
-def test_worker_writes_the_one_process_file(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("scenario", "estimators", "gnss", "tail"),
+    [
+        # a consumer IMU's defaults (feedback, ekf15's calibration states): the fusion alone
+        ("uav_survey", [], [], ["fusion"]),
+        # a tactical IMU's six estimators: everything after the CAN bridge (the line's reader too)
+        ("straight_level", [], ["nmea"], ["gnss_emulator", "gnss_bridge", "timesync", "fusion"]),
+        # the free INS alone: from the CAN bridge on
+        ("static", ["ins"], [], ["can_bridge", "gnss_emulator", "timesync", "fusion"]),
+    ],
+)
+def test_worker_writes_the_one_process_file(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    scenario: str,
+    estimators: list[str],
+    gnss: list[str],
+    tail: list[str],
+) -> None:
+    from hil.runners import sim
+
+    tails: list[list[str]] = []
+
+    class Counted(RemoteTail):  # the real worker, its nodes noted
+        def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+            super().__init__(*args, **kwargs)
+            tails.append(self.names)
+
+    monkeypatch.setattr(sim, "RemoteTail", Counted)
     files = {}
     for worker in (False, True):
         rec = tmp_path / f"w{int(worker)}.mcap"
-        opts = SimOptions(scenario="uav_survey", duration_s=4.0, record=rec, fusion_worker=worker)
+        opts = SimOptions(
+            scenario=scenario,
+            duration_s=4.0,
+            record=rec,
+            estimators=estimators,
+            gnss_protocol=gnss,
+            fusion_worker=worker,
+            writer_process=False,
+        )
         res = run_sim(opts)
         assert res.messages > 10_000
         files[worker] = rec.read_bytes()
+    assert tails == [tail]
     assert files[True] == files[False]
 
 
@@ -105,28 +143,70 @@ def _run_info():  # type: ignore[no-untyped-def]
     return sim_run_info(SimOptions(duration_s=2.0))
 
 
-def test_remote_node_gives_what_the_node_gives_here() -> None:
+def _no_write(events: object) -> None:
+    raise AssertionError("a tail's scheduler writes nothing")
+
+
+def _tail(node: Node) -> RemoteTail:
+    nodes = [node]
+    return RemoteTail(nodes, 0, lambda: Scheduler(nodes, _no_write, None))  # type: ignore[arg-type]
+
+
+class _Echo(_Ticker):
+    """Says what each input was, a CAN frame field by field."""
+
+    def on_message(self, key: str, msg: object, now_ns: int) -> list[Out]:
+        if isinstance(msg, can.Message):
+            f = msg
+            detail = (
+                f"{f.timestamp!r} {f.arbitration_id:x} {f.is_extended_id} {f.is_remote_frame} "
+                f"{f.is_error_frame} {f.channel} {f.dlc} {bytes(f.data).hex()} {type(f.data).__name__} "
+                f"{f.is_fd} {f.is_rx} {f.bitrate_switch} {f.error_state_indicator}"
+            )
+        else:
+            detail = f"{key} {msg!r}"
+        return [self.event("input", detail, now_ns)]
+
+
+def test_remote_tail_gives_what_the_scheduler_gives_here() -> None:
+    """A window's inputs (a CAN frame among them, shipped as its fields) through the scheduler
+    here and in a worker: the same messages, stamps and order, and the same counters."""
     ev = Event(seq=0, stamp_ns=0, kind="x", source="y", detail="")
-    inputs = [(5_000_000, "event/a", ev), (20_000_000, "event/b", ev)]
-    local: list[tuple[list[Out], int]] = []
-    here = _Ticker(_run_info())
-    busy_here = drive(here, inputs, 30_000_000, lambda outs, t: local.append((outs, t)) if outs else None)
-    remote = RemoteNode(_Ticker(_run_info()))
+    fd = can.Message(
+        0.0051, 0x1ABCDE, True, False, False, "vcan0", 12, bytearray(range(12)), True, True, True, True
+    )
+    classic = can.Message(timestamp=0.0052, arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False)
+    inputs = [
+        (5_000_000, -1, 1, "event/a", ev),
+        (5_100_000, -1, 2, "@can/vcan0", fd),
+        (5_200_000, -1, 3, "@can/vcan0", classic),
+        (20_000_000, -1, 4, "event/b", ev),
+    ]
+    here_node = _Echo(_run_info())
+    here = Scheduler([here_node], _no_write, None)  # type: ignore[arg-type]
+    local, busy_here = here.run_tail(0, [list(inputs)], 30_000_000, None)
+    remote = _tail(_Echo(_run_info()))
     try:
-        remote.window(inputs, 30_000_000)
-        published, busy = remote.result()
+        remote.window([[portable(e) for e in inputs]], 30_000_000)
+        events, busy = remote.result()
     finally:
         remote.close()
-    assert published == local
-    assert [t for _outs, t in published] == [0, 5_000_000, 10_000_000, 20_000_000, 20_000_000]
+    assert events == local
+    assert [e[0] for e in events] == [0, 5_000_000, 5_100_000, 5_200_000, 10_000_000, 20_000_000, 20_000_000]
+    frame_line = events[2][4].detail
+    assert (
+        frame_line
+        == "0.0051 1abcde True False False vcan0 12 000102030405060708090a0b bytearray True True True True"
+    )
     assert busy is busy_here is True
-    assert remote.counters() == here.counters() == {"ticks": 3, "inputs": 2}
+    assert remote.snapshot() == [("ticker", here_node.counters(), "")]
+    assert here_node.counters() == {"ticks": 3}
 
 
 def test_a_failing_worker_is_an_error_with_its_traceback() -> None:
-    remote = RemoteNode(_Ticker(_run_info(), fail_at_ns=10_000_000))
+    remote = _tail(_Ticker(_run_info(), fail_at_ns=10_000_000))
     try:
-        remote.window([], 30_000_000)
+        remote.window([[]], 30_000_000)
         with pytest.raises(WorkerError, match="boom at 10000000"):
             remote.result()
     finally:
@@ -136,12 +216,12 @@ def test_a_failing_worker_is_an_error_with_its_traceback() -> None:
 
 
 def test_a_killed_worker_is_an_error() -> None:
-    remote = RemoteNode(_Ticker(_run_info()))
+    remote = _tail(_Ticker(_run_info()))
     try:
         os.kill(remote.pid, signal.SIGKILL)
         os.waitpid(remote.pid, 0)
         with pytest.raises(WorkerError, match="died"):
-            remote.window([], 30_000_000)
+            remote.window([[]], 30_000_000)
             remote.result()
     finally:
         remote.close()
@@ -158,9 +238,9 @@ class _Chatty(_Ticker):
 def test_close_does_not_wait_on_a_worker_blocked_writing() -> None:
     import threading
 
-    remote = RemoteNode(_Chatty(_run_info()))
-    remote.window([], 1_000_000_000)  # ~10 MB of reply nobody reads
-    remote.window([], 2_000_000_000)
+    remote = _tail(_Chatty(_run_info()))
+    remote.window([[]], 1_000_000_000)  # ~10 MB of reply nobody reads
+    remote.window([[]], 2_000_000_000)
     closer = threading.Thread(target=remote.close)
     closer.start()
     closer.join(timeout=30.0)
