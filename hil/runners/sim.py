@@ -43,7 +43,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 from hil import __version__
 from hil.faults import SIM_NOT_APPLICABLE, fault_detail
@@ -262,7 +262,7 @@ class Scheduler:
     def _take_remote(self, out: list[tuple[int, int, int, str, Message]]) -> bool:
         assert self.remote is not None
         events, busy = self.remote.result()
-        out.extend([(t, p, o, key, Prepared(*prepared)) for t, p, o, key, *prepared in events])
+        out.extend(events)
         return busy
 
     def _now(self, i: int, t_end_ns: int) -> list[tuple[int, int, int, str, Any]]:
@@ -343,14 +343,10 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
 
 
-class Prepared(NamedTuple):
-    """A message as the file takes it, made by the process that published it (``_Session.prepare``)."""
-
-    cls: type[Message]
-    payload: bytes
-    stamp_ns: int
-    seq: int
-    derived: list[Any]  # hil.wellknown.Derived
+# a message as the file takes it, made by the worker that published it (``_Session.prepare``):
+# (log time, producer, order, key, its class, its bytes, stamp_ns, seq, the Foxglove messages
+# derived from it); a flat tuple, as it is pickled back (a NamedTuple cost ~1 µs more a side)
+Prepared = tuple[int, int, int, str, type, bytes, int, int, Any]
 
 
 class _Session:
@@ -378,15 +374,17 @@ class _Session:
         """The file's writer: in a second process (``writer_process``), or this one's."""
         return RemoteWriter(path) if self.writer_process else SessionWriter(path)
 
-    def write(self, key: str, msg: Message | Prepared, t_log: int) -> None:
+    def write(self, key: str, msg: Message, t_log: int) -> None:
         self.write_events(((t_log, 0, 0, key, msg),))
 
-    def write_events(self, events: Iterable[tuple[int, int, int, str, Message | Prepared]]) -> None:
-        """Messages in file order, each ``(log time, _, _, key, message)`` (a window's, sorted:
-        ``Scheduler.complete``), their lookups made once for all (~3300 a rig second)."""
+    def write_events(self, events: Iterable[tuple[int, int, int, str, Message] | Prepared]) -> None:
+        """Messages in file order, each ``(log time, _, _, key, message)`` or ``Prepared`` (a
+        window's, sorted: ``Scheduler.complete``), their lookups made once for all (~3300 a rig
+        second)."""
         puts, epoch, w, convert = self._puts, self.epoch_ns, self.w, self.wellknown.convert
         n = 0
-        for t_log, _p, _o, key, msg in events:
+        for ev in events:
+            t_log, key, msg = ev[0], ev[3], ev[4]
             put = puts.get(key)
             if put is None:
                 if key in puts:
@@ -395,9 +393,9 @@ class _Session:
                 if put is None:
                     continue
             log_ns = epoch + t_log
-            if type(msg) is Prepared:  # encoded, and its Foxglove messages derived, by the worker
-                put(msg.payload, log_ns, epoch + msg.stamp_ns, msg.seq)
-                for d in msg.derived:
+            if len(ev) > 5:  # Prepared: encoded, and its Foxglove messages derived, by the worker
+                put(ev[5], log_ns, epoch + ev[6], ev[7])  # type: ignore[misc]
+                for d in ev[8]:  # type: ignore[misc]
                     w.write_wellknown(d, log_time_ns=log_ns)
             else:
                 put(encode(msg), log_ns, epoch + msg.stamp_ns, msg.seq)  # type: ignore[union-attr]
@@ -409,24 +407,26 @@ class _Session:
             n += 1
         self.n_written += n
 
-    def _bind(self, key: str, msg: Message | Prepared) -> Callable[[bytes, int, int, int], None] | None:
-        """The writer of ``key``'s channel, registered at its first message (None: not kept)."""
+    def _bind(self, key: str, msg: Message | type) -> Callable[[bytes, int, int, int], None] | None:
+        """The writer of ``key``'s channel, registered at its first message (or, prepared, its
+        class) (None: not kept)."""
         topic = f"{self.root}/{key}"
         if self.keep.active and not self.keep.keeps(topic):
             self._puts[key] = None
             return None
-        cls = msg.cls if type(msg) is Prepared else type(msg)  # type: ignore[union-attr]
+        cls = msg if isinstance(msg, type) else type(msg)
         put = self._puts[key] = self.w.bind(topic, cls)
         return put
 
-    def prepare(self, key: str, msg: Message, t_log: int) -> Prepared:
-        """What ``write`` needs of a message, made where it was published (the fusion's worker):
+    def prepare(self, event: tuple[int, int, int, str, Message]) -> Prepared:
+        """What ``write_events`` needs of a message, made where it was published (the worker):
         its bytes, and the Foxglove messages derived from it -- the worker's copy of the
-        converter sees the keys of the worker's node only, as this process's sees the others'."""
-        derived: list[Any] = []
+        converter sees the keys of the worker's nodes only, as this process's sees the others'."""
+        t_log, producer, order, key, msg = event
+        derived: Any = ()
         if derives(type(msg)):
             derived = self.wellknown.convert(key, msg, self.epoch_ns + t_log)
-        return Prepared(type(msg), encode(msg), msg.stamp_ns, msg.seq, derived)
+        return (t_log, producer, order, key, type(msg), encode(msg), msg.stamp_ns, msg.seq, derived)
 
     def maybe_split(self, t_ns: int, header: Callable[[FileWriter], None]) -> None:
         """At a window boundary, as the recorder at a flush: finish the part once it reached

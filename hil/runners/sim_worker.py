@@ -19,6 +19,7 @@ file or the wire, which is why tests/docker/test_compose_static.py allows it her
 from __future__ import annotations
 
 import contextlib
+import operator
 import os
 import pickle
 import socket
@@ -246,23 +247,21 @@ _FRAME_FIELDS = (
     "bitrate_switch",
     "error_state_indicator",
 )
+_frame_fields = operator.attrgetter(*_FRAME_FIELDS)
 
 
 def portable(event: Sequence[Any]) -> tuple[Any, ...]:
     """An inbox event as it crosses to a tail: a CAN frame as its fields, anything else as is."""
     msg = event[-1]
     if type(msg) is can.Message:
-        fields = [getattr(msg, f) for f in _FRAME_FIELDS]
-        fields[7] = bytes(fields[7])
-        return (*event[:-1], tuple(fields))
+        return (*event[:-1], _frame_fields(msg))
     return tuple(event)
 
 
 def _rebuilt(event: tuple[Any, ...]) -> tuple[Any, ...]:
     f = event[-1]
     if type(f) is tuple and event[3].startswith(CAN_RX):  # a frame's fields (``portable``)
-        frame = can.Message(*f[:7], bytearray(f[7]), *f[8:])
-        return (*event[:-1], frame)
+        return (*event[:-1], can.Message(*f))  # its data a bytearray of its own, as sent
     return event
 
 
@@ -290,13 +289,13 @@ class RemoteTail(ForkedChild):
         split: int,
         make_scheduler: Callable[[], TailScheduler],
         setup: Callable[[], object] | None = None,
-        prepare: Callable[[str, Any, int], tuple[Any, ...]] | None = None,
+        prepare: Callable[[tuple[int, int, int, str, Any]], tuple[Any, ...]] | None = None,
     ) -> None:
         """``make_scheduler()``: the child's scheduler over the same (forked) ``nodes``.
         ``setup``: called first in the child (the fusion's compiled kernels loaded there, so
-        that this process never imports numba). ``prepare(key, message, t)``: what each output
-        is sent back as, a tuple (the sim: its bytes for the file, made there); default
-        ``(message,)``."""
+        that this process never imports numba). ``prepare(event)``: what each output event
+        ``(t, producer, order, key, message)`` is sent back as (the sim: with its bytes for the
+        file, made there); default the event itself."""
         self.split = split
         self.names = [n.name for n in nodes[split:]]
         self.name = "+".join(self.names)
@@ -324,8 +323,8 @@ class RemoteTail(ForkedChild):
         self._send(("finish", boxes, t_end_ns, t_ns))
 
     def result(self) -> tuple[list[tuple[Any, ...]], bool]:
-        """The oldest window's outputs, ``(t, producer, order, key, *prepared)`` in file order,
-        and whether a tail node still wants a tick or has input in flight."""
+        """The oldest window's outputs in file order (each as ``prepare`` made it), and whether
+        a tail node still wants a tick or has input in flight."""
         try:
             reply: tuple[Any, ...] = self._get()
         except (EOFError, OSError) as err:
@@ -348,7 +347,7 @@ def _serve_tail(
     sched: TailScheduler,
     split: int,
     sock: socket.socket,
-    prepare: Callable[[str, Any, int], tuple[Any, ...]] | None,
+    prepare: Callable[[tuple[int, int, int, str, Any]], tuple[Any, ...]] | None,
 ) -> None:
     receive, say = child_ends(sock)
     tail = sched.nodes[split:]
@@ -360,10 +359,7 @@ def _serve_tail(
         try:
             boxes = [[_rebuilt(e) for e in box] for box in boxes]
             out, busy = sched.run_tail(split, boxes, t_end, finish_ns)
-            if prepare is None:
-                events = [(*e[:4], e[4]) for e in out]
-            else:
-                events = [(*e[:4], *prepare(e[3], e[4], e[0])) for e in out]
+            events = out if prepare is None else [prepare(e) for e in out]
             snap = [(n.name, n.counters(), n.last_error) for n in tail]
             reply: tuple[Any, ...] = ("ok", events, busy, snap)
         except Exception:
