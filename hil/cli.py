@@ -7,9 +7,11 @@ saying what and where, and exit code 2 -- never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import tempfile
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,7 @@ from hil.runtime.argtypes import (
     seconds,
     speed,
 )
+from hil.runtime.errors import WorkerError
 
 EXIT_USAGE = 2
 ROUTER_LISTEN = "tcp/127.0.0.1:7447"  # hil router with neither --listen nor --config: this host only
@@ -346,6 +349,17 @@ def _describe_can(channel: str, interface: str | None, can_dir: Path | None) -> 
     )
 
 
+@contextlib.contextmanager
+def _worker_failure(what_is_left: str) -> Iterator[None]:
+    """A worker's failure said with what is left of the run (``main`` prints it in one line,
+    or with the worker's traceback when it raised)."""
+    try:
+        yield
+    except WorkerError as err:
+        said = str(err)
+        raise WorkerError(f"{said}\nhil: {what_is_left}" if "\n" in said else f"{said}; {what_is_left}") from None
+
+
 def cmd_sim(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.progress import Progress
@@ -364,7 +378,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         bar.total = total_s
         bar.update(done_s)
 
-    with bar:
+    with bar, _worker_failure(f"{record} holds what was written until then (`hil recover` finishes it)"):
         res = run_sim(
             SimOptions(
                 scenario=a.scenario,
@@ -1095,6 +1109,9 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as err:
         print(f"hil: {err}", file=sys.stderr)
         return EXIT_USAGE
+    except WorkerError as err:  # a worker process that died or failed: the run did not finish
+        print(err, file=sys.stderr)
+        return 1
     except (FileNotFoundError, ValueError, KeyError, OSError) as err:
         # boundary errors from loaders carry the facts; show them as one line
         msg = str(err) if not isinstance(err, KeyError) else str(err).strip("'\"")

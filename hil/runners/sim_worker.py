@@ -32,6 +32,7 @@ import can
 
 from hil.messages import decode, encode
 from hil.nodes.base import CAN_RX, Node, Out
+from hil.runtime.errors import WorkerError
 
 __all__ = [
     "WORKER_MIN_ESTIMATORS",
@@ -108,10 +109,6 @@ def worker_pays(node: Node) -> bool:
     least ``WORKER_MIN_ESTIMATORS`` estimators and a second process is possible."""
     estimators = getattr(getattr(node, "config", None), "estimators", ())
     return len(estimators) >= WORKER_MIN_ESTIMATORS and worker_possible()
-
-
-class WorkerError(RuntimeError):
-    """The worker failed; the message holds its traceback."""
 
 
 class ForkedChild:

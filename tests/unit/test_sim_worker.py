@@ -251,3 +251,49 @@ def test_close_does_not_wait_on_a_worker_blocked_writing() -> None:
     assert not hung
     with pytest.raises(ChildProcessError):
         os.waitpid(remote.pid, os.WNOHANG)  # reaped
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker through /proc")
+def test_hil_sim_whose_worker_is_killed_says_so_in_one_line_and_keeps_the_file(tmp_path: Path) -> None:
+    """The worker killed mid-run (as the OOM killer would): ``hil sim`` stops with exit code 1
+    and one line naming the worker and the file, no traceback; what was flushed stays readable."""
+    import subprocess
+    import sys
+    import time
+
+    from hil.record.mcapio import read_session
+
+    rec = tmp_path / "k.mcap"
+    cmd = [sys.executable, "-m", "hil.cli", "sim", "--scenario", "static", "--duration", "3000"]
+    cmd += ["--estimators", "ins", "--record", str(rec), "--quiet"]
+    repo = Path(__file__).resolve().parents[2]
+    p = subprocess.Popen(cmd, cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120.0
+        while time.monotonic() < deadline and p.poll() is None:  # a few windows written
+            if rec.exists() and rec.stat().st_size > 2_000_000 and _children(p.pid):
+                break
+            time.sleep(0.05)
+        workers = _children(p.pid)
+        assert p.poll() is None and len(workers) == 1, "the sim ended or never forked its worker"
+        os.kill(workers[0], signal.SIGKILL)
+        _out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 1, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("hil: the can_bridge+gnss_emulator+timesync+fusion worker process died")
+    assert f"{rec} holds what was written until then" in lines[0]
+    s = read_session(rec)
+    assert s.truncated and len(s.records) > 10_000
