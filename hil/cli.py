@@ -356,8 +356,9 @@ def _worker_failure(what_is_left: str) -> Iterator[None]:
     try:
         yield
     except WorkerError as err:
-        said = str(err)
-        raise WorkerError(f"{said}\nhil: {what_is_left}" if "\n" in said else f"{said}; {what_is_left}") from None
+        said = str(err)  # one line (it died), or its traceback (it raised): then a line of its own
+        joint = "\nhil: " if "\n" in said else "; "
+        raise WorkerError(f"{said}{joint}{what_is_left}") from None
 
 
 def cmd_sim(a: argparse.Namespace) -> int:

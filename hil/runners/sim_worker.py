@@ -158,7 +158,31 @@ class ForkedChild:
             os.waitpid(self.pid, 0)
 
 
-class RemoteNode(ForkedChild):
+class _Worker(ForkedChild):
+    """A forked child that computes (``RemoteNode``, ``RemoteTail``): requests out, replies in,
+    either side's failure a ``WorkerError`` naming it."""
+
+    name = "worker"
+
+    def _send(self, req: tuple[Any, ...]) -> None:
+        try:
+            self._put(req)
+        except OSError as err:
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+
+    def _reply(self) -> tuple[Any, ...]:
+        try:
+            reply: tuple[Any, ...] = self._get()
+        except (EOFError, OSError) as err:
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+        if reply[0] == "error":
+            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
+        if reply[0] == "raise":  # the worker has stopped
+            raise reply[1]
+        return reply
+
+
+class RemoteNode(_Worker):
     """A node run in a forked child (``hil rerun``): ``replay`` or ``call`` sends a batch of
     work, ``replayed`` or ``called`` waits for its answer; between the two the caller is free
     to work on the next batch."""
@@ -173,12 +197,6 @@ class RemoteNode(ForkedChild):
             _serve(node, sock)
 
         super().__init__(serve)
-
-    def _send(self, req: tuple[Any, ...]) -> None:
-        try:
-            self._put(req)
-        except OSError as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
 
     def replay(
         self,
@@ -202,17 +220,6 @@ class RemoteNode(ForkedChild):
     def called(self) -> Any:
         """What the oldest ``call`` sent returned."""
         return self._reply()[1]
-
-    def _reply(self) -> tuple[Any, ...]:
-        try:
-            reply: tuple[Any, ...] = self._get()
-        except (EOFError, OSError) as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
-        if reply[0] == "error":
-            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
-        if reply[0] == "raise":  # the worker has stopped
-            raise reply[1]
-        return reply
 
     def replayed(self) -> list[list[Replayed]]:
         """The solutions of the oldest ``replay`` sent, one list per input, encoded there."""
@@ -272,7 +279,7 @@ class TailScheduler(Protocol):
     ) -> tuple[list[tuple[int, int, int, str, Any]], bool]: ...
 
 
-class RemoteTail(ForkedChild):
+class RemoteTail(_Worker):
     """The nodes of a pipeline from ``split`` on, run in a forked child by a scheduler of their own.
 
     ``window`` sends the inputs this process's nodes published to them before ``t_end_ns``;
@@ -305,12 +312,6 @@ class RemoteTail(ForkedChild):
 
         super().__init__(serve)
 
-    def _send(self, req: tuple[Any, ...]) -> None:
-        try:
-            self._put(req)
-        except OSError as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
-
     def window(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int) -> None:
         """Each tail node's inputs from upstream (``portable`` events), before ``t_end_ns``."""
         self._send(("window", boxes, t_end_ns, None))
@@ -322,13 +323,7 @@ class RemoteTail(ForkedChild):
     def result(self) -> tuple[list[tuple[Any, ...]], bool]:
         """The oldest window's outputs in file order (each as ``prepare`` made it), and whether
         a tail node still wants a tick or has input in flight."""
-        try:
-            reply: tuple[Any, ...] = self._get()
-        except (EOFError, OSError) as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
-        if reply[0] == "error":
-            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
-        _ok, events, busy, self._snapshot = reply
+        _ok, events, busy, self._snapshot = self._reply()
         return events, busy
 
     def snapshot(self) -> list[tuple[str, Any, str]]:
