@@ -13,7 +13,7 @@ import pytest
 from hil.messages import Event
 from hil.nodes.base import Node, Out
 from hil.runners.sim import Scheduler, SimOptions, run_sim, sim_run_info
-from hil.runners.sim_worker import RemoteTail, WorkerError, portable
+from hil.runners.sim_worker import RemoteTail, WorkerError, portable, worker_possible
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the worker is forked")
 
@@ -261,6 +261,7 @@ def _children(pid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker through /proc")
+@pytest.mark.skipif(not worker_possible(), reason="hil sim forks its worker with two CPUs")
 def test_hil_sim_whose_worker_is_killed_says_so_in_one_line_and_keeps_the_file(tmp_path: Path) -> None:
     """The worker killed mid-run (as the OOM killer would): ``hil sim`` stops with exit code 1
     and one line naming the worker and the file, no traceback; what was flushed stays readable."""
