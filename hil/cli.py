@@ -399,7 +399,6 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record_include=list(a.record_include),
                 record_exclude=list(a.record_exclude),
                 fusion_worker=False if a.one_process else None,
-                writer_process=False if a.one_process else None,
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )

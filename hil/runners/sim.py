@@ -26,12 +26,8 @@ worker runs the same node objects through a scheduler of its own, with the same 
 same order; its outputs come back encoded for the file (``_Session.prepare``: their bytes and
 the Foxglove messages derived from them) and join their window before it is written, so the
 file is the one-process file byte for byte (``fusion_worker=False`` / ``--one-process``: one).
-
-Without a worker but with two CPUs (``fusion_worker=False`` from Python), a forked writer takes
-the file (``hil.runners.sim_writer``): the same ``SessionWriter`` calls in the same order, a
-window at a time, so the same bytes (``writer_process=False`` / ``--one-process``: this process
-writes). Beside the worker it is not used: a third busy process on two CPUs made the sim slower
-(static, ``--estimators ins``, 600 s: 14.2-15.1 s against 12.8-13.5 s).
+This process writes the file: a third process that wrote it (tried in session 24) made the sim
+slower beside the worker on two CPUs (docs/benchmarks.md, session 25's reading).
 """
 
 from __future__ import annotations
@@ -59,16 +55,12 @@ from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
 from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
 from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteTail, drive, portable, worker_possible
-from hil.runners.sim_writer import RemoteWriter
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
 from hil.runtime.heap import freeze_command_startup
 from hil.runtime.scenario_io import run_attachments
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.wellknown import WellKnown, derives
-
-# what writes the file: here, or in a second process (``hil.runners.sim_writer``)
-FileWriter = SessionWriter | RemoteWriter
 
 __all__ = ["SimOptions", "SimResult", "not_applicable_faults", "run_sim"]
 _S = 1_000_000_000
@@ -102,10 +94,6 @@ class SimOptions:
     # second process, one window behind the rest (tail_split, hil.runners.sim_worker); the file
     # is the same byte for byte. None: when fork exists and two CPUs are available
     fusion_worker: bool | None = None
-    # the recording written by a second process, a window behind (hil.runners.sim_writer); the
-    # same file byte for byte. None: when no worker runs the tail (fusion_worker=False), fork
-    # exists and two CPUs are available (beside the worker, a third process on two CPUs was slower)
-    writer_process: bool | None = None
 
 
 @dataclass
@@ -352,16 +340,13 @@ Prepared = tuple[int, int, int, str, type, bytes, int, int, Any]
 class _Session:
     """The recording side of one sim: the writer, runner-owned seqs, status, progress."""
 
-    def __init__(
-        self, run: RunInfo, opts: SimOptions, nodes: list[Node], writer_process: bool = False
-    ) -> None:
+    def __init__(self, run: RunInfo, opts: SimOptions, nodes: list[Node]) -> None:
         self.root = f"hil/{run.rig}"
         self.nodes = nodes
         self.opts = opts
         self.end_ns = int(run.duration_s * 1e9)
         self.epoch_ns = run.start_epoch_ns  # rig time zero on the wall-clock timeline
-        self.writer_process = writer_process
-        self.w = self._open(opts.record)
+        self.w = SessionWriter(opts.record)
         self.wellknown = WellKnown(start_epoch_ns=run.start_epoch_ns)  # Foxglove's types, as live
         self.keep = KeyFilter(run.rig, opts.record_include, opts.record_exclude)
         self.part = 0
@@ -369,10 +354,6 @@ class _Session:
         self.n_written = 0
         self._seqs: dict[str, int] = {}
         self._puts: dict[str, Callable[[bytes, int, int, int], None] | None] = {}  # per key, bound
-
-    def _open(self, path: Path) -> FileWriter:
-        """The file's writer: in a second process (``writer_process``), or this one's."""
-        return RemoteWriter(path) if self.writer_process else SessionWriter(path)
 
     def write(self, key: str, msg: Message, t_log: int) -> None:
         self.write_events(((t_log, 0, 0, key, msg),))
@@ -428,7 +409,7 @@ class _Session:
             derived = self.wellknown.convert(key, msg, self.epoch_ns + t_log)
         return (t_log, producer, order, key, type(msg), encode(msg), msg.stamp_ns, msg.seq, derived)
 
-    def maybe_split(self, t_ns: int, header: Callable[[FileWriter], None]) -> None:
+    def maybe_split(self, t_ns: int, header: Callable[[SessionWriter], None]) -> None:
         """At a window boundary, as the recorder at a flush: finish the part once it reached
         ``split_mb`` or ``split_s`` of rig time, and open the next with the same metadata."""
         o = self.opts
@@ -441,7 +422,7 @@ class _Session:
         self.w.close()
         self.part += 1
         self.part_t0_ns = t_ns
-        self.w = self._open(split_part_path(o.record, self.part))
+        self.w = SessionWriter(split_part_path(o.record, self.part))
         self._puts.clear()  # the channels of the new part: registered at their first message
         self.w.add_metadata(
             "part", {"index": self.part, "previous": split_part_path(o.record, self.part - 1).name}
@@ -468,8 +449,13 @@ class _Session:
         nodes = self.nodes if remote is None else self.nodes[: remote.split]
         snap = [(n.name, counts(n.counters()), n.last_error) for n in nodes]
         if remote is not None:
-            snap += [(name, counts(c), err) for name, c, err in remote.snapshot()]
+            snap += self.remote_rows(remote)
         return snap
+
+    @staticmethod
+    def remote_rows(remote: RemoteTail) -> list[tuple[str, list[Any], str]]:
+        """The worker's nodes' counters and last errors, as of its latest window taken."""
+        return [(name, counts(c), err) for name, c, err in remote.snapshot()]
 
     def status(self, t_ns: int, snap: list[tuple[str, list[Any], str]]) -> None:
         """Each node's counters as its live service would report them; nothing host-dependent."""
@@ -497,12 +483,9 @@ def run_sim(opts: SimOptions) -> SimResult:
     if use_worker is None:
         use_worker = worker_possible()
     split = tail_split(nodes) if use_worker else len(nodes)
-    writer = opts.writer_process
-    if writer is None:  # with the fusion in a worker, a third process on two CPUs cost more
-        writer = not use_worker and worker_possible()
-    sess = _Session(run, opts, nodes, writer)
+    sess = _Session(run, opts, nodes)
 
-    def header(w: FileWriter) -> None:
+    def header(w: SessionWriter) -> None:
         _header(w, run, s)
 
     header(sess.w)
@@ -534,7 +517,7 @@ def run_sim(opts: SimOptions) -> SimResult:
             sched.publish(i, outs, 0)
         _windows(sched, sess, opts, ignored, header, remote)
     except BaseException:
-        sess.w.abandon()  # what was flushed stays readable; a writer process is stopped
+        sess.w.abandon()  # what was flushed stays readable
         raise
     finally:
         if remote is not None:
@@ -553,10 +536,10 @@ def tail_split(nodes: list[Node]) -> int:
       emulator, time sync and fusion;
     - one or two (``--estimators ins``): the CAN bridges too.
 
-    Measured on 2 CPUs (docs/benchmarks.md): straight_level 300 s 8.3-9.1 s with the GNSS
-    emulator on against 9.6-10.4 s with the fusion alone; uav_survey and car_drive 120 s 3-7 %
-    slower that way; static 300 s with ``--estimators ins`` 6.9-7.3 s from the CAN bridge on,
-    9.9-10.0 s with the fusion alone."""
+    Measured on 2 CPUs (docs/benchmarks.md, session 25's reading): straight_level 300 s
+    8.31-9.05 s with the GNSS emulator on against 9.63-10.65 s with the fusion alone; uav_survey
+    and car_drive 120 s 3-7 % slower that way; static 300 s with ``--estimators ins`` 6.92-7.33 s
+    from the CAN bridge on, 9.0-10.0 s with the fusion alone."""
     fusion = nodes[-1]
     readers = [i for i, n in enumerate(nodes) if n.reads_can]
     writers = [i for i, n in enumerate(nodes) if n.writes_can]
@@ -585,7 +568,7 @@ def _windows(
     sess: _Session,
     opts: SimOptions,
     ignored: list[tuple[int, str]],
-    header: Callable[[FileWriter], None],
+    header: Callable[[SessionWriter], None],
     remote: RemoteTail | None,
 ) -> None:
     """One rig second at a time until every node is done, then the end of input.
@@ -602,7 +585,7 @@ def _windows(
         busy = sched.complete(out)
         if t < sess.end_ns:
             if remote is not None:  # their counters came with the window just completed
-                snap[remote.split :] = sess.snapshot(remote)[remote.split :]
+                snap[remote.split :] = sess.remote_rows(remote)
             sess.status(t, snap)
         sess.w.flush()
         sess.maybe_split(t, header)
@@ -619,7 +602,7 @@ def _windows(
             ev = Event(seq=sess.next_seq(key), stamp_ns=t0, kind="fault_ignored", source="sim", detail=detail)
             sched.emit(t0, key, ev)
         busy = sched.dispatch(t)
-        window = (t, sched.take_out(), sess.snapshot() if t < sess.end_ns else [])
+        window = (t, sched.take_out(), sess.snapshot(remote) if t < sess.end_ns else [])
         if remote is None:
             busy = complete(window) or busy
         else:
@@ -638,7 +621,7 @@ def _windows(
     sess.status(t_last, sess.snapshot(remote))
 
 
-def _header(w: FileWriter, run: RunInfo, s: Any) -> None:
+def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:
     w.add_metadata(
         "hil",
         {

@@ -42,7 +42,6 @@ __all__ = [
     "RemoteTail",
     "Replayed",
     "TailScheduler",
-    "child_ends",
     "drive",
     "portable",
     "replay_split",
@@ -113,9 +112,11 @@ def worker_pays(node: Node) -> bool:
 
 class ForkedChild:
     """A forked child serving ``serve(sock)`` on its end of a socket pair (``RemoteNode``,
-    :class:`hil.runners.sim_writer.RemoteWriter`): this side's reader and writer on the other end,
-    and the child stopped and reaped by :meth:`_reap`. The child never returns into the caller's
-    code: it leaves with ``os._exit``, whatever happens."""
+    ``RemoteTail``): requests out, replies in, either side's failure a ``WorkerError`` naming
+    it, and the child stopped and reaped by :meth:`close`. The child never returns into the
+    caller's code: it leaves with ``os._exit``, whatever happens."""
+
+    name = "worker"
 
     def __init__(self, serve: Callable[[socket.socket], None]) -> None:
         parent, child = socket.socketpair()
@@ -134,21 +135,30 @@ class ForkedChild:
         self._rfile = parent.makefile("rb")
         self._wfile = parent.makefile("wb")
 
-    def _put(self, obj: Any) -> None:
-        """``obj`` to the child (pickled: this process's own objects, to its own fork)."""
-        pickle.dump(obj, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
-        self._wfile.flush()
-
-    def _get(self) -> Any:
-        """What the child sent next; ``EOFError`` when it is gone or sent half a message."""
+    def _send(self, req: tuple[Any, ...]) -> None:
+        """``req`` to the child (pickled: this process's own objects, to its own fork)."""
         try:
-            return pickle.load(self._rfile)
-        except pickle.UnpicklingError as err:
-            raise EOFError(str(err)) from err
+            pickle.dump(req, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
+            self._wfile.flush()
+        except OSError as err:
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
 
-    def _reap(self) -> None:
-        """A shutdown, not a message: a child blocked writing a large reply while this side is
-        not reading would never see one; it sees its socket end, and leaves."""
+    def _reply(self) -> tuple[Any, ...]:
+        """What the child answered next; an error it reported, or its end, raised here."""
+        try:
+            reply: tuple[Any, ...] = pickle.load(self._rfile)
+        except (EOFError, OSError, pickle.UnpicklingError) as err:  # gone, or half a message
+            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+        if reply[0] == "error":
+            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
+        if reply[0] == "raise":  # the worker has stopped
+            raise reply[1]
+        return reply
+
+    def close(self) -> None:
+        """Stop the worker and reap it (also after a failure on either side). A shutdown, not a
+        message: a child blocked writing a large reply while this side is not reading would
+        never see one; it sees its socket end, and leaves."""
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
         for f in (self._wfile, self._rfile, self._sock):
@@ -158,31 +168,7 @@ class ForkedChild:
             os.waitpid(self.pid, 0)
 
 
-class _Worker(ForkedChild):
-    """A forked child that computes (``RemoteNode``, ``RemoteTail``): requests out, replies in,
-    either side's failure a ``WorkerError`` naming it."""
-
-    name = "worker"
-
-    def _send(self, req: tuple[Any, ...]) -> None:
-        try:
-            self._put(req)
-        except OSError as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
-
-    def _reply(self) -> tuple[Any, ...]:
-        try:
-            reply: tuple[Any, ...] = self._get()
-        except (EOFError, OSError) as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
-        if reply[0] == "error":
-            raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
-        if reply[0] == "raise":  # the worker has stopped
-            raise reply[1]
-        return reply
-
-
-class RemoteNode(_Worker):
+class RemoteNode(ForkedChild):
     """A node run in a forked child (``hil rerun``): ``replay`` or ``call`` sends a batch of
     work, ``replayed`` or ``called`` waits for its answer; between the two the caller is free
     to work on the next batch."""
@@ -230,10 +216,6 @@ class RemoteNode(_Worker):
         _ok, out, verdicts = self._reply()
         return out, verdicts
 
-    def close(self) -> None:
-        """Stop the worker and reap it (also after a failure on either side)."""
-        self._reap()
-
 
 # a python-can frame as shipped to a tail (``portable``): pickling can.Message itself costs
 # ~2.6 µs a side, four frames an IMU sample; these fields, rebuilt there, a tenth of that
@@ -279,7 +261,7 @@ class TailScheduler(Protocol):
     ) -> tuple[list[tuple[int, int, int, str, Any]], bool]: ...
 
 
-class RemoteTail(_Worker):
+class RemoteTail(ForkedChild):
     """The nodes of a pipeline from ``split`` on, run in a forked child by a scheduler of their own.
 
     ``window`` sends the inputs this process's nodes published to them before ``t_end_ns``;
@@ -314,11 +296,11 @@ class RemoteTail(_Worker):
 
     def window(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int) -> None:
         """Each tail node's inputs from upstream (``portable`` events), before ``t_end_ns``."""
-        self._send(("window", boxes, t_end_ns, None))
+        self._send((boxes, t_end_ns, None))
 
     def finish_request(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int, t_ns: int) -> None:
         """As ``window``, then each tail node told ``finish(t_ns)`` in pipeline order."""
-        self._send(("finish", boxes, t_end_ns, t_ns))
+        self._send((boxes, t_end_ns, t_ns))
 
     def result(self) -> tuple[list[tuple[Any, ...]], bool]:
         """The oldest window's outputs in file order (each as ``prepare`` made it), and whether
@@ -330,10 +312,6 @@ class RemoteTail(_Worker):
         """Each tail node's name, counters and last error after the last window taken."""
         return list(self._snapshot)
 
-    def close(self) -> None:
-        """Stop the worker and reap it (also after a failure on either side)."""
-        self._reap()
-
 
 def _serve_tail(
     sched: TailScheduler,
@@ -341,11 +319,11 @@ def _serve_tail(
     sock: socket.socket,
     prepare: Callable[[tuple[int, int, int, str, Any]], tuple[Any, ...]] | None,
 ) -> None:
-    receive, say = child_ends(sock)
+    receive, say = _child_ends(sock)
     tail = sched.nodes[split:]
     while True:
         try:
-            _kind, boxes, t_end, finish_ns = receive()
+            boxes, t_end, finish_ns = receive()
         except EOFError:
             return
         try:
@@ -361,9 +339,9 @@ def _serve_tail(
             return
 
 
-def child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
+def _child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
     """A ``ForkedChild``'s own end: ``receive()`` (``EOFError`` once the caller is gone) and
-    ``say(obj)``, pickled as :meth:`ForkedChild._put` and ``_get`` are."""
+    ``say(obj)``, pickled as :meth:`ForkedChild._send` and ``_reply`` are."""
     rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
 
     def receive() -> Any:
@@ -377,7 +355,7 @@ def child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], 
 
 
 def _serve(node: Node, sock: socket.socket) -> None:
-    receive, say = child_ends(sock)
+    receive, say = _child_ends(sock)
     while True:
         try:
             req = receive()

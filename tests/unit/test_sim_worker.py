@@ -57,7 +57,6 @@ def test_worker_writes_the_one_process_file(
             estimators=estimators,
             gnss_protocol=gnss,
             fusion_worker=worker,
-            writer_process=False,
         )
         res = run_sim(opts)
         assert res.messages > 10_000
