@@ -19,11 +19,14 @@ file or the wire, which is why tests/docker/test_compose_static.py allows it her
 from __future__ import annotations
 
 import contextlib
+import gc
 import operator
 import os
 import pickle
+import signal
 import socket
 import threading
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -114,9 +117,16 @@ class ForkedChild:
     """A forked child serving ``serve(sock)`` on its end of a socket pair (``RemoteNode``,
     ``RemoteTail``): requests out, replies in, either side's failure a ``WorkerError`` naming
     it, and the child stopped and reaped by :meth:`close`. The child never returns into the
-    caller's code: it leaves with ``os._exit``, whatever happens."""
+    caller's code: it leaves with ``os._exit``, whatever happens.
+
+    The child freezes the heap it inherits before anything else (``gc.freeze``): garbage the
+    caller had not collected yet is never finalized there. A finalizer run in a fork can block
+    for ever -- a Zenoh session's waits on a runtime whose threads the fork does not have (seen:
+    ``hil sim`` in a test process that had opened sessions before, its worker parked in Zenoh's
+    runtime under a collection)."""
 
     name = "worker"
+    close_grace_s = 5.0  # after its socket ends, how long the child has to leave before SIGKILL
 
     def __init__(self, serve: Callable[[socket.socket], None]) -> None:
         parent, child = socket.socketpair()
@@ -124,6 +134,7 @@ class ForkedChild:
         if pid == 0:
             code = 1
             try:
+                gc.freeze()
                 parent.close()
                 serve(child)
                 code = 0
@@ -158,14 +169,22 @@ class ForkedChild:
     def close(self) -> None:
         """Stop the worker and reap it (also after a failure on either side). A shutdown, not a
         message: a child blocked writing a large reply while this side is not reading would
-        never see one; it sees its socket end, and leaves."""
+        never see one; it sees its socket end, and leaves. One still there ``close_grace_s``
+        later (stuck, or deep in a window nobody will read) is killed: closing never hangs."""
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
         for f in (self._wfile, self._rfile, self._sock):
             with contextlib.suppress(OSError):
                 f.close()
+        deadline = time.monotonic() + self.close_grace_s
         with contextlib.suppress(ChildProcessError):
-            os.waitpid(self.pid, 0)
+            while os.waitpid(self.pid, os.WNOHANG)[0] == 0:
+                if time.monotonic() >= deadline:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(self.pid, signal.SIGKILL)
+                    os.waitpid(self.pid, 0)
+                    return
+                time.sleep(0.005)
 
 
 class RemoteNode(ForkedChild):
