@@ -22,6 +22,7 @@ rig time in ``log_time``/``publish_time``; ``rig_time_ns`` reads both (hil's tim
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import json
 import os
@@ -29,8 +30,10 @@ import struct
 import sys
 import tempfile
 from array import array
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from itertools import chain
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -48,8 +51,9 @@ from mcap.records import Attachment, Channel, ChunkIndex, Header, MessageIndex, 
 from hil import __version__
 from hil.messages import TYPES_BY_NAME, Message, decode, json_schema, schema_name
 
-if TYPE_CHECKING:  # the writer side (mcap.writer, the Foxglove SDK's schemas) loads when a file is
-    # written: a reader (rerun, info, report) skips ~40 ms of imports
+if TYPE_CHECKING:  # numpy (batches of messages) and the writer side (mcap.writer, the Foxglove
+    # SDK's schemas) load when a file is written: a reader (rerun, info, report) skips their imports
+    import numpy as np
     from mcap.writer import Writer
 
     from hil.wellknown import Derived
@@ -147,6 +151,18 @@ _MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # the record length counts what follows
 _OP_MESSAGE = int(Opcode.MESSAGE)  # an enum member's lookup, once
 
 
+@functools.cache
+def _head_row() -> np.dtype[Any]:
+    """The message head as one row of a packed numpy array (no padding: 31 bytes); numpy loads
+    with the first batch written, not for a reader of files."""
+    import numpy as np
+
+    fields = [("op", "u1"), ("len", "<u8"), ("chan", "<u2"), ("seq", "<u4"), ("log", "<u8"), ("pub", "<u8")]
+    row = np.dtype(fields)
+    assert row.itemsize == _MESSAGE_HEAD.size
+    return row
+
+
 class _MessageAppender:
     """``mcap.Writer.add_message``'s work, byte for byte, without its per-message objects.
 
@@ -217,6 +233,88 @@ class _MessageAppender:
         buf.write(data)
         if offset + _MESSAGE_HEAD.size + len(data) > self._chunk_size:  # buf.tell(), uncalled
             self._finalize()
+
+    def add_many(
+        self, chans: list[int], logs: np.ndarray, datas: list[bytes], pubs: np.ndarray, seqs: np.ndarray
+    ) -> None:
+        """:meth:`add` of each message in turn, the same bytes, in a few numpy calls for all.
+
+        A window of ``hil sim`` is ~3000 messages: per message :meth:`add` updates a dozen
+        counters and makes three writes (~1.3 µs); here each record's head is a row of one packed
+        array, the counters move once per batch and a chunk's records go out in one write. Times
+        must be u64 and sequences u32 (:meth:`SessionWriter._drain` clamps them as
+        ``write`` does); a chunk closes after the first record that ends past the chunk size, as
+        ``add`` closes it."""
+        import numpy as np
+
+        m = len(chans)
+        if m == 0:
+            return
+        head = np.empty(m, _head_row())
+        head["op"] = _OP_MESSAGE
+        sizes = np.fromiter(map(len, datas), np.int64, m)
+        head["len"] = sizes + _MESSAGE_FIXED
+        head["chan"] = chans
+        head["seq"] = seqs
+        log = np.asarray(logs, np.uint64)
+        head["log"] = log
+        head["pub"] = pubs
+        ends = np.cumsum(sizes + _MESSAGE_HEAD.size)
+        ch = np.asarray(chans, np.int64)
+        st, start = self._stats, 0
+        for c, n in Counter(chans).items():  # first seen first: the statistics' key order
+            st.channel_message_counts[c] += n
+        lo, hi = int(log.min()), int(log.max())
+        if st.message_count == 0 or lo < st.message_start_time:
+            st.message_start_time = lo
+        if hi > st.message_end_time:
+            st.message_end_time = hi
+        st.message_count += m
+        while start < m:
+            cb = self._chunk
+            buf = cb.record_writer._buffer
+            base = buf.tell() - (int(ends[start - 1]) if start else 0)
+            # the first record that ends past the chunk size closes the chunk after it
+            over = int(np.searchsorted(ends[start:], self._chunk_size - base, side="right"))
+            stop = min(m, start + over + 1)
+            part = slice(start, stop)
+            lg = log[part]
+            lo, hi = int(lg.min()), int(lg.max())
+            if cb.num_messages == 0 or lo < cb.message_start_time:
+                cb.message_start_time = lo
+            if hi > cb.message_end_time:
+                cb.message_end_time = hi
+            cb.num_messages += stop - start
+            offsets = np.empty(stop - start, np.uint64)
+            offsets[0] = base + (int(ends[start - 1]) if start else 0)
+            offsets[1:] = base + ends[start : stop - 1]
+            pairs = np.empty((stop - start, 2), np.uint64)
+            pairs[:, 0] = lg
+            pairs[:, 1] = offsets
+            c_part = ch[part]
+            uniq, first = np.unique(c_part, return_index=True)
+            indices = cb.message_indices
+            for c in uniq[np.argsort(first)].tolist():  # a chunk's indices in first-seen order
+                index = indices.get(c)
+                if index is None:
+                    index = indices[c] = _FlatMessageIndex(c)
+                sel = pairs[c_part == c]
+                if type(index) is _FlatMessageIndex:
+                    index.flat.frombytes(sel.tobytes())
+                else:  # made by mcap's own add_message in this chunk
+                    index.records.extend(map(tuple, sel.tolist()))
+            heads = head[part].tobytes()
+            w = _MESSAGE_HEAD.size
+            buf.write(
+                b"".join(
+                    chain.from_iterable(
+                        zip([heads[i : i + w] for i in range(0, len(heads), w)], datas[part], strict=True)
+                    )
+                )
+            )
+            if stop - start == over + 1:  # the last record ended past the chunk size
+                self._finalize()
+            start = stop
 
 
 class _Pairs:
@@ -395,6 +493,24 @@ def _index_spill_file(path: Path) -> IO[bytes] | None:
         return None
 
 
+class MessageQueue:
+    """Messages handed to a :class:`SessionWriter` as columns, written in one batch
+    (:meth:`_MessageAppender.add_many`) before anything else is written through it: a caller with
+    many messages (``hil sim``, ~3000 a window) appends to the lists and the writer drains them."""
+
+    __slots__ = ("chans", "datas", "logs", "pubs", "seqs")
+
+    def __init__(self) -> None:
+        self.chans: list[int] = []
+        self.logs: list[int] = []  # log times, ns
+        self.datas: list[bytes] = []
+        self.pubs: list[int] = []  # publish times, ns
+        self.seqs: list[int] = []
+
+    def __len__(self) -> int:
+        return len(self.chans)
+
+
 class SessionWriter:
     """Writes one session file. Not thread-safe: one writer thread owns it."""
 
@@ -421,6 +537,8 @@ class SessionWriter:
         self._writer.start(profile=PROFILE, library=f"hil {__version__}")
         appender = _MessageAppender.for_writer(self._writer)
         self._add_message = appender.add if appender is not None else self._writer.add_message
+        self._add_many = appender.add_many if appender is not None and sys.byteorder == "little" else None
+        self.queue = MessageQueue()
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._publishers_per_topic: dict[str, int] = {}
@@ -428,9 +546,33 @@ class SessionWriter:
         self._wellknown_seq: dict[str, int] = {}  # each Foxglove topic's message count: its sequence
         self.closed = False
 
+    def _drain(self) -> None:
+        """Write what :attr:`queue` holds (times clamped to u64 and sequences to u32 as
+        :meth:`write` clamps them), and empty it in place."""
+        q = self.queue
+        if not q.chans:
+            return
+        import numpy as np
+
+        try:
+            if self._add_many is None:
+                raise OverflowError  # the library's add_message, one at a time
+            logs, pubs = np.array(q.logs, np.int64), np.array(q.pubs, np.int64)
+            seqs = np.array(q.seqs, np.int64) & 0xFFFFFFFF
+        except OverflowError:  # a time past 2**63 ns (year 2262) or a huge seq: as write() does
+            for c, lg, d, pb, sq in zip(q.chans, q.logs, q.datas, q.pubs, q.seqs, strict=True):
+                self._add_message(c, _u64(lg), d, _u64(pb), sq & 0xFFFFFFFF)
+        else:
+            np.maximum(logs, 0, out=logs)
+            np.maximum(pubs, 0, out=pubs)
+            self._add_many(q.chans, logs, q.datas, pubs, seqs)
+        for col in (q.chans, q.logs, q.datas, q.pubs, q.seqs):
+            col.clear()
+
     def _channel(self, topic: str, cls: type[Message], publisher: str | None, origin: str) -> int:
         chan = self._channels.get((topic, publisher or ""))
         if chan is None:
+            self._drain()  # a channel's record goes into the chunk, after what was queued
             if publisher is not None:
                 n = self._publishers_per_topic.get(topic, 0)
                 if n >= MAX_CHANNELS_PER_TOPIC:  # a flood of made-up publishers shares one
@@ -464,6 +606,7 @@ class SessionWriter:
         """One message; ``publisher`` (a live recorder's: the Zenoh source id) and its ``origin``
         go into the channel's metadata, one channel per topic and publisher."""
         chan = self._channel(topic, cls, publisher, origin)
+        self._drain()
         self._add_message(chan, _u64(log_time_ns), payload, _u64(publish_time_ns), seq & 0xFFFFFFFF)
 
     def bind(
@@ -474,9 +617,11 @@ class SessionWriter:
         (bind where that message is written: channel ids go in order of registration); the
         per-message lookups are done once. ``hil sim`` writes ~3300 messages a rig second."""
         chan = self._channel(topic, cls, publisher, origin)
-        add = self._add_message
+        add, queued, drain = self._add_message, self.queue.chans, self._drain
 
         def put(payload: bytes, log_time_ns: int, publish_time_ns: int, seq: int) -> None:
+            if queued:
+                drain()
             add(
                 chan,
                 log_time_ns if 0 <= log_time_ns <= _U64_MAX else _u64(log_time_ns),
@@ -487,11 +632,22 @@ class SessionWriter:
 
         return put
 
+    def channel(self, topic: str, cls: type[Message]) -> int:
+        """The id of ``topic``'s channel (no publisher), registered now if it is new: the
+        channel of messages a caller appends to :attr:`queue`."""
+        return self._channel(topic, cls, None, "")
+
     def write_wellknown(self, d: Derived, *, log_time_ns: int) -> None:
         """A Foxglove well-known message (``hil.wellknown``): its own channel, the SDK's schema,
         ``publish_time`` = its timestamp, ``sequence`` = its count on the topic."""
+        self.queue_wellknown(d, log_time_ns)
+        self._drain()
+
+    def queue_wellknown(self, d: Derived, log_time_ns: int) -> None:
+        """:meth:`write_wellknown` through :attr:`queue`."""
         chan = self._channels.get(d.topic)
         if chan is None:
+            self._drain()
             from hil.wellknown import MESSAGE_ENCODING, SCHEMAS
 
             schema = SCHEMAS[d.schema]
@@ -502,7 +658,12 @@ class SessionWriter:
                 )
             chan = self._channels[d.topic] = self._writer.register_channel(d.topic, MESSAGE_ENCODING, sid)
         n = self._wellknown_seq.get(d.topic, 0)
-        self._add_message(chan, _u64(log_time_ns), d.data, _u64(d.stamp_ns), n & 0xFFFFFFFF)
+        q = self.queue
+        q.chans.append(chan)
+        q.logs.append(log_time_ns)
+        q.datas.append(d.data)
+        q.pubs.append(d.stamp_ns)
+        q.seqs.append(n)
         self._wellknown_seq[d.topic] = n + 1
 
     def write_raw(
@@ -516,6 +677,7 @@ class SessionWriter:
         """
         base = encoding.split(";", 1)[0]
         msg_encoding = "json" if base in ("application/json", "text/json") else (encoding or "zenoh/bytes")
+        self._drain()
         chan = self._raw_channels.get((topic, msg_encoding))
         if chan is None:
             chan = self._raw_channels[(topic, msg_encoding)] = self._writer.register_channel(
@@ -525,6 +687,7 @@ class SessionWriter:
 
     def add_metadata(self, name: str, data: dict[str, Any]) -> None:
         """Metadata values must be strings in MCAP: non-strings are stored as JSON."""
+        self._drain()
         self._writer.add_metadata(
             name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
         )
@@ -532,6 +695,7 @@ class SessionWriter:
     def add_attachment(
         self, name: str, data: bytes, media_type: str = "text/plain", log_time_ns: int = 0
     ) -> None:
+        self._drain()
         self._writer.add_attachment(
             create_time=_u64(log_time_ns),
             log_time=_u64(log_time_ns),
@@ -542,6 +706,7 @@ class SessionWriter:
 
     def flush(self) -> None:
         """Close the chunk in progress and push it to the OS (a SIGKILL after this loses nothing)."""
+        self._drain()
         self._writer.flush()
 
     def abandon(self) -> None:
@@ -557,6 +722,7 @@ class SessionWriter:
 
     def tell(self) -> int:
         """Bytes handed to the OS so far (for size-based splitting)."""
+        self._drain()
         return self._fh.tell()
 
     def close(self) -> None:
@@ -564,6 +730,7 @@ class SessionWriter:
             return
         self.closed = True
         try:
+            self._drain()
             self._writer.finish()
         finally:
             if self.chunk_index is not None:

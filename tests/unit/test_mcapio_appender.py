@@ -40,3 +40,71 @@ def test_fast_path_file_is_byte_identical(tmp_path: Path) -> None:
     fast = _write(tmp_path / "fast.mcap", True, rows)
     assert len(fast) > 50_000
     assert fast == slow
+
+
+def _write_queued(path: Path, rows: list[tuple[str, bytes, int, int, int]]) -> bytes:
+    """The rows through ``SessionWriter.queue`` (the batch path ``hil sim`` takes), with the
+    writer's other paths (a raw message, a flush, a new channel) cutting into the batches."""
+    w = mcapio.SessionWriter(path, chunk_size=4096, spill_index=False)
+    assert w._add_many is not None, "the batch path is off: mcap's Writer changed?"
+    cls = next(iter(TYPES_BY_NAME.values()))
+    q = w.queue
+    for i, (topic, data, log, pub, seq) in enumerate(rows):
+        if i % 7 == 3:
+            w.write_raw(topic + "/raw", data, log_time_ns=log, encoding="application/json", sequence=seq)
+        else:
+            chan = w.channel(topic, cls)
+            q.chans.append(chan)
+            q.logs.append(log)
+            q.datas.append(data)
+            q.pubs.append(pub)
+            q.seqs.append(seq)
+        if i == 500:
+            w.flush()
+    w.close()
+    return path.read_bytes()
+
+
+def _rows(seed: int, n: int) -> list[tuple[str, bytes, int, int, int]]:
+    g = np.random.default_rng(seed)
+    rows = []
+    for i in range(n):
+        topic = f"hil/t/{int(g.integers(0, 9))}"
+        data = bytes(g.integers(0, 256, size=int(g.integers(0, 300)), dtype=np.uint8))
+        if i % 50 == 0:  # out of order
+            log = int(g.integers(0, 10**12))
+        elif i % 97 == 0:  # long payloads: chunks of one message
+            log, data = 10**9 + i * 2_500_000, data * 40
+        else:
+            log = 10**9 + i * 2_500_000
+        rows.append((topic, data, log, log - int(g.integers(0, 10**6)), int(g.integers(0, 2**32))))
+    return rows
+
+
+def test_queued_batches_write_the_library_bytes(tmp_path: Path) -> None:
+    rows = _rows(5, 3000)
+    slow = _write(tmp_path / "slow.mcap", False, rows)
+    queued = _write_queued(tmp_path / "queued.mcap", rows)
+    assert len(queued) > 100_000
+    assert queued == slow
+
+
+def test_queued_out_of_range_values_are_clamped_as_write_clamps_them(tmp_path: Path) -> None:
+    """A negative time is 0, one past u64 the u64 maximum, a sequence its low 32 bits; a time
+    past 2**63 takes the one-at-a-time path, with the same bytes."""
+    rows = _rows(6, 300)
+    rows[11] = (rows[11][0], b"{}", -5, -7, -1)
+    rows[20] = (rows[20][0], b"{}", 2**64 + 3, 2**63 + 1, 2**40 + 9)
+    slow = _write(tmp_path / "slow.mcap", False, rows)
+    queued = _write_queued(tmp_path / "queued.mcap", rows)
+    assert queued == slow
+
+
+def test_queued_record_ending_exactly_at_the_chunk_size_keeps_the_chunk_open(tmp_path: Path) -> None:
+    """32-byte records (a 1-byte payload) end on 4096 exactly; ``add_message`` closes a chunk
+    only past its size, so the batch must too."""
+    rows = [("hil/t/0", b"7", 10**9 + i, 10**9 + i, i) for i in range(2000)]
+    rows = [r for i, r in enumerate(rows) if i % 7 != 3]  # no raw messages in between
+    slow = _write(tmp_path / "slow.mcap", False, rows)
+    queued = _write_queued(tmp_path / "queued.mcap", rows)
+    assert queued == slow
