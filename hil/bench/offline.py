@@ -6,7 +6,8 @@ wall time. Both revisions run in the same session, alternating (REF first on eve
 before/after ratio shares the load. REF runs from a temporary ``git worktree`` with the same Python
 environment (as ``hil bench versus`` does). Every run:
 
-- ``hil sim --scenario S --duration D --record`` (every default estimator, everything recorded);
+- ``hil sim --scenario S --duration D --record`` (every default estimator, or ``--estimators``:
+  ``ins`` for the 12000 s static target's configuration; everything recorded);
 - ``hil rerun --core fusion --verify`` and ``--core timesync --verify`` of REF's recording (the same
   file for both trees, so the rerun figures compare like with like and the verify checks that
   this tree reproduces REF's outputs bit for bit);
@@ -39,6 +40,8 @@ from mcap.reader import make_reader
 
 from hil.bench import command_line, write_section
 from hil.bench.versus import ref_tree, remove_ref_tree, warm_kernels
+from hil.estimators.registry import ESTIMATORS
+from hil.fusion.core import FREE_INS
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
 _IMPORT = "import hil.runners.sim, hil.record.rerun"
@@ -216,6 +219,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--scenario", default="uav_survey", help="hil sim's scenario")
     ap.add_argument("--duration", type=float, default=60.0, help="rig seconds simulated")
     ap.add_argument("--repeat", type=int, default=1, help="runs of each tree (alternating order)")
+    ap.add_argument(
+        "--estimators", default="", help="hil sim's --estimators (comma-separated; default: the defaults)"
+    )
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="add each tree's top N (cProfile)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     ap.add_argument("--section", default="offline", help="the docs/benchmarks.md section to write")
@@ -223,8 +229,19 @@ def main(argv: list[str]) -> int:
     if a.duration <= 0 or a.repeat < 1:
         print("hil bench offline: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
         return 2
+    estimators = [e for e in a.estimators.split(",") if e]
+    unknown = [e for e in estimators if e not in ESTIMATORS and e != FREE_INS]
+    if unknown:
+        print(
+            f"hil bench offline: unknown estimator {unknown[0]!r} in --estimators; known: "
+            f"{', '.join(sorted(ESTIMATORS))} (and {FREE_INS!r}, the free INS alone)",
+            file=sys.stderr,
+        )
+        return 2
     head_path = Path(__file__).resolve().parents[2]
     sim_args = ["--scenario", a.scenario, "--duration", f"{a.duration:g}"]
+    if estimators:
+        sim_args += ["--estimators", ",".join(estimators)]
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="hil-offline-") as d:
         tmp = Path(d)
@@ -279,8 +296,9 @@ def report(
         f"{t.label} {'failed ' + '/'.join(t.verify_failed) if t.verify_failed else 'bit-identical'}"
         for t in trees
     )
+    which = "these estimators" if a.estimators else "every default estimator"
     lines = [
-        f"`hil sim {' '.join(sim_args)} --record` (every default estimator, everything recorded), then "
+        f"`hil sim {' '.join(sim_args)} --record` ({which}, everything recorded), then "
         f"`hil rerun --core fusion|timesync --verify` of {trees[0].label}'s recording, by each tree in "
         f"turn, {a.repeat} run(s) each; × real time = {a.duration:g} rig s / CPU s of the child (user + "
         "system, with the fusion worker it reaps: all the work), and × real time (wall) = rig s / wall s "

@@ -30,7 +30,14 @@ def test_digests_tell_a_changed_payload_from_equal_ones(tmp_path: Path) -> None:
     assert a["hil/t/1"][0] == 10
 
 
-@pytest.mark.parametrize("argv", [["HEAD", "--duration", "0"], ["no-such-revision-xyz", "--duration", "1"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["HEAD", "--duration", "0"],
+        ["no-such-revision-xyz", "--duration", "1"],
+        ["HEAD", "--duration", "1", "--estimators", "ins,ekf16"],
+    ],
+)
 def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert offline.main([*argv, "--no-write"]) == 2
     err = capsys.readouterr().err.strip()
