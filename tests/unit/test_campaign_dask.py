@@ -225,12 +225,18 @@ def test_unreachable_scheduler_is_one_line_exit_2(tmp_path: Path) -> None:
     )
 
 
-def test_a_killed_worker_loses_no_result(cluster: Any, tmp_path: Path) -> None:
+def test_a_killed_worker_loses_no_result(
+    cluster: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """SIGKILL a worker process that holds a run mid-campaign: every run still comes back ok.
     On a cluster of its own (the module's keeps the resource tracker started), closed before the
-    test ends: the nanny restarts the killed worker, a process of this test's."""
+    test ends: the nanny restarts the killed worker, a process of this test's. Its processes' temp
+    directory is the test's: the killed run's (its partial recording) stays there, not in /tmp."""
     from dask.distributed import Client
 
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setenv("TMPDIR", str(scratch))
     own = _cluster()
     client = Client(own.scheduler_address, set_as_default=False)
     killed: list[int] = []
