@@ -18,8 +18,11 @@ read:
 it must be a directory owned by the user and closed to everyone else (0700), or nothing is
 written or read there. The files go when the run ends (the name file only if it is still this
 run's: two rigs of one name may overlap); a file left by a killed run names a process that is
-gone and is ignored. ``hil up --open-bus`` writes the endpoint without a credential: then any
-local process may join (the hub still listens on loopback only).
+gone and is ignored, and the next ``hil up`` of this user removes a killed run's own two files
+(:func:`remove_stale_run_files`; its name file stays until the rig's next run replaces it: a
+sweep could race that run's write). ``hil up --open-bus`` writes the
+endpoint without a credential: then any local process may join (the hub still listens on loopback
+only).
 
 The first line of each ``.json5`` file is a comment, ``// hil-endpoint {JSON}``, with the rig, the
 endpoint, the supervisor's pid and whether the run is authenticated.
@@ -103,6 +106,26 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def remove_stale_run_files(directory: Path) -> list[Path]:
+    """Remove the files of killed runs in ``directory``: ``<rig>-<pid>.users`` and
+    ``<rig>-<pid>.json5`` whose supervisor ``pid`` is gone (a ``.json5`` only when its own header
+    names that pid: a rig's *name* file, ``<rig>.json5``, is never taken for one, whatever the rig
+    is called). Returns what it removed."""
+    removed = []
+    for path in [*directory.glob("*-*.users"), *directory.glob("*-*.json5")]:
+        pid = run_pid(path)
+        if pid is None or pid_alive(pid):
+            continue
+        if path.suffix == ".json5":
+            found = read_endpoint(path)
+            if found is None or found.pid != pid:
+                continue
+        with contextlib.suppress(OSError):
+            path.unlink()
+            removed.append(path)
+    return removed
 
 
 @dataclass

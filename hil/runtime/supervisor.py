@@ -10,6 +10,7 @@ on the machine can join unless ``--open-bus`` says so. With ``HIL_ZENOH_MODE=cli
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -26,7 +27,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from hil.bus.endpoint import RigAccess
+from hil.bus.endpoint import RigAccess, remove_stale_run_files
 from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_key_from_env, rig_zid
 from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
@@ -613,6 +614,8 @@ class Supervisor:
         hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
         if self.access is not None:
             self.access.write()  # before the hub opens: it reads the dictionary from there
+            with contextlib.suppress(OSError):  # a killed run's own files (its secret) do not pile up
+                remove_stale_run_files(self.access.dir)
         if self.can_dir is not None:  # ``hil up`` says where (hil.cli._describe_can)
             _remove_stale_can_dirs(self.can_dir.parent)
             remove_can_dir(self.can_dir)  # a killed run's with this pid

@@ -158,3 +158,26 @@ def test_the_secure_profile_lets_each_service_publish_what_it_publishes_and_no_m
     for key in ("truth", "sensor/imu", "nav/ekf15", "control/fault", "status/world"):
         assert not _may_publish(acl, "monitor", f"hil/bench/{key}")
     assert _may_publish(acl, "operator", "hil/bench/control/fault")
+
+
+def test_a_killed_runs_files_are_removed_and_nothing_else(tmp_path: Path) -> None:
+    """``hil up`` sweeps its runtime directory: the ``.users`` and ``.json5`` of a run whose
+    supervisor is gone go (its secret does not linger); a live run's stay, and so does every
+    name file, even of a rig whose name ends in a dead pid."""
+    from hil.bus.endpoint import remove_stale_run_files
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = RigAccess("bench", "tcp/127.0.0.1:7447", gone.pid, password="s", directory=tmp_path)
+    live = RigAccess("bench", "tcp/127.0.0.1:7448", os.getpid(), password="t", directory=tmp_path)
+    # a rig named "<x>-<dead pid>" run by this (live) process: its name file looks like a run file
+    odd = RigAccess(f"old-{gone.pid}", "tcp/127.0.0.1:7449", os.getpid(), password="u", directory=tmp_path)
+    for a in (dead, odd, live):  # live last: bench.json5 names the live run
+        a.write()
+    stray = tmp_path / f"notes-{gone.pid}.json5"  # not an endpoint file: left alone
+    stray.write_text("{}\n")
+    removed = remove_stale_run_files(tmp_path)
+    assert sorted(removed) == sorted([dead.users_path, dead.config_path])
+    assert not dead.users_path.exists() and not dead.config_path.exists()
+    for p in (live.users_path, live.config_path, live.name_path, odd.name_path, odd.config_path, stray):
+        assert p.exists(), p
