@@ -254,6 +254,9 @@ def check_page(
             stderr=subprocess.PIPE,
             text=True,
             start_new_session=True,  # its own process group: the helpers go with it
+            # its own temporary files (org.chromium.Chromium.*) in the profile, which goes with it:
+            # a browser stopped by a signal leaves them behind in /tmp otherwise
+            env={**os.environ, "TMPDIR": profile},
         )
         try:
             url = _devtools_url(proc, timeout_s)
