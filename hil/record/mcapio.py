@@ -254,13 +254,13 @@ class _MessageAppender:
         head["op"] = _OP_MESSAGE
         sizes = np.fromiter(map(len, datas), np.int64, m)
         head["len"] = sizes + _MESSAGE_FIXED
-        head["chan"] = chans
+        ch = np.asarray(chans, np.int64)
+        head["chan"] = ch
         head["seq"] = seqs
         log = np.asarray(logs, np.uint64)
         head["log"] = log
         head["pub"] = pubs
         ends = np.cumsum(sizes + _MESSAGE_HEAD.size)
-        ch = np.asarray(chans, np.int64)
         st, start = self._stats, 0
         for c, n in Counter(chans).items():  # first seen first: the statistics' key order
             st.channel_message_counts[c] += n
@@ -608,29 +608,6 @@ class SessionWriter:
         chan = self._channel(topic, cls, publisher, origin)
         self._drain()
         self._add_message(chan, _u64(log_time_ns), payload, _u64(publish_time_ns), seq & 0xFFFFFFFF)
-
-    def bind(
-        self, topic: str, cls: type[Message], publisher: str | None = None, origin: str = ""
-    ) -> Callable[[bytes, int, int, int], None]:
-        """``write`` for one topic (and publisher): ``put(payload, log_time_ns, publish_time_ns,
-        seq)``. The channel is registered now, as ``write`` would on the topic's first message
-        (bind where that message is written: channel ids go in order of registration); the
-        per-message lookups are done once. ``hil sim`` writes ~3300 messages a rig second."""
-        chan = self._channel(topic, cls, publisher, origin)
-        add, queued, drain = self._add_message, self.queue.chans, self._drain
-
-        def put(payload: bytes, log_time_ns: int, publish_time_ns: int, seq: int) -> None:
-            if queued:
-                drain()
-            add(
-                chan,
-                log_time_ns if 0 <= log_time_ns <= _U64_MAX else _u64(log_time_ns),
-                payload,
-                publish_time_ns if 0 <= publish_time_ns <= _U64_MAX else _u64(publish_time_ns),
-                seq & 0xFFFFFFFF,
-            )
-
-        return put
 
     def channel(self, topic: str, cls: type[Message]) -> int:
         """The id of ``topic``'s channel (no publisher), registered now if it is new: the

@@ -219,7 +219,8 @@ class Scheduler:
         """A worker's window (``hil.runners.sim_worker.RemoteTail``): nodes ``split`` on take
         ``boxes``, their inputs from upstream, and handle the window as ``dispatch`` would here
         (then, at ``finish_ns``, are told ``finish`` in turn, as ``finish`` would). Their
-        messages, in file order, and whether one still wants a tick or has input in flight."""
+        messages (``complete`` sorts them with this process's), and whether one still wants a
+        tick or has input in flight."""
         for j, box in enumerate(boxes, split):
             self._inbox[j].extend(box)
         busy = False
@@ -228,9 +229,7 @@ class Scheduler:
             busy = self._handle(i, node, t_end_ns) or busy
             if finish_ns is not None:
                 self.publish(i, node.finish(finish_ns), finish_ns)
-        out = self.take_out()
-        out.sort(key=_event_order)
-        return out, busy or any(self._inbox[split:])
+        return self.take_out(), busy or any(self._inbox[split:])
 
     def take_out(self) -> list[tuple[int, int, int, str, Message]]:
         """The window's messages so far (the remote node's are added by ``complete``)."""

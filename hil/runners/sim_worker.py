@@ -284,7 +284,7 @@ class RemoteTail(ForkedChild):
     """The nodes of a pipeline from ``split`` on, run in a forked child by a scheduler of their own.
 
     ``window`` sends the inputs this process's nodes published to them before ``t_end_ns``;
-    ``result`` waits for what they published in that window, ready for the file, in file order;
+    ``result`` waits for what they published in that window, ready for the file;
     between the two the caller works on its next window. Nothing flows back upstream (the sim
     checks its nodes form a pipeline), so the child's outputs only join the file."""
 
@@ -322,8 +322,9 @@ class RemoteTail(ForkedChild):
         self._send((boxes, t_end_ns, t_ns))
 
     def result(self) -> tuple[list[tuple[Any, ...]], bool]:
-        """The oldest window's outputs in file order (each as ``prepare`` made it), and whether
-        a tail node still wants a tick or has input in flight."""
+        """The oldest window's outputs (each as ``prepare`` made it; the caller sorts them into
+        file order with its own), and whether a tail node still wants a tick or has input in
+        flight."""
         _ok, events, busy, self._snapshot = self._reply()
         return events, busy
 
@@ -379,8 +380,6 @@ def _serve(node: Node, sock: socket.socket) -> None:
         try:
             req = receive()
         except EOFError:
-            return
-        if req[0] == "stop":
             return
         try:
             if req[0] == "call":

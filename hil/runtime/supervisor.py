@@ -10,7 +10,6 @@ on the machine can join unless ``--open-bus`` says so. With ``HIL_ZENOH_MODE=cli
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
@@ -614,8 +613,7 @@ class Supervisor:
         hub_cfg = dataclasses.replace(self.hub_cfg, extra={**self.hub_cfg.extra, "id": rig_zid(self.rig_key)})
         if self.access is not None:
             self.access.write()  # before the hub opens: it reads the dictionary from there
-            with contextlib.suppress(OSError):  # a killed run's own files (its secret) do not pile up
-                remove_stale_run_files(self.access.dir)
+            remove_stale_run_files(self.access.dir)  # a killed run's own files (its secret) do not pile up
         if self.can_dir is not None:  # ``hil up`` says where (hil.cli._describe_can)
             _remove_stale_can_dirs(self.can_dir.parent)
             remove_can_dir(self.can_dir)  # a killed run's with this pid
