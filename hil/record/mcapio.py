@@ -240,11 +240,12 @@ class _MessageAppender:
         """:meth:`add` of each message in turn, the same bytes, in a few numpy calls for all.
 
         A window of ``hil sim`` is ~3000 messages: per message :meth:`add` updates a dozen
-        counters and makes three writes (~1.3 µs); here each record's head is a row of one packed
-        array, the counters move once per batch and a chunk's records go out in one write. Times
-        must be u64 and sequences u32 (:meth:`SessionWriter._drain` clamps them as
-        ``write`` does); a chunk closes after the first record that ends past the chunk size, as
-        ``add`` closes it."""
+        counters and makes three writes (0.65 µs a message, 0.44 µs through the queue and this,
+        3000 messages of 130 bytes on 15 channels, chunk compression included in both); here
+        each record's head is a row of one packed array, the counters move once per batch and a
+        chunk's records go out in one write. Times must be u64 and sequences u32
+        (:meth:`SessionWriter._drain` clamps them as ``write`` does); a chunk closes after the
+        first record that ends past the chunk size, as ``add`` closes it."""
         import numpy as np
 
         m = len(chans)
