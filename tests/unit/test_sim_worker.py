@@ -252,9 +252,11 @@ def _closes_and_reaps(remote: RemoteTail) -> None:
 
 def test_close_does_not_wait_on_a_worker_blocked_writing() -> None:
     remote = _tail(_Chatty(_run_info()))
-    remote.window([[]], 1_000_000_000)  # ~10 MB of reply nobody reads
-    remote.window([[]], 2_000_000_000)
-    _closes_and_reaps(remote)
+    try:
+        remote.window([[]], 1_000_000_000)  # ~10 MB of reply nobody reads
+        remote.window([[]], 2_000_000_000)
+    finally:
+        _closes_and_reaps(remote)
 
 
 class _Collector(_Ticker):
@@ -307,8 +309,10 @@ class _Stuck(_Ticker):
 def test_close_kills_a_worker_that_does_not_leave() -> None:
     remote = _tail(_Stuck(_run_info()))
     remote.close_grace_s = 0.2
-    remote.window([[]], 30_000_000)
-    _closes_and_reaps(remote)
+    try:
+        remote.window([[]], 30_000_000)
+    finally:
+        _closes_and_reaps(remote)
 
 
 def _children(pid: int) -> list[int]:
