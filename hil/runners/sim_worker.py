@@ -14,6 +14,10 @@ workers, which may not start one). The child never returns into the caller's cod
 with ``os._exit``, whatever happens, and reports an exception as its text. The two ends speak
 pickle: both are this process's own code and objects (a socketpair made before the fork), never a
 file or the wire, which is why tests/docker/test_compose_static.py allows it here and nowhere else.
+Each pickle goes as one frame (its length first), and the caller reads what the child says while
+it writes: the sim sends window *k + 1* before it takes the reply to *k*, and with both larger
+than the socket's buffers (an IMU at 1 kHz and up) two blocking writers waited on each other
+for ever.
 """
 
 from __future__ import annotations
@@ -23,8 +27,10 @@ import gc
 import operator
 import os
 import pickle
+import select
 import signal
 import socket
+import struct
 import threading
 import time
 import traceback
@@ -66,6 +72,10 @@ Replayed = tuple[str, int, bytes, int, Any]
 # message struct and rebuilding it in the worker cost 2.3 + 2.4 µs (8 µs of the worker's CPU in a
 # rerun: 0.99 of its 9.06 s on 300 s of straight_level), a decode there ~1.9
 EncodedInput = tuple[bytes, type, str, bool]
+
+# a frame's head: the length of the pickle that follows
+_FRAME = struct.Struct("!Q")
+_RECV_CHUNK = 1 << 20
 
 # one input as ``drive`` reads it: rig time first, key and message last (the scheduler's events
 # carry producer and publication order between)
@@ -143,23 +153,73 @@ class ForkedChild:
         child.close()
         self.pid = pid
         self._sock = parent
-        self._rfile = parent.makefile("rb")
-        self._wfile = parent.makefile("wb")
+        parent.setblocking(False)
+        self._poll = select.poll()
+        self._poll.register(parent, select.POLLIN)
+        self._inbox = bytearray()  # what the child has said and this side not taken yet
+
+    def _died(self, why: object) -> WorkerError:
+        return WorkerError(f"hil: the {self.name} worker process died ({why})")
+
+    def _take_in(self) -> None:
+        """What the child has said so far, into the inbox (at least one byte: call when readable)."""
+        try:
+            data = self._sock.recv(_RECV_CHUNK)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            raise self._died(err) from err
+        if not data:
+            raise self._died("its end of the socket closed")
+        self._inbox += data
 
     def _send(self, req: tuple[Any, ...]) -> None:
-        """``req`` to the child (pickled: this process's own objects, to its own fork)."""
+        """``req`` to the child (pickled: this process's own objects, to its own fork), taking in
+        what the child says meanwhile: it may be blocked saying it until this side reads."""
+        data = pickle.dumps(req, protocol=pickle.HIGHEST_PROTOCOL)
+        view = memoryview(_FRAME.pack(len(data)) + data)
+        sock, poll = self._sock, self._poll
+        poll.modify(sock, select.POLLIN | select.POLLOUT)
         try:
-            pickle.dump(req, self._wfile, protocol=pickle.HIGHEST_PROTOCOL)
-            self._wfile.flush()
+            while view:
+                for _fd, ev in poll.poll():
+                    if ev & select.POLLIN:
+                        self._take_in()
+                    if ev & select.POLLOUT:
+                        with contextlib.suppress(BlockingIOError):  # room for none after all
+                            view = view[sock.send(view) :]
+                    elif ev & (select.POLLERR | select.POLLHUP | select.POLLNVAL):
+                        self._take_in()  # what it said before it went, then its end
+                        raise self._died("its end of the socket closed")
         except OSError as err:
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+            raise self._died(err) from err
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                poll.modify(sock, select.POLLIN)
+
+    def _frame(self) -> bytes:
+        """The next whole frame the child said (waiting for it), without its head."""
+        inbox, head = self._inbox, _FRAME.size
+        while True:
+            if len(inbox) >= head:
+                (n,) = _FRAME.unpack_from(inbox)
+                if len(inbox) >= head + n:
+                    body = bytes(inbox[head : head + n])
+                    del inbox[: head + n]
+                    return body
+            try:
+                self._poll.poll()
+            except OSError as err:
+                raise self._died(err) from err
+            self._take_in()
 
     def _reply(self) -> tuple[Any, ...]:
         """What the child answered next; an error it reported, or its end, raised here."""
+        body = self._frame()
         try:
-            reply: tuple[Any, ...] = pickle.load(self._rfile)
-        except (EOFError, OSError, pickle.UnpicklingError) as err:  # gone, or half a message
-            raise WorkerError(f"hil: the {self.name} worker process died ({err})") from err
+            reply: tuple[Any, ...] = pickle.loads(body)
+        except (EOFError, pickle.UnpicklingError) as err:  # half a message
+            raise self._died(err) from err
         if reply[0] == "error":
             raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
         if reply[0] == "raise":  # the worker has stopped
@@ -173,9 +233,8 @@ class ForkedChild:
         later (stuck, or deep in a window nobody will read) is killed: closing never hangs."""
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
-        for f in (self._wfile, self._rfile, self._sock):
-            with contextlib.suppress(OSError):
-                f.close()
+        with contextlib.suppress(OSError):
+            self._sock.close()
         deadline = time.monotonic() + self.close_grace_s
         with contextlib.suppress(ChildProcessError):
             while os.waitpid(self.pid, os.WNOHANG)[0] == 0:
@@ -361,14 +420,25 @@ def _serve_tail(
 
 def _child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
     """A ``ForkedChild``'s own end: ``receive()`` (``EOFError`` once the caller is gone) and
-    ``say(obj)``, pickled as :meth:`ForkedChild._send` and ``_reply`` are."""
+    ``say(obj)``, framed and pickled as :meth:`ForkedChild._send` and ``_reply`` are. Blocking:
+    the caller reads while it writes, so this side may wait on it."""
     rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
+    head = _FRAME.size
 
     def receive() -> Any:
-        return pickle.load(rfile)
+        got = rfile.read(head)
+        if len(got) < head:
+            raise EOFError("the caller is gone")
+        (n,) = _FRAME.unpack(got)
+        body = rfile.read(n)
+        if len(body) < n:
+            raise EOFError("the caller is gone")
+        return pickle.loads(body)
 
     def say(obj: Any) -> None:
-        pickle.dump(obj, wfile, protocol=pickle.HIGHEST_PROTOCOL)
+        data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+        wfile.write(_FRAME.pack(len(data)))
+        wfile.write(data)
         wfile.flush()
 
     return receive, say

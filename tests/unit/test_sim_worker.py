@@ -3,6 +3,7 @@ worker that fails or dies is a clear error, never a hang or an orphan process.""
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import signal
@@ -15,7 +16,14 @@ import pytest
 from hil.messages import Event
 from hil.nodes.base import Node, Out
 from hil.runners.sim import Scheduler, SimOptions, run_sim, sim_run_info
-from hil.runners.sim_worker import RemoteTail, WorkerError, portable, worker_possible
+from hil.runners.sim_worker import (
+    ForkedChild,
+    RemoteTail,
+    WorkerError,
+    _child_ends,
+    portable,
+    worker_possible,
+)
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the worker is forked")
 
@@ -257,6 +265,75 @@ def test_close_does_not_wait_on_a_worker_blocked_writing() -> None:
         remote.window([[]], 2_000_000_000)
     finally:
         _closes_and_reaps(remote)
+
+
+def _echo_big(reply: bytes) -> ForkedChild:
+    """A child that answers each request ``(n, payload)`` with ``("ok", n, reply)``."""
+
+    def serve(sock) -> None:  # type: ignore[no-untyped-def]
+        receive, say = _child_ends(sock)
+        while True:
+            try:
+                req = receive()
+            except EOFError:
+                return
+            say(("ok", req[0], len(req[1]), reply))
+
+    return ForkedChild(serve)
+
+
+def test_requests_and_replies_larger_than_the_socket_buffers_pass_each_other() -> None:
+    """The sim sends window k + 1 before it takes the reply to k. With both larger than the
+    socket's buffers (``hil sim --estimators ins --imu-rate 1000``) each side used to block
+    writing to the other for ever; now this side reads while it writes."""
+    big_req, big_reply = os.urandom(3 << 20), os.urandom(5 << 20)
+    child = _echo_big(big_reply)
+    watchdog = threading.Timer(120.0, child.close)  # a deadlock fails the test, never hangs it
+    watchdog.start()
+    try:
+        for n in range(3):  # three windows out before any reply is taken
+            child._send((n, big_req))
+        replies = [child._reply() for _ in range(3)]
+    finally:
+        watchdog.cancel()
+        child.close()
+    assert [r[1:3] for r in replies] == [(n, len(big_req)) for n in range(3)]
+    assert all(r[3] == big_reply for r in replies)
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker through /proc")
+def test_hil_sim_at_1_khz_with_its_can_bridge_in_the_worker_ends_with_the_one_process_file(
+    tmp_path: Path,
+) -> None:
+    """The free INS alone at 1 kHz: the CAN bridge's frames out and the synced samples back are
+    each more than a socket buffer holds per window (this hung for good before)."""
+    files = {}
+    me = os.getpid()
+
+    def unstick() -> None:  # a hang becomes the worker's death, a WorkerError: never a hung test
+        for pid in _children(me):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+    for worker in (False, True):
+        rec = tmp_path / f"k{int(worker)}.mcap"
+        opts = SimOptions(
+            scenario="static",
+            duration_s=3.0,
+            record=rec,
+            estimators=["ins"],
+            imu_rate_hz=1000,
+            fusion_worker=worker,
+        )
+        watchdog = threading.Timer(300.0, unstick)
+        watchdog.start()
+        try:
+            res = run_sim(opts)
+        finally:
+            watchdog.cancel()
+        assert res.messages > 3 * 1000 * 7
+        files[worker] = rec.read_bytes()
+    assert files[True] == files[False]
 
 
 class _Collector(_Ticker):
