@@ -26,15 +26,18 @@ of one ``hil sim``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import os
 import pstats
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from mcap.reader import make_reader
 
@@ -78,27 +81,58 @@ def _cpu_of(tree: Path, argv: list[str]) -> tuple[float, int]:
 
 
 def run_child(
-    tree: Path, argv: list[str], extra_env: dict[str, str] | None = None
+    tree: Path,
+    argv: list[str],
+    extra_env: dict[str, str] | None = None,
+    timeout_s: float | None = None,
 ) -> tuple[float, float, int]:
     """CPU seconds (user + system, with the children it reaped), wall seconds and exit code of
-    one child (``HIL_*`` from this environment left out, ``extra_env`` added)."""
+    one child (``HIL_*`` from this environment left out, ``extra_env`` added). One still running
+    ``timeout_s`` after it started is killed with everything it started (a revision that hangs
+    is a result, not a bench that never ends): a ``RuntimeError`` that says so."""
     t0 = time.monotonic()
-    proc = subprocess.Popen(
-        [sys.executable, *argv],
-        cwd=tree,
-        env=_env(tree, extra_env),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
-    _, status, ru = os.wait4(proc.pid, 0)
-    wall = time.monotonic() - t0
+    with tempfile.TemporaryFile() as err_file:
+        proc = subprocess.Popen(
+            [sys.executable, *argv],
+            cwd=tree,
+            env=_env(tree, extra_env),
+            stdout=subprocess.DEVNULL,
+            stderr=err_file,
+            start_new_session=True,  # its own process group: a timeout kills its workers too
+        )
+        status, ru = _wait(proc, timeout_s)
+        wall = time.monotonic() - t0
+        err_file.seek(0)
+        err = err_file.read().decode(errors="replace").strip()
+    what = " ".join(argv[2:5])
+    if status is None or ru is None:
+        raise RuntimeError(
+            f"{what} in {tree} did not finish in {timeout_s:g} s: killed (it hangs, or needs a "
+            "longer --timeout)"
+        )
     proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read().decode(errors="replace").strip() if proc.stderr else ""
-    if proc.stderr:
-        proc.stderr.close()
     if proc.returncode not in (0, 1):
-        raise RuntimeError(f"{' '.join(argv[2:5])} in {tree} exited {proc.returncode}: {err[-300:]}")
+        raise RuntimeError(f"{what} in {tree} exited {proc.returncode}: {err[-300:]}")
     return ru.ru_utime + ru.ru_stime, wall, proc.returncode
+
+
+def _wait(proc: subprocess.Popen[bytes], timeout_s: float | None) -> tuple[int | None, Any]:
+    """``wait4`` of ``proc``: its status and rusage, or (None, None) after ``timeout_s``. Its
+    process group is killed once it is done, timed out, or this process is interrupted."""
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    try:
+        while True:
+            pid, status, ru = os.wait4(proc.pid, 0 if deadline is None else os.WNOHANG)
+            if pid:
+                return status, ru
+            if deadline is not None and time.monotonic() >= deadline:
+                return None, None
+            time.sleep(0.05)
+    finally:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(proc.pid, signal.SIGKILL)  # what it left behind, or all of it
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(proc.pid, 0)
 
 
 def digests(path: Path) -> dict[str, tuple[int, str]]:
@@ -113,13 +147,16 @@ def digests(path: Path) -> dict[str, tuple[int, str]]:
     return {t: (n, h.hexdigest()) for t, (n, h) in acc.items()}
 
 
-def run_pair(trees: list[Tree], sim_args: list[str], tmp: Path, i: int) -> dict[str, Path]:
-    """One repeat: each tree's start-up and sim, then both trees' reruns of REF's recording."""
+def run_pair(
+    trees: list[Tree], sim_args: list[str], tmp: Path, i: int, timeout_s: float | None = None
+) -> dict[str, Path]:
+    """One repeat: each tree's start-up and sim, then both trees' reruns of REF's recording
+    (each run killed after ``timeout_s``: a ``RuntimeError``)."""
     order = trees if i % 2 == 0 else trees[::-1]
     recs = {}
 
     def measure(t: Tree, step: str, argv: list[str]) -> int:
-        cpu, wall, rc = run_child(t.path, argv)
+        cpu, wall, rc = run_child(t.path, argv, timeout_s=timeout_s)
         t.cpu[step].append(cpu)
         t.wall[step].append(wall)
         return rc
@@ -222,6 +259,16 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--estimators", default="", help="hil sim's --estimators (comma-separated; default: the defaults)"
     )
+    ap.add_argument(
+        "--imu-rate", type=int, default=None, help="hil sim's --imu-rate (Hz; default: the scenario's)"
+    )
+    ap.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="kill a run still going after S seconds and stop with exit 1 (default: 600 + 20 s per rig s)",
+    )
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="add each tree's top N (cProfile)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     ap.add_argument("--section", default="offline", help="the docs/benchmarks.md section to write")
@@ -229,6 +276,17 @@ def main(argv: list[str]) -> int:
     if a.duration <= 0 or a.repeat < 1:
         print("hil bench offline: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
         return 2
+    if a.timeout is not None and a.timeout <= 0:
+        print("hil bench offline: --timeout must be > 0 seconds", file=sys.stderr)
+        return 2
+    if a.imu_rate is not None:
+        from hil.nav.scenario import ScenarioError, load_scenario, scenario_overrides
+
+        try:
+            scenario_overrides(load_scenario(a.scenario), imu_rate_hz=a.imu_rate)
+        except ScenarioError as err:
+            print(f"hil bench offline: --imu-rate {a.imu_rate}: {err}", file=sys.stderr)
+            return 2
     estimators = [e for e in a.estimators.split(",") if e]
     unknown = [e for e in estimators if e not in ESTIMATORS and e != FREE_INS]
     if unknown:
@@ -242,6 +300,9 @@ def main(argv: list[str]) -> int:
     sim_args = ["--scenario", a.scenario, "--duration", f"{a.duration:g}"]
     if estimators:
         sim_args += ["--estimators", ",".join(estimators)]
+    if a.imu_rate is not None:
+        sim_args += ["--imu-rate", str(a.imu_rate)]
+    timeout_s = a.timeout if a.timeout is not None else 600.0 + 20.0 * a.duration
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="hil-offline-") as d:
         tmp = Path(d)
@@ -258,7 +319,7 @@ def main(argv: list[str]) -> int:
             same: list[str] = []
             differ: list[str] = []
             for i in range(a.repeat):
-                recs = run_pair(trees, sim_args, tmp, i)
+                recs = run_pair(trees, sim_args, tmp, i, timeout_s)
                 if i == 0:
                     dr, dh, d1 = (digests(recs[k]) for k in (trees[0].label, trees[1].label, "one process"))
                     same = sorted(t for t in dr.keys() & dh.keys() if dr[t] == dh[t])

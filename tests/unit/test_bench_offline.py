@@ -36,6 +36,8 @@ def test_digests_tell_a_changed_payload_from_equal_ones(tmp_path: Path) -> None:
         ["HEAD", "--duration", "0"],
         ["no-such-revision-xyz", "--duration", "1"],
         ["HEAD", "--duration", "1", "--estimators", "ins,ekf16"],
+        ["HEAD", "--duration", "1", "--imu-rate", "5"],
+        ["HEAD", "--duration", "1", "--timeout", "0"],
     ],
 )
 def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
@@ -57,3 +59,34 @@ def test_a_ref_tree_is_timed_with_its_kernels_already_compiled(tmp_path: Path) -
         assert {"strapdown", "kernels", "predictor"} <= cached, cached
     finally:
         remove_ref_tree(tree)
+
+
+def _gone(pid: int) -> bool:
+    """No such process, or only its zombie left (killed, waiting for whoever reaps orphans)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return True
+    return "\nState:\tZ" in status
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads process states in /proc")
+def test_a_run_that_hangs_is_killed_with_what_it_started_and_said(tmp_path: Path) -> None:
+    """A revision whose sim hangs (as 11bb66d's did at 1 kHz) ends the bench with a line that
+    says so, its worker killed too, instead of a bench that never ends."""
+    pids = tmp_path / "pids"
+    code = (
+        "import os, sys, time; os.fork(); open(sys.argv[1], 'a').write(f'{os.getpid()}\\n'); time.sleep(600)"
+    )
+    with pytest.raises(RuntimeError, match=r"did not finish in 5 s: killed"):
+        offline.run_child(tmp_path, ["-c", code, str(pids)], timeout_s=5.0)
+    started = [int(x) for x in pids.read_text().split()]
+    assert len(started) == 2
+    assert all(_gone(pid) for pid in started)
+
+
+def test_a_run_that_ends_in_time_gives_its_cpu_and_exit_code(tmp_path: Path) -> None:
+    cpu, wall, rc = offline.run_child(tmp_path, ["-c", "raise SystemExit(1)"], timeout_s=600.0)
+    assert rc == 1 and cpu > 0 and wall > 0
+    with pytest.raises(RuntimeError, match="exited 3: boom"):
+        offline.run_child(tmp_path, ["-c", "import sys; sys.stderr.write('boom'); raise SystemExit(3)"])
