@@ -179,8 +179,8 @@ class ForkedChild:
         data = pickle.dumps(req, protocol=pickle.HIGHEST_PROTOCOL)
         view = memoryview(_FRAME.pack(len(data)) + data)
         sock, poll = self._sock, self._poll
-        poll.modify(sock, select.POLLIN | select.POLLOUT)
         try:
+            poll.modify(sock, select.POLLIN | select.POLLOUT)
             while view:
                 for _fd, ev in poll.poll():
                     if ev & select.POLLIN:
@@ -191,7 +191,7 @@ class ForkedChild:
                     elif ev & (select.POLLERR | select.POLLHUP | select.POLLNVAL):
                         self._take_in()  # what it said before it went, then its end
                         raise self._died("its end of the socket closed")
-        except OSError as err:
+        except (OSError, ValueError) as err:  # ValueError: its socket already closed here
             raise self._died(err) from err
         finally:
             with contextlib.suppress(OSError, ValueError):

@@ -301,6 +301,15 @@ def test_requests_and_replies_larger_than_the_socket_buffers_pass_each_other() -
     assert all(r[3] == big_reply for r in replies)
 
 
+def test_a_request_after_close_is_a_worker_error() -> None:
+    child = _echo_big(b"")
+    child.close()
+    with pytest.raises(WorkerError, match="died"):
+        child._send((0, b"late"))
+    with pytest.raises(WorkerError, match="died"):
+        child._reply()
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker through /proc")
 def test_hil_sim_at_1_khz_with_its_can_bridge_in_the_worker_ends_with_the_one_process_file(
     tmp_path: Path,
