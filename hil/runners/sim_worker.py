@@ -14,10 +14,10 @@ workers, which may not start one). The child never returns into the caller's cod
 with ``os._exit``, whatever happens, and reports an exception as its text. The two ends speak
 pickle: both are this process's own code and objects (a socketpair made before the fork), never a
 file or the wire, which is why tests/docker/test_compose_static.py allows it here and nowhere else.
-Each pickle goes as one frame (its length first), and the caller reads what the child says while
-it writes: the sim sends window *k + 1* before it takes the reply to *k*, and with both larger
-than the socket's buffers (an IMU at 1 kHz and up) two blocking writers waited on each other
-for ever.
+The caller's end is non-blocking and reads what the child says while it writes (into an inbox the
+unpickler reads first): the sim sends window *k + 1* before it takes the reply to *k*, and with
+both larger than the socket's buffers (an IMU at 1 kHz and up) two blocking writers waited on
+each other for ever. Both ways the pickle streams as it is made and read, as a file would.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ import pickle
 import select
 import signal
 import socket
-import struct
 import threading
 import time
 import traceback
@@ -73,9 +72,69 @@ Replayed = tuple[str, int, bytes, int, Any]
 # rerun: 0.99 of its 9.06 s on 300 s of straight_level), a decode there ~1.9
 EncodedInput = tuple[bytes, type, str, bool]
 
-# a frame's head: the length of the pickle that follows
-_FRAME = struct.Struct("!Q")
 _RECV_CHUNK = 1 << 20
+
+
+class _Out:
+    """The caller's end as the pickler writes to it (``write``)."""
+
+    __slots__ = ("write",)
+
+    def __init__(self, put: Callable[[Any], None]) -> None:
+        self.write = put
+
+
+class _In:
+    """The caller's end as the unpickler reads from it: the inbox (what the child said while
+    this side wrote) first, then the socket, waiting for it."""
+
+    __slots__ = ("_c",)
+
+    def __init__(self, child: ForkedChild) -> None:
+        self._c = child
+
+    def read(self, n: int = -1) -> bytes:
+        c = self._c
+        inbox = c._inbox
+        while len(inbox) < n:
+            c._wait_in()
+        out = bytes(inbox[:n])
+        del inbox[:n]
+        return out
+
+    def readinto(self, b: Any) -> int:
+        out = memoryview(b).cast("B")
+        n = len(out)
+        c = self._c
+        inbox = c._inbox
+        got = min(n, len(inbox))
+        out[:got] = inbox[:got]
+        del inbox[:got]
+        while got < n:
+            try:
+                r = c._sock.recv_into(out[got:])
+            except BlockingIOError:  # nothing yet: wait for it
+                try:
+                    c._poll.poll()
+                except OSError as err:
+                    raise c._died(err) from err
+                continue
+            except OSError as err:
+                raise c._died(err) from err
+            if not r:
+                raise c._died("its end of the socket closed")
+            got += r
+        return n
+
+    def readline(self) -> bytes:
+        c = self._c
+        inbox = c._inbox
+        while (i := inbox.find(b"\n")) < 0:
+            c._wait_in()
+        out = bytes(inbox[: i + 1])
+        del inbox[: i + 1]
+        return out
+
 
 # one input as ``drive`` reads it: rig time first, key and message last (the scheduler's events
 # carry producer and publication order between)
@@ -154,32 +213,46 @@ class ForkedChild:
         self.pid = pid
         self._sock = parent
         parent.setblocking(False)
+        self._rbuf = memoryview(bytearray(_RECV_CHUNK))  # one buffer for every recv
         self._poll = select.poll()
         self._poll.register(parent, select.POLLIN)
-        self._inbox = bytearray()  # what the child has said and this side not taken yet
+        self._inbox = bytearray()  # what the child has said and this side not read yet
+        self._out = _Out(self._put)
+        self._in = _In(self)
 
     def _died(self, why: object) -> WorkerError:
         return WorkerError(f"hil: the {self.name} worker process died ({why})")
 
     def _take_in(self) -> None:
-        """What the child has said so far, into the inbox (at least one byte: call when readable)."""
+        """What the child has said so far, into the inbox (call when readable)."""
         try:
-            data = self._sock.recv(_RECV_CHUNK)
+            n = self._sock.recv_into(self._rbuf)
         except BlockingIOError:
             return
         except OSError as err:
             raise self._died(err) from err
-        if not data:
+        if not n:
             raise self._died("its end of the socket closed")
-        self._inbox += data
+        self._inbox += self._rbuf[:n]
 
-    def _send(self, req: tuple[Any, ...]) -> None:
-        """``req`` to the child (pickled: this process's own objects, to its own fork), taking in
-        what the child says meanwhile: it may be blocked saying it until this side reads."""
-        data = pickle.dumps(req, protocol=pickle.HIGHEST_PROTOCOL)
-        view = memoryview(_FRAME.pack(len(data)) + data)
+    def _wait_in(self) -> None:
+        """Until the child has said more (into the inbox)."""
+        try:
+            self._poll.poll()
+        except OSError as err:
+            raise self._died(err) from err
+        self._take_in()
+
+    def _put(self, data: bytes | bytearray | memoryview) -> None:
+        """``data`` out to the child, taking in what it says meanwhile: it may be blocked saying
+        it until this side reads."""
+        view = memoryview(data)
         sock, poll = self._sock, self._poll
         try:
+            with contextlib.suppress(BlockingIOError):  # most of it at once, without a poll
+                view = view[sock.send(view) :]
+            if not view:
+                return
             poll.modify(sock, select.POLLIN | select.POLLOUT)
             while view:
                 for _fd, ev in poll.poll():
@@ -197,27 +270,15 @@ class ForkedChild:
             with contextlib.suppress(OSError, ValueError):
                 poll.modify(sock, select.POLLIN)
 
-    def _frame(self) -> bytes:
-        """The next whole frame the child said (waiting for it), without its head."""
-        inbox, head = self._inbox, _FRAME.size
-        while True:
-            if len(inbox) >= head:
-                (n,) = _FRAME.unpack_from(inbox)
-                if len(inbox) >= head + n:
-                    body = bytes(inbox[head : head + n])
-                    del inbox[: head + n]
-                    return body
-            try:
-                self._poll.poll()
-            except OSError as err:
-                raise self._died(err) from err
-            self._take_in()
+    def _send(self, req: tuple[Any, ...]) -> None:
+        """``req`` to the child (pickled: this process's own objects, to its own fork), streamed
+        out as the pickler makes it."""
+        pickle.dump(req, self._out, protocol=pickle.HIGHEST_PROTOCOL)
 
     def _reply(self) -> tuple[Any, ...]:
         """What the child answered next; an error it reported, or its end, raised here."""
-        body = self._frame()
         try:
-            reply: tuple[Any, ...] = pickle.loads(body)
+            reply: tuple[Any, ...] = pickle.load(self._in)
         except (EOFError, pickle.UnpicklingError) as err:  # half a message
             raise self._died(err) from err
         if reply[0] == "error":
@@ -420,25 +481,15 @@ def _serve_tail(
 
 def _child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
     """A ``ForkedChild``'s own end: ``receive()`` (``EOFError`` once the caller is gone) and
-    ``say(obj)``, framed and pickled as :meth:`ForkedChild._send` and ``_reply`` are. Blocking:
-    the caller reads while it writes, so this side may wait on it."""
+    ``say(obj)``, pickled as :meth:`ForkedChild._send` and ``_reply`` are. Blocking: the caller
+    reads while it writes, so this side may wait on it."""
     rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
-    head = _FRAME.size
 
     def receive() -> Any:
-        got = rfile.read(head)
-        if len(got) < head:
-            raise EOFError("the caller is gone")
-        (n,) = _FRAME.unpack(got)
-        body = rfile.read(n)
-        if len(body) < n:
-            raise EOFError("the caller is gone")
-        return pickle.loads(body)
+        return pickle.load(rfile)
 
     def say(obj: Any) -> None:
-        data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-        wfile.write(_FRAME.pack(len(data)))
-        wfile.write(data)
+        pickle.dump(obj, wfile, protocol=pickle.HIGHEST_PROTOCOL)
         wfile.flush()
 
     return receive, say
