@@ -18,6 +18,10 @@ environment (as ``hil bench versus`` does). Every run:
 CPU counts a child's reaped children (``wait4``: the sim's fusion worker), so it is the work
 done; wall time says what the second core gave, and only on a machine with a core to spare.
 
+``--imu-rate`` runs the sim at that rate (1 kHz and up is where 11bb66d's sim hung). Every run has
+a time limit (``--timeout``) and its own process group: one still going then is killed with its
+worker, and the bench stops with a line that names it.
+
 The two trees' recordings are compared topic by topic (log time, publish time, sequence, payload:
 what ``tools/recording_diff.py`` compares). ``--profile`` adds each tree's cProfile top entries
 of one ``hil sim``.
