@@ -93,7 +93,7 @@ class _In:
     def __init__(self, child: ForkedChild) -> None:
         self._c = child
 
-    def read(self, n: int = -1) -> bytes:
+    def read(self, n: int) -> bytes:  # the unpickler always asks for a size
         c = self._c
         inbox = c._inbox
         while len(inbox) < n:

@@ -299,6 +299,28 @@ def test_requests_and_replies_larger_than_the_socket_buffers_pass_each_other() -
     assert all(r[3] == big_reply for r in replies)
 
 
+def test_a_worker_that_dies_halfway_through_a_reply_is_a_worker_error() -> None:
+    """Half a pickle, then the worker's end closes: the reader says it died, never waits on."""
+    import pickle
+
+    def serve(sock) -> None:  # type: ignore[no-untyped-def]
+        receive, _say = _child_ends(sock)
+        receive()
+        reply = pickle.dumps(("ok", os.urandom(3 << 20)), protocol=pickle.HIGHEST_PROTOCOL)
+        sock.sendall(reply[: len(reply) // 2])
+
+    child = ForkedChild(serve)
+    watchdog = threading.Timer(120.0, child.close)  # a reader that waits on fails, never hangs
+    watchdog.start()
+    try:
+        child._send((0, b"go"))
+        with pytest.raises(WorkerError, match="died"):
+            child._reply()
+    finally:
+        watchdog.cancel()
+        child.close()
+
+
 def test_a_request_after_close_is_a_worker_error() -> None:
     child = _echo_big(b"")
     child.close()
