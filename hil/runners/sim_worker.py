@@ -75,65 +75,105 @@ EncodedInput = tuple[bytes, type, str, bool]
 _RECV_CHUNK = 1 << 20
 
 
-class _Out:
-    """The caller's end as the pickler writes to it (``write``)."""
+class _CallerEnd:
+    """The caller's end of a ``ForkedChild``'s socket pair, non-blocking, as a file to pickle to
+    and from: ``write`` (the pickler's) sends, taking in what the child says meanwhile (it may
+    be blocked saying it until this side reads); ``read``, ``readinto`` and ``readline`` (the
+    unpickler's) take that inbox first, then the socket, waiting for it. A failure of either is
+    ``died(why)``, raised."""
 
-    __slots__ = ("write",)
+    def __init__(self, sock: socket.socket, died: Callable[[object], WorkerError]) -> None:
+        sock.setblocking(False)
+        self._sock = sock
+        self._died = died
+        self._poll = select.poll()
+        self._poll.register(sock, select.POLLIN)
+        self._rbuf = memoryview(bytearray(_RECV_CHUNK))  # one buffer for every recv
+        self._inbox = bytearray()  # what the child has said and this side not read yet
 
-    def __init__(self, put: Callable[[Any], None]) -> None:
-        self.write = put
+    def _recv_into(self, view: memoryview) -> int:
+        """Bytes received into ``view``; 0: none yet."""
+        try:
+            n = self._sock.recv_into(view)
+        except BlockingIOError:
+            return 0
+        except OSError as err:
+            raise self._died(err) from err
+        if not n:
+            raise self._died("its end of the socket closed")
+        return n
 
+    def _wait(self) -> None:
+        """Until the socket has something (or has ended)."""
+        try:
+            self._poll.poll()
+        except OSError as err:
+            raise self._died(err) from err
 
-class _In:
-    """The caller's end as the unpickler reads from it: the inbox (what the child said while
-    this side wrote) first, then the socket, waiting for it."""
+    def _take_in(self) -> None:
+        n = self._recv_into(self._rbuf)
+        self._inbox += self._rbuf[:n]
 
-    __slots__ = ("_c",)
+    def _pop(self, n: int) -> bytes:
+        out = bytes(self._inbox[:n])
+        del self._inbox[:n]
+        return out
 
-    def __init__(self, child: ForkedChild) -> None:
-        self._c = child
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        view = memoryview(data)
+        sock, poll = self._sock, self._poll
+        try:
+            with contextlib.suppress(BlockingIOError):  # most of it at once, without a poll
+                view = view[sock.send(view) :]
+            if not view:
+                return
+            poll.modify(sock, select.POLLIN | select.POLLOUT)
+            while view:
+                for _fd, ev in poll.poll():
+                    if ev & select.POLLIN:
+                        self._take_in()
+                    if ev & select.POLLOUT:
+                        with contextlib.suppress(BlockingIOError):  # room for none after all
+                            view = view[sock.send(view) :]
+                    elif ev & (select.POLLERR | select.POLLHUP | select.POLLNVAL):
+                        self._take_in()  # what it said before it went, then its end
+                        raise self._died("its end of the socket closed")
+        except (OSError, ValueError) as err:  # ValueError: its socket already closed here
+            raise self._died(err) from err
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                poll.modify(sock, select.POLLIN)
 
     def read(self, n: int) -> bytes:  # the unpickler always asks for a size
-        c = self._c
-        inbox = c._inbox
-        while len(inbox) < n:
-            c._wait_in()
-        out = bytes(inbox[:n])
-        del inbox[:n]
-        return out
+        while len(self._inbox) < n:
+            self._wait()
+            self._take_in()
+        return self._pop(n)
 
     def readinto(self, b: Any) -> int:
         out = memoryview(b).cast("B")
         n = len(out)
-        c = self._c
-        inbox = c._inbox
-        got = min(n, len(inbox))
-        out[:got] = inbox[:got]
-        del inbox[:got]
-        while got < n:
-            try:
-                r = c._sock.recv_into(out[got:])
-            except BlockingIOError:  # nothing yet: wait for it
-                try:
-                    c._poll.poll()
-                except OSError as err:
-                    raise c._died(err) from err
-                continue
-            except OSError as err:
-                raise c._died(err) from err
+        got = min(n, len(self._inbox))
+        out[:got] = self._pop(got)
+        while got < n:  # the rest straight from the socket: a reply's large bytes, no copy
+            r = self._recv_into(out[got:])
             if not r:
-                raise c._died("its end of the socket closed")
+                self._wait()
             got += r
         return n
 
     def readline(self) -> bytes:
-        c = self._c
-        inbox = c._inbox
-        while (i := inbox.find(b"\n")) < 0:
-            c._wait_in()
-        out = bytes(inbox[: i + 1])
-        del inbox[: i + 1]
-        return out
+        while (i := self._inbox.find(b"\n")) < 0:
+            self._wait()
+            self._take_in()
+        return self._pop(i + 1)
+
+    def close(self) -> None:
+        """Shut down (a child blocked writing sees its end) and close."""
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)
+        with contextlib.suppress(OSError):
+            self._sock.close()
 
 
 # one input as ``drive`` reads it: rig time first, key and message last (the scheduler's events
@@ -211,74 +251,20 @@ class ForkedChild:
                 os._exit(code)
         child.close()
         self.pid = pid
-        self._sock = parent
-        parent.setblocking(False)
-        self._rbuf = memoryview(bytearray(_RECV_CHUNK))  # one buffer for every recv
-        self._poll = select.poll()
-        self._poll.register(parent, select.POLLIN)
-        self._inbox = bytearray()  # what the child has said and this side not read yet
-        self._out = _Out(self._put)
-        self._in = _In(self)
+        self._end = _CallerEnd(parent, self._died)
 
     def _died(self, why: object) -> WorkerError:
         return WorkerError(f"hil: the {self.name} worker process died ({why})")
 
-    def _take_in(self) -> None:
-        """What the child has said so far, into the inbox (call when readable)."""
-        try:
-            n = self._sock.recv_into(self._rbuf)
-        except BlockingIOError:
-            return
-        except OSError as err:
-            raise self._died(err) from err
-        if not n:
-            raise self._died("its end of the socket closed")
-        self._inbox += self._rbuf[:n]
-
-    def _wait_in(self) -> None:
-        """Until the child has said more (into the inbox)."""
-        try:
-            self._poll.poll()
-        except OSError as err:
-            raise self._died(err) from err
-        self._take_in()
-
-    def _put(self, data: bytes | bytearray | memoryview) -> None:
-        """``data`` out to the child, taking in what it says meanwhile: it may be blocked saying
-        it until this side reads."""
-        view = memoryview(data)
-        sock, poll = self._sock, self._poll
-        try:
-            with contextlib.suppress(BlockingIOError):  # most of it at once, without a poll
-                view = view[sock.send(view) :]
-            if not view:
-                return
-            poll.modify(sock, select.POLLIN | select.POLLOUT)
-            while view:
-                for _fd, ev in poll.poll():
-                    if ev & select.POLLIN:
-                        self._take_in()
-                    if ev & select.POLLOUT:
-                        with contextlib.suppress(BlockingIOError):  # room for none after all
-                            view = view[sock.send(view) :]
-                    elif ev & (select.POLLERR | select.POLLHUP | select.POLLNVAL):
-                        self._take_in()  # what it said before it went, then its end
-                        raise self._died("its end of the socket closed")
-        except (OSError, ValueError) as err:  # ValueError: its socket already closed here
-            raise self._died(err) from err
-        finally:
-            with contextlib.suppress(OSError, ValueError):
-                poll.modify(sock, select.POLLIN)
-
     def _send(self, req: tuple[Any, ...]) -> None:
         """``req`` to the child (pickled: this process's own objects, to its own fork), streamed
         out as the pickler makes it."""
-        pickle.dump(req, self._out, protocol=pickle.HIGHEST_PROTOCOL)
+        pickle.dump(req, self._end, protocol=pickle.HIGHEST_PROTOCOL)
 
     def _reply(self) -> tuple[Any, ...]:
         """What the child answered next; an error it reported, or its end, raised here."""
         try:
-            reply: tuple[Any, ...] = pickle.load(self._in)
+            reply: tuple[Any, ...] = pickle.load(self._end)
         except (EOFError, pickle.UnpicklingError) as err:  # half a message
             raise self._died(err) from err
         if reply[0] == "error":
@@ -292,10 +278,7 @@ class ForkedChild:
         message: a child blocked writing a large reply while this side is not reading would
         never see one; it sees its socket end, and leaves. One still there ``close_grace_s``
         later (stuck, or deep in a window nobody will read) is killed: closing never hangs."""
-        with contextlib.suppress(OSError):
-            self._sock.shutdown(socket.SHUT_RDWR)
-        with contextlib.suppress(OSError):
-            self._sock.close()
+        self._end.close()
         deadline = time.monotonic() + self.close_grace_s
         with contextlib.suppress(ChildProcessError):
             while os.waitpid(self.pid, os.WNOHANG)[0] == 0:
