@@ -553,22 +553,30 @@ class SessionWriter:
         q = self.queue
         if not q.chans:
             return
-        import numpy as np
-
-        try:
-            if self._add_many is None:
-                raise OverflowError  # the library's add_message, one at a time
-            logs, pubs = np.array(q.logs, np.int64), np.array(q.pubs, np.int64)
-            seqs = np.array(q.seqs, np.int64) & 0xFFFFFFFF
-        except OverflowError:  # a time past 2**63 ns (year 2262) or a huge seq: as write() does
+        columns = self._columns(q) if self._add_many is not None else None
+        if columns is None:  # the library's add_message, one at a time, as write() does
             for c, lg, d, pb, sq in zip(q.chans, q.logs, q.datas, q.pubs, q.seqs, strict=True):
                 self._add_message(c, _u64(lg), d, _u64(pb), sq & 0xFFFFFFFF)
         else:
-            np.maximum(logs, 0, out=logs)
-            np.maximum(pubs, 0, out=pubs)
+            logs, pubs, seqs = columns
             self._add_many(q.chans, logs, q.datas, pubs, seqs)
         for col in (q.chans, q.logs, q.datas, q.pubs, q.seqs):
             col.clear()
+
+    @staticmethod
+    def _columns(q: MessageQueue) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The queue's log times and publish times clamped at 0, and its sequences to u32, as
+        arrays; None when a value does not fit int64 (a time past 2**63 ns, year 2262)."""
+        import numpy as np
+
+        try:
+            logs, pubs = np.array(q.logs, np.int64), np.array(q.pubs, np.int64)
+            seqs = np.array(q.seqs, np.int64) & 0xFFFFFFFF
+        except OverflowError:
+            return None
+        np.maximum(logs, 0, out=logs)
+        np.maximum(pubs, 0, out=pubs)
+        return logs, pubs, seqs
 
     def _channel(self, topic: str, cls: type[Message], publisher: str | None, origin: str) -> int:
         chan = self._channels.get((topic, publisher or ""))
