@@ -8,6 +8,7 @@ import gc
 import os
 import signal
 import threading
+import time
 from pathlib import Path
 
 import can
@@ -297,6 +298,166 @@ def test_requests_and_replies_larger_than_the_socket_buffers_pass_each_other() -
         child.close()
     assert [r[1:3] for r in replies] == [(n, len(big_req)) for n in range(3)]
     assert all(r[3] == big_reply for r in replies)
+
+
+def _gated_echo(reply: bytes) -> tuple[ForkedChild, int]:
+    """``_echo_big``'s child that reads nothing until a byte comes down the returned pipe (a
+    worker still loading its kernels)."""
+    gate_r, gate_w = os.pipe()
+
+    def serve(sock) -> None:  # type: ignore[no-untyped-def]
+        os.close(gate_w)
+        os.read(gate_r, 1)
+        receive, say = _child_ends(sock)
+        with contextlib.suppress(EOFError):
+            while True:
+                n, payload = receive()
+                say(("ok", n, len(payload), reply))
+
+    child = ForkedChild(serve)
+    os.close(gate_r)
+    return child, gate_w
+
+
+def test_the_caller_sends_on_without_waiting_for_a_worker_that_reads_nothing_yet() -> None:
+    """``hil sim`` goes on with its next windows while its worker starts: after a first request
+    that the socket holds, 9 MB of them leave this side with the child reading none (they
+    waited in the socket's ~200 KB before: the child is let go only after the last send
+    returns, so a send that waits is a deadlock, which the watchdog turns into a failure)."""
+    big_req, reply = os.urandom(3 << 20), os.urandom(1 << 20)
+    child, gate = _gated_echo(reply)
+    watchdog = threading.Timer(120.0, child.close)
+    watchdog.start()
+    sizes = [1000, *[len(big_req)] * 3]
+    try:
+        child._send((0, big_req[:1000]))
+        for n in range(1, 4):
+            child._send((n, big_req))
+        os.write(gate, b"g")
+        replies = [child._reply() for _ in range(4)]
+    finally:
+        watchdog.cancel()
+        os.close(gate)
+        child.close()
+    assert [r[1:3] for r in replies] == list(enumerate(sizes))
+    assert all(r[3] == reply for r in replies)
+
+
+def test_the_request_the_worker_reads_next_goes_out_whole_before_the_caller_goes_on() -> None:
+    """One request at a time (``hil rerun``): the caller works on while the worker computes, so
+    the request must be in the socket whole when the send returns, not half of it in the outbox
+    until the caller next reads. And after a reply, the next request queued goes out whole."""
+    big_req = os.urandom(3 << 20)
+    child = _echo_big(b"")
+    watchdog = threading.Timer(120.0, child.close)
+    watchdog.start()
+    try:
+        child._send((0, big_req))
+        assert not child._end._outbox
+        child._send((1, big_req))
+        child._send((2, big_req))
+        assert child._reply()[1] == 0
+        assert child._end.sent >= child._request_ends[0]  # request 1: out whole
+        assert [child._reply()[1] for _ in range(2)] == [1, 2]
+        assert not child._end._outbox
+    finally:
+        watchdog.cancel()
+        child.close()
+
+
+def test_past_its_outbox_limit_the_caller_waits_for_the_worker_and_takes_its_replies() -> None:
+    """Bounded: a caller more than ``outbox_limit`` ahead waits for the child to read, and takes
+    in the replies the child is blocked writing meanwhile (or both would wait for ever)."""
+    big_req, big_reply = os.urandom(3 << 20), os.urandom(5 << 20)
+    child = _echo_big(big_reply)
+    child._end.outbox_limit = 1 << 20
+    watchdog = threading.Timer(120.0, child.close)
+    watchdog.start()
+    try:
+        for n in range(4):
+            child._send((n, big_req))
+            assert len(child._end._outbox) <= 1 << 20
+        replies = [child._reply() for _ in range(4)]
+    finally:
+        watchdog.cancel()
+        child.close()
+    assert [r[1:3] for r in replies] == [(n, len(big_req)) for n in range(4)]
+    assert all(r[3] == big_reply for r in replies)
+
+
+def test_ready_says_when_the_worker_has_answered() -> None:
+    child = _echo_big(b"x")
+    watchdog = threading.Timer(120.0, child.close)
+    watchdog.start()
+    try:
+        assert not child._end.ready()
+        child._send((0, b"ping"))
+        while not child._end.ready():  # answered in its own time; the watchdog bounds it
+            time.sleep(0.001)
+        assert child._reply()[1:] == (0, 4, b"x")
+        assert not child._end.ready()  # all of it taken
+    finally:
+        watchdog.cancel()
+        child.close()
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker through /proc")
+def test_hil_sim_runs_windows_ahead_of_a_worker_still_starting(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's start (numba and the kernels: ~0.45 s) no longer holds the sim up: its
+    first window is let through only once the sim has sent it four (the sim waited for the
+    first answer after two before: a deadlock, which the watchdog turns into a failure), and
+    the file is the one-process file."""
+    from hil.runners import sim
+    from hil.runtime import jit
+
+    gate_r, gate_w = os.pipe()
+    real_setup = jit.enable_for_run
+    calls: list[str] = []
+
+    def setup() -> str:  # in the worker
+        os.close(gate_w)
+        os.read(gate_r, 1)
+        return real_setup()
+
+    class Gated(RemoteTail):
+        def window(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+            super().window(*args, **kwargs)
+            calls.append("window")
+            if calls.count("window") == 4:
+                os.write(gate_w, b"g")
+
+        def result(self):  # type: ignore[no-untyped-def]
+            calls.append("result")
+            return super().result()
+
+    me = os.getpid()
+
+    def unstick() -> None:
+        for pid in _children(me):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+    monkeypatch.setattr(jit, "enable_for_run", setup)
+    monkeypatch.setattr(sim, "RemoteTail", Gated)
+    files = {}
+    try:
+        for worker in (False, True):
+            rec = tmp_path / f"a{int(worker)}.mcap"
+            watchdog = threading.Timer(120.0, unstick)
+            watchdog.start()
+            try:
+                run_sim(SimOptions(scenario="uav_survey", duration_s=8.0, record=rec, fusion_worker=worker))
+            finally:
+                watchdog.cancel()
+            files[worker] = rec.read_bytes()
+    finally:
+        os.close(gate_r)
+        os.close(gate_w)
+    assert calls[:4] == ["window"] * 4
+    assert calls.count("result") >= 8
+    assert files[True] == files[False]
 
 
 def test_a_worker_that_dies_halfway_through_a_reply_is_a_worker_error() -> None:
