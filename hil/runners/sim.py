@@ -566,11 +566,6 @@ def tail_split(nodes: list[Node]) -> int:
 # in this process before the fork (``start``), as in one process
 _TAIL_ORDER = 1 << 48
 
-# windows the sim may run ahead of its worker: ~0.45 s of work at 400 Hz, the worker's start
-# (numba and the kernels loaded there) while this process goes on (uav_survey 120 s: it waited
-# 0.41 s for the first window, 9 % of its wall time)
-AHEAD_WINDOWS = 16
-
 
 def _unused_write(events: list[tuple[int, int, int, str, Message]]) -> None:
     raise AssertionError("a tail's messages go back to the sim's process, which writes them")
@@ -586,13 +581,12 @@ def _windows(
 ) -> None:
     """One rig second at a time until every node is done, then the end of input.
 
-    With a remote node, window *k* is written once this process has handled window *k + 1*
-    and the worker has answered *k* (or this process is ``AHEAD_WINDOWS`` windows ahead: then
-    it waits): its status goes out with the counters taken when *k* was handled, so the file is
-    the one-process file byte for byte, however far ahead this process ran.
+    With a remote node, window *k* is written after this process has handled window *k + 1*
+    (the worker runs the fusion over *k* meanwhile): its status goes out with the counters
+    taken when *k* was handled, so the file is the one-process file byte for byte.
     """
     ignored_at = collections.deque(ignored)
-    pending: collections.deque[tuple[int, list[Any], list[tuple[str, list[Any], str]]]] = collections.deque()
+    pending: tuple[int, list[Any], list[tuple[str, list[Any], str]]] | None = None
 
     def complete(window: tuple[int, list[Any], list[tuple[str, list[Any], str]]]) -> bool:
         t, out, snap = window
@@ -620,19 +614,16 @@ def _windows(
         if remote is None:
             busy = complete(window) or busy
         else:
-            pending.append(window)
-            # the oldest window the worker has answered (or one it is too far behind on) is
-            # written while it runs the newer ones
-            while len(pending) > AHEAD_WINDOWS or (len(pending) > 1 and remote.ready()):
-                complete(pending.popleft())
+            if pending is not None:
+                complete(pending)  # the worker's previous window, while it runs this one
+            pending = window
             if not busy and t > sess.end_ns:  # the end is near: is the worker done too?
-                while len(pending) > 1:
-                    complete(pending.popleft())
-                busy = complete(pending.popleft())
+                busy = complete(pending)
+                pending = None
         if not busy and t > sess.end_ns:
             break
-    while pending:
-        complete(pending.popleft())
+    if pending is not None:
+        complete(pending)
     t_last = sess.end_ns + 1
     sched.finish(t_last)
     sess.status(t_last, sess.snapshot(remote))

@@ -22,7 +22,6 @@ each other for ever. Both ways the pickle streams as it is made and read, as a f
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import gc
 import operator
@@ -78,15 +77,10 @@ _RECV_CHUNK = 1 << 20
 
 class _CallerEnd:
     """The caller's end of a ``ForkedChild``'s socket pair, non-blocking, as a file to pickle to
-    and from. ``write`` (the pickler's) never waits for the child: what the socket does not take
-    now waits in an outbox, pushed on whenever this side writes or waits to read again (a child
-    still loading its kernels reads nothing, and the caller goes on with its next window); past
-    ``outbox_limit`` bytes it does wait, taking in what the child says meanwhile (the child may
-    be blocked saying it until this side reads). ``read``, ``readinto`` and ``readline`` (the
-    unpickler's) take that inbox first, then the socket, pushing the outbox while they wait. A
-    failure of either is ``died(why)``, raised."""
-
-    outbox_limit = 64 << 20
+    and from: ``write`` (the pickler's) sends, taking in what the child says meanwhile (it may
+    be blocked saying it until this side reads); ``read``, ``readinto`` and ``readline`` (the
+    unpickler's) take that inbox first, then the socket, waiting for it. A failure of either is
+    ``died(why)``, raised."""
 
     def __init__(self, sock: socket.socket, died: Callable[[object], WorkerError]) -> None:
         sock.setblocking(False)
@@ -96,9 +90,6 @@ class _CallerEnd:
         self._poll.register(sock, select.POLLIN)
         self._rbuf = memoryview(bytearray(_RECV_CHUNK))  # one buffer for every recv
         self._inbox = bytearray()  # what the child has said and this side not read yet
-        self._outbox = bytearray()  # what this side has said and the socket not taken yet
-        self.written = 0  # bytes this side has said
-        self.sent = 0  # bytes of them the socket has taken
 
     def _recv_into(self, view: memoryview) -> int:
         """Bytes received into ``view``; 0: none yet."""
@@ -112,20 +103,12 @@ class _CallerEnd:
             raise self._died("its end of the socket closed")
         return n
 
-    def _events(self) -> list[tuple[int, int]]:
-        """The next poll's events, the outbox pushed on where the socket has room."""
+    def _wait(self) -> None:
+        """Until the socket has something (or has ended)."""
         try:
-            evs = self._poll.poll()
+            self._poll.poll()
         except OSError as err:
             raise self._died(err) from err
-        if any(ev & select.POLLOUT for _fd, ev in evs):
-            self._push()
-        return evs
-
-    def _wait(self) -> None:
-        """Until the socket has something (or has ended), the outbox pushed on meanwhile."""
-        while not any(ev & ~select.POLLOUT for _fd, ev in self._events()):
-            pass
 
     def _take_in(self) -> None:
         n = self._recv_into(self._rbuf)
@@ -136,63 +119,30 @@ class _CallerEnd:
         del self._inbox[:n]
         return out
 
-    def _push(self) -> None:
-        """As much of the outbox as the socket takes now."""
-        out = self._outbox
-        try:
-            while out:
-                n = self._sock.send(out)
-                del out[:n]
-                self.sent += n
-        except BlockingIOError:
-            pass
-        except (OSError, ValueError) as err:  # ValueError: its socket already closed here
-            raise self._died(err) from err
-        if not out:
-            with contextlib.suppress(OSError, ValueError):
-                self._poll.modify(self._sock, select.POLLIN)
-
     def write(self, data: bytes | bytearray | memoryview) -> None:
-        view = memoryview(data).cast("B")
-        self.written += len(view)
-        if self._outbox:
-            self._outbox += view
-            self._push()
-        else:
-            try:
-                n = self._sock.send(view)
-            except BlockingIOError:
-                n = 0
-            except (OSError, ValueError) as err:  # ValueError: its socket already closed here
-                raise self._died(err) from err
-            self.sent += n
-            view = view[n:]
+        view = memoryview(data)
+        sock, poll = self._sock, self._poll
+        try:
+            with contextlib.suppress(BlockingIOError):  # most of it at once, without a poll
+                view = view[sock.send(view) :]
             if not view:
                 return
-            self._outbox += view
-            with contextlib.suppress(OSError, ValueError):
-                self._poll.modify(self._sock, select.POLLIN | select.POLLOUT)
-        if len(self._outbox) > self.outbox_limit:  # the child is that far behind: wait for it
-            self.push_through(self.written - self.outbox_limit)
-
-    def push_through(self, position: int) -> None:
-        """Wait until the socket has taken what this side said up to byte ``position``, taking
-        in what the child says meanwhile (it may be blocked saying it until this side reads)."""
-        while self.sent < position:
-            if any(ev & ~select.POLLOUT for _fd, ev in self._events()):
-                self._take_in()
-
-    def ready(self) -> bool:
-        """Whether the child has said something this side has not read, without waiting (the
-        outbox pushed on meanwhile)."""
-        if self._outbox:
-            self._push()
-        if self._inbox:
-            return True
-        try:
-            return any(ev & ~select.POLLOUT for _fd, ev in self._poll.poll(0))
-        except OSError as err:
+            poll.modify(sock, select.POLLIN | select.POLLOUT)
+            while view:
+                for _fd, ev in poll.poll():
+                    if ev & select.POLLIN:
+                        self._take_in()
+                    if ev & select.POLLOUT:
+                        with contextlib.suppress(BlockingIOError):  # room for none after all
+                            view = view[sock.send(view) :]
+                    elif ev & (select.POLLERR | select.POLLHUP | select.POLLNVAL):
+                        self._take_in()  # what it said before it went, then its end
+                        raise self._died("its end of the socket closed")
+        except (OSError, ValueError) as err:  # ValueError: its socket already closed here
             raise self._died(err) from err
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                poll.modify(sock, select.POLLIN)
 
     def read(self, n: int) -> bytes:  # the unpickler always asks for a size
         while len(self._inbox) < n:
@@ -302,7 +252,6 @@ class ForkedChild:
         child.close()
         self.pid = pid
         self._end = _CallerEnd(parent, self._died)
-        self._request_ends: collections.deque[int] = collections.deque()  # of those not answered
 
     def _died(self, why: object) -> WorkerError:
         return WorkerError(f"hil: the {self.name} worker process died ({why})")
@@ -311,14 +260,9 @@ class ForkedChild:
         """``req`` to the child (pickled: this process's own objects, to its own fork), streamed
         out as the pickler makes it."""
         pickle.dump(req, self._end, protocol=pickle.HIGHEST_PROTOCOL)
-        self._request_ends.append(self._end.written)
-        if len(self._request_ends) == 1:  # the one the child reads next: out whole, as it reads
-            self._end.push_through(self._end.written)
 
     def _reply(self) -> tuple[Any, ...]:
-        """What the child answered next; an error it reported, or its end, raised here. Then the
-        request it reads next is pushed out whole (it is reading it now): one that waited in the
-        outbox must not hold it up while this side works on its answer; the newer ones wait on."""
+        """What the child answered next; an error it reported, or its end, raised here."""
         try:
             reply: tuple[Any, ...] = pickle.load(self._end)
         except (EOFError, pickle.UnpicklingError) as err:  # half a message
@@ -327,10 +271,6 @@ class ForkedChild:
             raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
         if reply[0] == "raise":  # the worker has stopped
             raise reply[1]
-        if self._request_ends:
-            self._request_ends.popleft()
-        if self._request_ends:
-            self._end.push_through(self._request_ends[0])
         return reply
 
     def close(self) -> None:
@@ -490,10 +430,6 @@ class RemoteTail(ForkedChild):
         flight."""
         _ok, events, busy, self._snapshot = self._reply()
         return events, busy
-
-    def ready(self) -> bool:
-        """Whether the oldest window's outputs have begun to come back (without waiting)."""
-        return self._end.ready()
 
     def snapshot(self) -> list[tuple[str, Any, str]]:
         """Each tail node's name, counters and last error after the last window taken."""
