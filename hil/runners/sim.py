@@ -581,12 +581,14 @@ def _windows(
 ) -> None:
     """One rig second at a time until every node is done, then the end of input.
 
-    With a remote node, window *k* is written after this process has handled window *k + 1*
-    (the worker runs the fusion over *k* meanwhile): its status goes out with the counters
-    taken when *k* was handled, so the file is the one-process file byte for byte.
+    With a remote node, window *k* is written once this process has handled window *k + 1*
+    and the worker has answered *k*, or once this process is ``remote.ahead()`` windows ahead
+    (then it waits: a worker still starting, or slower): its status goes out with the counters
+    taken when *k* was handled, so the file is the one-process file byte for byte, however far
+    ahead this process ran.
     """
     ignored_at = collections.deque(ignored)
-    pending: tuple[int, list[Any], list[tuple[str, list[Any], str]]] | None = None
+    pending: collections.deque[tuple[int, list[Any], list[tuple[str, list[Any], str]]]] = collections.deque()
 
     def complete(window: tuple[int, list[Any], list[tuple[str, list[Any], str]]]) -> bool:
         t, out, snap = window
@@ -614,16 +616,19 @@ def _windows(
         if remote is None:
             busy = complete(window) or busy
         else:
-            if pending is not None:
-                complete(pending)  # the worker's previous window, while it runs this one
-            pending = window
+            pending.append(window)
+            # the oldest windows the worker has answered (or is too far behind on) are written
+            # while it runs the newer ones
+            while len(pending) > 1 and (len(pending) > remote.ahead() or remote.ready()):
+                complete(pending.popleft())
             if not busy and t > sess.end_ns:  # the end is near: is the worker done too?
-                busy = complete(pending)
-                pending = None
+                while len(pending) > 1:
+                    complete(pending.popleft())
+                busy = complete(pending.popleft())
         if not busy and t > sess.end_ns:
             break
-    if pending is not None:
-        complete(pending)
+    while pending:
+        complete(pending.popleft())
     t_last = sess.end_ns + 1
     sched.finish(t_last)
     sess.status(t_last, sess.snapshot(remote))

@@ -12,24 +12,26 @@ order and the file are byte for byte those of one process; only the wall time di
 ``fork`` and a pipe: no ``multiprocessing.Process`` (a campaign runs sims inside daemonic
 workers, which may not start one). The child never returns into the caller's code: it leaves
 with ``os._exit``, whatever happens, and reports an exception as its text. The two ends speak
-pickle: both are this process's own code and objects (a socketpair made before the fork), never a
-file or the wire, which is why tests/docker/test_compose_static.py allows it here and nowhere else.
-The caller's end is non-blocking and reads what the child says while it writes (into an inbox the
-unpickler reads first): the sim sends window *k + 1* before it takes the reply to *k*, and with
-both larger than the socket's buffers (an IMU at 1 kHz and up) two blocking writers waited on
-each other for ever. Both ways the pickle streams as it is made and read, as a file would.
+pickle: both are this process's own code and objects (rings of shared memory and a socketpair
+made before the fork), never a file or the wire, which is why tests/docker/test_compose_static.py
+allows it here and nowhere else. Each way the pickles stream through a ring of shared memory
+(``_Link``) many windows deep: the sim runs ahead of a worker still loading its kernels, and a
+worker whose replies the sim has not read yet goes on with its next window (through the socket
+alone, ~200 KB, each waited on the other; both larger than it, at an IMU of 1 kHz and up, two
+blocking writers waited for ever).
 """
 
 from __future__ import annotations
 
 import contextlib
 import gc
+import mmap
 import operator
 import os
 import pickle
-import select
 import signal
 import socket
+import struct
 import threading
 import time
 import traceback
@@ -72,104 +74,165 @@ Replayed = tuple[str, int, bytes, int, Any]
 # rerun: 0.99 of its 9.06 s on 300 s of straight_level), a decode there ~1.9
 EncodedInput = tuple[bytes, type, str, bool]
 
-_RECV_CHUNK = 1 << 20
+# each direction's ring of shared memory: what one side has said and the other not read yet (the
+# replies' ~16 windows of uav_survey at 400 Hz; a request is a sixth of its reply). Pages are
+# touched as the rings fill, once: at most this much more resident memory, shared by both.
+REPLY_RING_BYTES = 16 << 20
+REQUEST_RING_BYTES = 8 << 20
+# windows ``hil sim`` may run ahead of its worker: its start (numba and the kernels loaded there,
+# ~0.45 s) is ~15 windows of the sim's own work at 400 Hz, which it held up before (uav_survey
+# 120 s: 0.41 s, 9 % of the sim's wall time)
+AHEAD_WINDOWS = 16
+
+# a control record on the socket: kind, a position (bytes a side has put into, or taken out of, a
+# ring since the start)
+_CTRL = struct.Struct("<cQ")
+_DATA, _TAKEN = b"D", b"T"
+# a long message is announced in parts this large, so the reader unpickles it as it comes
+_TELL_EVERY = 256 << 10
 
 
-class _CallerEnd:
-    """The caller's end of a ``ForkedChild``'s socket pair, non-blocking, as a file to pickle to
-    and from: ``write`` (the pickler's) sends, taking in what the child says meanwhile (it may
-    be blocked saying it until this side reads); ``read``, ``readinto`` and ``readline`` (the
-    unpickler's) take that inbox first, then the socket, waiting for it. A failure of either is
-    ``died(why)``, raised."""
+class _Link:
+    """One end of a ``ForkedChild``'s channel: pickles streamed through two rings of shared memory,
+    one each way, made before the fork; the socket pair carries only small control records --
+    "the ring holds your bytes up to here" (``D``, at a message's end and every
+    ``_TELL_EVERY`` bytes of a long one, which the reader unpickles as it comes) and "I have
+    taken yours up to here" (``T``).
 
-    def __init__(self, sock: socket.socket, died: Callable[[object], WorkerError]) -> None:
-        sock.setblocking(False)
+    Why not the socket alone: its buffers hold ~200 KB, less than a window's outputs, so a worker
+    whose reply the sim was not reading yet waited, and a sim ahead of a worker still loading its
+    kernels waited to send. The rings hold many windows both ways, so neither side waits for the
+    other while it computes. A side that waits (for bytes to read, or for room in its ring) takes
+    in everything the other has said meanwhile, copying it out of the ring and saying so: two
+    sides waiting on each other always free each other's rings, so they never wait for ever. A
+    message larger than a ring goes through it in parts. The end of either side is the end of
+    the socket: the other's wait raises ``died(why)``."""
+
+    def __init__(
+        self, sock: socket.socket, out: mmap.mmap, into: mmap.mmap, died: Callable[[object], Exception]
+    ) -> None:
         self._sock = sock
         self._died = died
-        self._poll = select.poll()
-        self._poll.register(sock, select.POLLIN)
-        self._rbuf = memoryview(bytearray(_RECV_CHUNK))  # one buffer for every recv
-        self._inbox = bytearray()  # what the child has said and this side not read yet
+        self._out, self._out_size = out, len(out)
+        self._written = 0  # bytes put into the outgoing ring
+        self._said = 0  # of them, told to the other side
+        self._peer_took = 0  # of them, taken by the other side
+        self._in, self._in_size = into, len(into)
+        self._took = 0  # bytes taken out of the incoming ring
+        self._inbox = bytearray()  # taken out of the ring, not read yet
+        self._consumed = 0  # bytes read
+        self._ctrl = bytearray()  # control bytes received, not parsed yet
+        self.largest = 0  # bytes of the largest message received so far
 
-    def _recv_into(self, view: memoryview) -> int:
-        """Bytes received into ``view``; 0: none yet."""
-        try:
-            n = self._sock.recv_into(view)
-        except BlockingIOError:
-            return 0
-        except OSError as err:
-            raise self._died(err) from err
-        if not n:
-            raise self._died("its end of the socket closed")
-        return n
-
-    def _wait(self) -> None:
-        """Until the socket has something (or has ended)."""
-        try:
-            self._poll.poll()
-        except OSError as err:
-            raise self._died(err) from err
-
-    def _take_in(self) -> None:
-        n = self._recv_into(self._rbuf)
-        self._inbox += self._rbuf[:n]
-
-    def _pop(self, n: int) -> bytes:
-        out = bytes(self._inbox[:n])
-        del self._inbox[:n]
-        return out
-
+    # -- writing: the pickler's file ----------------------------------------------------------
     def write(self, data: bytes | bytearray | memoryview) -> None:
-        view = memoryview(data)
-        sock, poll = self._sock, self._poll
+        view = memoryview(data).cast("B")
+        size = self._out_size
+        while view:
+            room = size - (self._written - self._peer_took)
+            if not room:
+                self._tell(_DATA)  # what it holds so far, so the other side can take it
+                self._take_in()
+                continue
+            pos = self._written % size
+            n = min(len(view), room, size - pos)
+            self._out[pos : pos + n] = view[:n]
+            self._written += n
+            view = view[n:]
+        if self._written - self._said >= _TELL_EVERY:  # the other side can begin to read
+            self._tell(_DATA)
+
+    def say(self, obj: Any) -> None:
+        """``obj`` pickled to the other side (streamed through the ring as the pickler makes it)."""
+        pickle.dump(obj, self, protocol=pickle.HIGHEST_PROTOCOL)
+        self._tell(_DATA)
+
+    def _tell(self, kind: bytes) -> None:
+        self._said = self._written
+        self._send_ctrl(kind, self._written)
+
+    def _send_ctrl(self, kind: bytes, position: int) -> None:
         try:
-            with contextlib.suppress(BlockingIOError):  # most of it at once, without a poll
-                view = view[sock.send(view) :]
-            if not view:
-                return
-            poll.modify(sock, select.POLLIN | select.POLLOUT)
-            while view:
-                for _fd, ev in poll.poll():
-                    if ev & select.POLLIN:
-                        self._take_in()
-                    if ev & select.POLLOUT:
-                        with contextlib.suppress(BlockingIOError):  # room for none after all
-                            view = view[sock.send(view) :]
-                    elif ev & (select.POLLERR | select.POLLHUP | select.POLLNVAL):
-                        self._take_in()  # what it said before it went, then its end
-                        raise self._died("its end of the socket closed")
+            self._sock.sendall(_CTRL.pack(kind, position))
         except (OSError, ValueError) as err:  # ValueError: its socket already closed here
             raise self._died(err) from err
-        finally:
-            with contextlib.suppress(OSError, ValueError):
-                poll.modify(sock, select.POLLIN)
+
+    # -- reading: the unpickler's file ----------------------------------------------------------
+    def receive(self) -> Any:
+        """The next message the other side says, unpickled as it comes (waiting for it)."""
+        before = self._consumed
+        obj = pickle.load(self)
+        self.largest = max(self.largest, self._consumed - before)
+        return obj
+
+    def ready(self) -> bool:
+        """Whether the other side has said something not read yet (without waiting)."""
+        if not self._inbox:
+            self._take_in(wait=False)
+        return bool(self._inbox)
 
     def read(self, n: int) -> bytes:  # the unpickler always asks for a size
         while len(self._inbox) < n:
-            self._wait()
             self._take_in()
         return self._pop(n)
 
     def readinto(self, b: Any) -> int:
         out = memoryview(b).cast("B")
         n = len(out)
-        got = min(n, len(self._inbox))
-        out[:got] = self._pop(got)
-        while got < n:  # the rest straight from the socket: a reply's large bytes, no copy
-            r = self._recv_into(out[got:])
-            if not r:
-                self._wait()
-            got += r
+        while len(self._inbox) < n:
+            self._take_in()
+        out[:] = self._inbox[:n]
+        del self._inbox[:n]
+        self._consumed += n
         return n
 
     def readline(self) -> bytes:
         while (i := self._inbox.find(b"\n")) < 0:
-            self._wait()
             self._take_in()
         return self._pop(i + 1)
 
+    def _pop(self, n: int) -> bytes:
+        out = bytes(self._inbox[:n])
+        del self._inbox[:n]
+        self._consumed += n
+        return out
+
+    def _take_in(self, wait: bool = True) -> None:
+        """Wait for control records (``wait``: else take what is there); act on every one that came
+        (the data they announce copied out of the ring, and said so)."""
+        try:
+            got = self._sock.recv(1 << 16, 0 if wait else socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            raise self._died(err) from err
+        if not got:
+            raise self._died("its end of the socket closed")
+        ctrl = self._ctrl
+        ctrl += got
+        n = len(ctrl) - len(ctrl) % _CTRL.size
+        for kind, position in _CTRL.iter_unpack(memoryview(ctrl)[:n]):
+            if kind == _TAKEN:
+                self._peer_took = position
+            elif kind == _DATA:
+                self._copy_out(position)
+            else:
+                raise self._died(f"a control record of unknown kind {kind!r}")
+        del ctrl[:n]
+
+    def _copy_out(self, position: int) -> None:
+        size, into = self._in_size, self._in
+        if position - self._took > size or position < self._took:
+            raise self._died(f"a ring position out of range ({position}, took {self._took})")
+        while self._took < position:
+            pos = self._took % size
+            n = min(position - self._took, size - pos)
+            self._inbox += into[pos : pos + n]
+            self._took += n
+        self._send_ctrl(_TAKEN, self._took)
+
     def close(self) -> None:
-        """Shut down (a child blocked writing sees its end) and close."""
+        """Shut down (a side waiting sees its end) and close."""
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
         with contextlib.suppress(OSError):
@@ -223,7 +286,7 @@ def worker_pays(node: Node) -> bool:
 
 
 class ForkedChild:
-    """A forked child serving ``serve(sock)`` on its end of a socket pair (``RemoteNode``,
+    """A forked child serving ``serve(link)`` on its end of a ``_Link`` (``RemoteNode``,
     ``RemoteTail``): requests out, replies in, either side's failure a ``WorkerError`` naming
     it, and the child stopped and reaped by :meth:`close`. The child never returns into the
     caller's code: it leaves with ``os._exit``, whatever happens.
@@ -237,21 +300,22 @@ class ForkedChild:
     name = "worker"
     close_grace_s = 5.0  # after its socket ends, how long the child has to leave before SIGKILL
 
-    def __init__(self, serve: Callable[[socket.socket], None]) -> None:
+    def __init__(self, serve: Callable[[_Link], None]) -> None:
         parent, child = socket.socketpair()
+        requests, replies = mmap.mmap(-1, REQUEST_RING_BYTES), mmap.mmap(-1, REPLY_RING_BYTES)
         pid = os.fork()
         if pid == 0:
             code = 1
             try:
                 gc.freeze()
                 parent.close()
-                serve(child)
+                serve(_Link(child, replies, requests, lambda why: EOFError(why)))
                 code = 0
             finally:
                 os._exit(code)
         child.close()
         self.pid = pid
-        self._end = _CallerEnd(parent, self._died)
+        self._end = _Link(parent, requests, replies, self._died)
 
     def _died(self, why: object) -> WorkerError:
         return WorkerError(f"hil: the {self.name} worker process died ({why})")
@@ -259,13 +323,13 @@ class ForkedChild:
     def _send(self, req: tuple[Any, ...]) -> None:
         """``req`` to the child (pickled: this process's own objects, to its own fork), streamed
         out as the pickler makes it."""
-        pickle.dump(req, self._end, protocol=pickle.HIGHEST_PROTOCOL)
+        self._end.say(req)
 
     def _reply(self) -> tuple[Any, ...]:
         """What the child answered next; an error it reported, or its end, raised here."""
         try:
-            reply: tuple[Any, ...] = pickle.load(self._end)
-        except (EOFError, pickle.UnpicklingError) as err:  # half a message
+            reply: tuple[Any, ...] = self._end.receive()
+        except (EOFError, pickle.UnpicklingError) as err:  # a message that is not one
             raise self._died(err) from err
         if reply[0] == "error":
             raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
@@ -299,10 +363,10 @@ class RemoteNode(ForkedChild):
         """``setup``: called first in the child (the fusion's compiled kernels loaded there)."""
         self.name = node.name
 
-        def serve(sock: socket.socket) -> None:  # the worker
+        def serve(link: _Link) -> None:  # the worker
             if setup is not None:
                 setup()
-            _serve(node, sock)
+            _serve(node, link)
 
         super().__init__(serve)
 
@@ -409,10 +473,10 @@ class RemoteTail(ForkedChild):
         self.name = "+".join(self.names)
         self._snapshot = [(n.name, n.counters(), n.last_error) for n in nodes[split:]]
 
-        def serve(sock: socket.socket) -> None:  # the worker
+        def serve(link: _Link) -> None:  # the worker
             if setup is not None:
                 setup()
-            _serve_tail(make_scheduler(), split, sock, prepare)
+            _serve_tail(make_scheduler(), split, link, prepare)
 
         super().__init__(serve)
 
@@ -431,6 +495,16 @@ class RemoteTail(ForkedChild):
         _ok, events, busy, self._snapshot = self._reply()
         return events, busy
 
+    def ready(self) -> bool:
+        """Whether the oldest window's outputs are back (without waiting)."""
+        return self._end.ready()
+
+    def ahead(self) -> int:
+        """How many windows the caller may have sent and not taken back: ``AHEAD_WINDOWS``, or
+        fewer once its replies are large (as many as its ring holds while the caller works)."""
+        largest = self._end.largest
+        return AHEAD_WINDOWS if not largest else max(1, min(AHEAD_WINDOWS, REPLY_RING_BYTES // largest))
+
     def snapshot(self) -> list[tuple[str, Any, str]]:
         """Each tail node's name, counters and last error after the last window taken."""
         return list(self._snapshot)
@@ -439,10 +513,10 @@ class RemoteTail(ForkedChild):
 def _serve_tail(
     sched: TailScheduler,
     split: int,
-    sock: socket.socket,
+    link: _Link,
     prepare: Callable[[tuple[int, int, int, str, Any]], tuple[Any, ...]] | None,
 ) -> None:
-    receive, say = _child_ends(sock)
+    receive, say = _child_ends(link)
     tail = sched.nodes[split:]
     while True:
         try:
@@ -462,24 +536,14 @@ def _serve_tail(
             return
 
 
-def _child_ends(sock: socket.socket) -> tuple[Callable[[], Any], Callable[[Any], None]]:
+def _child_ends(link: _Link) -> tuple[Callable[[], Any], Callable[[Any], None]]:
     """A ``ForkedChild``'s own end: ``receive()`` (``EOFError`` once the caller is gone) and
-    ``say(obj)``, pickled as :meth:`ForkedChild._send` and ``_reply`` are. Blocking: the caller
-    reads while it writes, so this side may wait on it."""
-    rfile, wfile = sock.makefile("rb"), sock.makefile("wb")
-
-    def receive() -> Any:
-        return pickle.load(rfile)
-
-    def say(obj: Any) -> None:
-        pickle.dump(obj, wfile, protocol=pickle.HIGHEST_PROTOCOL)
-        wfile.flush()
-
-    return receive, say
+    ``say(obj)``."""
+    return link.receive, link.say
 
 
-def _serve(node: Node, sock: socket.socket) -> None:
-    receive, say = _child_ends(sock)
+def _serve(node: Node, link: _Link) -> None:
+    receive, say = _child_ends(link)
     while True:
         try:
             req = receive()

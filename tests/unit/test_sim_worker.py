@@ -17,10 +17,14 @@ from hil.messages import Event
 from hil.nodes.base import Node, Out
 from hil.runners.sim import Scheduler, SimOptions, run_sim, sim_run_info
 from hil.runners.sim_worker import (
+    AHEAD_WINDOWS,
+    REPLY_RING_BYTES,
+    REQUEST_RING_BYTES,
     ForkedChild,
     RemoteTail,
     WorkerError,
     _child_ends,
+    _Link,
     portable,
     worker_possible,
 )
@@ -237,7 +241,7 @@ def test_a_killed_worker_is_an_error() -> None:
 
 
 class _Chatty(_Ticker):
-    """Publishes far more per window than a socket buffer holds."""
+    """Publishes far more per window than the reply ring holds (20 MB)."""
 
     def tick(self, now_ns: int) -> list[Out]:
         self.t = now_ns + 1_000_000
@@ -270,8 +274,8 @@ def test_close_does_not_wait_on_a_worker_blocked_writing() -> None:
 def _echo_big(reply: bytes) -> ForkedChild:
     """A child that answers each request ``(n, payload)`` with ``("ok", n, reply)``."""
 
-    def serve(sock) -> None:  # type: ignore[no-untyped-def]
-        receive, say = _child_ends(sock)
+    def serve(link: _Link) -> None:
+        receive, say = _child_ends(link)
         with contextlib.suppress(EOFError):  # the caller gone: the end
             while True:
                 n, payload = receive()
@@ -280,11 +284,17 @@ def _echo_big(reply: bytes) -> ForkedChild:
     return ForkedChild(serve)
 
 
-def test_requests_and_replies_larger_than_the_socket_buffers_pass_each_other() -> None:
+@pytest.mark.parametrize(
+    ("request_mb", "reply_mb"),
+    [(3, 5), (REQUEST_RING_BYTES * 5 // 4 >> 20, REPLY_RING_BYTES * 3 // 2 >> 20)],
+    ids=["larger than the socket", "larger than the rings"],
+)
+def test_requests_and_replies_pass_each_other(request_mb: int, reply_mb: int) -> None:
     """The sim sends window k + 1 before it takes the reply to k. With both larger than the
     socket's buffers (``hil sim --estimators ins --imu-rate 1000``) each side used to block
-    writing to the other for ever; now this side reads while it writes."""
-    big_req, big_reply = os.urandom(3 << 20), os.urandom(5 << 20)
+    writing to the other for ever; messages larger than a ring go through it in parts, each side
+    taking in the other's while it waits for room."""
+    big_req, big_reply = os.urandom(request_mb << 20), os.urandom(reply_mb << 20)
     child = _echo_big(big_reply)
     watchdog = threading.Timer(120.0, child.close)  # a deadlock fails the test, never hangs it
     watchdog.start()
@@ -299,15 +309,88 @@ def test_requests_and_replies_larger_than_the_socket_buffers_pass_each_other() -
     assert all(r[3] == big_reply for r in replies)
 
 
+def test_the_caller_sends_on_without_waiting_for_a_worker_that_reads_nothing_yet() -> None:
+    """``hil sim`` goes on with its next windows while its worker loads its kernels: 6 MB of
+    requests leave with the child reading none (the socket alone held ~200 KB: the child is let
+    go only after the last send returns, so a send that waits is a deadlock, which the watchdog
+    turns into a failure)."""
+    gate_r, gate_w = os.pipe()
+    reply = os.urandom(1 << 20)
+
+    def serve(link: _Link) -> None:
+        os.close(gate_w)
+        os.read(gate_r, 1)
+        receive, say = _child_ends(link)
+        with contextlib.suppress(EOFError):
+            while True:
+                n, payload = receive()
+                say(("ok", n, len(payload), reply))
+
+    child = ForkedChild(serve)
+    os.close(gate_r)
+    big_req = os.urandom(3 << 20)
+    watchdog = threading.Timer(120.0, child.close)
+    watchdog.start()
+    try:
+        assert not child._end.ready()  # nothing said yet
+        for n in range(2):
+            child._send((n, big_req))
+        os.write(gate_w, b"g")
+        replies = [child._reply() for _ in range(2)]
+    finally:
+        watchdog.cancel()
+        os.close(gate_w)
+        child.close()
+    assert [r[1:3] for r in replies] == [(0, len(big_req)), (1, len(big_req))]
+    assert all(r[3] == reply for r in replies)
+
+
+def test_the_worker_goes_on_while_the_caller_reads_none_of_its_replies() -> None:
+    """A worker ahead of a sim still busy with its own window: three 4 MB replies, none read yet,
+    and the child has gone on through all three (it tells so down a pipe; through the socket
+    alone it waited in the first, and the watchdog turned that into a failure)."""
+    done_r, done_w = os.pipe()
+    reply = os.urandom(4 << 20)
+
+    def serve(link: _Link) -> None:
+        os.close(done_r)
+        receive, say = _child_ends(link)
+        with contextlib.suppress(EOFError):
+            for n in range(3):
+                receive()
+                say(("ok", n, reply))
+            os.write(done_w, b"d")
+            receive()
+
+    child = ForkedChild(serve)
+    os.close(done_w)
+    watchdog = threading.Timer(120.0, child.close)
+    watchdog.start()
+    try:
+        for n in range(3):
+            child._send((n,))
+        assert os.read(done_r, 1) == b"d"  # b"" (the child gone) if the watchdog fired
+        assert child._end.ready()
+        replies = [child._reply() for _ in range(3)]
+    finally:
+        watchdog.cancel()
+        os.close(done_r)
+        child.close()
+    assert [r[1] for r in replies] == [0, 1, 2]
+    assert all(r[2] == reply for r in replies)
+    assert child._end.largest > 4 << 20
+
+
 def test_a_worker_that_dies_halfway_through_a_reply_is_a_worker_error() -> None:
     """Half a pickle, then the worker's end closes: the reader says it died, never waits on."""
     import pickle
 
-    def serve(sock) -> None:  # type: ignore[no-untyped-def]
-        receive, _say = _child_ends(sock)
+    def serve(link: _Link) -> None:
+        receive, _say = _child_ends(link)
         receive()
         reply = pickle.dumps(("ok", os.urandom(3 << 20)), protocol=pickle.HIGHEST_PROTOCOL)
-        sock.sendall(reply[: len(reply) // 2])
+        link.write(reply[: len(reply) // 2])
+        link._tell(b"D")  # that half announced, then gone
 
     child = ForkedChild(serve)
     watchdog = threading.Timer(120.0, child.close)  # a reader that waits on fails, never hangs
@@ -319,6 +402,94 @@ def test_a_worker_that_dies_halfway_through_a_reply_is_a_worker_error() -> None:
     finally:
         watchdog.cancel()
         child.close()
+
+
+def test_a_garbled_control_record_is_a_worker_error() -> None:
+    def serve(link: _Link) -> None:
+        link.receive()
+        link._send_ctrl(b"X", 0)
+        link.receive()
+
+    child = ForkedChild(serve)
+    try:
+        child._send((0,))
+        with pytest.raises(WorkerError, match="unknown kind"):
+            child._reply()
+    finally:
+        child.close()
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the worker through /proc")
+def test_hil_sim_runs_windows_ahead_of_a_worker_still_starting(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's start (numba and the kernels: ~0.45 s) no longer holds the sim up: the worker
+    is let start only once the sim has sent it four windows (the sim waited for the first
+    answer after two before: a deadlock, which the watchdog turns into a failure), and the file
+    is the one-process file."""
+    from hil.runners import sim
+    from hil.runtime import jit
+
+    gate_r, gate_w = os.pipe()
+    real_setup = jit.enable_for_run
+    calls: list[str] = []
+
+    def setup() -> str:  # in the worker
+        os.close(gate_w)
+        os.read(gate_r, 1)
+        return real_setup()
+
+    class Gated(RemoteTail):
+        def window(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+            super().window(*args, **kwargs)
+            calls.append("window")
+            if calls.count("window") == 4:
+                os.write(gate_w, b"g")
+
+        def result(self):  # type: ignore[no-untyped-def]
+            calls.append("result")
+            return super().result()
+
+    me = os.getpid()
+
+    def unstick() -> None:
+        for pid in _children(me):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+    monkeypatch.setattr(jit, "enable_for_run", setup)
+    monkeypatch.setattr(sim, "RemoteTail", Gated)
+    files = {}
+    try:
+        for worker in (False, True):
+            rec = tmp_path / f"a{int(worker)}.mcap"
+            watchdog = threading.Timer(120.0, unstick)
+            watchdog.start()
+            try:
+                run_sim(SimOptions(scenario="uav_survey", duration_s=8.0, record=rec, fusion_worker=worker))
+            finally:
+                watchdog.cancel()
+            files[worker] = rec.read_bytes()
+    finally:
+        os.close(gate_r)
+        os.close(gate_w)
+    assert calls[:4] == ["window"] * 4
+    assert calls.count("result") >= 8
+    assert files[True] == files[False]
+
+
+def test_the_sim_runs_less_far_ahead_of_a_worker_whose_replies_are_large() -> None:
+    """As many windows ahead as the reply ring holds while the sim works (a 2 kHz IMU's ~4 MB
+    replies: 4), so the worker never waits for room."""
+    remote = _tail(_Echo(_run_info()))
+    try:
+        assert remote.ahead() == AHEAD_WINDOWS  # no reply yet: a worker still starting
+        remote._end.largest = 4 << 20
+        assert remote.ahead() == REPLY_RING_BYTES // (4 << 20) < AHEAD_WINDOWS
+        remote._end.largest = 64 << 20
+        assert remote.ahead() == 1
+    finally:
+        remote.close()
 
 
 def test_a_request_after_close_is_a_worker_error() -> None:
