@@ -74,11 +74,15 @@ Replayed = tuple[str, int, bytes, int, Any]
 # rerun: 0.99 of its 9.06 s on 300 s of straight_level), a decode there ~1.9
 EncodedInput = tuple[bytes, type, str, bool]
 
-# each direction's ring of shared memory: what one side has said and the other not read yet (the
-# replies' ~16 windows of uav_survey at 400 Hz; a request is a sixth of its reply). Pages are
-# touched as the rings fill, once: at most this much more resident memory, shared by both.
+# each direction's ring of shared memory: what one side has said and the other not read yet.
+# ``hil sim``'s worker: the replies' 16 windows of uav_survey at 400 Hz, 4 at 2 kHz (a request is
+# a sixth of its reply or less). Its pages are touched as it fills, once (~0.8 ms a MB in each
+# process: a third of a time-sync rerun's CPU had it rings this size): at most this much more
+# resident memory, shared by both. A caller with one request at a time (``hil rerun``) needs no
+# depth: its messages go through small rings in parts, as through a socket.
 REPLY_RING_BYTES = 16 << 20
 REQUEST_RING_BYTES = 8 << 20
+SMALL_RING_BYTES = 1 << 20
 # windows ``hil sim`` may run ahead of its worker: its start (numba and the kernels loaded there,
 # ~0.45 s) is ~15 windows of the sim's own work at 400 Hz, which it held up before (uav_survey
 # 120 s: 0.41 s, 9 % of the sim's wall time)
@@ -181,7 +185,8 @@ class _Link:
         n = len(out)
         while len(self._inbox) < n:
             self._take_in()
-        out[:] = self._inbox[:n]
+        with memoryview(self._inbox) as view:
+            out[:] = view[:n]
         del self._inbox[:n]
         self._consumed += n
         return n
@@ -192,7 +197,8 @@ class _Link:
         return self._pop(i + 1)
 
     def _pop(self, n: int) -> bytes:
-        out = bytes(self._inbox[:n])
+        with memoryview(self._inbox) as view:
+            out = bytes(view[:n])
         del self._inbox[:n]
         self._consumed += n
         return out
@@ -221,14 +227,15 @@ class _Link:
         del ctrl[:n]
 
     def _copy_out(self, position: int) -> None:
-        size, into = self._in_size, self._in
+        size = self._in_size
         if position - self._took > size or position < self._took:
             raise self._died(f"a ring position out of range ({position}, took {self._took})")
-        while self._took < position:
-            pos = self._took % size
-            n = min(position - self._took, size - pos)
-            self._inbox += into[pos : pos + n]
-            self._took += n
+        with memoryview(self._in) as into:
+            while self._took < position:
+                pos = self._took % size
+                n = min(position - self._took, size - pos)
+                self._inbox += into[pos : pos + n]
+                self._took += n
         self._send_ctrl(_TAKEN, self._took)
 
     def close(self) -> None:
@@ -300,9 +307,16 @@ class ForkedChild:
     name = "worker"
     close_grace_s = 5.0  # after its socket ends, how long the child has to leave before SIGKILL
 
-    def __init__(self, serve: Callable[[_Link], None]) -> None:
+    def __init__(
+        self,
+        serve: Callable[[_Link], None],
+        request_ring: int = SMALL_RING_BYTES,
+        reply_ring: int = SMALL_RING_BYTES,
+    ) -> None:
+        """``request_ring``, ``reply_ring``: bytes each way that one side may have said and the
+        other not read yet, without either waiting."""
         parent, child = socket.socketpair()
-        requests, replies = mmap.mmap(-1, REQUEST_RING_BYTES), mmap.mmap(-1, REPLY_RING_BYTES)
+        requests, replies = mmap.mmap(-1, request_ring), mmap.mmap(-1, reply_ring)
         pid = os.fork()
         if pid == 0:
             code = 1
@@ -478,7 +492,7 @@ class RemoteTail(ForkedChild):
                 setup()
             _serve_tail(make_scheduler(), split, link, prepare)
 
-        super().__init__(serve)
+        super().__init__(serve, REQUEST_RING_BYTES, REPLY_RING_BYTES)
 
     def window(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int) -> None:
         """Each tail node's inputs from upstream (``portable`` events), before ``t_end_ns``."""

@@ -326,7 +326,7 @@ def test_the_caller_sends_on_without_waiting_for_a_worker_that_reads_nothing_yet
                 n, payload = receive()
                 say(("ok", n, len(payload), reply))
 
-    child = ForkedChild(serve)
+    child = ForkedChild(serve, REQUEST_RING_BYTES, REPLY_RING_BYTES)  # hil sim's rings
     os.close(gate_r)
     big_req = os.urandom(3 << 20)
     watchdog = threading.Timer(120.0, child.close)
@@ -362,7 +362,7 @@ def test_the_worker_goes_on_while_the_caller_reads_none_of_its_replies() -> None
             os.write(done_w, b"d")
             receive()
 
-    child = ForkedChild(serve)
+    child = ForkedChild(serve, REQUEST_RING_BYTES, REPLY_RING_BYTES)  # hil sim's rings
     os.close(done_w)
     watchdog = threading.Timer(120.0, child.close)
     watchdog.start()
