@@ -9,7 +9,7 @@ one-process sim would (forked after ``start``, so their state is those objects')
 inputs in the same order through the same scheduler (``RemoteTail``), so the outputs, their
 order and the file are byte for byte those of one process; only the wall time differs.
 
-``fork`` and a pipe: no ``multiprocessing.Process`` (a campaign runs sims inside daemonic
+``fork`` and shared memory: no ``multiprocessing.Process`` (a campaign runs sims inside daemonic
 workers, which may not start one). The child never returns into the caller's code: it leaves
 with ``os._exit``, whatever happens, and reports an exception as its text. The two ends speak
 pickle: both are this process's own code and objects (rings of shared memory and a socketpair
@@ -77,8 +77,8 @@ EncodedInput = tuple[bytes, type, str, bool]
 # each direction's ring of shared memory: what one side has said and the other not read yet.
 # ``hil sim``'s worker: the replies' 16 windows of uav_survey at 400 Hz, 4 at 2 kHz (a request is
 # a sixth of its reply or less). Its pages are touched as it fills, once (~0.8 ms a MB in each
-# process: a third of a time-sync rerun's CPU had it rings this size): at most this much more
-# resident memory, shared by both. A caller with one request at a time (``hil rerun``) needs no
+# process: with rings this size a time-sync rerun of uav_survey 120 s took 5 % longer): at most
+# this much more resident memory, shared by both. A caller with one request at a time (``hil rerun``) needs no
 # depth: its messages go through small rings in parts, as through a socket.
 REPLY_RING_BYTES = 16 << 20
 REQUEST_RING_BYTES = 8 << 20
@@ -121,7 +121,7 @@ class _Link:
         self._written = 0  # bytes put into the outgoing ring
         self._said = 0  # of them, told to the other side
         self._peer_took = 0  # of them, taken by the other side
-        self._in, self._in_size = into, len(into)
+        self._in, self.in_size = into, len(into)
         self._took = 0  # bytes taken out of the incoming ring
         self._inbox = bytearray()  # taken out of the ring, not read yet
         self._consumed = 0  # bytes read
@@ -135,7 +135,7 @@ class _Link:
         while view:
             room = size - (self._written - self._peer_took)
             if not room:
-                self._tell(_DATA)  # what it holds so far, so the other side can take it
+                self._tell()  # what it holds so far, so the other side can take it
                 self._take_in()
                 continue
             pos = self._written % size
@@ -144,16 +144,18 @@ class _Link:
             self._written += n
             view = view[n:]
         if self._written - self._said >= _TELL_EVERY:  # the other side can begin to read
-            self._tell(_DATA)
+            self._tell()
 
     def say(self, obj: Any) -> None:
         """``obj`` pickled to the other side (streamed through the ring as the pickler makes it)."""
         pickle.dump(obj, self, protocol=pickle.HIGHEST_PROTOCOL)
-        self._tell(_DATA)
+        self._tell()
 
-    def _tell(self, kind: bytes) -> None:
-        self._said = self._written
-        self._send_ctrl(kind, self._written)
+    def _tell(self) -> None:
+        """The other side told where the ring holds its bytes up to (once per new bytes)."""
+        if self._said < self._written:
+            self._said = self._written
+            self._send_ctrl(_DATA, self._written)
 
     def _send_ctrl(self, kind: bytes, position: int) -> None:
         try:
@@ -217,6 +219,7 @@ class _Link:
         ctrl = self._ctrl
         ctrl += got
         n = len(ctrl) - len(ctrl) % _CTRL.size
+        took = self._took
         for kind, position in _CTRL.iter_unpack(memoryview(ctrl)[:n]):
             if kind == _TAKEN:
                 self._peer_took = position
@@ -225,9 +228,11 @@ class _Link:
             else:
                 raise self._died(f"a control record of unknown kind {kind!r}")
         del ctrl[:n]
+        if self._took > took:
+            self._send_ctrl(_TAKEN, self._took)
 
     def _copy_out(self, position: int) -> None:
-        size = self._in_size
+        size = self.in_size
         if position - self._took > size or position < self._took:
             raise self._died(f"a ring position out of range ({position}, took {self._took})")
         with memoryview(self._in) as into:
@@ -236,7 +241,6 @@ class _Link:
                 n = min(position - self._took, size - pos)
                 self._inbox += into[pos : pos + n]
                 self._took += n
-        self._send_ctrl(_TAKEN, self._took)
 
     def close(self) -> None:
         """Shut down (a side waiting sees its end) and close."""
@@ -516,8 +520,8 @@ class RemoteTail(ForkedChild):
     def ahead(self) -> int:
         """How many windows the caller may have sent and not taken back: ``AHEAD_WINDOWS``, or
         fewer once its replies are large (as many as its ring holds while the caller works)."""
-        largest = self._end.largest
-        return AHEAD_WINDOWS if not largest else max(1, min(AHEAD_WINDOWS, REPLY_RING_BYTES // largest))
+        largest, ring = self._end.largest, self._end.in_size
+        return AHEAD_WINDOWS if not largest else max(1, min(AHEAD_WINDOWS, ring // largest))
 
     def snapshot(self) -> list[tuple[str, Any, str]]:
         """Each tail node's name, counters and last error after the last window taken."""
@@ -530,7 +534,7 @@ def _serve_tail(
     link: _Link,
     prepare: Callable[[tuple[int, int, int, str, Any]], tuple[Any, ...]] | None,
 ) -> None:
-    receive, say = _child_ends(link)
+    receive, say = link.receive, link.say
     tail = sched.nodes[split:]
     while True:
         try:
@@ -550,14 +554,8 @@ def _serve_tail(
             return
 
 
-def _child_ends(link: _Link) -> tuple[Callable[[], Any], Callable[[Any], None]]:
-    """A ``ForkedChild``'s own end: ``receive()`` (``EOFError`` once the caller is gone) and
-    ``say(obj)``."""
-    return link.receive, link.say
-
-
 def _serve(node: Node, link: _Link) -> None:
-    receive, say = _child_ends(link)
+    receive, say = link.receive, link.say
     while True:
         try:
             req = receive()

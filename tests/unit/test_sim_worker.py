@@ -23,7 +23,6 @@ from hil.runners.sim_worker import (
     ForkedChild,
     RemoteTail,
     WorkerError,
-    _child_ends,
     _Link,
     portable,
     worker_possible,
@@ -275,7 +274,7 @@ def _echo_big(reply: bytes) -> ForkedChild:
     """A child that answers each request ``(n, payload)`` with ``("ok", n, reply)``."""
 
     def serve(link: _Link) -> None:
-        receive, say = _child_ends(link)
+        receive, say = link.receive, link.say
         with contextlib.suppress(EOFError):  # the caller gone: the end
             while True:
                 n, payload = receive()
@@ -320,7 +319,7 @@ def test_the_caller_sends_on_without_waiting_for_a_worker_that_reads_nothing_yet
     def serve(link: _Link) -> None:
         os.close(gate_w)
         os.read(gate_r, 1)
-        receive, say = _child_ends(link)
+        receive, say = link.receive, link.say
         with contextlib.suppress(EOFError):
             while True:
                 n, payload = receive()
@@ -354,7 +353,7 @@ def test_the_worker_goes_on_while_the_caller_reads_none_of_its_replies() -> None
 
     def serve(link: _Link) -> None:
         os.close(done_r)
-        receive, say = _child_ends(link)
+        receive, say = link.receive, link.say
         with contextlib.suppress(EOFError):
             for n in range(3):
                 receive()
@@ -386,11 +385,10 @@ def test_a_worker_that_dies_halfway_through_a_reply_is_a_worker_error() -> None:
     import pickle
 
     def serve(link: _Link) -> None:
-        receive, _say = _child_ends(link)
-        receive()
+        link.receive()
         reply = pickle.dumps(("ok", os.urandom(3 << 20)), protocol=pickle.HIGHEST_PROTOCOL)
         link.write(reply[: len(reply) // 2])
-        link._tell(b"D")  # that half announced, then gone
+        link._tell()  # that half announced, then gone
 
     child = ForkedChild(serve)
     watchdog = threading.Timer(120.0, child.close)  # a reader that waits on fails, never hangs
