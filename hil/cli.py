@@ -361,6 +361,40 @@ def _worker_failure(what_is_left: str) -> Iterator[None]:
         raise WorkerError(f"{said}{joint}{what_is_left}") from None
 
 
+class _StopOnSignal:
+    """Ctrl-C (SIGINT) or SIGTERM during ``hil sim``: the run ends at the next window boundary
+    as its end would, and the file is closed whole up to there; a second one abandons it
+    (``KeyboardInterrupt``: what was flushed stays readable, ``hil recover`` finishes it)."""
+
+    def __init__(self) -> None:
+        self.signum = 0
+        self._previous: dict[int, Any] = {}
+
+    def requested(self) -> bool:
+        return self.signum != 0
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        if self.signum:
+            raise KeyboardInterrupt
+        self.signum = signum
+        os.write(2, b"\nhil sim: stopping at the next second of rig time; again to abandon the file's end\n")
+
+    def __enter__(self) -> _StopOnSignal:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():  # (only there can it listen)
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+
 def cmd_sim(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.progress import Progress
@@ -379,7 +413,9 @@ def cmd_sim(a: argparse.Namespace) -> int:
         bar.total = total_s
         bar.update(done_s)
 
-    with bar, _worker_failure(f"{record} holds what was written until then (`hil recover` finishes it)"):
+    stop = _StopOnSignal()
+    left = f"{record} holds what was written until then (`hil recover` finishes it)"
+    with stop, bar, _worker_failure(left):
         res = run_sim(
             SimOptions(
                 scenario=a.scenario,
@@ -399,10 +435,18 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record_include=list(a.record_include),
                 record_exclude=list(a.record_exclude),
                 fusion_worker=False if a.one_process else None,
+                stop=stop.requested,
                 **_gnss_wire(a, live=False),  # type: ignore[arg-type]
             )
         )
     print(res.summary)
+    if res.stopped_at_s is not None:
+        print(
+            f"hil sim: stopped by signal {stop.signum} at {res.stopped_at_s:g} s of rig time: {record} "
+            f"is whole up to there (its completeness says stopped_at_s={res.stopped_at_s:g})",
+            file=sys.stderr,
+        )
+        return 128 + stop.signum
     if not a.quiet:
         from hil.record.info import describe
 

@@ -222,6 +222,8 @@ def describe(path: str, *, accuracy: bool = True) -> str:
                 extra += f" {what}={comp.get(what)}"
         if comp.get("rig_identity") == "unknown":
             extra += " rig_identity=unknown"
+        if comp.get("stopped_at_s") is not None:  # hil sim stopped before its duration (Ctrl-C)
+            extra += f" stopped_at_s={comp.get('stopped_at_s')}"
         if comp.get("parts") not in (None, "1"):
             extra += f" split part={comp.get('part')}"
         lines.append(

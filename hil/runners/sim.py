@@ -94,6 +94,8 @@ class SimOptions:
     # second process, one window behind the rest (tail_split, hil.runners.sim_worker); the file
     # is the same byte for byte. None: when fork exists and two CPUs are available
     fusion_worker: bool | None = None
+    # asked at every window boundary: True ends the run there, as its end would (``stopped_at_s``)
+    stop: Callable[[], bool] | None = None
 
 
 @dataclass
@@ -103,14 +105,16 @@ class SimResult:
     duration_s: float
     wall_s: float
     warnings: list[str] = field(default_factory=list)
+    stopped_at_s: float | None = None  # rig time where ``stop`` ended the run (None: it ran out)
 
     @property
     def summary(self) -> str:
-        x = self.duration_s / self.wall_s if self.wall_s > 0 else float("inf")
-        return (
-            f"hil sim: {self.duration_s:g} s of rig time in {self.wall_s:.1f} s ({x:.1f}x real time), "
-            f"{self.messages} messages -> {self.path}"
-        )
+        done = self.duration_s if self.stopped_at_s is None else self.stopped_at_s
+        x = done / self.wall_s if self.wall_s > 0 else float("inf")
+        head = f"hil sim: {done:g} s of rig time"
+        if self.stopped_at_s is not None:
+            head = f"hil sim: stopped at {done:g} s of {self.duration_s:g} s of rig time"
+        return f"{head} in {self.wall_s:.1f} s ({x:.1f}x real time), {self.messages} messages -> {self.path}"
 
 
 def _matches(pattern: list[str], key: list[str]) -> bool:
@@ -276,15 +280,22 @@ class Scheduler:
         self._out.append((t_ns, -1, self._order, key, msg))
         self._order += 1
 
-    def finish(self, t_ns: int) -> None:
-        """End of input, in pipeline order: what one node releases, the next still takes in."""
+    def finish(self, t_ns: int, stopped: bool = False) -> None:
+        """End of input, in pipeline order: what one node releases, the next still takes in.
+        ``stopped``: the run ends at ``t_ns`` before its nodes are done; none of them ticks
+        past it, and what is still on its way to one (a frame on the wire) stays there."""
         for i, node in enumerate(self.nodes[: self._split]):
             self._handle(i, node, t_ns + 1)  # what is still in flight for it
             self.publish(i, node.finish(t_ns), t_ns)
         if self.remote is not None:  # the same, node after node, in the worker
             self.remote.finish_request(self._ship(t_ns + 1), t_ns + 1, t_ns)
             self._take_remote(self._out)
-        self.window(2**62)
+        if not stopped:
+            self.window(2**62)
+            return
+        out = self.take_out()
+        out.sort(key=_event_order)
+        self.write(out)
 
 
 # (rig time, producer in pipeline order, publication order): never compares the messages
@@ -344,6 +355,7 @@ class _Session:
         self.nodes = nodes
         self.opts = opts
         self.end_ns = int(run.duration_s * 1e9)
+        self.stopped_at_ns: int | None = None  # where ``opts.stop`` ended the run
         self.epoch_ns = run.start_epoch_ns  # rig time zero on the wall-clock timeline
         self.w = SessionWriter(opts.record)
         self.wellknown = WellKnown(start_epoch_ns=run.start_epoch_ns)  # Foxglove's types, as live
@@ -438,7 +450,10 @@ class _Session:
         header(self.w)
 
     def _completeness(self) -> dict[str, Any]:
-        return {"messages": self.n_written, "missing": 0, "replay_ready": True, "topics": {}}
+        out = {"messages": self.n_written, "missing": 0, "replay_ready": True, "topics": {}}
+        if self.stopped_at_ns is not None:  # the run ended there, before its duration
+            out["stopped_at_s"] = self.stopped_at_ns / 1e9
+        return out
 
     def close(self) -> None:
         self.w.add_metadata(
@@ -531,7 +546,9 @@ def run_sim(opts: SimOptions) -> SimResult:
         if remote is not None:
             remote.close()
     sess.close()
-    return SimResult(opts.record, sess.n_written, run.duration_s, time.monotonic() - t_wall, warnings)
+    stopped = None if sess.stopped_at_ns is None else sess.stopped_at_ns / 1e9
+    wall_s = time.monotonic() - t_wall
+    return SimResult(opts.record, sess.n_written, run.duration_s, wall_s, warnings, stopped)
 
 
 def tail_split(nodes: list[Node]) -> int:
@@ -578,8 +595,13 @@ def _windows(
     ignored: list[tuple[int, str]],
     header: Callable[[SessionWriter], None],
     remote: RemoteTail | None,
-) -> None:
-    """One rig second at a time until every node is done, then the end of input.
+) -> int:
+    """One rig second at a time until every node is done, or ``opts.stop`` says so at a window
+    boundary; then the end of input, at the end of the run or there. Returns that rig time.
+
+    A stop ends the run as its end would: the windows handed out are completed and written, then
+    every node is told ``finish`` at the boundary, so the file is whole, and reruns bit for bit,
+    up to there (``stopped_at_s`` in its completeness record).
 
     With a remote node, window *k* is written once this process has handled window *k + 1*
     and the worker has answered *k*, or once this process is ``remote.ahead()`` windows ahead
@@ -605,6 +627,9 @@ def _windows(
 
     t = 0
     while True:
+        if t and opts.stop is not None and t <= sess.end_ns and opts.stop():
+            sess.stopped_at_ns = t
+            break
         t += _S
         while ignored_at and ignored_at[0][0] < t:
             t0, detail = ignored_at.popleft()
@@ -629,9 +654,10 @@ def _windows(
             break
     while pending:
         complete(pending.popleft())
-    t_last = sess.end_ns + 1
-    sched.finish(t_last)
+    t_last = (sess.end_ns if sess.stopped_at_ns is None else sess.stopped_at_ns) + 1
+    sched.finish(t_last, stopped=sess.stopped_at_ns is not None)
     sess.status(t_last, sess.snapshot(remote))
+    return t_last
 
 
 def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:

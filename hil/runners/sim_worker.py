@@ -326,6 +326,10 @@ class ForkedChild:
             code = 1
             try:
                 gc.freeze()
+                # Ctrl-C reaches the whole process group: the caller decides how the run ends
+                # (``hil sim`` finishes its file first) and this child goes when its socket ends
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
                 parent.close()
                 serve(_Link(child, replies, requests, lambda why: EOFError(why)))
                 code = 0
