@@ -47,13 +47,13 @@ from typing import Any
 import numpy as np
 
 from hil.estimators.base import GnssInput, ImuBlock, ImuInput, InitialState
-from hil.estimators.ekf15 import _frame_terms, _write_error_blocks, bias_walk_psd, covariance_step
+from hil.estimators.ekf15 import _frame_terms, _mv3, _write_error_blocks, bias_walk_psd, covariance_step
 from hil.nav import strapdown as _sd
-from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
-from hil.nav.earth import cross, radii_of_curvature
+from hil.nav.attitude import quat_from_rotvec_floats, quat_multiply_floats, quat_normalise_floats
+from hil.nav.earth import radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv
-from hil.nav.strapdown import LazyNavState, StrapdownState, strapdown_from_initial, to_nav_state
-from hil.nav.types import F64, NavState
+from hil.nav.strapdown import LazyNavState, StrapdownState, c_nb_floats, strapdown_from_initial, to_nav_state
+from hil.nav.types import F64, NavState, nav_floats
 
 _DEG = math.pi / 180.0
 
@@ -171,25 +171,37 @@ class Corrector:
         """
         r = np.diag(np.square(np.asarray(sigma_mps, float)))
         y = np.asarray(dv_meas, float) - self.dv
-        s = self.p[0:3, 0:3] + r  # H = [I 0 0 0]
-        s_inv = inv(s)
-        self.nis = dot(y, mv(s_inv, y))
+        s_inv, self.nis = corrector_innovation(self._p, y, r)
         if self.nis > self.gate_chi2:
             self.rejects += 1
             self._consecutive += 1
             if self._consecutive <= self.max_rejects:
                 return None
-            self.p[0:3, 0:3] += np.diag(y * y)  # locked out: trust it again, covariance opened
-            s_inv = inv(self.p[0:3, 0:3] + r)
+            self._p[0:3, 0:3] += np.diag(y * y)  # locked out: trust it again, covariance opened
+            s_inv, _ = corrector_innovation(self._p, y, r)
         self._consecutive = 0
-        k = mm(self.p[:, 0:3], s_inv)  # K = P H' S⁻¹
-        dx = mv(k, y)
-        ikh = np.eye(12)
-        ikh[:, 0:3] -= k
-        p = mmt(mm(ikh, self.p), ikh) + mmt(mm(k, r), k)  # Joseph form
-        self.p = 0.5 * (p + p.T)
+        self.p, dx = corrector_joseph(self._p, s_inv, y, r)
         self.dv = self.dv + dx[0:3]
         return dx[3:12]
+
+
+def corrector_innovation(p: F64, y: F64, r: F64) -> tuple[F64, float]:
+    """``S⁻¹`` and the NIS of the corrector's velocity innovation ``y`` (``H = [I 0 0 0]``:
+    ``S = P_vv + R``). :mod:`hil.runtime.jit` puts its loop form in its place
+    (:func:`hil.nav.kernels.corrector_innovation`) where it gives these bits."""
+    s_inv = inv(p[0:3, 0:3] + r)
+    return s_inv, dot(y, mv(s_inv, y))
+
+
+def corrector_joseph(p: F64, s_inv: F64, y: F64, r: F64) -> tuple[F64, F64]:
+    """The corrector's Joseph-form update, ``K = P H' S⁻¹``: ``(P+, δx)``. Compiled as
+    :func:`corrector_innovation` is (:func:`hil.nav.kernels.corrector_joseph`)."""
+    k = mm(p[:, 0:3], s_inv)
+    dx = mv(k, y)
+    ikh = np.eye(p.shape[0])
+    ikh[:, 0:3] -= k
+    p_new = mmt(mm(ikh, p), ikh) + mmt(mm(k, r), k)
+    return 0.5 * (p_new + p_new.T), dx
 
 
 class ClosedLoopIns:
@@ -302,14 +314,23 @@ class ClosedLoopIns:
 
     def antenna_difference(self, gnss: GnssInput) -> tuple[F64, F64]:
         """``(p, v)`` of INS minus GNSS at the fix's time of validity and at the antenna."""
-        nav = self.nav()
-        pos = nav.pos_ned_m + nav.vel_ned_mps * ((gnss.stamp_ns - self.stamp_ns) * 1e-9)
-        vel = nav.vel_ned_mps
+        # on floats, the arrays' operations in their order (``mv`` of a 3-vector: ``_mv3``)
+        dt = (gnss.stamp_ns - self.stamp_ns) * 1e-9
+        (p0, p1, p2), (v0, v1, v2), _ = nav_floats(self.nav())
+        p0, p1, p2 = p0 + v0 * dt, p1 + v1 * dt, p2 + v2 * dt
         if self._lever is not None:
-            c_nb = self.state.c_nb()
-            pos = pos + mv(c_nb, self._lever)
-            vel = vel + mv(c_nb, cross(self._w_b, self._lever))
-        return pos - gnss.pos_ned_m, vel - gnss.vel_ned_mps
+            st = self._st
+            c = c_nb_floats(st[6], st[7], st[8], st[9])
+            rows = (c[0:3], c[3:6], c[6:9])
+            lx, ly, lz = self._lever.tolist()
+            a0, a1, a2 = _mv3(rows, lx, ly, lz)
+            p0, p1, p2 = p0 + a0, p1 + a1, p2 + a2
+            wx, wy, wz = self._w_b.tolist()  # cross(w, lever), as hil.nav.earth.cross of one pair
+            b0, b1, b2 = _mv3(rows, wy * lz - wz * ly, wz * lx - wx * lz, wx * ly - wy * lx)
+            v0, v1, v2 = v0 + b0, v1 + b1, v2 + b2
+        g0, g1, g2 = gnss.pos_ned_m.tolist()
+        h0, h1, h2 = gnss.vel_ned_mps.tolist()
+        return np.array((p0 - g0, p1 - g1, p2 - g2)), np.array((v0 - h0, v1 - h1, v2 - h2))
 
     def correct(self, dv: F64, gnss: GnssInput) -> None:
         """The corrector on this fix's velocity difference; its attitude/bias estimate fed back."""
@@ -317,22 +338,32 @@ class ClosedLoopIns:
         dx = self.corrector.update(dv, gnss.vel_sigma_mps)
         if dx is None:
             return
-        s = self.state
-        # C_true = (I + [φ×]) C_est: rotate the NED side by +φ (ekf15's convention)
-        q = quat_normalise(quat_multiply(quat_from_rotvec(dx[0:3]), s.q_nb))
-        self.state = s.replace(q_nb=q)
+        self._rotate(dx[0:3])
         self.b_g = self.b_g + dx[3:6]
         self.b_a = self.b_a + dx[6:9]
         self._dirty = True
 
+    def _rotate(self, phi: F64) -> None:
+        """C_true = (I + [φ×]) C_est: the NED side rotated by +φ (ekf15's convention), on floats
+        (``quat_*_floats``: the array forms' bits)."""
+        st = self._st
+        px, py, pz = phi.tolist()
+        rot = quat_from_rotvec_floats(px, py, pz)
+        q = quat_normalise_floats(*quat_multiply_floats(*rot, st[6], st[7], st[8], st[9]))
+        self._st = (*st[:6], *q, *st[10:])
+
     def reset(self, dp: F64, dv: F64) -> None:
-        """Take an estimated position/velocity error (NED) out of the INS."""
-        s = self.state
-        r_m, r_n = radii_of_curvature(s.lat_rad)
-        lat = s.lat_rad - dp[0] / (float(r_m) + s.alt_m)
-        lon = s.lon_rad - dp[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
-        alt = s.alt_m + dp[2]  # δp_D = −δh
-        self.state = s.replace(lat_rad=lat, lon_rad=lon, alt_m=alt, vel_ned_mps=s.vel_ned_mps - dv)
+        """Take an estimated position/velocity error (NED) out of the INS (on floats: the arrays'
+        operations, ``radii_of_curvature_one`` for ``radii_of_curvature``)."""
+        st = self._st
+        lat0, lon0, alt0 = st[0], st[1], st[2]
+        d0, d1, d2 = dp.tolist()
+        e0, e1, e2 = dv.tolist()
+        r_m, r_n = radii_of_curvature_one(lat0)
+        lat = lat0 - d0 / (r_m + alt0)
+        lon = lon0 - d1 / ((r_n + alt0) * math.cos(lat0))
+        alt = alt0 + d2  # δp_D = −δh
+        self._st = (lat, lon, alt, st[3] - e0, st[4] - e1, st[5] - e2, *st[6:])
         self.corrector.dv = self.corrector.dv - dv
         self._dirty = True
 

@@ -253,6 +253,40 @@ def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
     return _mv(k, y), out, nis
 
 
+def corrector_innovation(p: F64, y: F64, r: F64) -> tuple[F64, float]:
+    """:func:`hil.estimators.feedback.corrector_innovation` in loops: ``S = P_vv + R`` by the
+    adjugate, the NIS as einsum's dot (:func:`kf_update`'s)."""
+    s = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s[i, j] = p[i, j] + r[i, j]
+    s_inv = _inv3(s)
+    v = _mv(s_inv, y)
+    return s_inv, _mmt(y.reshape((1, 3)), v.reshape((1, 3)))[0, 0]
+
+
+def corrector_joseph(p: F64, s_inv: F64, y: F64, r: F64) -> tuple[F64, F64]:
+    """:func:`hil.estimators.feedback.corrector_joseph` in loops: ``K = P[:, :3] S⁻¹``, ``I − K H``
+    as ``eye`` with ``K`` taken from its first three columns, Joseph's form in einsum's orders."""
+    n = p.shape[0]
+    pv = np.empty((n, 3))
+    for i in range(n):
+        for j in range(3):
+            pv[i, j] = p[i, j]
+    k = _mm(pv, s_inv)
+    ikh = np.eye(n)
+    for i in range(n):
+        for j in range(3):
+            ikh[i, j] -= k[i, j]
+    a = _mmt(_mm(ikh, p), ikh)
+    b = _mmt(_mm(k, r), k)
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * ((a[i, j] + b[i, j]) + (a[j, i] + b[j, i]))
+    return out, _mv(k, y)
+
+
 def expm(m: F64) -> F64:
     """:func:`hil.nav.portable.expm` in loops (the ZOH filters' ``e^{A h}``, at every step length
     not seen before: the IMU's stamps are ns-exact, so most are new); ``m`` C-contiguous.

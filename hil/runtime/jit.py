@@ -333,7 +333,7 @@ def _compile_kernels(numba: Any) -> dict[str, Any]:
         _corrector_prediction=corrector,
         write_dynamics=ekf,
         expm=expm,
-        kf_update=_compile_update(numba, d, mm, mmt),
+        **_compile_update(numba, d, mm, mmt),
         ecef_to_lla_one=lla,
     )
 
@@ -376,24 +376,28 @@ def _compile_predictor(numba: Any, d: str, rotvec: Any, lla: Any) -> dict[str, A
     return {"_advance": advance, "_carry": carry, "carry_rows": rows}
 
 
-def _compile_update(numba: Any, digest: str, mm: Any, mmt: Any) -> Any:
-    """ekf15's Joseph-form update of a 3-row fix (:func:`hil.nav.kernels.kf_update`), on the
-    compiled einsum-order products ``mm`` and ``mmt``."""
+def _compile_update(numba: Any, digest: str, mm: Any, mmt: Any) -> dict[str, Any]:
+    """The Joseph-form updates of a GNSS fix on the compiled einsum-order products ``mm`` and
+    ``mmt``: ekf15's of a 3-row fix (:func:`hil.nav.kernels.kf_update`) and the feedback
+    corrector's of a velocity difference (its innovation and its update)."""
     from hil.nav import kernels
 
-    f8, cmat = "float64", "float64[:, ::1]"
+    f8, cmat, vec = "float64", "float64[:, ::1]", "float64[::1]"
     inv3 = _compile(numba, kernels._inv3, f"{cmat}({cmat})", digest, True)
-    mv = _compile(numba, kernels._mv, f"{f8}[::1]({cmat}, {f8}[::1])", digest, True, _mmt=mmt)
-    return _compile(
+    mv = _compile(numba, kernels._mv, f"{vec}({cmat}, {vec})", digest, True, _mmt=mmt)
+    products = {"_mm": mm, "_mmt": mmt, "_inv3": inv3, "_mv": mv}
+    update_sig = f"Tuple(({vec}, {cmat}, {f8}))({cmat}, {vec}, {cmat}, {cmat})"
+    update = _compile(numba, kernels.kf_update, update_sig, digest, **products)
+    innovation_sig = f"Tuple(({cmat}, {f8}))({cmat}, {vec}, {cmat})"
+    innovation = _compile(numba, kernels.corrector_innovation, innovation_sig, digest, **products)
+    joseph = _compile(
         numba,
-        kernels.kf_update,
-        f"Tuple(({f8}[::1], {cmat}, {f8}))({cmat}, {f8}[::1], {cmat}, {cmat})",
+        kernels.corrector_joseph,
+        f"Tuple(({cmat}, {vec}))({cmat}, {cmat}, {vec}, {cmat})",
         digest,
-        _mm=mm,
-        _mmt=mmt,
-        _inv3=inv3,
-        _mv=mv,
+        **products,
     )
+    return {"kf_update": update, "corrector_innovation": innovation, "corrector_joseph": joseph}
 
 
 def _get(home: str) -> Any:
@@ -532,6 +536,28 @@ def _update_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
+def _corrector_update_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_update_differs`, for the feedback corrector's innovation and its Joseph-form
+    update (12 states, ``H = [I 0 0 0]``); which of the two ``compiled`` is, its operands say."""
+    import numpy as np
+
+    rng = np.random.default_rng(29)
+    joseph = python.__name__ == "corrector_joseph"
+    for trial in range(40):
+        p, y, _h, r = update_operands(rng, 12, lever=False)
+        if trial % 4 == 0:  # exact zeros and -0 in P, as a fresh corrector's diagonal start has
+            p[rng.random((12, 12)) < 0.2] = 0.0
+            p[rng.random((12, 12)) < 0.05] = -0.0
+        if joseph:
+            s_inv = np.linalg.inv(p[0:3, 0:3] + r)
+            got, want = compiled(p, s_inv, y, r), python(p, s_inv, y, r)
+        else:
+            got, want = compiled(p, y, r), python(p, y, r)
+        if any(np.asarray(g).tobytes() != np.asarray(w).tobytes() for g, w in zip(got, want, strict=True)):
+            return f"operands {trial}"
+    return ""
+
+
 def _dynamics_differs(compiled: Any, python: Callable[..., Any]) -> str:
     """As :func:`_corrector_differs`, for ekf15's F written in place (its gyro calibration block
     is a compiled einsum product) in every state layout: 15, with the gyro calibration, with
@@ -591,6 +617,8 @@ _PLACES: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "write_dynamics": ("write_dynamics", ("hil.estimators.ekf15:write_dynamics",), True),
     "expm": ("expm", ("hil.estimators.lti:expm",), True),
     "kf_update": ("kf_update", ("hil.estimators.ekf15:kf_update",), True),
+    "corrector_innovation": ("corrector_innovation", ("hil.estimators.feedback:corrector_innovation",), True),
+    "corrector_joseph": ("corrector_joseph", ("hil.estimators.feedback:corrector_joseph",), True),
     "ecef_to_lla_one": (
         "ecef_to_lla_one",
         ("hil.nav.earth:_ecef_to_lla_one", "hil.fusion.predictor:_ecef_to_lla_one"),
@@ -604,6 +632,8 @@ _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "write_dynamics": _dynamics_differs,
     "expm": _expm_differs,
     "kf_update": _update_differs,
+    "corrector_innovation": _corrector_update_differs,
+    "corrector_joseph": _corrector_update_differs,
     "_filter_output": _output_differs,
     "ecef_to_lla_one": _lla_differs,
 }

@@ -8,9 +8,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from hil.estimators.base import GnssInput, ImuInput
+from hil.estimators.base import GnssInput, ImuInput, InitialState
 from hil.estimators.compensation import VS_SCHEDULE, CompensationCore, fixed_filter
 from hil.estimators.ekf15 import covariance_step
+from hil.estimators.feedback import ClosedLoopIns
 from hil.estimators.lti import complementary2, complementary3
 from hil.estimators.registry import DEFAULT_ESTIMATORS, FEEDBACK_CAPABLE, make_estimator
 from hil.estimators.tuning import params_for
@@ -209,3 +210,82 @@ def test_the_corrector_prediction_on_floats_is_the_array_forms_bits() -> None:
         want_p, want_dv = _corrector_prediction_with_arrays(q, sum_dv, dt, lat, p, qc, dv)
         got_p, *got_dv = python_run(*q.tolist(), *sum_dv.tolist(), dt, lat, p, qc, *dv.tolist())
         assert got_p.tobytes() == want_p.tobytes() and np.array(got_dv).tobytes() == want_dv.tobytes(), k
+
+
+def _loop_at_random(rng: np.random.Generator, lever: bool, near: bool) -> ClosedLoopIns:
+    """A feedback INS put at a random state over the whole Earth and attitude sphere, with a random
+    body rate (and antenna arm); ``near``: at its origin, longitude 0 and almost still, where the
+    last bits of the arm's terms and of a reset's quotients are not lost in the sums."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    lat, lon, alt = (
+        float(rng.uniform(-1.5, 1.5)),
+        float(rng.uniform(-3.1, 3.1)),
+        float(rng.uniform(-400.0, 12000.0)),
+    )
+    if near:
+        lon = 0.0
+    init = InitialState(
+        stamp_ns=0,
+        lat_rad=lat,
+        lon_rad=lon,
+        alt_m=alt,
+        origin_lat_rad=lat if near else float(rng.uniform(-1.5, 1.5)),
+        origin_lon_rad=lon if near else float(rng.uniform(-3.1, 3.1)),
+        origin_alt_m=alt if near else float(rng.uniform(0.0, 500.0)),
+        vel_ned_mps=rng.normal(0.0, 1e-4 if near else 30.0, 3),
+        q_nb=q,
+    )
+    arm = tuple(rng.normal(0.0, 0.5, 3).tolist()) if lever else (0.0, 0.0, 0.0)
+    loop = ClosedLoopIns(init, lever_arm_b_m=arm)
+    loop._st = (*loop._st[:10], *rng.normal(0.0, 1e-3, 6).tolist())
+    loop._w_b = rng.normal(0.0, 0.3, 3)
+    loop.stamp_ns = int(rng.integers(0, 10**9))
+    loop._dirty = bool(rng.integers(2))  # its nav as the lazy state or as the arrays at start
+    return loop
+
+
+def test_the_feedback_ins_fix_paths_on_floats_are_the_array_forms_bits() -> None:
+    """A fix's antenna difference, attitude reset and position/velocity reset (floats since
+    session 29) against the array expressions they replaced, on random states and fixes."""
+    from hil.nav.attitude import quat_from_rotvec, quat_multiply, quat_normalise
+    from hil.nav.earth import cross, radii_of_curvature
+
+    rng = np.random.default_rng(31)
+    for k in range(2000):
+        near = k % 2 == 0
+        loop = _loop_at_random(rng, lever=k % 3 != 0, near=near)
+        fix = GnssInput(
+            stamp_ns=loop.stamp_ns - int(rng.integers(0, 5 * 10**8)),
+            pos_ned_m=np.zeros(3) if near else rng.normal(0.0, 2000.0, 3),
+            vel_ned_mps=np.zeros(3) if near else rng.normal(0.0, 30.0, 3),
+            pos_sigma_m=np.full(3, 2.0),
+            vel_sigma_mps=np.full(3, 0.2),
+        )
+        nav = loop.nav()
+        pos = nav.pos_ned_m + nav.vel_ned_mps * ((fix.stamp_ns - loop.stamp_ns) * 1e-9)
+        vel = nav.vel_ned_mps
+        if loop._lever is not None:
+            c_nb = loop.state.c_nb()
+            pos = pos + mv(c_nb, loop._lever)
+            vel = vel + mv(c_nb, cross(loop._w_b, loop._lever))
+        got = loop.antenna_difference(fix)
+        assert got[0].tobytes() == (pos - fix.pos_ned_m).tobytes(), k
+        assert got[1].tobytes() == (vel - fix.vel_ned_mps).tobytes(), k
+
+        phi = rng.normal(0.0, 1e-6 if k % 4 == 0 else 1e-2, 3)
+        s = loop.state
+        want = s.replace(q_nb=quat_normalise(quat_multiply(quat_from_rotvec(phi), s.q_nb)))
+        loop._rotate(phi)
+        assert np.array(loop._st).tobytes() == np.array(tuple(want)).tobytes(), k
+
+        dp, dv = rng.normal(0.0, 5.0, 3), rng.normal(0.0, 0.5, 3)
+        if near:  # back to longitude 0: the quotient's bits are the new longitude's
+            loop._st = (loop._st[0], 0.0, *loop._st[2:])
+        s = loop.state
+        r_m, r_n = radii_of_curvature(s.lat_rad)
+        lat = s.lat_rad - dp[0] / (float(r_m) + s.alt_m)
+        lon = s.lon_rad - dp[1] / ((float(r_n) + s.alt_m) * math.cos(s.lat_rad))
+        want = s.replace(lat_rad=lat, lon_rad=lon, alt_m=s.alt_m + dp[2], vel_ned_mps=s.vel_ned_mps - dv)
+        loop.reset(dp, dv)
+        assert np.array(loop._st).tobytes() == np.array(tuple(want)).tobytes(), k

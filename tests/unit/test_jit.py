@@ -419,6 +419,41 @@ def test_the_compiled_fix_update_computes_the_python_bits() -> None:
     assert got[1].tobytes() == want[1].tobytes()
 
 
+def test_the_compiled_corrector_update_computes_the_python_bits() -> None:
+    """The feedback corrector's velocity fix (12 states, ``H = [I 0 0 0]``): ``S⁻¹`` and the NIS,
+    then ``P+`` and ``δx``, byte for byte on dense, sparse and signed-zero covariances; a
+    singular ``S`` raises as the Python one does, a Fortran-ordered ``P`` goes to the Python one."""
+    from hil.estimators import feedback
+
+    assert jit.enable() == "compiled"
+    innovation, joseph = jit.python_kernel("corrector_innovation"), jit.python_kernel("corrector_joseph")
+    assert feedback.corrector_innovation is not innovation and feedback.corrector_joseph is not joseph
+    rng = np.random.default_rng(15)
+    differing = []
+    for trial in range(400):
+        p, y, _h, r = jit.update_operands(rng, 12, lever=False)
+        if trial % 5 == 0:
+            p[rng.random((12, 12)) < 0.2] = 0.0
+            p[rng.random((12, 12)) < 0.05] = -0.0
+        got, want = feedback.corrector_innovation(p, y, r), innovation(p, y, r)
+        if got[0].tobytes() != want[0].tobytes() or got[1] != want[1]:
+            differing.append(("innovation", trial))
+        got2, want2 = feedback.corrector_joseph(p, want[0], y, r), joseph(p, want[0], y, r)
+        if got2[0].tobytes() != want2[0].tobytes() or got2[1].tobytes() != want2[1].tobytes():
+            differing.append(("joseph", trial))
+    assert differing == []
+    p, y, _h, r = jit.update_operands(rng, 12, lever=False)
+    p[0:3, 0:3] = 0.0
+    for fn in (feedback.corrector_innovation, innovation):
+        with pytest.raises(np.linalg.LinAlgError, match="singular"):
+            fn(p, y, np.zeros((3, 3)))
+    p, y, _h, r = jit.update_operands(rng, 12, lever=False)
+    s_inv = innovation(p, y, r)[0]
+    fortran = np.asfortranarray(p)  # einsum adds in another order there: the Python one's bits
+    got2, want2 = feedback.corrector_joseph(fortran, s_inv, y, r), joseph(fortran, s_inv, y, r)
+    assert got2[0].tobytes() == want2[0].tobytes()
+
+
 def test_the_compiled_expm_computes_the_portable_bits() -> None:
     """``e^M`` of the ZOH filters (orders to 3, plus the ramp's two states) and beyond, any
     sparsity and norm (scaling and squaring from a nanosecond step to norms of ~30): byte-equal
