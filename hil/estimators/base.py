@@ -185,6 +185,21 @@ def imu_bias_of(est: Any) -> tuple[F64, F64] | None:
     return None
 
 
+def imu_bias_floats_of(est: Any) -> tuple[float, ...] | None:
+    """:func:`imu_bias_of` as the six floats the output predictor takes (``b_g`` then ``b_a``),
+    read where its holder keeps them as floats (``bias_floats``: a feedback INS) -- at every
+    output of every estimator, where two arrays built to be read back cost more."""
+    for holder in (est, getattr(est, "loop", None)):
+        kept = getattr(holder, "bias_floats", None)
+        if kept is not None:
+            return kept()  # type: ignore[no-any-return]
+        b_g, b_a = getattr(holder, "b_g", None), getattr(holder, "b_a", None)
+        if b_g is not None and b_a is not None:
+            g, a = np.asarray(b_g, dtype=np.float64).tolist(), np.asarray(b_a, dtype=np.float64).tolist()
+            return (*g, *a)
+    return None
+
+
 def gnss_input(msg: Any) -> GnssInput | None:
     """A GNSS fix as estimators take it; None if it is no position fix (fix type below 2D)."""
     if msg.fix_type < MIN_GNSS_FIX_TYPE:

@@ -269,6 +269,10 @@ class ClosedLoopIns:
         self._b_a = np.asarray(value, dtype=float)
         self._bias = (*self._bias[:3], *self._b_a.tolist())
 
+    def bias_floats(self) -> tuple[float, ...]:
+        """``b_g`` then ``b_a`` as the floats the strapdown run takes (the output predictor's too)."""
+        return self._bias
+
     def propagate(self, imu: ImuInput) -> None:
         self.propagate_block(ImuBlock.of(imu))
 

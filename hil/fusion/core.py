@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_bias_of
+from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_bias_floats_of
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.fusion.predictor import Motion, OutputPredictor, bias_floats, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
@@ -165,7 +165,8 @@ _F64 = np.dtype(np.float64)
 
 
 #: A stream the output predictor carries: name, position, velocity, attitude (floats), the IMU
-#: biases it removes (None: none) and the solution's σ (position, velocity, attitude; None: none).
+#: biases it removes (``b_g`` then ``b_a``, six floats; None: none) and the solution's σ
+#: (position, velocity, attitude; None: none).
 _Stream = tuple[str, Sequence[float], Sequence[float], Sequence[float], Any, Any]
 _NO_SIGMA = (None, None, None)
 
@@ -556,7 +557,7 @@ class FusionCore:
             try:
                 nav = est.solution()
                 sig = (nav.pos_sigma_m, nav.vel_sigma_mps, nav.att_sigma_rad)
-                streams.append((est.name, *nav_floats(nav), imu_bias_of(est), sig))
+                streams.append((est.name, *nav_floats(nav), imu_bias_floats_of(est), sig))
             except ArithmeticError:
                 self._inc(f"errors.nonfinite.{est.name}")
         return self._carried(streams, pred.motion(), msg)

@@ -164,10 +164,13 @@ def _carry(
 _NO_BIAS = (0.0,) * 6
 
 
-def bias_floats(bias: tuple[F64, F64] | None) -> tuple[float, ...]:
-    """An estimator's IMU bias estimates (``b_g``, ``b_a``) as the six floats the carry takes."""
+def bias_floats(bias: tuple[F64, F64] | tuple[float, ...] | None) -> tuple[float, ...]:
+    """An estimator's IMU bias estimates (``b_g``, ``b_a``; or already their six floats,
+    ``hil.estimators.base.imu_bias_floats_of``) as the six floats the carry takes."""
     if bias is None:
         return _NO_BIAS
+    if len(bias) == 6:
+        return bias  # type: ignore[return-value]
     return (*np.asarray(bias[0], dtype=np.float64).tolist(), *np.asarray(bias[1], dtype=np.float64).tolist())
 
 
