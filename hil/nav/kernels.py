@@ -244,13 +244,20 @@ def kf_update(p: F64, y: F64, h: F64, r: F64) -> tuple[F64, F64, float]:
     for i in range(n):
         for j in range(n):
             ikh[i, j] = (1.0 if i == j else 0.0) - kh[i, j]
+    return _mv(k, y), _joseph(p, ikh, k, r), nis
+
+
+def _joseph(p: F64, ikh: F64, k: F64, r: F64) -> F64:
+    """``(I − K H) P (I − K H)' + K R K'`` in einsum's orders, and its symmetric part as
+    ``0.5 * (P+ + P+')`` makes it: the end of every Joseph-form update here."""
+    n = p.shape[0]
     a = _mmt(_mm(ikh, p), ikh)
     b = _mmt(_mm(k, r), k)
     out = np.empty((n, n))
     for i in range(n):
         for j in range(n):
             out[i, j] = 0.5 * ((a[i, j] + b[i, j]) + (a[j, i] + b[j, i]))
-    return _mv(k, y), out, nis
+    return out
 
 
 def corrector_innovation(p: F64, y: F64, r: F64) -> tuple[F64, float]:
@@ -278,13 +285,7 @@ def corrector_joseph(p: F64, s_inv: F64, y: F64, r: F64) -> tuple[F64, F64]:
     for i in range(n):
         for j in range(3):
             ikh[i, j] -= k[i, j]
-    a = _mmt(_mm(ikh, p), ikh)
-    b = _mmt(_mm(k, r), k)
-    out = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            out[i, j] = 0.5 * ((a[i, j] + b[i, j]) + (a[j, i] + b[j, i]))
-    return out, _mv(k, y)
+    return _joseph(p, ikh, k, r), _mv(k, y)
 
 
 def expm(m: F64) -> F64:

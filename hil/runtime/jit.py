@@ -385,7 +385,10 @@ def _compile_update(numba: Any, digest: str, mm: Any, mmt: Any) -> dict[str, Any
     f8, cmat, vec = "float64", "float64[:, ::1]", "float64[::1]"
     inv3 = _compile(numba, kernels._inv3, f"{cmat}({cmat})", digest, True)
     mv = _compile(numba, kernels._mv, f"{vec}({cmat}, {vec})", digest, True, _mmt=mmt)
-    products = {"_mm": mm, "_mmt": mmt, "_inv3": inv3, "_mv": mv}
+    joseph_end = _compile(
+        numba, kernels._joseph, f"{cmat}({cmat}, {cmat}, {cmat}, {cmat})", digest, True, _mm=mm, _mmt=mmt
+    )
+    products = {"_mm": mm, "_mmt": mmt, "_inv3": inv3, "_mv": mv, "_joseph": joseph_end}
     update_sig = f"Tuple(({vec}, {cmat}, {f8}))({cmat}, {vec}, {cmat}, {cmat})"
     update = _compile(numba, kernels.kf_update, update_sig, digest, **products)
     innovation_sig = f"Tuple(({cmat}, {f8}))({cmat}, {vec}, {cmat})"
