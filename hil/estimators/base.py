@@ -176,28 +176,35 @@ class Estimator:
         return bound
 
 
+def _bias_holder(est: Any) -> Any:
+    """Where ``est`` keeps its IMU bias estimates: itself (ekf15) or its feedback INS (``loop``);
+    None if it keeps none."""
+    for holder in (est, getattr(est, "loop", None)):
+        if getattr(holder, "b_g", None) is not None and getattr(holder, "b_a", None) is not None:
+            return holder
+    return None
+
+
 def imu_bias_of(est: Any) -> tuple[F64, F64] | None:
     """``Estimator.imu_bias`` for any object keeping the contract (see there)."""
-    for holder in (est, getattr(est, "loop", None)):
-        b_g, b_a = getattr(holder, "b_g", None), getattr(holder, "b_a", None)
-        if b_g is not None and b_a is not None:
-            return np.asarray(b_g, dtype=np.float64), np.asarray(b_a, dtype=np.float64)
-    return None
+    holder = _bias_holder(est)
+    if holder is None:
+        return None
+    return np.asarray(holder.b_g, dtype=np.float64), np.asarray(holder.b_a, dtype=np.float64)
 
 
 def imu_bias_floats_of(est: Any) -> tuple[float, ...] | None:
     """:func:`imu_bias_of` as the six floats the output predictor takes (``b_g`` then ``b_a``),
     read where its holder keeps them as floats (``bias_floats``: a feedback INS) -- at every
     output of every estimator, where two arrays built to be read back cost more."""
-    for holder in (est, getattr(est, "loop", None)):
-        kept = getattr(holder, "bias_floats", None)
-        if kept is not None:
-            return kept()  # type: ignore[no-any-return]
-        b_g, b_a = getattr(holder, "b_g", None), getattr(holder, "b_a", None)
-        if b_g is not None and b_a is not None:
-            g, a = np.asarray(b_g, dtype=np.float64).tolist(), np.asarray(b_a, dtype=np.float64).tolist()
-            return (*g, *a)
-    return None
+    holder = _bias_holder(est)
+    if holder is None:
+        return None
+    kept = getattr(holder, "bias_floats", None)
+    if kept is not None:
+        return kept()  # type: ignore[no-any-return]
+    g, a = imu_bias_of(holder)  # type: ignore[misc]
+    return (*g.tolist(), *a.tolist())
 
 
 def gnss_input(msg: Any) -> GnssInput | None:

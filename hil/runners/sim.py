@@ -595,9 +595,9 @@ def _windows(
     ignored: list[tuple[int, str]],
     header: Callable[[SessionWriter], None],
     remote: RemoteTail | None,
-) -> int:
+) -> None:
     """One rig second at a time until every node is done, or ``opts.stop`` says so at a window
-    boundary; then the end of input, at the end of the run or there. Returns that rig time.
+    boundary; then the end of input, at the end of the run or there.
 
     A stop ends the run as its end would: the windows handed out are completed and written, then
     every node is told ``finish`` at the boundary, so the file is whole, and reruns bit for bit,
@@ -657,7 +657,6 @@ def _windows(
     t_last = (sess.end_ns if sess.stopped_at_ns is None else sess.stopped_at_ns) + 1
     sched.finish(t_last, stopped=sess.stopped_at_ns is not None)
     sess.status(t_last, sess.snapshot(remote))
-    return t_last
 
 
 def _header(w: SessionWriter, run: RunInfo, s: Any) -> None:

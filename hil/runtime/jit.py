@@ -24,6 +24,8 @@ float arithmetic and ``math`` calls, a filter step ~10 µs of numpy calls on (3,
 - ekf15's Joseph-form update of a GNSS position or velocity fix
   (:func:`hil.estimators.ekf15.kf_update`: einsum products, the 3 x 3 adjugate inverse) as
   :func:`hil.nav.kernels.kf_update` (~10 µs against ~39 for 15 states), checked the same way;
+  and the feedback corrector's update of a velocity fix (:func:`hil.estimators.feedback.corrector_innovation`
+  and ``corrector_joseph``, on the same products), checked the same way;
 - the ZOH filters' ``e^{Ah}`` (:func:`hil.nav.portable.expm` as ``hil.estimators.lti.expm``: the
   IMU's ns stamps make most step lengths new, so it runs after every fix and clock wander) as
   :func:`hil.nav.kernels.expm` (~2 µs against ~70), checked the same way;
@@ -80,7 +82,8 @@ _python: dict[str, Callable[..., Any]] = {}
 _lock = threading.Lock()
 #: The compiled kernels by name (``libm_square``, ``_rotvec_quat``, ``_step``, ``_corrected_run``,
 #: ``ramp_step``, ``_advance``, ``_carry``, ``covariance_step``, ``_corrector_prediction``,
-#: ``write_dynamics``, ``expm``, ``kf_update``, ``ecef_to_lla_one``).
+#: ``write_dynamics``, ``expm``, ``kf_update``, ``corrector_innovation``, ``corrector_joseph``,
+#: ``ecef_to_lla_one``).
 _compiled: dict[str, Any] = {}
 
 
@@ -539,24 +542,39 @@ def _update_differs(compiled: Any, python: Callable[..., Any]) -> str:
     return ""
 
 
-def _corrector_update_differs(compiled: Any, python: Callable[..., Any]) -> str:
-    """As :func:`_update_differs`, for the feedback corrector's innovation and its Joseph-form
-    update (12 states, ``H = [I 0 0 0]``); which of the two ``compiled`` is, its operands say."""
+def _corrector_operands(rng: Any) -> tuple[Any, Any, Any]:
+    """A 12-state covariance over twelve decades (one in four with exact zeros and -0 in it, as
+    a fresh corrector's diagonal start has), an innovation and a diagonal ``R``."""
+    p, y, _h, r = update_operands(rng, 12, lever=False)
+    if rng.random() < 0.25:
+        p[rng.random((12, 12)) < 0.2] = 0.0
+        p[rng.random((12, 12)) < 0.05] = -0.0
+    return p, y, r
+
+
+def _corrector_innovation_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_update_differs`, for the feedback corrector's ``S⁻¹`` and NIS."""
     import numpy as np
 
     rng = np.random.default_rng(29)
-    joseph = python.__name__ == "corrector_joseph"
     for trial in range(40):
-        p, y, _h, r = update_operands(rng, 12, lever=False)
-        if trial % 4 == 0:  # exact zeros and -0 in P, as a fresh corrector's diagonal start has
-            p[rng.random((12, 12)) < 0.2] = 0.0
-            p[rng.random((12, 12)) < 0.05] = -0.0
-        if joseph:
-            s_inv = np.linalg.inv(p[0:3, 0:3] + r)
-            got, want = compiled(p, s_inv, y, r), python(p, s_inv, y, r)
-        else:
-            got, want = compiled(p, y, r), python(p, y, r)
-        if any(np.asarray(g).tobytes() != np.asarray(w).tobytes() for g, w in zip(got, want, strict=True)):
+        p, y, r = _corrector_operands(rng)
+        got, want = compiled(p, y, r), python(p, y, r)
+        if got[0].tobytes() != want[0].tobytes() or got[1] != want[1]:
+            return f"operands {trial}"
+    return ""
+
+
+def _corrector_joseph_differs(compiled: Any, python: Callable[..., Any]) -> str:
+    """As :func:`_update_differs`, for the feedback corrector's Joseph-form update."""
+    import numpy as np
+
+    rng = np.random.default_rng(30)
+    for trial in range(40):
+        p, y, r = _corrector_operands(rng)
+        s_inv = np.linalg.inv(p[0:3, 0:3] + r)
+        got, want = compiled(p, s_inv, y, r), python(p, s_inv, y, r)
+        if got[0].tobytes() != want[0].tobytes() or got[1].tobytes() != want[1].tobytes():
             return f"operands {trial}"
     return ""
 
@@ -635,8 +653,8 @@ _CHECKS: dict[str, Callable[[Any, Callable[..., Any]], str]] = {
     "write_dynamics": _dynamics_differs,
     "expm": _expm_differs,
     "kf_update": _update_differs,
-    "corrector_innovation": _corrector_update_differs,
-    "corrector_joseph": _corrector_update_differs,
+    "corrector_innovation": _corrector_innovation_differs,
+    "corrector_joseph": _corrector_joseph_differs,
     "_filter_output": _output_differs,
     "ecef_to_lla_one": _lla_differs,
 }
