@@ -560,12 +560,25 @@ def cmd_rerun(a: argparse.Namespace) -> int:
         else:
             from hil.record.rerun import rerun
 
-            if a.one_process and a.workers is not None:
-                raise UserError("--one-process and --workers: choose one (the fusion here, or in workers)")
+            if a.one_process and (a.workers is not None or a.share_here):
+                raise UserError(
+                    "--one-process and --workers or --share-here: choose one (the fusion here, or in workers)"
+                )
+            if a.workers is not None and a.share_here:
+                raise UserError(
+                    "--workers and --share-here: choose one (--share-here: a worker and this process)"
+                )
             worker = False if a.one_process else None
-            split = None if a.workers is None else a.workers == 2
+            split = True if a.share_here else None if a.workers is None else a.workers == 2
+            here = True if a.share_here else None if a.workers is None else False
             rc, lines = rerun(
-                a.file, core=a.core, verify=a.verify, on_progress=on_progress, worker=worker, split=split
+                a.file,
+                core=a.core,
+                verify=a.verify,
+                on_progress=on_progress,
+                worker=worker,
+                split=split,
+                here=here,
             )
     print("\n".join(lines))
     return rc
@@ -1006,9 +1019,15 @@ def _add_rerun_parser(sub: Any) -> None:
         type=int,
         choices=(1, 2),
         default=None,
-        help="fusion workers: 2 share the estimators, the first running the GNSS gate's reference "
-        "and handing its verdicts to the second (default: 2 on 3+ CPUs for 4+ estimators, else 1; "
-        "the same bits)",
+        help="fusion workers: 1 runs every estimator; 2 share them, the first running the GNSS "
+        "gate's reference and handing its verdicts to the second (default: 2 on 3+ CPUs for 4+ "
+        "estimators; on 2 CPUs see --share-here; the same bits)",
+    )
+    rr.add_argument(
+        "--share-here",
+        action="store_true",
+        help="one worker with the gate's reference, and this process running the two lightest "
+        "estimators beside its reading (the default on 2 CPUs for 4+ estimators; the same bits)",
     )
     rr.set_defaults(func=cmd_rerun)
 

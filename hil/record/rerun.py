@@ -41,6 +41,7 @@ from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verd
 from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
 from hil.runners.sim_worker import (
     EncodedInput,
+    LocalNode,
     RemoteNode,
     Replayed,
     replay_encoded,
@@ -134,6 +135,11 @@ RERUN_WINDOW_S = 30.0  # rig time held while streaming: inputs arrive within fra
 # inputs a worker recomputes per message (~10 s of a 400 Hz IMU): while it runs them, this
 # process reads, decodes and orders the next ones and compares the last ones' solutions
 REPLAY_BATCH = 4096
+# with a share of the estimators in this process: it runs a batch's share only once the worker has
+# run that batch (for the gate's verdicts), so the worker idles on the first batch and this process
+# runs the last alone; half the batch halves both (uav_survey 120 s: 2.99-3.12 s against
+# 3.08-3.34 s, three runs each, 2026-12-06)
+REPLAY_BATCH_HERE = 2048
 # two workers share the estimators when there are at least twice this many, by default on this
 # many CPUs (see ``split_estimators``)
 SPLIT_MIN_EACH = 2
@@ -145,9 +151,13 @@ _WEIGHTS = {"ekf15": 4, "kfvel": 2}
 _WEIGHT = 3
 
 
-def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
+def split_estimators(cfg: FusionConfig, here: bool = False) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
     """Two shares of the configuration's estimators for two workers that each run the whole core
     on every input (the free INS, the output predictor, the reorder buffer: the same in both).
+    ``here``: the second share is run by the process that also reads the file and compares the
+    solutions (``hil rerun`` on two CPUs), so it takes the least it can, the ``SPLIT_MIN_EACH``
+    lightest (2026-12-06, wall time: uav_survey 120 s with kfvel and comp1 here 2.98-3.01 s, with
+    cf3 too 2.86-3.19 s; straight_level 300 s 4.97-5.09 s against 5.35-5.37 s with three here).
 
     Each estimator's state depends on the inputs and on the GNSS gate's verdicts only, and a
     verdict depends on the gate's reference estimator (whose prediction decides for all) or, when
@@ -159,6 +169,14 @@ def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...
     if not cfg.output_predictor or len(cfg.estimators) < 2 * SPLIT_MIN_EACH:
         return None
     ref = cfg.gnss_gate_reference if cfg.gnss_gate_reference in cfg.estimators else ""
+    order = {name: i for i, name in enumerate(cfg.estimators)}
+    if here:
+        rest = sorted(
+            (e for e in cfg.estimators if e != ref), key=lambda e: (_WEIGHTS.get(e, _WEIGHT), order[e])
+        )
+        light = set(rest[:SPLIT_MIN_EACH])
+        a = tuple(e for e in cfg.estimators if e not in light)
+        return a, tuple(e for e in cfg.estimators if e in light)
     shares: tuple[list[str], list[str]] = ([ref] if ref else [], [])
     load = [1 + (_WEIGHTS.get(ref, _WEIGHT) if ref else 0), 0]  # the first publishes the free INS too
     for e in sorted((e for e in cfg.estimators if e != ref), key=lambda e: -_WEIGHTS.get(e, _WEIGHT)):
@@ -167,11 +185,12 @@ def split_estimators(cfg: FusionConfig) -> tuple[tuple[str, ...], tuple[str, ...
         load[i] += _WEIGHTS.get(e, _WEIGHT)
     if len(shares[1]) < SPLIT_MIN_EACH:
         return None
-    order = {name: i for i, name in enumerate(cfg.estimators)}
     a, b = (tuple(sorted(share, key=order.__getitem__)) for share in shares)
     return a, b
 
 
+#: each input's solutions, as a core replays a batch
+_Solutions = list[list[Replayed]]
 #: an input on its way to a worker: message, publisher, predicted, and its payload as recorded
 _Pending = tuple[Measurement, str, bool, bytes]
 
@@ -213,9 +232,13 @@ class _FusionRerun:
     last_journal_log_ns: int = -1  # log time of the last journal record read
     matcher: Matcher = field(init=False)
     remote: RemoteNode | None = None
-    # with two workers: the second, each one's estimators (``only``), and every solution's place
-    # in one core's output of an input (the free INS, then the configuration's order)
-    remote2: RemoteNode | None = None
+    # ``split`` with the second share in this process (``LocalNode``); None: on two CPUs
+    here: bool | None = None
+    batch_size: int = 0  # inputs a worker is sent at a time (``_start``)
+    # with two workers: the second (or this process's share), each one's estimators (``only``),
+    # and every solution's place in one core's output of an input (the free INS, then the
+    # configuration's order)
+    remote2: RemoteNode | LocalNode | None = None
     shares: tuple[frozenset[str], frozenset[str]] | None = None
     rank: dict[str, int] = field(default_factory=dict)
     # for the worker: (message, publisher, predicted, payload as recorded)
@@ -260,13 +283,16 @@ class _FusionRerun:
         """The core, here or in a worker (``worker_pays``, as ``hil sim`` decides), or in two
         that share its estimators: the kernels are compiled where it runs, with the same bits."""
         self.node = node
+        self.batch_size = REPLAY_BATCH
         if not (self.worker if self.worker is not None else worker_pays(node)):
             jit.enable()
             freeze_command_startup()
             return
         cfg, run = self.cfg, self.run
-        split = self.split if self.split is not None else worker_possible(SPLIT_MIN_CPUS)
-        shares = split_estimators(cfg) if cfg is not None and split else None
+        many = worker_possible(SPLIT_MIN_CPUS)
+        here = self.here if self.here is not None else self.split is None and not many
+        split = here or (self.split if self.split is not None else many)
+        shares = split_estimators(cfg, here) if cfg is not None and split else None
         if shares is None or cfg is None or run is None:
             self.remote = RemoteNode(node, setup=jit.enable_for_run)
             freeze_command_startup()
@@ -277,8 +303,13 @@ class _FusionRerun:
         self.shares = frozenset({FREE_INS, *a}), frozenset(b)
         self.rank = {name: i for i, name in enumerate((FREE_INS, *cfg.estimators))}
         setup = jit.enable_for_run
+        if here:  # the kernels loaded once, before the fork: the worker has them too
+            jit.enable()
+            self.batch_size = REPLAY_BATCH_HERE
+            self.remote2 = LocalNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)))
         self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=setup)
-        self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=setup)
+        if not here:
+            self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=setup)
         freeze_command_startup()
 
     def _synced(self, r: Record) -> None:
@@ -344,7 +375,7 @@ class _FusionRerun:
                 self._compare(msg, replay_encoded(node, [(msg, source, predicted)], self.keep_outputs)[0])
                 continue
             self.batch.append((msg, source, predicted, payload))
-            if len(self.batch) >= REPLAY_BATCH:
+            if len(self.batch) >= self.batch_size:
                 self._send_batch()
         if upto_ns is None:  # the end: what the worker still holds
             self.drain()
@@ -389,11 +420,17 @@ class _FusionRerun:
         if self.in_flight is not None:
             done_a = (self.in_flight, *a.replayed_split())
             self.in_flight = None
+        if isinstance(b, LocalNode):  # the worker runs batch N while this process runs N - 1
+            if self.batch:
+                a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
+                self.in_flight, self.batch = self.batch, []
+            if done_a is not None:
+                batch, sols_a, verdicts = done_a
+                b.replay([item[:3] for item in batch], self.keep_outputs, shares[1], relay=verdicts or {})
+                self._merge(batch, sols_a, b.replayed())
+            return
         if self.in_flight_b is not None:
-            batch, sols_a = self.in_flight_b
-            rank = self.rank.__getitem__
-            for (msg, *_), x, y in zip(batch, sols_a, b.replayed(), strict=True):
-                self._compare(msg, sorted(x + y, key=lambda sol: rank(sol[0])))  # one core's order
+            self._merge(*self.in_flight_b, b.replayed())
             self.in_flight_b = None
         if done_a is not None:
             batch, sols_a, verdicts = done_a
@@ -402,6 +439,12 @@ class _FusionRerun:
         if self.batch:
             a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
             self.in_flight, self.batch = self.batch, []
+
+    def _merge(self, batch: list[_Pending], sols_a: _Solutions, sols_b: _Solutions) -> None:
+        """The two shares' solutions of each input, in one core's order, compared."""
+        rank = self.rank.__getitem__
+        for (msg, *_), x, y in zip(batch, sols_a, sols_b, strict=True):
+            self._compare(msg, sorted(x + y, key=lambda sol: rank(sol[0])))
 
     def drain(self) -> None:
         """Every input handed to the worker(s) recomputed and compared."""
@@ -466,6 +509,7 @@ def rerun_fusion_records(
     name: str = "recording",
     worker: bool | None = None,
     split: bool | None = None,
+    here: bool | None = None,
 ) -> RerunResult:
     """The fusion rerun over records in file order, holding ``window_ns`` of rig time at most.
 
@@ -486,8 +530,11 @@ def rerun_fusion_records(
     None: when it pays (``_FusionRerun._start``); False: in this process. ``split``: with a
     worker, two that share the estimators (``split_estimators``), their solutions merged into
     one core's order; None: on ``SPLIT_MIN_CPUS`` CPUs, if the configuration has enough to share.
+    ``here``: the second share in this process instead of a second worker (``LocalNode``), run on
+    each batch while the worker runs the next; None: when ``split`` is None and fewer than
+    ``SPLIT_MIN_CPUS`` CPUs are there (two: a second worker would share them with this process).
     """
-    state = _FusionRerun(window_ns, keep_outputs, worker, split)
+    state = _FusionRerun(window_ns, keep_outputs, worker, split, here=here)
     try:
         for r in records:
             state.feed(r)
@@ -527,6 +574,7 @@ def rerun_fusion_file(
     on_progress: Any = None,
     worker: bool | None = None,
     split: bool | None = None,
+    here: bool | None = None,
 ) -> tuple[RerunResult, SessionStream, str]:
     """Stream a recording through the fusion rerun; if its order defeats the window, read it whole.
 
@@ -535,12 +583,13 @@ def rerun_fusion_file(
     """
     stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
     window_ns = None if window_s is None else round(window_s * 1e9)
+    cores = {"worker": worker, "split": split, "here": here}
     try:
-        res = rerun_fusion_records(stream, window_ns=window_ns, name=str(path), worker=worker, split=split)
+        res = rerun_fusion_records(stream, window_ns=window_ns, name=str(path), **cores)
         return res, stream, ""
     except OutOfWindow as why:
         stream = SessionStream(path, on_progress, follow_parts=True, keep=fusion_topic)
-        res = rerun_fusion_records(stream, window_ns=None, name=str(path), worker=worker, split=split)
+        res = rerun_fusion_records(stream, window_ns=None, name=str(path), **cores)
         note = f"{why} (out of order by more than {window_s:g} s): reran with the whole file in memory"
         return res, stream, note
 
@@ -553,6 +602,7 @@ def rerun(
     on_progress: Any = None,
     worker: bool | None = None,
     split: bool | None = None,
+    here: bool | None = None,
 ) -> tuple[int, list[str]]:
     """Exit code and report lines for ``hil rerun``.
 
@@ -565,7 +615,9 @@ def rerun(
         return rerun_timesync_report(path, verify, on_progress, worker)
     if core != "fusion":
         return 2, [f"hil rerun: core {core!r} is not rerunnable (fusion, timesync)"]
-    res, stream, note = rerun_fusion_file(path, on_progress=on_progress, worker=worker, split=split)
+    res, stream, note = rerun_fusion_file(
+        path, on_progress=on_progress, worker=worker, split=split, here=here
+    )
     lines = [
         f"rerun fusion: {res.inputs_used} inputs ({res.inputs_dropped} journaled as dropped), "
         f"{res.n_recomputed} outputs recomputed, {res.n_recorded} recorded"

@@ -425,6 +425,36 @@ class RemoteNode(ForkedChild):
         return out, verdicts
 
 
+class LocalNode:
+    """The second core of a split ``hil rerun`` in this process (:class:`RemoteNode`'s interface):
+    on two CPUs a second worker would share them with this one, which reads and compares at a
+    fraction of a CPU. ``replay`` keeps a batch, ``replayed_split`` runs it (inputs decoded)."""
+
+    def __init__(self, node: Node) -> None:
+        self.name = node.name
+        self.node = node
+        self._pending: list[tuple[Any, ...]] = []
+
+    def replay(
+        self,
+        inputs: list[tuple[Any, str, bool]],
+        keep: bool,
+        only: frozenset[str] | None = None,
+        relay: dict[str, bool | None] | None = None,
+        verdicts: bool = False,
+    ) -> None:
+        self._pending.append((inputs, keep, only, relay, verdicts))
+
+    def replayed(self) -> list[list[Replayed]]:
+        return self.replayed_split()[0]
+
+    def replayed_split(self) -> tuple[list[list[Replayed]], dict[str, bool | None] | None]:
+        return replay_split(self.node, *self._pending.pop(0))
+
+    def close(self) -> None:
+        self._pending.clear()
+
+
 # a python-can frame as shipped to a tail (``portable``): pickling can.Message itself costs
 # ~2.6 µs a side, four frames an IMU sample; these fields, rebuilt there, a tenth of that
 _FRAME_FIELDS = (

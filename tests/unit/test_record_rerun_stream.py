@@ -27,7 +27,7 @@ from hil.record.matching import SeqSet
 from hil.record.mcapio import Record, SessionStream, SessionWriter, read_session
 from hil.record.rerun import rerun, rerun_fusion, rerun_fusion_file, rerun_fusion_records
 from hil.record.rerun_timesync import rerun_timesync, rerun_timesync_records
-from hil.runners.sim_worker import RemoteNode, WorkerError
+from hil.runners.sim_worker import LocalNode, RemoteNode, WorkerError
 from tests.replay.helpers import GOLDEN
 
 
@@ -255,8 +255,10 @@ def test_the_worker_names_the_same_first_difference(tmp_path: Path, monkeypatch:
     forked, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True, split=False)
     assert sizes and alone.difference is not None
     assert forked.difference == alone.difference and forked.difference.startswith("nav/ins seq 90")
-    shared, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True, split=True)  # two workers
+    shared, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True, split=True, here=False)  # two workers
     assert shared.difference == alone.difference
+    here, _s, _n = rerun_fusion_file(bad, window_s=3.75, worker=True, split=True, here=True)  # one and this
+    assert here.difference == alone.difference
 
 
 def test_a_worker_that_dies_fails_the_rerun_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -272,7 +274,11 @@ def test_a_worker_that_dies_fails_the_rerun_and_says_so(monkeypatch: pytest.Monk
     with pytest.raises(WorkerError, match="worker process died"):
         rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True, split=False)
     with pytest.raises(WorkerError, match="worker process died"):  # either of two
-        rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True, split=True)
+        rerun_fusion_records(
+            read_session(GOLDEN).records, window_ns=None, worker=True, split=True, here=False
+        )
+    with pytest.raises(WorkerError, match="worker process died"):  # the one beside this process's share
+        rerun_fusion_records(read_session(GOLDEN).records, window_ns=None, worker=True, split=True, here=True)
 
 
 def test_two_workers_sharing_the_estimators_recompute_what_one_process_does(
@@ -294,7 +300,9 @@ def test_two_workers_sharing_the_estimators_recompute_what_one_process_does(
 
     monkeypatch.setattr(RemoteNode, "replay", replay)
     monkeypatch.setattr(rerun_module, "REPLAY_BATCH", 100)
-    shared = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=True, split=True)
+    shared = rerun_fusion_records(
+        records, window_ns=None, keep_outputs=True, worker=True, split=True, here=False
+    )
     assert shared.difference is None and shared.recomputed == alone.recomputed
     assert (shared.n_recorded, shared.n_recomputed, shared.inputs_used) == (
         alone.n_recorded,
@@ -310,6 +318,49 @@ def test_two_workers_sharing_the_estimators_recompute_what_one_process_does(
     assert all(r == {"verdicts": True} for o, r in zip(shares, relays, strict=True) if o == a)
     to_b = [r["relay"] for o, r in zip(shares, relays, strict=True) if o == b]
     assert all(isinstance(v, dict) for v in to_b) and sum(len(v) for v in to_b) > 0
+
+
+def test_a_worker_and_this_process_sharing_the_estimators_recompute_what_one_process_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On two CPUs the second share runs in the process that reads and compares (``LocalNode``):
+    the worker one batch ahead with the gate's reference, this process taking each batch with its
+    verdicts once the worker has run it. The same solutions, in one core's order, as one process."""
+    records = read_session(GOLDEN).records
+    alone = rerun_fusion_records(records, window_ns=None, keep_outputs=True, worker=False)
+    calls: list[tuple[str, Any, Any, int]] = []
+    send, keep = RemoteNode.replay, LocalNode.replay
+
+    def remote(self: RemoteNode, inputs: list[Any], keep_: bool, only: Any = None, **relay: Any) -> None:
+        calls.append(("worker", only, relay, len(inputs)))
+        send(self, inputs, keep_, only, **relay)
+
+    def local(self: LocalNode, inputs: list[Any], keep_: bool, only: Any = None, **relay: Any) -> None:
+        calls.append(("here", only, relay, len(inputs)))
+        keep(self, inputs, keep_, only, **relay)
+
+    monkeypatch.setattr(RemoteNode, "replay", remote)
+    monkeypatch.setattr(LocalNode, "replay", local)
+    monkeypatch.setattr(rerun_module, "REPLAY_BATCH_HERE", 100)
+    here = rerun_fusion_records(
+        records, window_ns=None, keep_outputs=True, worker=True, split=True, here=True
+    )
+    assert here.difference is None and here.recomputed == alone.recomputed
+    assert (here.n_recorded, here.n_recomputed, here.inputs_used) == (
+        alone.n_recorded,
+        alone.n_recomputed,
+        alone.inputs_used,
+    )
+    worker = [c for c in calls if c[0] == "worker"]
+    mine = [c for c in calls if c[0] == "here"]
+    assert len(worker) > 6 and len(mine) == len(worker)
+    assert {c[1] for c in worker} == {frozenset({"ins", "comp3f", "compvs", "cf3", "ekf15"})}
+    assert {c[1] for c in mine} == {frozenset({"comp1", "kfvel"})}  # the two lightest
+    assert all(c[2] == {"verdicts": True} for c in worker)
+    # this process runs batch N after the worker was sent N + 1, with the verdicts of N
+    assert [c[3] for c in mine] == [c[3] for c in worker] and calls[0][0] == calls[1][0] == "worker"
+    assert sum(c[3] for c in worker) == here.inputs_used
+    assert all(isinstance(c[2]["relay"], dict) for c in mine) and sum(len(c[2]["relay"]) for c in mine) > 0
 
 
 def test_the_first_share_holds_the_gate_reference_and_the_rest_is_balanced() -> None:
@@ -334,6 +385,13 @@ def test_the_first_share_holds_the_gate_reference_and_the_rest_is_balanced() -> 
     four = split_estimators(replace(cfg, estimators=("ekf15", "comp1", "cf3", "compvs")))
     assert four == (("ekf15", "compvs"), ("comp1", "cf3"))
     assert split_estimators(replace(cfg, output_predictor=False)) is None
+    # this process's share, beside its reading: the two lightest, never the reference
+    assert split_estimators(cfg, here=True) == (("comp3f", "compvs", "cf3", "ekf15"), ("comp1", "kfvel"))
+    assert split_estimators(replace(cfg, estimators=("ekf15", "kfvel", "cf3", "comp1")), here=True) == (
+        ("ekf15", "comp1"),
+        ("kfvel", "cf3"),
+    )
+    assert split_estimators(replace(cfg, estimators=("comp1", "cf3", "ekf15")), here=True) is None
 
 
 def test_hil_rerun_workers_option() -> None:
@@ -341,7 +399,15 @@ def test_hil_rerun_workers_option() -> None:
 
     proc = run_hil("rerun", str(GOLDEN), "--verify", "--workers", "2", timeout=300)
     assert proc.returncode == 0 and "VERIFY OK" in proc.stdout, proc.stdout + proc.stderr
-    proc = run_hil("rerun", str(GOLDEN), "--one-process", "--workers", "2", timeout=120)
-    assert proc.returncode == 2 and "choose one" in proc.stderr and "Traceback" not in proc.stderr, (
-        proc.stderr
-    )
+    proc = run_hil("rerun", str(GOLDEN), "--verify", "--share-here", timeout=300)
+    assert proc.returncode == 0 and "VERIFY OK" in proc.stdout, proc.stdout + proc.stderr
+    for bad in (
+        ["--one-process", "--workers", "2"],
+        ["--one-process", "--share-here"],
+        ["--workers", "1", "--share-here"],
+    ):
+        proc = run_hil("rerun", str(GOLDEN), *bad, timeout=120)
+        assert proc.returncode == 2 and "choose one" in proc.stderr and "Traceback" not in proc.stderr, (
+            bad,
+            proc.stderr,
+        )
