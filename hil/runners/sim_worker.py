@@ -38,8 +38,6 @@ import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
-import can
-
 from hil.messages import decode, encode
 from hil.nodes.base import CAN_RX, Node, Out
 from hil.runtime.errors import WorkerError
@@ -474,10 +472,19 @@ _FRAME_FIELDS = (
 _frame_fields = operator.attrgetter(*_FRAME_FIELDS)
 
 
+class _NoFrame:
+    """No event is one of these: ``portable`` before a tail imported python-can."""
+
+
+# python-can's frame type, bound by the first ``RemoteTail`` (before it forks): ``hil rerun``
+# imports this module without python-can (44 ms of its start-up)
+_Frame: type = _NoFrame
+
+
 def portable(event: Sequence[Any]) -> tuple[Any, ...]:
     """An inbox event as it crosses to a tail: a CAN frame as its fields, anything else as is."""
     msg = event[-1]
-    if type(msg) is can.Message:
+    if type(msg) is _Frame:
         return (*event[:-1], _frame_fields(msg))
     return tuple(event)
 
@@ -485,7 +492,7 @@ def portable(event: Sequence[Any]) -> tuple[Any, ...]:
 def _rebuilt(event: tuple[Any, ...]) -> tuple[Any, ...]:
     f = event[-1]
     if type(f) is tuple and event[3].startswith(CAN_RX):  # a frame's fields (``portable``)
-        return (*event[:-1], can.Message(*f))  # its data a bytearray of its own, as sent
+        return (*event[:-1], _Frame(*f))  # its data a bytearray of its own, as sent
     return event
 
 
@@ -520,6 +527,10 @@ class RemoteTail(ForkedChild):
         that this process never imports numba). ``prepare(event)``: what each output event
         ``(t, producer, order, key, message)`` is sent back as (the sim: with its bytes for the
         file, made there); default the event itself."""
+        global _Frame
+        import can
+
+        _Frame = can.Message
         self.split = split
         self.names = [n.name for n in nodes[split:]]
         self.name = "+".join(self.names)
