@@ -1027,7 +1027,8 @@ def _add_rerun_parser(sub: Any) -> None:
         "--share-here",
         action="store_true",
         help="one worker with the gate's reference, and this process running the two lightest "
-        "estimators beside its reading (the default on 2 CPUs for 4+ estimators; the same bits)",
+        "estimators beside its reading (the default on 2 CPUs for 4+ estimators with filters in "
+        "feedback form or ekf15's calibration states: a consumer IMU's; the same bits)",
     )
     rr.set_defaults(func=cmd_rerun)
 

@@ -189,6 +189,19 @@ def split_estimators(cfg: FusionConfig, here: bool = False) -> tuple[tuple[str, 
     return a, b
 
 
+def share_here_pays(cfg: FusionConfig) -> bool:
+    """Whether this process should take a share of the estimators beside its reading (on two
+    CPUs): when the estimators' work outweighs the reading it then competes with. The second
+    share repeats the core's common part (the free INS, the predictor), so the worker's share
+    must be worth more than this process's reading for it to pay: with a consumer IMU's
+    configuration (the filters in feedback form, each with its own INS and corrector, and ekf15's
+    33 states) it is; with a tactical one (open-loop filters, 15 states) it is not, or barely.
+    Against one worker, 2026-12-06, medians of the wall time (four alternating pairs, or three):
+    uav_survey 120 s 0.91x, car_drive 120 s 0.92x; static 90 s 1.15x, long_flight 90 s 1.08x,
+    straight_level 90 s 0.98x, straight_level 300 s 0.91x."""
+    return bool(cfg.feedback) or bool(cfg.ekf_calibration)
+
+
 #: each input's solutions, as a core replays a batch
 _Solutions = list[list[Replayed]]
 #: an input on its way to a worker: message, publisher, predicted, and its payload as recorded
@@ -232,7 +245,8 @@ class _FusionRerun:
     last_journal_log_ns: int = -1  # log time of the last journal record read
     matcher: Matcher = field(init=False)
     remote: RemoteNode | None = None
-    # ``split`` with the second share in this process (``LocalNode``); None: on two CPUs
+    # ``split`` with the second share in this process (``LocalNode``); None: on two CPUs, for
+    # a heavy configuration (``share_here_pays``)
     here: bool | None = None
     batch_size: int = 0  # inputs a worker is sent at a time (``_start``)
     # with two workers: the second (or this process's share), each one's estimators (``only``),
@@ -290,7 +304,9 @@ class _FusionRerun:
             return
         cfg, run = self.cfg, self.run
         many = worker_possible(SPLIT_MIN_CPUS)
-        here = self.here if self.here is not None else self.split is None and not many
+        here = self.here
+        if here is None:
+            here = self.split is None and not many and cfg is not None and share_here_pays(cfg)
         split = here or (self.split if self.split is not None else many)
         shares = split_estimators(cfg, here) if cfg is not None and split else None
         if shares is None or cfg is None or run is None:
@@ -531,8 +547,9 @@ def rerun_fusion_records(
     worker, two that share the estimators (``split_estimators``), their solutions merged into
     one core's order; None: on ``SPLIT_MIN_CPUS`` CPUs, if the configuration has enough to share.
     ``here``: the second share in this process instead of a second worker (``LocalNode``), run on
-    each batch while the worker runs the next; None: when ``split`` is None and fewer than
-    ``SPLIT_MIN_CPUS`` CPUs are there (two: a second worker would share them with this process).
+    each batch while the worker runs the next; None: when ``split`` is None, fewer than
+    ``SPLIT_MIN_CPUS`` CPUs are there (two: a second worker would share them with this process)
+    and the configuration's estimators are heavy enough (``share_here_pays``).
     """
     state = _FusionRerun(window_ns, keep_outputs, worker, split, here=here)
     try:

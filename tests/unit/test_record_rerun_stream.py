@@ -363,6 +363,39 @@ def test_a_worker_and_this_process_sharing_the_estimators_recompute_what_one_pro
     assert all(isinstance(c[2]["relay"], dict) for c in mine) and sum(len(c[2]["relay"]) for c in mine) > 0
 
 
+@pytest.mark.parametrize("heavy", [True, False])
+def test_on_two_cpus_this_process_takes_a_share_of_a_heavy_configuration_only(
+    monkeypatch: pytest.MonkeyPatch, heavy: bool
+) -> None:
+    """Two CPUs (a worker possible, a second one not): a consumer IMU's configuration (filters in
+    feedback form, ekf15's calibration states) shares its estimators with the reading process;
+    a tactical one keeps one worker for all, since its reading outweighs what it would move."""
+    from dataclasses import replace
+
+    from hil.fusion.core import FusionConfig
+    from hil.record.rerun import share_here_pays
+
+    cfg = FusionConfig(estimators=("comp1", "comp3f", "compvs", "cf3", "kfvel", "ekf15"))
+    assert not share_here_pays(cfg)
+    assert share_here_pays(replace(cfg, feedback=("comp1",))) and share_here_pays(
+        replace(cfg, ekf_calibration="gyro")
+    )
+    monkeypatch.setattr(rerun_module, "worker_possible", lambda cpus=2: cpus <= 2)
+    monkeypatch.setattr(rerun_module, "worker_pays", lambda node: True)
+    monkeypatch.setattr(rerun_module, "share_here_pays", lambda cfg: heavy)
+    made: list[str] = []
+    init = LocalNode.__init__
+
+    def counted(self: LocalNode, node: Any) -> None:
+        made.append(node.name)
+        init(self, node)
+
+    monkeypatch.setattr(LocalNode, "__init__", counted)
+    res = rerun_fusion_records(read_session(GOLDEN).records, window_ns=None)
+    assert res.difference is None and res.n_recomputed > 1000
+    assert len(made) == (1 if heavy else 0)
+
+
 def test_the_first_share_holds_the_gate_reference_and_the_rest_is_balanced() -> None:
     from dataclasses import replace
 
