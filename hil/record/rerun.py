@@ -208,6 +208,11 @@ _Solutions = list[list[Replayed]]
 _Pending = tuple[Measurement, str, bool, bytes]
 
 
+def _decoded(batch: list[_Pending]) -> list[tuple[Measurement, str, bool]]:
+    """A batch as this process's share runs it (``LocalNode``): the messages already decoded."""
+    return [item[:3] for item in batch]
+
+
 def _encoded(batch: list[_Pending]) -> list[EncodedInput]:
     """A batch as a worker is sent it (``EncodedInput``): the recorded bytes, decoded there."""
     return [(payload, type(m), source, predicted) for m, source, predicted, payload in batch]
@@ -426,35 +431,28 @@ class _FusionRerun:
             self.in_flight, self.batch = self.batch, []
 
     def _send_split(self) -> None:
-        """Two workers: the first (with the gate's reference) one batch ahead of the second, which
-        takes that batch with the first's gate verdicts on it. Both replies are read before either
-        worker is sent more (a worker blocked writing a reply reads nothing): the first runs batch
-        N while the second runs N - 1 and this process reads N + 1 and compares N - 2."""
+        """Two cores: the first (with the gate's reference) one batch ahead of the second, which
+        takes that batch with the first's gate verdicts on it. A worker is sent more only once
+        its reply is read (a worker blocked writing a reply reads nothing), the first as soon as
+        it is: it runs batch N while the second runs N - 1 (a worker; ``LocalNode``: this process,
+        at once) and this process reads N + 1 and compares N - 2."""
         a, b, shares = self.remote, self.remote2, self.shares
         assert a is not None and b is not None and shares is not None
         done_a = None
         if self.in_flight is not None:
             done_a = (self.in_flight, *a.replayed_split())
             self.in_flight = None
-        if isinstance(b, LocalNode):  # the worker runs batch N while this process runs N - 1
-            if self.batch:
-                a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
-                self.in_flight, self.batch = self.batch, []
-            if done_a is not None:
-                batch, sols_a, verdicts = done_a
-                b.replay([item[:3] for item in batch], self.keep_outputs, shares[1], relay=verdicts or {})
-                self._merge(batch, sols_a, b.replayed())
-            return
+        if self.batch:
+            a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
+            self.in_flight, self.batch = self.batch, []
         if self.in_flight_b is not None:
             self._merge(*self.in_flight_b, b.replayed())
             self.in_flight_b = None
         if done_a is not None:
             batch, sols_a, verdicts = done_a
-            b.replay(_encoded(batch), self.keep_outputs, shares[1], relay=verdicts or {})
+            inputs = _decoded(batch) if isinstance(b, LocalNode) else _encoded(batch)
+            b.replay(inputs, self.keep_outputs, shares[1], relay=verdicts or {})
             self.in_flight_b = (batch, sols_a)
-        if self.batch:
-            a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
-            self.in_flight, self.batch = self.batch, []
 
     def _merge(self, batch: list[_Pending], sols_a: _Solutions, sols_b: _Solutions) -> None:
         """The two shares' solutions of each input, in one core's order, compared."""

@@ -424,14 +424,15 @@ class RemoteNode(ForkedChild):
 
 
 class LocalNode:
-    """The second core of a split ``hil rerun`` in this process (:class:`RemoteNode`'s interface):
-    on two CPUs a second worker would share them with this one, which reads and compares at a
-    fraction of a CPU. ``replay`` keeps a batch, ``replayed_split`` runs it (inputs decoded)."""
+    """The second core of a split ``hil rerun`` in this process, with :class:`RemoteNode`'s
+    interface: on two CPUs a second worker would share them with this one, which reads and
+    compares at a fraction of a CPU. ``replay`` runs the batch at once (inputs decoded): the
+    caller sends its worker the next one first, so both run meanwhile."""
 
     def __init__(self, node: Node) -> None:
         self.name = node.name
         self.node = node
-        self._pending: list[tuple[Any, ...]] = []
+        self._done: list[tuple[list[list[Replayed]], dict[str, bool | None] | None]] = []
 
     def replay(
         self,
@@ -441,16 +442,16 @@ class LocalNode:
         relay: dict[str, bool | None] | None = None,
         verdicts: bool = False,
     ) -> None:
-        self._pending.append((inputs, keep, only, relay, verdicts))
+        self._done.append(replay_split(self.node, inputs, keep, only, relay, verdicts))
 
     def replayed(self) -> list[list[Replayed]]:
         return self.replayed_split()[0]
 
     def replayed_split(self) -> tuple[list[list[Replayed]], dict[str, bool | None] | None]:
-        return replay_split(self.node, *self._pending.pop(0))
+        return self._done.pop(0)
 
     def close(self) -> None:
-        self._pending.clear()
+        self._done.clear()
 
 
 # a python-can frame as shipped to a tail (``portable``): pickling can.Message itself costs
