@@ -32,7 +32,7 @@ import numpy as np
 
 from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_bias_floats_of
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
-from hil.fusion.predictor import Motion, OutputPredictor, bias_floats, carry_rows
+from hil.fusion.predictor import NO_BIAS, Motion, OutputPredictor, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.earth import _origin_floats, ned_to_lla_one
 from hil.nav.types import NavState, nav_floats
@@ -568,7 +568,7 @@ class FusionCore:
         stream's numbers make it raise (a state gone non-finite: that one counted)."""
         pred = self.predictor
         assert pred is not None
-        rows = [(*p, *v, *q, 0.0 if b is None else 1.0, *bias_floats(b)) for _, p, v, q, b, _ in streams]
+        rows = [(*p, *v, *q, 0.0 if b is None else 1.0, *(b or NO_BIAS)) for _, p, v, q, b, _ in streams]
         dt, dq, dv, dp = motion
         (o0, o1, o2), c = _origin_floats(*self._origin)
         table: list[list[float]] | None

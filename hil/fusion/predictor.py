@@ -161,16 +161,15 @@ def _carry(
     )  # fmt: skip
 
 
-_NO_BIAS = (0.0,) * 6
+#: the carry's bias operands of a stream without biases (its flag says so)
+NO_BIAS = (0.0,) * 6
 
 
-def bias_floats(bias: tuple[F64, F64] | tuple[float, ...] | None) -> tuple[float, ...]:
-    """An estimator's IMU bias estimates (``b_g``, ``b_a``; or already their six floats,
-    ``hil.estimators.base.imu_bias_floats_of``) as the six floats the carry takes."""
+def bias_floats(bias: tuple[F64, F64] | None) -> tuple[float, ...] | None:
+    """An estimator's IMU bias estimates (``b_g``, ``b_a``) as the six floats the carry takes
+    (``b_g`` then ``b_a``: ``hil.estimators.base.imu_bias_floats_of`` gives them so)."""
     if bias is None:
-        return _NO_BIAS
-    if len(bias) == 6:
-        return bias  # type: ignore[return-value]
+        return None
     return (*np.asarray(bias[0], dtype=np.float64).tolist(), *np.asarray(bias[1], dtype=np.float64).tolist())
 
 
@@ -307,7 +306,7 @@ class OutputPredictor:
             np.asarray(nav.vel_ned_mps, dtype=np.float64).tolist(),
             np.asarray(nav.q_nb, dtype=np.float64).tolist(),
             motion,
-            bias,
+            bias_floats(bias),
         )
         return NavState(
             pos_ned_m=np.array(pos),
@@ -324,13 +323,13 @@ class OutputPredictor:
         vel: Sequence[float],
         q: Sequence[float],
         motion: Motion,
-        bias: tuple[F64, F64] | None = None,
+        bias: tuple[float, ...] | None = None,
     ) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
         """:meth:`predict` on position, velocity and attitude as Python floats (the fusion's
-        output path: no arrays built to be read back); the inputs come back as they are when
-        there is no motion."""
+        output path: no arrays built to be read back), ``bias`` as its six floats (``b_g`` then
+        ``b_a``); the inputs come back as they are when there is no motion."""
         dt, dq, dv, dp = motion
         if dt == 0.0 and dq == (1.0, 0.0, 0.0, 0.0):
             return pos, vel, q
-        r = _carry(*pos, *vel, *q, dt, *dq, *dv, *dp, self.g, bias is not None, *bias_floats(bias))
+        r = _carry(*pos, *vel, *q, dt, *dq, *dv, *dp, self.g, bias is not None, *(bias or NO_BIAS))
         return r[0:3], r[3:6], r[6:10]
