@@ -235,7 +235,7 @@ def test_the_compiled_output_rows_compute_the_python_bits() -> None:
         assert got.tobytes() == want.tobytes(), k
         for row, t in zip(rows, got.tolist(), strict=True):
             b = None if row[10] == 0.0 else tuple(row[11:17])
-            pos, vel, q = pred.predict_floats(row[0:3], row[3:6], row[6:10], motion, b)  # type: ignore[arg-type]
+            pos, vel, q = pred.predict_floats(row[0:3], row[3:6], row[6:10], motion, b)
             assert t[0:10] == [*pos, *vel, *q]
             finite = all(math.isfinite(v) for v in t[0:10])
             assert t[13] == (1.0 if finite else 0.0)
