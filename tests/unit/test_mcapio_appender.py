@@ -108,3 +108,71 @@ def test_queued_record_ending_exactly_at_the_chunk_size_keeps_the_chunk_open(tmp
     slow = _write(tmp_path / "slow.mcap", False, rows)
     queued = _write_queued(tmp_path / "queued.mcap", rows)
     assert queued == slow
+
+
+def test_queued_drains_of_every_size_write_the_library_bytes(tmp_path: Path) -> None:
+    """Drains on both sides of ``BATCH_MIN`` (one at a time below it, the batch from it on)
+    make one file: the library's."""
+    rows = _rows(7, 2500)
+    cls = next(iter(TYPES_BY_NAME.values()))
+    lib = mcapio.SessionWriter(tmp_path / "slow.mcap", chunk_size=4096, spill_index=False)
+    lib._add_message = lib._writer.add_message
+    for topic, data, log, pub, seq in rows:
+        lib.write(topic, cls, data, log_time_ns=log, publish_time_ns=pub, seq=seq)
+    lib.close()
+    w = mcapio.SessionWriter(tmp_path / "sizes.mcap", chunk_size=4096, spill_index=False)
+    sizes = [1, 2, mcapio.BATCH_MIN - 1, mcapio.BATCH_MIN, mcapio.BATCH_MIN + 1, 3, 300, 17]
+    at, k, q = 0, 0, w.queue
+    while at < len(rows):
+        n = sizes[k % len(sizes)]
+        for topic, data, log, pub, seq in rows[at : at + n]:
+            q.chans.append(w.channel(topic, cls))
+            q.logs.append(log)
+            q.datas.append(data)
+            q.pubs.append(pub)
+            q.seqs.append(seq)
+        w._drain()
+        at, k = at + n, k + 1
+    w.close()
+    assert (tmp_path / "sizes.mcap").read_bytes() == (tmp_path / "slow.mcap").read_bytes()
+
+
+def test_a_small_drain_takes_the_one_at_a_time_path(tmp_path: Path) -> None:
+    """A live recorder writes its Foxglove messages one by one: a batch of one through numpy
+    cost ~37 µs against ~2 µs (docs/benchmarks.md, rig-session31)."""
+    from hil.wellknown import Derived
+
+    w = mcapio.SessionWriter(tmp_path / "a.mcap", spill_index=False)
+    batches: list[int] = []
+    many = w._add_many
+    assert many is not None
+
+    def spy(chans: list[int], *rest: object) -> None:
+        batches.append(len(chans))
+        many(chans, *rest)  # type: ignore[arg-type]
+
+    w._add_many = spy
+    for i in range(50):
+        w.write_wellknown(Derived("/foxglove/fix/nav/ins", "foxglove.LocationFix", b"{}", i), log_time_ns=i)
+    cls = next(iter(TYPES_BY_NAME.values()))
+    chan = w.channel("hil/t/0", cls)
+    for n in (5, mcapio.BATCH_MIN):  # a few queued, then a batch's worth
+        for i in range(n):
+            w.queue.chans.append(chan)
+            w.queue.logs.append(100 + i)
+            w.queue.datas.append(b"{}")
+            w.queue.pubs.append(100 + i)
+            w.queue.seqs.append(i)
+        w.flush()
+    w.close()
+    assert batches == [mcapio.BATCH_MIN]
+    assert _counts(tmp_path / "a.mcap") == {"/foxglove/fix/nav/ins": 50, "hil/t/0": 5 + mcapio.BATCH_MIN}
+
+
+def _counts(path: Path) -> dict[str, int]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None and summary.statistics is not None
+    return {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
