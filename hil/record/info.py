@@ -239,22 +239,20 @@ def describe(path: str, *, accuracy: bool = True) -> str:
         )
         lines.append(f"restarts:  {len(restarted)} publisher(s) restarted during the recording: {names}")
     lines.append("")
-    rst = f"{'restarts':>9}" if restarted else ""
-    lines.append(f"{'topic':<34}{'type':<25}{'count':>8}{'rate Hz':>10}{'gaps':>7}{'dups':>6}{rst}")
-    for c in infos:
-        rst = f"{c.restarts:>9}" if restarted else ""
-        lines.append(
-            f"{c.topic:<34}{c.schema:<25}{c.count:>8}{c.rate_hz:>10.2f}{c.missing:>7}{c.duplicates:>6}{rst}"
-        )
+    rst = f" {'restarts':>8}" if restarted else ""
+    lines.append(f"{'topic':<33} {'type':<24} {'count':>7} {'rate Hz':>9} {'gaps':>6} {'dups':>5}{rst}")
+    for c in infos:  # a space before every column: a long topic or a large count never runs on
+        rst = f" {c.restarts:>8}" if restarted else ""
+        row = f"{c.topic:<33} {c.schema:<24} {c.count:>7} {c.rate_hz:>9.2f}"
+        lines.append(f"{row} {c.missing:>6} {c.duplicates:>5}{rst}")
     if accuracy:
         errs = summary.estimator_errors()
         if errs:
             lines.append("")
-            lines.append(f"{'estimator':<12}{'horiz RMS m':>12}{'95% m':>10}{'max m':>10}{'final m':>10}")
-            for name, e in sorted(errs.items()):
-                lines.append(
-                    f"{name:<12}{e['rms_m']:>12.2f}{e['p95_m']:>10.2f}{e['max_m']:>10.2f}{e['final_m']:>10.2f}"
-                )
+            lines.append(f"{'estimator':<11} {'horiz RMS m':>11} {'95% m':>9} {'max m':>9} {'final m':>9}")
+            for name, e in sorted(errs.items()):  # a free INS over hours drifts to 10⁶ m: columns stay apart
+                rms, p95, top, final = e["rms_m"], e["p95_m"], e["max_m"], e["final_m"]
+                lines.append(f"{name:<11} {rms:>11.2f} {p95:>9.2f} {top:>9.2f} {final:>9.2f}")
     return "\n".join(lines)
 
 

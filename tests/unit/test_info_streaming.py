@@ -68,3 +68,35 @@ def test_describe_holds_a_fraction_of_what_reading_the_session_whole_does(tmp_pa
         tracemalloc.stop()
     assert len(whole.records) == 100_000 and "hil/t/capture/imu3" in text
     assert streamed_peak < whole_peak / 5, (streamed_peak, whole_peak)
+
+
+def test_large_figures_keep_their_columns_apart(tmp_path: Path) -> None:
+    """A free INS over hours drifts by 10⁶ m: its errors printed as ``863771.752275713.02...``
+    ran together. Every row of both tables splits into its columns."""
+    from hil.messages import NavSolution, Truth
+
+    w = SessionWriter(tmp_path / "drift.mcap", spill_index=False)
+    zero, q = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    for i in range(20):
+        t = 1_000_000_000 * (i + 1)
+        truth = Truth(
+            seq=i, stamp_ns=t, lat_deg=50.0, lon_deg=30.0, alt_m=0.0, pos_ned_m=zero,
+            vel_ned_mps=zero, q_nb=q, f_b_mps2=zero, w_ib_b_radps=zero,
+        )  # fmt: skip
+        nav = NavSolution(
+            seq=i, stamp_ns=t, estimator="ins", pos_ned_m=[1.0e6 * (i + 1), 2.5e6, 0.0],
+            vel_ned_mps=zero, q_nb=q, lat_deg=50.0, lon_deg=30.0, alt_m=0.0,
+        )  # fmt: skip
+        for key, cls, msg in (
+            ("hil/t/truth", Truth, truth),
+            ("hil/t/a_very_long_topic_name_of_a_nav/ins", NavSolution, nav),
+        ):
+            w.write(key, cls, encode(msg), log_time_ns=t, publish_time_ns=t, seq=i)
+    w.close()
+    lines = describe(str(tmp_path / "drift.mcap")).splitlines()
+    head = lines.index(next(x for x in lines if x.startswith("topic")))
+    rows = lines[head + 1 : lines.index("", head)]
+    assert len(rows) == 2 and all(len(r.split()) == 6 for r in rows), rows
+    ins = next(x for x in lines if x.startswith("ins "))
+    rms, p95, top, final = (float(v) for v in ins.split()[1:])
+    assert top == final > 2.0e7 and rms > 1.0e7 and p95 > 1.0e7
