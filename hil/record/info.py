@@ -21,7 +21,7 @@ import msgspec
 import numpy as np
 
 from hil.record.completeness import Completeness
-from hil.record.mcapio import Record, Session, stream_session
+from hil.record.mcapio import FOREIGN_ORIGIN, Record, Session, stream_session
 
 
 class _Seq(msgspec.Struct):
@@ -71,34 +71,42 @@ class Summary:
         self.nav: dict[str, tuple[array[int], array[float], array[float]]] = {}
 
     def add(self, r: Record) -> None:
-        topic = r.topic
-        if r.foreign:
-            self.foreign_topics[topic] = self.foreign_topics.get(topic, 0) + 1
-            self.publishers.add(r.publisher)
-            return
-        self.comp.see(topic, record_seq(r))
-        t = r.log_time_ns
-        sp = self.spans.get(topic)
-        if sp is None:
-            self.spans[topic] = [t, t]
-            self.schemas[topic] = r.schema
-            self.counts[topic] = 1
-        else:
-            if t < sp[0]:
-                sp[0] = t
-            elif t > sp[1]:  # (t < first <= last: never both)
-                sp[1] = t
-            self.counts[topic] += 1
-        if not self.accuracy:
-            return
-        if r.schema == "hil.Truth":
-            self._row(self.truth, r.decode())
-        elif r.schema == "hil.NavSolution":
-            m = r.decode()
-            rows = self.nav.get(m.estimator)  # type: ignore[attr-defined]
-            if rows is None:
-                rows = self.nav[m.estimator] = (array("q"), array("d"), array("d"))  # type: ignore[attr-defined]
-            self._row(rows, m)
+        self.add_many((r,))
+
+    def add_many(self, records: Iterable[Record]) -> None:
+        """Each record in turn, as it is read (a chunk's at once: ``stream_session(on_batch=)``):
+        the lookups hoisted out of the loop, a 12000 s file is 36 M records."""
+        spans, counts, see, accuracy = self.spans, self.counts, self.comp.see, self.accuracy
+        for r in records:
+            topic = r.topic
+            if r.origin == FOREIGN_ORIGIN:
+                self.foreign_topics[topic] = self.foreign_topics.get(topic, 0) + 1
+                self.publishers.add(r.publisher)
+                continue
+            see(topic, record_seq(r))
+            t = r.log_time_ns
+            sp = spans.get(topic)
+            if sp is None:
+                spans[topic] = [t, t]
+                self.schemas[topic] = r.schema
+                counts[topic] = 1
+            else:
+                if t < sp[0]:
+                    sp[0] = t
+                elif t > sp[1]:  # (t < first <= last: never both)
+                    sp[1] = t
+                counts[topic] += 1
+            if not accuracy:
+                continue
+            schema = r.schema
+            if schema == "hil.Truth":
+                self._row(self.truth, r.decode())
+            elif schema == "hil.NavSolution":
+                m = r.decode()
+                rows = self.nav.get(m.estimator)  # type: ignore[attr-defined]
+                if rows is None:
+                    rows = self.nav[m.estimator] = (array("q"), array("d"), array("d"))  # type: ignore[attr-defined]
+                self._row(rows, m)
 
     @staticmethod
     def _row(rows: tuple[array[int], array[float], array[float]], m: Any) -> None:
@@ -174,7 +182,7 @@ def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
 def _scan(path: str | Path, *, derived: bool, accuracy: bool) -> tuple[Summary, Session]:
     """The file streamed once into a Summary; the Session holds its metadata and truncation."""
     summary = Summary(accuracy)
-    return summary, stream_session(path, summary.add, derived=derived)
+    return summary, stream_session(path, summary.add, derived=derived, on_batch=summary.add_many)
 
 
 def describe(path: str, *, accuracy: bool = True) -> str:

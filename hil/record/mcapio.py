@@ -1197,20 +1197,29 @@ def read_session(path: str | Path, *, derived: bool = False) -> Session:
 
 
 def stream_session(
-    path: str | Path, on_message: Callable[[Record], None], *, derived: bool = False
+    path: str | Path,
+    on_message: Callable[[Record], None],
+    *,
+    derived: bool = False,
+    on_batch: Callable[[list[Record]], None] | None = None,
 ) -> Session:
     """``read_session`` without keeping the messages: each goes to ``on_message`` as it is read
     (a 12000 s session is 36 M of them); the returned Session has the metadata, attachments and
-    truncation, and no records."""
+    truncation, and no records. ``on_batch``: a chunk's messages as one list instead, in file
+    order (a caller with a loop of its own saves a call and a generator step a message)."""
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"no recording at {path}")
     session = Session(path=path, records=[])
     n = 0
-    for kind, rec in iter_records(path, derived=derived):
-        if kind == "message":
-            on_message(rec)
-            n += 1
+    for kind, rec in _iter_items(path, derived=derived):
+        if kind == "messages":
+            if on_batch is not None:
+                on_batch(rec)
+            else:
+                for r in rec:
+                    on_message(r)
+            n += len(rec)
         elif kind == "metadata":
             session.metadata[rec.name] = dict(rec.metadata)
         elif kind == "attachment":
