@@ -112,28 +112,11 @@ def test_a_chunk_at_once_gives_what_one_message_at_a_time_gives(tmp_path: Path) 
     seqs = [*range(0, 300), *range(310, 600), *((1 << 32) + k for k in range(5, 200))]  # a gap, a restart
     for i, seq in enumerate(seqs):
         t = 1_000_000_000 + i * 2_500_000
-        msg = CaptureTruth(seq=seq, stamp_ns=t, sensor="imu", true_stamp_ns=t)
-        w.write(
-            "hil/t/capture/imu",
-            CaptureTruth,
-            encode(msg),
-            log_time_ns=t,
-            publish_time_ns=t,
-            seq=seq,
-            publisher="aa",
-            origin="rig",
-        )
-        if i % 9 == 0:
-            w.write(
-                "hil/t/capture/imu",
-                CaptureTruth,
-                encode(msg),
-                log_time_ns=t,
-                publish_time_ns=t,
-                seq=i,
-                publisher="ff",
-                origin="foreign",
-            )
+        data = encode(CaptureTruth(seq=seq, stamp_ns=t, sensor="imu", true_stamp_ns=t))
+        senders = [("aa", "rig", seq), ("ff", "foreign", i)] if i % 9 == 0 else [("aa", "rig", seq)]
+        for who, origin, n in senders:
+            kw = {"log_time_ns": t, "publish_time_ns": t, "seq": n, "publisher": who, "origin": origin}
+            w.write("hil/t/capture/imu", CaptureTruth, data, **kw)  # type: ignore[arg-type]
     w.close()
     batched, _ = _scan(path, derived=False, accuracy=True)
     one_by_one = Summary()
