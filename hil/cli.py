@@ -451,7 +451,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         from hil.record.info import describe
 
         print()
-        print(describe(str(record)))
+        print(describe(str(record), parallel=True))
     return 0
 
 
@@ -492,7 +492,8 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
 def cmd_info(a: argparse.Namespace) -> int:
     from hil.record.info import describe, info_json
 
-    print(info_json(a.file) if a.json else describe(a.file, accuracy=not a.no_accuracy))
+    accuracy = not a.no_accuracy
+    print(info_json(a.file, parallel=True) if a.json else describe(a.file, accuracy=accuracy, parallel=True))
     return 0
 
 

@@ -108,6 +108,29 @@ class SeqTracker:
         if g == seq_generation(self.last):
             self.last = max(self.last, gen.last)
 
+    def see_run(self, first: int, n: int) -> None:
+        """``see`` of ``first``, ``first + 1``, ... ``first + n - 1`` in turn (one restart
+        generation): a stream counted elsewhere in runs of consecutive seqs (``hil.record.info``'s
+        second reader), with the same result as each seen one by one."""
+        if n <= 0:
+            return
+        g = first >> SEQ_GENERATION_SHIFT
+        last = first + n - 1
+        assert last >> SEQ_GENERATION_SHIFT == g, "a run within one generation"
+        seq = first
+        while seq <= last:
+            gen = self.generations.get(g)
+            if gen is not None and gen.last == seq - 1:  # the rest all take see's first branch
+                k = last - seq + 1
+                self.count += k
+                gen.count += k
+                gen.last = last
+                if last > self.last and g == self.last >> SEQ_GENERATION_SHIFT:
+                    self.last = last
+                return
+            self.see(seq)
+            seq += 1
+
     def _new_generation(self, g: int, seq: int) -> None:
         if self.first < 0:
             self.generations[g] = _Generation(g, seq, seq)
@@ -187,6 +210,13 @@ class Completeness:
         if tr is None:
             tr = self.topics[topic] = SeqTracker()
         tr.see(seq)
+
+    def see_run(self, topic: str, first: int, n: int) -> None:
+        """``see`` of ``n`` consecutive seqs from ``first`` (``SeqTracker.see_run``)."""
+        tr = self.topics.get(topic)
+        if tr is None:
+            tr = self.topics[topic] = SeqTracker()
+        tr.see_run(first, n)
 
     def holds(self, topic: str, seq: int) -> bool:
         """Whether ``topic``'s ``seq`` was seen (``SeqTracker.holds``)."""

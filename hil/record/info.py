@@ -20,8 +20,17 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from hil.messages import SEQ_GENERATION_SHIFT
 from hil.record.completeness import Completeness
-from hil.record.mcapio import FOREIGN_ORIGIN, Record, Session, stream_session
+from hil.record.mcapio import (
+    FOREIGN_ORIGIN,
+    FilePart,
+    Record,
+    RecordingError,
+    Session,
+    file_halves,
+    stream_session,
+)
 
 
 class _Seq(msgspec.Struct):
@@ -179,14 +188,123 @@ def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
     return summarise(session.records).estimator_errors()
 
 
-def _scan(path: str | Path, *, derived: bool, accuracy: bool) -> tuple[Summary, Session]:
-    """The file streamed once into a Summary; the Session holds its metadata and truncation."""
+class _SeqRuns:
+    """Each topic's seqs as runs of consecutive ones, ``[first, n]``, in file order: what the
+    second reader of a file gives the first, which counts them after its own (``_merge``)."""
+
+    def __init__(self) -> None:
+        self.topics: dict[str, list[list[int]]] = {}
+
+    def see(self, topic: str, seq: int) -> None:
+        runs = self.topics.get(topic)
+        if runs is None:
+            self.topics[topic] = [[seq, 1]]
+            return
+        run = runs[-1]
+        if seq == run[0] + run[1] and seq >> SEQ_GENERATION_SHIFT == run[0] >> SEQ_GENERATION_SHIFT:
+            run[1] += 1
+        else:
+            runs.append([seq, 1])
+
+
+# from this size on a file is read by two processes at once, each half of it (on two CPUs and
+# where fork exists). Reading and counting, one pass against two halves (2026-12-06): 41 MB
+# 1.58 against 0.82 s, 28 MB 0.89 against 0.48 s, 12 MB 0.36 against 0.20 s, 1.3 MB 40 against
+# 29 ms; below a few MB a fork is not worth a process
+PARALLEL_MIN_BYTES = 4 * 2**20
+
+
+def _scan(
+    path: str | Path, *, derived: bool, accuracy: bool, parallel: bool = False
+) -> tuple[Summary, Session]:
+    """The file streamed once into a Summary; the Session holds its metadata and truncation.
+    ``parallel``: a large finished file is read in two halves at once (``_scan_halves``)."""
+    halves = _halves(path) if parallel else None
+    if halves is not None:
+        return _scan_halves(path, halves, derived=derived, accuracy=accuracy)
     summary = Summary(accuracy)
     return summary, stream_session(path, summary.add, derived=derived, on_batch=summary.add_many)
 
 
-def describe(path: str, *, accuracy: bool = True) -> str:
-    summary, s = _scan(path, derived=True, accuracy=accuracy)  # the Foxglove channels are listed too
+def _halves(path: str | Path) -> tuple[FilePart, FilePart] | None:
+    from hil.runners.sim_worker import worker_possible
+
+    try:
+        big = Path(path).stat().st_size >= PARALLEL_MIN_BYTES
+    except OSError:
+        return None
+    return file_halves(path) if big and worker_possible() else None
+
+
+def _scan_part(
+    path: str, part: FilePart, derived: bool, accuracy: bool, runs: bool = True
+) -> tuple[Summary, Session]:
+    """A part of the file; ``runs``: its seqs as runs, not yet counted (the second half, in a
+    forked process)."""
+    summary = Summary(accuracy)
+    if runs:
+        summary.comp = _SeqRuns()  # type: ignore[assignment]
+    return summary, stream_session(path, summary.add, derived=derived, on_batch=summary.add_many, part=part)
+
+
+def _scan_halves(
+    path: str | Path, halves: tuple[FilePart, FilePart], *, derived: bool, accuracy: bool
+) -> tuple[Summary, Session]:
+    """The first half here while a forked process reads the second; then the second's figures
+    added to the first's as if read after them (the very figures of one pass)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    first, second = halves
+    try:
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
+            later = pool.submit(_scan_part, str(path), second, derived, accuracy)
+            summary, session = _scan_part(str(path), first, derived, accuracy, runs=False)
+            if session.truncated:  # one pass stops at the damage: what follows it is not read
+                later.cancel()
+                return summary, session
+            rest, rest_session = later.result()
+    except (BrokenProcessPool, OSError, RecordingError):  # a half that says nothing alone, or the
+        return _scan(path, derived=derived, accuracy=accuracy)  # second process died: one pass
+    _merge(summary, rest)
+    for name, meta in rest_session.metadata.items():
+        session.metadata[name] = meta
+    session.attachments.update(rest_session.attachments)
+    session.truncated, session.truncation_reason = rest_session.truncated, rest_session.truncation_reason
+    return summary, session
+
+
+def _merge(summary: Summary, rest: Summary) -> None:
+    """``rest`` (read after ``summary``'s messages, its seqs as ``_SeqRuns``) into ``summary``."""
+    assert isinstance(rest.comp, _SeqRuns)
+    for topic, runs in rest.comp.topics.items():
+        for first, n in runs:
+            summary.comp.see_run(topic, first, n)
+    for topic, (a, b) in rest.spans.items():
+        sp = summary.spans.get(topic)
+        if sp is None:
+            summary.spans[topic] = [a, b]
+            summary.schemas[topic] = rest.schemas[topic]
+            summary.counts[topic] = rest.counts[topic]
+        else:
+            sp[0], sp[1] = min(sp[0], a), max(sp[1], b)
+            summary.counts[topic] += rest.counts[topic]
+    for topic, n in rest.foreign_topics.items():
+        summary.foreign_topics[topic] = summary.foreign_topics.get(topic, 0) + n
+    summary.publishers |= rest.publishers
+    for mine, theirs in zip(summary.truth, rest.truth, strict=True):
+        mine.extend(theirs)  # type: ignore[arg-type]
+    for name, rows in rest.nav.items():
+        mine_rows = summary.nav.setdefault(name, (array("q"), array("d"), array("d")))
+        for mine, theirs in zip(mine_rows, rows, strict=True):
+            mine.extend(theirs)  # type: ignore[arg-type]
+
+
+def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str:
+    """What ``hil info`` prints. ``parallel``: a large file read by two processes at once (a
+    command's own process, which may fork: not a live rig's supervisor)."""
+    summary, s = _scan(path, derived=True, accuracy=accuracy, parallel=parallel)  # Foxglove's listed too
     infos = summary.channel_infos()
     t0 = min((c.first_ns for c in infos), default=0)
     t1 = max((c.last_ns for c in infos), default=0)
@@ -264,8 +382,8 @@ def describe(path: str, *, accuracy: bool = True) -> str:
     return "\n".join(lines)
 
 
-def info_json(path: str) -> str:
-    summary, s = _scan(path, derived=False, accuracy=True)
+def info_json(path: str, *, parallel: bool = False) -> str:
+    summary, s = _scan(path, derived=False, accuracy=True, parallel=parallel)
     return json.dumps(
         {
             "channels": [c.__dict__ for c in summary.channel_infos()],

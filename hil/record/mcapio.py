@@ -851,6 +851,37 @@ def iter_records(
             yield kind, rec
 
 
+@dataclass(frozen=True)
+class FilePart:
+    """A stretch of a finished file's data section, from the chunk at ``start`` to the record at
+    ``stop`` (None: to the end), with the schemas and channels of its summary section: a reader
+    that begins past the file's start knows every channel the records there refer to."""
+
+    start: int
+    stop: int | None
+    schemas: tuple[Schema, ...] = ()
+    channels: tuple[Channel, ...] = ()
+
+
+def file_halves(path: str | Path) -> tuple[FilePart, FilePart] | None:
+    """The file in two parts of about equal bytes, split at a chunk, for two readers at once;
+    None when it has no summary with at least two chunks (a file cut short, a small one)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except Exception:  # a file without a readable summary is read in one pass, as ever
+        return None
+    if summary is None or len(summary.chunk_indexes) < 2:
+        return None
+    starts = sorted(c.chunk_start_offset for c in summary.chunk_indexes)
+    end = max(c.chunk_start_offset + c.chunk_length for c in summary.chunk_indexes)
+    mid = min(starts[1:], key=lambda o: abs(o - (starts[0] + end) / 2))
+    defs = tuple(summary.schemas.values()), tuple(summary.channels.values())
+    return FilePart(0, mid), FilePart(mid, None, *defs)
+
+
 def _iter_items(
     path: str | Path,
     on_progress: Callable[[int, int], None] | None = None,
@@ -858,10 +889,11 @@ def _iter_items(
     derived: bool = False,
     header: bool = False,
     keep: Callable[[str], bool] | None = None,
+    part: FilePart | None = None,
 ) -> Iterator[tuple[str, Any]]:
     """``iter_records``' items, but a chunk's messages as one ``("messages", [Record, ...])``
     item: a reader that takes them in a batch (``SessionStream``) skips a generator step and a
-    tuple per message."""
+    tuple per message. ``part``: only that stretch of the file (``file_halves``)."""
     try:
         fh = open(path, "rb")  # noqa: SIM115
         size = os.fstat(fh.fileno()).st_size
@@ -870,7 +902,7 @@ def _iter_items(
     with fh:
         reader = _FastReader(fh, size, on_progress, derived, header, keep)
         try:
-            yield from reader.records()
+            yield from reader.records(part)
         except Exception as err:  # McapError, EOF, zstd errors on a half-written chunk and similar
             yield from reader.tail()
             yield "truncated", f"{type(err).__name__}: {err}"
@@ -942,11 +974,23 @@ class _FastReader:
             meta.get("origin", ""),
         )
 
-    def records(self) -> Iterator[tuple[str, Any]]:
-        if self._read(len(MAGIC)) != MAGIC:
+    def records(self, part: FilePart | None = None) -> Iterator[tuple[str, Any]]:
+        stop = None
+        if part is not None and part.start > 0:
+            for schema in part.schemas:
+                self.schemas[schema.id] = schema
+            for channel in part.channels:
+                self._channel(channel)
+            self.fh.seek(part.start)
+        elif self._read(len(MAGIC)) != MAGIC:
             raise InvalidMagic(MAGIC)
-        read, head = self._read, _RECORD_HEAD
+        if part is not None:
+            stop = part.stop
+        read, head, tell = self._read, _RECORD_HEAD, self.fh.tell
         while True:
+            if stop is not None and tell() >= stop:
+                yield from self.tail()
+                return
             opcode, length = head.unpack(read(head.size))
             if length > _RECORD_SIZE_LIMIT:
                 raise RecordLengthLimitExceeded(opcode, length, _RECORD_SIZE_LIMIT)
@@ -1202,17 +1246,19 @@ def stream_session(
     *,
     derived: bool = False,
     on_batch: Callable[[list[Record]], None] | None = None,
+    part: FilePart | None = None,
 ) -> Session:
     """``read_session`` without keeping the messages: each goes to ``on_message`` as it is read
     (a 12000 s session is 36 M of them); the returned Session has the metadata, attachments and
     truncation, and no records. ``on_batch``: a chunk's messages as one list instead, in file
-    order (a caller with a loop of its own saves a call and a generator step a message)."""
+    order (a caller with a loop of its own saves a call and a generator step a message).
+    ``part``: that stretch of the file only (``file_halves``)."""
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"no recording at {path}")
     session = Session(path=path, records=[])
     n = 0
-    for kind, rec in _iter_items(path, derived=derived):
+    for kind, rec in _iter_items(path, derived=derived, part=part):
         if kind == "messages":
             if on_batch is not None:
                 on_batch(rec)

@@ -1,0 +1,151 @@
+"""``hil info`` reads a large file in two halves at once: the figures are those of one pass."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil.messages import SEQ_GENERATION_SHIFT, CaptureTruth, EstimatorHealth, encode
+from hil.record.completeness import SeqTracker
+from hil.record.info import _scan, _scan_halves, _SeqRuns, describe, info_json
+from hil.record.mcapio import SessionWriter, file_halves
+from hil.runners.sim_worker import worker_possible
+
+GOLDEN = Path(__file__).parents[1] / "replay" / "golden" / "straight_level_4s.mcap"
+
+
+def _stream(seed: int) -> list[int]:
+    """A publisher's seqs as a bus may deliver them: runs, gaps, repeats, late ones, restarts,
+    forged far-ahead ones and a generation that does not start near 0."""
+    g = np.random.default_rng(seed)
+    out, seq, gen = [], int(g.integers(0, 50)), 0
+    for _ in range(400):
+        what = g.random()
+        if what < 0.55:
+            n = int(g.integers(1, 40))
+            out += [(gen << SEQ_GENERATION_SHIFT) + seq + k for k in range(n)]
+            seq += n
+        elif what < 0.7:
+            seq += int(g.integers(1, 20))  # a gap
+        elif what < 0.8 and out:
+            out.append(out[-int(g.integers(1, min(len(out), 30) + 1))])  # a repeat or a late one
+        elif what < 0.85:
+            gen, seq = gen + 1, int(g.integers(0, 5))  # a restart
+        elif what < 0.9:
+            out.append((gen << SEQ_GENERATION_SHIFT) + seq + 10**6)  # forged, far ahead
+        elif what < 0.93:
+            out.append(((gen + 3) << SEQ_GENERATION_SHIFT) + 10**6)  # a "generation" not near 0
+        else:
+            out.append(max(0, seq - int(g.integers(1, 60))))  # an old one, maybe of generation 0
+    return out
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_runs_counted_after_a_first_part_give_one_pass_figures(seed: int) -> None:
+    seqs = _stream(seed)
+    for cut in (0, len(seqs) // 3, len(seqs) // 2, len(seqs) - 1):
+        one = SeqTracker()
+        for s in seqs:
+            one.see(s)
+        split, runs = SeqTracker(), _SeqRuns()
+        for s in seqs[:cut]:
+            split.see(s)
+        for s in seqs[cut:]:
+            runs.see("t", s)
+        for first, n in runs.topics.get("t", []):
+            split.see_run(first, n)
+        assert split.summary() == one.summary(), (seed, cut)
+        assert split.count == len(seqs)
+
+
+def _mixed(path: Path) -> Path:
+    """A file of many small chunks: gaps, a restart, a foreign publisher, metadata at the end."""
+    w = SessionWriter(path, chunk_size=4096, spill_index=False)
+    seqs = [*range(0, 900), *range(950, 1800), *((1 << 32) + k for k in range(3, 700)), 40, 2000]
+    for i, seq in enumerate(seqs):
+        t = 1_000_000_000 + i * 2_500_000
+        data = encode(CaptureTruth(seq=seq, stamp_ns=t, sensor="imu", true_stamp_ns=t))
+        senders = [("aa", "rig", seq), ("ff", "foreign", i)] if i % 11 == 0 else [("aa", "rig", seq)]
+        for who, origin, n in senders:
+            kw = {"log_time_ns": t, "publish_time_ns": t, "seq": n, "publisher": who, "origin": origin}
+            w.write("hil/t/capture/imu", CaptureTruth, data, **kw)  # type: ignore[arg-type]
+        if i == 2000:  # a topic that first appears in the second half
+            health = EstimatorHealth(seq=0, stamp_ns=t, estimator="ekf15")
+            w.write(
+                "hil/t/health/ekf15", EstimatorHealth, encode(health), log_time_ns=t, publish_time_ns=t, seq=0
+            )
+    w.add_metadata("completeness", {"missing": "50", "replay_ready": "true"})
+    w.close()
+    return path
+
+
+@pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
+@pytest.mark.parametrize("make", ["golden", "mixed"])
+def test_two_halves_give_the_one_pass_text_and_json(tmp_path: Path, make: str) -> None:
+    path = GOLDEN if make == "golden" else _mixed(tmp_path / "mixed.mcap")
+    halves = file_halves(path)
+    assert halves is not None and 0 < halves[1].start < path.stat().st_size
+    for derived in (True, False):
+        one, s1 = _scan(path, derived=derived, accuracy=True)
+        two, s2 = _scan_halves(path, halves, derived=derived, accuracy=True)
+        assert two.channel_infos() == one.channel_infos()
+        assert two.foreign_summary() == one.foreign_summary()
+        assert two.estimator_errors() == one.estimator_errors()
+        assert {t: tr.summary() for t, tr in two.comp.topics.items()} == {
+            t: tr.summary() for t, tr in one.comp.topics.items()
+        }
+        assert (s2.metadata, s2.attachments, s2.truncated) == (s1.metadata, s1.attachments, s1.truncated)
+    if make == "mixed":
+        (imu,) = [c for c in one.channel_infos() if c.topic.endswith("capture/imu")]
+        assert (imu.missing, imu.restarts) == (
+            50 + 200,
+            1,
+        )  # 900-949, then 1800-1999 (2000 after the restart)
+        assert two.comp.topics[imu.topic].out_of_order == 1  # 40 of the first generation, late
+        assert any(c.topic.endswith("health/ekf15") for c in two.channel_infos())
+
+
+@pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
+@pytest.mark.parametrize("where", ["first half", "second half", "second half's start"])
+def test_damage_stops_both_readings_where_one_pass_stops(tmp_path: Path, where: str) -> None:
+    """One pass stops at a damaged chunk and reports it; what follows is not counted either."""
+    path = _mixed(tmp_path / "damaged.mcap")
+    halves = file_halves(path)
+    assert halves is not None
+    data = bytearray(path.read_bytes())
+    mid = halves[1].start
+    at = {
+        "first half": mid // 2,
+        "second half": mid + (len(data) - mid) // 3,
+        "second half's start": mid + 40,
+    }[where]
+    data[at : at + 64] = b"\xff" * 64
+    path.write_bytes(bytes(data))
+    one, s1 = _scan(path, derived=True, accuracy=True)
+    two, s2 = _scan_halves(path, halves, derived=True, accuracy=True)
+    assert s1.truncated and s2.truncated and s2.truncation_reason == s1.truncation_reason
+    assert two.channel_infos() == one.channel_infos()
+    assert 0 < sum(c.count for c in one.channel_infos()) < 2500
+
+
+def test_a_small_file_is_read_in_one_pass_and_says_the_same(tmp_path: Path) -> None:
+    path = _mixed(tmp_path / "small.mcap")
+    assert describe(str(path), parallel=True) == describe(str(path))
+    assert info_json(str(path), parallel=True) == info_json(str(path))
+
+
+def test_a_run_never_crosses_into_the_next_generation() -> None:
+    """Consecutive numbers across 2**32 are two generations' seqs: two runs, counted as
+    one pass counts them."""
+    top = 1 << SEQ_GENERATION_SHIFT
+    seqs = [*range(top - 5, top + 3)]
+    one, split, runs = SeqTracker(), SeqTracker(), _SeqRuns()
+    for s in seqs:
+        one.see(s)
+        runs.see("t", s)
+    assert runs.topics["t"] == [[top - 5, 5], [top, 3]]
+    for first, n in runs.topics["t"]:
+        split.see_run(first, n)
+    assert split.summary() == one.summary()
