@@ -9,8 +9,8 @@ import pytest
 
 from hil.messages import SEQ_GENERATION_SHIFT, CaptureTruth, EstimatorHealth, encode
 from hil.record.completeness import SeqTracker
-from hil.record.info import _scan, _scan_halves, _SeqRuns, describe, info_json
-from hil.record.mcapio import SessionWriter, file_halves
+from hil.record.info import Summary, _scan, _scan_halves, _SeqRuns, describe, info_json
+from hil.record.mcapio import SessionWriter, file_halves, iter_records
 from hil.runners.sim_worker import worker_possible
 
 GOLDEN = Path(__file__).parents[1] / "replay" / "golden" / "straight_level_4s.mcap"
@@ -60,11 +60,13 @@ def test_runs_counted_after_a_first_part_give_one_pass_figures(seed: int) -> Non
         assert split.count == len(seqs)
 
 
+_MIXED_SEQS = [*range(0, 900), *range(950, 1800), *((1 << 32) + k for k in range(3, 700)), 40, 2000]
+
+
 def _mixed(path: Path) -> Path:
     """A file of many small chunks: gaps, a restart, a foreign publisher, metadata at the end."""
     w = SessionWriter(path, chunk_size=4096, spill_index=False)
-    seqs = [*range(0, 900), *range(950, 1800), *((1 << 32) + k for k in range(3, 700)), 40, 2000]
-    for i, seq in enumerate(seqs):
+    for i, seq in enumerate(_MIXED_SEQS):
         t = 1_000_000_000 + i * 2_500_000
         data = encode(CaptureTruth(seq=seq, stamp_ns=t, sensor="imu", true_stamp_ns=t))
         senders = [("aa", "rig", seq), ("ff", "foreign", i)] if i % 11 == 0 else [("aa", "rig", seq)]
@@ -149,3 +151,19 @@ def test_a_run_never_crosses_into_the_next_generation() -> None:
     for first, n in runs.topics["t"]:
         split.see_run(first, n)
     assert split.summary() == one.summary()
+
+
+def test_a_chunk_at_once_gives_what_one_message_at_a_time_gives(tmp_path: Path) -> None:
+    """``describe`` takes a chunk's records in one call (``stream_session(on_batch=)``): the
+    rig's gaps, a restart and a foreign publisher's messages count as they do one by one."""
+    path = _mixed(tmp_path / "mixed.mcap")
+    batched, _ = _scan(path, derived=False, accuracy=True)
+    one_by_one = Summary()
+    for kind, rec in iter_records(path):
+        if kind == "message":
+            one_by_one.add(rec)
+    assert batched.channel_infos() == one_by_one.channel_infos()
+    assert batched.foreign_summary() == one_by_one.foreign_summary()
+    imu = next(c for c in batched.channel_infos() if c.topic.endswith("capture/imu"))
+    assert (imu.count, imu.missing, imu.restarts) == (len(_MIXED_SEQS), 250, 1)
+    assert batched.foreign_summary()["messages"] == len(range(0, len(_MIXED_SEQS), 11))

@@ -100,31 +100,3 @@ def test_large_figures_keep_their_columns_apart(tmp_path: Path) -> None:
     ins = next(x for x in lines if x.startswith("ins "))
     rms, p95, top, final = (float(v) for v in ins.split()[1:])
     assert top == final > 2.0e7 and rms > 1.0e7 and p95 > 1.0e7
-
-
-def test_a_chunk_at_once_gives_what_one_message_at_a_time_gives(tmp_path: Path) -> None:
-    """``describe`` takes a chunk's records in one call (``stream_session(on_batch=)``): the
-    rig's gaps, a restart and a foreign publisher's messages count as they do one by one."""
-    from hil.record.info import _scan
-
-    path = tmp_path / "mixed.mcap"
-    w = SessionWriter(path, chunk_size=2048, spill_index=False)
-    seqs = [*range(0, 300), *range(310, 600), *((1 << 32) + k for k in range(5, 200))]  # a gap, a restart
-    for i, seq in enumerate(seqs):
-        t = 1_000_000_000 + i * 2_500_000
-        data = encode(CaptureTruth(seq=seq, stamp_ns=t, sensor="imu", true_stamp_ns=t))
-        senders = [("aa", "rig", seq), ("ff", "foreign", i)] if i % 9 == 0 else [("aa", "rig", seq)]
-        for who, origin, n in senders:
-            kw = {"log_time_ns": t, "publish_time_ns": t, "seq": n, "publisher": who, "origin": origin}
-            w.write("hil/t/capture/imu", CaptureTruth, data, **kw)  # type: ignore[arg-type]
-    w.close()
-    batched, _ = _scan(path, derived=False, accuracy=True)
-    one_by_one = Summary()
-    for kind, rec in iter_records(path):
-        if kind == "message":
-            one_by_one.add(rec)
-    assert batched.channel_infos() == one_by_one.channel_infos()
-    assert batched.foreign_summary() == one_by_one.foreign_summary()
-    (info,) = batched.channel_infos()
-    assert (info.count, info.missing, info.restarts) == (len(seqs), 10, 1)
-    assert batched.foreign_summary()["messages"] == len(range(0, len(seqs), 9))
