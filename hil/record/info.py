@@ -23,10 +23,8 @@ import numpy as np
 from hil.messages import SEQ_GENERATION_SHIFT
 from hil.record.completeness import Completeness
 from hil.record.mcapio import (
-    FOREIGN_ORIGIN,
     FilePart,
     Record,
-    RecordingError,
     Session,
     file_halves,
     stream_session,
@@ -63,14 +61,36 @@ class ChannelInfo:
     restarts: int = 0
 
 
+class _SeqRuns:
+    """Each topic's seqs as runs of consecutive ones, ``[first, n]``, in file order: what the
+    second reader of a file gives the first, which counts them after its own (``_merge``)."""
+
+    def __init__(self) -> None:
+        self.topics: dict[str, list[list[int]]] = {}
+
+    def see(self, topic: str, seq: int) -> None:
+        runs = self.topics.get(topic)
+        if runs is None:
+            self.topics[topic] = [[seq, 1]]
+            return
+        run = runs[-1]
+        if seq == run[0] + run[1] and seq >> SEQ_GENERATION_SHIFT == run[0] >> SEQ_GENERATION_SHIFT:
+            run[1] += 1
+        else:
+            runs.append([seq, 1])
+
+
 class Summary:
     """One pass over a recording's messages, keeping what ``describe`` and ``info`` print and no
     message: a 12000 s session is 36 M messages, and holding them (``read_session``) took 18.9 GB.
-    ``accuracy``: also the truth and every estimator's horizontal position, as float arrays."""
+    ``accuracy``: also the truth and every estimator's horizontal position, as float arrays.
+    ``runs``: the seqs kept as runs (``_SeqRuns``) instead of counted: a part of a file read after
+    another, whose counts they join (``_merge``)."""
 
-    def __init__(self, accuracy: bool = True) -> None:
+    def __init__(self, accuracy: bool = True, runs: bool = False) -> None:
         self.accuracy = accuracy
         self.comp = Completeness()
+        self.runs = _SeqRuns() if runs else None
         self.spans: dict[str, list[int]] = {}
         self.schemas: dict[str, str] = {}
         self.counts: dict[str, int] = {}
@@ -85,10 +105,11 @@ class Summary:
     def add_many(self, records: Iterable[Record]) -> None:
         """Each record in turn, as it is read (a chunk's at once: ``stream_session(on_batch=)``):
         the lookups hoisted out of the loop, a 12000 s file is 36 M records."""
-        spans, counts, see, accuracy = self.spans, self.counts, self.comp.see, self.accuracy
+        spans, counts, accuracy = self.spans, self.counts, self.accuracy
+        see = self.comp.see if self.runs is None else self.runs.see
         for r in records:
             topic = r.topic
-            if r.origin == FOREIGN_ORIGIN:
+            if r.foreign:
                 self.foreign_topics[topic] = self.foreign_topics.get(topic, 0) + 1
                 self.publishers.add(r.publisher)
                 continue
@@ -188,25 +209,6 @@ def estimator_errors(session: Session) -> dict[str, dict[str, float]]:
     return summarise(session.records).estimator_errors()
 
 
-class _SeqRuns:
-    """Each topic's seqs as runs of consecutive ones, ``[first, n]``, in file order: what the
-    second reader of a file gives the first, which counts them after its own (``_merge``)."""
-
-    def __init__(self) -> None:
-        self.topics: dict[str, list[list[int]]] = {}
-
-    def see(self, topic: str, seq: int) -> None:
-        runs = self.topics.get(topic)
-        if runs is None:
-            self.topics[topic] = [[seq, 1]]
-            return
-        run = runs[-1]
-        if seq == run[0] + run[1] and seq >> SEQ_GENERATION_SHIFT == run[0] >> SEQ_GENERATION_SHIFT:
-            run[1] += 1
-        else:
-            runs.append([seq, 1])
-
-
 # from this size on a file is read by two processes at once, each half of it (on two CPUs and
 # where fork exists). Reading and counting, one pass against two halves (2026-12-06): 41 MB
 # 1.58 against 0.82 s, 28 MB 0.89 against 0.48 s, 12 MB 0.36 against 0.20 s, 1.3 MB 40 against
@@ -237,13 +239,11 @@ def _halves(path: str | Path) -> tuple[FilePart, FilePart] | None:
 
 
 def _scan_part(
-    path: str, part: FilePart, derived: bool, accuracy: bool, runs: bool = True
+    path: str | Path, part: FilePart, derived: bool, accuracy: bool, runs: bool = True
 ) -> tuple[Summary, Session]:
     """A part of the file; ``runs``: its seqs as runs, not yet counted (the second half, in a
     forked process)."""
-    summary = Summary(accuracy)
-    if runs:
-        summary.comp = _SeqRuns()  # type: ignore[assignment]
+    summary = Summary(accuracy, runs=runs)
     return summary, stream_session(path, summary.add, derived=derived, on_batch=summary.add_many, part=part)
 
 
@@ -252,21 +252,23 @@ def _scan_halves(
 ) -> tuple[Summary, Session]:
     """The first half here while a forked process reads the second; then the second's figures
     added to the first's as if read after them (the very figures of one pass)."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
+    from hil.runners.sim_worker import ForkedCall
+    from hil.runtime.errors import WorkerError
 
     first, second = halves
     try:
-        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
-            later = pool.submit(_scan_part, str(path), second, derived, accuracy)
-            summary, session = _scan_part(str(path), first, derived, accuracy, runs=False)
-            if session.truncated:  # one pass stops at the damage: what follows it is not read
-                later.cancel()
-                return summary, session
-            rest, rest_session = later.result()
-    except (BrokenProcessPool, OSError, RecordingError):  # a half that says nothing alone, or the
-        return _scan(path, derived=derived, accuracy=accuracy)  # second process died: one pass
+        later = ForkedCall("second-half reader", _scan_part, path, second, derived, accuracy)
+    except OSError:  # no process to be had: one pass
+        return _scan(path, derived=derived, accuracy=accuracy)
+    try:
+        summary, session = _scan_part(path, first, derived, accuracy, runs=False)
+        if session.truncated:  # one pass stops at the damage: what follows is not read (closed)
+            return summary, session
+        rest, rest_session = later.result()
+    except WorkerError:  # a half that says nothing alone (an error there), or a reader that died
+        return _scan(path, derived=derived, accuracy=accuracy)
+    finally:
+        later.close()
     _merge(summary, rest)
     for name, meta in rest_session.metadata.items():
         session.metadata[name] = meta
@@ -276,9 +278,9 @@ def _scan_halves(
 
 
 def _merge(summary: Summary, rest: Summary) -> None:
-    """``rest`` (read after ``summary``'s messages, its seqs as ``_SeqRuns``) into ``summary``."""
-    assert isinstance(rest.comp, _SeqRuns)
-    for topic, runs in rest.comp.topics.items():
+    """``rest`` (read after ``summary``'s messages, its seqs as runs) into ``summary``."""
+    assert rest.runs is not None
+    for topic, runs in rest.runs.topics.items():
         for first, n in runs:
             summary.comp.see_run(topic, first, n)
     for topic, (a, b) in rest.spans.items():

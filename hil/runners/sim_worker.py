@@ -374,6 +374,33 @@ class ForkedChild:
                 time.sleep(0.005)
 
 
+class ForkedCall(ForkedChild):
+    """``fn(*args)`` in a forked child, started at once, beside the caller's own work;
+    ``result`` waits for what it returned (``fn`` failing there is a ``WorkerError`` here).
+    :meth:`close` ends it, done or not: nothing it does is kept unless asked for."""
+
+    close_grace_s = 0.2
+
+    def __init__(self, name: str, fn: Callable[..., Any], *args: Any) -> None:
+        self.name = name
+
+        def serve(link: _Link) -> None:
+            try:
+                reply: tuple[Any, ...] = ("ok", fn(*args))
+            except Exception:
+                reply = ("error", traceback.format_exc())
+            link.say(reply)
+            # stay until the caller closes: it tells this end how far it has read, and a child
+            # gone before that is, to the caller, one that died mid-reply
+            with contextlib.suppress(EOFError):
+                link.receive()
+
+        super().__init__(serve)
+
+    def result(self) -> Any:
+        return self._reply()[1]
+
+
 class RemoteNode(ForkedChild):
     """A node run in a forked child (``hil rerun``): ``replay`` or ``call`` sends a batch of
     work, ``replayed`` or ``called`` waits for its answer; between the two the caller is free

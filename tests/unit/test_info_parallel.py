@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from hil.messages import SEQ_GENERATION_SHIFT, CaptureTruth, EstimatorHealth, encode
+from hil.record import info
 from hil.record.completeness import SeqTracker
 from hil.record.info import Summary, _scan, _scan_halves, _SeqRuns, describe, info_json
 from hil.record.mcapio import SessionWriter, file_halves, iter_records
@@ -63,6 +64,10 @@ def test_runs_counted_after_a_first_part_give_one_pass_figures(seed: int) -> Non
 _MIXED_SEQS = [*range(0, 900), *range(950, 1800), *((1 << 32) + k for k in range(3, 700)), 40, 2000]
 
 
+def _no_fallback(*args: object, **kwargs: object) -> None:
+    raise AssertionError("the two halves fell back to one pass")
+
+
 def _mixed(path: Path) -> Path:
     """A file of many small chunks: gaps, a restart, a foreign publisher, metadata at the end."""
     w = SessionWriter(path, chunk_size=4096, spill_index=False)
@@ -85,13 +90,17 @@ def _mixed(path: Path) -> Path:
 
 @pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
 @pytest.mark.parametrize("make", ["golden", "mixed"])
-def test_two_halves_give_the_one_pass_text_and_json(tmp_path: Path, make: str) -> None:
+def test_two_halves_give_the_one_pass_text_and_json(
+    tmp_path: Path, make: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     path = GOLDEN if make == "golden" else _mixed(tmp_path / "mixed.mcap")
     halves = file_halves(path)
     assert halves is not None and 0 < halves[1].start < path.stat().st_size
     for derived in (True, False):
         one, s1 = _scan(path, derived=derived, accuracy=True)
-        two, s2 = _scan_halves(path, halves, derived=derived, accuracy=True)
+        with monkeypatch.context() as m:  # the halves themselves, not the one pass they fall back to
+            m.setattr(info, "_scan", _no_fallback)
+            two, s2 = _scan_halves(path, halves, derived=derived, accuracy=True)
         assert two.channel_infos() == one.channel_infos()
         assert two.foreign_summary() == one.foreign_summary()
         assert two.estimator_errors() == one.estimator_errors()
@@ -111,7 +120,9 @@ def test_two_halves_give_the_one_pass_text_and_json(tmp_path: Path, make: str) -
 
 @pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
 @pytest.mark.parametrize("where", ["first half", "second half", "second half's start"])
-def test_damage_stops_both_readings_where_one_pass_stops(tmp_path: Path, where: str) -> None:
+def test_damage_stops_both_readings_where_one_pass_stops(
+    tmp_path: Path, where: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """One pass stops at a damaged chunk and reports it; what follows is not counted either."""
     path = _mixed(tmp_path / "damaged.mcap")
     halves = file_halves(path)
@@ -126,6 +137,8 @@ def test_damage_stops_both_readings_where_one_pass_stops(tmp_path: Path, where: 
     data[at : at + 64] = b"\xff" * 64
     path.write_bytes(bytes(data))
     one, s1 = _scan(path, derived=True, accuracy=True)
+    if where != "second half's start":  # there the second half alone holds nothing: one pass
+        monkeypatch.setattr(info, "_scan", _no_fallback)
     two, s2 = _scan_halves(path, halves, derived=True, accuracy=True)
     assert s1.truncated and s2.truncated and s2.truncation_reason == s1.truncation_reason
     assert two.channel_infos() == one.channel_infos()

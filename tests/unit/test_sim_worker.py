@@ -8,6 +8,7 @@ import gc
 import os
 import signal
 import threading
+import time
 from pathlib import Path
 
 import can
@@ -20,6 +21,7 @@ from hil.runners.sim_worker import (
     AHEAD_WINDOWS,
     REPLY_RING_BYTES,
     REQUEST_RING_BYTES,
+    ForkedCall,
     ForkedChild,
     RemoteTail,
     WorkerError,
@@ -638,3 +640,23 @@ def test_hil_sim_whose_worker_is_killed_says_so_in_one_line_and_keeps_the_file(t
     assert f"{rec} holds what was written until then" in lines[0]
     s = read_session(rec)
     assert s.truncated and len(s.records) > 10_000
+
+
+def _big_reply(n: int) -> bytes:
+    return bytes(range(256)) * (n // 256)
+
+
+@pytest.mark.skipif(not worker_possible(1), reason="needs fork")
+def test_a_forked_call_stays_until_its_reply_is_read() -> None:
+    """``ForkedCall``'s child waits for the caller's close. A child that left once it had said
+    its reply took with it the socket the caller acknowledges what it reads on: a caller busy
+    elsewhere meanwhile (``hil info`` reading its own half) then saw a worker that died, and
+    read the file again in one pass. The pause only gives such a child time to leave: with the
+    child waiting, the result comes whatever the pause."""
+    want = _big_reply(600 << 10)  # within the reply ring: said whole before the caller reads
+    call = ForkedCall("test reader", _big_reply, 600 << 10)
+    try:
+        time.sleep(0.5)
+        assert call.result() == want
+    finally:
+        call.close()
