@@ -556,7 +556,7 @@ class SessionWriter:
     def _drain(self) -> None:
         """Write what :attr:`queue` holds (times clamped to u64 and sequences to u32 as
         :meth:`write` clamps them), and empty it in place. Fewer than ``BATCH_MIN`` messages go
-        one at a time: the batch's numpy set-up costs ~35 µs, which a live recorder's Foxglove
+        one at a time: the batch's numpy set-up costs ~37 µs, which a live recorder's Foxglove
         message (one per drain) paid alone."""
         q = self.queue
         if not q.chans:
