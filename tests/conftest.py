@@ -290,20 +290,37 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         os._exit(1)
 
 
-#: Tests that start rigs, containers, user-mode-linux or network namespaces run one at a time on
-#: one pytest-xdist worker (``make test`` runs ``-n 2``): two live rigs at once would measure each
+#: Tests that start rigs, containers or network namespaces run one at a time on one
+#: pytest-xdist worker (``make test`` runs ``-n 2``): two live rigs at once would measure each
 #: other. The pure tests (unit, replay) fill the other worker meanwhile, which shortens the suite
 #: by their time. A scheduler of our own rather than ``--dist loadgroup`` with marks: xdist 3.8
 #: renames grouped tests through ``item._nodeid``, which pytest 9's nodes no longer read, so
 #: loadgroup silently spread the live tests over both workers.
 SERIAL_SCOPE = "live"
 POOLED_DIRS = ("unit", "replay")
+#: The vcan tier goes to a worker as one unit of its own, beside the live tests: inside
+#: user-mode-linux one boot runs all of it (tests/vcan/conftest.py) in a kernel with its own
+#: network, and on a real vcan0 no live test touches that device (theirs is the Zenoh CAN
+#: transport). In the live unit it had added its ~56 s (the boot and one slow vCPU) to the longest
+#: worker's chain, while the other worker had finished its pooled tests and waited.
+VCAN_SCOPE = "vcan"
+#: Modules outside ``POOLED_DIRS`` that start no rig and open no Zenoh session (offline ``hil``
+#: runs, a headless browser): pooled as one unit each, so that a module fixture runs once.
+POOLED_MODULES = ("tests/integration/test_record_tools.py", "tests/integration/test_report_browser.py")
 
 
 def xdist_scope(nodeid: str) -> str:
-    """The unit xdist hands a worker: one pooled test, or every live test together."""
-    parts = nodeid.split("/", 2)
-    return nodeid if len(parts) > 2 and parts[0] == "tests" and parts[1] in POOLED_DIRS else SERIAL_SCOPE
+    """The unit xdist hands a worker: one pooled test, a pooled module, the vcan tier, or every
+    live test together."""
+    module = nodeid.split("::", 1)[0]
+    parts = module.split("/")
+    if len(parts) > 2 and parts[0] == "tests" and parts[1] in POOLED_DIRS:
+        return nodeid
+    if module in POOLED_MODULES:
+        return module
+    if len(parts) > 2 and parts[:2] == ["tests", "vcan"]:
+        return VCAN_SCOPE
+    return SERIAL_SCOPE
 
 
 @pytest.hookimpl(optionalhook=True)
