@@ -306,7 +306,11 @@ POOLED_DIRS = ("unit", "replay")
 VCAN_SCOPE = "vcan"
 #: Modules outside ``POOLED_DIRS`` that start no rig and open no Zenoh session (offline ``hil``
 #: runs, a headless browser): pooled as one unit each, so that a module fixture runs once.
-POOLED_MODULES = ("tests/integration/test_record_tools.py", "tests/integration/test_report_browser.py")
+POOLED_MODULES = (
+    "tests/integration/test_record_tools.py",
+    "tests/integration/test_report_browser.py",
+    "tests/integration/test_sim_faults.py",
+)
 
 
 def xdist_scope(nodeid: str) -> str:

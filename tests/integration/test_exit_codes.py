@@ -43,7 +43,7 @@ def _mount_tmpfs(where: Path, *options: str) -> None:
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
     where = tmp_path / "small"
-    _mount_tmpfs(where, "size=1m")
+    _mount_tmpfs(where, "size=512k")
     try:
         yield where
     finally:
@@ -80,7 +80,7 @@ def test_a_disk_that_fills_up_fails_the_run_with_the_reason_on_the_console(
 ) -> None:
     rec = small_disk / "run.mcap"  # its logs go beside it: <stem>.logs on the same full disk
     p = subprocess.Popen(
-        hil_cmd("up", "--duration", "20", "--record", str(rec), "--quiet", "--rig", f"full{os.getpid()}"),
+        hil_cmd("up", "--duration", "10", "--record", str(rec), "--quiet", "--rig", f"full{os.getpid()}"),
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
