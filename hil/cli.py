@@ -43,6 +43,22 @@ def _default_record_path(scenario: str) -> Path:
     return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
 
 
+def _warn_stale_parts(cmd: str, record: Path) -> None:
+    """Split parts an earlier recording left at ``record``'s part names: said before the run, since
+    this recording writes its first file over that one's (readers then leave them out: each part
+    names the size of the file it followed, ``hil.record.mcapio.split_parts``)."""
+    from hil.record.mcapio import stale_parts
+
+    stale = stale_parts(record)
+    if stale:
+        names = stale[0].name if len(stale) == 1 else f"{stale[0].name} .. {stale[-1].name}"
+        print(
+            f"hil {cmd}: warning: {names} beside {record} are left from an earlier recording there: "
+            f"not parts of this one (it writes over those it reaches); remove them",
+            file=sys.stderr,
+        )
+
+
 def _add_fusion_args(p: argparse.ArgumentParser) -> None:
     """The fusion's horizon and output predictor (docs/concepts.md, Fusion)."""
     p.add_argument(
@@ -199,6 +215,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
     record = a.record or _default_record_path(a.scenario)
+    _warn_stale_parts("up", record)
     opts = UpOptions(
         scenario=a.scenario if not Path(a.scenario).is_file() else str(Path(a.scenario).resolve()),
         duration_s=duration,
@@ -407,6 +424,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
         scenario_overrides(load_scenario(a.scenario), imu_rate_hz=a.imu_rate)  # one line if refused
     record = a.record or _default_record_path(a.scenario)
+    _warn_stale_parts("sim", record)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 
     def on_progress(done_s: float, total_s: float) -> None:

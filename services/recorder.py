@@ -81,6 +81,7 @@ from hil.record.mcapio import (
     RecordingError,
     SessionWriter,
     iter_records,
+    part_metadata,
     split_part_path,
     split_parts,
     wall_clock_log_time,
@@ -504,7 +505,7 @@ class Recorder(Service):
             self.stats.error("errors.recording_path", str(err))
             self.state = "degraded"
             return
-        self.writer.add_metadata("part", {"index": self.part, "previous": self.part_path(self.part - 1).name})
+        self.writer.add_metadata("part", {"index": self.part, **part_metadata(self.part_path(self.part - 1))})
         if self._run is not None:
             self._write_run_metadata(self._run)
 

@@ -42,6 +42,7 @@ from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import (
     EndOfFile,
     InvalidMagic,
+    McapError,
     RecordLengthLimitExceeded,
     UnsupportedCompressionError,
 )
@@ -90,11 +91,52 @@ def split_part_path(path: Path, part: int) -> Path:
 
 
 def split_parts(path: Path) -> list[Path]:
-    """The further parts of a recording split by size or duration (``<stem>_0001.mcap``, ...), in order."""
+    """The further parts of a recording split by size or duration (``<stem>_0001.mcap``, ...), in
+    order. A part is taken only after the file it was started after: its ``part`` metadata gives
+    that file's size when it was closed (``previous_bytes``). So parts that an earlier, longer
+    recording left at these names are not read as this one's (a new ``hil sim --record`` or
+    ``hil up --record`` at the same path writes its first file over the old one and leaves them);
+    a part written before the size was recorded is taken on its name, as it was."""
     parts: list[Path] = []
-    while split_part_path(path, len(parts) + 1).is_file():
-        parts.append(split_part_path(path, len(parts) + 1))
-    return parts
+    previous = path
+    while True:
+        part = split_part_path(path, len(parts) + 1)
+        if not part.is_file() or not _continues(part, previous):
+            return parts
+        parts.append(part)
+        previous = part
+
+
+def stale_parts(path: Path) -> list[Path]:
+    """Files at ``path``'s part names (``<stem>_0001.mcap``, ...) that a new recording at ``path``
+    would not continue: left by an earlier one."""
+    found: list[Path] = []
+    while split_part_path(path, len(found) + 1).is_file():
+        found.append(split_part_path(path, len(found) + 1))
+    return found
+
+
+def part_metadata(previous: Path) -> dict[str, Any]:
+    """The ``part`` metadata of the part that follows ``previous`` (closed just now): its index
+    comes from the caller, this gives what ties the two files together."""
+    try:
+        return {"previous": previous.name, "previous_bytes": previous.stat().st_size}
+    except OSError:  # gone already: the part is then taken on its name
+        return {"previous": previous.name}
+
+
+def _continues(part: Path, previous: Path) -> bool:
+    """Whether ``part`` says it was started after ``previous`` as it is now (see ``split_parts``)."""
+    try:
+        for kind, rec in iter_records(part):
+            if kind == "metadata" and rec.name == "part":
+                size = rec.metadata.get("previous_bytes")
+                return size is None or int(size) == previous.stat().st_size
+            if kind != "metadata":
+                break  # the messages began: a part written before its metadata said this
+    except (McapError, OSError, ValueError, struct.error):
+        pass  # unreadable at its start: taken on its name, and the reading says what is wrong
+    return True
 
 
 #: ~1973 as an epoch instant, three years as rig time: a recording's times below it are rig time

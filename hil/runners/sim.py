@@ -53,7 +53,7 @@ from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
-from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, split_part_path
+from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, part_metadata, split_part_path
 from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteTail, drive, portable, worker_possible
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
@@ -445,7 +445,7 @@ class _Session:
         self.w = SessionWriter(split_part_path(o.record, self.part))
         self._chans.clear()  # the channels of the new part: registered at their first message
         self.w.add_metadata(
-            "part", {"index": self.part, "previous": split_part_path(o.record, self.part - 1).name}
+            "part", {"index": self.part, **part_metadata(split_part_path(o.record, self.part - 1))}
         )
         header(self.w)
 

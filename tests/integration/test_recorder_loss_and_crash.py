@@ -30,7 +30,7 @@ from hil.messages import (
     decode,
     encode,
 )
-from hil.record.mcapio import RecordingError, read_session
+from hil.record.mcapio import RecordingError, read_session, split_parts
 from tests.conftest import REPO, communicate_or_dump, free_port, hil_cmd
 
 pytestmark = pytest.mark.slow
@@ -476,7 +476,11 @@ def test_split_by_duration_loses_nothing_and_every_part_stands_alone(hub: Hub, t
         assert json.loads(s.metadata["completeness"]["part"]) == n
         assert any(name.startswith("scenario/") for name in s.attachments)
         seqs += [r.sequence for r in s.by_topic(k.sensor("imu"))]
+        if n:  # each part names the file it follows, as that file was closed
+            assert s.meta("part", "previous") == parts[n - 1].name
+            assert s.meta("part", "previous_bytes") == parts[n - 1].stat().st_size
     assert seqs == list(range(i))
+    assert split_parts(path) == parts[1:]
 
 
 def test_zenoh_recovers_samples_lost_in_transit_and_reports_what_it_cannot(hub: Hub, tmp_path: Path) -> None:
