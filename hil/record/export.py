@@ -26,7 +26,7 @@ from typing import IO, Any
 import msgspec
 
 from hil.messages import TYPES_BY_NAME, GnssFix, ImuSample, NavSolution, Truth, decode, schema_name
-from hil.record.mcapio import RecordingError
+from hil.record.mcapio import RecordingError, split_parts
 from hil.record.scan import Scan, describe_loss
 from hil.record.tools import iter_tagged
 
@@ -169,11 +169,12 @@ def export(
         _check_pyarrow()
     pats = [re.compile(t) for t in topics or []]
     out = Path(out_dir)
-    scan = Scan(src)
+    # a split recording: its parts end to end (each part has its channels; tables go by topic)
+    scans = [Scan(f) for f in (Path(src), *split_parts(Path(src)))]
     tables: dict[str, _Table] = {}
     decoders: dict[str, type[Any]] = {}
     try:
-        for t in _wanted(iter_tagged(scan), pats):
+        for t in _wanted((t for scan in scans for t in iter_tagged(scan)), pats):
             topic = t.channel.topic
             tab = tables.get(topic)
             if tab is None:
@@ -193,9 +194,11 @@ def export(
         for tab in tables.values():
             tab.close()
     if not tables:
-        have = ", ".join(sorted(scan.report.per_topic)) or "no messages"
+        have = ", ".join(sorted({t for scan in scans for t in scan.report.per_topic})) or "no messages"
         raise RecordingError(f"{src}: no IMU, GNSS, truth or nav messages to export (it has {have})")
-    notes = [f"note: {ln}" for ln in describe_loss(scan.report)]
+    notes = [f"note: {ln}" for scan in scans for ln in describe_loss(scan.report)]
+    if len(scans) > 1:
+        notes.insert(0, f"note: the recording is split: exported its {len(scans)} parts in order")
     return {k: (v.path, v.count) for k, v in tables.items()}, notes
 
 

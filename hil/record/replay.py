@@ -48,7 +48,7 @@ from hil.bus.pubsub import declare_publisher
 from hil.fusion.core import parse_journal_id
 from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
-from hil.record.mcapio import Record, check_hil_recording, iter_records
+from hil.record.mcapio import Record, check_hil_recording, iter_records, split_parts
 
 FUSION_INPUT = re.compile(r"^hil/[^/]+/synced/(imu|gnss)$")
 SPIN_S = 0.0005  # the last half millisecond before a deadline is spun, not slept (CAN spacing)
@@ -88,6 +88,7 @@ class ReplayStats:
     wall_s: float = 0.0
     span_s: float = 0.0  # recorded time covered by the last pass
     truncated: str = ""
+    parts: int = 1  # the files of a split recording, replayed end to end
 
     def summary(self) -> str:
         rate = self.sent / self.wall_s if self.wall_s > 0 else 0.0
@@ -103,6 +104,8 @@ class ReplayStats:
             parts.append(f"{self.can_errors} CAN frames refused by the bus")
         if self.truncated:
             parts.append(f"file truncated, replayed up to its last complete chunk ({self.truncated})")
+        if self.parts > 1:
+            parts.append(f"the recording is split: replayed its {self.parts} parts in order")
         return "; ".join(parts)
 
 
@@ -115,7 +118,7 @@ def check_readable(path: str | Path) -> None:
 def journaled_drops(path: str | Path) -> set[str]:
     """``sensor:seq[@publisher]`` of every input the live fusion journaled as not used."""
     out: set[str] = set()
-    for kind, rec in iter_records(path):
+    for kind, rec in session_records(path):
         if kind == "message" and rec.topic.endswith("/fusion/journal") and not rec.foreign:
             for d in decode(FusionJournal, rec.payload).dropped:
                 _why, name, source = parse_journal_id(d)
@@ -267,19 +270,37 @@ class Progress:
 
 
 def recorded_span_ns(path: str | Path) -> int | None:
-    """log_time span from the file's summary (None when a crashed recorder left no summary)."""
-    try:
-        with open(path, "rb") as fh:
-            summary = make_reader(fh).get_summary()
-    except Exception:  # a truncated file has no summary: progress shows time only
-        return None
-    if summary is None or summary.statistics is None or summary.statistics.message_count == 0:
-        return None
-    return int(summary.statistics.message_end_time - summary.statistics.message_start_time)
+    """log_time span from the summaries of the file and its split parts (None when a crashed
+    recorder left one without a summary)."""
+    first, last = None, None
+    for f in session_files(path):
+        try:
+            with open(f, "rb") as fh:
+                summary = make_reader(fh).get_summary()
+        except Exception:  # a truncated file has no summary: progress shows time only
+            return None
+        if summary is None or summary.statistics is None:
+            return None
+        st = summary.statistics
+        if st.message_count:
+            first = st.message_start_time if first is None else min(first, st.message_start_time)
+            last = st.message_end_time if last is None else max(last, st.message_end_time)
+    return None if first is None or last is None else int(last - first)
+
+
+def session_files(path: str | Path) -> list[Path]:
+    """The recording and the parts it was split into (``split_parts``), in order."""
+    return [Path(path), *split_parts(Path(path))]
+
+
+def session_records(path: str | Path) -> Iterator[tuple[str, Any]]:
+    """``iter_records`` of the recording and of its split parts, end to end: one session."""
+    for f in session_files(path):
+        yield from iter_records(f)
 
 
 def _messages(path: str | Path, stats: ReplayStats) -> Iterator[Record]:
-    for kind, rec in iter_records(path):
+    for kind, rec in session_records(path):
         if kind == "message":
             yield rec
         elif kind == "truncated":
@@ -307,7 +328,7 @@ def replay(
     stop = stop or threading.Event()
     sel = Selector(opts)
     pacer = Pacer(opts.rate, opts.afap or opts.step, stop)
-    stats = ReplayStats()
+    stats = ReplayStats(parts=len(session_files(path)))
     pubs: dict[str, zenoh.Publisher | zext.AdvancedPublisher] = {}
     dropped = journaled_drops(path) if opts.lockstep else set()
     gate: LockstepGate | None = None

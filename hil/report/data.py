@@ -18,8 +18,8 @@ import numpy as np
 
 from hil.can.busload import frame_bits
 from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus, decode
-from hil.record.mcapio import is_derived
-from hil.report.scan import Batch, Channel, scan
+from hil.record.mcapio import is_derived, split_parts
+from hil.report.scan import Batch, Channel, ScanResult, scan
 
 F64 = np.ndarray  # float64 arrays; shapes in the field comments
 
@@ -320,13 +320,44 @@ def _sorted(s: Series) -> Series:
     return Series(s.t_ns[o], s.pos[o], s.vel[o], s.q[o])
 
 
+def _scan_session(
+    path: Path, on_batch: Callable[[Batch], None], on_progress: Callable[[int, int], None] | None
+) -> ScanResult:
+    """``scan`` of the recording and the parts it was split into (``split_parts``), end to end:
+    the collector keys by topic, so the parts read as one session. The later parts' metadata
+    replace the earlier ones' (the last part's ``completeness`` covers the session); the counts
+    add up; progress runs over all the files' bytes."""
+    files = [path, *split_parts(path)]
+    sizes = [f.stat().st_size if f.exists() else 0 for f in files]
+    total = sum(sizes)
+    out = ScanResult(bytes_total=total)
+    before = 0
+    for f, size in zip(files, sizes, strict=True):
+
+        def progress(done: int, _total: int, before: int = before) -> None:
+            if on_progress is not None:
+                on_progress(before + done, total)
+
+        res = scan(f, on_batch, progress, want=_wanted)
+        out.metadata.update(res.metadata)
+        out.attachments.update(res.attachments)
+        out.messages += res.messages
+        if res.truncated:
+            out.truncated, out.truncation_reason = True, res.truncation_reason
+        before += size
+    return out
+
+
 def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None) -> ReportData:
     """Read ``path`` into a ``ReportData``; raises ``RecordingError`` only when nothing is readable."""
     col = _Collector()
-    res = scan(path, col.on_batch, on_progress, want=_wanted)
+    res = _scan_session(Path(path), col.on_batch, on_progress)
     d = ReportData(
         Path(path), res.metadata, res.attachments, res.truncated, res.truncation_reason, res.messages
     )
+    parts = split_parts(Path(path))
+    if parts:
+        d.notes.append(f"the recording is split: read its {1 + len(parts)} parts in order")
     if res.truncated:
         d.notes.append(f"truncated recording: read up to its last complete chunk ({res.truncation_reason})")
     truth_rows = [r for chunk in col.truth for r in chunk]

@@ -11,8 +11,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+from hil.record.export import export
 from hil.record.mcapio import SessionStream, SessionWriter, split_part_path, split_parts, stale_parts
+from hil.record.replay import ReplayStats, _messages, recorded_span_ns, session_files
 from hil.record.rerun import rerun_fusion_file
+from hil.report.data import load as load_report
 from hil.runners.sim import SimOptions, run_sim
 from tests.conftest import run_hil
 
@@ -88,3 +93,45 @@ def test_a_part_is_followed_on_the_size_it_names_or_on_its_name_alone(tmp_path: 
     # an unreadable part is taken on its name too: the reading then says what is wrong with it
     first.write_bytes(b"not an mcap file")
     assert split_parts(rec)[:1] == [first]
+
+
+@pytest.fixture(scope="module")
+def split_and_whole(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The same 4 s sim recorded in three parts and in one file."""
+    d = tmp_path_factory.mktemp("parts")
+    split, whole = d / "split.mcap", d / "whole.mcap"
+    _sim(split, 4.0)
+    run_sim(SimOptions(duration_s=4.0, record=whole, fusion_worker=False))
+    assert len(split_parts(split)) == 2 and split_parts(whole) == []
+    return split, whole
+
+
+def test_replay_reads_a_split_recording_as_the_session(split_and_whole: tuple[Path, Path]) -> None:
+    split, whole = split_and_whole
+
+    def sent(path: Path) -> list[tuple[str, int, bytes]]:
+        stats = ReplayStats()
+        return [(r.topic, r.log_time_ns, r.payload) for r in _messages(path, stats)]
+
+    assert sent(split) == sent(whole)
+    assert recorded_span_ns(split) == recorded_span_ns(whole) > 3.9e9
+    assert session_files(split) == [split, *split_parts(split)]
+    assert "replayed its 3 parts" in ReplayStats(parts=3).summary()
+    assert "split" not in ReplayStats().summary()
+
+
+def test_report_and_export_read_a_split_recording_as_the_session(
+    split_and_whole: tuple[Path, Path], tmp_path: Path
+) -> None:
+    split, whole = split_and_whole
+    a, b = load_report(split), load_report(whole)
+    assert a.messages == b.messages > 10_000
+    assert a.truth is not None and b.truth is not None and a.truth.n == b.truth.n
+    assert {k: v.n for k, v in a.nav.items()} == {k: v.n for k, v in b.nav.items()}
+    assert any("3 parts" in n for n in a.notes) and not any("parts" in n for n in b.notes)
+    tables_a, notes_a = export(split, tmp_path / "a")
+    tables_b, notes_b = export(whole, tmp_path / "b")
+    assert sorted(tables_a) == sorted(tables_b)
+    for topic, (path, rows) in tables_a.items():  # the same tables, byte for byte
+        assert rows == tables_b[topic][1] > 0 and path.read_bytes() == tables_b[topic][0].read_bytes(), topic
+    assert notes_a[0].endswith("exported its 3 parts in order") and not notes_b
