@@ -77,7 +77,15 @@ class RecordingError(ValueError):
 
 
 def no_run_message(name: str, records: Any) -> str:
-    """Why a rerun found no run: a file cut off before it, or not a rig session."""
+    """Why a rerun found no run: a later part of a split recording (the run is announced in the
+    first), a file cut off before it, or not a rig session."""
+    part = (getattr(records, "metadata", None) or {}).get("part", {})
+    if part.get("index", "0") != "0":
+        first = Path(name).with_name(f"{Path(name).stem.rsplit('_', 1)[0]}{Path(name).suffix}")
+        return (
+            f"{name}: part {part['index']} of a split recording (after {part.get('previous', '?')}); "
+            f"the run is announced in its first file: rerun {first}, which reads every part"
+        )
     if getattr(records, "truncated", False):
         return (
             f"{name}: the file is cut off before the run was announced (no hil/<rig>/run): nothing to rerun"

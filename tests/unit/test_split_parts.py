@@ -14,7 +14,14 @@ from pathlib import Path
 import pytest
 
 from hil.record.export import export
-from hil.record.mcapio import SessionStream, SessionWriter, split_part_path, split_parts, stale_parts
+from hil.record.mcapio import (
+    RecordingError,
+    SessionStream,
+    SessionWriter,
+    split_part_path,
+    split_parts,
+    stale_parts,
+)
 from hil.record.replay import ReplayStats, _messages, recorded_span_ns, session_files
 from hil.record.rerun import rerun_fusion_file
 from hil.report.data import load as load_report
@@ -135,3 +142,11 @@ def test_report_and_export_read_a_split_recording_as_the_session(
     for topic, (path, rows) in tables_a.items():  # the same tables, byte for byte
         assert rows == tables_b[topic][1] > 0 and path.read_bytes() == tables_b[topic][0].read_bytes(), topic
     assert notes_a[0].endswith("exported its 3 parts in order") and not notes_b
+
+
+def test_a_rerun_of_a_later_part_names_the_first_file(split_and_whole: tuple[Path, Path]) -> None:
+    split, _whole = split_and_whole
+    for n, part in enumerate(split_parts(split), start=1):
+        with pytest.raises(RecordingError) as err:
+            rerun_fusion_file(part, worker=False)
+        assert f"part {n} of a split recording" in str(err.value) and f"rerun {split}," in str(err.value)
