@@ -86,7 +86,7 @@ class ReplayStats:
     can_errors: int = 0
     passes: int = 0
     wall_s: float = 0.0
-    span_s: float = 0.0  # recorded time covered by the last pass
+    span_s: float = 0.0  # recorded time the last pass sent: its first message to its last
     truncated: str = ""
     parts: int = 1  # the files of a split recording, replayed end to end
 
@@ -349,11 +349,14 @@ def replay(
     t_start = time.monotonic()
     inputs_sent = 0  # cumulative over --loop passes: the fusion's ack is too
     rel = 0
+    sent_from: int | None = None  # the pass's first and last sent message (ns after the file's first)
+    sent_to = 0
     try:
         while not stop.is_set():
             stats.passes += 1
             pacer.reset()
             first_ns: int | None = None
+            sent_from = None
             for rec in _messages(path, stats):
                 if first_ns is None:
                     first_ns = rec.log_time_ns
@@ -392,10 +395,13 @@ def replay(
                 else:
                     publisher(rec.topic, rec.schema).put(rec.payload)
                 stats.sent += 1
+                sent_to = rel
+                if sent_from is None:
+                    sent_from = rel
                 if is_input:
                     inputs_sent += 1
                 progress.show(rel, stats.sent)
-            stats.span_s = rel * 1e-9
+            stats.span_s = 0.0 if sent_from is None else (sent_to - sent_from) * 1e-9
             if gate is not None and not stop.is_set():
                 gate.wait_for(inputs_sent, stop)  # the consumer has everything before we go on
             if not opts.loop:

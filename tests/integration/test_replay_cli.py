@@ -81,6 +81,8 @@ def test_time_window_topic_filter_and_rig_rekey(hub: Hub) -> None:
     # THEN exactly those payloads arrive, byte for byte, on hil/other/truth and nowhere else
     assert {k for k, _ in hub.samples} == {"hil/other/truth"}
     assert [p for _, p in hub.samples] == want and len(want) == 101
+    # and the summary says what was sent: the window's 1 s, not where it ended in the file
+    assert "replay: 101 messages" in proc.stdout and "1.00 s of recording" in proc.stdout, proc.stdout
 
 
 def test_original_timing_and_rate(hub: Hub) -> None:
