@@ -206,7 +206,6 @@ def cmd_up(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.nav.scenario import load_scenario
     from hil.record.info import describe
-    from hil.record.mcapio import split_parts
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
@@ -296,11 +295,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
     if record.exists():
         print()
-        print(describe(str(record)))
-        splits = split_parts(record)
-        if splits:
-            names = ", ".join(map(str, splits))
-            print(f"hil up: the recording continues in {len(splits)} more part(s): {names}")
+        print(describe(str(record)))  # its further parts too, if it was split
         for part in sup.record_parts:
             state = "present" if part.exists() else "MISSING"
             print(f"hil up: a restarted recorder continued in {part} ({state})")

@@ -27,6 +27,7 @@ from hil.record.mcapio import (
     Record,
     Session,
     file_halves,
+    split_parts,
     stream_session,
 )
 
@@ -303,6 +304,25 @@ def _merge(summary: Summary, rest: Summary) -> None:
             mine.extend(theirs)  # type: ignore[arg-type]
 
 
+def _parts_lines(path: Path, part: dict[str, str]) -> list[str]:
+    """Where the file stands in a split recording: the further parts it continues in, or, for a
+    later part, which one it is (``hil info`` describes the one file it is given)."""
+    index = part.get("index", "0")
+    if index != "0":
+        return [
+            f"parts:     part {index} of a split recording, after {part.get('previous', '?')} (the run and "
+            f"the whole session: its first file)"
+        ]
+    more = split_parts(path)
+    if not more:
+        return []
+    names = ", ".join(p.name for p in more)
+    return [
+        f"parts:     the session continues in {len(more)} more part(s): {names} (hil rerun, replay, "
+        f"report and export read them all; hil merge joins them)"
+    ]
+
+
 def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str:
     """What ``hil info`` prints. ``parallel``: a large file read by two processes at once (a
     command's own process, which may fork: not a live rig's supervisor)."""
@@ -319,6 +339,7 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
         )
     n_rig = sum(c.count for c in infos)
     lines.append(f"duration:  {(t1 - t0) * 1e-9:.3f} s   messages: {n_rig}   channels: {len(infos)}")
+    lines += _parts_lines(Path(path), s.metadata.get("part", {}))
     foreign = summary.foreign_summary()
     if foreign["messages"]:
         topics = foreign["topics"]

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from hil.record.export import export
+from hil.record.info import describe
 from hil.record.mcapio import (
     RecordingError,
     SessionStream,
@@ -150,3 +151,12 @@ def test_a_rerun_of_a_later_part_names_the_first_file(split_and_whole: tuple[Pat
         with pytest.raises(RecordingError) as err:
             rerun_fusion_file(part, worker=False)
         assert f"part {n} of a split recording" in str(err.value) and f"rerun {split}," in str(err.value)
+
+
+def test_hil_info_says_where_a_file_stands_in_a_split_recording(split_and_whole: tuple[Path, Path]) -> None:
+    split, whole = split_and_whole
+    first = describe(str(split))
+    assert "parts:     the session continues in 2 more part(s): split_0001.mcap, split_0002.mcap" in first
+    later = describe(str(split_part_path(split, 2)))
+    assert "parts:     part 2 of a split recording, after split_0001.mcap" in later
+    assert "parts:" not in describe(str(whole))
