@@ -44,12 +44,24 @@ def _default_record_path(scenario: str) -> Path:
 
 
 def _warn_stale_parts(cmd: str, record: Path) -> None:
-    """Split parts an earlier recording left at ``record``'s part names: said before the run, since
-    this recording writes its first file over that one's (readers then leave them out: each part
-    names the size of the file it followed, ``hil.record.mcapio.split_parts``)."""
-    from hil.record.mcapio import stale_parts
+    """What a new recording at ``record`` does to the files an earlier one left there, said before
+    the run. ``hil up``'s recorder keeps an earlier recording and the parts it continues in
+    (``hil.record.mcapio.keep_aside``: a live session cannot be made again); ``hil sim`` writes
+    over its first file (a sim is made again from its options). Parts that do not continue it
+    stay, and readers leave them out (each part names the size of the file it followed,
+    ``hil.record.mcapio.split_parts``)."""
+    from hil.record.mcapio import aside_path, split_parts, stale_parts
 
-    stale = stale_parts(record)
+    chained: list[Path] = []
+    if cmd == "up" and record.is_file() and record.stat().st_size > 0:
+        chained = split_parts(record)
+        with_parts = f" and the {len(chained)} part(s) it continues in" if chained else ""
+        print(
+            f"hil up: {record} holds an earlier recording: the recorder keeps it{with_parts} as "
+            f"{aside_path(record, len(chained)).name}, not written over",
+            file=sys.stderr,
+        )
+    stale = [p for p in stale_parts(record) if p not in chained]
     if stale:
         names = stale[0].name if len(stale) == 1 else f"{stale[0].name} .. {stale[-1].name}"
         print(

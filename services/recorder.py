@@ -81,6 +81,7 @@ from hil.record.mcapio import (
     RecordingError,
     SessionWriter,
     iter_records,
+    keep_aside,
     part_metadata,
     split_part_path,
     split_parts,
@@ -202,8 +203,14 @@ class Recorder(Service):
         return False  # record from boot: statuses before the run starts are evidence too
 
     def setup(self) -> None:
+        kept = None
         try:
+            if not self.opts.continues:  # a restarted recorder writes a new file of its own
+                kept = keep_aside(self.path)
             self.writer = SessionWriter(self.path)
+        except OSError as err:  # the earlier recording could not be moved: it is not written over
+            self.stats.error("errors.recording_path", f"{self.path} holds an earlier recording: {err}")
+            self.state = "degraded"
         except RecordingError as err:
             # the reason first: the status thread is already running, and a "degraded" status
             # must never go out without it
@@ -235,6 +242,10 @@ class Recorder(Service):
         else:
             self._sub = self.ctx.session.declare_subscriber(self.keys.all(), self._on_sample)
         self._writer_thread.start()
+        if kept is not None:  # said once the recording listens, so that the event is in it too
+            detail = f"{self.path} held an earlier recording: kept as {kept}, not written over"
+            sys.stderr.write(f"recorder: {detail}\n")
+            self.emit_event("earlier_recording_kept", detail)
 
     def _lane_cap(self, _kind: str, publisher: str) -> int:
         return FOREIGN_LANE_CAP if self.identity.classify(publisher) == FOREIGN else RIG_LANE_CAP

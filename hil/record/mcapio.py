@@ -124,6 +124,37 @@ def stale_parts(path: Path) -> list[Path]:
     return found
 
 
+def aside_path(path: Path, n_parts: int) -> Path:
+    """Where ``keep_aside`` puts a recording of ``1 + n_parts`` files: the first free
+    ``<stem>.<N><suffix>`` whose part names are free too."""
+    n = 1
+    while True:
+        kept = path.with_name(f"{path.stem}.{n}{path.suffix}")
+        if not any(split_part_path(kept, k).exists() for k in range(n_parts + 1)):
+            return kept
+        n += 1
+
+
+def keep_aside(path: Path) -> Path | None:
+    """Move an earlier recording at ``path`` (not empty), with the split parts it continues in, to
+    the first free ``<stem>.<N><suffix>`` (N = 1, 2, ...; its parts ``<stem>.<N>_0001<suffix>``, ...),
+    so that a recorder starting at ``path`` does not write over it; returns where it went (None:
+    nothing there). A live session cannot be made again: a second ``docker compose up``, or a
+    recorder container restarted after a crash, would otherwise truncate the one before. The parts
+    still read as one session there (``split_parts`` goes by sizes, not names)."""
+    try:
+        if not path.is_file() or path.stat().st_size == 0:
+            return None
+    except OSError:
+        return None
+    parts = split_parts(path)
+    kept = aside_path(path, len(parts))
+    path.rename(kept)
+    for k, part in enumerate(parts, start=1):
+        part.rename(split_part_path(kept, k))
+    return kept
+
+
 def part_metadata(previous: Path) -> dict[str, Any]:
     """The ``part`` metadata of the part that follows ``previous`` (closed just now): its index
     comes from the caller, this gives what ties the two files together."""

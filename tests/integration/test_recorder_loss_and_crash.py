@@ -30,7 +30,8 @@ from hil.messages import (
     decode,
     encode,
 )
-from hil.record.mcapio import RecordingError, read_session, split_parts
+from hil.record.mcapio import RecordingError, read_session, split_part_path, split_parts
+from hil.runners.sim import SimOptions, run_sim
 from tests.conftest import REPO, communicate_or_dump, free_port, hil_cmd
 
 pytestmark = pytest.mark.slow
@@ -677,3 +678,35 @@ def test_sigusr1_prints_every_threads_stack_and_the_service_runs_on(hub: Hub, tm
     assert proc.returncode == 0, out[-2000:]
     assert "Current thread" in out or "Thread 0x" in out, out[-2000:]
     assert "run_loop" in out and "_write_loop" in out, out[-3000:]  # the main thread and the writer
+
+
+def test_a_recorder_keeps_an_earlier_recording_at_its_path(hub: Hub, tmp_path: Path) -> None:
+    """A live session cannot be made again: a second ``docker compose up`` (a fixed path), or a
+    recorder container restarted after a crash, once truncated the file it found there."""
+    # GIVEN an earlier session at the path, split in two parts
+    path = tmp_path / "session.mcap"
+    earlier = tmp_path / "earlier.mcap"
+    run_sim(SimOptions(duration_s=2.0, record=earlier, split_s=1.0, fusion_worker=False))
+    earlier.rename(path)
+    split_part_path(earlier, 1).rename(split_part_path(path, 1))
+    before = [path.read_bytes(), split_part_path(path, 1).read_bytes()]
+    # WHEN a recorder starts there and records a run
+    proc = start_recorder(hub, str(path))
+    k = Keys(RIG)
+    Publisher(hub.session, k.run(), RunInfo).put(run_info(0))
+    pub = Publisher(hub.session, k.sensor("imu"), ImuSample)
+    for i in range(200):
+        pub.put(imu(i))
+    hub.wait(lambda st: st.counter_map().get("written", 0) >= 201, timeout=60)
+    proc.send_signal(signal.SIGTERM)
+    out = communicate_or_dump(proc, 60).decode()
+    # THEN the earlier session is kept whole under the next free name, its parts with it, and said
+    assert proc.returncode == 0, out[-2000:]
+    kept = tmp_path / "session.1.mcap"
+    assert [kept.read_bytes(), split_part_path(kept, 1).read_bytes()] == before
+    assert split_parts(kept) == [split_part_path(kept, 1)]
+    assert f"kept as {kept}" in out
+    s = read_session(path)
+    assert [r.sequence for r in s.by_topic(k.sensor("imu"))] == list(range(200))
+    kept_events = [r.decode() for r in s.by_topic(f"hil/{RIG}/event/recorder")]
+    assert any(e.kind == "earlier_recording_kept" and str(kept) in e.detail for e in kept_events), kept_events

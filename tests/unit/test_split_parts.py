@@ -19,6 +19,8 @@ from hil.record.mcapio import (
     RecordingError,
     SessionStream,
     SessionWriter,
+    aside_path,
+    keep_aside,
     split_part_path,
     split_parts,
     stale_parts,
@@ -160,3 +162,41 @@ def test_hil_info_says_where_a_file_stands_in_a_split_recording(split_and_whole:
     later = describe(str(split_part_path(split, 2)))
     assert "parts:     part 2 of a split recording, after split_0001.mcap" in later
     assert "parts:" not in describe(str(whole))
+
+
+def test_keep_aside_moves_a_recording_and_its_parts_to_the_next_free_name(tmp_path: Path) -> None:
+    rec = tmp_path / "s.mcap"
+    _sim(rec, 4.0)
+    files = [rec, *split_parts(rec)]
+    before = [f.read_bytes() for f in files]
+    # a part of something older, which does not continue this session: it stays
+    _file(split_part_path(rec, 3), {"index": 3, "previous": "s_0002.mcap", "previous_bytes": 1})
+    (tmp_path / "s.1.mcap").write_bytes(b"")  # a name taken: the next one is used
+    assert aside_path(rec, 2) == tmp_path / "s.2.mcap"
+    kept = keep_aside(rec)
+    assert kept == tmp_path / "s.2.mcap" and not rec.exists()
+    assert [f.read_bytes() for f in [kept, *split_parts(kept)]] == before  # one session there still
+    assert split_part_path(rec, 3).exists() and not split_part_path(rec, 1).exists()
+    rec.write_bytes(b"")
+    assert keep_aside(rec) is None and rec.exists()  # an empty file is nothing to keep
+    assert keep_aside(tmp_path / "none.mcap") is None
+
+
+def test_hil_up_says_before_the_run_where_the_earlier_recording_goes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from hil.cli import _warn_stale_parts
+
+    rec = tmp_path / "s.mcap"
+    _sim(rec, 4.0)
+    _file(split_part_path(rec, 3), {"index": 3, "previous": "x", "previous_bytes": 1})
+    _warn_stale_parts("up", rec)
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == (
+        f"hil up: {rec} holds an earlier recording: the recorder keeps it and the 2 part(s) it "
+        "continues in as s.1.mcap, not written over"
+    )
+    assert "warning: s_0003.mcap beside" in err[1] and len(err) == 2
+    _warn_stale_parts("sim", rec)  # hil sim writes over its first file: only the parts are said
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "warning: s_0001.mcap .. s_0003.mcap beside" in err[0]
