@@ -26,7 +26,7 @@ from mcap.writer import CompressionType, Writer
 
 from hil import __version__
 from hil.record.completeness import Completeness
-from hil.record.mcapio import PROFILE, RecordingError, split_part_path
+from hil.record.mcapio import PROFILE, RecordingError, split_part_path, split_parts
 from hil.record.scan import Scan, ScanReport, channel_key, describe_loss
 
 CHUNK_SIZE = 512 * 1024
@@ -295,6 +295,19 @@ def filter_recording(src: str | Path, out: str | Path, sel: Selection) -> WriteR
         w.abandon()
         raise
     notes = [f"note: {ln}" for ln in describe_loss(scan.report)]
+    r = scan.report
+    if not w.messages and r.messages and r.first_ns is not None and r.last_ns is not None:
+        notes.append(
+            f"note: none of the {r.messages} messages was selected: they span "
+            f"{(r.last_ns - r.first_ns) * 1e-9:.3f} s from the first (--start and --end count from it; "
+            f"--topics and --exclude-topics search the topic names, `hil info` lists them)"
+        )
+    parts = split_parts(src)
+    if parts:
+        notes.append(
+            f"note: {src.name} is the first of {1 + len(parts)} files of a split recording, and hil "
+            f"filter reads the one file: `hil merge {src.name} -o whole.mcap` joins them"
+        )
     return WriteResult(dest, w.messages, w.attachments, w.metadata, notes)
 
 

@@ -16,7 +16,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from hil.record.mcapio import read_session
+from hil.record.mcapio import read_session, split_parts
 from tests.conftest import REPO, run_hil
 
 pytestmark = pytest.mark.slow
@@ -44,6 +44,18 @@ def hil_ok(*args: str) -> str:
     proc = run_hil(*args, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return proc.stdout
+
+
+def test_a_filter_that_selects_nothing_or_one_part_of_a_split_session_says_so(rec: dict[str, Path]) -> None:
+    tmp = rec["tmp"]
+    proc = run_hil("filter", str(rec["whole"]), "-o", str(tmp / "none.mcap"), "--start", "100")
+    assert proc.returncode == 0 and "hil filter: 0 messages" in proc.stdout, proc.stdout + proc.stderr
+    assert "note: none of the" in proc.stderr and "span 6.0" in proc.stderr, proc.stderr
+    proc = run_hil("filter", str(rec["split"]), "-o", str(tmp / "first.mcap"), "--topics", "/truth$")
+    assert proc.returncode == 0, proc.stderr
+    n = 1 + len(split_parts(rec["split"]))
+    assert f"split.mcap is the first of {n} files of a split recording" in proc.stderr, proc.stderr
+    assert "none of the" not in proc.stderr
 
 
 def test_filter_by_time_then_merge_gives_the_original_messages(rec: dict[str, Path]) -> None:
