@@ -43,17 +43,27 @@ def _default_record_path(scenario: str) -> Path:
     return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
 
 
-def _warn_stale_parts(cmd: str, record: Path) -> None:
+def _before_recording(cmd: str, record: Path) -> None:
     """What a new recording at ``record`` does to the files an earlier one left there, said before
     the run. ``hil up``'s recorder keeps an earlier recording and the parts it continues in
-    (``hil.record.mcapio.keep_aside``: a live session cannot be made again); ``hil sim`` writes
-    over its first file (a sim is made again from its options). Parts that do not continue it
+    (``hil.record.mcapio.keep_aside``: a live session cannot be made again); ``hil sim`` keeps
+    one too, here, unless it is a sim's own (made again from its options), which it writes over
+    (``made_by_sim``). Parts that do not continue it
     stay, and readers leave them out (each part names the size of the file it followed,
     ``hil.record.mcapio.split_parts``)."""
-    from hil.record.mcapio import aside_path, split_parts, stale_parts
+    from hil.record.mcapio import aside_path, keep_aside, made_by_sim, split_parts, stale_parts
 
     chained: list[Path] = []
-    if cmd == "up" and record.is_file() and record.stat().st_size > 0:
+    if cmd == "sim" and record.is_file() and record.stat().st_size > 0 and not made_by_sim(record):
+        # a live session (or anything but a sim's own file) is not made again by this sim
+        chained = split_parts(record)
+        kept = keep_aside(record)
+        print(
+            f"hil sim: {record} holds something other than a finished hil sim recording (a live "
+            f"session cannot be made again): kept as {kept}, not written over",
+            file=sys.stderr,
+        )
+    elif cmd == "up" and record.is_file() and record.stat().st_size > 0:
         chained = split_parts(record)
         with_parts = f" and the {len(chained)} part(s) it continues in" if chained else ""
         print(
@@ -226,7 +236,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
     record = a.record or _default_record_path(a.scenario)
-    _warn_stale_parts("up", record)
+    _before_recording("up", record)
     opts = UpOptions(
         scenario=a.scenario if not Path(a.scenario).is_file() else str(Path(a.scenario).resolve()),
         duration_s=duration,
@@ -431,7 +441,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
         scenario_overrides(load_scenario(a.scenario), imu_rate_hz=a.imu_rate)  # one line if refused
     record = a.record or _default_record_path(a.scenario)
-    _warn_stale_parts("sim", record)
+    _before_recording("sim", record)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 
     def on_progress(done_s: float, total_s: float) -> None:

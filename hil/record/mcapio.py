@@ -155,6 +155,22 @@ def keep_aside(path: Path) -> Path | None:
     return kept
 
 
+def made_by_sim(path: Path) -> bool:
+    """Whether ``path`` is a finished ``hil sim`` recording (its ``hil`` metadata says executor
+    ``sim``): one that the same options make again, so ``hil sim`` may write over it. A live
+    session, a file cut off, or anything else is not."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            for m in make_reader(fh).iter_metadata():
+                if m.name == "hil":
+                    return m.metadata.get("executor") == "sim"
+    except Exception:  # not MCAP, cut off, unreadable: not a sim's finished file
+        return False
+    return False
+
+
 def part_metadata(previous: Path) -> dict[str, Any]:
     """The ``part`` metadata of the part that follows ``previous`` (closed just now): its index
     comes from the caller, this gives what ties the two files together."""

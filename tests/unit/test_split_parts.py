@@ -21,6 +21,7 @@ from hil.record.mcapio import (
     SessionWriter,
     aside_path,
     keep_aside,
+    made_by_sim,
     split_part_path,
     split_parts,
     stale_parts,
@@ -185,18 +186,45 @@ def test_keep_aside_moves_a_recording_and_its_parts_to_the_next_free_name(tmp_pa
 def test_hil_up_says_before_the_run_where_the_earlier_recording_goes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from hil.cli import _warn_stale_parts
+    from hil.cli import _before_recording
 
     rec = tmp_path / "s.mcap"
     _sim(rec, 4.0)
     _file(split_part_path(rec, 3), {"index": 3, "previous": "x", "previous_bytes": 1})
-    _warn_stale_parts("up", rec)
+    _before_recording("up", rec)
     err = capsys.readouterr().err.splitlines()
     assert err[0] == (
         f"hil up: {rec} holds an earlier recording: the recorder keeps it and the 2 part(s) it "
         "continues in as s.1.mcap, not written over"
     )
     assert "warning: s_0003.mcap beside" in err[1] and len(err) == 2
-    _warn_stale_parts("sim", rec)  # hil sim writes over its first file: only the parts are said
+    _before_recording("sim", rec)  # hil sim writes over its first file: only the parts are said
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "warning: s_0001.mcap .. s_0003.mcap beside" in err[0]
+
+
+def test_hil_sim_writes_over_a_sims_file_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A sim is made again from its options; a live session, a file cut off or anything else
+    at the path is kept (``made_by_sim``)."""
+    from hil.cli import _before_recording
+
+    sim = tmp_path / "sim.mcap"
+    _sim(sim, 1.0)
+    assert made_by_sim(sim)
+    _before_recording("sim", sim)
+    assert sim.exists() and not (tmp_path / "sim.1.mcap").exists() and not capsys.readouterr().err
+    live = tmp_path / "live.mcap"
+    w = SessionWriter(live)
+    w.add_metadata("hil", {"rig": "bench", "executor": "live"})
+    w.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(sim.read_bytes()[: sim.stat().st_size // 2])
+    other = tmp_path / "notes.txt"
+    other.write_text("not a recording\n")
+    for path in (live, cut, other):
+        before = path.read_bytes()
+        assert not made_by_sim(path)
+        _before_recording("sim", path)
+        kept = path.with_name(f"{path.stem}.1{path.suffix}")
+        assert not path.exists() and kept.read_bytes() == before, path
+        assert f"kept as {kept}, not written over" in capsys.readouterr().err
