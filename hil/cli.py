@@ -48,9 +48,8 @@ def _before_recording(cmd: str, record: Path) -> None:
     the run. ``hil up``'s recorder keeps an earlier recording and the parts it continues in
     (``hil.record.mcapio.keep_aside``: a live session cannot be made again); ``hil sim`` keeps
     one too, here, unless it is a sim's own (made again from its options), which it writes over
-    (``made_by_sim``). Parts that do not continue it
-    stay, and readers leave them out (each part names the size of the file it followed,
-    ``hil.record.mcapio.split_parts``)."""
+    (``made_by_sim``). Parts that do not continue it stay, and readers leave them out (each part
+    names the size of the file it followed, ``hil.record.mcapio.split_parts``)."""
     from hil.record.mcapio import aside_path, keep_aside, made_by_sim, split_parts, stale_parts
 
     chained: list[Path] = []

@@ -322,11 +322,11 @@ def _sorted(s: Series) -> Series:
 
 def _scan_session(
     path: Path, on_batch: Callable[[Batch], None], on_progress: Callable[[int, int], None] | None
-) -> ScanResult:
+) -> tuple[ScanResult, int]:
     """``scan`` of the recording and the parts it was split into (``split_parts``), end to end:
     the collector keys by topic, so the parts read as one session. The later parts' metadata
     replace the earlier ones' (the last part's ``completeness`` covers the session); the counts
-    add up; progress runs over all the files' bytes."""
+    add up; progress runs over all the files' bytes. Also returns how many files were read."""
     files = [path, *split_parts(path)]
     sizes = [f.stat().st_size if f.exists() else 0 for f in files]
     total = sum(sizes)
@@ -345,19 +345,18 @@ def _scan_session(
         if res.truncated:
             out.truncated, out.truncation_reason = True, res.truncation_reason
         before += size
-    return out
+    return out, len(files)
 
 
 def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None) -> ReportData:
     """Read ``path`` into a ``ReportData``; raises ``RecordingError`` only when nothing is readable."""
     col = _Collector()
-    res = _scan_session(Path(path), col.on_batch, on_progress)
+    res, n_files = _scan_session(Path(path), col.on_batch, on_progress)
     d = ReportData(
         Path(path), res.metadata, res.attachments, res.truncated, res.truncation_reason, res.messages
     )
-    parts = split_parts(Path(path))
-    if parts:
-        d.notes.append(f"the recording is split: read its {1 + len(parts)} parts in order")
+    if n_files > 1:
+        d.notes.append(f"the recording is split: read its {n_files} parts in order")
     if res.truncated:
         d.notes.append(f"truncated recording: read up to its last complete chunk ({res.truncation_reason})")
     truth_rows = [r for chunk in col.truth for r in chunk]
