@@ -79,7 +79,8 @@ class RecordingError(ValueError):
 def no_run_message(name: str, records: Any) -> str:
     """Why a rerun found no run: a later part of a split recording (the run is announced in the
     first), a file cut off before it, or not a rig session."""
-    part = (getattr(records, "metadata", None) or {}).get("part", {})
+    meta = getattr(records, "metadata", None)
+    part = meta.get("part", {}) if meta is not None else _part_record(Path(name)) or {}
     if part.get("index", "0") != "0":
         first = Path(name).with_name(f"{Path(name).stem.rsplit('_', 1)[0]}{Path(name).suffix}")
         return (
@@ -180,18 +181,28 @@ def part_metadata(previous: Path) -> dict[str, Any]:
         return {"previous": previous.name}
 
 
-def _continues(part: Path, previous: Path) -> bool:
-    """Whether ``part`` says it was started after ``previous`` as it is now (see ``split_parts``)."""
+def _part_record(path: Path) -> dict[str, str] | None:
+    """The ``part`` metadata at the start of a split recording's later part (None: the file has
+    none before its messages, or cannot be read there)."""
     try:
-        for kind, rec in iter_records(part):
+        for kind, rec in iter_records(path):
             if kind == "metadata" and rec.name == "part":
-                size = rec.metadata.get("previous_bytes")
-                return size is None or int(size) == previous.stat().st_size
+                return dict(rec.metadata)
             if kind != "metadata":
-                break  # the messages began: a part written before its metadata said this
+                return None  # the messages began: not a later part (or one from before the field)
     except (McapError, OSError, ValueError, struct.error):
-        pass  # unreadable at its start: taken on its name, and the reading says what is wrong
-    return True
+        pass
+    return None
+
+
+def _continues(part: Path, previous: Path) -> bool:
+    """Whether ``part`` says it was started after ``previous`` as it is now (see ``split_parts``).
+    An unreadable start is taken on its name, and the reading then says what is wrong."""
+    size = (_part_record(part) or {}).get("previous_bytes")
+    try:
+        return size is None or int(size) == previous.stat().st_size
+    except (OSError, ValueError):
+        return False
 
 
 #: ~1973 as an epoch instant, three years as rig time: a recording's times below it are rig time

@@ -27,7 +27,7 @@ from hil.record.mcapio import (
     stale_parts,
 )
 from hil.record.replay import ReplayStats, _messages, recorded_span_ns, session_files
-from hil.record.rerun import rerun_fusion_file
+from hil.record.rerun import rerun_fusion_file, rerun_fusion_records
 from hil.report.data import load as load_report
 from hil.runners.sim import SimOptions, run_sim
 from tests.conftest import run_hil
@@ -154,6 +154,10 @@ def test_a_rerun_of_a_later_part_names_the_first_file(split_and_whole: tuple[Pat
         with pytest.raises(RecordingError) as err:
             rerun_fusion_file(part, worker=False)
         assert f"part {n} of a split recording" in str(err.value) and f"rerun {split}," in str(err.value)
+        # as a campaign's rerun reads it: records through a generator, the file known by name only
+        with pytest.raises(RecordingError) as err:
+            rerun_fusion_records(iter(SessionStream(part)), name=str(part))
+        assert f"part {n} of a split recording" in str(err.value), str(err.value)
 
 
 def test_hil_info_says_where_a_file_stands_in_a_split_recording(split_and_whole: tuple[Path, Path]) -> None:
