@@ -156,7 +156,7 @@ def test_a_rerun_of_a_later_part_names_the_first_file(split_and_whole: tuple[Pat
         assert f"part {n} of a split recording" in str(err.value) and f"rerun {split}," in str(err.value)
         # as a campaign's rerun reads it: records through a generator, the file known by name only
         with pytest.raises(RecordingError) as err:
-            rerun_fusion_records(iter(SessionStream(part)), name=str(part))
+            rerun_fusion_records(iter(SessionStream(part)), window_ns=None, name=str(part))
         assert f"part {n} of a split recording" in str(err.value), str(err.value)
 
 
