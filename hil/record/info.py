@@ -414,6 +414,9 @@ def info_json(path: str, *, parallel: bool = False) -> str:
             "truncated": s.truncated,
             "metadata": s.metadata,
             "errors": summary.estimator_errors(),
+            # a split recording's first file: the further parts, in order (a later part says
+            # which it is in its ``part`` metadata)
+            "parts": [p.name for p in split_parts(Path(path))],
         },
         indent=2,
     )

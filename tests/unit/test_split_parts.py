@@ -9,12 +9,13 @@ session and failed with a misleading loss note.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 
 from hil.record.export import export
-from hil.record.info import describe
+from hil.record.info import describe, info_json
 from hil.record.mcapio import (
     RecordingError,
     SessionStream,
@@ -167,6 +168,8 @@ def test_hil_info_says_where_a_file_stands_in_a_split_recording(split_and_whole:
     later = describe(str(split_part_path(split, 2)))
     assert "parts:     part 2 of a split recording, after split_0001.mcap" in later
     assert "parts:" not in describe(str(whole))
+    assert json.loads(info_json(str(split)))["parts"] == ["split_0001.mcap", "split_0002.mcap"]
+    assert json.loads(info_json(str(whole)))["parts"] == []
 
 
 def test_keep_aside_moves_a_recording_and_its_parts_to_the_next_free_name(tmp_path: Path) -> None:
