@@ -772,15 +772,27 @@ def cmd_fault(a: argparse.Namespace) -> int:
         params=param_entries(params),
         duration_s=a.duration,
     )
+    key = Keys(a.rig).control("fault")
     session = connect(a.rig)
     try:
         # as every rig publisher, the type in its encoding
-        pub = declare_publisher(session, Keys(a.rig).control("fault"), encoding=encoding_of(FaultCommand))
+        pub = declare_publisher(session, key, encoding=encoding_of(FaultCommand))
+        # a plain publisher on the key, never put to: whether anything subscribes to it (the
+        # advanced one has no matching status)
+        probe = session.declare_publisher(key)
         time.sleep(a.wait)  # let the session find the rig's subscribers before the one put
+        heard = probe.matching_status.matching
         pub.put(encode(cmd))
         time.sleep(0.2)
     finally:
         session.close()
+    if not heard:
+        print(
+            f"hil fault: {a.kind} went nowhere: nothing subscribes to {key} (is `hil up --rig {a.rig}` "
+            f"running, and does this session reach its router: HIL_ZENOH_CONNECT, or --wait longer?)",
+            file=sys.stderr,
+        )
+        return 1
     print(f"hil fault: sent {a.kind} to rig {a.rig!r}")
     return 0
 

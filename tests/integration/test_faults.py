@@ -104,3 +104,19 @@ def test_timed_and_commanded_faults_are_applied_and_recorded(tmp_path: Path) -> 
     assert max(b - a for a, b in itertools.pairwise(valid)) > 1.8e9
     for log in (tmp_path / "f.logs").glob("*.log"):
         assert "Traceback" not in log.read_text(errors="replace"), log
+
+
+def test_a_fault_that_nothing_receives_fails_and_says_so(zenoh_hub: str) -> None:
+    """A typo in --rig, or a rig that is not running: the command went nowhere, and ``hil fault``
+    said "sent" with exit 0 (a hub with no rig behind it; the live test above is the other case)."""
+    proc = subprocess.run(
+        hil_cmd("fault", "gnss_outage", "--rig", "nosuchrig", "--duration", "1", "--wait", "1.0"),
+        cwd=REPO,
+        env=dict(os.environ),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "went nowhere: nothing subscribes to hil/nosuchrig/control/fault" in proc.stderr, proc.stderr
+    assert "sent" not in proc.stdout and "Traceback" not in proc.stderr
