@@ -75,7 +75,7 @@ def run(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.bus.session import open_session
     from hil.record.mcapio import RecordingError
-    from hil.record.replay import ReplayError, ReplayOptions, check_readable, replay
+    from hil.record.replay import ReplayError, ReplayOptions, Selector, check_readable, replay
 
     try:
         if a.rig:
@@ -99,6 +99,7 @@ def run(a: argparse.Namespace) -> int:
             lockstep_window=a.lockstep_window,
             progress=not a.no_progress and sys.stderr.isatty(),
         )
+        Selector(opts)  # a bad --topics/--exclude-topics pattern: one line and exit 2, before any bus
     except ValueError as err:  # RecordingError is a ValueError
         sys.stderr.write(f"hil replay: {err}" + "\n")
         return EXIT_USAGE

@@ -148,7 +148,7 @@ class Selector:
             self.include = [re.compile(p) for p in opts.topics]
             self.exclude = [re.compile(p) for p in opts.exclude_topics]
         except re.error as err:
-            raise ValueError(f"bad topic pattern {err.pattern!r}: {err}") from err
+            raise ValueError(f"--topics/--exclude-topics: bad pattern {err.pattern!r}: {err}") from err
         self.start_ns = None if opts.start_s is None else int(opts.start_s * 1e9)
         self.end_ns = None if opts.end_s is None else int(opts.end_s * 1e9)
 

@@ -126,3 +126,11 @@ def test_loop_runs_until_ctrl_c_and_stops_cleanly(hub: Hub) -> None:
     assert proc.returncode == 130, out
     assert "Traceback" not in out and "replay:" in out
     assert len(hub.samples) > 2 * n_run  # it went round more than twice
+
+
+@pytest.mark.parametrize("flag", ["--topics", "--exclude-topics"])
+def test_a_bad_topic_pattern_is_one_line_and_exit_2(flag: str) -> None:
+    proc = run_hil("replay", str(GOLDEN), "--afap", flag, "[bad", "--no-progress", timeout=60)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr  # it was exit 1, "ValueError: ..."
+    assert lines[0].startswith("hil replay: --topics/--exclude-topics: bad pattern '[bad'"), lines
