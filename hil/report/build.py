@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from hil import __version__
+from hil.record.mcapio import RecordingError
 from hil.report import plots
 from hil.report.data import ReportData, load
 from hil.report.metrics import (
@@ -117,7 +118,10 @@ class _Draft:
 def build_report(path: str | Path, out_dir: str | Path, progress: ProgressFn | None = None) -> ReportResult:
     """Read ``path``, write ``out_dir/report.html`` and ``out_dir/*.png``."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # a file in the way, a read-only disk: one line, before the reading
+        raise RecordingError(f"cannot write the report under {out}: {err.strerror}") from err
     timings: dict[str, float] = {}
     t0 = time.monotonic()
     page = _Draft(out, progress)

@@ -32,7 +32,7 @@ from hil.messages import (
     encode,
 )
 from hil.progress import Progress
-from hil.record.mcapio import SessionWriter
+from hil.record.mcapio import RecordingError, SessionWriter
 from hil.report.build import build_report
 from hil.report.data import load
 from hil.report.metrics import quat_mul
@@ -312,3 +312,10 @@ def test_progress_silent_off_tty_and_draws_on_tty() -> None:
         bar.update(10)
     out = loud.getvalue()
     assert out.startswith("\rsim [") and "50.0%" in out and "100.0%" in out and out.endswith("\n")
+
+
+def test_an_unwritable_report_directory_is_one_line_before_any_reading(tmp_path: Path) -> None:
+    in_the_way = tmp_path / "a_file"
+    in_the_way.write_text("x")
+    with pytest.raises(RecordingError, match=r"cannot write the report under .*a_file/rep: Not a directory"):
+        build_report(tmp_path / "no_such_recording.mcap", in_the_way / "rep")
