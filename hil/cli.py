@@ -65,9 +65,16 @@ def _before_recording(cmd: str, record: Path) -> None:
     elif cmd == "up" and record.is_file() and record.stat().st_size > 0:
         chained = split_parts(record)
         with_parts = f" and the {len(chained)} part(s) it continues in" if chained else ""
+        aside = aside_path(record, len(chained))
+        # its services' logs go with it (the new run's would be appended to them otherwise)
+        logs, aside_logs = record.with_suffix(".logs"), aside.with_suffix(".logs")
+        moved_logs = logs.is_dir() and not aside_logs.exists()
+        if moved_logs:
+            logs.rename(aside_logs)
+        its_logs = f" (its logs as {aside_logs.name})" if moved_logs else ""
         print(
             f"hil up: {record} holds an earlier recording: the recorder keeps it{with_parts} as "
-            f"{aside_path(record, len(chained)).name}, not written over",
+            f"{aside.name}{its_logs}, not written over",
             file=sys.stderr,
         )
     stale = [p for p in stale_parts(record) if p not in chained]

@@ -198,12 +198,17 @@ def test_hil_up_says_before_the_run_where_the_earlier_recording_goes(
     rec = tmp_path / "s.mcap"
     _sim(rec, 4.0)
     _file(split_part_path(rec, 3), {"index": 3, "previous": "x", "previous_bytes": 1})
+    (tmp_path / "s.logs").mkdir()
+    (tmp_path / "s.logs" / "fusion.log").write_text("the earlier run's log\n")
     _before_recording("up", rec)
     err = capsys.readouterr().err.splitlines()
     assert err[0] == (
         f"hil up: {rec} holds an earlier recording: the recorder keeps it and the 2 part(s) it "
-        "continues in as s.1.mcap, not written over"
+        "continues in as s.1.mcap (its logs as s.1.logs), not written over"
     )
+    # the logs go with it now (the recorder moves the recording itself, when it starts)
+    assert (tmp_path / "s.1.logs" / "fusion.log").read_text() == "the earlier run's log\n"
+    assert not (tmp_path / "s.logs").exists() and rec.exists()
     assert "warning: s_0003.mcap beside" in err[1] and len(err) == 2
     _before_recording("sim", rec)  # hil sim writes over its first file: only the parts are said
     err = capsys.readouterr().err.splitlines()
