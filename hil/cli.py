@@ -641,6 +641,11 @@ def cmd_report(a: argparse.Namespace) -> int:
     return 0
 
 
+#: how long ``hil monitor --once`` waits for a first status when no ``--duration`` is given (a rig
+#: just started with ``hil up`` reports within a few seconds)
+ONCE_WAIT_S = 30.0
+
+
 def cmd_monitor(a: argparse.Namespace) -> int:
     import threading
 
@@ -652,8 +657,10 @@ def cmd_monitor(a: argparse.Namespace) -> int:
     session = connect(a.rig)
     stop = threading.Event()
     install_signal_handlers(stop)
+    # a one-shot question gets an answer: a rig that is not there is said within ONCE_WAIT_S
+    duration = a.duration if a.duration is not None or not a.once else ONCE_WAIT_S
     try:
-        opts = MonitorOptions(rig=a.rig, duration_s=a.duration, interval_s=a.interval, once=a.once)
+        opts = MonitorOptions(rig=a.rig, duration_s=duration, interval_s=a.interval, once=a.once)
         return run_monitor(session, opts, stop)
     finally:
         session.close()
@@ -1157,7 +1164,12 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     mon.add_argument("--rig", default="bench", help="the rig to watch (hil/<rig>/...)")
     mon.add_argument("--duration", type=seconds, default=None, help="stop after this many seconds")
     mon.add_argument("--interval", type=positive_float, default=1.0, help="seconds between redraws")
-    mon.add_argument("--once", action="store_true", help="print one table once statuses arrive, then exit")
+    mon.add_argument(
+        "--once",
+        action="store_true",
+        help=f"print one table once statuses arrive, then exit; exit 1 if none came within --duration "
+        f"(with --once, {ONCE_WAIT_S:g} s unless given)",
+    )
     mon.set_defaults(func=cmd_monitor)
 
     fox = sub.add_parser(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -154,3 +155,23 @@ def test_liveview_marks_stale_and_dead_services() -> None:
     assert "running" in next(
         ln for ln in v.table(1.0, {"fusion": True}, now=seen).splitlines() if "fusion" in ln
     )
+
+
+def test_monitor_once_without_a_rig_answers_within_its_wait() -> None:
+    """``--once`` is a one-shot question: with no rig it waited for ever (``--duration`` bounds it;
+    without one, ``ONCE_WAIT_S``, shortened here)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    code = (
+        "import sys; from hil import cli; cli.ONCE_WAIT_S = 1.5; "
+        "raise SystemExit(cli.main(['monitor', '--rig', 'nobody', '--once', '--interval', '0.2']))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=REPO,
+        env=_env(endpoint, mode="peer"),
+        capture_output=True,
+        text=True,
+        timeout=120,  # before: it never returned
+    )
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "no status from rig 'nobody'" in r.stdout
