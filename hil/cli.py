@@ -43,48 +43,34 @@ def _default_record_path(scenario: str) -> Path:
     return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
 
 
-def _before_recording(cmd: str, record: Path) -> None:
-    """What a new recording at ``record`` does to the files an earlier one left there, said before
-    the run. ``hil up``'s recorder keeps an earlier recording and the parts it continues in
-    (``hil.record.mcapio.keep_aside``: a live session cannot be made again); ``hil sim`` keeps
-    one too, here, unless it is a sim's own (made again from its options), which it writes over
-    (``made_by_sim``). Parts that do not continue it stay, and readers leave them out (each part
-    names the size of the file it followed, ``hil.record.mcapio.split_parts``)."""
-    from hil.record.mcapio import aside_path, keep_aside, made_by_sim, split_parts, stale_parts
+def _keep_earlier_recording(record: Path) -> None:
+    """``hil up`` at a path that holds a recording: moved aside now, with the parts it continues
+    in and its services' logs (``<stem>.logs``, which the new run's would otherwise be appended
+    to), before any service starts (``hil.record.mcapio.keep_aside``: a live session cannot be
+    made again; a recorder started alone, as docker compose runs it, does the same itself). Part
+    names left by an older recording stay, and are said: readers leave them out."""
+    from hil.record.mcapio import keep_aside, stale_parts_note
 
-    chained: list[Path] = []
-    if cmd == "sim" and record.is_file() and record.stat().st_size > 0 and not made_by_sim(record):
-        # a live session (or anything but a sim's own file) is not made again by this sim
-        chained = split_parts(record)
+    logs = record.with_suffix(".logs")
+    try:
         kept = keep_aside(record)
+        kept_logs = kept.with_suffix(".logs") if kept is not None else None
+        if kept_logs is not None and logs.is_dir() and not kept_logs.exists():
+            logs.rename(kept_logs)
+    except OSError as err:
+        raise UserError(
+            f"--record {record}: it holds an earlier recording that cannot be moved aside "
+            f"({err.strerror}); give another --record"
+        ) from None
+    if kept is not None:
+        with_logs = f" (its logs as {kept_logs.name})" if kept_logs is not None and kept_logs.is_dir() else ""
         print(
-            f"hil sim: {record} holds something other than a finished hil sim recording (a live "
-            f"session cannot be made again): kept as {kept}, not written over",
+            f"hil up: {record} held an earlier recording: kept as {kept}{with_logs}, not written over",
             file=sys.stderr,
         )
-    elif cmd == "up" and record.is_file() and record.stat().st_size > 0:
-        chained = split_parts(record)
-        with_parts = f" and the {len(chained)} part(s) it continues in" if chained else ""
-        aside = aside_path(record, len(chained))
-        # its services' logs go with it (the new run's would be appended to them otherwise)
-        logs, aside_logs = record.with_suffix(".logs"), aside.with_suffix(".logs")
-        moved_logs = logs.is_dir() and not aside_logs.exists()
-        if moved_logs:
-            logs.rename(aside_logs)
-        its_logs = f" (its logs as {aside_logs.name})" if moved_logs else ""
-        print(
-            f"hil up: {record} holds an earlier recording: the recorder keeps it{with_parts} as "
-            f"{aside.name}{its_logs}, not written over",
-            file=sys.stderr,
-        )
-    stale = [p for p in stale_parts(record) if p not in chained]
-    if stale:
-        names = stale[0].name if len(stale) == 1 else f"{stale[0].name} .. {stale[-1].name}"
-        print(
-            f"hil {cmd}: warning: {names} beside {record} are left from an earlier recording there: "
-            f"not parts of this one (it writes over those it reaches); remove them",
-            file=sys.stderr,
-        )
+    note = stale_parts_note(record)
+    if note:
+        print(f"hil up: warning: {note}", file=sys.stderr)
 
 
 def _add_fusion_args(p: argparse.ArgumentParser) -> None:
@@ -242,7 +228,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
     record = a.record or _default_record_path(a.scenario)
-    _before_recording("up", record)
+    _keep_earlier_recording(record)
     opts = UpOptions(
         scenario=a.scenario if not Path(a.scenario).is_file() else str(Path(a.scenario).resolve()),
         duration_s=duration,
@@ -447,7 +433,6 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
         scenario_overrides(load_scenario(a.scenario), imu_rate_hz=a.imu_rate)  # one line if refused
     record = a.record or _default_record_path(a.scenario)
-    _before_recording("sim", record)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 
     def on_progress(done_s: float, total_s: float) -> None:
@@ -856,12 +841,11 @@ def cmd_filter(a: argparse.Namespace) -> int:
 
 @_recording_tool
 def cmd_merge(a: argparse.Namespace) -> int:
-    from hil.record.mcapio import split_parts
+    from hil.record.mcapio import session_files
     from hil.record.tools import merge_recordings
 
-    files = [Path(f) for f in a.files]
-    if len(files) == 1:
-        files += split_parts(files[0])  # one name: the session and its further parts
+    # one name: the session and its further parts
+    files = session_files(a.files[0]) if len(a.files) == 1 else [Path(f) for f in a.files]
     res = merge_recordings(files, a.output)
     for note in res.notes:
         print(f"hil merge: {note}", file=sys.stderr)

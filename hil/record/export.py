@@ -26,7 +26,7 @@ from typing import IO, Any
 import msgspec
 
 from hil.messages import TYPES_BY_NAME, GnssFix, ImuSample, NavSolution, Truth, decode, schema_name
-from hil.record.mcapio import RecordingError, split_parts
+from hil.record.mcapio import RecordingError, session_files
 from hil.record.scan import Scan, describe_loss
 from hil.record.tools import iter_tagged
 
@@ -170,7 +170,7 @@ def export(
     pats = [re.compile(t) for t in topics or []]
     out = Path(out_dir)
     # a split recording: its parts end to end (each part has its channels; tables go by topic)
-    scans = [Scan(f) for f in (Path(src), *split_parts(Path(src)))]
+    scans = [Scan(f) for f in session_files(src)]
     tables: dict[str, _Table] = {}
     decoders: dict[str, type[Any]] = {}
     try:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import glob
 import io
 import json
 import os
@@ -79,10 +80,9 @@ class RecordingError(ValueError):
 def no_run_message(name: str, records: Any) -> str:
     """Why a rerun found no run: a later part of a split recording (the run is announced in the
     first), a file cut off before it, or not a rig session."""
-    meta = getattr(records, "metadata", None)
-    part = meta.get("part", {}) if meta is not None else _part_record(Path(name)) or {}
+    part = _leading_metadata(Path(name), "part") or {}
     if part.get("index", "0") != "0":
-        first = Path(name).with_name(f"{Path(name).stem.rsplit('_', 1)[0]}{Path(name).suffix}")
+        first = split_first_path(Path(name), int(part["index"]))
         return (
             f"{name}: part {part['index']} of a split recording (after {part.get('previous', '?')}); "
             f"the run is announced in its first file: rerun {first}, which reads every part"
@@ -97,6 +97,20 @@ def no_run_message(name: str, records: Any) -> str:
 def split_part_path(path: Path, part: int) -> Path:
     """Where a split recording's part ``part`` goes: part 0 is ``path``, then ``<stem>_0001<suffix>``, ..."""
     return path if part == 0 else path.with_name(f"{path.stem}_{part:04d}{path.suffix}")
+
+
+def split_first_path(part: Path, index: int) -> Path:
+    """The first file of the split recording whose part ``index`` is ``part`` (the inverse of
+    :func:`split_part_path`)."""
+    tail = f"_{index:04d}"
+    stem = part.stem[: -len(tail)] if index and part.stem.endswith(tail) else part.stem
+    return part.with_name(f"{stem}{part.suffix}")
+
+
+def session_files(path: str | Path) -> list[Path]:
+    """A recording and the parts it was split into (:func:`split_parts`), in order: what the tools
+    that read a session (rerun, replay, report, export, merge) read end to end."""
+    return [Path(path), *split_parts(Path(path))]
 
 
 def split_parts(path: Path) -> list[Path]:
@@ -117,12 +131,23 @@ def split_parts(path: Path) -> list[Path]:
 
 
 def stale_parts(path: Path) -> list[Path]:
-    """Files at ``path``'s part names (``<stem>_0001.mcap``, ...) that a new recording at ``path``
-    would not continue: left by an earlier one."""
-    found: list[Path] = []
-    while split_part_path(path, len(found) + 1).is_file():
-        found.append(split_part_path(path, len(found) + 1))
-    return found
+    """Files at ``path``'s part names (``<stem>_0001.mcap``, ...), in order, gaps and all, that a
+    new recording at ``path`` would not continue: left by an earlier one."""
+    pattern = f"{glob.escape(path.stem)}_[0-9][0-9][0-9][0-9]{glob.escape(path.suffix)}"
+    return sorted(p for p in path.parent.glob(pattern) if p.is_file())
+
+
+def stale_parts_note(path: Path) -> str | None:
+    """What ``hil sim`` and ``hil up`` say, before a recording at ``path``, of the :func:`stale_parts`
+    there (None: none)."""
+    stale = stale_parts(path)
+    if not stale:
+        return None
+    names = stale[0].name if len(stale) == 1 else f"{stale[0].name} .. {stale[-1].name}"
+    return (
+        f"{names} beside {path} are left from an earlier recording there: not parts of this one "
+        f"(it writes over those it reaches); remove them"
+    )
 
 
 def aside_path(path: Path, n_parts: int) -> Path:
@@ -157,19 +182,11 @@ def keep_aside(path: Path) -> Path | None:
 
 
 def made_by_sim(path: Path) -> bool:
-    """Whether ``path`` is a finished ``hil sim`` recording (its ``hil`` metadata says executor
-    ``sim``): one that the same options make again, so ``hil sim`` may write over it. A live
-    session, a file cut off, or anything else is not."""
-    from mcap.reader import make_reader
-
-    try:
-        with open(path, "rb") as fh:
-            for m in make_reader(fh).iter_metadata():
-                if m.name == "hil":
-                    return m.metadata.get("executor") == "sim"
-    except Exception:  # not MCAP, cut off, unreadable: not a sim's finished file
-        return False
-    return False
+    """Whether ``path`` is a ``hil sim`` recording, finished or cut off (the ``hil`` metadata it
+    starts with says executor ``sim``): one that the same options make again, so ``hil sim`` may
+    write over it. A live session (whose ``hil`` metadata comes when the run starts, after the
+    boot's messages), or any other file, is not."""
+    return (_leading_metadata(path, "hil") or {}).get("executor") == "sim"
 
 
 def part_metadata(previous: Path) -> dict[str, Any]:
@@ -181,15 +198,16 @@ def part_metadata(previous: Path) -> dict[str, Any]:
         return {"previous": previous.name}
 
 
-def _part_record(path: Path) -> dict[str, str] | None:
-    """The ``part`` metadata at the start of a split recording's later part (None: the file has
-    none before its messages, or cannot be read there)."""
+def _leading_metadata(path: Path, name: str) -> dict[str, str] | None:
+    """The metadata record ``name`` among those a file starts with, before its first message
+    (None: not there, or the file cannot be read so far): a split recording's ``part``, a
+    sim's ``hil``."""
     try:
         for kind, rec in iter_records(path):
-            if kind == "metadata" and rec.name == "part":
+            if kind == "metadata" and rec.name == name:
                 return dict(rec.metadata)
             if kind != "metadata":
-                return None  # the messages began: not a later part (or one from before the field)
+                return None  # the messages began
     except (McapError, OSError, ValueError, struct.error):
         pass
     return None
@@ -198,7 +216,7 @@ def _part_record(path: Path) -> dict[str, str] | None:
 def _continues(part: Path, previous: Path) -> bool:
     """Whether ``part`` says it was started after ``previous`` as it is now (see ``split_parts``).
     An unreadable start is taken on its name, and the reading then says what is wrong."""
-    size = (_part_record(part) or {}).get("previous_bytes")
+    size = (_leading_metadata(part, "part") or {}).get("previous_bytes")
     try:
         return size is None or int(size) == previous.stat().st_size
     except (OSError, ValueError):
@@ -1255,7 +1273,7 @@ class SessionStream:
         # record given (None: none); complete once the iteration has ended
         self.skipped_tail: tuple[int, int] | None = None
         self.on_progress = on_progress
-        self.paths = [self.path, *(split_parts(self.path) if follow_parts else [])]
+        self.paths = session_files(self.path) if follow_parts else [self.path]
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False
         self.truncation_reason = ""

@@ -48,7 +48,7 @@ from hil.bus.pubsub import declare_publisher
 from hil.fusion.core import parse_journal_id
 from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
-from hil.record.mcapio import Record, check_hil_recording, iter_records, split_parts
+from hil.record.mcapio import Record, check_hil_recording, iter_records, session_files
 
 FUSION_INPUT = re.compile(r"^hil/[^/]+/synced/(imu|gnss)$")
 SPIN_S = 0.0005  # the last half millisecond before a deadline is spun, not slept (CAN spacing)
@@ -286,11 +286,6 @@ def recorded_span_ns(path: str | Path) -> int | None:
             first = st.message_start_time if first is None else min(first, st.message_start_time)
             last = st.message_end_time if last is None else max(last, st.message_end_time)
     return None if first is None or last is None else int(last - first)
-
-
-def session_files(path: str | Path) -> list[Path]:
-    """The recording and the parts it was split into (``split_parts``), in order."""
-    return [Path(path), *split_parts(Path(path))]
 
 
 def session_records(path: str | Path) -> Iterator[tuple[str, Any]]:

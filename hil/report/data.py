@@ -18,7 +18,7 @@ import numpy as np
 
 from hil.can.busload import frame_bits
 from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus, decode
-from hil.record.mcapio import is_derived, split_parts
+from hil.record.mcapio import is_derived, session_files
 from hil.report.scan import Batch, Channel, ScanResult, scan
 
 F64 = np.ndarray  # float64 arrays; shapes in the field comments
@@ -323,11 +323,11 @@ def _sorted(s: Series) -> Series:
 def _scan_session(
     path: Path, on_batch: Callable[[Batch], None], on_progress: Callable[[int, int], None] | None
 ) -> tuple[ScanResult, int]:
-    """``scan`` of the recording and the parts it was split into (``split_parts``), end to end:
+    """``scan`` of the recording and the parts it was split into (``session_files``), end to end:
     the collector keys by topic, so the parts read as one session. The later parts' metadata
     replace the earlier ones' (the last part's ``completeness`` covers the session); the counts
     add up; progress runs over all the files' bytes. Also returns how many files were read."""
-    files = [path, *split_parts(path)]
+    files = session_files(path)
     sizes = [f.stat().st_size if f.exists() else 0 for f in files]
     total = sum(sizes)
     out = ScanResult(bytes_total=total)

@@ -53,7 +53,15 @@ from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.nodes.world import WorldNode, WorldOptions, run_info
 from hil.record.keyfilter import KeyFilter
-from hil.record.mcapio import TIME_SEMANTICS, SessionWriter, part_metadata, split_part_path
+from hil.record.mcapio import (
+    TIME_SEMANTICS,
+    SessionWriter,
+    keep_aside,
+    made_by_sim,
+    part_metadata,
+    split_part_path,
+    stale_parts_note,
+)
 from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteTail, drive, portable, worker_possible
 from hil.runners.wire import CanWireModel
 from hil.runtime import jit
@@ -506,6 +514,16 @@ def run_sim(opts: SimOptions) -> SimResult:
     if use_worker is None:
         use_worker = worker_possible()
     split = tail_split(nodes) if use_worker else len(nodes)
+
+    def warn(line: str) -> None:
+        if opts.on_warning is not None:
+            opts.on_warning(line)
+        else:
+            sys.stderr.write(f"hil sim: warning: {line}\n")
+            sys.stderr.flush()
+
+    for line in _keep_earlier(opts.record):
+        warn(line)
     sess = _Session(run, opts, nodes)
 
     def header(w: SessionWriter) -> None:
@@ -514,11 +532,7 @@ def run_sim(opts: SimOptions) -> SimResult:
     header(sess.w)
     warnings, ignored = not_applicable_faults(s.events, run.duration_s)
     for line in warnings:
-        if opts.on_warning is not None:
-            opts.on_warning(line)
-        else:
-            sys.stderr.write(f"hil sim: warning: {line}\n")
-            sys.stderr.flush()
+        warn(line)
     wire = CanWireModel(s)
     # the fusion's kernels compiled where it runs (the same bits either way): with a worker, in
     # the worker; this process, which runs no fusion, does not import numba
@@ -549,6 +563,21 @@ def run_sim(opts: SimOptions) -> SimResult:
     stopped = None if sess.stopped_at_ns is None else sess.stopped_at_ns / 1e9
     wall_s = time.monotonic() - t_wall
     return SimResult(opts.record, sess.n_written, run.duration_s, wall_s, warnings, stopped)
+
+
+def _keep_earlier(record: Path) -> list[str]:
+    """What is at ``record`` before a sim writes there. A sim's own file (finished or cut off) is
+    written over: the same options make it again. Anything else, a live session first of all, is
+    moved aside with its parts (``keep_aside``), as the recorder does; part names an older
+    recording left are said. Returns the lines to warn with."""
+    lines = []
+    if record.is_file() and record.stat().st_size > 0 and not made_by_sim(record):
+        kept = keep_aside(record)
+        lines.append(f"{record} held a recording that no sim makes again (a live session?): kept as {kept}")
+    note = stale_parts_note(record)
+    if note:
+        lines.append(note)
+    return lines
 
 
 def tail_split(nodes: list[Node]) -> int:

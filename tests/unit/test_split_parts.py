@@ -23,11 +23,12 @@ from hil.record.mcapio import (
     aside_path,
     keep_aside,
     made_by_sim,
+    session_files,
     split_part_path,
     split_parts,
     stale_parts,
 )
-from hil.record.replay import ReplayStats, _messages, recorded_span_ns, session_files
+from hil.record.replay import ReplayStats, _messages, recorded_span_ns
 from hil.record.rerun import rerun_fusion_file, rerun_fusion_records
 from hil.report.data import load as load_report
 from hil.runners.sim import SimOptions, run_sim
@@ -190,53 +191,61 @@ def test_keep_aside_moves_a_recording_and_its_parts_to_the_next_free_name(tmp_pa
     assert keep_aside(tmp_path / "none.mcap") is None
 
 
-def test_hil_up_says_before_the_run_where_the_earlier_recording_goes(
+def test_hil_up_keeps_an_earlier_recording_and_its_logs_before_the_run(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from hil.cli import _before_recording
+    from hil.cli import _keep_earlier_recording
 
     rec = tmp_path / "s.mcap"
     _sim(rec, 4.0)
+    files = [rec, *split_parts(rec)]
+    before = [f.read_bytes() for f in files]
     _file(split_part_path(rec, 3), {"index": 3, "previous": "x", "previous_bytes": 1})
     (tmp_path / "s.logs").mkdir()
     (tmp_path / "s.logs" / "fusion.log").write_text("the earlier run's log\n")
-    _before_recording("up", rec)
+    _keep_earlier_recording(rec)
+    kept = tmp_path / "s.1.mcap"
     err = capsys.readouterr().err.splitlines()
-    assert err[0] == (
-        f"hil up: {rec} holds an earlier recording: the recorder keeps it and the 2 part(s) it "
-        "continues in as s.1.mcap (its logs as s.1.logs), not written over"
+    assert (
+        err[0]
+        == f"hil up: {rec} held an earlier recording: kept as {kept} (its logs as s.1.logs), not written over"
     )
-    # the logs go with it now (the recorder moves the recording itself, when it starts)
+    assert err[1].startswith("hil up: warning: s_0003.mcap beside") and len(err) == 2
+    assert [f.read_bytes() for f in session_files(kept)] == before  # one session there still
     assert (tmp_path / "s.1.logs" / "fusion.log").read_text() == "the earlier run's log\n"
-    assert not (tmp_path / "s.logs").exists() and rec.exists()
-    assert "warning: s_0003.mcap beside" in err[1] and len(err) == 2
-    _before_recording("sim", rec)  # hil sim writes over its first file: only the parts are said
-    err = capsys.readouterr().err.splitlines()
-    assert len(err) == 1 and "warning: s_0001.mcap .. s_0003.mcap beside" in err[0]
+    assert not rec.exists() and not (tmp_path / "s.logs").exists()
+    _keep_earlier_recording(rec)  # nothing there now: nothing said but the stale part
+    assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_hil_sim_writes_over_a_sims_file_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A sim is made again from its options; a live session, a file cut off or anything else
-    at the path is kept (``made_by_sim``)."""
-    from hil.cli import _before_recording
+def test_hil_sim_writes_over_a_sims_file_only(tmp_path: Path) -> None:
+    """A sim, finished or cut off, is made again from its options; a live session, or anything
+    else at the path, is kept (``made_by_sim``), by the sim runner itself."""
+    said: list[str] = []
+
+    def sim_at(path: Path) -> None:
+        run_sim(SimOptions(duration_s=1.0, record=path, fusion_worker=False, on_warning=said.append))
 
     sim = tmp_path / "sim.mcap"
-    _sim(sim, 1.0)
-    assert made_by_sim(sim)
-    _before_recording("sim", sim)
-    assert sim.exists() and not (tmp_path / "sim.1.mcap").exists() and not capsys.readouterr().err
+    sim_at(sim)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(sim.read_bytes()[: sim.stat().st_size // 2])
+    assert made_by_sim(sim) and made_by_sim(cut)
+    for path in (sim, cut):
+        sim_at(path)
+        assert not path.with_name(f"{path.stem}.1.mcap").exists() and not said, said
     live = tmp_path / "live.mcap"
     w = SessionWriter(live)
     w.add_metadata("hil", {"rig": "bench", "executor": "live"})
     w.close()
-    cut = tmp_path / "cut.mcap"
-    cut.write_bytes(sim.read_bytes()[: sim.stat().st_size // 2])
     other = tmp_path / "notes.txt"
     other.write_text("not a recording\n")
-    for path in (live, cut, other):
+    for path in (live, other):
         before = path.read_bytes()
         assert not made_by_sim(path)
-        _before_recording("sim", path)
+        sim_at(path)
         kept = path.with_name(f"{path.stem}.1{path.suffix}")
-        assert not path.exists() and kept.read_bytes() == before, path
-        assert f"kept as {kept}, not written over" in capsys.readouterr().err
+        assert kept.read_bytes() == before and made_by_sim(path), path
+        assert (
+            said.pop() == f"{path} held a recording that no sim makes again (a live session?): kept as {kept}"
+        )
