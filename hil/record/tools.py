@@ -99,9 +99,16 @@ class OutputWriter:
 
 
 def _check_output(out: Path, inputs: Iterable[Path]) -> None:
+    """Refused before anything is opened: an output that is one of the inputs under another name
+    (a symlink, a hard link, a bind mount: the same device and inode) would be truncated by the
+    write and then removed as a failed output, the recording with it."""
     for p in inputs:
-        if out.exists() and p.exists() and out.resolve() == p.resolve():
-            raise RecordingError(f"{out}: the output would overwrite its input; give another -o")
+        try:
+            same = out.exists() and p.exists() and (out.resolve() == p.resolve() or out.samefile(p))
+        except OSError:
+            continue  # one of them cannot be stat'ed: reading or writing it says why
+        if same:
+            raise RecordingError(f"{out}: the output is the input {p} (the same file); give another -o")
 
 
 @dataclass

@@ -168,6 +168,27 @@ def test_recover_reads_a_file_cut_at_any_byte(rec: dict[str, Path]) -> None:
     assert messages(fixed) == orig and "nothing lost" in out
 
 
+@pytest.mark.parametrize("cmd", [["recover"], ["filter"], ["merge"]])
+def test_an_output_that_is_the_input_under_another_name_is_refused(
+    rec: dict[str, Path], cmd: list[str]
+) -> None:
+    """A hard link (or a symlink) to the input as -o: refused before anything is opened, and
+    the input is whole (the write would truncate the shared inode, then remove it as failed)."""
+    tmp = rec["tmp"] / f"same-{cmd[0]}"
+    tmp.mkdir()
+    src = tmp / "in.mcap"
+    src.write_bytes(rec["whole"].read_bytes())
+    before = src.read_bytes()
+    for link in (tmp / "hard.mcap", tmp / "soft.mcap"):
+        if link.name.startswith("hard"):
+            link.hardlink_to(src)
+        else:
+            link.symlink_to(src)
+        proc = run_hil(cmd[0], str(src), "-o", str(link), timeout=60)
+        assert proc.returncode == 2 and "is the input" in proc.stderr, (link.name, proc.stderr)
+        assert src.read_bytes() == before and link.exists(), link.name
+
+
 def _foreign(path: Path) -> Path:
     with open(path, "wb") as f:
         w = Writer(f)
