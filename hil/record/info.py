@@ -62,6 +62,20 @@ class ChannelInfo:
     restarts: int = 0
 
 
+def stream_rate_hz(n: int, first_log_ns: int, last_log_ns: int, first_pub_ns: int, last_pub_ns: int) -> float:
+    """A topic's rate over its messages' own times (``publish_time``: start epoch + the message's
+    time of validity), not over when the recorder took them: the time sync releases the ~3 s it
+    held before its first lock at once, so ``synced/imu`` of a 400 Hz IMU came out as 571 Hz over
+    its log times. A raw channel's publish time is its receive time, the same thing; a topic
+    whose publish times do not advance (a foreign writer's zeros) falls back to its log times."""
+    if n < 2:
+        return 0.0
+    span = last_pub_ns - first_pub_ns
+    if span <= 0:
+        span = last_log_ns - first_log_ns
+    return (n - 1) / (span * 1e-9) if span > 0 else 0.0
+
+
 class _SeqRuns:
     """Each topic's seqs as runs of consecutive ones, ``[first, n]``, in file order: what the
     second reader of a file gives the first, which counts them after its own (``_merge``)."""
@@ -115,10 +129,10 @@ class Summary:
                 self.publishers.add(r.publisher)
                 continue
             see(topic, record_seq(r))
-            t = r.log_time_ns
+            t, p = r.log_time_ns, r.publish_time_ns
             sp = spans.get(topic)
             if sp is None:
-                spans[topic] = [t, t]
+                spans[topic] = [t, t, p, p]
                 self.schemas[topic] = r.schema
                 counts[topic] = 1
             else:
@@ -126,6 +140,10 @@ class Summary:
                     sp[0] = t
                 elif t > sp[1]:  # (t < first <= last: never both)
                     sp[1] = t
+                if p < sp[2]:
+                    sp[2] = p
+                elif p > sp[3]:
+                    sp[3] = p
                 counts[topic] += 1
             if not accuracy:
                 continue
@@ -149,9 +167,9 @@ class Summary:
         """Per topic, the rig's messages (foreign ones left out: ``foreign_summary``)."""
         out = []
         for topic in sorted(self.counts):
-            a, b = self.spans[topic]
+            a, b, pa, pb = self.spans[topic]
             n = self.counts[topic]
-            rate = (n - 1) / ((b - a) * 1e-9) if n > 1 and b > a else 0.0
+            rate = stream_rate_hz(n, a, b, pa, pb)
             tr = self.comp.topics[topic]
             out.append(
                 ChannelInfo(topic, self.schemas[topic], n, rate, a, b, tr.missing, tr.duplicates, tr.restarts)
@@ -284,14 +302,15 @@ def _merge(summary: Summary, rest: Summary) -> None:
     for topic, runs in rest.runs.topics.items():
         for first, n in runs:
             summary.comp.see_run(topic, first, n)
-    for topic, (a, b) in rest.spans.items():
+    for topic, (a, b, pa, pb) in rest.spans.items():
         sp = summary.spans.get(topic)
         if sp is None:
-            summary.spans[topic] = [a, b]
+            summary.spans[topic] = [a, b, pa, pb]
             summary.schemas[topic] = rest.schemas[topic]
             summary.counts[topic] = rest.counts[topic]
         else:
             sp[0], sp[1] = min(sp[0], a), max(sp[1], b)
+            sp[2], sp[3] = min(sp[2], pa), max(sp[3], pb)
             summary.counts[topic] += rest.counts[topic]
     for topic, n in rest.foreign_topics.items():
         summary.foreign_topics[topic] = summary.foreign_topics.get(topic, 0) + n

@@ -18,6 +18,7 @@ import numpy as np
 
 from hil.can.busload import frame_bits
 from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus, decode
+from hil.record.info import stream_rate_hz
 from hil.record.mcapio import is_derived, session_files
 from hil.report.scan import Batch, Channel, ScanResult, scan
 
@@ -91,11 +92,12 @@ class TopicStats:
     duplicates: int
     undecodable: int = 0
     restarts: int = 0  # the publisher counted again in a new restart generation
+    first_pub_ns: int = 0  # publish times: start epoch + time of validity (``stream_rate_hz``)
+    last_pub_ns: int = 0
 
     @property
     def rate_hz(self) -> float:
-        span = (self.last_ns - self.first_ns) * 1e-9
-        return (self.count - 1) / span if self.count > 1 and span > 0 else 0.0
+        return stream_rate_hz(self.count, self.first_ns, self.last_ns, self.first_pub_ns, self.last_pub_ns)
 
     @property
     def loss_pct(self) -> float:
@@ -199,9 +201,12 @@ class _Collector:
             self.seqs.setdefault(topic, []).append(_payload_seqs(b))
         else:
             self.seqs.setdefault(topic, []).append(b.sequences)
-        lt = self.times.setdefault(topic, [int(b.log_times[0]), int(b.log_times[0])])
+        lt = self.times.setdefault(topic, [int(b.log_times[0]), int(b.log_times[0]), 2**63, -1])
         lt[0] = min(lt[0], int(b.log_times.min()))
         lt[1] = max(lt[1], int(b.log_times.max()))
+        if b.publish_times is not None:
+            lt[2] = min(lt[2], int(b.publish_times.min()))
+            lt[3] = max(lt[3], int(b.publish_times.max()))
         parts = topic.split("/")
         kind = parts[2] if len(parts) > 2 and parts[0] == "hil" else ""
         name = parts[3] if len(parts) > 3 else ""
@@ -426,7 +431,7 @@ def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None
     for topic in sorted(col.seqs):
         seqs = np.concatenate(col.seqs[topic])
         missing, duplicates, restarts = seq_accounting(seqs)
-        first, last = col.times[topic]
+        first, last, first_pub, last_pub = col.times[topic]
         d.topics.append(
             TopicStats(
                 topic,
@@ -438,6 +443,8 @@ def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None
                 duplicates,
                 col.undecodable.get(topic, 0),
                 restarts,
+                first_pub if last_pub >= first_pub else first,
+                last_pub if last_pub >= first_pub else last,
             )
         )
     return d

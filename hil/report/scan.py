@@ -56,6 +56,7 @@ class Batch:
     sequences: np.ndarray  # (n,) int64
     log_times: np.ndarray  # (n,) int64
     payloads: list[bytes] = field(default_factory=list)
+    publish_times: np.ndarray | None = None  # (n,) int64: start epoch + each one's time of validity
 
 
 @dataclass
@@ -168,7 +169,8 @@ class _Walker:
             payloads: list[bytes] = []
             if self.want(ch):
                 payloads = [bytes(buf[starts[i] + _MSG.size : ends[i]]) for i in idx.tolist()]
-            batch = Batch(ch, head["seq"][idx].astype(np.int64), head["log"][idx].astype(np.int64), payloads)
+            seqs, logs, pubs = (head[k][idx].astype(np.int64) for k in ("seq", "log", "pub"))
+            batch = Batch(ch, seqs, logs, payloads, pubs)
             try:
                 on_batch(batch)
             except Exception as err:  # the caller's bug, not a damaged file: let it surface
