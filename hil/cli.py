@@ -536,13 +536,27 @@ def cmd_schemas(a: argparse.Namespace) -> int:
     return 1 if problems else 0
 
 
+def bench_names() -> list[str]:
+    """The benchmarks ``hil bench`` runs: the modules of ``hil.bench`` with a ``main`` (read from
+    their source, not imported: some load the whole rig); the others are their shared helpers."""
+    import hil.bench
+
+    here = Path(hil.bench.__file__).parent
+    return sorted(
+        f.stem for f in here.glob("*.py") if not f.stem.startswith("_") and "\ndef main(" in f.read_text()
+    )
+
+
 def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
     import importlib
 
-    try:
-        mod = importlib.import_module(f"hil.bench.{a.name}")
-    except ModuleNotFoundError as err:
-        raise UserError(f"no benchmark named {a.name!r}") from err
+    names = bench_names()
+    if a.name == "list":
+        print("\n".join(names))
+        return 0
+    if a.name not in names:
+        raise UserError(f"no benchmark named {a.name!r}; the benchmarks: {', '.join(names)}")
+    mod = importlib.import_module(f"hil.bench.{a.name}")
     from hil.progress import elapsed_progress
 
     # Benches that run the rig for --duration seconds know their length; the others show time.
@@ -1124,8 +1138,13 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     sch.add_argument("--write", action="store_true")
     sch.set_defaults(func=cmd_schemas)
 
-    bench = sub.add_parser("bench", help="run a benchmark and write docs/benchmarks.md")
-    bench.add_argument("name")
+    bench = sub.add_parser(
+        "bench",
+        help="run a benchmark and write docs/benchmarks.md",
+        description="Run one benchmark (its own options: hil bench NAME --help); it prints its figures "
+        "and writes its section of docs/benchmarks.md, with the command that produced them.",
+    )
+    bench.add_argument("name", help="the benchmark (hil bench list: their names)")
     bench.set_defaults(func=cmd_bench, passthrough=True)
 
     _add_rerun_parser(sub)

@@ -94,3 +94,21 @@ def test_a_run_that_ends_in_time_gives_its_cpu_and_exit_code(tmp_path: Path) -> 
     assert rc == 1 and cpu > 0 and wall > 0
     with pytest.raises(RuntimeError, match="exited 3: boom"):
         offline.run_child(tmp_path, ["-c", "import sys; sys.stderr.write('boom'); raise SystemExit(3)"])
+
+
+@pytest.mark.parametrize("name", ["seeds_common", "capture", "nosuch", "../cli", ""])
+def test_hil_bench_of_what_is_not_a_benchmark_is_one_line_naming_them(
+    name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A helper module of hil.bench (no ``main``) was imported and run: an AttributeError
+    traceback. Now every non-benchmark is one line that lists the benchmarks, exit 2."""
+    from hil import cli
+
+    assert cli.main(["bench", name]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"no benchmark named {name!r}" in err and "offline, pacing" in err, err
+    assert cli.main(["bench", "list"]) == 0
+    listed = capsys.readouterr().out.split()
+    assert (
+        "offline" in listed and "rig" in listed and "seeds_common" not in listed and "capture" not in listed
+    )
