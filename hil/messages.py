@@ -506,6 +506,8 @@ def split_batch(payload: bytes) -> list[bytes]:
         items = _raw_list.decode(payload)
     except msgspec.DecodeError as err:  # ValidationError too
         raise ValueError(f"not a batch of messages: {err}") from None
+    except RecursionError:  # msgspec's answer to ``[[[[...``: as malformed as any other
+        raise ValueError("not a batch of messages: JSON nested too deeply") from None
     if not 0 < len(items) <= MAX_BATCH:
         raise ValueError(f"a batch of {len(items)} messages (1 to {MAX_BATCH} allowed)")
     return [bytes(r) for r in items]
@@ -525,6 +527,8 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
     """
     try:
         return _decoder(cls).decode(payload)
+    except RecursionError:  # msgspec skipping an unknown field nested ~10^5 deep: malformed input
+        raise msgspec.DecodeError(f"not a valid {cls.__name__}: JSON nested too deeply") from None
     except msgspec.ValidationError as err:
         legacy = LEGACY_FORMS.get(cls)
         if legacy is None:

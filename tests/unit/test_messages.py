@@ -175,8 +175,20 @@ def test_a_batch_splits_into_the_bytes_each_message_was_sent_as() -> None:
         (b"[]", "a batch of 0"),
         (b"[" + b",".join([b"{}"] * (MAX_BATCH + 1)) + b"]", f"a batch of {MAX_BATCH + 1}"),
         (b'[{"seq": 1}', "not a batch"),
+        (b"[" * 100_000, "nested too deeply"),
     ],
 )
 def test_a_malformed_or_oversized_batch_is_refused_by_name(payload: bytes, why: str) -> None:
     with pytest.raises(ValueError, match=why):
         split_batch(payload)
+
+
+def test_a_payload_nested_too_deeply_is_a_decode_error_not_a_recursion_error() -> None:
+    """msgspec raises RecursionError on ~10^5 levels of an unknown field; every subscriber
+    catches DecodeError as 'invalid' (the recorder and services counted it as a bare error)."""
+    import msgspec
+
+    from hil.messages import ImuSample, decode
+
+    with pytest.raises(msgspec.DecodeError, match="nested too deeply"):
+        decode(ImuSample, b'{"a":' * 100_000)
