@@ -44,6 +44,14 @@ good, a 100 ppm one 200 µs: 2e-6 of a minute's run). So at start the sensor's m
 held until lock, at most that long of device time, and released together under the locked
 mapping: the fusion, paced by the IMU, starts ~2 s later and every interval it integrates has the
 rate. Only at start: after a clock step the stamps come from the tag mapping at once (above).
+The step watch runs during the hold as after it; a step it declares closes a clock *epoch*, and at
+the release each held measurement is stamped with the mapping of its own epoch (the one taken
+before the step: that epoch's last mapping; the run of arrivals that proved the step: the new
+one), never the new clock's mapping applied to the old clock's samples (100 s into the future
+for a -100 s step: the fusion, paced by them, then refused every correct input). The bound is
+held device time summed over the epochs, suspicious arrivals not counted (device time jumps at a
+step), with twice that in rig arrival time as the backstop. Intervals keep the current rate: a
+step resets the counter, not the oscillator.
 
 Why a hull and a Kalman filter, not one filter: tags carry a small, symmetric latch noise, for
 which least squares (the KF) is optimal; arrivals carry a one-sided, heavy-tailed delay, for
@@ -57,7 +65,7 @@ import itertools
 import math
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -442,6 +450,16 @@ class SensorSync(Generic[T]):
     run_min_ns: float = 0.0  # lowest residual of the run: ≈ -Δ of a step Δ (+ the least excess)
     last_tag: tuple[int, float] | None = None  # (device, z) of the last tag
     startup_hold: bool = True  # holding until the tag filter locks (cfg.hold_until_locked_ns > 0)
+    # the start-up hold's queue: (item, device ns, clock epoch), in arrival order, each stamped at
+    # the release with the mapping of its own epoch (a step during the hold starts a new one)
+    lock_q: deque[tuple[T, int, int]] = field(default_factory=deque)
+    epoch: int = 0  # clock epochs seen during the start-up hold (a declared step starts one)
+    epoch_maps: dict[int, ClockMapping] = field(default_factory=dict)  # closed epochs' last mapping
+    _run_lock_idx: int = 0  # where in ``lock_q`` the current suspicious run's first item is
+    _hold_span_ns: int = 0  # device time held in closed epochs (their unsuspicious span)
+    _epoch_first_ns: int | None = None  # device time of the current epoch's first held item
+    _epoch_last_ok_ns: int | None = None  # and of its latest unsuspicious one
+    _hold_first_rx_ns: int | None = None  # rig arrival of the first held item (the backstop)
     # the filter's ``version`` the mapping was last drawn from (-1: drawn from the arrivals):
     # between tags the tag mapping is refreshed for every measurement, and stays what it was
     _mapped_version: int = -1
@@ -485,7 +503,8 @@ class SensorSync(Generic[T]):
 
     def _tag_step(self) -> None:
         """A step confirmed by a tag: forget the old clock and restart the filter on that tag."""
-        self._declare_step()
+        run_from = self._run_lock_idx if self._run_confirms(self.kf.last_outlier_nu) else None
+        self._declare_step(run_from)
         if self.last_tag is not None:
             self.kf.update(*self.last_tag)  # "init": this tag is on the new clock already
         self.recovering = not self.kf.initialised
@@ -532,9 +551,17 @@ class SensorSync(Generic[T]):
         if self.cfg.source == "off":
             self.mapping.n_samples = self.n_arrivals
             return [(item, rx_ns)]
-        if self.startup_hold and self._holding_for_lock(device_ns):
-            self.held.append(_Held(item, device_ns, rx_ns, 0.0))
-            return []
+        if self.startup_hold and not self._hold_applies():
+            self.startup_hold = False
+        if self._hold_first_rx_ns is None:
+            self._hold_first_rx_ns = rx_ns
+        out = self._on_arrival(device_ns, rx_ns, item)
+        if self.startup_hold and self._hold_over(rx_ns):
+            return self._end_hold()
+        return out
+
+    def _on_arrival(self, device_ns: int, rx_ns: int, item: T) -> list[tuple[T, int]]:
+        """The step watch of one measurement: what it releases (into ``lock_q`` while holding)."""
         y = rx_ns - device_ns
         if self._tag_ruled():
             return self._on_tag_ruled(device_ns, rx_ns, y, item)
@@ -568,15 +595,64 @@ class SensorSync(Generic[T]):
             return []
         return self._release_all()
 
-    def _holding_for_lock(self, device_ns: int) -> bool:
-        """Start-up hold (module docstring): True while this measurement must wait for the lock."""
-        cfg = self.cfg
-        locked = self.kf.n >= 3 and not self.recovering
-        too_long = bool(self.held) and device_ns - self.held[0].device_ns >= cfg.hold_until_locked_ns
-        if cfg.hold_until_locked_ns <= 0 or cfg.source != "timetag" or locked or too_long:
-            self.startup_hold = False
-            return False
-        return True
+    def _hold_applies(self) -> bool:
+        """Does this sensor hold at start (module docstring: an interval sensor with tags)?"""
+        return self.cfg.hold_until_locked_ns > 0 and self.cfg.source == "timetag"
+
+    def _hold_over(self, rx_ns: int) -> bool:
+        """Start-up hold: locked, or held long enough.
+
+        How long is device time, summed over the hold's clock epochs and counting only
+        unsuspicious items: across a step device time jumps (back by 100 s, say, which must not
+        hold for ever, or ahead, which must not end the hold before the step is decided). Rig
+        arrival time is the backstop, at twice the bound, should a suspicion never be settled."""
+        if self.kf.n >= 3 and not self.recovering:
+            return True
+        first, last = self._epoch_first_ns, self._epoch_last_ok_ns
+        held_ns = self._hold_span_ns + (last - first if first is not None and last is not None else 0)
+        bound = self.cfg.hold_until_locked_ns
+        first_rx = self._hold_first_rx_ns
+        return held_ns >= bound or (first_rx is not None and rx_ns - first_rx >= 2 * bound)
+
+    def _to_lock_q(self, held: deque[_Held[T]]) -> None:
+        """Released by the step watch while the start-up hold lasts: queued with their epoch."""
+        for h in held:
+            self.lock_q.append((h.item, h.device_ns, self.epoch))
+            if self._epoch_first_ns is None:
+                self._epoch_first_ns = h.device_ns
+            if h.count_jitter:
+                self._epoch_last_ok_ns = h.device_ns
+
+    def _new_epoch(self, relabel_from: int | None) -> None:
+        """A step declared during the start-up hold: the epoch ends with the mapping in force, and
+        the queued items from ``relabel_from`` on (the suspicious run that proved the step, taken
+        after it) belong to the new one."""
+        first, last = self._epoch_first_ns, self._epoch_last_ok_ns
+        if first is not None and last is not None:
+            self._hold_span_ns += max(0, last - first)
+        self.epoch_maps[self.epoch] = replace(self.mapping)
+        self.epoch += 1
+        self._epoch_first_ns = self._epoch_last_ok_ns = None
+        if relabel_from is None:
+            return
+        q = self.lock_q
+        for k in range(relabel_from, len(q)):
+            item, dev, _ = q[k]
+            q[k] = (item, dev, self.epoch)
+            if self._epoch_first_ns is None:
+                self._epoch_first_ns = dev
+
+    def _end_hold(self) -> list[tuple[T, int]]:
+        """The start-up hold ends: every queued item stamped with the mapping of its own epoch
+        (the current one: the locked mapping; an earlier one: its last, before the step)."""
+        self.startup_hold = False
+        self._refresh()
+        maps = self.epoch_maps
+        cur = self.epoch
+        out = [(item, (self.mapping if e == cur else maps[e]).to_rig(dev)) for item, dev, e in self.lock_q]
+        self.lock_q.clear()
+        maps.clear()
+        return out
 
     def _on_tag_ruled(self, device_ns: int, rx_ns: int, y: int, item: T) -> list[tuple[T, int]]:
         """Stamp from the tag mapping at once; arrivals only feed the hull and the step suspicion."""
@@ -587,6 +663,7 @@ class SensorSync(Generic[T]):
             self._end_run()
         elif side != self.run_side:
             self.run_side, self.run_first_ns, self.run_n, self.run_min_ns = side, device_ns, 1, resid
+            self._run_lock_idx = len(self.lock_q) + len(self.held)  # where this item will be queued
         else:
             self.run_n += 1
             self.run_min_ns = min(self.run_min_ns, resid)
@@ -608,8 +685,13 @@ class SensorSync(Generic[T]):
             h.resid = 0.0
         return self._release_all()
 
-    def _declare_step(self) -> None:
-        """Forget what the old clock said: hull restarts (slope kept), KF waits for a tag."""
+    def _declare_step(self, run_from: int | None = None) -> None:
+        """Forget what the old clock said: hull restarts (slope kept), KF waits for a tag.
+
+        ``run_from``: where in the start-up hold's queue the run of arrivals that proved the step
+        begins (those were taken after it)."""
+        if self.startup_hold:
+            self._new_epoch(run_from)
         line = self.hull.line()
         slope = line[2] if line is not None else 0.0
         if self.cfg.source == "timetag" and self.kf.initialised:
@@ -644,12 +726,16 @@ class SensorSync(Generic[T]):
             if floor is not None:
                 tag_off = out[-1][1] - h.device_ns  # the last one's rig stamp, under this mapping
                 self.delta_ns += (floor - tag_off - self.delta_ns) / 64.0
+        if self.startup_hold:
+            self._to_lock_q(held)
+            out = []
         held.clear()
         self.mapping.n_samples = self.n_arrivals
         return out
 
     def flush(self) -> list[tuple[T, int]]:
-        return self._release_all() if self.held else []
+        out = self._release_all() if self.held else []
+        return self._end_hold() if self.startup_hold and self.lock_q else out
 
     # -- the published mapping ------------------------------------------------------------------
     def _refresh(self) -> None:

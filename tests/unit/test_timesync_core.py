@@ -229,3 +229,40 @@ def test_sim_recording_pairs_every_synced_measurement_with_capture_truth(tmp_pat
     assert rms_us(e[t > 2.0]) < 20.0
     tg, eg = restamp_errors(s, "gnss")
     assert len(eg) > 0 and rms_us(eg[tg > 2.0]) < 20.0
+
+
+@pytest.mark.parametrize("step_ns", [-100_000_000_000, 100_000_000_000, -250_000_000])
+def test_a_step_during_the_start_up_hold_stamps_each_sample_with_its_own_epochs_mapping(step_ns: int) -> None:
+    # QA: a step while the IMU is held for the lock stamped the samples taken before it with the
+    # new clock's mapping (+100 s for a -100 s step), and the fusion, paced by them, refused every
+    # later input. Tags at samples 0, 400, ...; the step 0.5 s in, before the filter's third tag.
+    cfg = SyncConfig(tag_latency_ns=5_000, min_delay_ns=600_000, hold_until_locked_ns=3_500_000_000)
+    core: TimeSyncCore[int] = TimeSyncCore({"imu": cfg})
+    out = _imu_stream(core, 12 * 400, lambda i: 0, step_at=200, step_ns=step_ns)
+    assert [k for k, _ in out] == list(range(12 * 400))
+    worst = max(out, key=lambda ke: abs(ke[1]))
+    assert abs(worst[1]) < 2_000, worst  # µs on both sides of the step, not the step
+    m = core.mapping("imu")
+    assert m.steps_detected == 1 and m.state == "locked" and not core.sensor("imu").startup_hold
+
+
+def _first_release(tag_every: int) -> int | None:
+    """A -100 s step 0.5 s into a 1.5 s start-up hold; the index of the first sample released."""
+    cfg = SyncConfig(tag_latency_ns=5_000, min_delay_ns=600_000, hold_until_locked_ns=1_500_000_000)
+    core: TimeSyncCore[int] = TimeSyncCore({"imu": cfg})
+    for i in range(2000):
+        t = 1_000_000_000 + i * 2_500_000
+        dev = t - 7_000_000 - (100_000_000_000 if i >= 200 else 0)
+        if i % tag_every == 0:
+            core.on_timetag("imu", dev, t + 5_000)
+        if core.on_measurement("imu", dev, t + 600_000, i):
+            return i
+    return None
+
+
+def test_the_start_up_hold_still_ends_at_its_bound_after_a_backward_step() -> None:
+    # device time went back 100 s: the hold's span is summed over the epochs (0.5 s before the
+    # step, 1 s after), not taken from the first held sample, whose device time never comes again
+    assert 598 <= (_first_release(400) or 0) <= 602  # the bound, before the new lock (at 1200)
+    # tags too rare to decide the step: the rig-time backstop (twice the bound), not never
+    assert 1198 <= (_first_release(1600) or 0) <= 1202
