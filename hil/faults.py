@@ -60,6 +60,10 @@ class FaultError(ValueError):
 
 T = TypeVar("T")
 MAX_DURATION_S = 1e6  # what hil.FaultCommand.duration_s accepts on the wire
+# |clock_step step_s|: a day. The IMU's wire carries device time modulo 2^48 ns (~78 h), unwrapped
+# by the nearest-epoch rule, so a step near half that (~39 h) or beyond reads as a wrap and lands
+# anywhere (1e9 s left the fusion ~80 600 s in the future); a reset after a day's uptime fits.
+MAX_CLOCK_STEP_S = 86_400.0
 
 
 def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s: float = 0.0) -> None:
@@ -80,6 +84,8 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
         raise FaultError("clock_step needs --target imu or --target gnss")
     if kind == "clock_step" and "step_s" not in params:
         raise FaultError("clock_step needs step_s")
+    if kind == "clock_step" and not abs(params["step_s"]) <= MAX_CLOCK_STEP_S:
+        raise FaultError(f"clock_step: |step_s| must be <= {MAX_CLOCK_STEP_S:g} s, got {params['step_s']:g}")
     if kind == "kill_service" and not target:
         raise FaultError("kill_service needs --target SERVICE")
     if not 0.0 <= params.get("percent", 100.0) <= 100.0:

@@ -105,6 +105,8 @@ def test_bad_fault_commands_are_refused_with_a_reason_and_counted_not_raised() -
         ("gnss_latency", "", {"latency_s": -0.2}, "must be >= 0"),
         ("can_burst_error", "", {"frames": 0.0}, "frames must be in"),
         ("clock_step", "fusion", {"step_s": 0.1}, "--target imu or --target gnss"),
+        ("clock_step", "imu", {"step_s": 1e9}, "|step_s| must be <= 86400 s"),
+        ("clock_step", "gnss", {"step_s": -86_401.0}, "|step_s| must be <= 86400 s"),
         ("kill_service", "", {}, "needs --target"),
     ]
     for kind, target, params, why in bad:
