@@ -627,8 +627,11 @@ class ImuFrameAssembler:
         self._group_ctr = -1
         self._status = 0
         self.last_sample_count: int | None = None
+        # one unwrapper for samples and sync frames: both carry the same device clock, and each
+        # its own took a backward step differently (samples already seen: a straggler, -99.5 s;
+        # a first sync after the step: 2^48 ns - 99.5 s), a whole wrap apart
         self._unwrap = DeviceTimeUnwrapper()
-        self._sync_unwrap = DeviceTimeUnwrapper()
+        self._sync_unwrap = self._unwrap
         # Every rejected frame or detected gap bumps ``problems`` and says what it was, so a
         # caller can surface it (status last_error) by comparing one int per frame.
         self.problems = 0

@@ -442,6 +442,7 @@ class SensorSync(Generic[T]):
     recovering: bool = False
     n_arrivals: int = 0
     since_reset: int = 0  # arrivals since the start or the last step
+    last_device_ns: int | None = None  # device time of the previous arrival (the gross-step test)
     # tag-ruled step watch: the current run of same-side suspicious arrival residuals
     run_side: int = 0  # +1 above the floor (backward step?), -1 below (forward step?), 0 none
     run_first_ns: int = 0  # device time of the run's first arrival
@@ -567,9 +568,12 @@ class SensorSync(Generic[T]):
             return self._on_tag_ruled(device_ns, rx_ns, y, item)
         floor = self.hull.at(device_ns)
         resid = 0.0 if floor is None else y - floor
+        last_dev, self.last_device_ns = self.last_device_ns, device_ns
         self.held.append(_Held(item, device_ns, rx_ns, resid))
         # No step test until the floor and the jitter scale are known (after start or a step).
         warm = self.since_reset >= 4 * self.cfg.step_confirm and self.hull.span_ns >= self.cfg.step_window_ns
+        if not warm and len(self.held) == 1 and self._gross_step(device_ns, last_dev, resid):
+            return self._step_and_release()
         if floor is None or not warm:
             return self._release_all()
         thr_up, thr_down = self._thresholds()
@@ -594,6 +598,17 @@ class SensorSync(Generic[T]):
                 return self._step_and_release()
             return []
         return self._release_all()
+
+    def _gross_step(self, device_ns: int, last_dev: int | None, resid: float) -> bool:
+        """Before the step tests are warm (the first ``step_window_ns`` after start or a step), a
+        step no transport can explain: device time back by more than the backward-step window
+        (arrivals of one sensor come in order), or a delay below the floor by more than it (a
+        one-way delay cannot shrink). A step in the first half second of a run was otherwise
+        put on the new clock with the samples before it (+100 s for a -100 s step)."""
+        window = self.cfg.step_window_ns
+        if last_dev is not None and device_ns < last_dev - window:
+            return True
+        return self.hull.at(device_ns) is not None and resid < -window
 
     def _hold_applies(self) -> bool:
         """Does this sensor hold at start (module docstring: an interval sensor with tags)?"""

@@ -51,9 +51,10 @@ step_s = -100.0
 """
 
 
-# QA's case (100 Hz, 3 s in: one tag a second, before the third), and 400 Hz 1.5 s in (after
-# the first tag, before the lock at 3 s)
-@pytest.mark.parametrize(("rate", "t_step"), [(100, 3.0), (400, 1.5)])
+# QA's case (100 Hz, 3 s in: one tag a second, before the third), 400 Hz 1.5 s in (after the
+# first tag, before the lock at 3 s), and 400 Hz 0.5 s in (before the first tag: the CAN
+# decoder unwrapped samples and sync frames apart, a whole 2^48 ns wrap between them)
+@pytest.mark.parametrize(("rate", "t_step"), [(100, 3.0), (400, 1.5), (400, 0.5)])
 def test_navigation_goes_on_after_a_clock_step_during_the_start_up_hold(
     tmp_path: Path, rate: int, t_step: float
 ) -> None:

@@ -80,14 +80,20 @@ def test_off_keeps_arrival_stamps_and_held_items_come_back_in_order() -> None:
 
 
 def _imu_stream(
-    core: TimeSyncCore[int], n: int, delay_ns: Callable[[int], int], step_at: int = -1, step_ns: int = 0
+    core: TimeSyncCore[int],
+    n: int,
+    delay_ns: Callable[[int], int],
+    step_at: int = -1,
+    step_ns: int = 0,
+    tag_phase: int = 0,
 ) -> list[tuple[int, int]]:
-    """400 Hz samples and a tag every 400th (not delayed); returns (index, stamp - true capture)."""
+    """400 Hz samples and a tag every 400th from ``tag_phase`` on (not delayed); returns (index,
+    stamp - true capture)."""
     out: list[tuple[int, int]] = []
     for i in range(n):
         t = 1_000_000_000 + i * 2_500_000  # true capture = rig time
         dev = t - 7_000_000 + (step_ns if 0 <= step_at <= i else 0)
-        if i % 400 == 0:
+        if i % 400 == tag_phase:
             core.on_timetag("imu", dev, t + 5_000)  # edge latched 5 µs late (the tag latency)
         rx = t + 600_000 + delay_ns(i) + (i * 7919 % 100) * 1_000  # min delay + fault + 0-99 µs
         out += [(k, s - (1_000_000_000 + k * 2_500_000)) for k, s in core.on_measurement("imu", dev, rx, i)]
@@ -244,6 +250,20 @@ def test_a_step_during_the_start_up_hold_stamps_each_sample_with_its_own_epochs_
     assert abs(worst[1]) < 2_000, worst  # µs on both sides of the step, not the step
     m = core.mapping("imu")
     assert m.steps_detected == 1 and m.state == "locked" and not core.sensor("imu").startup_hold
+
+
+@pytest.mark.parametrize("step_ns", [-100_000_000_000, 100_000_000_000])
+def test_a_step_before_the_first_tag_is_taken_at_once(step_ns: int) -> None:
+    # the step 0.2 s in, before the first tag (0.9 s) and before the arrival step tests are warm
+    # (a window of arrivals): the samples before it were put on the new clock with the rest
+    cfg = SyncConfig(tag_latency_ns=5_000, min_delay_ns=600_000, hold_until_locked_ns=3_500_000_000)
+    core: TimeSyncCore[int] = TimeSyncCore({"imu": cfg})
+    out = _imu_stream(core, 12 * 400, lambda i: 0, step_at=80, step_ns=step_ns, tag_phase=360)
+    assert [k for k, _ in out] == list(range(12 * 400))
+    worst = max(out, key=lambda ke: abs(ke[1]))
+    assert abs(worst[1]) < 2_000_000, worst  # within the transport delay before the first tag
+    assert max(abs(e) for k, e in out if k >= 400) < 2_000  # tag-exact after
+    assert core.mapping("imu").steps_detected == 1
 
 
 def _first_release(tag_every: int) -> int | None:
