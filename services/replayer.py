@@ -75,7 +75,7 @@ def run(a: argparse.Namespace) -> int:
     from hil.bus.keys import check_name
     from hil.bus.session import open_session
     from hil.record.mcapio import RecordingError
-    from hil.record.replay import ReplayError, ReplayOptions, Selector, check_readable, replay
+    from hil.record.replay import ReplayError, ReplayOptions, check_readable, check_selected, replay
 
     try:
         if a.rig:
@@ -99,7 +99,9 @@ def run(a: argparse.Namespace) -> int:
             lockstep_window=a.lockstep_window,
             progress=not a.no_progress and sys.stderr.isatty(),
         )
-        Selector(opts)  # a bad --topics/--exclude-topics pattern: one line and exit 2, before any bus
+        # a bad --topics/--exclude-topics pattern, or a selection that takes nothing (--loop would
+        # reread the file for ever): one line and exit 2, before any bus
+        check_selected(a.file, opts)
     except ValueError as err:  # RecordingError is a ValueError
         sys.stderr.write(f"hil replay: {err}" + "\n")
         return EXIT_USAGE

@@ -48,7 +48,7 @@ from hil.bus.pubsub import declare_publisher
 from hil.fusion.core import parse_journal_id
 from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
-from hil.record.mcapio import Record, check_hil_recording, iter_records, session_files
+from hil.record.mcapio import Record, RecordingError, check_hil_recording, iter_records, session_files
 
 FUSION_INPUT = re.compile(r"^hil/[^/]+/synced/(imu|gnss)$")
 SPIN_S = 0.0005  # the last half millisecond before a deadline is spun, not slept (CAN spacing)
@@ -158,8 +158,9 @@ class Selector:
         return not any(p.search(topic) for p in self.exclude)
 
     def time_ok(self, rel_ns: int) -> bool | None:
-        """True: send; False: not yet; None: past the end (stop the pass)."""
-        if self.end_ns is not None and rel_ns > self.end_ns:
+        """True: send; False: not yet; None: past the end (stop the pass). The window is
+        half-open, [start, end), as ``hil filter``'s: back-to-back windows send a message once."""
+        if self.end_ns is not None and rel_ns >= self.end_ns:
             return None
         return self.start_ns is None or rel_ns >= self.start_ns
 
@@ -294,6 +295,30 @@ def session_records(path: str | Path) -> Iterator[tuple[str, Any]]:
         yield from iter_records(f)
 
 
+def check_selected(path: str | Path, opts: ReplayOptions) -> None:
+    """Raise ``RecordingError`` (one line) when the selection takes no message of ``path``:
+    refused up front, so ``--loop`` does not reread the file for ever sending nothing. Reads
+    up to the first selected message."""
+    sel = Selector(opts)
+    topics: set[str] = set()
+    first_ns: int | None = None
+    rel = n = 0
+    for rec in _messages(path, ReplayStats()):
+        if first_ns is None:
+            first_ns = rec.log_time_ns
+        rel = rec.log_time_ns - first_ns
+        n += 1
+        ok = sel.time_ok(rel)
+        if ok and sel.topic_ok(rec.topic):
+            return
+        topics.add(rec.topic)
+    raise RecordingError(
+        f"{path}: nothing selected: its {n} messages span {rel * 1e-9:.3f} s from the first (--start and "
+        f"--end count from it) on {len(topics)} topics (--topics/--exclude-topics search their names; "
+        "`hil info` lists them); give a selection that takes some"
+    )
+
+
 def _messages(path: str | Path, stats: ReplayStats) -> Iterator[Record]:
     for kind, rec in session_records(path):
         if kind == "message":
@@ -397,6 +422,8 @@ def replay(
                     inputs_sent += 1
                 progress.show(rel, stats.sent)
             stats.span_s = 0.0 if sent_from is None else (sent_to - sent_from) * 1e-9
+            if sent_from is None and opts.loop and not stop.is_set() and not stats.skipped_dropped:
+                check_selected(path, opts)  # a pass that sent nothing: never loop on it
             if gate is not None and not stop.is_set():
                 gate.wait_for(inputs_sent, stop)  # the consumer has everything before we go on
             if not opts.loop:

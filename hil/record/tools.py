@@ -240,6 +240,8 @@ class Selection:
         for name, v in (("--start", self.start_s), ("--end", self.end_s)):
             if v is not None and not (v == v and abs(v) < 1e9):
                 raise RecordingError(f"{name} {v}: not a number of seconds")
+            if v is not None and v < 0:  # as hil replay: the first message is 0, nothing is before it
+                raise RecordingError(f"{name} {v:g}: must be >= 0 s (seconds after the first message)")
         if self.start_s is not None and self.end_s is not None and self.end_s < self.start_s:
             raise RecordingError(f"--end {self.end_s:g} is before --start {self.start_s:g}")
         try:

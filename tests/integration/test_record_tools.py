@@ -271,3 +271,14 @@ def test_hil_sim_takes_the_options_it_shares_with_hil_up(rec: dict[str, Path]) -
     assert 380 <= len(imu) <= 420  # 2 s at 200 Hz
     proc = run_hil("sim", "--duration", "1", "--record", str(path), "--record-include", "nav/#", timeout=60)
     assert proc.returncode == 2 and "--record-include" in proc.stderr
+
+
+@pytest.mark.parametrize("flag", ["--start", "--end"])
+def test_filter_refuses_a_negative_time_as_replay_does(rec: dict[str, Path], flag: str) -> None:
+    out = rec["tmp"] / f"neg{flag}.mcap"
+    proc = run_hil("filter", str(rec["whole"]), "-o", str(out), flag, "-1", timeout=60)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and f"{flag} -1" in lines[0], (
+        proc.stderr
+    )  # was taken as 0
+    assert not out.exists()

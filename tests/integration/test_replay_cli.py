@@ -70,7 +70,7 @@ def test_time_window_topic_filter_and_rig_rekey(hub: Hub) -> None:
     # GIVEN the recorded truth between 1 s and 2 s after the first message
     s = read_session(GOLDEN)
     t0 = s.records[0].log_time_ns
-    want = [r.payload for r in s.records if r.topic.endswith("/truth") and 1e9 <= r.log_time_ns - t0 <= 2e9]
+    want = [r.payload for r in s.records if r.topic.endswith("/truth") and 1e9 <= r.log_time_ns - t0 < 2e9]
     hub.collect("hil/**")
     # WHEN it is replayed under rig "other", truth only, 1..2 s
     proc = hub.run(
@@ -80,9 +80,51 @@ def test_time_window_topic_filter_and_rig_rekey(hub: Hub) -> None:
     time.sleep(0.5)
     # THEN exactly those payloads arrive, byte for byte, on hil/other/truth and nowhere else
     assert {k for k, _ in hub.samples} == {"hil/other/truth"}
-    assert [p for _, p in hub.samples] == want and len(want) == 101
-    # and the summary says what was sent: the window's 1 s, not where it ended in the file
-    assert "replay: 101 messages" in proc.stdout and "1.00 s of recording" in proc.stdout, proc.stdout
+    assert [p for _, p in hub.samples] == want and len(want) == 100  # [1 s, 2 s): the end excluded
+    # and the summary says what was sent: the window's 0.99 s, not where it ended in the file
+    assert "replay: 100 messages" in proc.stdout and "0.99 s of recording" in proc.stdout, proc.stdout
+
+
+def test_back_to_back_windows_send_each_message_once_as_filter_cuts_them(hub: Hub, tmp_path: Path) -> None:
+    # GIVEN the recorded truth from 1 s to 3 s, and a message exactly at 2 s (truth is at 100 Hz)
+    s = read_session(GOLDEN)
+    t0 = s.records[0].log_time_ns
+    truth = [r for r in s.records if r.topic.endswith("/truth")]
+    want = [r.payload for r in truth if 1e9 <= r.log_time_ns - t0 < 3e9]
+    assert any(r.log_time_ns - t0 == 2e9 for r in truth)
+    hub.collect("hil/halves/truth")
+    # WHEN it is replayed as [1, 2) then [2, 3)
+    for start, end in (("1", "2"), ("2", "3")):
+        proc = hub.run(
+            "replay",
+            str(GOLDEN),
+            "--afap",
+            "--rig",
+            "halves",
+            "--topics",
+            "/truth$",
+            "--start",
+            start,
+            "--end",
+            end,
+        )
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+    time.sleep(0.5)
+    # THEN every message arrives once (the one at 2 s was sent twice), as hil filter cuts the file
+    assert [p for _, p in hub.samples] == want
+    cut = tmp_path / "cut.mcap"
+    assert run_hil("filter", str(GOLDEN), "-o", str(cut), "--start", "1", "--end", "2").returncode == 0
+    filtered = [r.payload for r in read_session(cut).records if r.topic.endswith("/truth")]
+    assert filtered == want[: len(filtered)] and len(filtered) == 100
+
+
+@pytest.mark.parametrize("selection", [["--topics", "nosuch"], ["--start", "100"]])
+def test_a_loop_over_a_selection_that_takes_nothing_is_refused_up_front(selection: list[str]) -> None:
+    # it reread the file for ever at full CPU, sending nothing (the timeout fails the test then)
+    proc = run_hil("replay", str(GOLDEN), "--rig", "qa", "--loop", "--no-progress", *selection, timeout=120)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stdout + proc.stderr
+    assert "nothing selected" in lines[0] and str(GOLDEN) in lines[0] and " s from the first" in lines[0]
 
 
 def test_original_timing_and_rate(hub: Hub) -> None:
@@ -94,7 +136,7 @@ def test_original_timing_and_rate(hub: Hub) -> None:
     took = time.monotonic() - t
     assert proc.returncode == 0, proc.stdout + proc.stderr
     stamps = [json.loads(p)["stamp_ns"] for _, p in hub.samples]
-    assert len(stamps) == 201
+    assert len(stamps) == 200  # [0, 2 s): the message at 2 s is the next window's
     assert 1.0 <= took < 1.0 + 3.0  # 2 s of recording at rate 2 (+ start-up)
 
 

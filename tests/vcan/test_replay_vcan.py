@@ -30,9 +30,9 @@ def test_replayed_frames_decode_to_the_recorded_samples_with_their_spacing() -> 
     s = read_session(GOLDEN)
     rig = s.meta("hil", "rig")
     frames = s.by_topic(f"hil/{rig}/can/vcan0")
-    # `hil replay --end 1.0` keeps what was logged within 1 s of the file's first message
+    # `hil replay --end 1.0` keeps what was logged before 1 s after the file's first message ([0, 1 s))
     t_first = min(r.log_time_ns for r in s.records)
-    window = [f for f in frames if f.log_time_ns - t_first <= 1_000_000_000]
+    window = [f for f in frames if f.log_time_ns - t_first < 1_000_000_000]
     t0 = window[0].decode().stamp_ns  # rig time (publish_time is on the wall-clock timeline)
     recorded = {m.device_stamp_ns: m for m in (r.decode() for r in s.by_topic(f"hil/{rig}/sensor/imu"))}
     rate = "0.5" if os.environ.get("HIL_IN_UML") == "1" else "1"
