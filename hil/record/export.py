@@ -167,12 +167,16 @@ def export(
         raise RecordingError(f"--format {fmt!r}: use csv or parquet")
     if fmt == "parquet":
         _check_pyarrow()
-    pats = [re.compile(t) for t in topics or []]
+    try:
+        pats = [re.compile(t) for t in topics or []]
+    except re.error as err:  # as filter/cat/replay: one line, exit 2
+        raise RecordingError(f"--topics: bad pattern {err.pattern!r}: {err}") from err
     out = Path(out_dir)
     # a split recording: its parts end to end (each part has its channels; tables go by topic)
     scans = [Scan(f) for f in session_files(src)]
     tables: dict[str, _Table] = {}
     decoders: dict[str, type[Any]] = {}
+    bad: dict[str, tuple[int, int, int]] = {}  # topic -> (count, first MCAP sequence, its log time)
     try:
         for t in _wanted((t for scan in scans for t in iter_tagged(scan)), pats):
             topic = t.channel.topic
@@ -188,7 +192,10 @@ def export(
             try:
                 msg = decode(decoders[topic], t.message.data)  # a recording's previous forms too
             except (msgspec.DecodeError, msgspec.ValidationError):
-                continue  # the recorder validated it; a foreign writer's bad message is skipped
+                # the recorder validated it: a damaged or foreign message is skipped, and said
+                n, seq, log = bad.get(topic, (0, t.message.sequence, t.message.log_time))
+                bad[topic] = (n + 1, seq, log)
+                continue
             tab.add(t.message.log_time, t.message.publish_time, msg)
     finally:
         for tab in tables.values():
@@ -197,6 +204,12 @@ def export(
         have = ", ".join(sorted({t for scan in scans for t in scan.report.per_topic})) or "no messages"
         raise RecordingError(f"{src}: no IMU, GNSS, truth or nav messages to export (it has {have})")
     notes = [f"note: {ln}" for scan in scans for ln in describe_loss(scan.report)]
+    for topic, (n, seq, log) in sorted(bad.items()):
+        rows = tables[topic].count
+        notes.append(
+            f"note: {topic}: {n} payload(s) could not be decoded and are not in the table ({rows} rows), "
+            f"the first at seq {seq}, log_time_ns {log} (`hil cat --topics` shows them)"
+        )
     if len(scans) > 1:
         notes.insert(0, f"note: the recording is split: exported its {len(scans)} parts in order")
     return {k: (v.path, v.count) for k, v in tables.items()}, notes

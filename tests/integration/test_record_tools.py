@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -282,3 +282,74 @@ def test_filter_refuses_a_negative_time_as_replay_does(rec: dict[str, Path], fla
         proc.stderr
     )  # was taken as 0
     assert not out.exists()
+
+
+def altered(src: Path, dest: Path, topic_end: str, alter: Callable[[bytes], bytes], nth: int = 10) -> int:
+    """``src`` rewritten with the ``nth`` message on the topic ending ``topic_end`` altered; returns
+    that message's MCAP sequence. Schemas, channels (metadata too), attachments, metadata kept."""
+    with open(src, "rb") as f, open(dest, "wb") as out:
+        reader = make_reader(f)
+        w = Writer(out)
+        w.start(profile="hil", library="test")
+        schemas: dict[int, int] = {}
+        chans: dict[int, int] = {}
+        seen, seq = 0, -1
+        for schema, chan, m in reader.iter_messages(log_time_order=False):
+            if chan.id not in chans:
+                sid = 0
+                if schema is not None:
+                    if schema.id not in schemas:
+                        schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schemas[schema.id]
+                chans[chan.id] = w.register_channel(
+                    chan.topic, chan.message_encoding, sid, dict(chan.metadata)
+                )
+            data = m.data
+            if chan.topic.startswith("hil/") and chan.topic.endswith(topic_end):
+                if seen == nth:
+                    data, seq = alter(data), m.sequence
+                seen += 1
+            w.add_message(
+                chans[chan.id],
+                log_time=m.log_time,
+                data=data,
+                publish_time=m.publish_time,
+                sequence=m.sequence,
+            )
+        f.seek(0)
+        for a in make_reader(f).iter_attachments():
+            w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
+        f.seek(0)
+        for md in make_reader(f).iter_metadata():
+            w.add_metadata(md.name, dict(md.metadata))
+        w.finish()
+    assert seq >= 0
+    return seq
+
+
+def cut_in_half(data: bytes) -> bytes:
+    return data[: len(data) // 2]
+
+
+def test_export_says_how_many_payloads_it_could_not_decode(rec: dict[str, Path]) -> None:
+    bad = rec["tmp"] / "bad-ekf15.mcap"
+    seq = altered(rec["whole"], bad, "/nav/ekf15", cut_in_half)
+    out = rec["tmp"] / "export-bad"
+    proc = run_hil("export", str(bad), "-o", str(out), timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    n = sum(1 for t, _l, _d in messages(rec["whole"]) if t.startswith("hil/") and t.endswith("/nav/ekf15"))
+    with open(out / "nav_ekf15.csv", newline="") as f:
+        assert len(list(csv.DictReader(f))) == n - 1
+    note = [ln for ln in proc.stderr.splitlines() if "/nav/ekf15" in ln]  # it was silent
+    assert len(note) == 1 and "1 payload(s) could not be decoded" in note[0] and f"seq {seq}," in note[0], (
+        proc.stderr
+    )
+
+
+def test_export_of_a_bad_topic_pattern_is_one_line_and_exit_2(rec: dict[str, Path]) -> None:
+    proc = run_hil("export", str(rec["whole"]), "--topics", "(", "-o", str(rec["tmp"] / "e"), timeout=60)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "'('" in lines[0], (
+        proc.stderr
+    )  # was re.error's traceback
+    assert "Traceback" not in proc.stderr
