@@ -506,11 +506,12 @@ class Recorder(Service):
         assert self.writer is not None
         self.writer.add_metadata("completeness", {**self.completeness_summary(), "part": self.part})
         self.writer.close()
+        previous = self.writer
         self.part += 1
         self._part_t0 = time.monotonic()
         self._meta_written = False
         try:
-            self.writer = SessionWriter(self.part_path())
+            self.writer = SessionWriter(self.part_path(), after=previous)
         except RecordingError as err:
             self.writer = None
             self.stats.error("errors.recording_path", str(err))

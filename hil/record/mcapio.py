@@ -654,7 +654,10 @@ class SessionWriter:
         chunk_size: int = 512 * 1024,
         pack_index: bool = True,
         spill_index: bool = True,
+        after: SessionWriter | None = None,
     ) -> None:
+        """``after``: the part of a split session this file continues: the Foxglove topics'
+        sequences go on from its counts, so the parts merged are the unsplit session's."""
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -676,7 +679,8 @@ class SessionWriter:
         self._channels: dict[tuple[str, str], int] = {}
         self._publishers_per_topic: dict[str, int] = {}
         self._raw_channels: dict[tuple[str, str], int] = {}
-        self._wellknown_seq: dict[str, int] = {}  # each Foxglove topic's message count: its sequence
+        # each Foxglove topic's message count over the session (its parts too): its sequence
+        self._wellknown_seq: dict[str, int] = dict(after._wellknown_seq) if after is not None else {}
         self.closed = False
 
     def _drain(self) -> None:

@@ -344,12 +344,15 @@ def merge_recordings(srcs: list[Path], out: str | Path, *, parts: bool | None = 
     interleave again. Attachments are
     kept once per name and content; metadata once per name, except ``completeness``, of which
     the last is kept (a split session's last part covers the whole session) and the per-piece
-    ``part``/``filter``/``recovered`` records, which are dropped.
+    ``part``/``filter``/``recovered`` records, which are dropped; the kept ``completeness``
+    loses its ``part``/``parts``, as the merged file is no part. An input given twice, or
+    inputs of different runs (``hil`` metadata: ``RUN_IDENTITY``), are refused.
     """
     dest = Path(out)
     if len(srcs) < 1:
         raise RecordingError("hil merge: give at least one input")
     _check_output(dest, srcs)
+    _check_one_session(srcs)
     scans = [Scan(p) for p in srcs]  # every input checked before anything is written
     extras: list[list[Attachment | Metadata]] = [[] for _ in scans]
     streams = [
@@ -373,6 +376,63 @@ def merge_recordings(srcs: list[Path], out: str | Path, *, parts: bool | None = 
     return WriteResult(dest, w.messages, w.attachments, w.metadata, notes)
 
 
+#: the ``hil`` metadata that names a run: inputs that differ in any were recorded by other runs
+RUN_IDENTITY = ("rig", "scenario", "scenario_sha256", "seed", "start_epoch_ns")
+
+
+def _run_identity(path: Path) -> dict[str, str] | None:
+    """The run ``path`` was recorded in (its ``hil`` metadata's identity keys), None when it
+    says none. Metadata records stand outside chunks: no message is read."""
+    for rec in Scan(path, messages=False):
+        if isinstance(rec, Metadata) and rec.name == "hil":
+            return {k: rec.metadata[k] for k in RUN_IDENTITY if k in rec.metadata}
+    return None
+
+
+def _check_one_session(srcs: list[Path]) -> None:
+    """Refused before anything is written: an input given twice (every message would be there
+    twice), or inputs of different runs (another scenario, seed or start: ``hil info`` would
+    take the mix for one run, with thousands of duplicates). Inputs that name no run at all
+    are merged as given."""
+    for i, a in enumerate(srcs):
+        for b in srcs[:i]:
+            try:
+                same = a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
+            except OSError:
+                continue  # reading it says why
+            if same:
+                raise RecordingError(
+                    f"merge: {a} is given twice (as {b}): its messages would all be there twice; "
+                    "give each input once"
+                )
+    runs = [(p, _run_identity(p)) for p in srcs]
+    if all(run is None for _p, run in runs):
+        return
+    p0, run0 = runs[0]
+    for p, run in runs[1:]:
+        if run == run0:
+            continue
+        if run is None or run0 is None:
+            which, other = (p, p0) if run is None else (p0, p)
+            raise RecordingError(
+                f"merge: {which} names no run (no hil metadata) and {other} does: they are not "
+                "pieces of one session; nothing written"
+            )
+
+        def show(v: str | None, k: str) -> str:
+            return "?" if v is None else v[:12] if k == "scenario_sha256" else v
+
+        diff = ", ".join(
+            f"{k} {show(run.get(k), k)} (not {show(run0.get(k), k)})"
+            for k in RUN_IDENTITY
+            if run.get(k) != run0.get(k)
+        )
+        raise RecordingError(
+            f"merge: {p} is another run than {p0}: {diff}; merge joins the parts or pieces of one "
+            "session (`hil info` shows each one's run); nothing written"
+        )
+
+
 def _merge_extras(w: OutputWriter, extras: list[list[Attachment | Metadata]]) -> None:
     seen_att: set[tuple[str, bytes]] = set()
     meta: dict[str, dict[str, str]] = {}
@@ -384,6 +444,9 @@ def _merge_extras(w: OutputWriter, extras: list[list[Attachment | Metadata]]) ->
                     w.attachment(x)
             elif x.name not in _PER_PIECE and (x.name not in meta or x.name == "completeness"):
                 meta[x.name] = dict(x.metadata)
+    comp = meta.get("completeness")
+    if comp is not None:  # the merged file is whole: its completeness is no part's
+        meta["completeness"] = {k: v for k, v in comp.items() if k not in ("part", "parts")}
     for name, data in meta.items():
         w.add_metadata(name, data)
 

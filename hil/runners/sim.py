@@ -450,7 +450,7 @@ class _Session:
         self.w.close()
         self.part += 1
         self.part_t0_ns = t_ns
-        self.w = SessionWriter(split_part_path(o.record, self.part))
+        self.w = SessionWriter(split_part_path(o.record, self.part), after=self.w)
         self._chans.clear()  # the channels of the new part: registered at their first message
         self.w.add_metadata(
             "part", {"index": self.part, **part_metadata(split_part_path(o.record, self.part - 1))}

@@ -353,3 +353,45 @@ def test_export_of_a_bad_topic_pattern_is_one_line_and_exit_2(rec: dict[str, Pat
         proc.stderr
     )  # was re.error's traceback
     assert "Traceback" not in proc.stderr
+
+
+def sequences(path: Path) -> dict[str, list[int]]:
+    """Each topic's MCAP sequences in file order."""
+    out: dict[str, list[int]] = {}
+    with open(path, "rb") as f:
+        for _s, c, m in make_reader(f).iter_messages(log_time_order=False):
+            out.setdefault(c.topic, []).append(m.sequence)
+    return out
+
+
+def test_merged_split_parts_keep_the_foxglove_sequences_and_claim_no_part(rec: dict[str, Path]) -> None:
+    m = rec["tmp"] / "merged-seq.mcap"
+    hil_ok("merge", str(rec["split"]), "-o", str(m))
+    got, want = sequences(m), sequences(rec["whole"])
+    fox = [t for t in want if t.startswith("/foxglove/")]
+    assert fox and {t: got[t] for t in fox} == {t: want[t] for t in fox}  # they restarted at 0 in each part
+    comp = read_session(m).metadata["completeness"]
+    assert "part" not in comp and "parts" not in comp, comp
+    info = hil_ok("info", str(m), "--no-accuracy")
+    assert "split part=" not in info, info
+    rows = [ln.split() for ln in info.splitlines() if ln.startswith("/foxglove/")]
+    assert rows and all(r[-1] == "0" for r in rows), info  # dups 1 on every /foxglove row
+
+
+def test_merge_refuses_an_input_given_twice_or_another_run(rec: dict[str, Path]) -> None:
+    tmp, whole = rec["tmp"], rec["whole"]
+    link = tmp / "whole-link.mcap"
+    link.symlink_to(whole)
+    other = tmp / "other-run.mcap"
+    hil_ok("sim", "--scenario", "static", "--duration", "2", "--quiet", "--record", str(other))
+    out = tmp / "mix.mcap"
+    for inputs, said in (
+        ([whole, whole], "given twice"),
+        ([whole, link], "given twice"),
+        ([whole, other], "another run"),
+    ):
+        proc = run_hil("merge", *map(str, inputs), "-o", str(out), timeout=120)
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert proc.returncode == 2 and len(lines) == 1 and said in lines[0], (inputs, proc.stderr)
+        assert not out.exists(), inputs  # it was written, doubled or mixed, without a word
+    assert "scenario static (not straight_level)" in lines[0], lines
