@@ -642,10 +642,12 @@ def rerun(
     if len(stream.paths) > 1:
         lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
     lines += truncation_notes(res, stream.truncated, "outputs", "inputs")
-    if not stream.truncated and res.live_consumed >= 0 and res.live_consumed != res.inputs_used:
+    # loss is fewer held than journaled; more is expected in a file that ends (cut, then
+    # recovered) after inputs the fusion consumed but had not journaled yet
+    if not stream.truncated and 0 <= res.inputs_used < res.live_consumed:
         lines.append(
-            f"note: the live fusion journaled {res.live_consumed} consumed inputs, the recording holds "
-            f"{res.inputs_used} of them: inputs were lost between the fusion and the recorder "
-            "(see hil info for seq gaps on synced/*)"
+            f"note: the live fusion journaled {res.live_consumed} consumed inputs, the recording holds only "
+            f"{res.inputs_used}: {res.live_consumed - res.inputs_used} inputs were lost between the fusion "
+            "and the recorder (see hil info for seq gaps on synced/*)"
         )
     return verdict(res, stream.truncated, lines, verify, "outputs")
