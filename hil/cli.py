@@ -1235,8 +1235,16 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"unrecognized arguments: {' '.join(rest)}")
     try:
         if getattr(a, "passthrough", False):
-            return int(a.func(a, rest) or 0)
-        return int(a.func(a) or 0)
+            rc = int(a.func(a, rest) or 0)
+        else:
+            rc = int(a.func(a) or 0)
+        sys.stdout.flush()  # a closed pipe is found here, not at exit
+        return rc
+    except BrokenPipeError:
+        # `hil info f | head`: the reader has what it wanted; end quietly, as `hil cat` does
+        # (stdout onto devnull, so Python's flush at exit does not report it again)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         return 130
     except UserError as err:

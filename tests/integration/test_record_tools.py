@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -17,7 +19,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from hil.record.mcapio import read_session, split_parts
-from tests.conftest import REPO, run_hil
+from tests.conftest import REPO, hil_cmd, run_hil
 
 pytestmark = pytest.mark.slow
 
@@ -418,3 +420,20 @@ def test_rerun_of_a_recovered_file_does_not_call_inputs_after_the_last_journal_l
     altered(rec["whole"], gone, "/synced/imu", lambda _d: None, nth=100)
     proc = run_hil("rerun", str(gone), "--core", "fusion", timeout=300)
     assert "holds only" in proc.stdout and "1 inputs were lost" in proc.stdout, proc.stdout + proc.stderr
+
+
+@pytest.mark.parametrize("cmd", [["info", "--no-accuracy"], ["attachments"], ["cat"], ["recover", "-o", "X"]])
+def test_a_closed_stdout_ends_any_command_quietly(rec: dict[str, Path], cmd: list[str]) -> None:
+    """`hil info f | head -1`: the reader left; exit 0 as `hil cat` does, nothing on stderr (it was
+    "hil: BrokenPipeError" and exit 2). The pipe is closed before the command writes: no race."""
+    r, w = os.pipe()
+    os.close(r)  # every write to w now fails with EPIPE
+    out = rec["tmp"] / f"pipe-{cmd[0]}.mcap"
+    args = [cmd[0], str(rec["whole"]), *[str(out) if x == "X" else x for x in cmd[1:]]]
+    try:
+        proc = subprocess.run(
+            hil_cmd(*args), stdout=w, stderr=subprocess.PIPE, text=True, cwd=REPO, timeout=300
+        )
+    finally:
+        os.close(w)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
