@@ -1234,10 +1234,7 @@ def main(argv: list[str] | None = None) -> int:
     if rest and not getattr(a, "passthrough", False):
         ap.error(f"unrecognized arguments: {' '.join(rest)}")
     try:
-        if getattr(a, "passthrough", False):
-            rc = int(a.func(a, rest) or 0)
-        else:
-            rc = int(a.func(a) or 0)
+        rc = int((a.func(a, rest) if getattr(a, "passthrough", False) else a.func(a)) or 0)
         sys.stdout.flush()  # a closed pipe is found here, not at exit
         return rc
     except BrokenPipeError:
