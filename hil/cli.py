@@ -515,11 +515,27 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     return int(mod.main([*(["--rig", a.rig] if a.rig else []), *rest]) or 0)
 
 
+@contextlib.contextmanager
+def _payload_errors(path: str) -> Iterator[None]:
+    """A recorded payload that does not decode: one line naming the file, topic, seq and log
+    time, and what to do (``hil.record.mcapio.PayloadError``)."""
+    from hil.record.mcapio import PayloadError
+
+    try:
+        yield
+    except PayloadError as err:
+        raise UserError(err.in_file(path)) from None
+
+
 def cmd_info(a: argparse.Namespace) -> int:
     from hil.record.info import describe, info_json
 
     accuracy = not a.no_accuracy
-    print(info_json(a.file, parallel=True) if a.json else describe(a.file, accuracy=accuracy, parallel=True))
+    with _payload_errors(a.file):
+        text = (
+            info_json(a.file, parallel=True) if a.json else describe(a.file, accuracy=accuracy, parallel=True)
+        )
+    print(text)
     return 0
 
 
@@ -587,7 +603,7 @@ def cmd_rerun(a: argparse.Namespace) -> int:
     from hil.record.mcapio import check_hil_recording
 
     check_hil_recording(a.file)
-    with Progress("rerun", unit="MB read") as bar:
+    with _payload_errors(a.file), Progress("rerun", unit="MB read") as bar:
 
         def on_progress(done: int, total: int) -> None:
             bar.total = total / 1e6

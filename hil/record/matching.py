@@ -82,6 +82,7 @@ class Matcher:
         self.recorded_t: dict[tuple[str, int], int] = {}
         self.first_by_log: tuple[int, str] | None = None
         self.diff_logs: list[int] = []  # recorded log time of every differing output
+        self.describing_log_ns = 0
 
     def _compare(
         self, key: tuple[str, int], rec: tuple[int, bytes], mine: tuple[int, bytes], log_ns: int
@@ -92,6 +93,7 @@ class Matcher:
             theirs = self.normalise(theirs)
         if mine[1] != theirs:
             self.diff_logs.append(log_ns)
+            self.describing_log_ns = log_ns  # the recorded copy's, for a describe that names it
             order = rec[0] if self.by_recorded else mine[0]
             text = None
             if self.first is None or order < self.first[0]:

@@ -27,6 +27,7 @@ import glob
 import io
 import json
 import os
+import re
 import struct
 import sys
 import tempfile
@@ -38,6 +39,7 @@ from itertools import chain
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
+import msgspec
 import zstandard
 from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import (
@@ -895,7 +897,33 @@ class Record:
             raise RecordingError(
                 f"channel {self.topic!r} has schema {self.schema!r}, not a hil contract type"
             )
-        return decode(cls, self.payload)  # the previous form of a type too (LEGACY_FORMS)
+        try:
+            return decode(cls, self.payload)  # the previous form of a type too (LEGACY_FORMS)
+        except (msgspec.DecodeError, msgspec.ValidationError) as err:
+            raise PayloadError(self, str(err)) from None
+
+
+class PayloadError(RecordingError):
+    """A recorded payload that does not decode as its channel's type: which message, and what
+    to do (the file is known to the caller: :meth:`in_file`)."""
+
+    def __init__(self, rec: Record, why: str) -> None:
+        self.topic, self.sequence, self.log_time_ns, self.schema, self.why = (
+            rec.topic,
+            rec.sequence,
+            rec.log_time_ns,
+            rec.schema,
+            why,
+        )
+        super().__init__(self.in_file("FILE"))
+
+    def in_file(self, path: str | Path) -> str:
+        pat = f"'{re.escape(self.topic)}$'"
+        return (
+            f"{path}: {self.topic} seq {self.sequence} (log_time_ns {self.log_time_ns}): the payload is "
+            f"not a {self.schema} ({self.why}); look at it with `hil cat {path} --topics {pat}`, or leave "
+            f"the topic out with `hil filter {path} -o OUT.mcap --exclude-topics {pat}`"
+        )
 
 
 @dataclass

@@ -38,7 +38,7 @@ from hil.messages import (
 )
 from hil.nodes.fusion import FusionNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message
+from hil.record.mcapio import PayloadError, Record, RecordingError, Session, SessionStream, no_run_message
 from hil.runners.sim_worker import (
     EncodedInput,
     LocalNode,
@@ -267,7 +267,19 @@ class _FusionRerun:
     in_flight_b: tuple[list[_Pending], list[list[Replayed]]] | None = None
 
     def __post_init__(self) -> None:
-        self.matcher = Matcher(_nav_difference, "recomputed", self.window_ns, _nav_current_form)
+        self.matcher = Matcher(self._difference, "recomputed", self.window_ns, _nav_current_form)
+        self.nav_topics: dict[str, str] = {}  # estimator -> its recorded topic
+
+    def _difference(self, key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
+        """``_nav_difference``; a recorded payload that does not decode is a damaged file, not a
+        difference: ``PayloadError`` naming the message (its topic, seq, log time)."""
+        try:
+            return _nav_difference(key, recorded, mine)
+        except (msgspec.DecodeError, msgspec.ValidationError) as err:
+            est, seq = key
+            topic = self.nav_topics.get(est, f"nav/{est}")
+            rec = Record(topic, "hil.NavSolution", recorded, self.matcher.describing_log_ns, 0, seq)
+            raise PayloadError(rec, str(err)) from None
 
     def feed(self, r: Record) -> None:
         t = r.topic
@@ -355,6 +367,7 @@ class _FusionRerun:
             raise OutOfWindow(f"{r.topic} seq {r.sequence} is recorded long after its inputs")
         # a recording made before the current form of NavSolution (``null`` for an absent sigma)
         # is compared in the current form (the matcher's ``normalise``, where the bytes differ)
+        self.nav_topics[est] = r.topic
         self.matcher.recorded((est, r.sequence), r.payload, -1, r.log_time_ns)
 
     def _journal(self, r: Record) -> None:

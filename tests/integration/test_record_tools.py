@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -437,3 +438,26 @@ def test_a_closed_stdout_ends_any_command_quietly(rec: dict[str, Path], cmd: lis
     finally:
         os.close(w)
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+
+
+def string_stamp(data: bytes) -> bytes:
+    return re.sub(rb'"stamp_ns":(\d+)', rb'"stamp_ns":"\1"', data, count=1)
+
+
+@pytest.mark.parametrize("alter", [cut_in_half, string_stamp])
+@pytest.mark.parametrize("cmd", [["info"], ["rerun", "--verify"]])
+def test_a_payload_that_does_not_decode_is_named_in_one_line(
+    rec: dict[str, Path], cmd: list[str], alter: Callable[[bytes], bytes]
+) -> None:
+    if cmd[0] == "rerun" and alter is string_stamp:
+        pytest.skip("rerun compares the recorded bytes: a string stamp is a VERIFY FAILED naming it, exit 1")
+    bad = rec["tmp"] / f"bad-{cmd[0]}-{alter.__name__}.mcap"
+    seq = altered(rec["whole"], bad, "/nav/ekf15", alter)
+    proc = run_hil(cmd[0], str(bad), *cmd[1:], timeout=300)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, (
+        proc.stdout + proc.stderr
+    )
+    # it was "hil: DecodeError: Input data was truncated": no file, topic or message
+    for said in (str(bad), "nav/ekf15", f"seq {seq} ", "log_time_ns ", "hil filter", "--exclude-topics"):
+        assert said in lines[0], (said, lines[0])
