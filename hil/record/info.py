@@ -23,6 +23,7 @@ import numpy as np
 from hil.messages import SEQ_GENERATION_SHIFT
 from hil.record.completeness import Completeness
 from hil.record.mcapio import (
+    DamagedRecordingError,
     FilePart,
     Record,
     Session,
@@ -266,6 +267,17 @@ def _scan_part(
     return summary, stream_session(path, summary.add, derived=derived, on_batch=summary.add_many, part=part)
 
 
+def _scan_part_or_damage(
+    path: str | Path, part: FilePart, derived: bool, accuracy: bool
+) -> tuple[Summary, Session] | DamagedRecordingError:
+    """``_scan_part`` in the forked reader: damage there comes back as the error itself, so the
+    caller raises the one line one pass would (a failure of any other kind is a WorkerError)."""
+    try:
+        return _scan_part(path, part, derived, accuracy)
+    except DamagedRecordingError as err:
+        return err
+
+
 def _scan_halves(
     path: str | Path, halves: tuple[FilePart, FilePart], *, derived: bool, accuracy: bool
 ) -> tuple[Summary, Session]:
@@ -276,14 +288,17 @@ def _scan_halves(
 
     first, second = halves
     try:
-        later = ForkedCall("second-half reader", _scan_part, path, second, derived, accuracy)
+        later = ForkedCall("second-half reader", _scan_part_or_damage, path, second, derived, accuracy)
     except OSError:  # no process to be had: one pass
         return _scan(path, derived=derived, accuracy=accuracy)
     try:
         summary, session = _scan_part(path, first, derived, accuracy, runs=False)
         if session.truncated:  # one pass stops at the damage: what follows is not read (closed)
             return summary, session
-        rest, rest_session = later.result()
+        answer = later.result()
+        if isinstance(answer, DamagedRecordingError):
+            raise answer
+        rest, rest_session = answer
     except WorkerError:  # a half that says nothing alone (an error there), or a reader that died
         return _scan(path, derived=derived, accuracy=accuracy)
     finally:

@@ -14,6 +14,7 @@ import contextlib
 import mmap
 import os
 import struct
+import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +23,7 @@ import lz4.frame
 import numpy as np
 import zstandard
 
-from hil.record.mcapio import RecordingError
+from hil.record.mcapio import RecordingError, damaged, unsupported_compression
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -93,12 +94,15 @@ class _Walker:
         self.res = res
         self.want = want
         self.schemas: dict[int, str] = {0: ""}
+        self.at = 0  # the byte offset of the top-level record being read (where damage is)
 
     def records(self, buf: bytes | memoryview, *, top: bool) -> Iterator[tuple[int, int, int]]:
         """Yield (opcode, body offset, body end); raises ValueError at a cut record."""
         off = 8 if top else 0
         size = len(buf)
         while off < size:
+            if top:
+                self.at = off
             if off + 9 > size:
                 raise ValueError(f"record header cut at byte {off}")
             op, n = _REC.unpack_from(buf, off)
@@ -184,7 +188,7 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes 
         return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
     if compression == "lz4":
         return lz4.frame.decompress(bytes(data))
-    raise ValueError(f"unknown chunk compression {compression!r}")
+    raise _Unsupported(compression)
 
 
 def scan(
@@ -210,7 +214,7 @@ def scan(
     res = ScanResult(bytes_total=size)
     buf = memoryview(data)
     try:
-        _walk(_Walker(res, want), buf, res, on_batch, on_progress)
+        _walk(path, _Walker(res, want), buf, res, on_batch, on_progress)
     finally:
         with contextlib.suppress(BufferError):
             buf.release()
@@ -221,7 +225,16 @@ def scan(
     return res
 
 
+class _CrcError(Exception):
+    """A chunk whose records do not match its CRC: damage, whatever the rest of the file."""
+
+
+class _Unsupported(Exception):
+    """A chunk compressed with a codec this reader does not have."""
+
+
 def _walk(
+    path: Path,
     w: _Walker,
     buf: memoryview,
     res: ScanResult,
@@ -232,12 +245,17 @@ def _walk(
         for op, a, b in w.records(buf, top=True):
             if op == OP_CHUNK:
                 off = a + 8 + 8  # message start/end time
-                (size,) = _U64.unpack_from(buf, off)
+                size, crc = struct.unpack_from("<QI", buf, off)
                 off += 8 + 4  # uncompressed size, crc
                 comp, off = _str(buf, off)
                 (n,) = _U64.unpack_from(buf, off)
                 off += 8
-                w.messages(_decompress(comp, buf[off : off + n], size), on_batch)
+                if off + n > b:
+                    raise ValueError(f"chunk data of {n} bytes overruns its record")
+                records = _decompress(comp, buf[off : off + n], size)
+                if crc and zlib.crc32(records) != crc:
+                    raise _CrcError()
+                w.messages(records, on_batch)
                 if on_progress is not None:
                     on_progress(b, res.bytes_total)
             elif op == OP_MESSAGE:  # unchunked files
@@ -262,6 +280,12 @@ def _walk(
             res.truncation_reason = "the file ends without a summary (the recorder did not finish it)"
     except _CallerError as err:
         raise err.__cause__ from None  # type: ignore[misc]
+    except _Unsupported as err:
+        raise unsupported_compression(path, w.at, str(err)) from None
+    except _CrcError:
+        raise damaged(path, w.at, "a chunk that fails its CRC") from None
     except Exception as err:  # a half-written chunk: zstd, struct or decode errors alike
+        if len(buf) >= 16 and bytes(buf[-8:]) == MAGIC:  # a finished file: damage, not a cut
+            raise damaged(path, w.at, f"a record that does not read: {type(err).__name__}: {err}") from None
         res.truncated = True
         res.truncation_reason = f"{type(err).__name__}: {err}"

@@ -176,3 +176,43 @@ def test_a_bad_topic_pattern_is_one_line_and_exit_2(flag: str) -> None:
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr  # it was exit 1, "ValueError: ..."
     assert lines[0].startswith("hil replay: --topics/--exclude-topics: bad pattern '[bad'"), lines
+
+
+def damaged_files(tmp: Path) -> dict[str, Path]:
+    """The golden file (finished) with one bit flipped in a middle chunk's compressed bytes, and
+    with a middle chunk's record length garbled: damage, not a cut."""
+    from mcap.reader import make_reader
+
+    data = GOLDEN.read_bytes()
+    with open(GOLDEN, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    mid = chunks[len(chunks) // 2]
+    assert mid.chunk_length > 10_000  # a chunk of messages, not a short one
+    out = {}
+    for name, at, mask in (
+        ("bit", mid.chunk_start_offset + mid.chunk_length // 2, 0x01),
+        ("length", mid.chunk_start_offset + 4, 0xFF),
+    ):
+        blob = bytearray(data)
+        blob[at] ^= mask
+        out[name] = tmp / f"{name}.mcap"
+        out[name].write_bytes(bytes(blob))
+    return out
+
+
+@pytest.mark.parametrize(
+    "cmd",
+    [["info"], ["replay", "--afap", "--no-progress"], ["rerun", "--verify"], ["report", "--no-progress"]],
+)
+def test_a_damaged_finished_file_exits_2_naming_it_damaged(tmp_path: Path, cmd: list[str]) -> None:
+    """A finished file whose middle chunk fails its CRC or does not parse is corrupt: exit 2 with
+    one line naming the file, the byte and the way out -- never "truncated" and exit 0."""
+    for name, path in damaged_files(tmp_path).items():
+        proc = run_hil(cmd[0], str(path), *cmd[1:], timeout=120)
+        assert proc.returncode == 2, (name, proc.stdout, proc.stderr)
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "Traceback" not in proc.stderr, (name, proc.stderr)
+        assert f"{path} is damaged at byte " in lines[0] and f"hil recover {path}" in lines[0], lines
+        assert "truncated" not in proc.stdout.lower(), (name, proc.stdout)

@@ -11,7 +11,7 @@ from hil.messages import SEQ_GENERATION_SHIFT, CaptureTruth, EstimatorHealth, en
 from hil.record import info
 from hil.record.completeness import SeqTracker
 from hil.record.info import Summary, _scan, _scan_halves, _SeqRuns, describe, info_json
-from hil.record.mcapio import SessionWriter, file_halves, iter_records
+from hil.record.mcapio import DamagedRecordingError, SessionWriter, file_halves, iter_records
 from hil.runners.sim_worker import worker_possible
 
 GOLDEN = Path(__file__).parents[1] / "replay" / "golden" / "straight_level_4s.mcap"
@@ -120,10 +120,11 @@ def test_two_halves_give_the_one_pass_text_and_json(
 
 @pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
 @pytest.mark.parametrize("where", ["first half", "second half", "second half's start"])
-def test_damage_stops_both_readings_where_one_pass_stops(
+def test_damage_in_either_half_is_the_one_pass_error(
     tmp_path: Path, where: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """One pass stops at a damaged chunk and reports it; what follows is not counted either."""
+    """A finished file damaged anywhere is corrupt, not truncated: both readings raise the one
+    line one pass raises (the file, the damaged record's byte), and neither falls back."""
     path = _mixed(tmp_path / "damaged.mcap")
     halves = file_halves(path)
     assert halves is not None
@@ -136,13 +137,30 @@ def test_damage_stops_both_readings_where_one_pass_stops(
     }[where]
     data[at : at + 64] = b"\xff" * 64
     path.write_bytes(bytes(data))
-    one, s1 = _scan(path, derived=True, accuracy=True)
-    if where != "second half's start":  # there the second half alone holds nothing: one pass
-        monkeypatch.setattr(info, "_scan", _no_fallback)
-    two, s2 = _scan_halves(path, halves, derived=True, accuracy=True)
-    assert s1.truncated and s2.truncated and s2.truncation_reason == s1.truncation_reason
-    assert two.channel_infos() == one.channel_infos()
-    assert 0 < sum(c.count for c in one.channel_infos()) < 2500
+    with pytest.raises(DamagedRecordingError) as one:
+        _scan(path, derived=True, accuracy=True)
+    monkeypatch.setattr(info, "_scan", _no_fallback)
+    with pytest.raises(DamagedRecordingError) as two:
+        _scan_halves(path, halves, derived=True, accuracy=True)
+    assert str(two.value) == str(one.value)
+    assert f"{path} is damaged at byte " in str(one.value) and "hil recover" in str(one.value)
+    offset = int(str(one.value).split(" at byte ")[1].split()[0])
+    assert offset < at + 64 and (offset < mid) is (where == "first half")  # at the damage or after
+
+
+@pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
+def test_a_flipped_bit_in_either_half_fails_its_chunk_crc(tmp_path: Path) -> None:
+    """One bit of a chunk's compressed bytes: the chunk still decompresses or not, but never reads."""
+    path = _mixed(tmp_path / "bit.mcap")
+    halves = file_halves(path)
+    assert halves is not None
+    clean = path.read_bytes()
+    for at in (halves[1].start // 2, halves[1].start + 200):
+        data = bytearray(clean)
+        data[at] ^= 1
+        path.write_bytes(bytes(data))
+        with pytest.raises(DamagedRecordingError, match="damaged at byte"):
+            _scan_halves(path, halves, derived=True, accuracy=True)
 
 
 def test_a_small_file_is_read_in_one_pass_and_says_the_same(tmp_path: Path) -> None:
