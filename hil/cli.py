@@ -889,11 +889,15 @@ def cmd_merge(a: argparse.Namespace) -> int:
 def cmd_cat(a: argparse.Namespace) -> int:
     from hil.record.tools import cat
 
+    notes: list[str] = []
     try:
-        cat(a.file, _selection(a))
+        cat(a.file, _selection(a), notes=notes)
         sys.stdout.flush()
     except BrokenPipeError:  # `hil cat f | head`: the reader has what it wanted
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    for note in notes:  # after the lines: a pipe's reader sees them whole, the user sees the gap
+        print(f"hil cat: note: {note}", file=sys.stderr)
     return 0
 
 
@@ -901,12 +905,15 @@ def cmd_cat(a: argparse.Namespace) -> int:
 def cmd_attachments(a: argparse.Namespace) -> int:
     from hil.record.tools import extract_attachments, list_attachments
 
+    notes: list[str] = []
     if a.extract is None:
-        for info in list_attachments(a.file):
+        for info in list_attachments(a.file, notes):
             print(f"{info.size:>9}  {info.media_type:<24} {info.name}")
-        return 0
-    for path in extract_attachments(a.file, a.extract, list(a.name)):
-        print(f"hil attachments: wrote {path}")
+    else:
+        for path in extract_attachments(a.file, a.extract, list(a.name), notes):
+            print(f"hil attachments: wrote {path}")
+    for note in notes:
+        print(f"hil attachments: note: {note}", file=sys.stderr)
     return 0
 
 

@@ -395,6 +395,9 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
         lines.append(f"start:     {when.replace('+00:00', 'Z')} (rig time zero; {base})")
     if s.truncated:
         lines.append(f"TRUNCATED: read up to the last complete chunk ({s.truncation_reason})")
+    recovered = recovered_line(s.metadata.get("recovered"))
+    if recovered:
+        lines.append(recovered)
     comp = s.metadata.get("completeness")
     if comp:
         extra = ""
@@ -437,6 +440,29 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
                 rms, p95, top, final = e["rms_m"], e["p95_m"], e["max_m"], e["final_m"]
                 lines.append(f"{name:<11} {rms:>11.2f} {p95:>9.2f} {top:>9.2f} {final:>9.2f}")
     return "\n".join(lines)
+
+
+def recovered_line(rec: dict[str, str] | None) -> str:
+    """What ``hil recover`` wrote of the copy it made (its ``recovered`` metadata), in one line:
+    a copy's figures are of what was left, and this says what was not."""
+    if not rec:
+        return ""
+    try:
+        lost = json.loads(rec.get("lost", "[]"))
+    except ValueError:
+        lost = []
+    chunks, unread, msgs = rec.get("chunks_lost"), rec.get("bytes_unread", "0"), rec.get("messages_lost")
+    if chunks is None:  # a copy from before these counts: its loss lines
+        chunks = str(sum(1 for ln in lost if str(ln).startswith("the chunk at byte")))
+    what = []
+    if chunks != "0":
+        what.append(f"{chunks} chunk(s)" + (f" ({msgs} messages)" if msgs else ""))
+    if unread != "0":
+        what.append(f"{unread} bytes at the end")
+    if rec.get("finished") == "false" and unread == "0":
+        what.append("the original's summary (its recorder did not finish it)")
+    said = f"lost {', '.join(what)}" if what else "nothing lost"
+    return f"recovered: a copy hil recover made of {rec.get('from', '?')}; {said}"
 
 
 def info_json(path: str, *, parallel: bool = False) -> str:

@@ -5,11 +5,13 @@ footer and summary (a SIGKILLed recorder never writes them) and ``StreamReader``
 chunk cut in half. The recording tools (``hil recover``, ``filter``, ``merge``, ``cat``,
 ``attachments``, ``export``) read through this module instead, so they work on finished and
 crashed files alike. It is a lexer over mcap's own record classes (``mcap.records``), with two
-additions: a record cut off at the end of the file is noted, not raised, and a chunk that is cut
-off, fails its CRC or does not decompress is opened with a streaming decompressor, so every
-message record complete in its readable prefix is kept (``mcap recover`` does the same). What
-could not be read is accounted in ``ScanReport``: bytes, chunks, and the log-time span those
-chunks claimed beyond the last message read from them.
+additions: a record cut off at the end of the file is noted, not raised, and a chunk cut off by
+the end of the file is opened with a streaming decompressor, so every message record complete in
+its readable prefix is kept (``mcap recover`` does the same). A complete chunk that fails its CRC
+or does not decompress gives none of its records: its bytes are damaged, and a message read from
+them may be any bytes (QA found ``{"seq":24I2,...``). What could not be read is accounted in
+``ScanReport``: bytes, chunks, their messages (as their index counts them) and the log-time span
+those chunks claimed beyond the last message read from them.
 
 Messages come in file order -- the recorder's write order, which ``hil rerun`` and the
 completeness accounting rely on.
@@ -57,6 +59,7 @@ class ChunkLoss:
     end_ns: int
     messages_read: int  # message records salvaged from its readable prefix
     last_read_ns: int | None  # log time of the last salvaged message
+    messages_indexed: int | None = None  # what the message index after it counts (None: none read)
 
 
 @dataclass
@@ -76,6 +79,7 @@ class ScanReport:
     end_offset: int = 0  # the first byte not read as a complete record
     stop_reason: str = ""  # why reading stopped before the end ("" if it did not)
     lost_chunks: list[ChunkLoss] = field(default_factory=list)
+    orphans: int = 0  # messages of a channel whose definition was lost with a damaged chunk
 
     @property
     def bytes_unread(self) -> int:
@@ -239,7 +243,10 @@ class Scan:
         fh.close()
         self.header = header
         self.report = ScanReport(self.path, size, header.profile, header.library)
-        self.orphans = 0
+        # a finished file's summary repeats every schema and channel: a message whose channel was
+        # defined in a damaged chunk is still read (else it is an orphan, and lost)
+        self._summary = _summary_definitions(self.path)
+        self._indexing: ChunkLoss | None = None  # a lost chunk whose message indexes follow
 
     def __iter__(self) -> Iterator[ScanItem]:
         fh, _header, size = open_recording(self.path, profile=self.profile)
@@ -258,12 +265,20 @@ class Scan:
                         )
                     return
                 op, length = _RECORD_HEAD.unpack(head)
-                if length > min(_MAX_RECORD, size):
-                    rep.stop_reason = f"garbage at byte {pos} (a {_opcode_name(op)} record of {length} bytes)"
+                left = size - pos - _RECORD_HEAD.size
+                if length > _MAX_RECORD or (length > left and _ends_with_magic(fh, size)):
+                    # a finished file is not cut: a length past its end is damage
+                    rep.stop_reason = (
+                        f"garbage at byte {pos} ({_a(_opcode_name(op))} record of {length} bytes)"
+                    )
                     return
-                body = fh.read(length)
+                body = fh.read(min(length, left))
+                if op == Opcode.MESSAGE_INDEX and self._indexing is not None:
+                    _count_index(self._indexing, body)
+                else:
+                    self._indexing = None
                 if len(body) < length:
-                    rep.stop_reason = f"the file ends inside a {_opcode_name(op)} record at byte {pos}" + (
+                    rep.stop_reason = f"the file ends inside {_a(_opcode_name(op))} record at byte {pos}" + (
                         "" if op in _DATA_OPS else " (an index: rebuilt, no data in it)"
                     )
                     if op == Opcode.CHUNK:
@@ -312,10 +327,21 @@ class Scan:
         except (struct.error, UnicodeDecodeError, ValueError, EOFError) as err:
             raise _Stop(f"a malformed {_opcode_name(op)} record at byte {pos}: {err}") from err
 
+    @property
+    def orphans(self) -> int:
+        return self.report.orphans
+
     def _message(self, m: Message) -> Iterator[ScanItem]:
         chan = self.channels.get(m.channel_id)
+        if chan is None and m.channel_id in self._summary[1]:
+            chan = self.channels[m.channel_id] = self._summary[1][m.channel_id]
+            schema = self._summary[0].get(chan.schema_id)
+            if schema is not None and schema.id not in self.schemas:
+                self.schemas[schema.id] = schema
+                yield schema
+            yield chan
         if chan is None:
-            self.orphans += 1
+            self.report.orphans += 1
             return
         self.report.saw(chan.topic, m.log_time)
         if self.want_messages:
@@ -332,6 +358,13 @@ class Scan:
         crc = chunk.uncompressed_crc
         if not problem and not partial and crc and zlib.crc32(records) != crc:
             problem = "its CRC does not match"
+        if problem and not partial:  # whole but damaged: nothing in it can be trusted
+            loss = ChunkLoss(
+                pos, f"{problem} (damaged)", chunk.message_start_time, chunk.message_end_time, 0, None
+            )
+            rep.lost_chunks.append(loss)
+            self._indexing = loss
+            return
         if partial and not problem:
             problem = f"cut off after {len(data)} of its {len(body) and _chunk_len(body)} compressed bytes"
         n_read, last = 0, None
@@ -354,6 +387,45 @@ class Scan:
             )
 
 
+def _a(name: str) -> str:
+    return f"{'an' if name[:1] in 'aeiou' else 'a'} {name}"
+
+
+def _summary_definitions(path: Path) -> tuple[dict[int, Schema], dict[int, Channel]]:
+    """The schemas and channels of a finished file's summary (none: no readable summary)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except Exception:  # a crashed or damaged file: what its records declare is all there is
+        return {}, {}
+    if summary is None:
+        return {}, {}
+    return dict(summary.schemas), dict(summary.channels)
+
+
+def _ends_with_magic(fh: IO[bytes], size: int) -> bool:
+    """Whether the file ends with the MCAP magic (its writer closed it); ``fh`` keeps its place."""
+    if size < 2 * len(MAGIC):
+        return False
+    here = fh.tell()
+    try:
+        fh.seek(size - len(MAGIC))
+        return fh.read(len(MAGIC)) == MAGIC
+    finally:
+        fh.seek(here)
+
+
+def _count_index(loss: ChunkLoss, body: bytes) -> None:
+    """Add a lost chunk's message index record (one channel's (time, offset) pairs) to its count."""
+    try:
+        (n_bytes,) = struct.unpack_from("<I", body, 2)
+    except struct.error:
+        return
+    loss.messages_indexed = (loss.messages_indexed or 0) + n_bytes // 16
+
+
 class _Stop(Exception):
     """A record that does not parse: reading stops there (what follows cannot be trusted)."""
 
@@ -362,12 +434,19 @@ def describe_loss(rep: ScanReport) -> list[str]:
     """What a scan could not read, as lines a user reads (empty for a finished, intact file)."""
     lines: list[str] = []
     for c in rep.lost_chunks:
-        if c.end_ns:
-            t0 = c.start_ns if c.last_read_ns is None else c.last_read_ns
-            span = f"; its log time {t0 / 1e9:.3f}..{c.end_ns / 1e9:.3f} s is lost"
+        t0 = c.start_ns if c.last_read_ns is None else c.last_read_ns
+        # a span only where it runs forward: a damaged header's times, or a last salvaged
+        # message past the header's end, tell nothing of what is lost
+        span = f"; its log time {t0 / 1e9:.3f}..{c.end_ns / 1e9:.3f} s is lost" if 0 < t0 <= c.end_ns else ""
+        if c.reason.endswith("(damaged)"):
+            n = "" if c.messages_indexed is None else f"{c.messages_indexed} "
+            lines.append(f"the chunk at byte {c.offset}: {c.reason}; none of its {n}messages kept{span}")
         else:
-            span = ""
-        lines.append(f"the chunk at byte {c.offset}: {c.reason}; {c.messages_read} messages salvaged{span}")
+            lines.append(
+                f"the chunk at byte {c.offset}: {c.reason}; {c.messages_read} messages salvaged{span}"
+            )
+    if rep.orphans:
+        lines.append(f"{rep.orphans} messages of channels whose definition was in what was lost: not kept")
     if not rep.finished:
         lines.append(
             f"{rep.stop_reason or 'the file is not finished'}; {rep.bytes_unread} bytes from byte "

@@ -188,13 +188,18 @@ def recover(src: str | Path, out: str | Path | None = None) -> RecoverResult:
             if seq is not None:
                 comp.see(t.channel.topic, seq)
         had_completeness = False
+        rep = scan.report
+        lossy = bool(rep.lost_chunks) or not rep.finished
         for x in extras:
             if isinstance(x, Attachment):
                 w.attachment(x)
             else:
                 had_completeness |= x.name == "completeness"
-                w.add_metadata(x.name, dict(x.metadata))
-        rep = scan.report
+                meta = dict(x.metadata)
+                if x.name == "completeness" and lossy:  # the recorder's verdict was of the whole file
+                    meta.update(replay_ready="false", recovered=f"from {src.name}, with losses")
+                w.add_metadata(x.name, meta)
+        indexed = [c.messages_indexed for c in rep.lost_chunks]
         w.add_metadata(
             "recovered",
             {
@@ -202,6 +207,9 @@ def recover(src: str | Path, out: str | Path | None = None) -> RecoverResult:
                 "messages": str(rep.messages),
                 "finished": json.dumps(rep.finished),
                 "bytes_unread": str(rep.bytes_unread),
+                "chunks_lost": str(len(rep.lost_chunks)),
+                # what the lost chunks' indexes count ("": a chunk without one read)
+                "messages_lost": str(sum(indexed)) if indexed and None not in indexed else "",  # type: ignore[arg-type]
                 "lost": json.dumps(describe_loss(rep)),
             },
         )
@@ -454,12 +462,14 @@ def _merge_extras(w: OutputWriter, extras: list[list[Attachment | Metadata]]) ->
 # -- cat -------------------------------------------------------------------------------------------
 
 
-def cat(src: str | Path, sel: Selection, out: TextIO = sys.stdout) -> int:
+def cat(src: str | Path, sel: Selection, out: TextIO = sys.stdout, notes: list[str] | None = None) -> int:
     """Messages as JSON lines: topic, schema, times, sequence and the message itself
     (``message``: the decoded JSON; a payload that is not JSON, a raw channel's, goes as
-    ``data_hex``). Returns the number of lines written."""
+    ``data_hex``). Returns the number of lines written; ``notes`` gets what could not be read
+    (a cut or damaged file: its lines alone do not show what is missing)."""
     n = 0
-    for t in iter_tagged(Scan(src)):
+    scan = Scan(src)
+    for t in iter_tagged(scan):
         m = t.message
         if not (sel.time_ok(m.log_time) and sel.topic_ok(t.channel.topic)):
             continue
@@ -477,6 +487,8 @@ def cat(src: str | Path, sel: Selection, out: TextIO = sys.stdout) -> int:
             line += ', "data_hex": "' + m.data.hex() + '"}'
         out.write(line + "\n")
         n += 1
+    if notes is not None:
+        notes += describe_loss(scan.report)
     return n
 
 
@@ -499,29 +511,42 @@ class AttachmentInfo:
     log_time_ns: int
 
 
-def list_attachments(src: str | Path) -> list[AttachmentInfo]:
-    return [AttachmentInfo(a.name, a.media_type, len(a.data), a.log_time) for a in _attachments(Path(src))]
+def list_attachments(src: str | Path, notes: list[str] | None = None) -> list[AttachmentInfo]:
+    """The file's attachments; ``notes`` gets what could not be read (a cut file's listing is short)."""
+    return [
+        AttachmentInfo(a.name, a.media_type, len(a.data), a.log_time) for a in _attachments(Path(src), notes)
+    ]
 
 
-def _attachments(src: Path) -> Iterator[Attachment]:
+def _attachments(src: Path, notes: list[str] | None = None) -> Iterator[Attachment]:
     seen: set[str] = set()
-    for rec in Scan(src, messages=False):
+    scan = Scan(src, messages=False)
+    for rec in scan:
         if isinstance(rec, Attachment) and rec.name not in seen:
             seen.add(rec.name)  # a split part repeats them; a recording holds one of each
             yield rec
+    if notes is not None:
+        notes += describe_loss(scan.report)
 
 
-def extract_attachments(src: str | Path, out_dir: str | Path, names: list[str] | None = None) -> list[Path]:
+def extract_attachments(
+    src: str | Path, out_dir: str | Path, names: list[str] | None = None, notes: list[str] | None = None
+) -> list[Path]:
     """Write attachments under ``out_dir`` by their names (``can/imu.dbc`` -> ``out_dir/can/imu.dbc``);
-    ``names``: only those (each must exist). A name that would leave ``out_dir`` is refused."""
+    ``names``: only those (each must exist). A name that would leave ``out_dir`` is refused.
+    ``notes`` gets what could not be read."""
     out_root = Path(out_dir).resolve()
-    found = list(_attachments(Path(src)))
+    lost: list[str] = []
+    found = list(_attachments(Path(src), lost))
+    if notes is not None:
+        notes += lost
     if names:
         have = {a.name for a in found}
         missing = [n for n in names if n not in have]
         if missing:
+            cut = f" (the file is not whole: {lost[-1]})" if lost else ""
             raise RecordingError(
-                f"{src}: no attachment named {', '.join(map(repr, missing))}; it has {sorted(have)}"
+                f"{src}: no attachment named {', '.join(map(repr, missing))}; it has {sorted(have)}{cut}"
             )
         found = [a for a in found if a.name in names]
     written: list[Path] = []

@@ -461,3 +461,88 @@ def test_a_payload_that_does_not_decode_is_named_in_one_line(
     # it was "hil: DecodeError: Input data was truncated": no file, topic or message
     for said in (str(bad), "nav/ekf15", f"seq {seq} ", "log_time_ns ", "hil filter", "--exclude-topics"):
         assert said in lines[0], (said, lines[0])
+
+
+def _chunks(path: Path) -> list[tuple[int, int, int]]:
+    """(offset, record length, messages) of each chunk, from the file's summary, in file order."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    out = []
+    for c in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        n = (c.message_index_length - 15 * len(c.message_index_offsets)) // 16
+        out.append((c.chunk_start_offset, c.chunk_length, n))
+    return out
+
+
+def _spans(text: str) -> list[tuple[float, float]]:
+    import re
+
+    return [(float(a), float(b)) for a, b in re.findall(r"log time (\d+\.\d+)\.\.(\d+\.\d+) s", text)]
+
+
+def test_recover_of_a_damaged_chunk_keeps_only_the_original_messages(rec: dict[str, Path]) -> None:
+    """A bit flipped in a middle chunk: the copy holds the original's messages but that chunk's,
+    none altered, says so, and its completeness no longer claims replay_ready."""
+    from collections import Counter
+
+    tmp, orig = rec["tmp"], messages(rec["whole"])
+    offset, length, n_chunk = _chunks(rec["whole"])[len(_chunks(rec["whole"])) // 2]
+    data = bytearray(rec["whole"].read_bytes())
+    data[offset + length // 2] ^= 1
+    bad, fixed = tmp / "bit.mcap", tmp / "bit.fixed.mcap"
+    bad.write_bytes(bytes(data))
+    out = hil_ok("recover", str(bad), "-o", str(fixed))
+    got = messages(fixed)
+    assert not Counter(got) - Counter(orig), "a message that is not the original's was kept"
+    assert len(orig) - len(got) == n_chunk > 0, (len(orig), len(got), n_chunk)
+    assert (
+        f"the chunk at byte {offset}: its CRC does not match (damaged); none of its {n_chunk} messages" in out
+    )
+    assert all(a <= b for a, b in _spans(out)), out
+    info = hil_ok("info", str(fixed))
+    assert "replay_ready=true" not in info and "replay_ready=false" in info, info
+    assert f"recovered: a copy hil recover made of {bad.name}; lost 1 chunk(s) ({n_chunk} messages)" in info
+    proc = run_hil("cat", str(bad), "--topics", "/truth$", timeout=120)
+    assert proc.returncode == 0 and f"hil cat: note: the chunk at byte {offset}" in proc.stderr, proc.stderr
+    assert "replay_ready=true" in hil_ok("info", str(rec["whole"]))  # the intact original still is
+
+
+def test_a_cut_inside_a_chunk_record_is_a_cut_not_garbage(rec: dict[str, Path]) -> None:
+    """A file cut inside a chunk (its length runs past the file's end) is a crash's cut: named as
+    one, and the messages complete in its prefix are kept, never called garbage."""
+    data, orig = rec["whole"].read_bytes(), messages(rec["whole"])
+    offset, length, _n = _chunks(rec["whole"])[0]  # longer than what comes before it: the QA case
+    assert length > offset
+    cut, fixed = rec["tmp"] / "cutchunk.mcap", rec["tmp"] / "cutchunk.fixed.mcap"
+    for at in (offset + 4, offset + 9 + 60, offset + length * 2 // 3):
+        cut.write_bytes(data[:at])
+        out = hil_ok("recover", str(cut), "-o", str(fixed))
+        assert "garbage" not in out, (at, out)
+        if at > offset + 9:
+            assert f"the file ends inside a chunk record at byte {offset}" in out, (at, out)
+        else:
+            assert f"a record header cut off at byte {offset}" in out, (at, out)
+        got = messages(fixed)
+        assert got == orig[: len(got)], at
+        assert all(a <= b for a, b in _spans(out)), out
+
+
+def test_cat_and_attachments_say_what_a_cut_file_lost(rec: dict[str, Path]) -> None:
+    data = rec["whole"].read_bytes()
+    tmp = rec["tmp"]
+    cut = tmp / "cut-cat.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    proc = run_hil("cat", str(cut), "--topics", "/truth$", timeout=120)
+    assert proc.returncode == 0 and proc.stdout, proc.stderr
+    assert "hil cat: note: " in proc.stderr and "unreadable" in proc.stderr, proc.stderr
+    whole = run_hil("cat", str(rec["whole"]), "--topics", "/truth$", timeout=120)
+    assert whole.returncode == 0 and "note" not in whole.stderr, whole.stderr
+    short = tmp / "cut-att.mcap"
+    short.write_bytes(data[:5000])
+    proc = run_hil("attachments", str(short), timeout=60)
+    listed = [ln for ln in proc.stdout.splitlines() if ln.strip()]
+    assert proc.returncode == 0 and 0 < len(listed) < len(
+        hil_ok("attachments", str(rec["whole"])).splitlines()
+    )
+    assert "hil attachments: note: the file ends inside an attachment record" in proc.stderr, proc.stderr
