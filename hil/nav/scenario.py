@@ -265,7 +265,25 @@ def _parse_segment(i: int, raw: Mapping[str, Any]) -> MotionSegment:
         raise ScenarioError(f"{where} (accelerate) needs accel_mps2")
     if kind == "climb" and "pitch_deg" not in params:
         raise ScenarioError(f"{where} (climb) needs pitch_deg")
+    if kind == "rates" and "euler_rate_dps" not in params:
+        raise ScenarioError(f"{where} (rates) needs euler_rate_dps (e.g. [0, 0, 0] for none)")
+    _check_rates(where, kind, params)
     return MotionSegment(kind, MappingProxyType(params))
+
+
+def _check_rates(where: str, kind: str, params: Mapping[str, Any]) -> None:
+    """Refuse the rates the profile divides by (a turn's angle over its yaw rate, a bank over its
+    roll rate, a speed change over its acceleration): zero gave a ZeroDivisionError, or an
+    endless segment, or a transition silently skipped."""
+    if kind in ("turn", "coordinated_turn") and params["yaw_rate_dps"] == 0:
+        raise ScenarioError(f"{where}.yaw_rate_dps must be non-zero (a turn turns), got 0")
+    for key in ("roll_rate_dps", "pitch_rate_dps"):
+        if key in params and not params[key] > 0:
+            raise ScenarioError(f"{where}.{key} must be > 0 (how fast the attitude moves), got {params[key]:g}")
+    if "transition_s" in params:
+        _within(f"{where}.transition_s", params["transition_s"], 0.0, MAX_DURATION_S)
+    if kind == "accelerate" and "to_speed_mps" in params and params["accel_mps2"] == 0:
+        raise ScenarioError(f"{where}.accel_mps2 must be non-zero to reach to_speed_mps, got 0")
 
 
 def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
@@ -450,7 +468,16 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
     else:
         duration = _profile_duration(segments, math.hypot(*vb))
     if not 0 < duration <= MAX_DURATION_S:
-        raise ScenarioError(f"duration_s must be in (0, {MAX_DURATION_S:g}] s, got {duration:g}")
+        if "duration_s" in doc:
+            raise ScenarioError(f"duration_s must be in (0, {MAX_DURATION_S:g}] s, got {duration:g}")
+        raise ScenarioError(
+            f"the segments add up to {duration:g} s; a run must be in (0, {MAX_DURATION_S:g}] s "
+            "(set duration_s, or shorten the segments)"
+        )
+    from hil.nav.trajectory import compile_profile  # here: trajectory imports this module
+
+    # the profile itself: a turn or climb too short for its transitions is the file's fault too
+    compile_profile(segments, tuple(math.radians(x) for x in euler), vb, duration)  # type: ignore[arg-type]
 
     return Scenario(
         name=name,
@@ -491,6 +518,10 @@ def load_scenario(name_or_path: str) -> Scenario:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ScenarioError(f"cannot read scenario file {str(path)!r}: {err}") from err
+    except UnicodeDecodeError as err:
+        raise ScenarioError(
+            f"scenario file {str(path)!r} is not UTF-8 text (byte {err.start}): a scenario is a TOML file"
+        ) from None
     return parse_scenario(text, path.stem)
 
 

@@ -37,7 +37,7 @@ from hil.nav.earth import (
     radii_of_curvature_one,
     transport_rate_ned,
 )
-from hil.nav.scenario import MotionSegment, Scenario
+from hil.nav.scenario import MotionSegment, Scenario, ScenarioError
 from hil.nav.types import F64, I64, InitialState, TruthBatch
 
 KNOT_MAX_S = 0.5
@@ -69,7 +69,10 @@ def compile_profile(
     duration_s: float,
 ) -> tuple[Primitive, ...]:
     """Expand user segments (turns with roll-in/out, climbs with pitch transitions, …) into
-    primitives, then cut or pad with a hold so they cover exactly [0, duration_s]."""
+    primitives, then cut or pad with a hold so they cover exactly [0, duration_s].
+
+    A segment too short for its transitions raises :class:`ScenarioError` naming it (the loader
+    compiles the profile once, so a file is refused where it is read)."""
     prims: list[Primitive] = []
     t = 0.0
     e = euler0_rad
@@ -90,8 +93,9 @@ def compile_profile(
         vb = _add(vb, ab, dur)
         t += dur
 
-    for seg in segments:
+    for i, seg in enumerate(segments):
         p = seg.params
+        where = f"segment[{i}] ({seg.kind})"
         if seg.kind == "hold":
             emit(p["duration_s"], zero, zero)
         elif seg.kind == "accelerate":
@@ -122,7 +126,11 @@ def compile_profile(
             if "angle_deg" in p and p["angle_deg"] < 0:
                 w = -abs(w)
             if hold < 0:
-                raise ValueError(f"turn too short for transition_s={tr}: {dict(p)}")
+                key = "angle_deg" if "angle_deg" in p else "duration_s"
+                raise ScenarioError(
+                    f"{where}: {key} too small for its roll-in and roll-out (transition_s={tr:g} s "
+                    f"each): lengthen it or shorten transition_s"
+                )
             if tr > 0:
                 emit(tr, zero, (0.0, 0.0, w / tr))
             emit(hold, (0.0, 0.0, w), zero)
@@ -143,7 +151,11 @@ def compile_profile(
                 else p["duration_s"] - 2.0 * tr
             )
             if hold < 0:
-                raise ValueError(f"coordinated turn too short for its roll-in: {dict(p)}")
+                key = "angle_deg" if "angle_deg" in p else "duration_s"
+                raise ScenarioError(
+                    f"{where}: {key} too small for its roll-in and roll-out ({tr:g} s each at "
+                    f"roll_rate_dps): lengthen it or raise roll_rate_dps"
+                )
             if tr > 0:
                 emit(tr, (bank / tr, 0.0, 0.0), (0.0, 0.0, w / tr))
             emit(hold, (0.0, 0.0, w), zero)
@@ -155,7 +167,10 @@ def compile_profile(
             tp = abs(gam - e[1]) / rate if rate > 0 else 0.0
             hold = p["duration_s"] - 2.0 * tp
             if hold < 0:
-                raise ValueError(f"climb shorter than its pitch transitions: {dict(p)}")
+                raise ScenarioError(
+                    f"{where}: duration_s {p['duration_s']:g} s is shorter than its two pitch "
+                    f"transitions ({tp:g} s each at pitch_rate_dps): lengthen it or raise pitch_rate_dps"
+                )
             back = e[1]
             if tp > 0:
                 emit(tp, (0.0, (gam - e[1]) / tp, 0.0), zero)

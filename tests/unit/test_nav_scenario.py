@@ -88,3 +88,74 @@ def test_overrides_rewrite_source_text_that_reloads_to_the_same_scenario() -> No
     assert o.events == s.events and o.segments == s.segments
     with pytest.raises(ScenarioError):
         scenario_overrides(s, colour="red")
+
+
+NO_PROFILE = """
+name = "seg"
+[initial]
+speed_mps = 20.0
+"""
+
+
+@pytest.mark.parametrize(
+    ("segment", "message"),
+    [
+        ('kind = "turn"\nyaw_rate_dps = 0.0\nangle_deg = 90.0', r"segment\[0\]\.yaw_rate_dps must be non-zero"),
+        ('kind = "turn"\nyaw_rate_dps = 0.0\nduration_s = 9.0', r"segment\[0\]\.yaw_rate_dps must be non-zero"),
+        (
+            'kind = "coordinated_turn"\nyaw_rate_dps = 0.0\nangle_deg = 90.0',
+            r"segment\[0\]\.yaw_rate_dps must be non-zero",
+        ),
+        (
+            'kind = "coordinated_turn"\nyaw_rate_dps = 5.0\nroll_rate_dps = 0.0\nangle_deg = 90.0',
+            r"segment\[0\]\.roll_rate_dps must be > 0",
+        ),
+        (
+            'kind = "climb"\npitch_deg = 5.0\npitch_rate_dps = -1.0\nduration_s = 20.0',
+            r"segment\[0\]\.pitch_rate_dps must be > 0",
+        ),
+        (
+            'kind = "turn"\nyaw_rate_dps = 5.0\nangle_deg = 90.0\ntransition_s = -1.0',
+            r"segment\[0\]\.transition_s",
+        ),
+        ('kind = "rates"\nduration_s = 3.0', r"^segment\[0\] \(rates\) needs euler_rate_dps"),
+        (
+            'kind = "accelerate"\naccel_mps2 = 0.0\nto_speed_mps = 30.0',
+            r"^segment\[0\]\.accel_mps2 must be non-zero to reach to_speed_mps",
+        ),
+        ('kind = "turn"\nyaw_rate_dps = 10.0\nangle_deg = 5.0', r"^segment\[0\] \(turn\): angle_deg too small"),
+        (
+            'kind = "turn"\nyaw_rate_dps = 10.0\nduration_s = 1.5',
+            r"^segment\[0\] \(turn\): duration_s too small",
+        ),
+        (
+            'kind = "coordinated_turn"\nyaw_rate_dps = 10.0\nangle_deg = 2.0',
+            r"^segment\[0\] \(coordinated_turn\): angle_deg too small",
+        ),
+        (
+            'kind = "climb"\npitch_deg = 10.0\nduration_s = 2.0',
+            r"^segment\[0\] \(climb\): duration_s 2 s is shorter than its two pitch transitions",
+        ),
+    ],
+)
+@pytest.mark.parametrize("top_duration", ["", "duration_s = 30.0\n"])
+def test_a_segment_the_profile_cannot_follow_is_refused_naming_segment_and_key(
+    segment: str, message: str, top_duration: str
+) -> None:
+    """A zero rate divided by (ZeroDivisionError), a missing euler_rate_dps (KeyError) and a
+    segment too short for its transitions (a ValueError with no index) all came out raw."""
+    with pytest.raises(ScenarioError, match=message):
+        parse_scenario(top_duration + NO_PROFILE + "[[segment]]\n" + segment + "\n")
+
+
+def test_segments_adding_up_past_the_limit_do_not_blame_a_duration_s_the_file_lacks() -> None:
+    with pytest.raises(ScenarioError, match=r"^the segments add up to 2e\+06 s") as err:
+        parse_scenario(NO_PROFILE + '[[segment]]\nkind = "hold"\nduration_s = 1e6\n' * 2)
+    assert "duration_s must be" not in str(err.value)
+
+
+def test_a_scenario_file_that_is_not_utf8_is_one_line_naming_it(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    bad = tmp_path / "bin.toml"
+    bad.write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(ScenarioError, match=r"scenario file '.*bin\.toml' is not UTF-8 text"):
+        load_scenario(str(bad))
