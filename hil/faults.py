@@ -37,7 +37,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from hil.nav.scenario import transport_delay_problem
+from hil.nav.scenario import line_burst_problem, transport_delay_problem
 from hil.sensor_table import FAULT_KINDS, SENSORS
 
 IMU_FAULTS = frozenset(SENSORS["imu"].commands)
@@ -100,6 +100,8 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
         )
     if kind == "can_burst_error" and not 1 <= params.get("frames", 8) <= MAX_BURST_FRAMES:
         raise FaultError(f"can_burst_error: frames must be in [1, {MAX_BURST_FRAMES}]")
+    if kind == "gnss_line_burst" and (problem := line_burst_problem(params.get("bytes", 64))):
+        raise FaultError(f"gnss_line_burst: {problem}")
     if kind == "can_latency":
         if "latency_s" not in params:
             raise FaultError("can_latency needs latency_s")

@@ -216,6 +216,19 @@ DEFAULT_SPOOF_SIGMA_M = 0.5  # what a gnss_spoof's fixes claim unless told: bett
 MAX_TRANSPORT_DELAY_S = 10.0
 
 
+# gnss_line_burst: 64 KiB is over a second of a 460800-baud line (and 16 times the UART's default
+# transmit buffer); the burst is built byte by byte, so a huge one hung the emulator
+MAX_LINE_BURST_BYTES = 65_536
+
+
+def line_burst_problem(n: float) -> str | None:
+    """Why a ``gnss_line_burst`` of ``n`` bytes cannot be applied, or None; shared by the scenario
+    loader and ``hil.faults.check_fault`` (one bound, the same words)."""
+    if n != int(n) or not 1 <= n <= MAX_LINE_BURST_BYTES:
+        return f"bytes must be a whole number in [1, {MAX_LINE_BURST_BYTES}], got {n:g}"
+    return None
+
+
 def transport_delay_problem(latency_s: float, jitter_s: float) -> str | None:
     """Why a ``can_latency`` (latency, jitter) pair cannot be applied, or None; shared by the
     scenario loader and ``hil.faults.check_fault`` so both refuse the same values with the same
@@ -279,7 +292,7 @@ def _check_rates(where: str, kind: str, params: Mapping[str, Any]) -> None:
         raise ScenarioError(f"{where}.yaw_rate_dps must be non-zero (a turn turns), got 0")
     for key in ("roll_rate_dps", "pitch_rate_dps"):
         if key in params and not params[key] > 0:
-            raise ScenarioError(f"{where}.{key} must be > 0 (how fast the attitude moves), got {params[key]:g}")
+            raise ScenarioError(f"{where}.{key} must be > 0 (the attitude's rate), got {params[key]:g}")
     if "transition_s" in params:
         _within(f"{where}.transition_s", params["transition_s"], 0.0, MAX_DURATION_S)
     if kind == "accelerate" and "to_speed_mps" in params and params["accel_mps2"] == 0:
@@ -357,6 +370,8 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         params["service"] = raw["service"]
     if kind not in _PARSED_KINDS:  # any other kind's parameters are plain numbers
         params.update({k: _num(f"{where}.{k}", raw[k]) for k in _EVENT_KEYS[kind] if k in raw})
+    if kind == "gnss_line_burst" and (problem := line_burst_problem(params.get("bytes", 64))):
+        raise ScenarioError(f"{where}.{problem}")
     if "percent" in params and not 0.0 <= params["percent"] <= 100.0:
         raise ScenarioError(f"{where}.percent must be in [0, 100], got {params['percent']}")
     if t1 is not None and t1 <= t0:

@@ -137,3 +137,20 @@ def test_bad_fault_commands_are_refused_with_a_reason_and_counted_not_raised() -
     ):
         with pytest.raises(ScenarioError, match=re.escape(why)):
             scenario_from_text(base + "\n[[event]]\n" + event + "\n", "bad")
+
+
+@pytest.mark.parametrize("n", [-5.0, 0.0, 2.5, 1e12])
+def test_a_line_burst_of_no_whole_sensible_size_is_refused_as_command_and_as_event(n: float) -> None:
+    """``bytes`` went unchecked: negative and fractional were taken, a huge one built its noise
+    byte by byte (the emulator hung)."""
+    with pytest.raises(FaultError, match=r"gnss_line_burst: bytes must be a whole number in \[1, 65536\]"):
+        check_fault("gnss_line_burst", "", {"bytes": n})
+    event = f'kind = "gnss_line_burst"\nt_start_s = 1\nbytes = {n!r}'
+    base = load_scenario("straight_level").source_text
+    with pytest.raises(ScenarioError, match=r"event\[\d+\]\.bytes must be a whole number in \[1, 65536\]"):
+        scenario_from_text(base + "\n[[event]]\n" + event + "\n", "bad")
+
+
+def test_a_line_burst_within_the_bound_is_taken() -> None:
+    check_fault("gnss_line_burst", "", {"bytes": 300.0})
+    check_fault("gnss_line_burst", "", {})  # the default, 64

@@ -100,8 +100,14 @@ speed_mps = 20.0
 @pytest.mark.parametrize(
     ("segment", "message"),
     [
-        ('kind = "turn"\nyaw_rate_dps = 0.0\nangle_deg = 90.0', r"segment\[0\]\.yaw_rate_dps must be non-zero"),
-        ('kind = "turn"\nyaw_rate_dps = 0.0\nduration_s = 9.0', r"segment\[0\]\.yaw_rate_dps must be non-zero"),
+        (
+            'kind = "turn"\nyaw_rate_dps = 0.0\nangle_deg = 90.0',
+            r"segment\[0\]\.yaw_rate_dps must be non-zero",
+        ),
+        (
+            'kind = "turn"\nyaw_rate_dps = 0.0\nduration_s = 9.0',
+            r"segment\[0\]\.yaw_rate_dps must be non-zero",
+        ),
         (
             'kind = "coordinated_turn"\nyaw_rate_dps = 0.0\nangle_deg = 90.0',
             r"segment\[0\]\.yaw_rate_dps must be non-zero",
@@ -123,7 +129,10 @@ speed_mps = 20.0
             'kind = "accelerate"\naccel_mps2 = 0.0\nto_speed_mps = 30.0',
             r"^segment\[0\]\.accel_mps2 must be non-zero to reach to_speed_mps",
         ),
-        ('kind = "turn"\nyaw_rate_dps = 10.0\nangle_deg = 5.0', r"^segment\[0\] \(turn\): angle_deg too small"),
+        (
+            'kind = "turn"\nyaw_rate_dps = 10.0\nangle_deg = 5.0',
+            r"^segment\[0\] \(turn\): angle_deg too small",
+        ),
         (
             'kind = "turn"\nyaw_rate_dps = 10.0\nduration_s = 1.5',
             r"^segment\[0\] \(turn\): duration_s too small",
