@@ -38,6 +38,18 @@ class UserError(Exception):
     """An error the user can fix; printed as one line."""
 
 
+def _estimators(text: str | None) -> list[str]:
+    """``--estimators``: not given, the defaults (an empty list to the fusion); given, its names."""
+    from hil.estimators.names import estimator_names
+
+    if text is None:
+        return []
+    try:
+        return estimator_names(text)
+    except ValueError as err:
+        raise UserError(str(err)) from None
+
+
 def _default_record_path(scenario: str) -> Path:
     stem = Path(scenario).stem
     return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
@@ -99,8 +111,9 @@ def _add_run_args(p: argparse.ArgumentParser, default_duration: float | None) ->
     p.add_argument("--rig", default="bench", help="rig name: namespaces every key as hil/<rig>/...")
     p.add_argument(
         "--estimators",
-        default="",
-        help="comma-separated estimator names (default: the registry's; ins alone: the free INS alone)",
+        default=None,
+        help="comma-separated estimator names, each once (default: the registry's; ins alone: the "
+        "free INS alone)",
     )
     p.add_argument(
         "--feedback",
@@ -243,7 +256,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         sched_slice_us=a.sched_slice_us,
         rig_cpus=_cpu_list(a.rig_cpus, "--rig-cpus"),
         late_policy=a.late_policy,
-        estimators=[e for e in a.estimators.split(",") if e],
+        estimators=_estimators(a.estimators),
         feedback=a.feedback,
         ekf_calibration=a.ekf_calibration,
         input_batch_ms=a.input_batch_ms,
@@ -448,7 +461,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 duration_s=a.duration,
                 record=record,
                 rig=a.rig,
-                estimators=[e for e in a.estimators.split(",") if e],
+                estimators=_estimators(a.estimators),
                 feedback=a.feedback,
                 ekf_calibration=a.ekf_calibration,
                 output_predictor=not a.no_output_predictor,

@@ -78,7 +78,15 @@ def _overrides(p: argparse.ArgumentParser) -> None:
 
 
 def _estimators(text: str | None) -> list[str] | None:
-    return [e for e in text.split(",") if e] if text else None
+    """``--estimators``: None when not given (the spec's default), else its names, each once."""
+    from hil.estimators.names import estimator_names
+
+    if text is None:
+        return None
+    try:
+        return estimator_names(text)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
 
 
 def _execute(doc: dict[str, Any], base: Path, a: argparse.Namespace, default_name: str) -> int:

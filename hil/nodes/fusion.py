@@ -75,6 +75,9 @@ class FusionOptions(BatchedInputOptions, frozen=True, kw_only=True, forbid_unkno
                 f"unknown estimator(s) {unknown}; known: {', '.join(sorted(ESTIMATORS))} "
                 f"(and {FREE_INS}, the free inertial solution, which always runs: name it alone for it alone)"
             )
+        dup = sorted({e for e in self.estimators if self.estimators.count(e) > 1})
+        if dup:  # each would run twice and publish every solution twice
+            raise ValueError(f"estimators: {dup} named more than once; name each estimator once")
         if self.feedback not in ("auto", "none"):
             bad = [e for e in self.feedback.split(",") if e not in FEEDBACK_CAPABLE]
             if bad:

@@ -40,6 +40,14 @@ ABSURD = [
     (["sim", "--duration", "1e12"], "--duration"),
     (["sim", "--duration", "inf"], "--duration"),
     (["sim", "--estimators", "nosuch"], "nosuch"),
+    # a repeated name ran that estimator twice (every solution published twice); an empty list
+    # quietly ran the defaults
+    (["sim", "--estimators", "ekf15,ekf15"], "ekf15 more than once"),
+    (["up", "--estimators", "ekf15, ekf15"], "ekf15 more than once"),
+    (["sim", "--estimators", ""], "names no estimator"),
+    (["sim", "--estimators", ","], "names no estimator"),
+    (["up", "--estimators", ""], "names no estimator"),
+    (["sim", "--estimators", "ekf15,,kfvel"], "empty name"),
     (["replay", str(GOLDEN), "--rate", "inf"], "--rate"),
     (["replay", str(GOLDEN), "--start", "nan"], "--start"),
     (["replay", str(GOLDEN), "--end", "-1"], "--end"),
@@ -72,6 +80,12 @@ SCENARIOS = {
     "origin.alt_m": "[origin]\nalt_m = nan\n",
     "duration_s": "duration_s = 1e300\n",
     "event[0].t_start_s": '[[event]]\nkind = "gnss_outage"\nt_start_s = nan\nt_end_s = 5.0\n',
+    # a division by zero (ZeroDivisionError) and a KeyError came out raw
+    "segment[0].yaw_rate_dps": '[[segment]]\nkind = "turn"\nyaw_rate_dps = 0.0\nangle_deg = 90.0\n',
+    "segment[0].roll_rate_dps": (
+        '[[segment]]\nkind = "coordinated_turn"\nyaw_rate_dps = 5.0\nroll_rate_dps = 0.0\nangle_deg = 90.0\n'
+    ),
+    "segment[0] (rates) needs euler_rate_dps": '[[segment]]\nkind = "rates"\nduration_s = 3.0\n',
 }
 
 
