@@ -16,11 +16,14 @@ and what was already journaled stays. The next invocation reruns ``failed`` and 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -79,19 +82,36 @@ def local_workers(requested: int | None) -> int:
     return max(1, requested if requested else (os.cpu_count() or 1))
 
 
+@contextlib.contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """SIGINT ignored while the local workers are spawned, so they inherit it ignored (Python
+    then installs no KeyboardInterrupt handler in them): Ctrl-C in a terminal reaches the whole
+    process group, and a worker taking it printed its own traceback after the driver's clean
+    stop line. The driver alone takes Ctrl-C and closes the cluster, which stops the workers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def connect(opts: DriverOptions) -> tuple[Any, Any, str]:
     """(client, local cluster or None, description); a one-line CampaignError if it cannot."""
     from dask.distributed import Client, LocalCluster
 
     if opts.scheduler is None:
         n = local_workers(opts.workers)
-        cluster = LocalCluster(
-            n_workers=n,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=":0",  # a free port: never "8787 is already in use"
-            silence_logs=logging.ERROR,
-        )
+        with _workers_ignore_sigint():
+            cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",  # a free port: never "8787 is already in use"
+                silence_logs=logging.ERROR,
+            )
         try:
             client = Client(cluster, set_as_default=False)
         except BaseException:

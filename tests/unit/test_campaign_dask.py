@@ -294,3 +294,22 @@ def test_sigterm_stops_a_campaign_saying_what_is_in_and_the_same_command_runs_th
     again = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO, timeout=300)
     assert again.returncode == 0, again.stdout + again.stderr
     assert f"8 runs, {done} already done, {8 - done} run" in again.stdout
+
+
+def _sigint_disposition() -> str:
+    return "ignored" if signal.getsignal(signal.SIGINT) == signal.SIG_IGN else "taken"
+
+
+def test_local_workers_ignore_sigint_the_driver_alone_takes_ctrl_c(cluster: Any, tmp_path: Path) -> None:
+    """Ctrl-C reaches the terminal's whole process group: a local worker taking it printed its own
+    KeyboardInterrupt traceback after the driver's clean stop line. The driver still takes it.
+    (`cluster`: the module's keeps the resource tracker started, as in the killed-worker test.)"""
+    from hil.campaign.driver import connect
+
+    client, own, _what = connect(DriverOptions(out_dir=tmp_path, workers=1, progress=False))
+    try:
+        assert set(client.run(_sigint_disposition).values()) == {"ignored"}
+    finally:
+        client.close()
+        own.close()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the driver's, restored
