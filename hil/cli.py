@@ -293,6 +293,11 @@ def cmd_up(a: argparse.Namespace) -> int:
     except ValueError as err:
         raise UserError(str(err)) from None
     _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
+    if not opts.gnss_protocol:
+        from hil.faults import unwired_line_fault_warnings
+
+        for line in unwired_line_fault_warnings(scenario.events, duration, "hil up"):
+            print(f"hil up: warning: {line}", file=sys.stderr)
     if a.dut_emulator == "unit":
         wire = f"GNSS ({'+'.join(opts.gnss_protocol)}) on {sup.dut_line()}"
         print(f"hil up: device under test {sup.dut_command()[1]}: IMU on CAN, {wire}")

@@ -435,3 +435,15 @@ class LineFaults:
             noise = bytes(int(_unit_hash(self.seed + 13 + j, k) * 256) for j in range(act.burst_bytes))
             out = bytearray(noise) + out
         return bytes(out)
+
+
+def unwired_line_fault_warnings(events: Iterable[Any], duration_s: float, command: str) -> list[str]:
+    """Warning lines for the scenario's line faults (``gnss_line_*``) a receiver on no wire cannot
+    apply: ``command`` (hil sim, hil up) prints them, the emulator records ``fault_ignored``
+    where each would have started (it once announced them as applied)."""
+    return [
+        f"{ev.kind} at t={ev.t_start_s:g} s is not applied: the GNSS receiver is on no wire "
+        f"({command} --gnss-protocol nmea or ubx puts it on one; recorded as event fault_ignored)"
+        for ev in events
+        if ev.kind in LINE_FAULTS and ev.t_start_s <= duration_s
+    ]

@@ -60,6 +60,9 @@ from hil.wire.gnss_time import utc_ns_to_gps_ns
 from hil.wire.line import Uart
 
 RESUME_AFTER_S = 2.0
+NO_WIRE = "no wire (--gnss-protocol)"  # why a line fault is fault_ignored
+# what a frozen receiver repeats (the wire's frozen epoch keeps the same: all but time, sats, DOP)
+_FROZEN_FIELDS = ("lat_deg", "lon_deg", "alt_m", "pos_ned_m", "vel_ned_mps", "pos_sigma_m", "vel_sigma_mps")
 _S = 1_000_000_000
 
 
@@ -122,12 +125,15 @@ class GnssEmulatorNode(Node):
             self._ubx = self._encoders[o.protocol.index("ubx")] if tim_tp else None
             self._next_tim_tp_s = 0
             self.uart = Uart(o.baud, o.tx_buffer_bytes)
-            self.line_faults = LineFaults(run.seed, scenario_for_run(run).events)
             self._last_epoch: ReceiverEpoch | None = None
             self._lines: list[tuple[int, int, bytes]] = []  # (first byte out, last byte done, bytes)
             self._next_k = 0  # the next epoch index to put on the wire (outages: "no fix" epochs)
         s = scenario_for_run(run)
         self.scenario = s
+        # the receiver's faults (gnss_frozen, gnss_time_jump) apply with or without a wire; the
+        # line's need one (without it they are announced fault_ignored, not applied)
+        self.line_faults = LineFaults(run.seed, s.events)
+        self._last_fix: Any = None
         self.core = GnssEmulatorCore(s, TruthGenerator(s), sensor_rng(s.seed, "gnss"))
         self.clock = device_clock_for(s, "gnss")
         self.timeline = device_timeline(s.events, "gnss")
@@ -204,7 +210,7 @@ class GnssEmulatorNode(Node):
         elif cmd.kind == "gnss_latency":
             params.update(p)
         if cmd.kind in LINE_FAULTS | RECEIVER_FAULTS:  # the line's: for the epochs from now on
-            if self.wire:
+            if self.wire or cmd.kind in RECEIVER_FAULTS:
                 self.line_faults.timeline.add(cmd.kind, now_ns, cmd.duration_s, dict(p))
             else:
                 self.error(
@@ -222,6 +228,15 @@ class GnssEmulatorNode(Node):
     def tick(self, now_ns: int) -> list[Out]:
         outs: list[Out] = []
         for edge, f in self.timeline.edges(min(now_ns, self.end_ns)):
+            if not self.wire and f.kind in LINE_FAULTS:  # no line to damage: said, not applied
+                if edge == "fault_start":
+                    params = {**f.params, "reason": NO_WIRE}
+                    outs.append(
+                        self.event(
+                            "fault_ignored", _detail(f.kind, f.t0_ns, f.t1_ns, params, f.origin), f.t0_ns
+                        )
+                    )
+                continue
             detail = _detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin)
             outs.append(self.event(edge, detail, edge_time_ns(edge, f)))
         until = self._pull_until(now_ns)
@@ -345,6 +360,15 @@ class GnssEmulatorNode(Node):
         seq = self.fix_index
         self.fix_index += 1
         t_valid = int(b.t_valid_ns[i])
-        fix = gnss_fix_msg(seq, now_ns, self.clock.device_ns(t_valid), b, i)
+        act = self.line_faults.epoch(t_valid // self.core.period_ns, t_valid)
+        # gnss_time_jump: the time of validity the receiver reports is off (as on a wire)
+        fix = gnss_fix_msg(seq, now_ns, self.clock.device_ns(t_valid) + act.time_step_ns, b, i)
+        if act.frozen and self._last_fix is not None and fix.fix_type:
+            last = self._last_fix  # gnss_frozen: its last solution again, under a fresh time
+            fix = msgspec.structs.replace(
+                fix,
+                **{k: getattr(last, k) for k in _FROZEN_FIELDS},
+            )
+        self._last_fix = fix
         cap = CaptureTruth(seq=seq, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid)
         return [("sensor/gnss", fix), ("capture/gnss", cap)]

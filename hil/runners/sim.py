@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from hil import __version__
-from hil.faults import SIM_NOT_APPLICABLE, fault_detail
+from hil.faults import SIM_NOT_APPLICABLE, fault_detail, unwired_line_fault_warnings
 from hil.messages import Event, Message, RunInfo, ServiceStatus, counts, encode
 from hil.nav.scenario import load_scenario, scenario_for_run, scenario_overrides
 from hil.nodes import node_class
@@ -531,6 +531,8 @@ def run_sim(opts: SimOptions) -> SimResult:
 
     header(sess.w)
     warnings, ignored = not_applicable_faults(s.events, run.duration_s)
+    if not opts.gnss_protocol:
+        warnings += unwired_line_fault_warnings(s.events, run.duration_s, "hil sim")
     for line in warnings:
         warn(line)
     wire = CanWireModel(s)
