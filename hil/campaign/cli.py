@@ -103,6 +103,14 @@ def _execute(doc: dict[str, Any], base: Path, a: argparse.Namespace, default_nam
         doc["keep_recordings"] = a.keep_recordings
     spec = spec_from_dict(doc, base, default_name)
     out = a.out or Path("campaigns") / spec.name
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: is a file, not a directory; name a directory for the campaign")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(
+            f"--out {out}: cannot make the directory ({err.strerror or err}); name another"
+        ) from None
     if a.workers is not None and a.scheduler is not None:
         print(
             "hil campaign: note: --workers sizes a local cluster; ignored with --scheduler", file=sys.stderr

@@ -61,3 +61,19 @@ def test_hil_campaign_refuses_them_in_one_line_exit_2(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and why in err[0], err
     assert not out.exists()  # refused before the campaign started
+
+
+@pytest.mark.parametrize("where", ["file", "/proc/x"])
+def test_hil_campaign_out_that_cannot_be_a_directory_is_one_line(
+    where: str, tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:  # type: ignore[no-untyped-def]
+    """A regular file gave a raw FileExistsError, /proc/x a raw FileNotFoundError."""
+    from hil.cli import main
+
+    out = tmp_path / "f" if where == "file" else where
+    if where == "file":
+        out.write_text("x")  # type: ignore[union-attr]
+    assert main(["campaign", "sim", "--scenario", "static", "--runs", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"hil: --out {out}: "), err
+    assert "Errno" not in err[0] or "cannot make the directory" in err[0]
