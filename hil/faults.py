@@ -37,7 +37,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from hil.nav.scenario import line_burst_problem, transport_delay_problem
+from hil.nav.scenario import MAX_CLOCK_STEP_S, line_burst_problem, transport_delay_problem
 from hil.sensor_table import FAULT_KINDS, SENSORS
 
 IMU_FAULTS = frozenset(SENSORS["imu"].commands)
@@ -60,10 +60,6 @@ class FaultError(ValueError):
 
 T = TypeVar("T")
 MAX_DURATION_S = 1e6  # what hil.FaultCommand.duration_s accepts on the wire
-# |clock_step step_s|: a day. The IMU's wire carries device time modulo 2^48 ns (~78 h), unwrapped
-# by the nearest-epoch rule, so a step near half that (~39 h) or beyond reads as a wrap and lands
-# anywhere (1e9 s left the fusion ~80 600 s in the future); a reset after a day's uptime fits.
-MAX_CLOCK_STEP_S = 86_400.0
 
 
 def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s: float = 0.0) -> None:

@@ -134,6 +134,13 @@ def _utc_ns(where: str, text: Any) -> int:
 # parsing
 
 
+# |clock step|: a day. The IMU's wire carries device time modulo 2^48 ns (~78 h), unwrapped by the
+# nearest-epoch rule, so a step near half that (~39 h) or beyond reads as a wrap and lands anywhere
+# (1e9 s left the fusion ~80 600 s in the future); a reset after a day's uptime fits. The one
+# bound of a clock_step event, a [clock.<sensor>] step and a hil fault clock_step.
+MAX_CLOCK_STEP_S = 86_400.0
+
+
 def _num(where: str, v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         raise ScenarioError(f"{where} must be a finite number, got {v!r}")
@@ -363,7 +370,10 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         if raw.get("sensor") not in SENSORS or t1 is not None:
             names = " or ".join(SENSORS)
             raise ScenarioError(f"{where} (clock_step) needs sensor = {names}, step_s, no t_end_s")
-        params.update(sensor=raw["sensor"], step_s=_num(f"{where}.step_s", raw.get("step_s")))
+        step = _num(f"{where}.step_s", raw.get("step_s"))
+        params.update(
+            sensor=raw["sensor"], step_s=_within(f"{where}.step_s", step, -MAX_CLOCK_STEP_S, MAX_CLOCK_STEP_S)
+        )
     if kind == "kill_service":
         if not isinstance(raw.get("service"), str) or t1 is not None:
             raise ScenarioError(f'{where} (kill_service) needs service = "<name>" and no t_end_s')

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field, replace
 from functools import cache
 from typing import TYPE_CHECKING, Any
 
-from hil.nav.scenario import Scenario, ScenarioError
+from hil.nav.scenario import MAX_CLOCK_STEP_S, Scenario, ScenarioError
 from hil.sensor_table import SENSORS
 
 if TYPE_CHECKING:  # numpy is imported where a clock is drawn: the time-sync rerun reads only the configs
@@ -115,6 +115,15 @@ def _num(where: str, v: Any, lo: float | None = None) -> float:
     return float(v)
 
 
+def _step_s(where: str, v: Any) -> float:
+    step = _num(where, v)
+    if not abs(step) <= MAX_CLOCK_STEP_S:
+        raise ScenarioError(
+            f"{where} must be in [-{MAX_CLOCK_STEP_S:g}, {MAX_CLOCK_STEP_S:g}] s, got {step:g}"
+        )
+    return step
+
+
 def parse_clock_table(sensor: str, table: Mapping[str, Any], base: DeviceClockConfig) -> DeviceClockConfig:
     """``[clock.<sensor>]`` over ``base``; raises ScenarioError naming the key and the value."""
     where = f"clock.{sensor}"
@@ -139,7 +148,10 @@ def parse_clock_table(sensor: str, table: Mapping[str, Any], base: DeviceClockCo
                 if set(s) != {"t_s", "step_s"}:
                     raise ScenarioError(f"{where}.steps[{i}] needs exactly t_s and step_s, got {sorted(s)}")
                 steps.append(
-                    ClockStep(_num(f"{where}.steps[{i}].t_s", s["t_s"], 0.0), _num("step_s", s["step_s"]))
+                    ClockStep(
+                        _num(f"{where}.steps[{i}].t_s", s["t_s"], 0.0),
+                        _step_s(f"{where}.steps[{i}].step_s", s["step_s"]),
+                    )
                 )
             kw[k] = tuple(sorted(steps, key=lambda s: s.t_s))
         elif k in ("offset_s", "drift_ppm"):

@@ -59,6 +59,11 @@ def test_user_units_are_converted() -> None:
         ('[[event]]\nkind = "gnss_outage"\nt_start_s = 5.0\n', "t_end_s"),
         ('[[segment]]\nkind = "spin"\nduration_s = 1\n', "spin"),
         ("[gnss]\nrate_hz = 50.0\n", "rate_hz"),
+        # past a day, a step reads as a 48-bit device-time wrap (1e9 s: the fusion ~80 600 s ahead)
+        (
+            '[[event]]\nkind = "clock_step"\nt_start_s = 1.0\nsensor = "imu"\nstep_s = 1e9\n',
+            r"event\[0\]\.step_s",
+        ),
     ],
 )
 def test_bad_files_name_the_key(extra: str, fragment: str) -> None:
@@ -168,3 +173,13 @@ def test_a_scenario_file_that_is_not_utf8_is_one_line_naming_it(tmp_path) -> Non
     bad.write_bytes(b"\xff\xfe\x00")
     with pytest.raises(ScenarioError, match=r"scenario file '.*bin\.toml' is not UTF-8 text"):
         load_scenario(str(bad))
+
+
+def test_a_clock_table_step_past_a_day_is_refused_naming_it() -> None:
+    from hil.sensors.clock import DeviceClockConfig, parse_clock_table
+
+    table = {"steps": [{"t_s": 1.0, "step_s": -2e5}]}
+    with pytest.raises(ScenarioError, match=r"clock\.imu\.steps\[0\]\.step_s must be in \[-86400, 86400\]"):
+        parse_clock_table("imu", table, DeviceClockConfig())
+    ok = parse_clock_table("imu", {"steps": [{"t_s": 1.0, "step_s": 86_400.0}]}, DeviceClockConfig())
+    assert ok.steps[0].step_s == 86_400.0
