@@ -22,7 +22,6 @@ results do not depend on how callers batch their requests.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -37,151 +36,10 @@ from hil.nav.earth import (
     radii_of_curvature_one,
     transport_rate_ned,
 )
-from hil.nav.scenario import MotionSegment, Scenario, ScenarioError
+from hil.nav.scenario import KNOT_MAX_S, Scenario, compile_profile
 from hil.nav.types import F64, I64, InitialState, TruthBatch
 
-KNOT_MAX_S = 0.5
-G_COORD_MPS2 = 9.80665  # gravity used to size the bank of a coordinated turn
 _GL2 = 1.0 / math.sqrt(3.0)  # 2-point Gauss–Legendre nodes ±1/√3, weights 1
-
-
-@dataclass(frozen=True)
-class Primitive:
-    """A segment with constant Euler acceleration and body acceleration; SI, radians."""
-
-    t0_s: float
-    duration_s: float
-    euler0_rad: tuple[float, float, float]
-    euler_rate0_radps: tuple[float, float, float]
-    euler_acc_radps2: tuple[float, float, float]
-    vel_body0_mps: tuple[float, float, float]
-    accel_body_mps2: tuple[float, float, float]
-
-
-def _add(a: tuple[float, ...], b: tuple[float, ...], k: float = 1.0) -> tuple[float, float, float]:
-    return (a[0] + k * b[0], a[1] + k * b[1], a[2] + k * b[2])
-
-
-def compile_profile(
-    segments: tuple[MotionSegment, ...],
-    euler0_rad: tuple[float, float, float],
-    vel_body0_mps: tuple[float, float, float],
-    duration_s: float,
-) -> tuple[Primitive, ...]:
-    """Expand user segments (turns with roll-in/out, climbs with pitch transitions, …) into
-    primitives, then cut or pad with a hold so they cover exactly [0, duration_s].
-
-    A segment too short for its transitions raises :class:`ScenarioError` naming it (the loader
-    compiles the profile once, so a file is refused where it is read)."""
-    prims: list[Primitive] = []
-    t = 0.0
-    e = euler0_rad
-    vb = vel_body0_mps
-    zero = (0.0, 0.0, 0.0)
-
-    def emit(
-        dur: float,
-        de0: tuple[float, float, float],
-        dde: tuple[float, float, float],
-        ab: tuple[float, float, float] = zero,
-    ) -> None:
-        nonlocal t, e, vb
-        if dur <= 0.0:
-            return
-        prims.append(Primitive(t, dur, e, de0, dde, vb, ab))
-        e = _add(_add(e, de0, dur), dde, 0.5 * dur * dur)
-        vb = _add(vb, ab, dur)
-        t += dur
-
-    for i, seg in enumerate(segments):
-        p = seg.params
-        where = f"segment[{i}] ({seg.kind})"
-        if seg.kind == "hold":
-            emit(p["duration_s"], zero, zero)
-        elif seg.kind == "accelerate":
-            a = p["accel_mps2"]
-            if "to_speed_mps" in p:
-                dv = p["to_speed_mps"] - vb[0]
-                a = math.copysign(abs(a), dv) if dv != 0 else 0.0
-                dur = abs(dv) / abs(a) if a else 0.0
-            else:
-                dur = p["duration_s"]
-            emit(dur, zero, zero, (a, 0.0, 0.0))
-        elif seg.kind == "rates":
-            emit(
-                p["duration_s"],
-                tuple(math.radians(x) for x in p["euler_rate_dps"]),  # type: ignore[arg-type]
-                zero,
-                p.get("accel_body_mps2", zero),
-            )
-        elif seg.kind == "turn":
-            # flat (car-like) turn; the yaw rate ramps over transition_s so lateral accel is continuous
-            w = math.radians(p["yaw_rate_dps"])
-            tr = p.get("transition_s", 1.0)
-            hold = (
-                math.radians(abs(p["angle_deg"])) / abs(w) - tr
-                if "angle_deg" in p
-                else p["duration_s"] - 2.0 * tr
-            )
-            if "angle_deg" in p and p["angle_deg"] < 0:
-                w = -abs(w)
-            if hold < 0:
-                key = "angle_deg" if "angle_deg" in p else "duration_s"
-                raise ScenarioError(
-                    f"{where}: {key} too small for its roll-in and roll-out (transition_s={tr:g} s "
-                    f"each): lengthen it or shorten transition_s"
-                )
-            if tr > 0:
-                emit(tr, zero, (0.0, 0.0, w / tr))
-            emit(hold, (0.0, 0.0, w), zero)
-            if tr > 0:
-                emit(tr, (0.0, 0.0, w), (0.0, 0.0, -w / tr))
-        elif seg.kind == "coordinated_turn":
-            # bank φ = atan(v ω / g); roll in at roll_rate while the yaw rate ramps 0 → ω
-            w = math.radians(p["yaw_rate_dps"])
-            if "angle_deg" in p and p["angle_deg"] < 0:
-                w = -abs(w)
-            v = math.hypot(*vb)
-            bank = math.atan(v * w / G_COORD_MPS2)
-            rr = math.radians(p.get("roll_rate_dps", 10.0))
-            tr = abs(bank) / rr if rr > 0 else 0.0
-            hold = (
-                math.radians(abs(p["angle_deg"])) / abs(w) - tr
-                if "angle_deg" in p
-                else p["duration_s"] - 2.0 * tr
-            )
-            if hold < 0:
-                key = "angle_deg" if "angle_deg" in p else "duration_s"
-                raise ScenarioError(
-                    f"{where}: {key} too small for its roll-in and roll-out ({tr:g} s each at "
-                    f"roll_rate_dps): lengthen it or raise roll_rate_dps"
-                )
-            if tr > 0:
-                emit(tr, (bank / tr, 0.0, 0.0), (0.0, 0.0, w / tr))
-            emit(hold, (0.0, 0.0, w), zero)
-            if tr > 0:
-                emit(tr, (-bank / tr, 0.0, w), (0.0, 0.0, -w / tr))
-        elif seg.kind == "climb":
-            gam = math.radians(p["pitch_deg"])
-            rate = math.radians(p.get("pitch_rate_dps", 2.0))
-            tp = abs(gam - e[1]) / rate if rate > 0 else 0.0
-            hold = p["duration_s"] - 2.0 * tp
-            if hold < 0:
-                raise ScenarioError(
-                    f"{where}: duration_s {p['duration_s']:g} s is shorter than its two pitch "
-                    f"transitions ({tp:g} s each at pitch_rate_dps): lengthen it or raise pitch_rate_dps"
-                )
-            back = e[1]
-            if tp > 0:
-                emit(tp, (0.0, (gam - e[1]) / tp, 0.0), zero)
-            emit(hold, zero, zero)
-            if tp > 0:
-                emit(tp, (0.0, (back - gam) / tp, 0.0), zero)
-        else:  # pragma: no cover - the parser rejects unknown kinds
-            raise ValueError(seg.kind)
-    if t < duration_s:
-        emit(duration_s - t, zero, zero)
-    return tuple(pr for pr in prims if pr.t0_s < duration_s)
 
 
 class TruthGenerator:
