@@ -802,22 +802,27 @@ def cmd_fault(a: argparse.Namespace) -> int:
     for item in a.param:
         key, sep, value = item.partition("=")
         try:
-            params[key] = float(value)
+            number = float(value)
         except ValueError:
             raise UserError(f"--param {item!r}: expected NAME=NUMBER") from None
         if not sep:
             raise UserError(f"--param {item!r}: expected NAME=NUMBER")
+        if key in params:
+            raise UserError(f"--param {key}: given twice ({params[key]:g} and {number:g}); give it once")
+        params[key] = number
     try:
         check_fault(a.kind, a.target, params, a.duration)
     except FaultError as err:
         raise UserError(str(err)) from None
-    cmd = FaultCommand(
-        seq=time.time_ns() & (2**62 - 1),  # commands come from many short-lived senders: no counter
-        stamp_ns=0,
-        kind=a.kind,
-        target=a.target,
-        params=param_entries(params),
-        duration_s=a.duration,
+    cmd = _checked_fault_command(
+        FaultCommand(
+            seq=time.time_ns() & (2**62 - 1),  # commands come from many short-lived senders: no counter
+            stamp_ns=0,
+            kind=a.kind,
+            target=a.target,
+            params=param_entries(params),
+            duration_s=a.duration,
+        )
     )
     key = Keys(a.rig).control("fault")
     session = connect(a.rig)
@@ -842,6 +847,30 @@ def cmd_fault(a: argparse.Namespace) -> int:
         return 1
     print(f"hil fault: sent {a.kind} to rig {a.rig!r}")
     return 0
+
+
+_FAULT_FLAGS = {"kind": "KIND", "target": "--target", "params": "--param", "duration_s": "--duration"}
+
+
+def _checked_fault_command(cmd: Any) -> Any:
+    """``cmd`` as every subscriber will decode it, every constraint of ``hil.FaultCommand``
+    checked (a constructor checks none): a command the rig would throw away as
+    ``rejected.control.fault.invalid`` is refused here, naming its flag, and never sent."""
+    import msgspec
+
+    from hil.messages import FaultCommand, decode, encode
+
+    try:
+        return decode(FaultCommand, encode(cmd))
+    except msgspec.ValidationError as err:
+        text, _, where = str(err).rpartition(" - at `$.")
+        field = where.rstrip("`").split(".")[0].split("[")[0]
+        flag = _FAULT_FLAGS.get(field, field or "the command")
+        value = getattr(cmd, field, None) if field in _FAULT_FLAGS else None
+        shown = f" {value!r}" if isinstance(value, str) else ""
+        if field == "target":  # the regex itself says little to a user
+            text = "not a service or sensor name: use up to 64 of A-Z a-z 0-9 _ . -"
+        raise UserError(f"{flag}{shown}: {text or err}") from None
 
 
 # -- recording tools (hil.record.tools, hil.record.export): one line and exit 2 on a bad file ----
@@ -1234,13 +1263,19 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     add_replay_args(rp)
     rp.set_defaults(func=cmd_replay)
 
-    from hil.sensor_table import FAULT_KINDS  # not hil.faults: numpy is ~0.1 s of every command
+    # not hil.faults: numpy is ~0.1 s of every command
+    from hil.sensor_table import FAULT_KINDS, FAULT_MAX_DURATION_S
 
     flt = sub.add_parser("fault", help="inject a fault into a running rig (recorded as events)")
     flt.add_argument("kind", choices=sorted(FAULT_KINDS))
     flt.add_argument("--rig", default="bench", help="the rig (hil/<rig>/control/fault)")
     flt.add_argument("--target", default="", help="kill_service: the service; clock_step: imu or gnss")
-    flt.add_argument("--duration", type=seconds, default=0.0, help="seconds (0: to the end / instantaneous)")
+    flt.add_argument(
+        "--duration",
+        type=bounded_float(0.0, FAULT_MAX_DURATION_S, unit="s"),  # hil.FaultCommand's own bound
+        default=0.0,
+        help="seconds (0: to the end / instantaneous)",
+    )
     flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
     flt.add_argument(
         "--wait",

@@ -38,7 +38,14 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 
 from hil.nav.scenario import MAX_CLOCK_STEP_S, line_burst_problem, transport_delay_problem
-from hil.sensor_table import FAULT_KINDS, SENSORS
+from hil.sensor_table import (
+    FAULT_INTEGER_PARAMS,
+    FAULT_KINDS,
+    FAULT_MAX_DURATION_S,
+    FAULT_MAX_OFFSET_M,
+    FAULT_MAX_OFFSET_MPS,
+    SENSORS,
+)
 
 IMU_FAULTS = frozenset(SENSORS["imu"].commands)
 GNSS_FAULTS = frozenset(SENSORS["gnss"].commands)
@@ -59,7 +66,11 @@ class FaultError(ValueError):
 
 
 T = TypeVar("T")
-MAX_DURATION_S = 1e6  # what hil.FaultCommand.duration_s accepts on the wire
+MAX_DURATION_S = FAULT_MAX_DURATION_S  # what hil.FaultCommand.duration_s accepts on the wire
+_OFFSET_BOUNDS = {
+    **dict.fromkeys(("n_m", "e_m", "d_m"), (FAULT_MAX_OFFSET_M, "m")),
+    **dict.fromkeys(("n_mps", "e_mps", "d_mps"), (FAULT_MAX_OFFSET_MPS, "m/s")),
+}
 
 
 def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s: float = 0.0) -> None:
@@ -76,6 +87,12 @@ def check_fault(kind: str, target: str, params: Mapping[str, float], duration_s:
         raise FaultError(f"{kind}: unknown param(s) {unknown}; allowed: {sorted(allowed)}")
     if not all(np.isfinite(v) for v in params.values()):
         raise FaultError(f"{kind}: params must be finite numbers, got {dict(params)}")
+    for name, v in params.items():
+        if name in FAULT_INTEGER_PARAMS and not float(v).is_integer():
+            raise FaultError(f"{kind}: {name} counts, so it must be a whole number, got {v:g}")
+        bound, unit = _OFFSET_BOUNDS.get(name, (math.inf, ""))
+        if abs(v) > bound:
+            raise FaultError(f"{kind}: {name} must be in [-{bound:g}, {bound:g}] {unit}, got {v:g}")
     if kind == "clock_step" and target not in ("imu", "gnss"):
         raise FaultError("clock_step needs --target imu or --target gnss")
     if kind == "clock_step" and "step_s" not in params:
@@ -124,10 +141,23 @@ def fault_detail(kind: str, t0_ns: int, t1_ns: int | None, params: Mapping[str, 
             "origin": origin,
             "t_start_s": t0_ns / 1e9,
             "t_end_s": None if t1_ns is None else t1_ns / 1e9,
-            "params": {k: v for k, v in params.items() if isinstance(v, int | float | str)},
+            "params": {k: _param_json(v) for k, v in params.items() if _param_json(v) is not None},
         },
         sort_keys=True,
     )
+
+
+def _param_json(v: Any) -> Any:
+    """A fault param as the event's JSON holds it: a number or a name, or a vector of numbers
+    (``gnss_jump``'s ``offset_ned_m``: left out, the event said ``"params": {}`` and lost the
+    offset); anything else (None) is left out."""
+    if isinstance(v, int | float | str):
+        return v
+    if isinstance(v, list | tuple | np.ndarray) and all(
+        isinstance(x, int | float | np.number) and not isinstance(x, bool) for x in v
+    ):
+        return [float(x) for x in v]
+    return None
 
 
 def _unit_hash(seed: int, k: int) -> float:

@@ -166,6 +166,17 @@ FAULT_KINDS: Mapping[str, tuple[str, frozenset[str]]] = MappingProxyType(
 )
 
 
+#: What ``hil.FaultCommand.duration_s`` accepts on the wire: ``hil fault --duration``'s bound too.
+FAULT_MAX_DURATION_S = 1e6
+#: A fault's position offset (``gnss_jump``/``gnss_spoof`` ``n_m``...): beyond the Earth's size is
+#: no fault a receiver could report, only numbers that overflow what reads them.
+FAULT_MAX_OFFSET_M = 1e7
+#: A fault's velocity offset (``gnss_velocity_glitch`` ``n_mps``...): far beyond any vehicle's.
+FAULT_MAX_OFFSET_MPS = 1e4
+#: Params that count something: a whole number, not ``frames=1.5``.
+FAULT_INTEGER_PARAMS = frozenset({"frames", "bytes"})
+
+
 def sensor_kind(name: str) -> SensorKind:
     """The kind of sensor ``name``; a ``KeyError`` that names the known ones otherwise."""
     try:
