@@ -521,16 +521,30 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     mod = service_module(a.name)
     if a.help:
         return int(mod.main(["--help"]) or 0)
+    rig = service_rig(a.rig)
     if a.options is not None:
         try:
             opts = options_from_json(a.options)
         except ValueError as err:
             raise UserError(f"--options: {err}") from err
         try:
-            return run_service(mod.SERVICE, a.rig, opts)
+            return run_service(mod.SERVICE, rig, opts)
         except OptionsError as err:
             raise UserError(str(err)) from None
-    return int(mod.main([*(["--rig", a.rig] if a.rig else []), *rest]) or 0)
+    return int(mod.main(["--rig", rig, *rest]) or 0)
+
+
+def service_rig(given: str | None) -> str:
+    """The rig of ``hil service NAME``: ``--rig``, else ``$HIL_RIG``, else ``default``
+    (docs/environment.md), the same with ``--options`` as without; a bad name is one line."""
+    from hil.bus.keys import check_name
+
+    rig = given or os.environ.get("HIL_RIG") or "default"
+    where = "--rig" if given else "HIL_RIG" if os.environ.get("HIL_RIG") else "rig"
+    try:
+        return check_name(where, rig)
+    except ValueError as err:
+        raise UserError(str(err)) from None
 
 
 @contextlib.contextmanager
