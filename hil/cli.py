@@ -163,6 +163,18 @@ def _check_record_filter(a: argparse.Namespace) -> None:
         KeyFilter(a.rig, a.record_include, a.record_exclude)
     except KeyFilterError as err:
         raise UserError(f"--record-include/--record-exclude: {err}") from None
+    import re
+
+    chunk = re.compile(r"^(\*\*|(\$\*|[A-Za-z0-9_.\-])+|\*)$")
+    for flag, patterns in (("--record-include", a.record_include), ("--record-exclude", a.record_exclude)):
+        for pattern in patterns:
+            bad = [c for c in pattern.strip("/").split("/") if not chunk.match(c)]
+            if bad:
+                raise UserError(
+                    f"{flag} {pattern!r}: {bad[0]!r} can match no key of the rig (its keys are names "
+                    "of A-Z a-z 0-9 _ . - joined by /; the wildcards are * and **: a Zenoh key "
+                    "expression, not a glob)"
+                )
 
 
 def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
@@ -241,7 +253,23 @@ def cmd_up(a: argparse.Namespace) -> int:
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
     record = a.record or _default_record_path(a.scenario)
-    _keep_earlier_recording(record)
+    # Everything is checked before anything on disk changes: a refused run must leave the user's
+    # earlier recording where it was (_keep_earlier_recording, last but the writability probe).
+    if a.imu_rate is not None:
+        from hil.nav.scenario import scenario_overrides
+
+        scenario_overrides(scenario, imu_rate_hz=a.imu_rate)  # reject a bad rate here, with one line
+    if a.dut_emulator and not a.dut:
+        raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
+    if a.dut:
+        _check_dut(a.dut)
+    if a.gnss_tcp is not None:
+        _check_gnss_tcp(a.gnss_tcp)
+    from hil.can.bus import interface_problem
+
+    problem = interface_problem(a.channel, a.can_interface)
+    if problem:
+        raise UserError(problem)
     opts = UpOptions(
         scenario=a.scenario if not Path(a.scenario).is_file() else str(Path(a.scenario).resolve()),
         duration_s=duration,
@@ -279,19 +307,12 @@ def cmd_up(a: argparse.Namespace) -> int:
         foxglove=_foxglove_listen(a.foxglove),
         **_gnss_wire(a, live=True),  # type: ignore[arg-type]
     )
-    if a.imu_rate is not None:
-        from hil.nav.scenario import scenario_overrides
-
-        scenario_overrides(scenario, imu_rate_hz=a.imu_rate)  # reject a bad rate here, with one line
-    if a.dut_emulator and not a.dut:
-        raise UserError("--dut-emulator needs --dut MAPPING.toml (e.g. examples/dut/navbox.toml)")
-    if a.dut and not Path(a.dut).is_file():
-        raise UserError(f"--dut {a.dut}: no such mapping file")
     sup = Supervisor(opts)
     try:
         sup.check_options()
     except ValueError as err:
         raise UserError(str(err)) from None
+    _keep_earlier_recording(record)
     _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
     if not opts.gnss_protocol:
         from hil.faults import unwired_line_fault_warnings
@@ -335,6 +356,35 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: no recording was written at {record}", file=sys.stderr)
         rc = rc or 1
     return rc
+
+
+def _check_dut(path: str) -> None:
+    """``--dut``: the mapping and its DBC loaded and checked against each other now, so a bad one
+    is one line before anything starts (not a run without the unit, exit 0, or a dead bridge)."""
+    if not Path(path).is_file():
+        raise UserError(f"--dut {path}: no such mapping file")
+    from hil.can.dut_emulator import load_dut
+
+    try:
+        load_dut(path)
+    except ValueError as err:
+        raise UserError(f"--dut {err}") from None
+
+
+def _check_gnss_tcp(text: str) -> None:
+    """``--gnss-tcp HOST:PORT``: its form, its port's range and the listen itself tried now."""
+    import socket
+
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise UserError(f"--gnss-tcp {text}: expected HOST:PORT with PORT 1-65535 (e.g. 127.0.0.1:5020)")
+    try:
+        with socket.create_server((host.strip("[]"), int(port)), reuse_port=False) as _srv:
+            pass
+    except (OSError, UnicodeError) as err:
+        raise UserError(
+            f"--gnss-tcp {text}: cannot listen there: {getattr(err, 'strerror', None) or err}"
+        ) from None
 
 
 def _foxglove_listen(text: str | None) -> str | None:

@@ -37,6 +37,28 @@ def channel_exists(channel: str) -> bool:
     return Path("/sys/class/net", channel).exists()
 
 
+def interface_problem(channel: str, interface: str | None) -> str:
+    """Why ``--can-interface``/``--channel`` cannot be opened, found before anything starts
+    ("" when nothing is known against them): an interface python-can does not have, or SocketCAN
+    on a channel this kernel lacks. Otherwise the bridge would die mid-run with a traceback."""
+    iface = (interface or "auto").strip().lower()
+    if iface == "auto":
+        return ""
+    known = {"hillocal", "hilzenoh", *can.interfaces.VALID_INTERFACES}
+    if iface not in known:
+        return (
+            f"--can-interface {interface}: python-can has no such interface; use one of "
+            f"{', '.join(sorted(known))}, or leave it out (socketcan if the channel exists, else hillocal)"
+        )
+    if iface == "socketcan" and not channel_exists(channel):
+        return (
+            f"--can-interface socketcan: this kernel has no CAN interface {channel} "
+            f"(/sys/class/net/{channel}); create it (modprobe vcan; ip link add dev {channel} type vcan; "
+            f"ip link set up {channel}) or give another --channel"
+        )
+    return ""
+
+
 def resolve_interface(
     channel: str, interface: str | None, env: Mapping[str, str] | None = None, rig: str | None = None
 ) -> str:

@@ -97,7 +97,7 @@ class DutMapping:
             raise DutMappingError(f"mapping lacks required fields {missing}")
         if not (all(f in fields for f in EULER) or all(f in fields for f in QUAT)):
             raise DutMappingError(f"mapping needs an attitude: all of {list(EULER)} or all of {list(QUAT)}")
-        scale = {str(k): float(v) for k, v in dict(raw.get("scale") or {}).items()}
+        scale = {str(k): _number(f"scale {k!r}", v) for k, v in dict(raw.get("scale") or {}).items()}
         for k in scale:
             if k not in fields:
                 raise DutMappingError(f"scale for {k!r}, which is not mapped")
@@ -106,13 +106,20 @@ class DutMapping:
             fields=fields,
             scale=scale,
             complete_on=raw.get("complete_on"),
-            max_age_ms=float(raw.get("max_age_ms", 50.0)),
+            max_age_ms=_number("max_age_ms", raw.get("max_age_ms", 50.0)),
         )
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DutMapping:
         with open(path, "rb") as fh:
             return cls.from_dict(tomllib.load(fh))
+
+
+def _number(what: str, v: Any) -> float:
+    """A number of the mapping (``[scale] lat_deg = "abc"`` is one line, not float()'s)."""
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise DutMappingError(f"{what} = {v!r} is not a finite number")
+    return float(v)
 
 
 COUNTERS = ("frames", "unknown_id", "decode_error", "solutions", "incomplete", "stale")

@@ -21,23 +21,43 @@ if TYPE_CHECKING:
 
 
 def load_dut(mapping_path: str | Path) -> tuple[cantools.database.Database, DutMapping]:
-    """The mapping TOML and the DBC it names (``dbc = "..."``, relative to the mapping file)."""
+    """The mapping TOML and the DBC it names (``dbc = "..."``, relative to the mapping file),
+    checked against each other: every problem is one ``ValueError`` naming the file, so
+    ``hil up --dut`` refuses it before anything starts and ``can_bridge``/``dut_emulator`` say
+    it in one line rather than die with cantools' traceback."""
     import tomllib
 
     import cantools
 
+    from hil.bus.keys import check_name
+    from hil.can.dut import DutNavDecoder
+
     p = Path(mapping_path)
-    with open(p, "rb") as fh:
-        raw = tomllib.load(fh)
+    try:
+        with open(p, "rb") as fh:
+            raw = tomllib.load(fh)
+    except OSError as err:
+        raise ValueError(f"{p}: cannot read the DUT mapping ({err.strerror or err})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{p}: not a TOML DUT mapping: {err}") from None
     dbc = raw.get("dbc")
     if not dbc:
         raise ValueError(f'{p}: the DUT mapping needs `dbc = "file.dbc"` naming the unit\'s DBC')
     dbc_path = (p.parent / str(dbc)).resolve()
+    if not dbc_path.is_file():
+        raise ValueError(f"{p}: DBC {dbc_path} not found")
     try:
         db = cantools.database.load_file(str(dbc_path))
-    except FileNotFoundError:
-        raise ValueError(f"{p}: DBC {dbc_path} not found") from None
-    return db, DutMapping.from_dict(raw)
+    except Exception as err:  # cantools: UnsupportedDatabaseFormatError, ParseError, ...
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise ValueError(f"{p}: DBC {dbc_path} does not parse as a DBC: {first[:300]}") from None
+    try:
+        mapping = DutMapping.from_dict(raw)
+        check_name("estimator", mapping.estimator)  # its key: nav/<estimator>
+        DutNavDecoder(db, mapping, 0.0, 0.0, 0.0)  # every field's message and signal in the DBC
+    except ValueError as err:
+        raise ValueError(f"{p}: {err}") from None
+    return db, mapping
 
 
 class DutNavEncoder:

@@ -37,7 +37,10 @@ class DutEmulatorNode(Node):
         o: DutEmulatorOptions = self.options  # type: ignore[assignment]
         if not o.dut_mapping:
             raise OptionsError("dut_emulator: option dut_mapping is required (a DUT mapping TOML)")
-        db, m = load_dut(o.dut_mapping)
+        try:
+            db, m = load_dut(o.dut_mapping)
+        except ValueError as err:  # a bad mapping or DBC: one line (OptionsError), no traceback
+            raise OptionsError(f"dut_emulator: option dut_mapping: {err}") from None
         self.encoder = DutNavEncoder(db, m)
         s = scenario_for_run(run)
         self.truth = TruthGenerator(s)
