@@ -339,6 +339,8 @@ class Recorder(Service):
     ) -> None:
         if self.keyfilter.active and not self.keyfilter.keeps(key):
             self.excluded += 1
+            if self._start_epoch_ns is None and origin != FOREIGN and type_for_key(key) is RunInfo:
+                self._take_run_unrecorded(key, payload)
             return
         cls = type_for_key(key)
         kind = ".".join(key.split("/")[2:3]) or key
@@ -367,11 +369,7 @@ class Recorder(Service):
             return
         foreign = origin == FOREIGN
         if self._start_epoch_ns is None and isinstance(msg, RunInfo) and not foreign:
-            self._start_epoch_ns = msg.start_epoch_ns
-            self._speed = msg.speed
-            self._run = msg
-            self._part_t0 = time.monotonic()
-            self._write_run_metadata(msg)
+            self._take_run(msg)
         if not foreign and self.previous.holds(key, msg.seq):
             self.already_recorded += 1  # an earlier life's file holds it (a cache's replay)
             return
@@ -400,6 +398,25 @@ class Recorder(Service):
             self._write_wellknown(key, msg, log_ns)
         except OSError as err:
             self._fail(err)
+
+    def _take_run(self, run: RunInfo) -> None:
+        """The run's time base, metadata and attachments: the file's, whatever it records."""
+        self._start_epoch_ns = run.start_epoch_ns
+        self._speed = run.speed
+        self._run = run
+        self._part_t0 = time.monotonic()
+        self._write_run_metadata(run)
+
+    def _take_run_unrecorded(self, key: str, payload: bytes) -> None:
+        """``RunInfo`` on a key the filter leaves out (``--record-include 'nav/**'``): not written
+        as a message, but still the file's time base, metadata and attachments -- without it the
+        log times were raw receive times and ``hil rerun`` said "not a rig session"."""
+        try:
+            msg = decode(RunInfo, split_batch(payload)[0])
+        except (msgspec.ValidationError, msgspec.DecodeError, ValueError, IndexError) as err:
+            self.stats.error("rejected.run.invalid", f"{key}: not a valid RunInfo: {err}")
+            return
+        self._take_run(msg)
 
     def _write_wellknown(self, key: str, msg: Any, log_ns: int) -> None:
         """Foxglove's well-known types derived from the message, beside it (``hil.wellknown``)."""
