@@ -209,6 +209,11 @@ class Node:
         self._seqs[key] = n + 1
         return self._seq_base | n  # generation_seq(self.generation, n)
 
+    def continue_seq(self, key: str, taken: int) -> None:
+        """Seqs ``0..taken-1`` of ``key`` were used by someone else on the same key (a live
+        service's own events before its node existed): this node's count goes on from there."""
+        self._seqs[key] = max(self._seqs.get(key, 0), taken)
+
     def inc(self, name: str, n: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + n
 

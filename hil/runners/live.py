@@ -39,7 +39,7 @@ from hil.bus.identity import FOREIGN, RigIdentity
 from hil.bus.inbox import BoundedInbox, key_kind
 from hil.bus.keys import may_batch, type_for_key
 from hil.bus.pubsub import Publisher, RawSubscriber, decode_checked
-from hil.messages import RunInfo, ServiceStatus
+from hil.messages import Event, RunInfo, ServiceStatus, generation_seq
 from hil.nodes.base import (
     CAN_RX,
     CAN_TX,
@@ -127,6 +127,7 @@ class NodeService(Service):
         self.identity = RigIdentity.from_env()
         self.node: Node | None = None
         self.lock = threading.Lock()  # the status thread reads the node's counters
+        self._events_before_node = 0  # seqs of event/<name> the service took before its node
         self._pubs: dict[str, Publisher[Any]] = {}
         self._errors_seen = 0
         self.can_bus: can.BusABC | None = None
@@ -253,9 +254,27 @@ class NodeService(Service):
             pub = self._pubs[key] = self.publisher(full, cls or type_for_key(full) or ServiceStatus)
         return pub
 
+    def emit_event(self, kind: str, detail: str = "") -> None:
+        """The service's own events (its line, its CAN transport, its pacing) and its node's go on
+        one key, ``event/<name>``, so they share one seq counter: the node's once it exists, and
+        the node's counter starts after those taken before (two counters gave duplicate seqs)."""
+        key = f"event/{self.name}"
+        with self.lock:
+            if self.node is not None:
+                seq = self.node.next_seq(key)
+            else:
+                seq = generation_seq(self.generation, self._events_before_node)
+                self._events_before_node += 1
+        self._publisher(key, Event).put(
+            Event(seq=seq, stamp_ns=self.rig_now_ns(), kind=kind, source=self.name, detail=detail)
+        )
+
     # -- the loop -------------------------------------------------------------------------------
     def make_node(self, run: RunInfo) -> Node:
-        return self.node_cls(run, self.opts)
+        node = self.node_cls(run, self.opts)
+        with self.lock:  # its events go on after the service's own (emit_event)
+            node.continue_seq(f"event/{self.name}", self._events_before_node)
+        return node
 
     def _await_recorder(self, timeout_s: float = RECORDER_WAIT_S) -> None:
         """A restarted node's first words (``resumed``) must reach the recording.
@@ -404,9 +423,10 @@ class NodeService(Service):
             "data_bitrate": o.data_bitrate,
             "wire_latency_ns": node.can_wire_latency_ns,
         }
+        with self.lock:
+            self.node = node  # its counters reach the status; its event seqs are the service's
         self.emit_event("pacing", json.dumps(pacing))  # JSON, as the node's own events
         with self.lock:
-            self.node = node  # its counters reach the status
             outs = node.start(mono.now_ns())
         if outs:
             self._await_recorder()
