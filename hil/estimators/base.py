@@ -207,6 +207,22 @@ def imu_bias_floats_of(est: Any) -> tuple[float, ...] | None:
     return (*g.tolist(), *a.tolist())
 
 
+def aligned_nav(init: InitialState) -> NavState:
+    """Where the alignment puts the vehicle, in the origin's NED: what an estimator that reads
+    the free INS only at its IMU steps solves before its first one (the first ``lag`` of a run).
+
+    At run start that is the origin (exact zeros, as before); a fusion restarted mid-run is
+    aligned hundreds of metres from it (``FusionCore.for_scenario``'s ``align_ns``), and the
+    origin there was a wrong solution the output predictor carried for the whole lag."""
+    at = (init.lat_rad, init.lon_rad, init.alt_m)
+    if at == (init.origin_lat_rad, init.origin_lon_rad, init.origin_alt_m):
+        pos = np.zeros(3)
+    else:
+        pos = strapdown.to_nav_state(strapdown.strapdown_from_initial(init), init).pos_ned_m
+    vel = np.asarray(init.vel_ned_mps, dtype=np.float64).copy()
+    return NavState(pos, vel, np.asarray(init.q_nb, dtype=np.float64).copy())
+
+
 def gnss_input(msg: Any) -> GnssInput | None:
     """A GNSS fix as estimators take it; None if it is no position fix (fix type below 2D)."""
     if msg.fix_type < MIN_GNSS_FIX_TYPE:

@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState, aligned_nav
 from hil.estimators.feedback import ClosedLoopIns
 from hil.estimators.lti import (
     StateSpace,
@@ -451,8 +451,7 @@ class CompensationEstimator(Estimator):
         self.loop = None if feedback is None else ClosedLoopIns(init, **feedback)
         self._ins: NavState | None = None
         self._ins_stamp_ns = init.stamp_ns
-        self._q0 = np.asarray(init.q_nb, float).copy()
-        self._vel0 = np.asarray(init.vel_ned_mps, float).copy()
+        self._init = init  # where it stands before its first IMU step: aligned_nav
         self._gnss_count = 0
         self._last_diff_pos_m = 0.0
         self.coasts = 0
@@ -526,7 +525,7 @@ class CompensationEstimator(Estimator):
             nav = self.loop.nav()
             att_sigma = self.loop.att_sigma_rad()
         elif self._ins is None:
-            return NavState(np.zeros(3), self._vel0.copy(), self._q0.copy())
+            return aligned_nav(self._init)
         else:
             nav = self._ins
         y0, y1, y2, y3, y4, y5 = self.core.output().tolist()

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
+from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState, aligned_nav
 from hil.estimators.feedback import ClosedLoopIns
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
@@ -90,8 +90,7 @@ class ScalarKfEstimator(Estimator):
         self._t_last_ns = init.stamp_ns
         self._ins: NavState | None = None
         self._ins_stamp_ns = init.stamp_ns
-        self._q0 = np.asarray(init.q_nb, float).copy()
-        self._vel0 = np.asarray(init.vel_ned_mps, float).copy()
+        self._init = init  # where it stands before its first IMU step: aligned_nav
         self._count = 0
         self._max_ratio = 0.0
         # feedback form (hil.estimators.feedback): an INS of its own, reset by ε̂ at every fix
@@ -132,7 +131,7 @@ class ScalarKfEstimator(Estimator):
         else:
             nav = self._ins
         if nav is None:
-            return NavState(np.zeros(3), self._vel0.copy(), self._q0.copy())
+            return aligned_nav(self._init)
         # Variance grows between fixes: D(t) = D_k + q_rate (t − t_k)
         var = self.d + self.q_rate * max((self._ins_stamp_ns - self._t_last_ns) * 1e-9, 0.0)
         sig = np.sqrt(var)
