@@ -11,9 +11,9 @@ the node publishes that journal on ``fusion/journal`` -- with the recorded input
 ``fusion/config`` (``hil.FusionSettings``), so a recording says how to rebuild the core.
 
 A fusion restarted mid-run (option ``resume``) re-aligns: it holds its inputs until the first
-IMU sample and builds every estimator from the run's truth at that sample's stamp (an in-flight
-re-alignment; the rig knows truth, a real unit would use its last good solution), then numbers
-its outputs after ``imu_seq // output_every + 1`` so no seq repeats one from before the death,
+IMU sample and builds every estimator from the run's truth where that sample's interval starts
+(an in-flight re-alignment; the rig knows truth, a real unit would use its last good solution),
+then numbers its outputs after ``imu_seq // output_every + 1`` so no seq repeats one from before the death,
 and says so in a ``realigned`` event. ``hil rerun --verify`` reproduces runs without a fusion
 restart; after one, the outputs of the second process are not those of an uninterrupted run by
 design, and rerun names the first difference.
@@ -199,13 +199,16 @@ class FusionNode(Node):
         self._held.append((msg, source))
         if not isinstance(msg, ImuSample):
             return []
-        align_ns = msg.stamp_ns
+        # aligned where the sample's interval starts, as a run is at 0 before its first one: the
+        # truth at its stamp already holds the motion the sample measured, which stepped on top
+        # of it put every stream one interval ahead (12 cm at 50 m/s and 400 Hz)
+        align_ns = msg.stamp_ns - min(max(msg.dt_ns, 0), max(msg.stamp_ns, 0))
         self.core = FusionCore.for_scenario(self.scenario, self.config, align_ns=align_ns)
         first_seq = msg.seq // self.config.output_every + 1
         self.core.start_output_seq(first_seq)
         detail = (
-            f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.3f} s "
-            f"(imu seq {msg.seq}); outputs numbered from {first_seq}"
+            f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.4f} s "
+            f"(the start of imu seq {msg.seq}); outputs numbered from {first_seq}"
         )
         outs = [self.event("realigned", detail, now_ns)]
         held, self._held = [(m, src) for m, src in self._held if m.stamp_ns >= align_ns], []
