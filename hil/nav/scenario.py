@@ -655,6 +655,19 @@ def _add(a: tuple[float, ...], b: tuple[float, ...], k: float = 1.0) -> tuple[fl
     return (a[0] + k * b[0], a[1] + k * b[1], a[2] + k * b[2])
 
 
+def _turn_hold(where: str, p: Mapping[str, Any], w: float, tr: float, ramps: str, fix: str) -> float:
+    """A turn's time at its full yaw rate ``w`` between the roll-in and roll-out of ``tr`` s each:
+    what its angle (or duration) leaves; none left is the file's fault, named."""
+    angle = "angle_deg" in p
+    hold = math.radians(abs(p["angle_deg"])) / abs(w) - tr if angle else p["duration_s"] - 2.0 * tr
+    if hold < 0:
+        key = "angle_deg" if angle else "duration_s"
+        raise ScenarioError(
+            f"{where}: {key} too small for its roll-in and roll-out ({ramps}): lengthen it or {fix}"
+        )
+    return float(hold)
+
+
 def compile_profile(
     segments: tuple[MotionSegment, ...],
     euler0_rad: tuple[float, float, float],
@@ -711,19 +724,9 @@ def compile_profile(
             # flat (car-like) turn; the yaw rate ramps over transition_s so lateral accel is continuous
             w = math.radians(p["yaw_rate_dps"])
             tr = p.get("transition_s", 1.0)
-            hold = (
-                math.radians(abs(p["angle_deg"])) / abs(w) - tr
-                if "angle_deg" in p
-                else p["duration_s"] - 2.0 * tr
-            )
+            hold = _turn_hold(where, p, w, tr, f"transition_s={tr:g} s each", "shorten transition_s")
             if "angle_deg" in p and p["angle_deg"] < 0:
                 w = -abs(w)
-            if hold < 0:
-                key = "angle_deg" if "angle_deg" in p else "duration_s"
-                raise ScenarioError(
-                    f"{where}: {key} too small for its roll-in and roll-out (transition_s={tr:g} s "
-                    f"each): lengthen it or shorten transition_s"
-                )
             if tr > 0:
                 emit(tr, zero, (0.0, 0.0, w / tr))
             emit(hold, (0.0, 0.0, w), zero)
@@ -738,17 +741,7 @@ def compile_profile(
             bank = math.atan(v * w / G_COORD_MPS2)
             rr = math.radians(p.get("roll_rate_dps", 10.0))
             tr = abs(bank) / rr if rr > 0 else 0.0
-            hold = (
-                math.radians(abs(p["angle_deg"])) / abs(w) - tr
-                if "angle_deg" in p
-                else p["duration_s"] - 2.0 * tr
-            )
-            if hold < 0:
-                key = "angle_deg" if "angle_deg" in p else "duration_s"
-                raise ScenarioError(
-                    f"{where}: {key} too small for its roll-in and roll-out ({tr:g} s each at "
-                    f"roll_rate_dps): lengthen it or raise roll_rate_dps"
-                )
+            hold = _turn_hold(where, p, w, tr, f"{tr:g} s each at roll_rate_dps", "raise roll_rate_dps")
             if tr > 0:
                 emit(tr, (bank / tr, 0.0, 0.0), (0.0, 0.0, w / tr))
             emit(hold, (0.0, 0.0, w), zero)
