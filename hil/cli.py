@@ -1235,6 +1235,31 @@ def _add_service_parser(sub: Any) -> None:
     svc.set_defaults(func=cmd_service, passthrough=True, parser=svc)
 
 
+def _add_fault_parser(sub: Any) -> None:
+    """``hil fault``: its bounds are ``hil.FaultCommand``'s own."""
+    # not hil.faults: numpy is ~0.1 s of every command
+    from hil.sensor_table import FAULT_KINDS, FAULT_MAX_DURATION_S
+
+    flt = sub.add_parser("fault", help="inject a fault into a running rig (recorded as events)")
+    flt.add_argument("kind", choices=sorted(FAULT_KINDS))
+    flt.add_argument("--rig", default="bench", help="the rig (hil/<rig>/control/fault)")
+    flt.add_argument("--target", default="", help="kill_service: the service; clock_step: imu or gnss")
+    flt.add_argument(
+        "--duration",
+        type=bounded_float(0.0, FAULT_MAX_DURATION_S, unit="s"),  # hil.FaultCommand's own bound
+        default=0.0,
+        help="seconds (0: to the end / instantaneous)",
+    )
+    flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
+    flt.add_argument(
+        "--wait",
+        type=bounded_float(0.0, 60.0, unit="s"),
+        default=1.0,
+        help="seconds to connect before sending",
+    )
+    flt.set_defaults(func=cmd_fault)
+
+
 def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     """Every command's parser; ``service_only``: ``hil service``'s alone (it parses the same)."""
     ap = OneLineParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
@@ -1327,27 +1352,7 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     add_replay_args(rp)
     rp.set_defaults(func=cmd_replay)
 
-    # not hil.faults: numpy is ~0.1 s of every command
-    from hil.sensor_table import FAULT_KINDS, FAULT_MAX_DURATION_S
-
-    flt = sub.add_parser("fault", help="inject a fault into a running rig (recorded as events)")
-    flt.add_argument("kind", choices=sorted(FAULT_KINDS))
-    flt.add_argument("--rig", default="bench", help="the rig (hil/<rig>/control/fault)")
-    flt.add_argument("--target", default="", help="kill_service: the service; clock_step: imu or gnss")
-    flt.add_argument(
-        "--duration",
-        type=bounded_float(0.0, FAULT_MAX_DURATION_S, unit="s"),  # hil.FaultCommand's own bound
-        default=0.0,
-        help="seconds (0: to the end / instantaneous)",
-    )
-    flt.add_argument("--param", action="append", default=[], help="NAME=NUMBER, e.g. percent=20 (repeatable)")
-    flt.add_argument(
-        "--wait",
-        type=bounded_float(0.0, 60.0, unit="s"),
-        default=1.0,
-        help="seconds to connect before sending",
-    )
-    flt.set_defaults(func=cmd_fault)
+    _add_fault_parser(sub)
 
     _add_tool_parsers(sub)
 

@@ -27,6 +27,7 @@ bytes in the current form, so such recordings rerun bit for bit.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Mapping
 from typing import Annotated, Any, TypeVar
 
@@ -476,6 +477,17 @@ LEGACY_FORMS: dict[type[Message], tuple[type[Message], Callable[[Any], Message]]
 
 _encoder = msgspec.json.Encoder()
 _decoders: dict[type[Any], msgspec.json.Decoder[Any]] = {}
+
+
+_KEY_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def check_name(what: str, name: str) -> str:
+    """Reject names that would break key expressions (``*``, ``/``, ``$``, empty): a rig, a
+    service, an estimator (``nav/<name>``). ``hil.bus.keys`` and the layers below it check alike."""
+    if not isinstance(name, str) or not _KEY_NAME.match(name):
+        raise ValueError(f"{what} {name!r} is not a valid name: use 1-64 of [A-Za-z0-9_-]")
+    return name
 
 
 def encode(msg: Message) -> bytes:

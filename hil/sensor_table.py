@@ -173,8 +173,10 @@ FAULT_MAX_DURATION_S = 1e6
 FAULT_MAX_OFFSET_M = 1e7
 #: A fault's velocity offset (``gnss_velocity_glitch`` ``n_mps``...): far beyond any vehicle's.
 FAULT_MAX_OFFSET_MPS = 1e4
-#: Params that count something: a whole number, not ``frames=1.5``.
-FAULT_INTEGER_PARAMS = frozenset({"frames", "bytes"})
+#: Params that count something: a whole number, not ``frames=1.5`` (``gnss_line_burst``'s
+#: ``bytes`` too, checked with its range by ``hil.nav.scenario.line_burst_problem``, the scenario
+#: event's check, so that a command and an event say the same)
+FAULT_INTEGER_PARAMS = frozenset({"frames"})
 
 
 def sensor_kind(name: str) -> SensorKind:

@@ -25,8 +25,6 @@ it carries bus traffic, not rig data, and the bridge already records every frame
 
 from __future__ import annotations
 
-import re
-
 from hil.messages import (
     CanFrame,
     CaptureTruth,
@@ -44,9 +42,8 @@ from hil.messages import (
     TimeTag,
     Truth,
 )
+from hil.messages import check_name as check_name  # the rule lives with the messages that carry names
 from hil.sensor_table import SENSORS
-
-_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
 # sensor name -> raw/synced message type (the sensor table's)
 SENSOR_TYPES: dict[str, type[Message]] = {name: kind.message for name, kind in SENSORS.items()}
@@ -67,13 +64,6 @@ BATCHED_KEYS = frozenset({"sensor/imu", "synced/imu", "capture/imu", "truth"})
 def may_batch(key: str) -> bool:
     """Whether messages of ``key`` (relative to ``hil/<rig>/``) may travel as a batch."""
     return key in BATCHED_KEYS or key.split("/", 1)[0] in BATCHED_KINDS
-
-
-def check_name(what: str, name: str) -> str:
-    """Reject names that would break key expressions (``*``, ``/``, ``$``, empty)."""
-    if not _NAME.match(name):
-        raise ValueError(f"{what} {name!r} is not a valid name: use 1-64 of [A-Za-z0-9_-]")
-    return name
 
 
 class Keys:

@@ -29,8 +29,8 @@ def load_dut(mapping_path: str | Path) -> tuple[cantools.database.Database, DutM
 
     import cantools
 
-    from hil.bus.keys import check_name
     from hil.can.dut import DutNavDecoder
+    from hil.messages import check_name
 
     p = Path(mapping_path)
     try:
