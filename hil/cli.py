@@ -1396,10 +1396,19 @@ def main(argv: list[str] | None = None) -> int:
         print(err, file=sys.stderr)
         return 1
     except (FileNotFoundError, ValueError, KeyError, OSError) as err:
-        # boundary errors from loaders carry the facts; show them as one line
+        # boundary errors from loaders carry the facts; show them as one line (a recording's
+        # error names the file and what to do already: its class name adds nothing)
         msg = str(err) if not isinstance(err, KeyError) else str(err).strip("'\"")
-        print(f"hil: {type(err).__name__}: {msg}", file=sys.stderr)
+        said = msg if _is_recording_error(err) else f"{type(err).__name__}: {msg}"
+        print(f"hil: {said}", file=sys.stderr)
         return EXIT_USAGE
+
+
+def _is_recording_error(err: BaseException) -> bool:
+    """A ``hil.record.mcapio.RecordingError`` (damaged, bad payload, not MCAP...), told without
+    importing the recording modules into every command's start."""
+    mro = type(err).__mro__
+    return any(c.__name__ == "RecordingError" and c.__module__ == "hil.record.mcapio" for c in mro)
 
 
 if __name__ == "__main__":

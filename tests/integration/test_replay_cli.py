@@ -215,4 +215,6 @@ def test_a_damaged_finished_file_exits_2_naming_it_damaged(tmp_path: Path, cmd: 
         lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
         assert len(lines) == 1 and "Traceback" not in proc.stderr, (name, proc.stderr)
         assert f"{path} is damaged at byte " in lines[0] and f"hil recover {path}" in lines[0], lines
+        # the line says it all: no exception class before it ("hil: DamagedRecordingError: ...")
+        assert lines[0].split(": ", 1)[1].startswith(str(path)), lines
         assert "truncated" not in proc.stdout.lower(), (name, proc.stdout)
