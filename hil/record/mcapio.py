@@ -22,6 +22,7 @@ rig time in ``log_time``/``publish_time``; ``rig_time_ns`` reads both (hil's tim
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import glob
 import io
@@ -686,6 +687,29 @@ class MessageQueue:
         return len(self.chans)
 
 
+def _why_not(path: Path, err: OSError) -> str:
+    """Why ``path`` cannot be made, as a user fixes it: mkdir's "File exists" meant that a
+    directory on the way is a file."""
+    if isinstance(err, FileExistsError | NotADirectoryError):
+        for parent in path.parents:
+            if parent.exists() and not parent.is_dir():
+                return f"{parent} is a file, not a directory"
+    return str(err.strerror or err)
+
+
+#: the errors of a write that failed for want of room or of a working disk (not of a bad path)
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EFBIG, errno.EROFS})
+
+
+def write_failed(path: str | Path, err: BaseException) -> RecordingError | None:
+    """A recording's write that failed (a full disk, /dev/full, an I/O error) as one line naming
+    the file; None for any other error (a bug, an interrupt: raised as it is)."""
+    if isinstance(err, OSError) and err.filename is None and err.errno in _WRITE_ERRNOS:
+        why = err.strerror
+        return RecordingError(f"writing {path} failed: {why}; what was flushed before stays readable")
+    return None
+
+
 class SessionWriter:
     """Writes one session file. Not thread-safe: one writer thread owns it."""
 
@@ -705,7 +729,7 @@ class SessionWriter:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fh: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 - owned until close()
         except OSError as err:
-            raise RecordingError(f"cannot open {self.path} for writing: {err.strerror}") from err
+            raise RecordingError(f"cannot open {self.path} for writing: {_why_not(self.path, err)}") from err
         from mcap.writer import CompressionType, Writer
 
         self._writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)

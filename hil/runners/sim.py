@@ -61,6 +61,7 @@ from hil.record.mcapio import (
     part_metadata,
     split_part_path,
     stale_parts_note,
+    write_failed,
 )
 from hil.runners.sim_worker import WORKER_MIN_ESTIMATORS, RemoteTail, drive, portable, worker_possible
 from hil.runners.wire import CanWireModel
@@ -529,7 +530,11 @@ def run_sim(opts: SimOptions) -> SimResult:
     def header(w: SessionWriter) -> None:
         _header(w, run, s)
 
-    header(sess.w)
+    try:
+        header(sess.w)
+    except OSError as err:
+        sess.w.abandon()
+        raise write_failed(opts.record, err) or err from None
     warnings, ignored = not_applicable_faults(s.events, run.duration_s)
     if not opts.gnss_protocol:
         warnings += unwired_line_fault_warnings(s.events, run.duration_s, "hil sim")
@@ -555,13 +560,19 @@ def run_sim(opts: SimOptions) -> SimResult:
         for i, outs in enumerate(outs0):
             sched.publish(i, outs, 0)
         _windows(sched, sess, opts, ignored, header, remote)
-    except BaseException:
+    except BaseException as err:
         sess.w.abandon()  # what was flushed stays readable
+        failed = write_failed(opts.record, err)
+        if failed is not None:
+            raise failed from None
         raise
     finally:
         if remote is not None:
             remote.close()
-    sess.close()
+    try:
+        sess.close()
+    except OSError as err:
+        raise write_failed(opts.record, err) or err from None
     stopped = None if sess.stopped_at_ns is None else sess.stopped_at_ns / 1e9
     wall_s = time.monotonic() - t_wall
     return SimResult(opts.record, sess.n_written, run.duration_s, wall_s, warnings, stopped)

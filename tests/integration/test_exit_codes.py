@@ -182,3 +182,29 @@ def test_a_run_whose_imu_never_reaches_the_bridge_fails_with_the_reason(tmp_path
     assert "can_bridge decoded no IMU sample" in said, said[-3000:]
     assert "Traceback" not in said
     assert out.exists()  # what was recorded is kept
+
+
+def test_hil_sim_on_a_disk_that_fills_up_says_which_file_in_one_line(
+    small_disk: Path, tmp_path: Path
+) -> None:
+    """`hil sim` that runs out of room (a real 512 KiB tmpfs; /dev/full at once) said
+    "hil: OSError: [Errno 28] No space left on device", naming no file; a --record under a
+    regular file said "File exists". Each is one line naming the path, exit 2, and what was
+    flushed before the disk filled reads."""
+    rec = small_disk / "sim.mcap"
+    proc = run_hil("sim", "--duration", "20", "--record", str(rec), "--quiet", timeout=300)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert (
+        lines[-1]
+        == f"hil: writing {rec} failed: No space left on device; what was flushed before stays readable"
+    )
+    assert run_hil("info", str(rec), "--no-accuracy", timeout=120).returncode == 0
+    proc = run_hil("sim", "--duration", "1", "--record", "/dev/full", "--quiet", timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip().startswith(
+        "hil: writing /dev/full failed: No space"
+    ), proc.stderr
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    proc = run_hil("sim", "--duration", "1", "--record", str(blocker / "y.mcap"), "--quiet", timeout=120)
+    assert proc.returncode == 2 and f"{blocker} is a file, not a directory" in proc.stderr, proc.stderr
