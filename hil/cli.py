@@ -334,6 +334,8 @@ def cmd_up(a: argparse.Namespace) -> int:
             flush=True,
         )
     rc = sup.run()
+    if sup.stop_line():
+        print(f"hil up: {sup.stop_line()}", file=sys.stderr)
     if sup.ready_line():
         print(f"hil up: {sup.ready_line()}")
     if sup.ready_cpu_line():

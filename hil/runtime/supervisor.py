@@ -336,6 +336,10 @@ class Supervisor:
         self.opts = opts
         self.children: dict[str, Child] = {}
         self.stop = threading.Event()
+        # a stop asked for by a signal (Ctrl-C, SIGTERM): its name, and the rig time it came at
+        # (None before time zero), for the summary's line on a run cut short
+        self.stopped_by: str | None = None
+        self.stopped_at_s: float | None = None
         self.failures: list[str] = []
         self.restart_log: list[str] = []  # one line per restart, for the summary
         self.record_parts: list[Path] = []  # extra files written by restarted recorders
@@ -645,7 +649,7 @@ class Supervisor:
         self._schedule_scenario_kills()
         prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         for s in prev:
-            signal.signal(s, lambda *_: self.stop.set())
+            signal.signal(s, self._on_stop_signal)
         t_start = self._t_start = time.monotonic()
         try:
             if o.foxglove:
@@ -665,6 +669,26 @@ class Supervisor:
             session.close()
             self._remove_run_files(mask)
         return 1 if self.failures else 0
+
+    def _on_stop_signal(self, signum: int, _frame: object) -> None:
+        if self.stopped_by is None:
+            self.stopped_by = signal.Signals(signum).name
+            run = self.view.run
+            if run is not None:
+                self.stopped_at_s = RigClock(run.start_epoch_ns, run.speed).now_ns() / 1e9
+        self.stop.set()
+
+    def stop_line(self) -> str | None:
+        """A run a signal cut short of its ``--duration``: when, so the summary says it (the
+        exit code stays 0: a stop asked for is a clean one)."""
+        d = self.opts.duration_s
+        if self.stopped_by is None or d is None:
+            return None
+        if self.stopped_at_s is None:
+            return f"stopped by {self.stopped_by} before time zero: nothing of the {d:g} s asked was run"
+        if self.stopped_at_s >= d:
+            return None
+        return f"stopped by {self.stopped_by} at {self.stopped_at_s:.1f} s of the {d:g} s asked"
 
     def _remove_run_files(self, mask: set[int] | None) -> None:
         """What ``run`` made for this run, undone: the CPU mask, the endpoint file, the CAN directory."""

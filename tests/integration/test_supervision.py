@@ -179,6 +179,8 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
     rc, stdout, stderr = rig.stop_at(max(14.0, rig.rig_time_s() + 6.0))
     # THEN the run completes, says what happened, and the recorder went on in a new part
     assert rc == 0, stdout[-3000:] + stderr[-3000:]
+    # Ctrl-C before --duration: a clean stop (exit 0) that the summary says cut the run short
+    assert re.search(r"hil up: stopped by SIGINT at \d+\.\d s of the 600 s asked", stderr), stderr[-3000:]
     assert "gnss_emulator died (killed by signal 9); restarted (1/1)" in stdout
     assert re.search(r"restart: fusion ready again \(pid \d+\) after [\d.]+ s down", stdout), stdout[-3000:]
     part = tmp_path / "s.part1.mcap"
