@@ -114,6 +114,7 @@ class Summary:
         self.publishers: set[str] = set()
         self.truth: tuple[array[int], array[float], array[float]] = (array("q"), array("d"), array("d"))
         self.nav: dict[str, tuple[array[int], array[float], array[float]]] = {}
+        self.fusion_status: bytes | None = None  # the fusion's last status (``fusion_line``)
 
     def add(self, r: Record) -> None:
         self.add_many((r,))
@@ -157,6 +158,8 @@ class Summary:
                 if rows is None:
                     rows = self.nav[m.estimator] = (array("q"), array("d"), array("d"))  # type: ignore[attr-defined]
                 self._row(rows, m)
+            elif schema == "hil.ServiceStatus" and topic.endswith("/status/fusion"):
+                self.fusion_status = r.payload  # the last one's counters cover the run
 
     @staticmethod
     def _row(rows: tuple[array[int], array[float], array[float]], m: Any) -> None:
@@ -176,6 +179,28 @@ class Summary:
                 ChannelInfo(topic, self.schemas[topic], n, rate, a, b, tr.missing, tr.duplicates, tr.restarts)
             )
         return out
+
+    def fusion_line(self) -> str | None:
+        """A fusion that refused much of its IMU input as late: its horizon ran ahead of the
+        samples' stamps (a clock step the time sync put in the future, a stalled source), and
+        its solutions thin out or stop while every service stays up. Said, not left to be
+        found in the status counters: a tenth of the IMU samples or more."""
+        if self.fusion_status is None:
+            return None
+        from hil.messages import ServiceStatus, decode
+
+        try:
+            counts = decode(ServiceStatus, self.fusion_status).counter_map()
+        except ValueError:  # msgspec's errors: a status that does not read says nothing here
+            return None
+        late, consumed = counts.get("dropped_late.imu", 0), counts.get("consumed", 0)
+        if late == 0 or late < 0.1 * (late + consumed):
+            return None
+        return (
+            f"fusion:    refused {late} IMU samples as late (dropped_late.imu) and took {consumed} "
+            "inputs: its horizon ran ahead of their stamps, so its solutions thin out or stop; "
+            "event/fusion says when (latency_over_bound)"
+        )
 
     def foreign_summary(self) -> dict[str, object]:
         """What publishers that are not the rig's sent: messages per topic, and who."""
@@ -327,6 +352,7 @@ def _merge(summary: Summary, rest: Summary) -> None:
             sp[0], sp[1] = min(sp[0], a), max(sp[1], b)
             sp[2], sp[3] = min(sp[2], pa), max(sp[3], pb)
             summary.counts[topic] += rest.counts[topic]
+    summary.fusion_status = rest.fusion_status or summary.fusion_status
     for topic, n in rest.foreign_topics.items():
         summary.foreign_topics[topic] = summary.foreign_topics.get(topic, 0) + n
     summary.publishers |= rest.publishers
@@ -417,6 +443,9 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
         )
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
+    stalled = summary.fusion_line()
+    if stalled:
+        lines.append(stalled)
     restarted = [c for c in infos if c.restarts]
     if restarted:
         # a restart is its own fact, not loss: the publisher counts again in a new generation

@@ -198,3 +198,32 @@ def test_a_chunk_at_once_gives_what_one_message_at_a_time_gives(tmp_path: Path) 
     imu = next(c for c in batched.channel_infos() if c.topic.endswith("capture/imu"))
     assert (imu.count, imu.missing, imu.restarts) == (len(_MIXED_SEQS), 250, 1)
     assert batched.foreign_summary()["messages"] == len(range(0, len(_MIXED_SEQS), 11))
+
+
+@pytest.mark.parametrize(("late", "says"), [(3001, True), (5, False), (0, False)])
+def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, late: int, says: bool) -> None:
+    """A clock step put the IMU samples 100 s ahead and the fusion refused the rest of the run
+    as late (3001 of ~3200): every service stayed up, hil info and hil sim's summary said
+    nothing. The fusion's last status counts it; a tenth or more of the IMU input is a line."""
+    from hil.messages import Count, ServiceStatus
+
+    path = tmp_path / "s.mcap"
+    w = SessionWriter(path, spill_index=False)
+    for i, n in enumerate((0, late)):
+        counters = [Count("dropped_late.imu", n), Count("consumed", 215 * (i + 1) * 4)]
+        st = ServiceStatus(
+            seq=i, stamp_ns=i * 10**9, service="fusion", state="running", pid=1, uptime_s=i, counters=counters
+        )
+        w.write(
+            "hil/bench/status/fusion",
+            ServiceStatus,
+            encode(st),
+            log_time_ns=i * 10**9,
+            publish_time_ns=i * 10**9,
+            seq=i,
+        )
+    w.close()
+    lines = [ln for ln in describe(str(path)).splitlines() if ln.startswith("fusion:")]
+    assert (
+        (lines == [lines[0]] and f"refused {late} IMU samples as late" in lines[0]) if says else not lines
+    ), lines
