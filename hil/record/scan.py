@@ -268,10 +268,11 @@ class Scan:
                 left = size - pos - _RECORD_HEAD.size
                 if length > _MAX_RECORD or (length > left and _ends_with_magic(fh, size)):
                     # a finished file is not cut: a length past its end is damage
-                    rep.stop_reason = (
-                        f"garbage at byte {pos} ({_a(_opcode_name(op))} record of {length} bytes)"
-                    )
-                    return
+                    why = f"garbage at byte {pos} ({_a(_opcode_name(op))} record of {length} bytes)"
+                    pos = self._resync(fh, pos, why)
+                    if pos < 0:
+                        return
+                    continue
                 body = fh.read(min(length, left))
                 if op == Opcode.MESSAGE_INDEX and self._indexing is not None:
                     _count_index(self._indexing, body)
@@ -287,8 +288,10 @@ class Scan:
                 try:
                     yield from self._record(op, body, pos)
                 except _Stop as stop:
-                    rep.stop_reason = str(stop)
-                    return
+                    pos = self._resync(fh, pos, str(stop))
+                    if pos < 0:
+                        return
+                    continue
                 pos += _RECORD_HEAD.size + length
                 if op == Opcode.FOOTER:
                     rep.end_offset = pos
@@ -299,6 +302,24 @@ class Scan:
                     else:
                         rep.stop_reason = "the footer is not followed by the closing magic"
                     return
+
+    def _resync(self, fh: IO[bytes], pos: int, why: str) -> int:
+        """Damage at ``pos`` that the records cannot be read past: in a finished file whose
+        summary lists its chunks, reading goes on at the next chunk after it (the damaged
+        stretch a lost chunk, said; the summary repeats the schemas and channels it may have
+        held). Returns that chunk's offset, or -1: reading stops here (``stop_reason``)."""
+        after = [c for c in self._summary[2] if c[0] > pos]
+        if not after:
+            self.report.stop_reason = why
+            return -1
+        nxt, _start, _end = after[0]
+        here = [c for c in self._summary[2] if c[0] == pos]
+        t0, t1 = (here[0][1], here[0][2]) if here else (0, 0)
+        reason = f"{why}: bytes {pos}..{nxt} skipped, reading goes on at the next chunk (the summary's index)"
+        self.report.lost_chunks.append(ChunkLoss(pos, reason, t0, t1, 0, None))
+        self.report.chunks += 1
+        fh.seek(nxt)
+        return nxt
 
     def _record(self, op: int, body: bytes, pos: int) -> Iterator[ScanItem]:
         stream = ReadDataStream(io.BytesIO(body))
@@ -391,18 +412,24 @@ def _a(name: str) -> str:
     return f"{'an' if name[:1] in 'aeiou' else 'a'} {name}"
 
 
-def _summary_definitions(path: Path) -> tuple[dict[int, Schema], dict[int, Channel]]:
-    """The schemas and channels of a finished file's summary (none: no readable summary)."""
+def _summary_definitions(
+    path: Path,
+) -> tuple[dict[int, Schema], dict[int, Channel], list[tuple[int, int, int]]]:
+    """The schemas and channels of a finished file's summary, and its chunks (start offset, log
+    time span), in file order (none: no readable summary)."""
     from mcap.reader import make_reader
 
     try:
         with open(path, "rb") as fh:
             summary = make_reader(fh).get_summary()
     except Exception:  # a crashed or damaged file: what its records declare is all there is
-        return {}, {}
+        return {}, {}, []
     if summary is None:
-        return {}, {}
-    return dict(summary.schemas), dict(summary.channels)
+        return {}, {}, []
+    chunks = sorted(
+        (c.chunk_start_offset, c.message_start_time, c.message_end_time) for c in summary.chunk_indexes
+    )
+    return dict(summary.schemas), dict(summary.channels), chunks
 
 
 def _ends_with_magic(fh: IO[bytes], size: int) -> bool:

@@ -512,6 +512,28 @@ def test_recover_of_a_damaged_chunk_keeps_only_the_original_messages(rec: dict[s
     assert "replay_ready=true" in hil_ok("info", str(rec["whole"]))  # the intact original still is
 
 
+def test_recover_goes_past_a_garbled_record_length_on_the_summarys_index(rec: dict[str, Path]) -> None:
+    """A middle chunk's record length garbled in a finished file: nothing after it could be
+    read (recover stopped there, the rest of the session lost). The summary lists every chunk:
+    reading goes on at the next one, and only the damaged chunk's messages are missing."""
+    from collections import Counter
+
+    tmp, orig = rec["tmp"], messages(rec["whole"])
+    chunks = _chunks(rec["whole"])
+    k = len(chunks) // 2
+    offset, _length, n_chunk = chunks[k]
+    data = bytearray(rec["whole"].read_bytes())
+    data[offset + 1 : offset + 9] = (2**40).to_bytes(8, "little")  # the chunk record's length
+    bad, fixed = tmp / "length.mcap", tmp / "length.fixed.mcap"
+    bad.write_bytes(bytes(data))
+    out = hil_ok("recover", str(bad), "-o", str(fixed))
+    got = messages(fixed)
+    assert not Counter(got) - Counter(orig), "a message that is not the original's was kept"
+    assert len(orig) - len(got) == n_chunk > 0, (len(orig), len(got), n_chunk)
+    assert f"garbage at byte {offset}" in out and "reading goes on at the next chunk" in out, out
+    assert got[-1] == orig[-1]  # the session's end is there
+
+
 def test_a_cut_inside_a_chunk_record_is_a_cut_not_garbage(rec: dict[str, Path]) -> None:
     """A file cut inside a chunk (its length runs past the file's end) is a crash's cut: named as
     one, and the messages complete in its prefix are kept, never called garbage."""
