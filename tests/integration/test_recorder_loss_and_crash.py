@@ -413,7 +413,8 @@ def test_unwritable_path_is_reported_in_status_and_the_process_keeps_serving(
     try:
         # THEN status says degraded with the path and the reason, and keeps coming
         st = hub.wait(lambda st: st.state == "degraded")
-        assert str(target) in st.last_error and "exists" in st.last_error.lower(), st.last_error
+        # the path, and why: a directory on its way is a file (mkdir's own word was "File exists")
+        assert str(target) in st.last_error and "is a file, not a directory" in st.last_error, st.last_error
         assert st.counter_map().get("errors.recording_path") == 1
         seq = st.seq
         hub.wait(lambda st: st.seq >= seq + 2)

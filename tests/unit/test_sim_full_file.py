@@ -35,6 +35,9 @@ def test_a_full_file_is_one_line_and_exit_2_with_the_flushed_part_readable(
     assert p.returncode == 2, p.stderr
     assert "Traceback" not in p.stderr
     lines = [line for line in p.stderr.splitlines() if line.strip()]
-    assert lines == ["hil: OSError: [Errno 27] File too large"], p.stderr
+    # the file it could not write, named (it was "hil: OSError: [Errno 27] File too large")
+    assert lines == [f"hil: writing {rec} failed: File too large; what was flushed before stays readable"], (
+        p.stderr
+    )
     s = read_session(rec)
     assert s.truncated and len(s.records) > 1000
