@@ -23,9 +23,9 @@ import numpy as np
 from hil.messages import SEQ_GENERATION_SHIFT
 from hil.record.completeness import Completeness
 from hil.record.mcapio import (
-    DamagedRecordingError,
     FilePart,
     Record,
+    RecordingError,
     Session,
     file_halves,
     split_parts,
@@ -294,12 +294,13 @@ def _scan_part(
 
 def _scan_part_or_damage(
     path: str | Path, part: FilePart, derived: bool, accuracy: bool
-) -> tuple[Summary, Session] | DamagedRecordingError:
-    """``_scan_part`` in the forked reader: damage there comes back as the error itself, so the
-    caller raises the one line one pass would (a failure of any other kind is a WorkerError)."""
+) -> tuple[Summary, Session] | RecordingError:
+    """``_scan_part`` in the forked reader: damage there, or a payload that does not decode,
+    comes back as the error itself, so the caller raises the one line one pass would (a failure
+    of any other kind is a WorkerError)."""
     try:
         return _scan_part(path, part, derived, accuracy)
-    except DamagedRecordingError as err:
+    except RecordingError as err:
         return err
 
 
@@ -321,7 +322,7 @@ def _scan_halves(
         if session.truncated:  # one pass stops at the damage: what follows is not read (closed)
             return summary, session
         answer = later.result()
-        if isinstance(answer, DamagedRecordingError):
+        if isinstance(answer, RecordingError):
             raise answer
         rest, rest_session = answer
     except WorkerError:  # a half that says nothing alone (an error there), or a reader that died

@@ -972,14 +972,21 @@ class PayloadError(RecordingError):
     to do (the file is known to the caller: :meth:`in_file`)."""
 
     def __init__(self, rec: Record, why: str) -> None:
+        self._set(rec.topic, rec.sequence, rec.log_time_ns, rec.schema, why)
+
+    def _set(self, topic: str, sequence: int, log_time_ns: int, schema: str, why: str) -> None:
         self.topic, self.sequence, self.log_time_ns, self.schema, self.why = (
-            rec.topic,
-            rec.sequence,
-            rec.log_time_ns,
-            rec.schema,
+            topic,
+            sequence,
+            log_time_ns,
+            schema,
             why,
         )
         super().__init__(self.in_file("FILE"))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled by its fields (``hil info``'s second-half reader sends it back as it is)."""
+        return (_payload_error, (self.topic, self.sequence, self.log_time_ns, self.schema, self.why))
 
     def in_file(self, path: str | Path) -> str:
         pat = f"'{re.escape(self.topic)}$'"
@@ -988,6 +995,12 @@ class PayloadError(RecordingError):
             f"not a {self.schema} ({self.why}); look at it with `hil cat {path} --topics {pat}`, or leave "
             f"the topic out with `hil filter {path} -o OUT.mcap --exclude-topics {pat}`"
         )
+
+
+def _payload_error(topic: str, sequence: int, log_time_ns: int, schema: str, why: str) -> PayloadError:
+    err = PayloadError.__new__(PayloadError)
+    err._set(topic, sequence, log_time_ns, schema, why)
+    return err
 
 
 @dataclass

@@ -227,3 +227,50 @@ def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, lat
     assert (
         (lines == [lines[0]] and f"refused {late} IMU samples as late" in lines[0]) if says else not lines
     ), lines
+
+
+@pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
+@pytest.mark.parametrize("where", [500, 3000])
+def test_a_payload_that_does_not_decode_is_the_same_line_from_either_half(
+    tmp_path: Path, where: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A truth message cut in half, in the first or the second half of a file read in two: the
+    forked reader's error is the one line one pass gives (file, topic, seq, log time)."""
+    from hil.messages import Truth
+    from hil.record.mcapio import PayloadError
+
+    path = tmp_path / "bad.mcap"
+    w = SessionWriter(path, chunk_size=4096, spill_index=False)
+    for i in range(4000):
+        t = 1_000_000_000 + i * 2_500_000
+        data = encode(
+            Truth(
+                seq=i,
+                stamp_ns=t,
+                lat_deg=50.0,
+                lon_deg=30.0,
+                alt_m=10.0,
+                pos_ned_m=[0.0, 0.0, 0.0],
+                vel_ned_mps=[0.0, 0.0, 0.0],
+                q_nb=[1.0, 0.0, 0.0, 0.0],
+                f_b_mps2=[0.0, 0.0, -9.8],
+                w_ib_b_radps=[0.0, 0.0, 0.0],
+            )
+        )
+        w.write(
+            "hil/t/truth",
+            Truth,
+            data[: len(data) // 2] if i == where else data,
+            log_time_ns=t,
+            publish_time_ns=t,
+            seq=i,
+        )
+    w.close()
+    halves = file_halves(path)
+    assert halves is not None
+    with pytest.raises(PayloadError) as one:
+        _scan(path, derived=True, accuracy=True)
+    monkeypatch.setattr(info, "_scan", _no_fallback)
+    with pytest.raises(PayloadError) as two:
+        _scan_halves(path, halves, derived=True, accuracy=True)
+    assert str(two.value) == str(one.value) and f"hil/t/truth seq {where} " in str(one.value)
