@@ -485,21 +485,37 @@ def _spans(text: str) -> list[tuple[float, float]]:
     return [(float(a), float(b)) for a, b in re.findall(r"log time (\d+\.\d+)\.\.(\d+\.\d+) s", text)]
 
 
-def test_recover_of_a_damaged_chunk_keeps_only_the_original_messages(rec: dict[str, Path]) -> None:
-    """A bit flipped in a middle chunk: the copy holds the original's messages but that chunk's,
-    none altered, says so, and its completeness no longer claims replay_ready."""
+def _recover_a_damaged_middle_chunk(
+    rec: dict[str, Path], name: str, damage: Callable[[bytearray, int, int], None]
+) -> tuple[Path, int, int, str]:
+    """The middle chunk of the 6 s sim damaged (``damage(data, offset, length)``) and the file
+    recovered: the copy holds the original's messages but that chunk's, none altered. Returns
+    (damaged file, the chunk's offset, its messages, recover's output)."""
     from collections import Counter
 
-    tmp, orig = rec["tmp"], messages(rec["whole"])
-    offset, length, n_chunk = _chunks(rec["whole"])[len(_chunks(rec["whole"])) // 2]
+    orig = messages(rec["whole"])
+    chunks = _chunks(rec["whole"])
+    offset, length, n_chunk = chunks[len(chunks) // 2]
     data = bytearray(rec["whole"].read_bytes())
-    data[offset + length // 2] ^= 1
-    bad, fixed = tmp / "bit.mcap", tmp / "bit.fixed.mcap"
+    damage(data, offset, length)
+    bad, fixed = rec["tmp"] / f"{name}.mcap", rec["tmp"] / f"{name}.fixed.mcap"
     bad.write_bytes(bytes(data))
     out = hil_ok("recover", str(bad), "-o", str(fixed))
     got = messages(fixed)
     assert not Counter(got) - Counter(orig), "a message that is not the original's was kept"
     assert len(orig) - len(got) == n_chunk > 0, (len(orig), len(got), n_chunk)
+    return bad, offset, n_chunk, out
+
+
+def test_recover_of_a_damaged_chunk_keeps_only_the_original_messages(rec: dict[str, Path]) -> None:
+    """A bit flipped in a middle chunk: the copy holds the original's messages but that chunk's,
+    none altered, says so, and its completeness no longer claims replay_ready."""
+
+    def flip_a_bit(d: bytearray, at: int, n: int) -> None:
+        d[at + n // 2] ^= 1
+
+    bad, offset, n_chunk, out = _recover_a_damaged_middle_chunk(rec, "bit", flip_a_bit)
+    fixed = bad.with_name("bit.fixed.mcap")
     assert (
         f"the chunk at byte {offset}: its CRC does not match (damaged); none of its {n_chunk} messages" in out
     )
@@ -516,22 +532,13 @@ def test_recover_goes_past_a_garbled_record_length_on_the_summarys_index(rec: di
     """A middle chunk's record length garbled in a finished file: nothing after it could be
     read (recover stopped there, the rest of the session lost). The summary lists every chunk:
     reading goes on at the next one, and only the damaged chunk's messages are missing."""
-    from collections import Counter
 
-    tmp, orig = rec["tmp"], messages(rec["whole"])
-    chunks = _chunks(rec["whole"])
-    k = len(chunks) // 2
-    offset, _length, n_chunk = chunks[k]
-    data = bytearray(rec["whole"].read_bytes())
-    data[offset + 1 : offset + 9] = (2**40).to_bytes(8, "little")  # the chunk record's length
-    bad, fixed = tmp / "length.mcap", tmp / "length.fixed.mcap"
-    bad.write_bytes(bytes(data))
-    out = hil_ok("recover", str(bad), "-o", str(fixed))
-    got = messages(fixed)
-    assert not Counter(got) - Counter(orig), "a message that is not the original's was kept"
-    assert len(orig) - len(got) == n_chunk > 0, (len(orig), len(got), n_chunk)
+    def garble_length(d: bytearray, at: int, _n: int) -> None:
+        d[at + 1 : at + 9] = (2**40).to_bytes(8, "little")  # the chunk record's length
+
+    bad, offset, _n, out = _recover_a_damaged_middle_chunk(rec, "length", garble_length)
     assert f"garbage at byte {offset}" in out and "reading goes on at the next chunk" in out, out
-    assert got[-1] == orig[-1]  # the session's end is there
+    assert messages(bad.with_name("length.fixed.mcap"))[-1] == messages(rec["whole"])[-1]  # the end is there
 
 
 def test_a_cut_inside_a_chunk_record_is_a_cut_not_garbage(rec: dict[str, Path]) -> None:
