@@ -87,7 +87,7 @@ from hil.record.mcapio import (
     split_parts,
     wall_clock_log_time,
 )
-from hil.runtime.clock import wall_ns
+from hil.runtime.clock import RigClock, wall_ns
 from hil.runtime.options import RecorderOptions
 from hil.runtime.service import Service, run_service
 from hil.wellknown import WellKnown
@@ -404,6 +404,9 @@ class Recorder(Service):
         self._start_epoch_ns = run.start_epoch_ns
         self._speed = run.speed
         self._run = run
+        # its own statuses and events on the rig clock, as every service's: they went out
+        # stamped 0 all run (a file's recorder status then read as 13 Hz over its publish times)
+        self.clock = RigClock(run.start_epoch_ns, run.speed)
         self._part_t0 = time.monotonic()
         self._write_run_metadata(run)
 

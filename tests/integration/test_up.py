@@ -116,6 +116,11 @@ def test_recording_is_complete_no_gaps_and_imu_at_rate(
     assert len(imu) >= 0.99 * 400 * 10
     statuses = {decode(ServiceStatus, r.payload).service for r in s.by_topic_prefix("hil/itest/status/")}
     assert statuses >= ALL_SERVICES
+    # every service's statuses are on the rig clock once the run is announced: the recorder's
+    # went out stamped 0 all run (hil info then read them as ~13 Hz over their publish times)
+    for svc in ALL_SERVICES:
+        stamps = [decode(ServiceStatus, r.payload).stamp_ns for r in s.by_topic(f"hil/itest/status/{svc}")]
+        assert max(stamps) > 5e9, (svc, stamps)
     # each synced IMU sample keeps its raw seq
     assert {r.sequence for r in s.by_topic("hil/itest/synced/imu")} == {r.sequence for r in imu}
 
