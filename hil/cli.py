@@ -401,6 +401,10 @@ def _foxglove_listen(text: str | None) -> str | None:
         host, port = parse_listen(text)
     except ValueError as err:
         raise UserError(f"--foxglove {err}") from None
+    if port == 0:  # the viewer would take any free port, which only its log names
+        raise UserError(
+            f"--foxglove {text}: give the port to serve on (0 picks one nobody is told), e.g. 8765"
+        )
     try:
         with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -807,6 +811,16 @@ def cmd_foxglove(a: argparse.Namespace) -> int:
         f"hil foxglove: served {c.get('messages', 0)} messages and {c.get('derived', 0)} derived on "
         f"{len(server.channels())} channels; rejected {rejected}"
     )
+    if not c.get("messages", 0):  # served nothing: say why, as hil monitor does (it said nothing, exit 0)
+        from hil.bus.endpoint import viewer_bus
+
+        _cfg, how = viewer_bus(a.rig)
+        print(
+            f"hil foxglove: nothing came from rig {a.rig!r} (hil/{a.rig}/...) via {how}: is it running, "
+            "and (on another host) does HIL_ZENOH_CONNECT reach its router?",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -354,7 +354,8 @@ def _topics_section(page: _Draft, d: ReportData) -> None:
         names = ", ".join(t.topic for t in restarted[:8])
         body = _note(f"{len(restarted)} publisher(s) restarted during the recording: {names}") + body
     body += (
-        '<p class="small">Rate from the recorder receive times; missing from gaps in each publisher\'s '
+        '<p class="small">Rate over each stream\'s own times (time of validity, the MCAP publish '
+        "time), not when the recorder took it; missing from gaps in each publisher's "
         "<code>seq</code>; a restarted service counts again in a new generation "
         "(a restart, not loss: see <code>hil.record.completeness</code>).</p>"
     )

@@ -262,3 +262,28 @@ def test_a_bad_or_taken_port_is_one_line_before_anything_starts(tmp_path: Path) 
         assert proc.returncode == 2 and "in use" in proc.stderr and "Traceback" not in proc.stderr, (
             proc.stderr
         )
+
+
+def test_port_0_for_hil_up_and_a_rig_that_is_not_there_are_said(tmp_path: Path) -> None:
+    """`hil up --foxglove 0` printed ws://127.0.0.1:0 while the viewer served on a port only its
+    log named: refused in one line. `hil foxglove` of a rig that is not running served nothing
+    and exited 0: it says so and exits 1."""
+    proc = subprocess.run(
+        hil_cmd("up", "--foxglove", "0", "--duration", "1", "--record", str(tmp_path / "x.mcap")),
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and "--foxglove 0: give the port" in proc.stderr, proc.stderr
+    assert not (tmp_path / "x.mcap").exists()
+    rig = f"absent{os.getpid()}"
+    proc = subprocess.run(
+        hil_cmd("foxglove", "--rig", rig, "--listen", "127.0.0.1:0", "--duration", "1"),
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=60,
+    )
+    assert proc.returncode == 1 and f"nothing came from rig '{rig}'" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
