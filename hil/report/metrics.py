@@ -132,7 +132,16 @@ def fault_windows(d: ReportData) -> tuple[list[FaultWindow], list[str]]:
                 f"the recorded scenario text does not parse, fault markers from it are missing: {err}"
             )
         else:
+            end_s = d.run.duration_s if d.run is not None else None
+            later = [ev for ev in sc.events if end_s is not None and ev.t_start_s >= end_s]
+            if later:  # a run shorter than its scenario: those never happened
+                notes.append(
+                    f"{len(later)} of the scenario's faults start after the run's {end_s:g} s "
+                    f"(from {min(ev.t_start_s for ev in later):g} s): not in this run, not shown"
+                )
             for ev in sc.events:
+                if ev in later:
+                    continue
                 t1 = ev.t_end_s
                 if t1 is None and ev.kind == "gnss_pulse":
                     t1 = ev.t_start_s + float(ev.params.get("tau_s", 1.0))

@@ -319,3 +319,17 @@ def test_an_unwritable_report_directory_is_one_line_before_any_reading(tmp_path:
     in_the_way.write_text("x")
     with pytest.raises(RecordingError, match=r"cannot write the report under .*a_file/rep: Not a directory"):
         build_report(tmp_path / "no_such_recording.mcap", in_the_way / "rep")
+
+
+def test_a_run_shorter_than_its_scenario_shows_no_fault_it_never_reached(tmp_path: Path) -> None:
+    """A 20 s car_drive: its scenario's faults at 150-480 s were listed and drawn as if they had
+    happened. They are left out, with a note saying how many and from when."""
+    from hil.report.metrics import fault_windows
+    from tests.conftest import run_hil
+
+    rec = tmp_path / "car.mcap"
+    proc = run_hil("sim", "--scenario", "car_drive", "--duration", "20", "--record", str(rec), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    windows, notes = fault_windows(load(rec))
+    assert all(w.t0_s < 20.0 for w in windows), windows
+    assert any("start after the run's 20 s (from 150 s): not in this run" in n for n in notes), notes
