@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from mcap.reader import make_reader
 
 from hil.bus.keys import Keys
 from hil.bus.pubsub import Publisher
@@ -458,11 +459,14 @@ def test_split_by_duration_loses_nothing_and_every_part_stands_alone(hub: Hub, t
     k = Keys(RIG)
     Publisher(hub.session, k.run(), RunInfo).put(run_info(0))
     pub = Publisher(hub.session, k.sensor("imu"), ImuSample)
-    # WHEN 3.5 s of 400 Hz IMU traffic flow, then SIGTERM
+    truth_pub = Publisher(hub.session, k.truth(), Truth)  # the Foxglove pose is derived from it
+    # WHEN 3.5 s of 400 Hz IMU traffic (and 100 Hz truth) flow, then SIGTERM
     t0 = time.monotonic()
     i = 0
     while time.monotonic() - t0 < 3.5:
         pub.put(imu(i))
+        if i % 4 == 0:
+            truth_pub.put(truth(i // 4))
         i += 1
         time.sleep(0.0025)
     time.sleep(0.5)
@@ -471,6 +475,17 @@ def test_split_by_duration_loses_nothing_and_every_part_stands_alone(hub: Hub, t
     # THEN there are several finished parts, each with the run metadata, and together every sample
     parts = sorted(tmp_path.glob("split*.mcap"))
     assert len(parts) >= 3, parts
+    # each derived Foxglove channel's MCAP sequence goes on across the parts (it restarted at 0
+    # in every part, and merged parts showed dups on every /foxglove row)
+    derived: dict[str, list[int]] = {}
+    for part in parts:
+        with open(part, "rb") as f:
+            for _schema, chan, msg in make_reader(f).iter_messages(log_time_order=False):
+                if chan.topic.startswith("/foxglove/"):
+                    derived.setdefault(chan.topic, []).append(msg.sequence)
+    assert derived, "no Foxglove channel was derived from the truth"
+    for topic, sequences in derived.items():
+        assert sequences == list(range(len(sequences))), (topic, sequences)
     seqs: list[int] = []
     for n, part in enumerate(parts):
         s = read_session(part)
