@@ -374,19 +374,13 @@ def _check_dut(path: str) -> None:
 
 
 def _check_gnss_tcp(text: str) -> None:
-    """``--gnss-tcp HOST:PORT``: its form, its port's range and the listen itself tried now."""
-    import socket
+    """``--gnss-tcp HOST:PORT``: the line's own listener opened and closed now, before anything starts."""
+    from hil.runners.serial import LineError, tcp_server
 
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
-        raise UserError(f"--gnss-tcp {text}: expected HOST:PORT with PORT 1-65535 (e.g. 127.0.0.1:5020)")
     try:
-        with socket.create_server((host.strip("[]"), int(port)), reuse_port=False) as _srv:
-            pass
-    except (OSError, UnicodeError) as err:
-        raise UserError(
-            f"--gnss-tcp {text}: cannot listen there: {getattr(err, 'strerror', None) or err}"
-        ) from None
+        tcp_server(text).close()
+    except LineError as err:
+        raise UserError(str(err)) from None
 
 
 def _foxglove_listen(text: str | None) -> str | None:
@@ -1414,17 +1408,12 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError, KeyError, OSError) as err:
         # boundary errors from loaders carry the facts; show them as one line (a recording's
         # error names the file and what to do already: its class name adds nothing)
+        from hil.record.mcapio import RecordingError  # here: not in every command's start
+
         msg = str(err) if not isinstance(err, KeyError) else str(err).strip("'\"")
-        said = msg if _is_recording_error(err) else f"{type(err).__name__}: {msg}"
+        said = msg if isinstance(err, RecordingError) else f"{type(err).__name__}: {msg}"
         print(f"hil: {said}", file=sys.stderr)
         return EXIT_USAGE
-
-
-def _is_recording_error(err: BaseException) -> bool:
-    """A ``hil.record.mcapio.RecordingError`` (damaged, bad payload, not MCAP...), told without
-    importing the recording modules into every command's start."""
-    mro = type(err).__mro__
-    return any(c.__name__ == "RecordingError" and c.__module__ == "hil.record.mcapio" for c in mro)
 
 
 if __name__ == "__main__":

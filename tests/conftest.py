@@ -310,6 +310,7 @@ POOLED_MODULES = (
     "tests/integration/test_record_tools.py",
     "tests/integration/test_report_browser.py",
     "tests/integration/test_sim_faults.py",
+    "tests/integration/test_timesync_startup_step.py",
 )
 
 

@@ -86,16 +86,24 @@ class DamagedRecordingError(RecordingError):
     parse in a finished file): not a file cut short, so no reader stops there quietly."""
 
 
+def ends_with_magic(fh: IO[bytes], size: int) -> bool:
+    """Whether the file ends with the MCAP magic: its writer closed it (footer and magic), so a
+    record that does not parse there is damage, not the cut of a crash. ``fh`` keeps its place."""
+    if size < 2 * len(MAGIC):
+        return False
+    here = fh.tell()
+    try:
+        fh.seek(size - len(MAGIC))
+        return fh.read(len(MAGIC)) == MAGIC
+    finally:
+        fh.seek(here)
+
+
 def is_finished(path: str | Path) -> bool:
-    """Whether ``path`` ends with the MCAP magic: its writer closed it (footer and magic), so a
-    record that does not parse there is damage, not the cut of a crash."""
+    """:func:`ends_with_magic` of the file at ``path`` (False if it cannot be read)."""
     try:
         with open(path, "rb") as fh:
-            size = os.fstat(fh.fileno()).st_size
-            if size < 2 * len(MAGIC):
-                return False
-            fh.seek(size - len(MAGIC))
-            return fh.read(len(MAGIC)) == MAGIC
+            return ends_with_magic(fh, os.fstat(fh.fileno()).st_size)
     except OSError:
         return False
 

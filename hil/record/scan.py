@@ -41,9 +41,8 @@ from mcap.records import (
     Schema,
 )
 
-from hil.record.mcapio import PROFILE, RecordingError
+from hil.record.mcapio import MAGIC, PROFILE, RecordingError, ends_with_magic
 
-MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")
 _MAX_RECORD = 4 * 2**30  # mcap's own record_size_limit
 _CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc
@@ -266,7 +265,7 @@ class Scan:
                     return
                 op, length = _RECORD_HEAD.unpack(head)
                 left = size - pos - _RECORD_HEAD.size
-                if length > _MAX_RECORD or (length > left and _ends_with_magic(fh, size)):
+                if length > _MAX_RECORD or (length > left and ends_with_magic(fh, size)):
                     # a finished file is not cut: a length past its end is damage
                     why = f"garbage at byte {pos} ({_a(_opcode_name(op))} record of {length} bytes)"
                     pos = self._resync(fh, pos, why)
@@ -430,18 +429,6 @@ def _summary_definitions(
         (c.chunk_start_offset, c.message_start_time, c.message_end_time) for c in summary.chunk_indexes
     )
     return dict(summary.schemas), dict(summary.channels), chunks
-
-
-def _ends_with_magic(fh: IO[bytes], size: int) -> bool:
-    """Whether the file ends with the MCAP magic (its writer closed it); ``fh`` keeps its place."""
-    if size < 2 * len(MAGIC):
-        return False
-    here = fh.tell()
-    try:
-        fh.seek(size - len(MAGIC))
-        return fh.read(len(MAGIC)) == MAGIC
-    finally:
-        fh.seek(here)
 
 
 def _count_index(loss: ChunkLoss, body: bytes) -> None:

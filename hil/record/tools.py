@@ -98,16 +98,21 @@ class OutputWriter:
             self.path.unlink(missing_ok=True)
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """One file under two names: the same path, a symlink, a hard link or a bind mount (the same
+    device and inode). False when either cannot be stat'ed: reading or writing it says why."""
+    try:
+        return a.exists() and b.exists() and (a.resolve() == b.resolve() or a.samefile(b))
+    except OSError:
+        return False
+
+
 def _check_output(out: Path, inputs: Iterable[Path]) -> None:
     """Refused before anything is opened: an output that is one of the inputs under another name
     (a symlink, a hard link, a bind mount: the same device and inode) would be truncated by the
     write and then removed as a failed output, the recording with it."""
     for p in inputs:
-        try:
-            same = out.exists() and p.exists() and (out.resolve() == p.resolve() or out.samefile(p))
-        except OSError:
-            continue  # one of them cannot be stat'ed: reading or writing it says why
-        if same:
+        if _same_file(out, p):
             raise RecordingError(f"{out}: the output is the input {p} (the same file); give another -o")
 
 
@@ -390,10 +395,24 @@ RUN_IDENTITY = ("rig", "scenario", "scenario_sha256", "seed", "start_epoch_ns")
 
 def _run_identity(path: Path) -> dict[str, str] | None:
     """The run ``path`` was recorded in (its ``hil`` metadata's identity keys), None when it
-    says none. Metadata records stand outside chunks: no message is read."""
+    says none: from the summary's metadata index, which points at the record (a piece ``hil
+    filter`` cut has its metadata after the messages); a file without one is scanned to it."""
+    from mcap.reader import make_reader
+
+    def identity(meta: dict[str, str]) -> dict[str, str]:
+        return {k: meta[k] for k in RUN_IDENTITY if k in meta}
+
+    try:
+        with open(path, "rb") as fh:
+            reader = make_reader(fh)
+            if reader.get_summary() is not None:
+                found = [m for m in reader.iter_metadata() if m.name == "hil"]
+                return identity(dict(found[0].metadata)) if found else None
+    except Exception:  # no readable summary (a crashed file): scanned below
+        pass
     for rec in Scan(path, messages=False):
         if isinstance(rec, Metadata) and rec.name == "hil":
-            return {k: rec.metadata[k] for k in RUN_IDENTITY if k in rec.metadata}
+            return identity(dict(rec.metadata))
     return None
 
 
@@ -404,11 +423,7 @@ def _check_one_session(srcs: list[Path]) -> None:
     are merged as given."""
     for i, a in enumerate(srcs):
         for b in srcs[:i]:
-            try:
-                same = a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
-            except OSError:
-                continue  # reading it says why
-            if same:
+            if _same_file(a, b):
                 raise RecordingError(
                     f"merge: {a} is given twice (as {b}): its messages would all be there twice; "
                     "give each input once"

@@ -23,9 +23,8 @@ import lz4.frame
 import numpy as np
 import zstandard
 
-from hil.record.mcapio import RecordingError, damaged, unsupported_compression
+from hil.record.mcapio import MAGIC, RecordingError, damaged, unsupported_compression
 
-MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
 

@@ -58,6 +58,26 @@ class LineError(OSError):
     """A line that cannot be made or opened; the message says which path and why."""
 
 
+def tcp_endpoint(where: str) -> tuple[str, int]:
+    """``--gnss-tcp [HOST]:PORT`` as (host, port), the host 127.0.0.1 when left out."""
+    host, sep, port = where.rpartition(":")
+    if not sep or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise LineError(f"--gnss-tcp {where}: expected HOST:PORT with PORT 1-65535 (e.g. 127.0.0.1:5020)")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def tcp_server(where: str) -> socket.socket:
+    """The line's TCP listener on ``where`` (``hil up`` opens one to try it before anything starts)."""
+    try:
+        return socket.create_server(tcp_endpoint(where), reuse_port=False)
+    except (OSError, UnicodeError) as err:
+        if isinstance(err, LineError):
+            raise
+        raise LineError(
+            f"--gnss-tcp {where}: cannot listen there: {getattr(err, 'strerror', None) or err}"
+        ) from None
+
+
 def _raw(fd: int, baud: int) -> None:
     """Raw 8N1 at ``baud`` (where termios knows the rate): no echo, no line editing, no CR/LF
     translation -- a UART, not a terminal."""
@@ -127,11 +147,7 @@ class LineWriter:
         _link(path, os.ttyname(slave))
 
     def _listen(self, where: str) -> None:
-        host, _, port = where.rpartition(":")
-        try:
-            srv = socket.create_server((host or "127.0.0.1", int(port)), reuse_port=False)
-        except (OSError, ValueError) as err:
-            raise LineError(f"--gnss-tcp {where}: cannot listen there: {err}") from None
+        srv = tcp_server(where)
         srv.setblocking(False)
         self._server = srv
 
@@ -265,8 +281,7 @@ class LineReader:
                     _raw(fd, self.baud)
                 self._fd = fd
             else:
-                host, _, port = str(self.tcp).rpartition(":")
-                self._sock = socket.create_connection((host or "127.0.0.1", int(port)), timeout=1.0)
+                self._sock = socket.create_connection(tcp_endpoint(str(self.tcp)), timeout=1.0)
                 self._sock.setblocking(False)
         except OSError:
             return False
