@@ -14,14 +14,16 @@ A fusion restarted mid-run (option ``resume``) re-aligns: it holds its inputs un
 IMU sample and builds every estimator from the run's truth where that sample's interval starts
 (an in-flight re-alignment; the rig knows truth, a real unit would use its last good solution),
 then numbers its outputs after ``imu_seq // output_every + 1`` so no seq repeats one from before the death,
-and says so in a ``realigned`` event. ``hil rerun --verify`` reproduces runs without a fusion
-restart; after one, the outputs of the second process are not those of an uninterrupted run by
-design, and rerun names the first difference.
+and says so in a ``realigned`` event naming that sample. ``hil rerun`` reruns each life of the
+fusion on its own: the first on the inputs before the re-alignment, each later one from a core
+re-aligned where the event says (``realign_point``, ``realigned_imu_seq``), on the inputs from
+there on, less what that process journaled as dropped.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 import msgspec
@@ -48,6 +50,34 @@ HEALTH_PERIOD_NS = 1_000_000_000
 _DEFAULT = FusionConfig()
 DEFAULT_LAG_S = _DEFAULT.lag_s  # one default, FusionConfig's, for every caller
 DEFAULT_OUTPUT_EVERY = _DEFAULT.output_every
+
+
+def realign_point(first_imu: ImuSample, output_every: int) -> tuple[int, int]:
+    """Where a restarted fusion re-aligns, and the seq its outputs start from, given the first IMU
+    sample it takes: the start of that sample's interval, as a run is at 0 before its first one
+    (the truth at its stamp already holds the motion the sample measured: stepped on top of it,
+    every stream ran one interval ahead, 12 cm at 50 m/s and 400 Hz). The live fusion and
+    ``hil rerun`` both take it from here."""
+    stamp = first_imu.stamp_ns
+    align_ns = stamp - min(max(first_imu.dt_ns, 0), max(stamp, 0))
+    return align_ns, first_imu.seq // output_every + 1
+
+
+_REALIGNED_SEQ = re.compile(r"\(the start of imu seq (\d+)\)")
+
+
+def realigned_detail(align_ns: int, imu_seq: int, first_seq: int) -> str:
+    return (
+        f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.4f} s "
+        f"(the start of imu seq {imu_seq}); outputs numbered from {first_seq}"
+    )
+
+
+def realigned_imu_seq(detail: str) -> int | None:
+    """The first IMU sample a restarted fusion took, from its ``realigned`` event's detail
+    (``realigned_detail``); None if the detail does not say."""
+    m = _REALIGNED_SEQ.search(detail)
+    return int(m.group(1)) if m else None
 
 
 class FusionOptions(BatchedInputOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -151,11 +181,17 @@ class FusionNode(Node):
         self._next_health = HEALTH_PERIOD_NS
 
     @classmethod
-    def for_rerun(cls, run: Any, config: FusionConfig) -> FusionNode:
-        """The node as a recording says it ran: its configuration field for field (``hil rerun``)."""
+    def for_rerun(
+        cls, run: Any, config: FusionConfig, realigned: tuple[int, int] | None = None
+    ) -> FusionNode:
+        """The node as a recording says it ran: its configuration field for field (``hil rerun``);
+        ``realigned``: a restarted fusion's ``realign_point``."""
         node = cls(run, FusionOptions(estimators=list(config.estimators)))
         node.config = config
-        node.core = FusionCore.for_scenario(node.scenario, config)
+        align_ns, first_seq = realigned or (0, 0)
+        node.core = FusionCore.for_scenario(node.scenario, config, align_ns=align_ns)
+        if realigned is not None:
+            node.core.start_output_seq(first_seq)
         return node
 
     def replay(self, msg: Measurement, source: str = "", predicted: bool = True) -> list[NavSolution]:
@@ -199,18 +235,10 @@ class FusionNode(Node):
         self._held.append((msg, source))
         if not isinstance(msg, ImuSample):
             return []
-        # aligned where the sample's interval starts, as a run is at 0 before its first one: the
-        # truth at its stamp already holds the motion the sample measured, which stepped on top
-        # of it put every stream one interval ahead (12 cm at 50 m/s and 400 Hz)
-        align_ns = msg.stamp_ns - min(max(msg.dt_ns, 0), max(msg.stamp_ns, 0))
+        align_ns, first_seq = realign_point(msg, self.config.output_every)
         self.core = FusionCore.for_scenario(self.scenario, self.config, align_ns=align_ns)
-        first_seq = msg.seq // self.config.output_every + 1
         self.core.start_output_seq(first_seq)
-        detail = (
-            f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.4f} s "
-            f"(the start of imu seq {msg.seq}); outputs numbered from {first_seq}"
-        )
-        outs = [self.event("realigned", detail, now_ns)]
+        outs = [self.event("realigned", realigned_detail(align_ns, msg.seq, first_seq), now_ns)]
         held, self._held = [(m, src) for m, src in self._held if m.stamp_ns >= align_ns], []
         for m, src in held:  # nothing from before the alignment
             outs.extend(self._push(m, src))

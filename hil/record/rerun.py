@@ -36,7 +36,7 @@ from hil.messages import (
     current_form,
     decode,
 )
-from hil.nodes.fusion import FusionNode
+from hil.nodes.fusion import FusionNode, realign_point, realigned_imu_seq
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import PayloadError, Record, RecordingError, Session, SessionStream, no_run_message
 from hil.runners.sim_worker import (
@@ -99,6 +99,7 @@ class RerunResult:
     # a truncated file: the difference leaving out what the cut made unverifiable (below)
     difference_if_cut: str | None = None
     unverified: int = 0  # recorded outputs near the cut whose inputs the cut took
+    restarts: int = 0  # fusion restarts: each later life rerun from its re-alignment
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
@@ -265,6 +266,13 @@ class _FusionRerun:
     in_flight: list[_Pending] | None = None  # the batch the worker runs
     # split: the batch the second worker runs, with the first's solutions of it
     in_flight_b: tuple[list[_Pending], list[list[Replayed]]] | None = None
+    # a restarted fusion (its ``realigned`` event): the current life's re-alignment (align_ns,
+    # first output seq), and the IMU seq of one whose sample is not read yet (``_try_realign``)
+    realigned: tuple[int, int] | None = None
+    realign_pending: int | None = None
+    restarts: int = 0
+    pushed_released: int = -1  # the push count of the last input rerun
+    consumed_by: dict[str, int] = field(default_factory=dict)  # journal session -> its count
 
     def __post_init__(self) -> None:
         self.matcher = Matcher(self._difference, "recomputed", self.window_ns, _nav_current_form)
@@ -297,6 +305,8 @@ class _FusionRerun:
                 self._recorded_nav(r)
         elif t.endswith("/fusion/journal"):
             self._journal(r)
+        elif t.endswith("/event/fusion"):
+            self._event(r)
         elif self.run is None and t.endswith("/run"):
             m = r.decode()
             assert isinstance(m, RunInfo)
@@ -309,6 +319,58 @@ class _FusionRerun:
             self.early_nav.clear()
         if self.node is None and self.run is not None and self.cfg is not None:
             self._start(FusionNode.for_rerun(self.run, self.cfg))
+        if self.realign_pending is not None and self.node is not None:
+            self._try_realign()
+
+    def _event(self, r: Record) -> None:
+        """A restarted fusion's ``realigned`` event: a new life of the fusion from the IMU sample
+        it names (``_try_realign``, once that sample is read)."""
+        ev = r.decode()
+        if isinstance(ev, Event) and ev.kind == "realigned":
+            seq = realigned_imu_seq(ev.detail)
+            if seq is None:
+                raise RecordingError(
+                    f"{r.topic} seq {ev.seq}: a realigned event that names no IMU sample "
+                    f"({ev.detail!r}): the restarted fusion's inputs cannot be told"
+                )
+            self.realign_pending = seq
+
+    def _try_realign(self) -> None:
+        """The life before the re-alignment ended: its inputs through the old core, then a new core
+        aligned where the event says (``FusionNode.for_rerun``) for the restarted fusion's.
+
+        Which inputs those are follows from how it took them: it held what it received until
+        the first IMU sample (``first``), kept of that what is stamped at or after the alignment,
+        and took everything after (less what it journaled as dropped). It received what was
+        published after the IMU sample before ``first``, which it did not receive; the file
+        holds the time sync's messages in the order they were published (one publisher, one
+        link), and the heap's push count is that order."""
+        seq = self.realign_pending
+        heap = self.heap
+        found = [e for e in heap if e[2].sensor == "imu" and e[2].seq == seq]
+        if not found or self.cfg is None or self.run is None:
+            return  # its sample is not read yet
+        self.realign_pending = None
+        first = min(found, key=lambda e: e[1])
+        point = realign_point(first[2], self.cfg.output_every)  # type: ignore[arg-type]
+        before = [e[1] for e in heap if e[2].sensor == "imu" and e[1] < first[1]]
+        # no sample before it held: the last one rerun, or none at all (it took everything)
+        received_after = max(before) if before else (-1 if self.last_key is None else self.pushed_released)
+
+        def taken(e: tuple[Any, int, Measurement, str, bytes]) -> bool:
+            return e[1] >= first[1] or (e[1] > received_after and e[2].stamp_ns >= point[0])
+
+        later = [e for e in heap if taken(e)]
+        self.heap = [e for e in heap if not taken(e)]
+        heapq.heapify(self.heap)
+        self.release(None)  # the old life's inputs, and every worker drained
+        self.close()
+        self.remote = self.remote2 = None
+        self.heap = later
+        heapq.heapify(self.heap)
+        self.last_key, self.realigned = None, point
+        self.restarts += 1
+        self._start(FusionNode.for_rerun(self.run, self.cfg, point))
 
     def _start(self, node: FusionNode) -> None:
         """The core, here or in a worker (``worker_pays``, as ``hil sim`` decides), or in two
@@ -339,10 +401,14 @@ class _FusionRerun:
         if here:  # the kernels loaded once, before the fork: the worker has them too
             jit.enable()
             self.batch_size = REPLAY_BATCH_HERE
-            self.remote2 = LocalNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)))
-        self.remote = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=a)), setup=setup)
+            self.remote2 = LocalNode(FusionNode.for_rerun(run, replace(cfg, estimators=b), self.realigned))
+        self.remote = RemoteNode(
+            FusionNode.for_rerun(run, replace(cfg, estimators=a), self.realigned), setup=setup
+        )
         if not here:
-            self.remote2 = RemoteNode(FusionNode.for_rerun(run, replace(cfg, estimators=b)), setup=setup)
+            self.remote2 = RemoteNode(
+                FusionNode.for_rerun(run, replace(cfg, estimators=b), self.realigned), setup=setup
+            )
         freeze_command_startup()
 
     def _synced(self, r: Record) -> None:
@@ -355,6 +421,8 @@ class _FusionRerun:
         heapq.heappush(self.heap, (key, self.pushed, m, r.publisher, r.payload))  # type: ignore[arg-type]
         self.pushed += 1
         self.newest_ns = max(self.newest_ns, m.stamp_ns)
+        if self.realign_pending == m.seq and m.sensor == "imu" and self.node is not None:  # type: ignore[attr-defined]
+            self._try_realign()
         if self.node is not None and self.window_ns is not None:
             self.release(self.newest_ns - self.window_ns)
 
@@ -374,7 +442,10 @@ class _FusionRerun:
         j = r.decode()
         assert isinstance(j, FusionJournal)
         self.last_journal_log_ns = max(self.last_journal_log_ns, r.log_time_ns)
-        self.live_consumed = max(self.live_consumed, j.consumed)
+        # each life of the fusion (a process, a Zenoh session) counts its own
+        life = r.publisher.partition(":")[0]
+        self.consumed_by[life] = max(self.consumed_by.get(life, -1), j.consumed)
+        self.live_consumed = sum(self.consumed_by.values())
         for d in j.dropped:
             _why, name, source = parse_journal_id(d)
             sensor, _, seq = name.partition(":")
@@ -394,8 +465,8 @@ class _FusionRerun:
         assert node is not None
         heap = self.heap
         while heap and (upto_ns is None or heap[0][0][0] < upto_ns):
-            key, _n, msg, source, payload = heapq.heappop(heap)
-            self.last_key = key
+            key, n, msg, source, payload = heapq.heappop(heap)
+            self.last_key, self.pushed_released = key, n
             stream = _stream(msg.sensor, source)
             if (stream, msg.seq) in self.rerun_ids:
                 continue  # a second copy of an input already decided
@@ -505,6 +576,7 @@ class _FusionRerun:
             diff,
             if_cut,
             unverified,
+            self.restarts,
         )
 
     def _if_cut(self) -> tuple[str | None, int]:
@@ -654,6 +726,11 @@ def rerun(
         lines.append(f"note: {note}")
     if len(stream.paths) > 1:
         lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
+    if res.restarts:
+        lines.append(
+            f"note: the fusion restarted {res.restarts} time(s): each restarted process reran from its "
+            "re-alignment (its realigned event) on the inputs it took"
+        )
     lines += truncation_notes(res, stream.truncated, "outputs", "inputs")
     # loss is fewer held than journaled; more is expected in a file that ends (cut, then
     # recovered) after inputs the fusion consumed but had not journaled yet

@@ -301,3 +301,59 @@ def test_a_restart_reads_as_a_restart_in_the_completeness_and_the_downtime_as_lo
     assert "restarts:  7 publisher(s) restarted during the recording" in info.stdout, info.stdout
     rows = [ln.split() for ln in info.stdout.splitlines() if ln.startswith("hil/genrig/")]
     assert rows and all(r[5] == "0" for r in rows), info.stdout  # the dups column
+
+
+def _with_event_before_sample(records: list[Record], event: Record, imu_seq: int) -> list[Record]:
+    """``records`` with ``event`` moved to just before the synced IMU sample ``imu_seq``: the
+    recorder can take the restarted fusion's event before the time sync's sample it names."""
+    rest = [r for r in records if r is not event]
+    at = next(
+        i
+        for i, r in enumerate(rest)
+        if r.topic.endswith("/synced/imu") and int(r.decode().seq) == imu_seq  # type: ignore[attr-defined]
+    )
+    return [*rest[:at], event, *rest[at:]]
+
+
+def test_a_restarted_fusion_reruns_bit_identical_from_its_realignment(tmp_path: Path) -> None:
+    # GIVEN a run whose fusion is SIGKILLed a few seconds in and restarted (it re-aligns from
+    # truth at the first IMU sample it takes and says so in a realigned event)
+    out = tmp_path / "f.mcap"
+    rig = Rig("rerunrig", out, "--duration", "600", "--restart", "1")
+    pid = rig.running_pid("fusion")
+    rig.reach(3.0)
+    os.kill(pid, signal.SIGKILL)
+    rig.running_pid("fusion", not_pid=pid)
+    rig.wait_events(("fusion", "realigned"))
+    rc, stdout, stderr = rig.stop_at(rig.rig_time_s() + 4.0)
+    assert rc == 0, stdout[-3000:] + stderr[-3000:]
+    # WHEN it is rerun
+    res = subprocess.run(
+        hil_cmd("rerun", str(out), "--core", "fusion", "--verify"),
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    # THEN both lives of the fusion are recomputed bit for bit: the first on the inputs before the
+    # restart, the second from its re-alignment on the inputs it took (once, the second life was
+    # rerun on every input from the alignment on, and its first outputs were an interval ahead)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "note: the fusion restarted 1 time(s)" in res.stdout, res.stdout
+    assert "VERIFY OK" in res.stdout, res.stdout
+    # ... with the event recorded before the sample it names, streamed or the file whole; and
+    # without the event the second life cannot be told, and verify fails (the event is what it reads)
+    from hil.nodes.fusion import realigned_imu_seq
+    from hil.record.rerun import RERUN_WINDOW_S, rerun_fusion_records
+
+    records = list(read_session(out).records)
+    (event,) = [r for r in records if r.topic.endswith("/event/fusion") and r.decode().kind == "realigned"]  # type: ignore[attr-defined]
+    imu_seq = realigned_imu_seq(event.decode().detail)  # type: ignore[attr-defined]
+    assert imu_seq is not None
+    moved = _with_event_before_sample(records, event, imu_seq)
+    for window_ns in (round(RERUN_WINDOW_S * 1e9), None):
+        again = rerun_fusion_records(moved, window_ns=window_ns, worker=False)
+        assert (again.difference, again.restarts) == (None, 1), window_ns
+        assert again.n_recorded > 1000
+    blind = rerun_fusion_records([r for r in records if r is not event], window_ns=None, worker=False)
+    assert blind.difference is not None and blind.restarts == 0
