@@ -26,7 +26,7 @@ from typing import IO, Any
 import msgspec
 
 from hil.messages import TYPES_BY_NAME, GnssFix, ImuSample, NavSolution, Truth, decode, schema_name
-from hil.record.mcapio import RecordingError, session_files
+from hil.record.mcapio import RecordingError, session_files, session_note
 from hil.record.scan import Scan, describe_loss
 from hil.record.tools import iter_tagged
 
@@ -210,8 +210,9 @@ def export(
             f"note: {topic}: {n} payload(s) could not be decoded and are not in the table ({rows} rows), "
             f"the first at seq {seq}, log_time_ns {log} (`hil cat --topics` shows them)"
         )
-    if len(scans) > 1:
-        notes.insert(0, f"note: the recording is split: exported its {len(scans)} parts in order")
+    many = session_note([scan.path for scan in scans], "exported")
+    if many:
+        notes.insert(0, f"note: {many}")
     return {k: (v.path, v.count) for k, v in tables.items()}, notes
 
 

@@ -23,12 +23,13 @@ import numpy as np
 from hil.messages import SEQ_GENERATION_SHIFT
 from hil.record.completeness import Completeness
 from hil.record.mcapio import (
+    RESTART_PART_NAME,
     FilePart,
     Record,
     RecordingError,
     Session,
     file_halves,
-    split_parts,
+    session_files,
     stream_session,
 )
 
@@ -374,13 +375,21 @@ def _parts_lines(path: Path, part: dict[str, str]) -> list[str]:
             f"parts:     part {index} of a split recording, after {part.get('previous', '?')} (the run and "
             f"the whole session: its first file)"
         ]
-    more = split_parts(path)
+    restart = RESTART_PART_NAME.search(path.stem)
+    if restart:
+        first = path.with_name(f"{path.stem[: restart.start()]}{path.suffix}")
+        return [
+            f"parts:     a restarted recorder's file, continuing the session begun in {first.name} "
+            f"(hil rerun, replay, report and export of that file read the whole session)"
+        ]
+    more = session_files(path)[1:]
     if not more:
         return []
     names = ", ".join(p.name for p in more)
+    restarted = " (a restarted recorder's)" if any(RESTART_PART_NAME.search(p.stem) for p in more) else ""
     return [
-        f"parts:     the session continues in {len(more)} more part(s): {names} (hil rerun, replay, "
-        f"report and export read them all; hil merge joins them)"
+        f"parts:     the session continues in {len(more)} more part(s){restarted}: {names} (hil rerun, "
+        f"replay, report and export read them all; hil merge joins them)"
     ]
 
 
@@ -504,9 +513,9 @@ def info_json(path: str, *, parallel: bool = False) -> str:
             "truncated": s.truncated,
             "metadata": s.metadata,
             "errors": summary.estimator_errors(),
-            # a split recording's first file: the further parts, in order (a later part says
-            # which it is in its ``part`` metadata)
-            "parts": [p.name for p in split_parts(Path(path))],
+            # a session's first file: the further parts (split, or a restarted recorder's), in
+            # order (a later split part says which it is in its ``part`` metadata)
+            "parts": [p.name for p in session_files(path)[1:]],
         },
         indent=2,
     )

@@ -159,9 +159,102 @@ def split_first_path(part: Path, index: int) -> Path:
 
 
 def session_files(path: str | Path) -> list[Path]:
-    """A recording and the parts it was split into (:func:`split_parts`), in order: what the tools
-    that read a session (rerun, replay, report, export, merge) read end to end."""
-    return [Path(path), *split_parts(Path(path))]
+    """A recording and the parts it was split into (:func:`split_parts`), then the files a
+    restarted recorder continued it in (:func:`restart_parts`), each with its split parts, in
+    order: what the tools that read a session (rerun, replay, report, export, merge) read end to
+    end."""
+    first = Path(path)
+    files = [first, *split_parts(first)]
+    for part in restart_parts(first):
+        files += [part, *split_parts(part)]
+    return files
+
+
+def restart_part_path(record: Path, part: int) -> Path:
+    """Where a recorder restarted for the ``part``-th time writes: ``<stem>.part<N>.mcap``.
+
+    Why not the same path: the killed recorder's file is readable up to its last flushed chunk
+    (docs/recording.md); reopening it for writing would destroy that.
+    """
+    return record.with_name(f"{record.stem}.part{part}{record.suffix or '.mcap'}")
+
+
+RESTART_PART_NAME = re.compile(r"\.part\d+(_\d{4})?$")
+
+
+def session_note(files: list[Path], did: str) -> str | None:
+    """What a tool that read a session of several files (``session_files``) says of them;
+    ``did``: what it did to them ("read", "reran", ...). None: one file."""
+    if len(files) < 2:
+        return None
+    restarted = [f.name for f in files if RESTART_PART_NAME.search(f.stem)]
+    if not restarted:
+        return f"the recording is split: {did} its {len(files)} parts in order"
+    return (
+        f"the session is in {len(files)} files, continued by a restarted recorder in "
+        f"{', '.join(restarted)}: {did} them in order"
+    )
+
+
+def cut_notes(cut: list[str]) -> list[str]:
+    """What a tool says of files of a session cut short before a later one continues it
+    (``SessionStream.cut_files``: each file's truncation reason)."""
+    out = []
+    for entry in cut:
+        name, _, why = entry.partition(": ")
+        why = why.strip().rstrip(":")
+        out.append(
+            f"{name} is cut short{f' ({why})' if why else ''}: its recorder was killed, and the session "
+            "continues in the next file; read up to the cut"
+        )
+    return out
+
+
+#: how far into a live recording its ``hil`` metadata is looked for (it comes when the run starts,
+#: after the boot's messages: a few dozen)
+_RUN_METADATA_WITHIN = 100_000
+
+
+def _run_identity(path: Path, leading: bool = False) -> tuple[str, str] | None:
+    """(rig, start epoch) of the run a file records, from its ``hil`` metadata; None: not found
+    (``leading``: among the records it starts with, as a restarted recorder writes it)."""
+    try:
+        for n, (kind, rec) in enumerate(iter_records(path)):
+            if kind == "metadata" and rec.name == "hil":
+                meta = dict(rec.metadata)
+                return meta.get("rig", ""), meta.get("start_epoch_ns", "")
+            if n >= _RUN_METADATA_WITHIN or (leading and kind != "metadata"):
+                return None
+    except (McapError, OSError, ValueError, struct.error):
+        pass
+    return None
+
+
+def restart_parts(path: Path) -> list[Path]:
+    """The files recorders restarted by ``hil up --restart`` continued ``path``'s session in
+    (``<stem>.part<N>.mcap``, :func:`restart_part_path`), in order. A part is taken when it
+    records the same run (rig and start epoch in its ``hil`` metadata, which it starts with):
+    a part an earlier session left at that name is not this one's. ``path``'s run unknown (cut
+    before the run was announced): a part whose recorder was told it continues a file of
+    ``path``'s name."""
+    parts: list[Path] = []
+    mine: tuple[str, str] | bool | None = False  # read once, when a part is there
+    while (part := restart_part_path(path, len(parts) + 1)).is_file():
+        if mine is False:
+            mine = _run_identity(path)
+        theirs = _run_identity(part, leading=True)
+        if mine is not None and theirs != mine:
+            return parts
+        if mine is None:
+            opts = (_leading_metadata(part, "config") or {}).get("options", "{}")
+            try:
+                continues = json.loads(opts).get("continues") or [""]
+            except (ValueError, AttributeError):
+                continues = [""]
+            if Path(str(continues[0])).name != path.name:
+                return parts
+        parts.append(part)
+    return parts
 
 
 def split_parts(path: Path) -> list[Path]:
@@ -225,10 +318,16 @@ def keep_aside(path: Path) -> Path | None:
     except OSError:
         return None
     parts = split_parts(path)
+    restarted = [(r, split_parts(r)) for r in restart_parts(path)]
     kept = aside_path(path, len(parts))
     path.rename(kept)
     for k, part in enumerate(parts, start=1):
         part.rename(split_part_path(kept, k))
+    for n, (r, r_parts) in enumerate(restarted, start=1):  # a restarted recorder's files go along
+        moved = restart_part_path(kept, n)
+        r.rename(moved)
+        for k, part in enumerate(r_parts, start=1):
+            part.rename(split_part_path(moved, k))
     return kept
 
 
@@ -957,6 +1056,9 @@ class Record:
     # rig's messages it left out just before this one (-1: none), for a caller whose clock is
     # the log time of every message (``hil.record.rerun_timesync``)
     skipped_log_ns: int = -1
+    # a restarted recorder's copy of a message published before it started: recovered from the
+    # publishers' caches (``SessionStream``), written as it came, not in publication order
+    recovered: bool = False
 
     @property
     def foreign(self) -> bool:
@@ -1405,15 +1507,24 @@ class SessionStream:
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False
         self.truncation_reason = ""
+        # files cut short that a later one continues (a killed recorder's, before the restarted
+        # one's part): read up to the cut, and not the session's end, so not ``truncated``
+        self.cut_files: list[str] = []
 
     def __iter__(self) -> Iterator[Record]:
         self.metadata = {}
         self.truncated = False
         self.truncation_reason = ""
         self.skipped_tail = None
+        self.cut_files = []
         sizes = [p.stat().st_size for p in self.paths]
         for k, path in enumerate(self.paths):
             n = 0
+            if self.truncated:  # the file before was cut, and this one continues the session
+                self.cut_files.append(self.truncation_reason)
+                self.truncated, self.truncation_reason = False, ""
+            # a restarted recorder's first file: what was published before it started is recovered
+            restarted_ns: int | None = None if k == 0 or not RESTART_PART_NAME.search(path.stem) else -1
             progress = self._progress(sum(sizes[:k]), sum(sizes))
             for kind, rec in _iter_items(path, progress, keep=self.keep):
                 if kind == "messages":  # a chunk's, in a batch
@@ -1424,6 +1535,11 @@ class SessionStream:
                         first = rec[0]
                         first.skipped_log_ns = max(first.skipped_log_ns, self.skipped_tail[0])
                         self.skipped_tail = None
+                    if restarted_ns is not None:
+                        if restarted_ns < 0:
+                            restarted_ns = rec[0].log_time_ns
+                        for r in rec:
+                            r.recovered = r.publish_time_ns < restarted_ns
                     yield from rec
                 elif kind == "skipped":
                     prev = self.skipped_tail

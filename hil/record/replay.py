@@ -48,7 +48,15 @@ from hil.bus.pubsub import declare_publisher
 from hil.fusion.core import parse_journal_id
 from hil.messages import TYPES_BY_NAME, CanFrame, FusionJournal, SerialChunk, decode
 from hil.record.lockstep import ack_key, decode_ack
-from hil.record.mcapio import Record, RecordingError, check_hil_recording, iter_records, session_files
+from hil.record.mcapio import (
+    Record,
+    RecordingError,
+    check_hil_recording,
+    cut_notes,
+    iter_records,
+    session_files,
+    session_note,
+)
 
 FUSION_INPUT = re.compile(r"^hil/[^/]+/synced/(imu|gnss)$")
 SPIN_S = 0.0005  # the last half millisecond before a deadline is spun, not slept (CAN spacing)
@@ -88,7 +96,8 @@ class ReplayStats:
     wall_s: float = 0.0
     span_s: float = 0.0  # recorded time the last pass sent: its first message to its last
     truncated: str = ""
-    parts: int = 1  # the files of a split recording, replayed end to end
+    session: str = ""  # ``session_note`` of the session's files, replayed end to end ("" one)
+    cut: list[str] = field(default_factory=list)  # files cut short that a later one continues
 
     def summary(self) -> str:
         rate = self.sent / self.wall_s if self.wall_s > 0 else 0.0
@@ -104,8 +113,9 @@ class ReplayStats:
             parts.append(f"{self.can_errors} CAN frames refused by the bus")
         if self.truncated:
             parts.append(f"file truncated, replayed up to its last complete chunk ({self.truncated})")
-        if self.parts > 1:
-            parts.append(f"the recording is split: replayed its {self.parts} parts in order")
+        if self.session:
+            parts.append(self.session)
+        parts += cut_notes(self.cut)
         return "; ".join(parts)
 
 
@@ -290,9 +300,16 @@ def recorded_span_ns(path: str | Path) -> int | None:
 
 
 def session_records(path: str | Path) -> Iterator[tuple[str, Any]]:
-    """``iter_records`` of the recording and of its split parts, end to end: one session."""
-    for f in session_files(path):
-        yield from iter_records(f)
+    """``iter_records`` of the recording and of its split parts, end to end: one session. A file
+    cut short before the last (a killed recorder's, continued by its restarted one) is a
+    ``("cut", "<name>: <why>")`` there, not ``truncated``: the session goes on."""
+    files = session_files(path)
+    for k, f in enumerate(files):
+        for kind, rec in iter_records(f):
+            if kind == "truncated" and k < len(files) - 1:
+                yield "cut", f"{f.name}: {rec}"
+            else:
+                yield kind, rec
 
 
 def check_selected(path: str | Path, opts: ReplayOptions) -> None:
@@ -325,6 +342,8 @@ def _messages(path: str | Path, stats: ReplayStats) -> Iterator[Record]:
             yield rec
         elif kind == "truncated":
             stats.truncated = str(rec)
+        elif kind == "cut":
+            stats.cut.append(rec)
 
 
 def replay(
@@ -348,7 +367,8 @@ def replay(
     stop = stop or threading.Event()
     sel = Selector(opts)
     pacer = Pacer(opts.rate, opts.afap or opts.step, stop)
-    stats = ReplayStats(parts=len(session_files(path)))
+    files = session_files(path)
+    stats = ReplayStats(session=session_note(files, "replayed") or "")
     pubs: dict[str, zenoh.Publisher | zext.AdvancedPublisher] = {}
     dropped = journaled_drops(path) if opts.lockstep else set()
     gate: LockstepGate | None = None

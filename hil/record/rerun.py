@@ -38,7 +38,16 @@ from hil.messages import (
 )
 from hil.nodes.fusion import FusionNode, realign_point, realigned_imu_seq
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
-from hil.record.mcapio import PayloadError, Record, RecordingError, Session, SessionStream, no_run_message
+from hil.record.mcapio import (
+    PayloadError,
+    Record,
+    RecordingError,
+    Session,
+    SessionStream,
+    cut_notes,
+    no_run_message,
+    session_note,
+)
 from hil.runners.sim_worker import (
     EncodedInput,
     LocalNode,
@@ -305,8 +314,8 @@ class _FusionRerun:
                 self._recorded_nav(r)
         elif t.endswith("/fusion/journal"):
             self._journal(r)
-        elif t.endswith("/event/fusion"):
-            self._event(r)
+        elif t.endswith("/event/fusion") and self._realigned_event(r):
+            pass
         elif self.run is None and t.endswith("/run"):
             m = r.decode()
             assert isinstance(m, RunInfo)
@@ -322,18 +331,20 @@ class _FusionRerun:
         if self.realign_pending is not None and self.node is not None:
             self._try_realign()
 
-    def _event(self, r: Record) -> None:
-        """A restarted fusion's ``realigned`` event: a new life of the fusion from the IMU sample
-        it names (``_try_realign``, once that sample is read)."""
+    def _realigned_event(self, r: Record) -> bool:
+        """A restarted fusion's ``realigned`` event (True): a new life of the fusion from the IMU
+        sample it names (``_try_realign``, once that sample is read). Its other events: False."""
         ev = r.decode()
-        if isinstance(ev, Event) and ev.kind == "realigned":
-            seq = realigned_imu_seq(ev.detail)
-            if seq is None:
-                raise RecordingError(
-                    f"{r.topic} seq {ev.seq}: a realigned event that names no IMU sample "
-                    f"({ev.detail!r}): the restarted fusion's inputs cannot be told"
-                )
-            self.realign_pending = seq
+        if not isinstance(ev, Event) or ev.kind != "realigned":
+            return False
+        seq = realigned_imu_seq(ev.detail)
+        if seq is None:
+            raise RecordingError(
+                f"{r.topic} seq {ev.seq}: a realigned event that names no IMU sample "
+                f"({ev.detail!r}): the restarted fusion's inputs cannot be told"
+            )
+        self.realign_pending = seq
+        return True
 
     def _try_realign(self) -> None:
         """The life before the re-alignment ended: its inputs through the old core, then a new core
@@ -724,8 +735,8 @@ def rerun(
     ]
     if note:
         lines.append(f"note: {note}")
-    if len(stream.paths) > 1:
-        lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
+    many = session_note(stream.paths, "reran")
+    lines += [f"note: {n}" for n in ([many] if many else []) + cut_notes(stream.cut_files)]
     if res.restarts:
         lines.append(
             f"note: the fusion restarted {res.restarts} time(s): each restarted process reran from its "

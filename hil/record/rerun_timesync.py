@@ -41,7 +41,16 @@ import msgspec
 from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.matching import TAIL_NS, Matcher, truncation_notes, verdict
-from hil.record.mcapio import Record, RecordingError, Session, SessionStream, no_run_message, rig_time_ns
+from hil.record.mcapio import (
+    Record,
+    RecordingError,
+    Session,
+    SessionStream,
+    cut_notes,
+    no_run_message,
+    rig_time_ns,
+    session_note,
+)
 from hil.runners.sim_worker import RemoteNode, worker_possible
 from hil.runtime.heap import freeze_command_startup
 from hil.sensor_table import SENSORS
@@ -60,6 +69,7 @@ class TimesyncRerun:
     # ``TAIL_NS`` whose raw measurement the cut took (``unverified`` of them)
     difference_if_cut: str | None = None
     unverified: int = 0
+    recovered: int = 0  # recorded re-stamps a restarted recorder recovered: not compared
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
@@ -245,11 +255,18 @@ def rerun_timesync_records(
 
 def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> TimesyncRerun:
     held: list[Record] = []
-    now_ns = start_ns = 0
+    now_ns = start_ns = recovered = 0
     for r in records:
         if r.skipped_log_ns >= 0 and side.node is not None:  # what handle() of those would have done
             side.release(rig_time_ns(r.skipped_log_ns, start_ns))
         if r.foreign:  # the live time sync refused a stranger's measurements and tags
+            continue
+        if r.recovered and "/synced/" in r.topic:
+            # a restarted recorder wrote what it recovered from the caches as it came: the raw
+            # measurements of that stretch are not in the order the time sync took them with
+            # its tags (a tag written before the samples it followed), so their re-stamps are
+            # not the live ones; the core still takes them, and is back in step after the stretch
+            recovered += 1
             continue
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
         if side.node is None:
@@ -282,7 +299,14 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         strict = "the recording holds no synced/<sensor> outputs to compare"
     unverified = len(matcher.recorded_pending) - len(early)
     return TimesyncRerun(
-        counts["meas"], counts["tags"], counts["out"], matcher.n_recorded, strict, if_cut, unverified
+        counts["meas"],
+        counts["tags"],
+        counts["out"],
+        matcher.n_recorded,
+        strict,
+        if_cut,
+        unverified=unverified,
+        recovered=recovered,
     )
 
 
@@ -331,7 +355,13 @@ def rerun_timesync_report(
         f"rerun timesync: {res.measurements} raw measurements, {res.timetags} time tags, "
         f"{res.n_recomputed} re-stamps recomputed, {res.n_recorded} recorded"
     ]
-    if len(stream.paths) > 1:
-        lines.append(f"note: the recording is split: reran its {len(stream.paths)} parts in order")
+    many = session_note(stream.paths, "reran")
+    lines += [f"note: {n}" for n in ([many] if many else []) + cut_notes(stream.cut_files)]
     lines += truncation_notes(res, stream.truncated, "re-stamps", "their raw measurement")
+    if res.recovered:
+        lines.append(
+            f"note: {res.recovered} recorded re-stamps were recovered by a restarted recorder from the "
+            "publishers' caches, written as they came and not in the order the time sync took their "
+            "inputs: not verifiable, not compared"
+        )
     return verdict(res, stream.truncated, lines, verify, "re-stamps")

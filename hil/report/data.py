@@ -19,7 +19,7 @@ import numpy as np
 from hil.can.busload import frame_bits
 from hil.messages import SEQ_GENERATION_SHIFT, Event, RunInfo, ServiceStatus, decode
 from hil.record.info import stream_rate_hz
-from hil.record.mcapio import is_derived, session_files
+from hil.record.mcapio import cut_notes, is_derived, session_files, session_note
 from hil.report.scan import Batch, Channel, ScanResult, scan
 
 F64 = np.ndarray  # float64 arrays; shapes in the field comments
@@ -327,11 +327,11 @@ def _sorted(s: Series) -> Series:
 
 def _scan_session(
     path: Path, on_batch: Callable[[Batch], None], on_progress: Callable[[int, int], None] | None
-) -> tuple[ScanResult, int]:
+) -> tuple[ScanResult, list[Path]]:
     """``scan`` of the recording and the parts it was split into (``session_files``), end to end:
     the collector keys by topic, so the parts read as one session. The later parts' metadata
     replace the earlier ones' (the last part's ``completeness`` covers the session); the counts
-    add up; progress runs over all the files' bytes. Also returns how many files were read."""
+    add up; progress runs over all the files' bytes. Also returns the files read."""
     files = session_files(path)
     sizes = [f.stat().st_size if f.exists() else 0 for f in files]
     total = sum(sizes)
@@ -347,21 +347,23 @@ def _scan_session(
         out.metadata.update(res.metadata)
         out.attachments.update(res.attachments)
         out.messages += res.messages
-        if res.truncated:
+        if res.truncated and f is not files[-1]:  # a killed recorder's, continued by the next
+            out.cut.append(f"{f.name}: {res.truncation_reason}")
+        elif res.truncated:
             out.truncated, out.truncation_reason = True, res.truncation_reason
         before += size
-    return out, len(files)
+    return out, files
 
 
 def load(path: str | Path, on_progress: Callable[[int, int], None] | None = None) -> ReportData:
     """Read ``path`` into a ``ReportData``; raises ``RecordingError`` only when nothing is readable."""
     col = _Collector()
-    res, n_files = _scan_session(Path(path), col.on_batch, on_progress)
+    res, files = _scan_session(Path(path), col.on_batch, on_progress)
     d = ReportData(
         Path(path), res.metadata, res.attachments, res.truncated, res.truncation_reason, res.messages
     )
-    if n_files > 1:
-        d.notes.append(f"the recording is split: read its {n_files} parts in order")
+    many = session_note(files, "read")
+    d.notes += ([many] if many else []) + cut_notes(res.cut)
     if res.truncated:
         d.notes.append(f"truncated recording: read up to its last complete chunk ({res.truncation_reason})")
     truth_rows = [r for chunk in col.truth for r in chunk]

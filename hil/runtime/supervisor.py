@@ -32,6 +32,7 @@ from hil.bus.keys import Keys
 from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
 from hil.bus.session import BusConfig, open_session, use_rig_runtime
 from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
+from hil.record.mcapio import restart_part_path
 from hil.runners.pacing import RIG_CPUS_ENV, pin_process, unpin_process
 from hil.runtime.clock import RigClock
 from hil.runtime.options import fill_options
@@ -312,15 +313,6 @@ class TableDrawer:
         self.out.write(text + "\n")
         self.out.flush()
         self.lines = text.count("\n") + 1
-
-
-def restart_part_path(record: Path, part: int) -> Path:
-    """Where a recorder restarted for the ``part``-th time writes: ``<stem>.part<N>.mcap``.
-
-    Why not the same path: the killed recorder's file is readable up to its last flushed chunk
-    (docs/recording.md); reopening it for writing would destroy that.
-    """
-    return record.with_name(f"{record.stem}.part{part}{record.suffix or '.mcap'}")
 
 
 class Supervisor:

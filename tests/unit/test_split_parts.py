@@ -24,6 +24,7 @@ from hil.record.mcapio import (
     keep_aside,
     made_by_sim,
     session_files,
+    session_note,
     split_part_path,
     split_parts,
     stale_parts,
@@ -129,7 +130,8 @@ def test_replay_reads_a_split_recording_as_the_session(split_and_whole: tuple[Pa
     assert sent(split) == sent(whole)
     assert recorded_span_ns(split) == recorded_span_ns(whole) > 3.9e9
     assert session_files(split) == [split, *split_parts(split)]
-    assert "replayed its 3 parts" in ReplayStats(parts=3).summary()
+    note = session_note(session_files(split), "replayed")
+    assert note is not None and "replayed its 3 parts" in ReplayStats(session=note).summary()
     assert "split" not in ReplayStats().summary()
 
 
@@ -249,3 +251,36 @@ def test_hil_sim_writes_over_a_sims_file_only(tmp_path: Path) -> None:
         assert (
             said.pop() == f"{path} held a recording that no sim makes again (a live session?): kept as {kept}"
         )
+
+
+def _sim_rig(path: Path, rig: str) -> None:
+    run_sim(SimOptions(duration_s=0.5, record=path, rig=rig, fusion_worker=False))
+
+
+def test_a_restarted_recorders_file_is_followed_only_for_its_own_run_and_moves_with_it(
+    tmp_path: Path,
+) -> None:
+    # GIVEN a recording, and at its restarted recorder's name (<stem>.part1.mcap) another run's file
+    first = tmp_path / "s.mcap"
+    _sim_rig(first, "one")
+    part = tmp_path / "s.part1.mcap"
+    _sim_rig(tmp_path / "other.mcap", "two")
+    (tmp_path / "other.mcap").rename(part)
+    # THEN it is not this session's: a part an earlier session left there is not read as this one's
+    assert session_files(first) == [first]
+    # WHEN the file there records the same run (rig and start epoch: a restarted recorder's)
+    _sim_rig(tmp_path / "same.mcap", "one")
+    (tmp_path / "same.mcap").rename(part)
+    # THEN the session's readers go on into it, and say so
+    assert session_files(first) == [first, part]
+    note = session_note(session_files(first), "read")
+    assert (
+        note
+        == "the session is in 2 files, continued by a restarted recorder in s.part1.mcap: read them in order"
+    )
+    assert "(a restarted recorder's): s.part1.mcap" in describe(str(first))
+    assert "continuing the session begun in s.mcap" in describe(str(part))
+    # ... and a new recording at the path moves it aside with the first file
+    kept = keep_aside(first)
+    assert kept == tmp_path / "s.1.mcap" and not part.exists()
+    assert session_files(kept) == [kept, tmp_path / "s.1.part1.mcap"]
