@@ -10,6 +10,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from typing import Protocol
 
+KEEP_DIFFS = 10_000  # differences kept with their payloads (``Matcher.diffs``)
 TAIL_NS = 5_000_000_000  # log time before a cut within which an output's inputs may lie beyond it
 
 
@@ -82,10 +83,20 @@ class Matcher:
         self.recorded_t: dict[tuple[str, int], int] = {}
         self.first_by_log: tuple[int, str] | None = None
         self.diff_logs: list[int] = []  # recorded log time of every differing output
+        # every difference as (order, the recomputed output's time, key), with both payloads for
+        # the first ``KEEP_DIFFS`` of them: a caller that learns only at the end which outputs it
+        # can vouch for (``hil.record.rerun``: those before inputs the recording lost) names the
+        # first difference among those
+        self.diffs: list[tuple[int, int, tuple[str, int], bytes, bytes]] = []
         self.describing_log_ns = 0
 
     def _compare(
-        self, key: tuple[str, int], rec: tuple[int, bytes], mine: tuple[int, bytes], log_ns: int
+        self,
+        key: tuple[str, int],
+        rec: tuple[int, bytes],
+        mine: tuple[int, bytes],
+        log_ns: int,
+        t_ns: int = 0,
     ) -> None:
         self.compared += 1
         theirs = rec[1]
@@ -93,6 +104,9 @@ class Matcher:
             theirs = self.normalise(theirs)
         if mine[1] != theirs:
             self.diff_logs.append(log_ns)
+            kept = len(self.diffs) < KEEP_DIFFS
+            order_ = rec[0] if self.by_recorded else mine[0]
+            self.diffs.append((order_, t_ns, key, theirs if kept else b"", mine[1] if kept else b""))
             self.describing_log_ns = log_ns  # the recorded copy's, for a describe that names it
             order = rec[0] if self.by_recorded else mine[0]
             text = None
@@ -108,7 +122,7 @@ class Matcher:
         self.n_recorded += 1
         mine = self.recomputed_pending.pop(key, None)
         if mine is not None:
-            self._compare(key, (order, payload), (mine[0], mine[1]), log_ns)
+            self._compare(key, (order, payload), (mine[0], mine[1]), log_ns, mine[2])
         else:
             self.recorded_pending[key] = (order, payload)
             self.recorded_t[key] = log_ns
@@ -116,7 +130,7 @@ class Matcher:
     def recomputed(self, key: tuple[str, int], payload: bytes, order: int, t_ns: int) -> None:
         rec = self.recorded_pending.pop(key, None)
         if rec is not None:
-            self._compare(key, rec, (order, payload), self.recorded_t.pop(key, 0))
+            self._compare(key, rec, (order, payload), self.recorded_t.pop(key, 0), t_ns)
         else:
             self.recomputed_pending[key] = (order, payload, t_ns)
 
@@ -169,5 +183,6 @@ def verdict(
     diff = res.first_difference(truncated)
     if diff:
         return 1, [*lines, f"VERIFY FAILED: {diff}"]
-    n = res.n_recorded - (res.unverified if truncated else 0)
+    # (a fusion rerun of a recording that lacks inputs: the outputs after them that differ)
+    n = res.n_recorded - (res.unverified if truncated else 0) - getattr(res, "after_loss", 0)
     return 0, [*lines, f"VERIFY OK: all {n} recorded {recomputed} are bit-identical"]

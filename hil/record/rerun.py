@@ -15,8 +15,10 @@ journal, its configuration, the run -- are taken from the rig's publishers only;
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import json
+from array import array
 from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -109,6 +111,10 @@ class RerunResult:
     difference_if_cut: str | None = None
     unverified: int = 0  # recorded outputs near the cut whose inputs the cut took
     restarts: int = 0  # fusion restarts: each later life rerun from its re-alignment
+    # the recording lacks inputs the live fusion took from this time on (its journals count
+    # them): the outputs after it are not verifiable (``after_loss`` of them); None: none lacking
+    lost_from_ns: int | None = None
+    after_loss: int = 0
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
@@ -281,6 +287,12 @@ class _FusionRerun:
     realign_pending: int | None = None
     restarts: int = 0
     pushed_released: int = -1  # the push count of the last input rerun
+    # for ``_lost_from``: each journal as (its fusion's session, watermark, consumed); the
+    # sessions of the restarted fusions, in order; each life's start and the stamps it was fed
+    journal_marks: list[tuple[str, int, int]] = field(default_factory=list)
+    realigned_sessions: list[str] = field(default_factory=list)
+    life_starts_ns: dict[int, int] = field(default_factory=dict)
+    fed_stamps: dict[int, array[int]] = field(default_factory=dict)  # 8 bytes an input
     consumed_by: dict[str, int] = field(default_factory=dict)  # journal session -> its count
 
     def __post_init__(self) -> None:
@@ -344,6 +356,7 @@ class _FusionRerun:
                 f"({ev.detail!r}): the restarted fusion's inputs cannot be told"
             )
         self.realign_pending = seq
+        self.realigned_sessions.append(r.publisher.partition(":")[0])
         return True
 
     def _try_realign(self) -> None:
@@ -381,6 +394,7 @@ class _FusionRerun:
         heapq.heapify(self.heap)
         self.last_key, self.realigned = None, point
         self.restarts += 1
+        self.life_starts_ns[self.restarts] = point[0]
         self._start(FusionNode.for_rerun(self.run, self.cfg, point))
 
     def _start(self, node: FusionNode) -> None:
@@ -456,6 +470,7 @@ class _FusionRerun:
         # each life of the fusion (a process, a Zenoh session) counts its own
         life = r.publisher.partition(":")[0]
         self.consumed_by[life] = max(self.consumed_by.get(life, -1), j.consumed)
+        self.journal_marks.append((life, j.watermark_ns, j.consumed))
         self.live_consumed = sum(self.consumed_by.values())
         for d in j.dropped:
             _why, name, source = parse_journal_id(d)
@@ -475,6 +490,7 @@ class _FusionRerun:
         node = self.node
         assert node is not None
         heap = self.heap
+        fed = self.fed_stamps.setdefault(self.restarts, array("q"))
         while heap and (upto_ns is None or heap[0][0][0] < upto_ns):
             key, n, msg, source, payload = heapq.heappop(heap)
             self.last_key, self.pushed_released = key, n
@@ -486,6 +502,7 @@ class _FusionRerun:
             if self.present.pop(i) - self.dropped[i] <= 0:
                 continue
             self.used += 1
+            fed.append(key[0])
             predicted = i not in self.unpredicted
             if self.remote is None:
                 self._compare(msg, replay_encoded(node, [(msg, source, predicted)], self.keep_outputs)[0])
@@ -568,9 +585,12 @@ class _FusionRerun:
 
     def result(self) -> RerunResult:
         m = self.matcher
-        diff = m.first[1] if m.first else None
-        if diff is None and m.recorded_pending:
-            missing = sorted(m.recorded_pending)
+        lost_from = self._lost_from()
+        diff, after_loss = (m.first[1] if m.first else None), 0
+        missing = sorted(m.recorded_pending)
+        if lost_from is not None:
+            diff, after_loss, missing = self._before_loss(lost_from, missing)
+        if diff is None and missing:
             est, seq = missing[0]
             diff = f"nav/{est} seq {seq}: recorded but not recomputed ({len(missing)} such outputs)"
         if diff is None and m.compared == 0:
@@ -588,7 +608,53 @@ class _FusionRerun:
             if_cut,
             unverified,
             self.restarts,
+            lost_from,
+            after_loss,
         )
+
+    def _lost_from(self) -> int | None:
+        """Where the recording first lacks inputs the live fusion took, if it does: a journal
+        counts the inputs its fusion consumed up to its watermark, so the first one counting more
+        than this rerun fed up to there (each life of the fusion on its own) has the loss between
+        its watermark and the one before. None: the recording holds all it consumed."""
+        lives = {session: k + 1 for k, session in enumerate(self.realigned_sessions)}
+        marks: dict[int, list[tuple[int, int]]] = {}
+        for session, watermark_ns, consumed in self.journal_marks:
+            marks.setdefault(lives.get(session, 0), []).append((watermark_ns, consumed))
+        first: int | None = None
+        for life, life_marks in marks.items():
+            fed = self.fed_stamps.get(life, array("q"))
+            before = self.life_starts_ns.get(life, -(2**62))
+            for watermark_ns, consumed in sorted(life_marks):
+                if consumed > bisect.bisect_right(fed, watermark_ns):
+                    first = before if first is None else min(first, before)
+                    break
+                before = watermark_ns
+        return first
+
+    def _before_loss(
+        self, lost_from: int, missing: list[tuple[str, int]]
+    ) -> tuple[str | None, int, list[tuple[str, int]]]:
+        """The first difference among the outputs before the loss (``_lost_from``), how many
+        after it could not be verified, and the recorded outputs before it not recomputed."""
+        m = self.matcher
+        before = [d for d in m.diffs if d[1] <= lost_from]
+        after = len(m.diffs) - len(before)
+        diff = None
+        if before:
+            _order, _t, key, theirs, mine = min(before, key=lambda d: d[0])
+            diff = self._difference(key, theirs, mine) if theirs else f"nav/{key[0]} seq {key[1]} differs"
+        kept = []
+        for key in missing:
+            try:
+                stamp = decode(NavSolution, m.recorded_pending[key][1]).stamp_ns
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                stamp = -(2**62)
+            if stamp <= lost_from:
+                kept.append(key)
+            else:
+                after += 1
+        return diff, after, kept
 
     def _if_cut(self) -> tuple[str | None, int]:
         """The verdict on a file cut short, which can leave two kinds of outputs unverifiable:
@@ -743,6 +809,12 @@ def rerun(
             "re-alignment (its realigned event) on the inputs it took"
         )
     lines += truncation_notes(res, stream.truncated, "outputs", "inputs")
+    if res.lost_from_ns is not None:
+        lines.append(
+            f"note: the recording lacks inputs the live fusion took from t={res.lost_from_ns / 1e9:.3f} s on "
+            f"(its journal counts more than the file holds there): the outputs after that are not verifiable, "
+            f"and {res.after_loss} of them differ; those before are compared"
+        )
     # loss is fewer held than journaled; more is expected in a file that ends (cut, then
     # recovered) after inputs the fusion consumed but had not journaled yet
     if not stream.truncated and 0 <= res.inputs_used < res.live_consumed:
