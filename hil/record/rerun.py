@@ -119,6 +119,10 @@ class RerunResult:
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
 
+    @property
+    def excused(self) -> int:
+        return self.after_loss
+
 
 class OutOfWindow(Exception):
     """The file's order defeats the streaming window: rerun it with the whole file instead."""
@@ -812,8 +816,8 @@ def rerun(
     if res.lost_from_ns is not None:
         lines.append(
             f"note: the recording lacks inputs the live fusion took from t={res.lost_from_ns / 1e9:.3f} s on "
-            f"(its journal counts more than the file holds there): the outputs after that are not verifiable, "
-            f"and {res.after_loss} of them differ; those before are compared"
+            "(its journal counts more than the file holds there): the outputs after that are not "
+            f"verifiable, and {res.after_loss} of them differ; those before are compared"
         )
     # loss is fewer held than journaled; more is expected in a file that ends (cut, then
     # recovered) after inputs the fusion consumed but had not journaled yet

@@ -40,7 +40,7 @@ import msgspec
 
 from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.timesync import TimeSyncNode
-from hil.record.matching import TAIL_NS, Matcher, truncation_notes, verdict
+from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
     Record,
     RecordingError,
@@ -69,10 +69,15 @@ class TimesyncRerun:
     # ``TAIL_NS`` whose raw measurement the cut took (``unverified`` of them)
     difference_if_cut: str | None = None
     unverified: int = 0
-    recovered: int = 0  # recorded re-stamps a restarted recorder recovered: not compared
+    recovered: int = 0  # differing re-stamps of what a restarted recorder recovered: excused
+    no_raw: int = 0  # recorded re-stamps whose raw measurement the recording lacks
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
+
+    @property
+    def excused(self) -> int:
+        return self.recovered + self.no_raw
 
 
 def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
@@ -87,6 +92,9 @@ def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> st
     return f"synced/{sensor} seq {seq}: payload bytes differ"
 
 
+# a restarted recorder's recovered messages come in a burst: what it recovered more than this much
+# log time apart is another stretch (another restart)
+RECOVERY_GAP_NS = 5_000_000_000
 HORIZON_NS = 60_000_000_000  # log time a re-stamp waits for its recorded copy before it is let go
 # A file cut short: a re-stamp can be recorded before its raw measurement (they come from two
 # processes), so the cut may keep the one and lose the other; within this much log time of the
@@ -141,6 +149,7 @@ class _TimesyncMatch:
         # (rig time, ()) a release alone
         self.ops: list[tuple[int, Any]] = []
         self.in_flight: list[tuple[int, Any]] | None = None  # the operations of the batch sent
+        self.raw_seen = SeqSet()  # (sensor, seq) of every raw measurement read
 
     def start(self, node: TimeSyncNode) -> None:
         self.node = node
@@ -157,6 +166,8 @@ class _TimesyncMatch:
         if rt is None:
             return
         kind, sensor, key = rt
+        if kind == "sensor" and schema in _RAW:
+            self.raw_seen.add(sensor, sequence)
         if kind == "timetag" or (kind == "sensor" and schema in _RAW):
             self.counts["tags" if kind == "timetag" else "meas"] += 1
             self.batch.append((kind, key, schema, payload, now_ns))
@@ -255,20 +266,24 @@ def rerun_timesync_records(
 
 def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> TimesyncRerun:
     held: list[Record] = []
-    now_ns = start_ns = recovered = 0
+    now_ns = start_ns = 0
+    recovery: list[list[int]] = []  # (first, last) rig log time of each recovered stretch
     for r in records:
         if r.skipped_log_ns >= 0 and side.node is not None:  # what handle() of those would have done
             side.release(rig_time_ns(r.skipped_log_ns, start_ns))
         if r.foreign:  # the live time sync refused a stranger's measurements and tags
             continue
-        if r.recovered and "/synced/" in r.topic:
-            # a restarted recorder wrote what it recovered from the caches as it came: the raw
-            # measurements of that stretch are not in the order the time sync took them with
-            # its tags (a tag written before the samples it followed), so their re-stamps are
-            # not the live ones; the core still takes them, and is back in step after the stretch
-            recovered += 1
-            continue
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
+        if r.recovered and side.node is not None:
+            # a restarted recorder wrote what it recovered from the caches as it came, key by
+            # key: in that stretch raw measurements and tags are not in the order the time sync
+            # took them (a tag before the samples or fixes published before it), so re-stamps
+            # of what was read there are not the live ones; the core takes all of it, and is
+            # back in step once the stretch has been read
+            if recovery and now_ns - recovery[-1][1] <= RECOVERY_GAP_NS:
+                recovery[-1][1] = max(recovery[-1][1], now_ns)
+            else:
+                recovery.append([now_ns, now_ns])
         if side.node is None:
             if r.topic.endswith("/run"):
                 run = decode(RunInfo, r.payload)
@@ -290,6 +305,12 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         now_ns = rig_time_ns(tail[1], start_ns)
     side.finish(now_ns)
     matcher, late, counts = side.matcher, side.late, side.counts
+    recovered = _excuse_recovered(matcher, recovery)
+    # a recorded re-stamp whose raw measurement the file lacks (lost while no recorder wrote, the
+    # re-stamp recovered from the time sync's cache): nothing to recompute it from
+    no_raw = [k for k in matcher.recorded_pending if k not in side.raw_seen]
+    for k in no_raw:
+        del matcher.recorded_pending[k]
     strict = _first_difference(matcher, late, list(matcher.recorded_pending))
     early = matcher.pending_before(now_ns - TAIL_NS)
     if_cut = _first_difference(matcher, late, early)
@@ -307,7 +328,31 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         if_cut,
         unverified=unverified,
         recovered=recovered,
+        no_raw=len(no_raw),
     )
+
+
+def _excuse_recovered(matcher: Matcher, recovery: list[list[int]]) -> int:
+    """Leave out of the verdict the differences of re-stamps computed from measurements read in a
+    stretch a restarted recorder recovered (``recovery``: their log times); how many."""
+    if not recovery:
+        return 0
+
+    def recovered(t_ns: int) -> bool:
+        return any(lo <= t_ns <= hi for lo, hi in recovery)
+
+    rest = [d for d in matcher.diffs if not recovered(d[1])]
+    if len(rest) < len(matcher.diffs):
+        first = min(rest, key=lambda d: d[0]) if rest else None
+        if first is None:
+            matcher.first = None
+        else:
+            order, _t, key, theirs, mine = first
+            text = (
+                _synced_difference(key, theirs, mine) if theirs else f"synced/{key[0]} seq {key[1]} differs"
+            )
+            matcher.first = (order, text)
+    return len(matcher.diffs) - len(rest)
 
 
 def _first_difference(
@@ -358,10 +403,15 @@ def rerun_timesync_report(
     many = session_note(stream.paths, "reran")
     lines += [f"note: {n}" for n in ([many] if many else []) + cut_notes(stream.cut_files)]
     lines += truncation_notes(res, stream.truncated, "re-stamps", "their raw measurement")
+    if res.no_raw:
+        lines.append(
+            f"note: {res.no_raw} recorded re-stamps have no raw measurement in the recording (lost while "
+            "no recorder was writing; hil info shows the gaps in sensor/*): not verifiable"
+        )
     if res.recovered:
         lines.append(
-            f"note: {res.recovered} recorded re-stamps were recovered by a restarted recorder from the "
-            "publishers' caches, written as they came and not in the order the time sync took their "
-            "inputs: not verifiable, not compared"
+            f"note: {res.recovered} re-stamps differ of measurements a restarted recorder recovered from "
+            "the publishers' caches (it wrote them as they came, key by key, not in the order the time "
+            "sync took them with its tags): not verifiable, not counted as differences"
         )
     return verdict(res, stream.truncated, lines, verify, "re-stamps")
