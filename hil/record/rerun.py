@@ -589,11 +589,16 @@ class _FusionRerun:
 
     def result(self) -> RerunResult:
         m = self.matcher
-        lost_from = self._lost_from()
+        lost_from = self._lost_from() if self.realign_pending is None else None
         diff, after_loss = (m.first[1] if m.first else None), 0
         missing = sorted(m.recorded_pending)
         if lost_from is not None:
             diff, after_loss, missing = self._before_loss(lost_from, missing)
+        if self.realign_pending is not None:  # its outputs were rerun as the life before's: no verdict
+            diff = (
+                f"the fusion restarted at imu seq {self.realign_pending} (its realigned event), which the "
+                "recording lacks: the restarted fusion's inputs and alignment cannot be told"
+            )
         if diff is None and missing:
             est, seq = missing[0]
             diff = f"nav/{est} seq {seq}: recorded but not recomputed ({len(missing)} such outputs)"

@@ -375,3 +375,8 @@ def test_a_restarted_fusion_reruns_bit_identical_from_its_realignment(tmp_path: 
         assert again.n_recorded > 1000
     blind = rerun_fusion_records([r for r in records if r is not event], window_ns=None, worker=False)
     assert blind.difference is not None and blind.restarts == 0
+    # ... and without the sample it names, verify says the restarted fusion cannot be told (a loss
+    # of its inputs otherwise excused every output)
+    lacking = [r for r in records if not (r.topic.endswith("/synced/imu") and r.decode().seq == imu_seq)]  # type: ignore[attr-defined]
+    res = rerun_fusion_records(lacking, window_ns=None, worker=False)
+    assert res.difference is not None and f"restarted at imu seq {imu_seq}" in res.difference
