@@ -111,9 +111,9 @@ class RerunResult:
     difference_if_cut: str | None = None
     unverified: int = 0  # recorded outputs near the cut whose inputs the cut took
     restarts: int = 0  # fusion restarts: each later life rerun from its re-alignment
-    # the recording lacks inputs the live fusion took from this time on (its journals count
-    # them): the outputs after it are not verifiable (``after_loss`` of them); None: none lacking
-    lost_from_ns: int | None = None
+    # the recording lacks inputs the live fusion took (its journals count them): the outputs in
+    # each (from, to) span of rig time are not verifiable (``after_loss`` of them differ)
+    lost_spans: list[tuple[int, int]] = field(default_factory=list)
     after_loss: int = 0
 
     def first_difference(self, truncated: bool = False) -> str | None:
@@ -589,15 +589,22 @@ class _FusionRerun:
 
     def result(self) -> RerunResult:
         m = self.matcher
-        lost_from = self._lost_from() if self.realign_pending is None else None
+        unannounced = self._unannounced_lives()
+        spans = self._lost_spans() if self.realign_pending is None and not unannounced else []
         diff, after_loss = (m.first[1] if m.first else None), 0
         missing = sorted(m.recorded_pending)
-        if lost_from is not None:
-            diff, after_loss, missing = self._before_loss(lost_from, missing)
+        if spans:
+            diff, after_loss, missing = self._before_loss(spans, missing)
         if self.realign_pending is not None:  # its outputs were rerun as the life before's: no verdict
             diff = (
                 f"the fusion restarted at imu seq {self.realign_pending} (its realigned event), which the "
                 "recording lacks: the restarted fusion's inputs and alignment cannot be told"
+            )
+        elif unannounced:
+            diff = (
+                f"the fusion's journal comes from {len(unannounced)} restarted process(es) more than the "
+                f"recording has realigned events for (Zenoh session {unannounced[0]}): a restarted "
+                "fusion's inputs and alignment cannot be told without its event"
             )
         if diff is None and missing:
             est, seq = missing[0]
@@ -617,41 +624,54 @@ class _FusionRerun:
             if_cut,
             unverified,
             self.restarts,
-            lost_from,
+            spans,
             after_loss,
         )
 
-    def _lost_from(self) -> int | None:
-        """Where the recording first lacks inputs the live fusion took, if it does: a journal
-        counts the inputs its fusion consumed up to its watermark, so the first one counting more
-        than this rerun fed up to there (each life of the fusion on its own) has the loss between
-        its watermark and the one before. None: the recording holds all it consumed."""
+    def _lost_spans(self) -> list[tuple[int, int]]:
+        """Where the recording lacks inputs the live fusion took: a journal counts the inputs its
+        fusion consumed up to its watermark, so the first one of a life counting more than this
+        rerun fed up to there has the loss between its watermark and the one before (or the
+        life's start); the outputs from there to the next life's re-alignment (a fresh start)
+        are not verifiable. [] : the recording holds all it consumed."""
         lives = {session: k + 1 for k, session in enumerate(self.realigned_sessions)}
         marks: dict[int, list[tuple[int, int]]] = {}
         for session, watermark_ns, consumed in self.journal_marks:
-            marks.setdefault(lives.get(session, 0), []).append((watermark_ns, consumed))
-        first: int | None = None
-        for life, life_marks in marks.items():
+            if watermark_ns > -(2**61):  # (a journal before anything was released: no watermark yet)
+                marks.setdefault(lives.get(session, 0), []).append((watermark_ns, consumed))
+        spans = []
+        for life, life_marks in sorted(marks.items()):
             fed = self.fed_stamps.get(life, array("q"))
-            before = self.life_starts_ns.get(life, -(2**62))
+            before = self.life_starts_ns.get(life, fed[0] if fed else 0)
             for watermark_ns, consumed in sorted(life_marks):
                 if consumed > bisect.bisect_right(fed, watermark_ns):
-                    first = before if first is None else min(first, before)
+                    spans.append((before, self.life_starts_ns.get(life + 1, 2**62)))
                     break
                 before = watermark_ns
-        return first
+        return spans
+
+    def _unannounced_lives(self) -> list[str]:
+        """Fusion processes (Zenoh sessions of its journal) after the first that announced no
+        re-alignment: a restart whose ``realigned`` event the recording lacks."""
+        sessions = list(dict.fromkeys(session for session, _w, _c in self.journal_marks))
+        return [s for s in sessions[1:] if s not in self.realigned_sessions]
 
     def _before_loss(
-        self, lost_from: int, missing: list[tuple[str, int]]
+        self, spans: list[tuple[int, int]], missing: list[tuple[str, int]]
     ) -> tuple[str | None, int, list[tuple[str, int]]]:
-        """The first difference among the outputs before the loss (``_lost_from``), how many
-        after it could not be verified, and the recorded outputs before it not recomputed."""
+        """The first difference among the outputs outside the loss ``spans`` (``_lost_spans``),
+        how many in them could not be verified, and the recorded outputs outside them not
+        recomputed."""
         m = self.matcher
-        before = [d for d in m.diffs if d[1] <= lost_from]
-        after = len(m.diffs) - len(before)
+
+        def lost(t_ns: int) -> bool:
+            return any(a < t_ns < b for a, b in spans)
+
+        kept_diffs = [d for d in m.diffs if not lost(d[1])]
+        after = len(m.diffs) - len(kept_diffs)
         diff = None
-        if before:
-            _order, _t, key, theirs, mine = min(before, key=lambda d: d[0])
+        if kept_diffs:
+            _order, _t, key, theirs, mine = min(kept_diffs, key=lambda d: d[0])
             diff = self._difference(key, theirs, mine) if theirs else f"nav/{key[0]} seq {key[1]} differs"
         kept = []
         for key in missing:
@@ -659,10 +679,10 @@ class _FusionRerun:
                 stamp = decode(NavSolution, m.recorded_pending[key][1]).stamp_ns
             except (msgspec.DecodeError, msgspec.ValidationError):
                 stamp = -(2**62)
-            if stamp <= lost_from:
-                kept.append(key)
-            else:
+            if lost(stamp):
                 after += 1
+            else:
+                kept.append(key)
         return diff, after, kept
 
     def _if_cut(self) -> tuple[str | None, int]:
@@ -818,11 +838,15 @@ def rerun(
             "re-alignment (its realigned event) on the inputs it took"
         )
     lines += truncation_notes(res, stream.truncated, "outputs", "inputs")
-    if res.lost_from_ns is not None:
+    if res.lost_spans:
+        where = ", ".join(
+            f"from t={a / 1e9:.3f} s" + (f" to the restart at t={b / 1e9:.3f} s" if b < 2**62 else " on")
+            for a, b in res.lost_spans
+        )
         lines.append(
-            f"note: the recording lacks inputs the live fusion took from t={res.lost_from_ns / 1e9:.3f} s on "
-            "(its journal counts more than the file holds there): the outputs after that are not "
-            f"verifiable, and {res.after_loss} of them differ; those before are compared"
+            f"note: the recording lacks inputs the live fusion took (its journal counts more than the file "
+            f"holds): the outputs {where} are not verifiable, and {res.after_loss} of them differ or are "
+            "missing; the others are compared"
         )
     # loss is fewer held than journaled; more is expected in a file that ends (cut, then
     # recovered) after inputs the fusion consumed but had not journaled yet

@@ -375,6 +375,7 @@ def test_a_restarted_fusion_reruns_bit_identical_from_its_realignment(tmp_path: 
         assert again.n_recorded > 1000
     blind = rerun_fusion_records([r for r in records if r is not event], window_ns=None, worker=False)
     assert blind.difference is not None and blind.restarts == 0
+    assert "restarted process(es) more than the recording has realigned events for" in blind.difference
     # ... and without the sample it names, verify says the restarted fusion cannot be told (a loss
     # of its inputs otherwise excused every output)
     lacking = [r for r in records if not (r.topic.endswith("/synced/imu") and r.decode().seq == imu_seq)]  # type: ignore[attr-defined]
