@@ -29,7 +29,10 @@ from hil.record.mcapio import (
     RecordingError,
     Session,
     file_halves,
+    next_in_session,
     session_files,
+    session_first_path,
+    split_first_path,
     stream_session,
 )
 
@@ -371,6 +374,13 @@ def _parts_lines(path: Path, part: dict[str, str]) -> list[str]:
     later part, which one it is (``hil info`` describes the one file it is given)."""
     index = part.get("index", "0")
     if index != "0":
+        first = session_first_path(path, int(index) if index.isdigit() else 0)
+        if RESTART_PART_NAME.search(split_first_path(path, int(index) if index.isdigit() else 0).stem):
+            return [
+                f"parts:     part {index} of a restarted recorder's split file, after "
+                f"{part.get('previous', '?')}, continuing the session begun in {first.name} (hil rerun, "
+                "replay, report and export of that file read the whole session)"
+            ]
         return [
             f"parts:     part {index} of a split recording, after {part.get('previous', '?')} (the run and "
             f"the whole session: its first file)"
@@ -390,6 +400,30 @@ def _parts_lines(path: Path, part: dict[str, str]) -> list[str]:
     return [
         f"parts:     the session continues in {len(more)} more part(s){restarted}: {names} (hil rerun, "
         f"replay, report and export read them all; hil merge joins them)"
+    ]
+
+
+def _session_line(path: Path, index: str) -> list[str]:
+    """Of a session's first file, when more follow: the session's loss, from the completeness of
+    its last file, which covers all of it (this file's covers itself, or is missing)."""
+    if index != "0" or RESTART_PART_NAME.search(path.stem):
+        return []
+    files = session_files(path)
+    if len(files) < 2:
+        return []
+    from mcap.reader import make_reader
+
+    try:
+        with open(files[-1], "rb") as fh:
+            found = [m for m in make_reader(fh).iter_metadata() if m.name == "completeness"]
+    except Exception:  # the last file is cut short too: no summary to read it from
+        found = []
+    if not found:
+        return [f"session:   its last file, {files[-1].name}, has no completeness summary (cut short)"]
+    comp = dict(found[-1].metadata)
+    return [
+        f"session:   missing={comp.get('missing')} replay_ready={comp.get('replay_ready')} over all "
+        f"{len(files)} files (the completeness of its last, {files[-1].name})"
     ]
 
 
@@ -429,7 +463,14 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
             else "MCAP log/publish times are rig time (recorded before the wall-clock timeline)"
         )
         lines.append(f"start:     {when.replace('+00:00', 'Z')} (rig time zero; {base})")
-    if s.truncated:
+    index = s.metadata.get("part", {}).get("index", "0")
+    after = next_in_session(Path(path), int(index) if index.isdigit() else 0)
+    if s.truncated and after is not None:  # a killed recorder's, continued by its restarted one
+        lines.append(
+            f"CUT SHORT: read up to the last complete chunk ({s.truncation_reason}): its recorder was "
+            f"killed, and the session continues in {after.name}"
+        )
+    elif s.truncated:
         lines.append(f"TRUNCATED: read up to the last complete chunk ({s.truncation_reason})")
     recovered = recovered_line(s.metadata.get("recovered"))
     if recovered:
@@ -451,8 +492,13 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
         lines.append(
             f"recorder:  missing={comp.get('missing')}{extra} replay_ready={comp.get('replay_ready')}"
         )
+    elif s.truncated and after is not None:
+        lines.append(
+            "recorder:  no completeness summary here (the session's last file has it, for all of it)"
+        )
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
+    lines += _session_line(Path(path), index)
     stalled = summary.fusion_line()
     if stalled:
         lines.append(stalled)

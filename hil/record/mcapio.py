@@ -179,7 +179,8 @@ def restart_part_path(record: Path, part: int) -> Path:
     return record.with_name(f"{record.stem}.part{part}{record.suffix or '.mcap'}")
 
 
-RESTART_PART_NAME = re.compile(r"\.part\d+(_\d{4})?$")
+#: a restarted recorder's file (``restart_part_path``), not its split parts (``<stem>.part1_0001``)
+RESTART_PART_NAME = re.compile(r"\.part\d+$")
 
 
 def session_note(files: list[Path], did: str) -> str | None:
@@ -213,21 +214,69 @@ def cut_notes(cut: list[str]) -> list[str]:
 #: how far into a live recording its ``hil`` metadata is looked for (it comes when the run starts,
 #: after the boot's messages: a few dozen)
 _RUN_METADATA_WITHIN = 100_000
+#: the ``hil`` metadata that names a run: files that differ in any were recorded by other runs
+RUN_IDENTITY = ("rig", "scenario", "scenario_sha256", "seed", "start_epoch_ns")
 
 
-def _run_identity(path: Path, leading: bool = False) -> tuple[str, str] | None:
-    """(rig, start epoch) of the run a file records, from its ``hil`` metadata; None: not found
-    (``leading``: among the records it starts with, as a restarted recorder writes it)."""
+def run_identity(path: Path, *, leading: bool = False) -> dict[str, str] | None:
+    """The run ``path`` was recorded in (its ``hil`` metadata's ``RUN_IDENTITY`` keys); None when
+    it says none. From the summary's metadata index, which points at the record (a piece ``hil
+    filter`` cut has its metadata after the messages); a file without one (a crashed recorder's)
+    is read to it, within its first ``_RUN_METADATA_WITHIN`` records (``leading``: among the
+    records it starts with, as a restarted recorder writes it)."""
+
+    def identity(meta: dict[str, str]) -> dict[str, str]:
+        return {k: meta[k] for k in RUN_IDENTITY if k in meta}
+
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            reader = make_reader(fh)
+            if reader.get_summary() is not None:
+                found = [m for m in reader.iter_metadata() if m.name == "hil"]
+                return identity(dict(found[0].metadata)) if found else None
+    except Exception:  # no readable summary (a crashed file): read below
+        pass
     try:
         for n, (kind, rec) in enumerate(iter_records(path)):
             if kind == "metadata" and rec.name == "hil":
-                meta = dict(rec.metadata)
-                return meta.get("rig", ""), meta.get("start_epoch_ns", "")
+                return identity(dict(rec.metadata))
             if n >= _RUN_METADATA_WITHIN or (leading and kind != "metadata"):
                 return None
     except (McapError, OSError, ValueError, struct.error):
         pass
     return None
+
+
+def session_first_path(path: Path, split_index: int = 0) -> Path:
+    """The first file of the session a file is part of, by its name: ``path`` if it is, else the
+    file its split parts (``split_index``: its ``part`` metadata's index) and a restarted
+    recorder's files (``<stem>.part<N>``) go back to."""
+    base = split_first_path(path, split_index)
+    restart = RESTART_PART_NAME.search(base.stem)
+    return base.with_name(f"{base.stem[: restart.start()]}{base.suffix}") if restart else base
+
+
+def first_of_its_session(path: Path) -> Path | None:
+    """The session's first file when ``path`` is a later file of one (a split part, a restarted
+    recorder's file) and that first file is there; None otherwise. What a tool that needs the
+    run's start (``hil rerun``) points to instead of saying the file lacks it."""
+    index = (_leading_metadata(path, "part") or {}).get("index", 0)
+    try:
+        first = session_first_path(path, int(index))
+    except (TypeError, ValueError):
+        return None
+    return first if first != path and first.is_file() and path in session_files(first) else None
+
+
+def next_in_session(path: Path, split_index: int = 0) -> Path | None:
+    """The file of its session that follows ``path`` (``session_files``), None if it is the last
+    (or not one of them)."""
+    files = session_files(session_first_path(path, split_index))
+    names = [f.name for f in files]
+    k = names.index(path.name) if path.name in names else -1
+    return files[k + 1] if 0 <= k < len(files) - 1 else None
 
 
 def restart_parts(path: Path) -> list[Path]:
@@ -238,11 +287,11 @@ def restart_parts(path: Path) -> list[Path]:
     before the run was announced): a part whose recorder was told it continues a file of
     ``path``'s name."""
     parts: list[Path] = []
-    mine: tuple[str, str] | bool | None = False  # read once, when a part is there
+    mine: dict[str, str] | bool | None = False  # read once, when a part is there
     while (part := restart_part_path(path, len(parts) + 1)).is_file():
         if mine is False:
-            mine = _run_identity(path)
-        theirs = _run_identity(part, leading=True)
+            mine = run_identity(path)
+        theirs = run_identity(part, leading=True)
         if mine is not None and theirs != mine:
             return parts
         if mine is None:

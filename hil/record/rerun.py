@@ -47,6 +47,7 @@ from hil.record.mcapio import (
     Session,
     SessionStream,
     cut_notes,
+    first_of_its_session,
     no_run_message,
     session_note,
 )
@@ -815,6 +816,12 @@ def rerun(
     The file is streamed (``SessionStream``): memory stays at seconds of data whatever the
     length of the recording. ``on_progress(bytes_read, file_bytes)``.
     """
+    first = first_of_its_session(Path(path))
+    if first is not None:  # a later file alone has no run start, configuration or first inputs
+        return 2, [
+            f"hil rerun: {path} is a later file of the session that begins in {first}: rerun that "
+            "file, which reads the whole session in order"
+        ]
     if core == "timesync":
         from hil.record.rerun_timesync import rerun_timesync_report
 

@@ -26,7 +26,14 @@ from mcap.writer import CompressionType, Writer
 
 from hil import __version__
 from hil.record.completeness import Completeness
-from hil.record.mcapio import PROFILE, RecordingError, split_part_path, split_parts
+from hil.record.mcapio import (
+    PROFILE,
+    RUN_IDENTITY,
+    RecordingError,
+    run_identity,
+    split_part_path,
+    split_parts,
+)
 from hil.record.scan import Scan, ScanReport, channel_key, describe_loss
 
 CHUNK_SIZE = 512 * 1024
@@ -389,33 +396,6 @@ def merge_recordings(srcs: list[Path], out: str | Path, *, parts: bool | None = 
     return WriteResult(dest, w.messages, w.attachments, w.metadata, notes)
 
 
-#: the ``hil`` metadata that names a run: inputs that differ in any were recorded by other runs
-RUN_IDENTITY = ("rig", "scenario", "scenario_sha256", "seed", "start_epoch_ns")
-
-
-def _run_identity(path: Path) -> dict[str, str] | None:
-    """The run ``path`` was recorded in (its ``hil`` metadata's identity keys), None when it
-    says none: from the summary's metadata index, which points at the record (a piece ``hil
-    filter`` cut has its metadata after the messages); a file without one is scanned to it."""
-    from mcap.reader import make_reader
-
-    def identity(meta: dict[str, str]) -> dict[str, str]:
-        return {k: meta[k] for k in RUN_IDENTITY if k in meta}
-
-    try:
-        with open(path, "rb") as fh:
-            reader = make_reader(fh)
-            if reader.get_summary() is not None:
-                found = [m for m in reader.iter_metadata() if m.name == "hil"]
-                return identity(dict(found[0].metadata)) if found else None
-    except Exception:  # no readable summary (a crashed file): scanned below
-        pass
-    for rec in Scan(path, messages=False):
-        if isinstance(rec, Metadata) and rec.name == "hil":
-            return identity(dict(rec.metadata))
-    return None
-
-
 def _check_one_session(srcs: list[Path]) -> None:
     """Refused before anything is written: an input given twice (every message would be there
     twice), or inputs of different runs (another scenario, seed or start: ``hil info`` would
@@ -428,7 +408,7 @@ def _check_one_session(srcs: list[Path]) -> None:
                     f"merge: {a} is given twice (as {b}): its messages would all be there twice; "
                     "give each input once"
                 )
-    runs = [(p, _run_identity(p)) for p in srcs]
+    runs = [(p, run_identity(p)) for p in srcs]
     if all(run is None for _p, run in runs):
         return
     p0, run0 = runs[0]

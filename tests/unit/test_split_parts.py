@@ -30,7 +30,7 @@ from hil.record.mcapio import (
     stale_parts,
 )
 from hil.record.replay import ReplayStats, _messages, recorded_span_ns
-from hil.record.rerun import rerun_fusion_file, rerun_fusion_records
+from hil.record.rerun import rerun, rerun_fusion_file, rerun_fusion_records
 from hil.report.data import load as load_report
 from hil.runners.sim import SimOptions, run_sim
 from tests.conftest import run_hil
@@ -280,6 +280,19 @@ def test_a_restarted_recorders_file_is_followed_only_for_its_own_run_and_moves_w
     )
     assert "(a restarted recorder's): s.part1.mcap" in describe(str(first))
     assert "continuing the session begun in s.mcap" in describe(str(part))
+    # ... a rerun of the part alone points to the first file (it has neither run nor configuration)
+    rc, lines = rerun(str(part), verify=True)
+    assert rc == 2 and lines == [
+        f"hil rerun: {part} is a later file of the session that begins in {first}: rerun that file, "
+        "which reads the whole session in order"
+    ]
+    # ... the first file cut short (its recorder killed) reads as cut, not as the session's end
+    whole = first.read_bytes()
+    first.write_bytes(whole[: len(whole) * 2 // 3])
+    said = describe(str(first))
+    assert "CUT SHORT: read up to the last complete chunk" in said and "continues in s.part1.mcap" in said
+    assert "TRUNCATED" not in said and "session:   missing=0 replay_ready=true over all 2 files" in said
+    first.write_bytes(whole)
     # ... and a new recording at the path moves it aside with the first file
     kept = keep_aside(first)
     assert kept == tmp_path / "s.1.mcap" and not part.exists()
