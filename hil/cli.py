@@ -61,7 +61,7 @@ def _keep_earlier_recording(record: Path) -> None:
     to), before any service starts (``hil.record.mcapio.keep_aside``: a live session cannot be
     made again; a recorder started alone, as docker compose runs it, does the same itself). Part
     names left by an older recording stay, and are said: readers leave them out."""
-    from hil.record.mcapio import keep_aside, stale_parts_note
+    from hil.record.mcapio import keep_aside, session_files, stale_parts_note
 
     logs = record.with_suffix(".logs")
     try:
@@ -76,10 +76,10 @@ def _keep_earlier_recording(record: Path) -> None:
         ) from None
     if kept is not None:
         with_logs = f" (its logs as {kept_logs.name})" if kept_logs is not None and kept_logs.is_dir() else ""
-        print(
-            f"hil up: {record} held an earlier recording: kept as {kept}{with_logs}, not written over",
-            file=sys.stderr,
-        )
+        more = len(session_files(kept)) - 1
+        with_parts = f" with its {more} later file(s)" if more else ""
+        said = f"kept as {kept}{with_parts}{with_logs}, not written over"
+        print(f"hil up: {record} held an earlier recording: {said}", file=sys.stderr)
     note = stale_parts_note(record)
     if note:
         print(f"hil up: warning: {note}", file=sys.stderr)

@@ -203,7 +203,12 @@ def export(
     if not tables:
         have = ", ".join(sorted({t for scan in scans for t in scan.report.per_topic})) or "no messages"
         raise RecordingError(f"{src}: no IMU, GNSS, truth or nav messages to export (it has {have})")
-    notes = [f"note: {ln}" for scan in scans for ln in describe_loss(scan.report)]
+    named = len(scans) > 1  # which file of the session a loss is in
+    notes = [
+        f"note: {scan.path.name}: {ln}" if named else f"note: {ln}"
+        for scan in scans
+        for ln in describe_loss(scan.report)
+    ]
     for topic, (n, seq, log) in sorted(bad.items()):
         rows = tables[topic].count
         notes.append(
