@@ -210,7 +210,8 @@ def test_hil_up_keeps_an_earlier_recording_and_its_logs_before_the_run(
     err = capsys.readouterr().err.splitlines()
     assert (
         err[0]
-        == f"hil up: {rec} held an earlier recording: kept as {kept} (its logs as s.1.logs), not written over"
+        == f"hil up: {rec} held an earlier recording: kept as {kept} with its 2 later file(s) (its logs as "
+        "s.1.logs), not written over"
     )
     assert err[1].startswith("hil up: warning: s_0003.mcap beside") and len(err) == 2
     assert [f.read_bytes() for f in session_files(kept)] == before  # one session there still
