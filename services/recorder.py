@@ -56,6 +56,7 @@ is lost across a split: the writer thread rotates between two messages.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import threading
@@ -109,6 +110,44 @@ class _Stamp(msgspec.Struct):
 
 
 _STAMP = msgspec.json.Decoder(_Stamp)
+
+
+class _RunFromMetadata:
+    """The run an earlier file records, from its ``hil`` metadata and scenario attachment: for a
+    file whose RunInfo messages the key filter left out (``--record-include 'nav/**'``)."""
+
+    def __init__(self) -> None:
+        self.meta: dict[str, str] | None = None
+        self.toml: dict[str, str] = {}  # scenario name -> its TOML
+
+    def take(self, kind: str, rec: Any) -> None:
+        if kind == "metadata" and rec.name == "hil" and self.meta is None:
+            self.meta = dict(rec.metadata)
+        elif kind == "attachment" and rec.name.startswith("scenario/") and rec.name.endswith(".toml"):
+            self.toml[rec.name[len("scenario/") : -len(".toml")]] = rec.data.decode("utf-8", "replace")
+
+    def run(self) -> RunInfo | None:
+        """The RunInfo the metadata describes; None when it is not a live run's (no start epoch)."""
+        m = self.meta
+        if m is None or "start_epoch_ns" not in m:
+            return None
+        try:
+            v = {k: json.loads(m[k]) for k in _RUN_FIELDS}
+            v["rig"], v["scenario"], v["scenario_sha256"] = m["rig"], m["scenario"], m["scenario_sha256"]
+            return RunInfo(seq=0, stamp_ns=0, scenario_toml=self.toml.get(m["scenario"], ""), **v)
+        except (KeyError, ValueError, TypeError):
+            return None
+
+
+_RUN_FIELDS = (
+    "start_epoch_ns",
+    "speed",
+    "seed",
+    "duration_s",
+    "origin_lat_deg",
+    "origin_lon_deg",
+    "origin_alt_m",
+)
 
 
 class Recorder(Service):
@@ -175,6 +214,9 @@ class Recorder(Service):
         self.previous_files: list[str] = []
         self.previous_messages = 0
         self.already_recorded = 0
+        # the run the earlier files record (their first RunInfo; else their ``hil`` metadata)
+        self._previous_run: RunInfo | None = None
+        self._earlier_run = _RunFromMetadata()
 
     # The base class sets ``state`` to "running" after setup(); a recorder that cannot write must
     # keep saying "degraded" for as long as it lives, so the state is derived, not assigned.
@@ -561,8 +603,13 @@ class Recorder(Service):
     def _account_file(self, path: Path) -> int:
         n = 0
         for kind, rec in iter_records(path):
+            if self._previous_run is None and kind in ("metadata", "attachment"):
+                self._earlier_run.take(kind, rec)
             if kind != "message" or rec.foreign or not rec.schema.startswith("hil."):
                 continue
+            if self._previous_run is None and rec.schema == "hil.RunInfo":
+                with contextlib.suppress(msgspec.ValidationError, msgspec.DecodeError):
+                    self._previous_run = decode(RunInfo, rec.payload)
             try:
                 seq = _STAMP.decode(rec.payload).seq
             except (msgspec.ValidationError, msgspec.DecodeError):
@@ -575,6 +622,13 @@ class Recorder(Service):
     def _write_loop(self) -> None:
         if self.opts.continues:
             self._read_previous()
+            # the session's time base before anything is written: until the next RunInfo came,
+            # the part's first second went out with publish time = log time (and, at a speed
+            # other than 1, log times off the session's base), so what it recovered from the
+            # caches did not read as recovered (``SessionStream``) and the time-sync rerun failed
+            run = self._previous_run or self._earlier_run.run()
+            if run is not None and self._start_epoch_ns is None:
+                self._take_run(run)
         last_flush = time.monotonic()
         while not self._abort.is_set():
             items = self.queue.get_many(WRITE_BATCH, timeout=0.2)

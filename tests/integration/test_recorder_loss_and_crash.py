@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import msgspec
 import pytest
 import zenoh
 from mcap.reader import make_reader
@@ -31,7 +32,14 @@ from hil.messages import (
     decode,
     encode,
 )
-from hil.record.mcapio import RecordingError, read_session, split_part_path, split_parts
+from hil.record.mcapio import (
+    RecordingError,
+    Session,
+    SessionStream,
+    read_session,
+    split_part_path,
+    split_parts,
+)
 from hil.runners.sim import SimOptions, run_sim
 from tests.conftest import REPO, communicate_or_dump, free_port, hil_cmd
 
@@ -315,32 +323,45 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
 def test_a_restarted_recorder_continues_the_session_once_and_recovers_what_the_caches_hold(
     hub: Hub, tmp_path: Path
 ) -> None:
-    # GIVEN a recorder whose file holds truth 0..149 (flushed), then is SIGKILLed
+    # GIVEN a run at speed 2 whose time zero was 100 s ago (log time = start + 2 x the wall time
+    # since: a part on the raw wall clock reads 100 s and more early), truth stamped on its rig
+    # clock, and a recorder whose file holds truth 0..149 (flushed), then is SIGKILLed
     first, part = tmp_path / "s.mcap", tmp_path / "s.part1.mcap"
     k = Keys(RIG)
+    run = msgspec.structs.replace(run_info(0), start_epoch_ns=time.time_ns() - 100 * 10**9, speed=2.0)
+    start = run.start_epoch_ns
+
+    def on_rig_clock(seq: int) -> Truth:
+        return msgspec.structs.replace(truth(seq), stamp_ns=2 * (time.time_ns() - start))
+
     proc = start_recorder(hub, str(first))
     second: subprocess.Popen[bytes] | None = None
     try:
         run_pub = Publisher(hub.session, k.run(), RunInfo)
-        run_pub.put(run_info(0))
+        run_pub.put(run)
         pub = Publisher(hub.session, k.truth(), Truth)  # an advanced publisher: a 256-sample cache
         for i in range(150):
-            pub.put(truth(i))
+            pub.put(on_rig_clock(i))
         deadline = time.monotonic() + 60
         while _flushed(first, k.truth()) < 150:
             assert time.monotonic() < deadline, "the first recorder never flushed truth 0..149"
             time.sleep(0.2)
+        # no RunInfo reaches the restarted recorder (its cache goes too): the run it stamps with
+        # can come from the first file alone (live, RunInfo comes at 1 Hz, after other keys' caches)
+        run_pub._pub.undeclare()
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
         # WHEN truth 150..249 go out with no recorder, and a restarted one continues the session
         for i in range(150, 250):
-            pub.put(truth(i))
+            pub.put(on_rig_clock(i))
+        restarted_wall = time.time_ns()
         second = start_recorder(hub, str(part), continues=[str(first)], resume=1)
         for i in range(250, 300):
-            pub.put(truth(i))
+            pub.put(on_rig_clock(i))
         hub.wait(lambda st: st.counter_map().get("written", 0) >= 150, timeout=60)
         second.send_signal(signal.SIGTERM)
         out = communicate_or_dump(second, 60)
+        stopped_wall = time.time_ns()
         assert second.returncode == 0, out.decode()[-2000:]
     finally:
         _stop(proc)
@@ -358,11 +379,36 @@ def test_a_restarted_recorder_continues_the_session_once_and_recovers_what_the_c
     cont = json.loads(comp["continues"])
     # (the first file also holds the first recorder's statuses, whose cache died with it)
     held = sum(1 for r in a.records if r.schema.startswith("hil."))
-    assert cont == {"files": [first.name], "messages": held, "already_recorded": 151}, (cont, held)
+    assert cont == {"files": [first.name], "messages": held, "already_recorded": 150}, (cont, held)
     # and the part's accounting covers the whole session: nothing missing, nothing twice
     tr = json.loads(comp["topics"])[k.truth()]
     assert (tr["first"], tr["last"], tr["count"], tr["missing"], tr["duplicates"]) == (0, 299, 300, 0, 0), tr
     assert json.loads(comp["replay_ready"]) is True
+    _assert_the_part_is_on_the_sessions_time_base(first, b, k, run, (restarted_wall, stopped_wall))
+
+
+def _assert_the_part_is_on_the_sessions_time_base(
+    first: Path, b: Session, k: Keys, run: RunInfo, walls: tuple[int, int]
+) -> None:
+    """A restarted recorder stamps as the first did from its first message: the run (taken from
+    the first file, no RunInfo having reached it) is its metadata, every publish time is the
+    start epoch + the stamp (recovered ones included: before, publish = log time until a RunInfo
+    came), and its log times are rig time on the date at the run's speed."""
+    start, speed = run.start_epoch_ns, run.speed
+    hil = b.metadata["hil"]
+    assert (json.loads(hil["start_epoch_ns"]), json.loads(hil["speed"])) == (start, speed), hil
+    rig = [r for r in b.records if r.schema.startswith("hil.")]
+    off = [(r.topic, r.sequence) for r in rig if r.publish_time_ns != start + r.decode().stamp_ns]
+    assert not off, off[:5]
+    lo, hi = (start + int(speed * (w - start)) for w in walls)
+    assert lo <= rig[0].log_time_ns <= hi, (rig[0].log_time_ns - lo, hi - rig[0].log_time_ns)
+    assert rig[0].log_time_ns > max(r.log_time_ns for r in read_session(first).records)
+    # so what it recovered from the cache (published before it started) reads as recovered, and
+    # only that: the time-sync rerun excuses the re-stamps of measurements read there
+    stream = SessionStream(first, follow_parts=True)
+    recovered = [r.sequence for r in stream if r.topic == k.truth() and r.recovered]
+    assert [p.name for p in stream.paths] == [first.name, "s.part1.mcap"]
+    assert recovered == list(range(150, 250)), recovered
 
 
 def test_a_publisher_that_spoke_once_before_the_recorder_listened_is_recorded(
