@@ -25,6 +25,11 @@ order and run once their batch's re-stamps are back, so it decides exactly as on
 (``--one-process`` keeps everything here). 300 s of straight_level: 3.27 s in one process, 2.13-2.18
 s in two (this process 1.46 s of CPU, the worker 1.65 s).
 
+A time sync restarted mid-run (``hil up --restart``) is a fresh core on what its new process
+received, which the recording cannot tell exactly (``_Lives``): its re-stamps (another Zenoh
+session publishes them) are counted as not verifiable, in a note naming the restart, and the
+first life's are compared as ever.
+
 Also not covered: a measurement the live service released by its *idle* flush (a sensor silent for
 ``IDLE_FLUSH_S`` while the core held samples around a suspected clock step) was stamped with the
 mapping of that wall-clock moment, which a recording cannot tell; verify then names it.
@@ -33,12 +38,12 @@ mapping of that wall-clock moment, which a recording cannot tell; verify then na
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
 
-from hil.messages import RunInfo, TimeTag, decode, encode, schema_name
+from hil.messages import Event, RunInfo, TimeTag, decode, encode, schema_name
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
@@ -71,13 +76,17 @@ class TimesyncRerun:
     unverified: int = 0
     recovered: int = 0  # differing re-stamps of what a restarted recorder recovered: excused
     no_raw: int = 0  # recorded re-stamps whose raw measurement the recording lacks
+    # recorded re-stamps of a restarted time sync (a later life: ``_Lives``), not compared, and
+    # the rig time (s) of each restart
+    restarted: int = 0
+    restarts_s: tuple[float, ...] = ()
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
 
     @property
     def excused(self) -> int:
-        return self.recovered + self.no_raw
+        return self.recovered + self.no_raw + self.restarted
 
 
 def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
@@ -243,6 +252,63 @@ def _route(topic: str) -> tuple[str, str, str] | None:
     return kind, sensor, f"{kind}/{sensor}"
 
 
+@dataclass
+class _Lives:
+    """The time sync's lives in a recording (``hil up --restart``): a restarted service publishes
+    from a new Zenoh session, so ``synced/*`` records whose publisher session is not the first
+    one's are a later life's.
+
+    A later life is a fresh core that took the raw measurements and tags published after its
+    subscription opened. Its first re-stamp names the first measurement it took, but not which of
+    the time tags published between that one and the measurement before it reached it (GNSS: a
+    1 Hz PPS tag falls there once in ten 10 Hz fixes), and a tag more or less is another tag filter
+    and other stamps; so its re-stamps are counted as not verifiable, never compared against the
+    first life's core, which the rerun goes on feeding."""
+
+    first: str | None = None  # the first life's Zenoh session
+    later: list[str] = field(default_factory=list)  # the later lives' sessions, in order
+    first_out_ns: list[int] = field(default_factory=list)  # rig log time of each one's first output
+    restarted_ns: list[int] = field(default_factory=list)  # the supervisor's service_restarted events
+    n_later: int = 0  # recorded re-stamps of the later lives
+
+    def is_later(self, r: Record, now_ns: int) -> bool:
+        """Is ``r`` (a ``synced/*`` record) a later life's re-stamp? Counted if so."""
+        session = r.publisher.partition(":")[0]
+        if not session:  # a recording without publishers (``hil sim``, older files): one life
+            return False
+        if self.first is None or session == self.first:
+            self.first = session
+            return False
+        if session not in self.later:
+            self.later.append(session)
+            self.first_out_ns.append(now_ns)
+        self.n_later += 1
+        return True
+
+    def supervisor_event(self, r: Record) -> None:
+        ev = r.decode()
+        if isinstance(ev, Event) and ev.kind == "service_restarted" and ev.source == "timesync":
+            self.restarted_ns.append(ev.stamp_ns)
+
+    def times_s(self) -> tuple[float, ...]:
+        """When each later life began: the supervisor's restart, else its first output."""
+        events = self.restarted_ns if len(self.restarted_ns) == len(self.later) else self.first_out_ns
+        return tuple(t / 1e9 for t in events)
+
+
+def restart_note(res: TimesyncRerun) -> list[str]:
+    """The note of a time sync restarted mid-run: when, and how many re-stamps it leaves out."""
+    if not res.restarts_s:
+        return []
+    at = ", ".join(f"t={t:.1f} s" for t in res.restarts_s)
+    n = len(res.restarts_s)
+    return [
+        f"note: the time sync restarted {'at' if n == 1 else f'{n} times, at'} {at} (a new process, a fresh "
+        "core this rerun does not rebuild: which time tags it took before its first measurement the "
+        f"recording cannot tell): its {res.restarted} re-stamps after that are not verifiable"
+    ]
+
+
 def rerun_timesync_records(
     records: Iterable[Record], name: str = "recording", worker: bool | None = None
 ) -> TimesyncRerun:
@@ -268,12 +334,19 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
     held: list[Record] = []
     now_ns = start_ns = 0
     recovery: list[list[int]] = []  # (first, last) rig log time of each recovered stretch
+    lives = _Lives()
     for r in records:
         if r.skipped_log_ns >= 0 and side.node is not None:  # what handle() of those would have done
             side.release(rig_time_ns(r.skipped_log_ns, start_ns))
         if r.foreign:  # the live time sync refused a stranger's measurements and tags
             continue
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
+        if r.topic.endswith("/event/supervisor"):
+            lives.supervisor_event(r)
+        elif "/synced/" in r.topic and lives.is_later(r, now_ns):
+            if side.node is not None:
+                side.release(now_ns)  # what handle() does with a record it does not match
+            continue
         if r.recovered and side.node is not None:
             # a restarted recorder wrote what it recovered from the caches as it came, key by
             # key: in that stretch raw measurements and tags are not in the order the time sync
@@ -323,12 +396,14 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         counts["meas"],
         counts["tags"],
         counts["out"],
-        matcher.n_recorded,
+        matcher.n_recorded + lives.n_later,
         strict,
         if_cut,
         unverified=unverified,
         recovered=recovered,
         no_raw=len(no_raw),
+        restarted=lives.n_later,
+        restarts_s=lives.times_s(),
     )
 
 
@@ -381,7 +456,12 @@ def timesync_topic(topic: str) -> bool:
     tags, raw and re-stamped measurements, the run, and any topic not of four parts, which it
     treats apart): what a filtered reader must give it (``SessionStream(keep=...)``)."""
     parts = topic.split("/")
-    return len(parts) != 4 or parts[2] in ("timetag", "sensor", "synced") or topic.endswith("/run")
+    return (
+        len(parts) != 4
+        or parts[2] in ("timetag", "sensor", "synced")
+        or topic.endswith("/run")
+        or topic.endswith("/event/supervisor")  # a restarted time sync's ``service_restarted``
+    )
 
 
 def rerun_timesync(session: Session) -> TimesyncRerun:
@@ -408,6 +488,7 @@ def rerun_timesync_report(
             f"note: {res.no_raw} recorded re-stamps have no raw measurement in the recording (lost while "
             "no recorder was writing; hil info shows the gaps in sensor/*): not verifiable"
         )
+    lines += restart_note(res)
     if res.recovered:
         lines.append(
             f"note: {res.recovered} re-stamps differ of measurements a restarted recorder recovered from "

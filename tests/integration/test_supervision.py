@@ -319,6 +319,24 @@ def test_a_restart_reads_as_a_restart_in_the_completeness_and_the_downtime_as_lo
     assert "restarts:  7 publisher(s) restarted during the recording" in info.stdout, info.stdout
     rows = [ln.split() for ln in info.stdout.splitlines() if ln.startswith("hil/genrig/")]
     assert rows and all(r[5] == "0" for r in rows), info.stdout  # the dups column
+    # and the time-sync rerun verifies what the first time sync re-stamped, and says that the
+    # restarted one's re-stamps (a fresh core it does not rebuild) are not verifiable (once it fed
+    # them to the first life's core and failed right after the restart, with no word of it)
+    res = subprocess.run(
+        hil_cmd("rerun", str(out), "--core", "timesync", "--verify"),
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+    note = re.search(
+        r"note: the time sync restarted at t=[\d.]+ s .*: its (\d+) re-stamps after that", res.stdout
+    )
+    ok = re.search(r"VERIFY OK: all (\d+) recorded re-stamps", res.stdout)
+    assert note and ok and int(note[1]) > 0 and int(ok[1]) > 0, res.stdout
+    recorded = sum(len(s.by_topic(f"hil/genrig/synced/{k}")) for k in ("imu", "gnss"))
+    assert int(note[1]) + int(ok[1]) == recorded, (res.stdout, recorded)
 
 
 def _with_event_before_sample(records: list[Record], event: Record, imu_seq: int) -> list[Record]:
