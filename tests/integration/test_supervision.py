@@ -153,6 +153,12 @@ def _events(*paths: Path) -> list[Event]:
     return out
 
 
+def _rerun_verify(path: Path, core: str) -> subprocess.CompletedProcess[str]:
+    """``hil rerun PATH --core CORE --verify``, as a user runs it."""
+    cmd = hil_cmd("rerun", str(path), "--core", core, "--verify")
+    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
 def _seq(r: Record) -> int:
     """The payload's seq (generation included; MCAP's ``sequence`` holds its low 32 bits only)."""
     return int(r.decode().seq)  # type: ignore[attr-defined]
@@ -237,8 +243,7 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
     lost = comp["hil/suprig/synced/imu"]["missing"]
     said = {}
     for core in ("fusion", "timesync"):
-        cmd = hil_cmd("rerun", str(out), "--core", core, "--verify")
-        res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+        res = _rerun_verify(out, core)
         said[core] = res.stdout + res.stderr
         assert "continued by a restarted recorder in s.part1.mcap: reran" in res.stdout, said[core]
         assert "s.mcap is cut short" in res.stdout and "the file is truncated" not in res.stdout, said[core]
@@ -322,13 +327,7 @@ def test_a_restart_reads_as_a_restart_in_the_completeness_and_the_downtime_as_lo
     # and the time-sync rerun verifies what the first time sync re-stamped, and says that the
     # restarted one's re-stamps (a fresh core it does not rebuild) are not verifiable (once it fed
     # them to the first life's core and failed right after the restart, with no word of it)
-    res = subprocess.run(
-        hil_cmd("rerun", str(out), "--core", "timesync", "--verify"),
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    res = _rerun_verify(out, "timesync")
     assert res.returncode == 0, res.stdout + res.stderr
     note = re.search(
         r"note: the time sync restarted at t=[\d.]+ s .*: its (\d+) re-stamps after that", res.stdout
@@ -364,13 +363,7 @@ def test_a_restarted_fusion_reruns_bit_identical_from_its_realignment(tmp_path: 
     rc, stdout, stderr = rig.stop_at(rig.rig_time_s() + 4.0)
     assert rc == 0, stdout[-3000:] + stderr[-3000:]
     # WHEN it is rerun
-    res = subprocess.run(
-        hil_cmd("rerun", str(out), "--core", "fusion", "--verify"),
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    res = _rerun_verify(out, "fusion")
     # THEN both lives of the fusion are recomputed bit for bit: the first on the inputs before the
     # restart, the second from its re-alignment on the inputs it took (once, the second life was
     # rerun on every input from the alignment on, and its first outputs were an interval ahead)
