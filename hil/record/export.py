@@ -175,10 +175,11 @@ def export(
     # a split recording: its parts end to end (each part has its channels; tables go by topic)
     scans = [Scan(f) for f in session_files(src)]
     tables: dict[str, _Table] = {}
+    unmatched: set[str] = set()  # exportable topics --topics left out
     decoders: dict[str, type[Any]] = {}
     bad: dict[str, tuple[int, int, int]] = {}  # topic -> (count, first MCAP sequence, its log time)
     try:
-        for t in _wanted((t for scan in scans for t in iter_tagged(scan)), pats):
+        for t in _wanted((t for scan in scans for t in iter_tagged(scan)), pats, unmatched):
             topic = t.channel.topic
             tab = tables.get(topic)
             if tab is None:
@@ -200,6 +201,12 @@ def export(
     finally:
         for tab in tables.values():
             tab.close()
+    if not tables and unmatched:
+        names = ", ".join(sorted(unmatched)[:8]) + (f" (+{len(unmatched) - 8})" if len(unmatched) > 8 else "")
+        raise RecordingError(
+            f"--topics {' '.join(repr(t) for t in topics or [])} matches none of the exportable topics of "
+            f"{src}: {names}"
+        )
     if not tables:
         have = ", ".join(sorted({t for scan in scans for t in scan.report.per_topic})) or "no messages"
         raise RecordingError(f"{src}: no IMU, GNSS, truth or nav messages to export (it has {have})")
@@ -221,10 +228,13 @@ def export(
     return {k: (v.path, v.count) for k, v in tables.items()}, notes
 
 
-def _wanted(tagged: Iterator[Any], pats: list[re.Pattern[str]]) -> Iterator[Any]:
+def _wanted(tagged: Iterator[Any], pats: list[re.Pattern[str]], unmatched: set[str]) -> Iterator[Any]:
+    """The exported messages of topics ``pats`` select; ``unmatched`` collects the exportable
+    topics they left out (what to say when they select none)."""
     for t in tagged:
         if t.schema is None or t.schema.name not in EXPORTED or TYPES_BY_NAME.get(t.schema.name) is None:
             continue
         if pats and not any(p.search(t.channel.topic) for p in pats):
+            unmatched.add(t.channel.topic)
             continue
         yield t

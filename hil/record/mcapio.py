@@ -142,6 +142,17 @@ def no_run_message(name: str, records: Any) -> str:
         return (
             f"{name}: the file is cut off before the run was announced (no hil/<rig>/run): nothing to rerun"
         )
+    meta = getattr(records, "metadata", {}) or {}
+    if "filter" in meta:  # a piece hil filter cut: its run messages stayed in the session before it
+        return (
+            f"{name}: a piece cut by hil filter ({meta['filter'].get('from', '?')}), without the run's "
+            "announcement (hil/<rig>/run): rerun the recording it was cut from"
+        )
+    if "hil" in meta:  # a rig's recording whose key filter left the run messages out
+        return (
+            f"{name}: a rig's recording without its run messages (hil/<rig>/run): its recorder's "
+            "--record-include/--record-exclude left them out, and with them what rerun needs"
+        )
     return f"{name}: no RunInfo (hil/<rig>/run): not a rig session"
 
 

@@ -749,6 +749,11 @@ def rerun_fusion_records(
             raise RecordingError(no_run_message(name, records))
         if state.node is None:
             raise RecordingError(f"{name}: no fusion configuration (fusion/config): the fusion did not run")
+        if state.pushed == 0 and state.matcher.n_recorded:  # outputs but none of their inputs
+            raise RecordingError(
+                f"{name}: it holds the fusion's outputs but none of its inputs (synced/*): its recorder's "
+                "--record-include/--record-exclude left them out, or they were all lost; nothing to rerun"
+            )
         tail = getattr(records, "skipped_tail", None)
         if tail is not None:  # the file's last messages were left out by the reader
             state.last_log_ns = max(state.last_log_ns, tail[0])
