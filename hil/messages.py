@@ -369,6 +369,10 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # how ekf15 and the feedback INS are told the IMU's bias wander (hil.estimators.tuning);
     # absent in recordings made before it, which told them the instability B and the gyro's τ
     imu_bias_model: Annotated[str, msgspec.Meta(max_length=32)] = "instability"
+    # a fix the GNSS gate reacquires re-initialises the estimators that can, and a flagged IMU
+    # sample reacquires at once (hil.fusion.gnss_gate's rule 4); absent in recordings made
+    # before it, whose gate let one fix through
+    gnss_reset: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

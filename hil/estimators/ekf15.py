@@ -108,11 +108,13 @@ import numpy as np
 from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
 from hil.nav import strapdown
 from hil.nav.attitude import (
+    euler_to_quat,
     quat_from_rotvec_floats,
     quat_multiply,
     quat_multiply_floats,
     quat_normalise,
     quat_normalise_floats,
+    quat_to_euler,
 )
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
@@ -128,6 +130,13 @@ from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 _DEG = math.pi / 180.0
 _RTH = 60.0  # sqrt(3600 s/h)
 _YAW_VAR_MAX = math.pi**2 / 3.0  # a heading uniform on the circle: σ = π/√3 (104°)
+# A reset from GNSS (``reset_to_gnss``): the tilt levelled from the specific force is off by the
+# horizontal acceleration over g (0.1 rad: a 1 m/s² manoeuvre); the heading taken from the ground
+# track by the crab or sideslip angle (0.2 rad: beyond the small-angle bound, so held and aligned
+# in motion as a heading of unknown size is), from a track of at least this speed
+RESET_TILT_SIGMA_RAD = 0.1
+RESET_YAW_SIGMA_RAD = 0.2
+RESET_TRACK_MIN_SPEED_MPS = 5.0
 _new_state = tuple.__new__  # a StrapdownState of the run's 16 floats, as strapdown_step_f makes it
 
 
@@ -461,6 +470,8 @@ class Ekf15(Estimator):
         self._align: deque[tuple[int, F64, F64, float]] = deque()  # (t_ns, v_gnss NE, Σ f dt, σ_v)
         self._heading_held = 0  # GNSS fixes whose heading part was held back
         self._heading_resets = 0
+        self._f_b = (0.0, 0.0, -9.80665)  # mean body specific force of the last covariance block
+        self.gnss_resets = 0
 
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
@@ -509,6 +520,7 @@ class Ekf15(Estimator):
             self._f, *ins.q, pv[0], pv[1], pv[2], pt[0], pt[1], pt[2], dt, ins.lat_rad,
             self._cal, self._acal, self._i_acal,
         )  # fmt: skip
+        self._f_b = (pv[0] / dt, pv[1] / dt, pv[2] / dt)
         s0, s1 = self._sf_sum.tolist()
         self._sf_sum = np.array((s0 + fn0 * dt, s1 + fn1 * dt))
         if self._slow_w:
@@ -658,6 +670,38 @@ class Ekf15(Estimator):
         self._inject(dx)
         if z_hold is not None:  # every fix: the gate's S assumes the small angles this is not
             self._align_heading(gnss)
+
+    def reset_to_gnss(self, gnss: GnssInput) -> None:
+        """Re-initialise on a fix the fusion's gate reacquired (hil.fusion.gnss_gate, rule 4).
+        The INS is beyond what a linear update can pull back (a saturated IMU leaves tens of
+        degrees of attitude error) and the covariance does not know it, so, as PX4's EKF2 resets
+        to GNSS after its no-aiding timeout: tilt levelled from the specific force, heading from
+        the ground track, position and velocity from the fix, and the covariance of all three set
+        to what those sources know (decorrelated from the biases, which keep theirs)."""
+        self._propagate_covariance()
+        fx, fy, fz = self._f_b
+        roll, pitch = math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
+        vn, ve = float(gnss.vel_ned_mps[0]), float(gnss.vel_ned_mps[1])
+        if math.hypot(vn, ve) >= RESET_TRACK_MIN_SPEED_MPS:
+            yaw, yaw_var = math.atan2(ve, vn), RESET_YAW_SIGMA_RAD**2
+        else:  # no track to take it from: the heading kept, as unknown
+            yaw, yaw_var = float(quat_to_euler(np.asarray(self.ins.q_nb))[2]), _YAW_VAR_MAX
+        q = euler_to_quat([roll, pitch, yaw])
+        self.ins = self.ins.replace(q_nb=quat_normalise_floats(*q.tolist()))
+        self._nav_dirty = True
+        pos_tov, vel_pred, _, _ = self._predict_fix(gnss)  # with the new attitude's lever arm
+        dx = np.zeros(self.n)
+        dx[0:3] = pos_tov + self.s_hat - gnss.pos_ned_m
+        dx[3:6] = vel_pred + self.sd_hat - gnss.vel_ned_mps
+        self._inject(dx)
+        tilt_var = RESET_TILT_SIGMA_RAD**2
+        sig = np.concatenate([gnss.pos_sigma_m, gnss.vel_sigma_mps])
+        self.p[0:9, :] = 0.0
+        self.p[:, 0:9] = 0.0
+        self.p[0:9, 0:9] = np.diag([*np.square(sig).tolist(), tilt_var, tilt_var, yaw_var])
+        self._consecutive = 0
+        self._align.clear()
+        self.gnss_resets += 1
 
     def _predict_fix(self, gnss: GnssInput) -> tuple[F64, F64, F64, F64]:
         """The fix as the INS predicts it (antenna position at the time of validity, antenna

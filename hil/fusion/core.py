@@ -75,6 +75,9 @@ class FusionConfig:
     gnss_alarm_after_ns: int = 2_000_000_000  # rejections this long raise gnss_integrity_alarm
     gnss_reacquire_after_ns: int = 30_000_000_000  # and this long let fixes through again
     gnss_gate_reference: str = "ekf15"  # whose prediction decides for all ("": each its own)
+    # a reacquired fix re-initialises the estimators that can (and a flagged IMU sample makes the
+    # INS no witness until one has): hil.fusion.gnss_gate's rule 4; False: one fix let through
+    gnss_reset: bool = True
     gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
     # a publisher's GNSS fixes closer together than this share of the receiver's period are
     # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
@@ -116,6 +119,7 @@ class FusionConfig:
             gnss_alarm_after_ns=self.gnss_alarm_after_ns,
             gnss_reacquire_after_ns=self.gnss_reacquire_after_ns,
             gnss_gate_reference=self.gnss_gate_reference,
+            gnss_reset=self.gnss_reset,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
@@ -130,6 +134,7 @@ class FusionConfig:
             reacquire_after_ns=self.gnss_reacquire_after_ns,
             reference=self.gnss_gate_reference,
             floor_sigma=self.gnss_sigma_floor,
+            reset=self.gnss_reset,
         )
 
     @classmethod
@@ -162,6 +167,9 @@ def implausible(msg: Measurement, cfg: FusionConfig) -> str:
 
 
 _F64 = np.dtype(np.float64)
+# ImuSample.status bits that say the increments are not the motion: GYRO_FAULT, ACCEL_FAULT,
+# GYRO_SATURATED, ACCEL_SATURATED (hil.can.codec's bits 0-3)
+IMU_FAULT_STATUS = 0b1111
 
 
 #: A stream the output predictor carries: name, position, velocity, attitude (floats), the IMU
@@ -335,6 +343,10 @@ class FusionCore:
             if not SENSORS[sensor].paces_fusion
         }
         self._block_steps = [(e.name, block_step_of(e)) for e in self._ests]
+        # who re-initialises on a fix the gate reacquires (rule 4); the others take it as a fix
+        self._resets: dict[str, Callable[[Any], None] | None] = {
+            e.name: getattr(e, "reset_to_gnss", None) for e in self._ests
+        }
         self._pacer = {n for n in SENSOR_NAMES if SENSORS[n].paces_fusion}
         self._heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = []
         # the aiding entries in the heap (arrival ids), and the furthest-ahead first, lazily
@@ -723,6 +735,8 @@ class FusionCore:
         row = (dt_s, float(d[0]), float(d[1]), float(d[2]), float(v[0]), float(v[1]), float(v[2]))
         self._ins = self._sd.strapdown_step_f(self._ins, *row[1:], dt_s)
         self._last_imu_ns = msg.stamp_ns
+        if msg.status & IMU_FAULT_STATUS and self.gate is not None:
+            self.gate.note_imu_fault(msg.stamp_ns)
         # built lazily: most estimators read the free INS at a fix or an output only
         ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
         block = self._block
@@ -761,10 +775,15 @@ class FusionCore:
             ins_nav = self._ins_nav
             if ins_nav is None:  # no IMU step yet: the initial state
                 ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
+            reset = self.gate.reset if self.gate is not None and msg.sensor == "gnss" else ()
             for name, handle in handlers:
                 if name in self._failed or not allowed.get(name, True):
                     continue
                 try:
+                    if name in reset and self._resets.get(name) is not None:
+                        self._resets[name](data)
+                        self._inc(f"gnss_gate.reset.{name}")
+                        continue
                     handle(data, ins_nav)
                 except Exception as err:
                     self._fail(name, err)

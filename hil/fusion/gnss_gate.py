@@ -26,7 +26,19 @@ update (``FusionCore``; the estimators themselves are untouched):
    passes, or it has sent nothing rejected for ``alarm_after``), a ``gnss_integrity_restored``. After
    ``reacquire_after`` of unbroken rejection the gate lets fixes through again (counted as
    ``reacquired``): a navigator that disagrees with GNSS for that long is more likely the one
-   that is wrong (the reference's own gate and its covariance decide from there).
+   that is wrong.
+4. **A reacquired fix re-initialises the navigation** (``reset``; off in recordings made before
+   it). Letting one fix through is not enough: a filter whose INS has diverged rejects it in
+   its own gate, the next fix is rejected here again and the clock restarts -- GNSS locked out
+   for good. So the reacquiring fix goes to every estimator, and those that can
+   (``reset_to_gnss``: ekf15) reset position and velocity to it with their covariance opened, as
+   PX4's EKF2 resets to GNSS after its no-aiding timeout; the next fixes are judged on the reset
+   prediction. The same, without waiting: an IMU sample flagged saturated or faulty
+   (``note_imu_fault``) makes the INS no witness of anything until a fix has been taken after
+   it, so the first fix ``IMU_SETTLE_NS`` after the last flagged sample reacquires at once (the
+   fixes before it are held: counted in ``held``, neither used nor held against GNSS). Each
+   reacquisition is a ``gnss_integrity_reacquired`` event; an alarm it interrupts clears only
+   when a fix passes the gate on its own (``gnss_integrity_restored``).
 
 Pure and deterministic: the verdicts depend only on the inputs in the total order, so ``hil
 rerun`` reproduces them; the fusion journals each rejected fix (``FusionJournal.gated``) and
@@ -51,6 +63,7 @@ from hil.nav.types import F64, NavState, nav_floats
 G0 = 9.80665
 UNAIDED_WINDOW_S = 60.0  # tilt a gyro bias builds unaided over this long sets the fallback growth
 EWMA_ALPHA = 0.1  # weight of one accepted innovation in an estimator's achieved-error mean
+IMU_SETTLE_NS = 50_000_000  # clean IMU after a flagged sample before a fix may re-initialise on it
 
 
 def _fl(v: Any) -> list[float]:
@@ -114,6 +127,7 @@ class GateSettings:
     reacquire_after_ns: int
     reference: str  # the estimator whose prediction and covariance decide for all ("": none)
     floor_sigma: bool  # rule 1
+    reset: bool = False  # rule 4 (False: a recording made before it, one fix let through)
 
 
 @dataclass
@@ -124,8 +138,10 @@ class GateTrack:
     accepted: int = 0
     rejected: int = 0
     reacquired: int = 0
+    held: int = 0  # fixes held while the INS had a flagged IMU sample not yet followed by a fix
     last_ratio: float = 0.0  # the last fix's max NIS / chi2
     last_accept_ns: int | None = None
+    last_reset_ns: int | None = None  # stamp of the last fix that re-initialised (rule 4)
     reject_since_ns: int | None = None  # stamp of the first fix of the current rejection run
     # per publisher: [first, last] stamp of its current run of rejected fixes (for the alarm)
     runs: dict[str, list[int]] = field(default_factory=dict)
@@ -139,7 +155,7 @@ class GateTrack:
 class Transition:
     """An alarm raised or cleared: the fusion publishes it as an ``hil.Event``."""
 
-    kind: str  # "gnss_integrity_alarm" | "gnss_integrity_restored"
+    kind: str  # "gnss_integrity_alarm" | "gnss_integrity_restored" | "gnss_integrity_reacquired"
     gate: str
     stamp_ns: int
     detail: str
@@ -155,10 +171,18 @@ class GnssGate:
         self.decided_by: dict[str, str] = {}  # estimator -> the gate that decided its last fix
         self.reference_ok: bool | None = None  # the reference's verdict on the last fix, for all
         self.transitions: list[Transition] = []
+        self.imu_fault_ns: int | None = None  # the last IMU sample flagged saturated or faulty
+        self.reset: set[str] = set()  # the estimators the last fix re-initialises (rule 4)
 
     @property
     def enabled(self) -> bool:
         return self.settings.chi2 > 0.0
+
+    def note_imu_fault(self, stamp_ns: int) -> None:
+        """An IMU sample the device flagged (saturated, built-in-test fault): the INS integrated
+        increments that are not the motion, so its prediction judges no fix (rule 4)."""
+        if self.settings.reset:
+            self.imu_fault_ns = stamp_ns
 
     def floor(self, gnss: GnssInput) -> GnssInput:
         """The fix with its σ never below the receiver model's (rule 1)."""
@@ -195,6 +219,7 @@ class GnssGate:
         reference on the same inputs (a split ``hil rerun``): ``(ok,)`` decides for all as the
         reference would have, ``(None,)`` lets each decide on its own, as there."""
         ref = self.settings.reference
+        self.reset = set()
         if relayed is not None:
             ok_all = self.reference_ok = relayed[0]
             if ok_all is not None:
@@ -204,9 +229,12 @@ class GnssGate:
             sol = solution(ref) if ref in names else None
             self.reference_ok = None
             if sol is not None and sol.pos_sigma_m is not None and sol.vel_sigma_mps is not None:
-                ok = self._decide(self._track(ref), gnss, sol, imu_stamp_ns, own=False, publisher=publisher)
+                tr = self._track(ref)
+                ok = self._decide(tr, gnss, sol, imu_stamp_ns, own=False, publisher=publisher)
                 self.decided_by.update((n, ref) for n in names)
                 self.reference_ok = ok
+                if ok and tr.last_reset_ns == gnss.stamp_ns:
+                    self.reset.update(names)
                 return {n: ok for n in names}
         out: dict[str, bool] = {}
         for n in names:
@@ -215,7 +243,10 @@ class GnssGate:
                 out[n] = False
                 continue
             self.decided_by[n] = n
-            out[n] = self._decide(self._track(n), gnss, sol, imu_stamp_ns, own=True, publisher=publisher)
+            tr = self._track(n)
+            out[n] = self._decide(tr, gnss, sol, imu_stamp_ns, own=True, publisher=publisher)
+            if out[n] and tr.last_reset_ns == gnss.stamp_ns:
+                self.reset.add(n)
         return out
 
     def _track(self, name: str) -> GateTrack:
@@ -255,7 +286,15 @@ class GnssGate:
         tr.last_ratio = max(nis_p, nis_v) / chi2
         ok = nis_p <= chi2 and nis_v <= chi2
         since = tr.reject_since_ns
-        if not ok and since is not None and gnss.stamp_ns - since >= self.settings.reacquire_after_ns:
+        if self.settings.reset:
+            why = self._reacquire_reason(tr, gnss.stamp_ns, ok)
+            if why == "held":
+                tr.held += 1
+                return False
+            if why:
+                self._reacquire(tr, gnss.stamp_ns, why)
+                return True
+        elif not ok and since is not None and gnss.stamp_ns - since >= self.settings.reacquire_after_ns:
             ok = True
             tr.reacquired += 1
         if ok:
@@ -266,6 +305,35 @@ class GnssGate:
             self._rejected(tr, gnss.stamp_ns)
         self._alarm(tr, gnss.stamp_ns, publisher, ok)
         return ok
+
+    def _reacquire_reason(self, tr: GateTrack, stamp_ns: int, ok: bool) -> str:
+        """Why this fix re-initialises the navigation (rule 4), "held" if it must wait, "" if
+        neither: a flagged IMU sample since the last fix taken, or rejection for too long."""
+        fault = self.imu_fault_ns
+        if fault is not None and (tr.last_accept_ns is None or fault >= tr.last_accept_ns):
+            return "held" if stamp_ns - fault < IMU_SETTLE_NS else "imu_fault"
+        since = tr.reject_since_ns
+        if not ok and since is not None and stamp_ns - since >= self.settings.reacquire_after_ns:
+            return "rejected"
+        return ""
+
+    def _reacquire(self, tr: GateTrack, stamp_ns: int, why: str) -> None:
+        """Take the fix as a re-initialisation: no innovation of it is an achieved error, and a
+        raised alarm stays raised until a fix passes on the reset prediction."""
+        since = tr.reject_since_ns if why == "rejected" else self.imu_fault_ns
+        tr.reacquired += 1
+        tr.accepted += 1
+        tr.last_accept_ns = tr.last_reset_ns = stamp_ns
+        tr.reject_since_ns = None
+        detail: dict[str, object] = {"gate": tr.name, "reason": why, "reset": True}
+        detail["reacquired"] = tr.reacquired
+        if why == "rejected" and since is not None:
+            detail["rejected_for_s"] = round((stamp_ns - since) / 1e9, 3)
+        elif since is not None:
+            detail["imu_fault_last_s"] = round(since / 1e9, 3)
+            detail["held"] = tr.held
+        kind = "gnss_integrity_reacquired"
+        self.transitions.append(Transition(kind, tr.name, stamp_ns, json.dumps(detail)))
 
     def _accepted(self, tr: GateTrack, stamp_ns: int, excess_p: list[float], excess_v: list[float]) -> None:
         tr.accepted += 1
