@@ -32,7 +32,7 @@ from hil.messages import GnssFix, SerialChunk
 from hil.nav.earth import lla_to_ned
 from hil.nav.scenario import scenario_for_run
 from hil.nodes.base import SERIAL_RX, Node, NodeOptions, Out
-from hil.nodes.gnss_emulator import check_wire
+from hil.nodes.gnss_emulator import bridge_protocol, check_wire
 from hil.wire.base import DecodedFix
 from hil.wire.gnss_time import gps_ns_to_utc_ns
 from hil.wire.line import LineDecoder
@@ -69,7 +69,7 @@ class GnssBridgeNode(Node):
         o: GnssBridgeOptions = self.options  # type: ignore[assignment]
         s = scenario_for_run(run)
         self.decoder = LineDecoder(tuple(o.protocol), tuple(o.messages))
-        self.primary = "ubx" if "ubx" in o.protocol else o.protocol[0]  # UBX carries more digits
+        self.primary = bridge_protocol(o.protocol)  # UBX carries more digits
         self.period_ns = round(1e9 / s.gnss.rate_hz)
         self.vel_sigma_mps = tuple(float(v) for v in s.gnss.vel_sigma_mps)
         self.pos_sigma_m = tuple(float(v) for v in s.gnss.pos_sigma_m)

@@ -96,14 +96,57 @@ def encoder(name: str, messages: list[str], talker: str) -> Any:
     return cls(tuple(m for m in messages if m in cls.SUPPORTED_MESSAGES) or None, talker=talker)
 
 
+#: What the rig's ``gnss_bridge`` needs of an epoch to publish a position fix the fusion takes,
+#: and the messages that carry it, per protocol (the decoders: ``hil.wire.nmea.NmeaDecoder``,
+#: ``hil.wire.ubx.UbxDecoder``; the bridge's ``_fix``): without a full date a fix is dropped
+#: (``dropped.line.undated_fixes``); without a fix type it is published as "no fix" (type 0,
+#: position zeroed) and the fusion takes none; NMEA's altitude is GGA's alone (RMC's position
+#: without it is at height 0). Velocity is optional: without it the bridge says it is unknown
+#: (σ 1 km/s). UBX's NAV-POSLLH + NAV-VELNED carry neither date nor fix type (TIM-TP gives only
+#: the GPS week): NAV-PVT carries all of it.
+FIX_NEEDS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
+    "nmea": (
+        ("date", ("RMC", "ZDA")),
+        ("position", ("GGA", "RMC")),
+        ("altitude", ("GGA",)),
+        ("fix type", ("GSA",)),
+    ),
+    "ubx": (("date and fix type", ("NAV-PVT",)),),
+}
+PPS_MESSAGES = {"ubx": ("TIM-TP",)}  # a protocol's time-pulse announcement, sent once a second
+
+
+def bridge_protocol(protocols: list[str]) -> str:
+    """The protocol whose fixes the bridge publishes: UBX if the line carries it (more digits)."""
+    return "ubx" if "ubx" in protocols else protocols[0]
+
+
+def undated_problem(protocols: list[str], messages: list[str]) -> str:
+    """Why the bridge can make no usable dated position fix of this message set ("" if it can)."""
+    name = bridge_protocol(protocols)
+    sent = encoder(name, messages, "GN").messages  # the set it sends (none of its own: the defaults)
+    missing = [(what, by) for what, by in FIX_NEEDS.get(name, ()) if not set(by) & set(sent)]
+    if not missing:
+        return ""
+    needs = "; ".join(f"no {what} (add {' or '.join(by)})" for what, by in missing)
+    return f"{name} messages {','.join(sent)} give the rig's GNSS bridge no usable fix: {needs}"
+
+
 def check_wire(protocols: list[str], messages: list[str], talker: str, baud: int) -> None:
-    """Refuse a wire that cannot be built: an unknown protocol or message, a bad talker or baud."""
+    """Refuse a wire that cannot be built: an unknown protocol or message, a bad talker or baud,
+    or a message set the rig's bridge can make no dated position fix of (``FIX_NEEDS``)."""
     for name in protocols:
         encoder(name, messages, talker)  # KeyError naming the known ones, ValueError
-    known = {m for name in protocols for m in wire_protocol(name).SUPPORTED_MESSAGES} | {"TIM-TP"}
+    known = {
+        m
+        for name in protocols
+        for m in (*wire_protocol(name).SUPPORTED_MESSAGES, *PPS_MESSAGES.get(name, ()))
+    }
     unknown = [m for m in messages if m not in known]
     if protocols and unknown:
         raise ValueError(f"messages {unknown} are not in {sorted(protocols)}; known: {sorted(known)}")
+    if protocols and (problem := undated_problem(protocols, messages)):
+        raise ValueError(problem)
     if not 300 <= baud <= 4_000_000:
         raise ValueError(f"baud must be in [300, 4000000], got {baud}")
 
