@@ -31,11 +31,19 @@ from hil.runtime.argtypes import (
 from hil.runtime.errors import WorkerError
 
 EXIT_USAGE = 2
+GNSS_BAUD = 115200  # the receiver line's baud rate without --gnss-baud
 ROUTER_LISTEN = "tcp/127.0.0.1:7447"  # hil router with neither --listen nor --config: this host only
 
 
 class UserError(Exception):
     """An error the user can fix; printed as one line."""
+
+
+def _message(err: BaseException) -> str:
+    """An exception's own message: a KeyError's ``str()`` is the repr of its argument (quoted)."""
+    if isinstance(err, KeyError) and len(err.args) == 1 and isinstance(err.args[0], str):
+        return err.args[0]
+    return str(err)
 
 
 def _estimators(text: str | None) -> list[str]:
@@ -186,28 +194,36 @@ def _add_gnss_wire_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--gnss-baud",
         type=bounded_int(1, 10_000_000),
-        default=115200,
-        help="the receiver line's baud rate (8N1)",
+        default=None,
+        help=f"the receiver line's baud rate (8N1; default {GNSS_BAUD})",
     )
     p.add_argument(
-        "--gnss-messages", default="", help="the receiver's message set, e.g. GGA,RMC,GST or NAV-PVT,TIM-TP"
+        "--gnss-messages",
+        default="",
+        help="the receiver's message set, e.g. GGA,RMC,GSA,ZDA or NAV-PVT,TIM-TP (default: the protocol's)",
     )
 
 
 def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
     """The receiver-on-a-wire settings, checked here with one line each (hil.wire)."""
-    wanted = a.gnss_protocol or ("nmea" if live and (a.gnss_serial or a.gnss_tcp) else "")
+    on_a_wire = live and (a.gnss_serial or a.gnss_tcp or a.dut_emulator == "unit")
+    wanted = a.gnss_protocol or ("nmea" if on_a_wire else "")
     protocols = [p for p in wanted.split(",") if p]
     messages = [m for m in a.gnss_messages.split(",") if m]
+    baud = GNSS_BAUD if a.gnss_baud is None else a.gnss_baud
+    if not protocols and (messages or a.gnss_baud is not None):
+        given = "--gnss-messages" if messages else "--gnss-baud"
+        raise UserError(
+            f"{given} without --gnss-protocol: the receiver is on no wire, so it would be ignored; "
+            "add --gnss-protocol nmea (or ubx, nmea,ubx)"
+        )
     if protocols:
         from hil.nodes.gnss_emulator import check_wire
 
         try:
-            check_wire(protocols, messages, "GN", a.gnss_baud)
+            check_wire(protocols, messages, "GN", baud)
         except (KeyError, ValueError) as err:
-            raise UserError(
-                f"--gnss-protocol/--gnss-messages/--gnss-baud: {str(err).strip(chr(39))}"
-            ) from None
+            raise UserError(f"--gnss-protocol/--gnss-messages/--gnss-baud: {_message(err)}") from None
     if live and a.gnss_serial:
         p = Path(a.gnss_serial)
         if p.exists() and not p.is_symlink():
@@ -223,7 +239,7 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
                 f"--gnss-serial {p}: cannot make a link in {p.parent} ({err.strerror}); give a path in a "
                 "writable directory"
             ) from None
-    return {"gnss_protocol": protocols, "gnss_baud": a.gnss_baud, "gnss_messages": messages}
+    return {"gnss_protocol": protocols, "gnss_baud": baud, "gnss_messages": messages}
 
 
 def _cpu_list(text: str, flag: str = "--cpu-affinity") -> list[int]:
@@ -1406,12 +1422,14 @@ def main(argv: list[str] | None = None) -> int:
         print(err, file=sys.stderr)
         return 1
     except (FileNotFoundError, ValueError, KeyError, OSError) as err:
-        # boundary errors from loaders carry the facts; show them as one line (a recording's
-        # error names the file and what to do already: its class name adds nothing)
-        from hil.record.mcapio import RecordingError  # here: not in every command's start
+        # boundary errors from loaders carry the facts; show them as one line (a recording's or
+        # a scenario's error names the file or key and what to do already: its class name adds
+        # nothing)
+        from hil.nav.scenario import ScenarioError  # here: not in every command's start
+        from hil.record.mcapio import RecordingError
 
-        msg = str(err) if not isinstance(err, KeyError) else str(err).strip("'\"")
-        said = msg if isinstance(err, RecordingError) else f"{type(err).__name__}: {msg}"
+        msg = _message(err)
+        said = msg if isinstance(err, RecordingError | ScenarioError) else f"{type(err).__name__}: {msg}"
         print(f"hil: {said}", file=sys.stderr)
         return EXIT_USAGE
 

@@ -1,0 +1,94 @@
+"""Bad input to ``hil sim``/``hil up`` is one line and exit 2, before anything runs or is written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from hil.cli import main
+from hil.nodes.gnss_emulator import check_wire
+
+
+def _refused(capsys: pytest.CaptureFixture[str], tmp_path: Path, *argv: str) -> str:
+    """The one line ``hil`` said refusing ``argv`` (exit 2, nothing recorded)."""
+    rec = tmp_path / "run.mcap"
+    assert main([*argv, "--record", str(rec)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hil: "), err
+    assert "Traceback" not in err[0] and "Error: " not in err[0], err  # no exception class name
+    assert not rec.exists()
+    return err[0]
+
+
+UNDATED = [
+    (["nmea"], ["GGA"], ["no date (add RMC or ZDA)", "no fix type (add GSA)"]),
+    (["nmea"], ["GST", "VTG"], ["no date", "no position (add GGA or RMC)", "no altitude (add GGA)"]),
+    (["nmea"], ["RMC", "VTG", "GGA", "ZDA"], ["no fix type (add GSA)"]),
+    (["nmea"], ["RMC", "GSA", "ZDA"], ["no altitude (add GGA)"]),
+    (["ubx"], ["NAV-POSLLH"], ["no date and fix type (add NAV-PVT)"]),
+    (["ubx"], ["NAV-POSLLH", "NAV-VELNED", "TIM-TP"], ["(add NAV-PVT)"]),
+    (["nmea", "ubx"], ["GGA", "NAV-POSLLH"], ["ubx messages NAV-POSLLH give"]),  # the bridge's is UBX's
+]
+
+
+@pytest.mark.parametrize(("protocols", "messages", "said"), UNDATED, ids=[",".join(m) for _, m, _ in UNDATED])
+def test_a_message_set_the_bridge_can_make_no_dated_fix_of_is_refused(
+    protocols: list[str], messages: list[str], said: list[str]
+) -> None:
+    """They were accepted, and every fix was dropped undated or published as "no fix"."""
+    with pytest.raises(ValueError, match="give the rig's GNSS bridge no usable fix") as err:
+        check_wire(protocols, messages, "GN", 115200)
+    for part in said:
+        assert part in str(err.value), (part, str(err.value))
+
+
+@pytest.mark.parametrize(
+    ("protocols", "messages"),
+    [
+        (["nmea"], []),
+        (["nmea"], ["GGA", "RMC", "GSA"]),
+        (["nmea"], ["GGA", "GSA", "ZDA"]),  # no velocity: the bridge says it is unknown
+        (["ubx"], ["NAV-PVT"]),
+        (["ubx"], ["NAV-PVT", "TIM-TP"]),
+        (["nmea", "ubx"], ["GGA"]),  # UBX's defaults make the fixes
+    ],
+)
+def test_a_message_set_with_a_dated_position_fix_is_taken(protocols: list[str], messages: list[str]) -> None:
+    check_wire(protocols, messages, "GN", 115200)
+
+
+def test_tim_tp_is_ubx_s_and_refused_on_an_nmea_line() -> None:
+    """It was taken on every protocol's line, and an NMEA line never sent it."""
+    with pytest.raises(ValueError, match=r"\['TIM-TP'\] are not in \['nmea'\]"):
+        check_wire(["nmea"], ["GGA", "RMC", "GSA", "TIM-TP"], "GN", 115200)
+
+
+def test_hil_sim_refuses_an_undated_message_set_in_one_line(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    line = _refused(
+        capsys, tmp_path, "sim", "--duration", "5", "--gnss-protocol", "nmea", "--gnss-messages", "GGA"
+    )
+    assert line.startswith("hil: --gnss-protocol/--gnss-messages/--gnss-baud: nmea messages GGA "), line
+    assert "no date (add RMC or ZDA)" in line, line
+
+
+@pytest.mark.parametrize("cmd", ["sim", "up"])
+@pytest.mark.parametrize(("flag", "value"), [("--gnss-messages", "GGA,RMC"), ("--gnss-baud", "9600")])
+def test_a_wire_setting_without_a_wire_is_refused(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, cmd: str, flag: str, value: str
+) -> None:
+    """Without --gnss-protocol (or hil up's --gnss-serial/--gnss-tcp) it was silently ignored."""
+    line = _refused(capsys, tmp_path, cmd, "--duration", "1", flag, value)
+    assert line.startswith(f"hil: {flag} without --gnss-protocol: "), line
+    assert "add --gnss-protocol nmea" in line, line
+
+
+def test_an_unknown_protocol_is_said_without_stray_quotes(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    line = _refused(capsys, tmp_path, "sim", "--duration", "1", "--gnss-protocol", "rtcm")
+    assert line == (
+        "hil: --gnss-protocol/--gnss-messages/--gnss-baud: unknown GNSS wire protocol 'rtcm'; known: nmea, ubx"
+    ), line
