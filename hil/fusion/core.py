@@ -35,6 +35,7 @@ from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transiti
 from hil.fusion.predictor import NO_BIAS, Motion, OutputPredictor, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.earth import _origin_floats, ned_to_lla_one
+from hil.nav.limits import MAX_GNSS_SIGMA
 from hil.nav.types import NavState, nav_floats
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
@@ -161,7 +162,7 @@ def implausible(msg: Measurement, cfg: FusionConfig) -> str:
         return "pos"
     if not all(math.isfinite(v) and abs(v) <= cfg.max_vel_mps for v in msg.vel_ned_mps):
         return "vel"
-    if not all(math.isfinite(v) and 0.0 < v < 1e6 for v in (*msg.pos_sigma_m, *msg.vel_sigma_mps)):
+    if not all(math.isfinite(v) and 0.0 < v < MAX_GNSS_SIGMA for v in (*msg.pos_sigma_m, *msg.vel_sigma_mps)):
         return "sigma"
     return ""
 

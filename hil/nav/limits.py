@@ -9,3 +9,7 @@ MAX_DURATION_S = 1e6
 #: The rig clock's speed (rig seconds per wall second): faster, no host keeps up (``hil up``
 #: holds ~4x on 2 cores); slower, one rig second takes over 16 minutes.
 MIN_SPEED, MAX_SPEED = 1e-3, 1000.0
+#: The largest σ a GNSS fix may claim (m, m/s); σ must be > 0 too: the fusion refuses a fix
+#: outside (0, MAX_GNSS_SIGMA) as implausible (``hil.fusion.core.implausible``), and the scenario
+#: loader a receiver model or spoofer that would send one.
+MAX_GNSS_SIGMA = 1e6

@@ -22,7 +22,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from hil.nav.limits import MAX_DURATION_S
+from hil.nav.limits import MAX_DURATION_S, MAX_GNSS_SIGMA
 from hil.nav.sensor_specs import ImuParams, SpecError, resolve_imu_params
 from hil.sensor_table import SENSORS
 
@@ -151,6 +151,16 @@ def _within(where: str, v: float, lo: float, hi: float) -> float:
     """``v`` if ``lo <= v <= hi``; else the one line naming the key and the range."""
     if not lo <= v <= hi:
         raise ScenarioError(f"{where} must be in [{lo:g}, {hi:g}], got {v:g}")
+    return v
+
+
+def _gnss_sigma(where: str, v: float) -> float:
+    """A σ a GNSS fix will claim: the fusion takes a fix only with every σ in (0, MAX_GNSS_SIGMA)."""
+    if not 0.0 < v < MAX_GNSS_SIGMA:
+        raise ScenarioError(
+            f"{where} must be > 0 and < {MAX_GNSS_SIGMA:g}, got {v:g} (the fusion refuses a fix "
+            "claiming it as implausible)"
+        )
     return v
 
 
@@ -306,6 +316,13 @@ def _check_rates(where: str, kind: str, params: Mapping[str, Any]) -> None:
         raise ScenarioError(f"{where}.accel_mps2 must be non-zero to reach to_speed_mps, got 0")
 
 
+def _needs(where: str, kind: str, raw: Mapping[str, Any], key: str) -> Any:
+    """``raw[key]``, a parameter an event of ``kind`` cannot do without; missing: one line saying so."""
+    if key not in raw:
+        raise ScenarioError(f"{where} ({kind}) needs {key}")
+    return raw[key]
+
+
 def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
     where = f"event[{i}]"
     kind = raw.get("kind")
@@ -320,18 +337,19 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
     if kind == "gnss_outage" and t1 is None:
         raise ScenarioError(f"{where} (gnss_outage) needs t_end_s")
     if kind in ("gnss_jump", "gnss_spoof"):
-        params["offset_ned_m"] = _vec3(f"{where}.offset_ned_m", raw.get("offset_ned_m"))
+        params["offset_ned_m"] = _vec3(f"{where}.offset_ned_m", _needs(where, kind, raw, "offset_ned_m"))
     if kind == "gnss_spoof":
         params["sigma_m"] = _num(f"{where}.sigma_m", raw.get("sigma_m", DEFAULT_SPOOF_SIGMA_M))
-        if not params["sigma_m"] > 0:
-            raise ScenarioError(f"{where}.sigma_m (the σ the spoofed fixes claim) must be > 0")
+        _gnss_sigma(f"{where}.sigma_m (the σ the spoofed fixes claim)", params["sigma_m"])
     if kind == "gnss_velocity_glitch":
-        params["offset_ned_mps"] = _vec3(f"{where}.offset_ned_mps", raw.get("offset_ned_mps"))
+        params["offset_ned_mps"] = _vec3(
+            f"{where}.offset_ned_mps", _needs(where, kind, raw, "offset_ned_mps")
+        )
         if t1 is None:
             raise ScenarioError(f"{where} (gnss_velocity_glitch) needs t_end_s")
     if kind == "gnss_pulse":
-        a = _num(f"{where}.amplitude_m", raw.get("amplitude_m"))
-        tau = _num(f"{where}.tau_s", raw.get("tau_s"))
+        a = _num(f"{where}.amplitude_m", _needs(where, kind, raw, "amplitude_m"))
+        tau = _num(f"{where}.tau_s", _needs(where, kind, raw, "tau_s"))
         d = _vec3(f"{where}.direction_ned", raw.get("direction_ned", [1.0, 0.0, 0.0]))
         n = math.sqrt(sum(x * x for x in d))
         if n == 0 or tau <= 0:
@@ -341,7 +359,7 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         t1 = t0 + tau
         params.update(amplitude_m=a, tau_s=tau, offset_ned_m=tuple(a * x / n for x in d))
     if kind == "gnss_latency":
-        params["latency_s"] = _num(f"{where}.latency_s", raw.get("latency_s"))
+        params["latency_s"] = _num(f"{where}.latency_s", _needs(where, kind, raw, "latency_s"))
         if "jitter_s" in raw:
             params["jitter_s"] = _num(f"{where}.jitter_s", raw["jitter_s"])
         if min(params["latency_s"], params.get("jitter_s", 0.0)) < 0:
@@ -361,7 +379,7 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
             raise ScenarioError(f"{where} (can_burst_error) takes frames in [1, 100000] and no t_end_s")
         params["frames"] = int(frames)
     if kind == "can_latency":  # t_end_s optional: to the end of the run
-        params["latency_s"] = _num(f"{where}.latency_s", raw.get("latency_s"))
+        params["latency_s"] = _num(f"{where}.latency_s", _needs(where, kind, raw, "latency_s"))
         params["jitter_s"] = _num(f"{where}.jitter_s", raw.get("jitter_s", 0.0))
         problem = transport_delay_problem(params["latency_s"], params["jitter_s"])
         if problem:
@@ -370,7 +388,7 @@ def _parse_event(i: int, raw: Mapping[str, Any]) -> ScenarioEvent:
         if raw.get("sensor") not in SENSORS or t1 is not None:
             names = " or ".join(SENSORS)
             raise ScenarioError(f"{where} (clock_step) needs sensor = {names}, step_s, no t_end_s")
-        step = _num(f"{where}.step_s", raw.get("step_s"))
+        step = _num(f"{where}.step_s", _needs(where, kind, raw, "step_s"))
         params.update(
             sensor=raw["sensor"], step_s=_within(f"{where}.step_s", step, -MAX_CLOCK_STEP_S, MAX_CLOCK_STEP_S)
         )
@@ -479,7 +497,7 @@ def parse_scenario(text: str, default_name: str = "scenario") -> Scenario:
         raise ScenarioError("gnss.latency_s and jitter_s must be >= 0, slow_period_s > 0")
     for key in ("pos_sigma_m", "vel_sigma_mps"):
         for v in getattr(gnss, key):
-            _within(f"gnss.{key}", v, 0.0, 1e6)
+            _gnss_sigma(f"gnss.{key}", v)
     for v in gnss.lever_arm_b_m:
         _within("gnss.lever_arm_b_m", v, -1000.0, 1000.0)
     _within("gnss.num_sats", gnss.num_sats, 0, 255)

@@ -230,13 +230,13 @@ def resolve_imu_params(preset: str, overrides: Mapping[str, Any]) -> ImuParams:
         if key not in USER_KEYS:
             raise SpecError(f"unknown IMU key {key!r}; known: {sorted(USER_KEYS)}")
         field, k, is_vec = USER_KEYS[key]
-        if is_vec:
-            v = _vec3(key, raw)
-            values[field] = (v[0] * k, v[1] * k, v[2] * k)
-        else:
-            values[field] = _number(key, raw) * k
+        given = _vec3(key, raw) if is_vec else (_number(key, raw),)
+        signed = field.endswith("bias_radps") or field.endswith("bias_mps2")  # a fixed bias has a sign
+        if not signed and any(x < 0 for x in given):
+            raise SpecError(f"{key!r} must be non-negative, got {raw!r}")  # the user's key and value
+        values[field] = tuple(x * k for x in given) if is_vec else given[0] * k
     params = replace(ImuParams(), **values)
-    for f in fields(params):
+    for f in fields(params):  # what no user key reaches: a preset's own values
         v = getattr(params, f.name)
         if (
             any(x < 0 for x in (v if isinstance(v, tuple) else (v,)))
@@ -245,7 +245,10 @@ def resolve_imu_params(preset: str, overrides: Mapping[str, Any]) -> ImuParams:
         ):
             raise SpecError(f"{f.name} must be non-negative, got {v}")
     if params.gyro_bias_corr_s <= 0 or params.accel_bias_corr_s <= 0:
-        raise SpecError("bias correlation times must be positive")
+        raise SpecError(
+            f"gyro_bias_corr_s and accel_bias_corr_s must be > 0, got {params.gyro_bias_corr_s:g} and "
+            f"{params.accel_bias_corr_s:g}"
+        )
     if params.gyro_range_radps <= 0 or params.accel_range_mps2 <= 0:
         raise SpecError("gyro_range_dps and accel_range_g must be > 0 (inf: no saturation)")
     return params

@@ -183,3 +183,63 @@ def test_a_clock_table_step_past_a_day_is_refused_naming_it() -> None:
         parse_clock_table("imu", table, DeviceClockConfig())
     ok = parse_clock_table("imu", {"steps": [{"t_s": 1.0, "step_s": 86_400.0}]}, DeviceClockConfig())
     assert ok.steps[0].step_s == 86_400.0
+
+
+@pytest.mark.parametrize(
+    ("extra", "said"),
+    [
+        ("[gnss]\npos_sigma_m = 0.0\n", r"^gnss\.pos_sigma_m must be > 0 and < 1e\+06, got 0 "),
+        ("[gnss]\nvel_sigma_mps = [0.1, 0.0, 0.1]\n", r"^gnss\.vel_sigma_mps must be > 0 "),
+        ("[gnss]\npos_sigma_m = 1e6\n", r"^gnss\.pos_sigma_m must be > 0 and < 1e\+06, got 1e\+06 "),
+        (
+            '[[event]]\nkind = "gnss_spoof"\nt_start_s = 1.0\noffset_ned_m = [1.0, 0, 0]\nsigma_m = 2e6\n',
+            r"^event\[0\]\.sigma_m \(the σ the spoofed fixes claim\) must be > 0 and < 1e\+06",
+        ),
+    ],
+)
+def test_a_gnss_sigma_the_fusion_would_refuse_is_refused_by_the_loader(extra: str, said: str) -> None:
+    """σ 0 loaded, and the fusion then refused every fix (rejected.implausible.gnss.sigma)."""
+    from hil.fusion.core import FusionConfig, implausible
+    from hil.messages import GnssFix
+
+    with pytest.raises(ScenarioError, match=said):
+        parse_scenario(MINIMAL + extra)
+    sigma = 0.0 if "0.0" in extra else 2e6 if "2e6" in extra else 1e6
+    fix = GnssFix(
+        seq=0, stamp_ns=0, device_stamp_ns=0, rx_stamp_ns=0, lat_deg=0.0, lon_deg=0.0, alt_m=0.0,
+        pos_ned_m=[0.0, 0.0, 0.0], vel_ned_mps=[0.0, 0.0, 0.0], pos_sigma_m=[sigma, 1.0, 1.0],
+        vel_sigma_mps=[1.0, 1.0, 1.0], fix_type=3, num_sats=10, hdop=1.0,
+    )  # fmt: skip
+    assert implausible(fix, FusionConfig()) == "sigma"  # the bound is the fusion's own
+
+
+@pytest.mark.parametrize(
+    ("extra", "said"),
+    [
+        (
+            '[imu]\npreset = "consumer_mems"\ngyro_arw_dprh = -1\n',
+            r"^imu: 'gyro_arw_dprh' must be non-negative, got -1$",
+        ),
+        (
+            "[imu]\naccel_vrw_mpsrh = [0.1, -2, 0.1]\n",
+            r"^imu: 'accel_vrw_mpsrh' must be non-negative, got \[0\.1, -2, 0\.1\]$",
+        ),
+        (
+            '[[event]]\nkind = "gnss_pulse"\nt_start_s = 1.0\ntau_s = 1.0\n',
+            r"^event\[0\] \(gnss_pulse\) needs amplitude_m$",
+        ),
+        (
+            '[[event]]\nkind = "gnss_latency"\nt_start_s = 1.0\n',
+            r"^event\[0\] \(gnss_latency\) needs latency_s$",
+        ),
+        (
+            '[[event]]\nkind = "gnss_jump"\nt_start_s = 1.0\n',
+            r"^event\[0\] \(gnss_jump\) needs offset_ned_m$",
+        ),
+    ],
+)
+def test_an_error_names_the_user_s_key_and_value(extra: str, said: str) -> None:
+    """They said the internal key in SI units (gyro_arw_rad_rts ... -0.00029...), or "must be
+    a finite number, got None" of a parameter the event lacked."""
+    with pytest.raises(ScenarioError, match=said):
+        parse_scenario(MINIMAL + extra)
