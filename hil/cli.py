@@ -58,6 +58,32 @@ def _estimators(text: str | None) -> list[str]:
         raise UserError(str(err)) from None
 
 
+_FUSION_FLAGS = (
+    ("unknown estimator", "--estimators: "),
+    ("estimators: ", "--"),
+    ("feedback", "--"),
+    ("ekf_calibration", "--"),
+)
+
+
+def _check_fusion_choices(a: argparse.Namespace) -> None:
+    """``--estimators``, ``--feedback`` and ``--ekf-calibration`` together, now, in one line each
+    (the fusion's options say it later, as a ValueError), and no feedback or calibration for an
+    estimator the run does not run (the fusion would leave it out: a choice with no effect)."""
+    from hil.nodes.fusion import FusionOptions
+
+    try:
+        opts = FusionOptions(
+            estimators=_estimators(a.estimators), feedback=a.feedback, ekf_calibration=a.ekf_calibration
+        )
+        problem = opts.unused_choice()
+    except ValueError as err:
+        problem = str(err)
+    if problem:
+        flag = next((f for start, f in _FUSION_FLAGS if problem.startswith(start)), "")
+        raise UserError((flag + problem).replace("--ekf_calibration", "--ekf-calibration"))
+
+
 def _default_record_path(scenario: str) -> Path:
     stem = Path(scenario).stem
     return Path("recordings") / f"{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
@@ -266,6 +292,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     check_name("rig", a.rig)
     rig_key_from_env()  # a malformed HIL_RIG_KEY is one line, before anything starts
     _check_record_filter(a)
+    _check_fusion_choices(a)
     scenario = load_scenario(a.scenario)  # fail here, once, with a clear message
     duration = a.duration if a.duration is not None else min(60.0, float(scenario.duration_s))
     record = a.record or _default_record_path(a.scenario)
@@ -512,6 +539,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
     check_name("rig", a.rig)
     _check_record_filter(a)
+    _check_fusion_choices(a)
     if a.imu_rate is not None:
         from hil.nav.scenario import load_scenario, scenario_overrides
 

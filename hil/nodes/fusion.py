@@ -129,12 +129,36 @@ class FusionOptions(BatchedInputOptions, frozen=True, kw_only=True, forbid_unkno
         if self.output_every < 1:
             raise ValueError(f"output_every must be >= 1, got {self.output_every}")
 
+    def run_estimators(self) -> tuple[str, ...]:
+        """The estimators the fusion runs beside the free INS: none named, the registry's
+        defaults; the free INS named alone, none."""
+        named = tuple(e for e in self.estimators if e != FREE_INS)
+        return named if self.estimators else DEFAULT_ESTIMATORS
+
+    def unused_choice(self) -> str:
+        """A feedback or calibration choice for an estimator the fusion does not run ("" if
+        none): ``config`` leaves it out, so a command line that asked for it is told instead."""
+        run = self.run_estimators()
+        which = f"the fusion runs {', '.join(run)}" if run else "the fusion runs the free INS alone"
+        if self.feedback not in ("auto", "none"):
+            idle = [e for e in self.feedback.split(",") if e not in run]
+            if idle:
+                return (
+                    f"feedback {self.feedback}: {', '.join(idle)} not run ({which}); add "
+                    f"{'it' if len(idle) == 1 else 'them'} to the estimators or leave {', '.join(idle)} out"
+                )
+        if self.ekf_calibration not in ("auto", "none") and "ekf15" not in run:
+            return (
+                f"ekf_calibration {self.ekf_calibration}: ekf15, whose states they are, is not run "
+                f"({which}); add ekf15 to the estimators, or choose auto or none"
+            )
+        return ""
+
     def config(self, grade: str = "tactical") -> FusionConfig:
         """The core's configuration; ``auto`` choices resolved for an IMU of ``grade``
         (``hil.nav.sensor_specs.imu_grade``: the fusion passes its scenario's)."""
         # none named: the registry's defaults; the free INS named alone: it alone (it always runs)
-        named = tuple(e for e in self.estimators if e != FREE_INS)
-        estimators = named if self.estimators else DEFAULT_ESTIMATORS
+        estimators = self.run_estimators()
         if self.feedback == "auto":
             feedback = default_feedback(grade, estimators)
         elif self.feedback == "none":

@@ -10,6 +10,17 @@ from hil.cli import main
 from hil.nodes.gnss_emulator import check_wire
 
 
+@pytest.fixture(autouse=True)
+def _nothing_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A check that let the command through fails the test before any rig or sim starts."""
+
+    def started(*_args: object, **_kw: object) -> None:
+        pytest.fail("the command was not refused: it went on to start the run")
+
+    monkeypatch.setattr("hil.cli._keep_earlier_recording", started)  # hil up: before any process
+    monkeypatch.setattr("hil.runners.sim.run_sim", started)
+
+
 def _refused(capsys: pytest.CaptureFixture[str], tmp_path: Path, *argv: str) -> str:
     """The one line ``hil`` said refusing ``argv`` (exit 2, nothing recorded)."""
     rec = tmp_path / "run.mcap"
@@ -92,3 +103,51 @@ def test_an_unknown_protocol_is_said_without_stray_quotes(
     assert line == (
         "hil: --gnss-protocol/--gnss-messages/--gnss-baud: unknown GNSS wire protocol 'rtcm'; known: nmea, ubx"
     ), line
+
+
+FUSION_REFUSED = [
+    (
+        ["--feedback", "ekf15"],
+        "hil: --feedback: ['ekf15'] have no feedback form; give auto, none or names of ",
+    ),
+    (
+        ["--ekf-calibration", "accel"],
+        "hil: --ekf-calibration must be auto, none, gyro or gyro+accel; got 'accel'",
+    ),
+    (["--estimators", "bogus"], "hil: --estimators: unknown estimator(s) ['bogus']; known: "),
+    (
+        ["--estimators", "kfvel", "--feedback", "comp1"],
+        "hil: --feedback comp1: comp1 not run (the fusion runs kfvel)",
+    ),
+    (
+        ["--estimators", "ins", "--feedback", "kfvel"],
+        "hil: --feedback kfvel: kfvel not run (the fusion runs the free INS alone)",
+    ),
+    (
+        ["--estimators", "kfvel", "--ekf-calibration", "gyro"],
+        "hil: --ekf-calibration gyro: ekf15, whose states they are, is not run",
+    ),
+]
+
+
+@pytest.mark.parametrize("cmd", ["sim", "up"])
+@pytest.mark.parametrize(("args", "said"), FUSION_REFUSED, ids=[" ".join(a) for a, _ in FUSION_REFUSED])
+def test_a_fusion_choice_that_cannot_apply_is_one_line(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, cmd: str, args: list[str], said: str
+) -> None:
+    """hil sim said "hil: ValueError: feedback: ..."; a choice for an estimator not run was taken
+    and had no effect."""
+    assert _refused(capsys, tmp_path, cmd, "--duration", "1", *args).startswith(said)
+
+
+def test_feedback_and_calibration_for_estimators_that_run_are_taken() -> None:
+    from hil.nodes.fusion import FusionOptions
+
+    assert (
+        FusionOptions(estimators=["kfvel", "ekf15"], feedback="kfvel", ekf_calibration="gyro").unused_choice()
+        == ""
+    )
+    assert (
+        FusionOptions(feedback="comp1,cf3", ekf_calibration="gyro+accel").unused_choice() == ""
+    )  # the defaults
+    assert FusionOptions(estimators=["kfvel"], feedback="none", ekf_calibration="none").unused_choice() == ""
