@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.campaign.spec import DEFAULT_CONFIG, RECORDED, SpecError, spec_from_dict
+from hil.runtime.argtypes import OneLineParser, duration_s, positive_float, seconds
 
 FORMS = ("sim", "rerun", "builtin", "report", "repro")
 
@@ -42,16 +43,6 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
-
-
 def _run_options(p: argparse.ArgumentParser, out_required: bool) -> None:
     p.add_argument("--out", type=Path, required=out_required, default=None, help="the campaign's directory")
     p.add_argument(
@@ -63,7 +54,7 @@ def _run_options(p: argparse.ArgumentParser, out_required: bool) -> None:
         "--workers", type=_positive_int, default=None, help="local cluster size (default: one per core)"
     )
     p.add_argument(
-        "--connect-timeout", type=_positive_float, default=10.0, help="seconds to reach the scheduler"
+        "--connect-timeout", type=positive_float, default=10.0, help="seconds to reach the scheduler"
     )
     p.add_argument("--keep-recordings", default=None, help="keep every run's MCAP in this (shared) directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -71,9 +62,9 @@ def _run_options(p: argparse.ArgumentParser, out_required: bool) -> None:
 
 def _overrides(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=_positive_int, default=None, help="replicates (overrides the spec's)")
-    p.add_argument("--duration", type=_positive_float, default=None, help="seconds per run (overrides)")
+    p.add_argument("--duration", type=duration_s, default=None, help="seconds per run (overrides)")
     p.add_argument(
-        "--settle", type=float, default=None, help="statistics skip the first SETTLE s (overrides)"
+        "--settle", type=seconds, default=None, help="statistics skip the first SETTLE s (overrides)"
     )
 
 
@@ -178,7 +169,7 @@ def _summary(name: str, out: Path, res: Any) -> int:
 
 
 def _spec_form(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="hil campaign", description="run a campaign from its spec file")
+    p = OneLineParser(prog="hil campaign", description="run a campaign from its spec file")
     p.add_argument("spec", type=Path, help="campaign spec (TOML; docs/campaigns.md)")
     _overrides(p)
     _run_options(p, out_required=False)
@@ -193,17 +184,17 @@ def _spec_form(argv: list[str]) -> int:
 
 
 def _sim_form(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="hil campaign sim", description="N runs of hil sim with derived seeds")
+    p = OneLineParser(prog="hil campaign sim", description="N runs of hil sim with derived seeds")
     p.add_argument(
         "--scenario", action="append", required=True, help="built-in name or TOML path (repeatable)"
     )
     p.add_argument("--runs", type=_positive_int, required=True, help="runs per scenario")
     p.add_argument(
-        "--duration", type=_positive_float, default=None, help="seconds per run (default: the scenario's)"
+        "--duration", type=duration_s, default=None, help="seconds per run (default: the scenario's)"
     )
     p.add_argument("--seed", type=int, default=0, help="campaign seed: each run's seed derives from it")
     p.add_argument("--estimators", default=None, help="comma-separated (default: the registry's)")
-    p.add_argument("--settle", type=float, default=0.0, help="statistics skip the first SETTLE seconds")
+    p.add_argument("--settle", type=seconds, default=0.0, help="statistics skip the first SETTLE seconds")
     p.add_argument("--name", default=None, help="campaign name (default: sim-<scenario>)")
     _run_options(p, out_required=True)
     a = p.parse_args(argv)
@@ -223,7 +214,7 @@ def _sim_form(argv: list[str]) -> int:
 
 
 def _rerun_form(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="hil campaign rerun", description="rerun recordings through the fusion")
+    p = OneLineParser(prog="hil campaign rerun", description="rerun recordings through the fusion")
     p.add_argument("recordings", nargs="+", help="MCAP files or directories holding them")
     p.add_argument(
         "--estimators", default=None, help="rerun with these estimators instead of the recorded ones"
@@ -250,7 +241,7 @@ def builtin_names() -> list[str]:
 
 
 def _builtin_form(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="hil campaign builtin", description="a campaign shipped with hil")
+    p = OneLineParser(prog="hil campaign builtin", description="a campaign shipped with hil")
     p.add_argument("name", nargs="?", help=f"one of: {', '.join(builtin_names())}")
     p.add_argument("--list", action="store_true", help="list the built-in campaigns")
     _overrides(p)
@@ -271,7 +262,7 @@ def _builtin_form(argv: list[str]) -> int:
 def _report_form(argv: list[str]) -> int:
     from hil.campaign.report import build_campaign_report
 
-    p = argparse.ArgumentParser(prog="hil campaign report", description="the HTML report of a campaign")
+    p = OneLineParser(prog="hil campaign report", description="the HTML report of a campaign")
     p.add_argument("dir", type=Path, help="the campaign's directory")
     p.add_argument(
         "--compare", type=Path, default=None, help="another campaign (before a change): per-run differences"
@@ -291,7 +282,7 @@ def _report_form(argv: list[str]) -> int:
 def _repro_form(argv: list[str]) -> int:
     from hil.campaign.repro import reproduce
 
-    p = argparse.ArgumentParser(prog="hil campaign repro", description="one run of a campaign, alone")
+    p = OneLineParser(prog="hil campaign repro", description="one run of a campaign, alone")
     p.add_argument("dir", type=Path, help="the campaign's directory")
     p.add_argument("--run", type=int, required=True, help="the run's index (the report names it)")
     p.add_argument("--record", type=Path, default=None, help="MCAP path (default: DIR/repro/run-N.mcap)")

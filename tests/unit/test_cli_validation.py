@@ -151,3 +151,38 @@ def test_feedback_and_calibration_for_estimators_that_run_are_taken() -> None:
         FusionOptions(feedback="comp1,cf3", ekf_calibration="gyro+accel").unused_choice() == ""
     )  # the defaults
     assert FusionOptions(estimators=["kfvel"], feedback="none", ekf_calibration="none").unused_choice() == ""
+
+
+CAMPAIGN_REFUSED = [
+    (
+        ["sim", "--scenario", "static", "--runs", "0"],
+        "hil campaign sim: error: argument --runs: '0' must be >= 1",
+    ),
+    (
+        ["sim", "--scenario", "static", "--runs", "1", "--duration", "0"],
+        "hil campaign sim: error: argument --duration: ",
+    ),
+    (
+        ["sim", "--scenario", "static", "--runs", "1", "--duration", "inf"],
+        "hil campaign sim: error: argument --duration: ",
+    ),
+    (
+        ["sim", "--scenario", "static", "--runs", "1", "--workers", "0"],
+        "hil campaign sim: error: argument --workers: ",
+    ),
+    (["builtin", "seed004", "--runs", "0"], "hil campaign builtin: error: argument --runs: '0' must be >= 1"),
+]
+
+
+@pytest.mark.parametrize(("args", "said"), CAMPAIGN_REFUSED, ids=[" ".join(a) for a, _ in CAMPAIGN_REFUSED])
+def test_a_campaign_argument_error_is_one_line(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, args: list[str], said: str
+) -> None:
+    """hil campaign printed argparse's 8-line usage first."""
+    out = tmp_path / "c"
+    with pytest.raises(SystemExit) as ended:
+        main(["campaign", *args, "--out", str(out)])
+    assert ended.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(said), err
+    assert not out.exists()
