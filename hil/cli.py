@@ -693,12 +693,20 @@ def cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
     import importlib
 
     names = bench_names()
+    if a.name is None and not a.help:
+        raise UserError(f"bench: name a benchmark: {', '.join(names)} (hil bench --help)")
+    if a.name is None:  # hil bench --help: what it does and the benchmarks it has
+        a.parser.print_help()
+        print(f"\nbenchmarks: {', '.join(names)}")
+        return 0
     if a.name == "list":
         print("\n".join(names))
         return 0
     if a.name not in names:
         raise UserError(f"no benchmark named {a.name!r}; the benchmarks: {', '.join(names)}")
     mod = importlib.import_module(f"hil.bench.{a.name}")
+    if a.help:  # its own options, from its own parser
+        return int(mod.main(["--help"]) or 0)
     from hil.progress import elapsed_progress
 
     # Benches that run the rig for --duration seconds know their length; the others show time.
@@ -1314,6 +1322,22 @@ def _add_fault_parser(sub: Any) -> None:
     flt.set_defaults(func=cmd_fault)
 
 
+def _add_bench_parser(sub: Any) -> None:
+    """``hil bench``: its -h is its own, so ``hil bench NAME --help`` reaches the benchmark's parser."""
+    bench = sub.add_parser(
+        "bench",
+        add_help=False,
+        help="run a benchmark and write docs/benchmarks.md",
+        description="Run one benchmark (its own options: hil bench NAME --help); it prints its figures "
+        "and writes its section of docs/benchmarks.md, with the command that produced them.",
+    )
+    bench.add_argument("name", nargs="?", help="the benchmark (hil bench list: their names)")
+    bench.add_argument(
+        "-h", "--help", action="store_true", help="this help and the benchmarks, or NAME's options"
+    )
+    bench.set_defaults(func=cmd_bench, passthrough=True, parser=bench)
+
+
 def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     """Every command's parser; ``service_only``: ``hil service``'s alone (it parses the same)."""
     ap = OneLineParser(prog="hil", description="INS/GNSS hardware-in-the-loop rig over Zenoh")
@@ -1327,7 +1351,11 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
 
     sim = sub.add_parser("sim", help="the same cores in one process on a virtual clock, as fast as possible")
     _add_run_args(sim, None)
-    sim.add_argument("--fd", action="store_true")
+    sim.add_argument(
+        "--fd",
+        action="store_true",
+        help="CAN FD: one frame per IMU sample (classic CAN: four; docs/can-protocol.md)",
+    )
     _add_fusion_args(sim)
     _add_gnss_wire_args(sim)
     sim.add_argument("--quiet", action="store_true")
@@ -1351,14 +1379,7 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
     sch.add_argument("--write", action="store_true")
     sch.set_defaults(func=cmd_schemas)
 
-    bench = sub.add_parser(
-        "bench",
-        help="run a benchmark and write docs/benchmarks.md",
-        description="Run one benchmark (its own options: hil bench NAME --help); it prints its figures "
-        "and writes its section of docs/benchmarks.md, with the command that produced them.",
-    )
-    bench.add_argument("name", help="the benchmark (hil bench list: their names)")
-    bench.set_defaults(func=cmd_bench, passthrough=True)
+    _add_bench_parser(sub)
 
     _add_rerun_parser(sub)
 

@@ -186,3 +186,35 @@ def test_a_campaign_argument_error_is_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(said), err
     assert not out.exists()
+
+
+def test_hil_bench_name_help_shows_the_benchmark_s_own_options(capsys: pytest.CaptureFixture[str]) -> None:
+    """-h was the bench subparser's: it showed the generic hil bench help and never ran the
+    benchmark's parser."""
+    with pytest.raises(SystemExit) as ended:
+        main(["bench", "gnss", "--help"])
+    assert ended.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: hil bench gnss "), out
+    assert "--no-write" in out  # the gnss benchmark's own option
+
+
+def test_hil_bench_help_lists_the_benchmarks(capsys: pytest.CaptureFixture[str]) -> None:
+    from hil.cli import bench_names
+
+    assert main(["bench", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: hil bench ") and f"benchmarks: {', '.join(bench_names())}" in out, out
+
+
+def test_hil_bench_without_a_name_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hil: bench: name a benchmark: "), err
+
+
+def test_hil_sim_help_says_what_fd_is(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["sim", "--help"])
+    out = capsys.readouterr().out
+    assert "CAN FD: one frame per IMU sample" in " ".join(out.split()), out
