@@ -60,7 +60,7 @@ def test_hil_up_fills_options_by_name_and_refuses_before_starting() -> None:
     proc = run_hil("up", "--estimators", "ekf15,nosuch", "--duration", "1", timeout=60)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
-        "hil: fusion: unknown estimator(s) ['nosuch']; known: cf2, cf3, comp1, comp2, comp3, comp3f, "
+        "hil: --estimators: unknown estimator(s) ['nosuch']; known: cf2, cf3, comp1, comp2, comp3, comp3f, "
         "compvs, ekf15, kfvel (and ins, the free inertial solution, which always runs: name it alone "
         "for it alone)"
     ]
