@@ -268,6 +268,59 @@ def _gnss_wire(a: argparse.Namespace, live: bool) -> dict[str, object]:
     return {"gnss_protocol": protocols, "gnss_baud": baud, "gnss_messages": messages}
 
 
+def _load_warnings(scenario: Any, a: argparse.Namespace, wire: dict[str, Any]) -> list[str]:
+    """The IMU's CAN bus or the receiver's line asked to carry more than it can, said before the
+    run (which still goes: the IMU's frames queue and the session stretches; the line's UART
+    overruns and loses epochs). The loads are the models' own: ``ImuCanCodec.bus_load`` (the
+    bit timing of ``hil.can.busload``) and ``hil.nodes.gnss_emulator.line_load``."""
+    from hil.can.codec import CodecError, ImuCanCodec
+
+    out: list[str] = []
+    rate = a.imu_rate or scenario.imu.rate_hz
+    try:
+        codec = ImuCanCodec.from_dbc(fd=a.fd)
+    except CodecError:  # a bad HIL_DBC: the IMU's service says so itself
+        codec = None
+    load = codec.bus_load(rate) if codec is not None else 0.0
+    if codec is not None and load > 1.0:
+        idle = codec.bus_load(0.0)  # the sync frame a second
+        top = int((1.0 - idle) / (codec.bus_load(1.0) - idle))
+        mode = "CAN FD" if a.fd else f"classic CAN ({len(codec.part_layouts)} frames a sample)"
+        fix = (
+            f"--imu-rate {top} or lower"
+            if a.fd
+            else f"--fd (one frame a sample) or --imu-rate {top} or lower"
+        )
+        out.append(
+            f"the IMU at {rate} Hz loads its {mode} bus to {load * 100:.1f} %: its frames will queue and the "
+            f"session stretch past its duration; use {fix}"
+        )
+    protocols, messages, baud = wire["gnss_protocol"], wire["gnss_messages"], wire["gnss_baud"]
+    if protocols:
+        from hil.nodes.gnss_emulator import line_load
+
+        fixes = scenario.gnss.rate_hz
+        line = line_load(protocols, messages, baud, fixes)
+        if line > 1.0:
+            least = next((b for b in _BAUDS if line_load(protocols, messages, b, fixes) <= 1.0), None)
+            fix = f"--gnss-baud {least} or more" if least else "a faster line"
+            out.append(
+                f"the GNSS line at {baud} baud is loaded to {line * 100:.1f} % by {'+'.join(protocols)} at "
+                f"{fixes:g} fixes a second: epochs will overrun the receiver's UART and be lost; use "
+                f"{fix}, or fewer --gnss-messages"
+            )
+    return out
+
+
+def _warn_loads(prog: str, scenario: Any, a: argparse.Namespace, wire: dict[str, Any]) -> None:
+    for line in _load_warnings(scenario, a, wire):
+        print(f"{prog}: warning: {line}", file=sys.stderr)
+
+
+_WIRE_KEYS = ("gnss_protocol", "gnss_messages", "gnss_baud")  # _gnss_wire's, as UpOptions has them
+_BAUDS = (4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)  # a UART's usual rates
+
+
 def _cpu_list(text: str, flag: str = "--cpu-affinity") -> list[int]:
     """``--cpu-affinity 0,1`` -> [0, 1]; a bad list is one line."""
     from hil.runners.pacing import parse_cpus
@@ -357,6 +410,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UserError(str(err)) from None
     _keep_earlier_recording(record)
     _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
+    _warn_loads("hil up", scenario, a, {k: getattr(opts, k) for k in _WIRE_KEYS})
     if not opts.gnss_protocol:
         from hil.faults import unwired_line_fault_warnings
 
@@ -540,10 +594,13 @@ def cmd_sim(a: argparse.Namespace) -> int:
     check_name("rig", a.rig)
     _check_record_filter(a)
     _check_fusion_choices(a)
-    if a.imu_rate is not None:
-        from hil.nav.scenario import load_scenario, scenario_overrides
+    from hil.nav.scenario import load_scenario, scenario_overrides
 
-        scenario_overrides(load_scenario(a.scenario), imu_rate_hz=a.imu_rate)  # one line if refused
+    scenario = load_scenario(a.scenario)
+    if a.imu_rate is not None:
+        scenario_overrides(scenario, imu_rate_hz=a.imu_rate)  # one line if refused
+    wire = _gnss_wire(a, live=False)
+    _warn_loads("hil sim", scenario, a, wire)
     record = a.record or _default_record_path(a.scenario)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 
@@ -574,7 +631,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
                 record_exclude=list(a.record_exclude),
                 fusion_worker=False if a.one_process else None,
                 stop=stop.requested,
-                **_gnss_wire(a, live=False),  # type: ignore[arg-type]
+                **wire,  # type: ignore[arg-type]
             )
         )
     print(res.summary)

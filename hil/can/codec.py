@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
+from hil.can.busload import frame_bits, sample_load
 from hil.can.e2e import COUNTER_MODULO, CRC_SCOPE, p01_crc_expr
 
 if TYPE_CHECKING:
@@ -381,6 +382,18 @@ class ImuCanCodec:
         self.saturated_samples = 0
 
     # -- construction --------------------------------------------------------------------
+    def bus_load(self, rate_hz: float, *, fd: bool | None = None) -> float:
+        """The share of the bus (0..1+) the IMU's frames take at ``rate_hz`` samples a second:
+        each sample's frames (FD: one; classic: the parts), a status frame every
+        ``status_every``-th sample and a sync frame a second, at the bit rates and worst-case
+        stuffing of ``hil.can.busload`` (the wire ``hil sim`` and the IMU's sender model).
+        ``fd`` None: this codec's own mode."""
+        fd = self.fd if fd is None else fd
+        frames = [(lay.length, lay.is_fd) for lay in ([self.fd_layout] if fd else self.part_layouts)]
+        load = sample_load(frames, rate_hz)
+        load += sample_load([(self.status_layout.length, False)], rate_hz / self.status_every)
+        return load + frame_bits(self.sync_layout.length).seconds()
+
     @classmethod
     def from_dbc(cls, path: str | os.PathLike[str] | None = None, *, fd: bool = False) -> ImuCanCodec:
         """Load the DBC (default :func:`default_dbc_path`) and compile the codec from it."""

@@ -14,7 +14,7 @@ import math
 import sys
 from pathlib import Path
 
-from hil.can.busload import FD_DATA_BITRATE, NOMINAL_BITRATE, frame_bits, sample_load
+from hil.can.busload import FD_DATA_BITRATE, NOMINAL_BITRATE, frame_bits
 from hil.can.codec import DEVICE_TIME_BITS, ImuCanCodec
 
 DOC_PATH = Path(__file__).resolve().parents[2] / "docs" / "can-protocol.md"
@@ -86,7 +86,6 @@ def quantisation_table(codec: ImuCanCodec) -> str:
 def busload_table(codec: ImuCanCodec) -> str:
     classic = [(lay.length, lay.is_fd) for lay in codec.part_layouts]
     fd = [(codec.fd_layout.length, True)]
-    status = [(codec.status_layout.length, False)]
     rows = [
         "| mode | frames per sample | bits per sample (worst-case stuffing) | 400 Hz | 1 kHz | 2 kHz |",
         "| --- | --- | --- | --- | --- | --- |",
@@ -96,12 +95,8 @@ def busload_table(codec: ImuCanCodec) -> str:
         desc = " + ".join(
             f"{b.nominal_bits}" + (f" + {b.data_bits} fast" if b.data_bits else "") for b in bits
         )
-        # status frame every `status_every` samples, sync frame at 1 Hz
-        loads = []
-        for rate in RATES_HZ:
-            load = sample_load(frames, rate) + sample_load(status, rate / codec.status_every)
-            load += frame_bits(codec.sync_layout.length).seconds()
-            loads.append(f"{load * 100:.1f} %")
+        # status frame every `status_every` samples, sync frame at 1 Hz (the codec's bus_load)
+        loads = [f"{codec.bus_load(rate, fd=frames is fd) * 100:.1f} %" for rate in RATES_HZ]
         rows.append(f"| {name} | {len(frames)} | {desc} | " + " | ".join(loads) + " |")
     return "\n".join(rows)
 

@@ -57,7 +57,7 @@ from hil.sensors.imu import sensor_rng
 from hil.wire import protocol as wire_protocol
 from hil.wire.base import ReceiverEpoch
 from hil.wire.gnss_time import utc_ns_to_gps_ns
-from hil.wire.line import Uart
+from hil.wire.line import BITS_PER_BYTE, Uart
 
 RESUME_AFTER_S = 2.0
 NO_WIRE = "no wire (--gnss-protocol)"  # why a line fault is fault_ignored
@@ -130,6 +130,26 @@ def undated_problem(protocols: list[str], messages: list[str]) -> str:
         return ""
     needs = "; ".join(f"no {what} (add {' or '.join(by)})" for what, by in missing)
     return f"{name} messages {','.join(sent)} give the rig's GNSS bridge no usable fix: {needs}"
+
+
+#: An epoch as a receiver in flight reports it (3-D fix, 14 satellites): what ``line_load``
+#: sizes a message set by (NMEA's fields vary by a few characters with the numbers).
+TYPICAL_EPOCH = ReceiverEpoch(
+    1_448_000_000_000_000_000, 50.4512345, 30.5234567, 412.3, (12.3, -4.5, 0.2), (1.5, 1.5, 3.0),
+    (0.1, 0.1, 0.2), 3, 14, 0.7, 1.26, 1.05,
+)  # fmt: skip
+
+
+def line_load(protocols: list[str], messages: list[str], baud: int, rate_hz: float) -> float:
+    """The share of the line (0..1+) the receiver's bytes take at ``rate_hz`` epochs a second:
+    each epoch's messages (``TYPICAL_EPOCH`` encoded by the node's own encoders) and UBX's
+    TIM-TP once a second where the node sends it, 10 bits a byte (8N1, ``hil.wire.line``).
+    Past 1 the UART's transmit buffer fills and epochs overrun (are lost whole)."""
+    per_epoch = sum(len(encoder(p, messages, "GN").encode_epoch(TYPICAL_EPOCH)) for p in protocols)
+    per_second = 0
+    if "ubx" in protocols and (not messages or "TIM-TP" in messages):  # as the node decides
+        per_second = len(encoder("ubx", messages, "GN").encode_pps_announcement(TYPICAL_EPOCH.gps_time_ns))
+    return (per_epoch * rate_hz + per_second) * BITS_PER_BYTE / baud
 
 
 def check_wire(protocols: list[str], messages: list[str], talker: str, baud: int) -> None:

@@ -218,3 +218,67 @@ def test_hil_sim_help_says_what_fd_is(capsys: pytest.CaptureFixture[str]) -> Non
         main(["sim", "--help"])
     out = capsys.readouterr().out
     assert "CAN FD: one frame per IMU sample" in " ".join(out.split()), out
+
+
+def _warned(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, *argv: str
+) -> list[str]:
+    """What ``hil sim argv`` warned before its run (stopped where the run would start)."""
+
+    def start(*_args: object, **_kw: object) -> None:
+        raise KeyboardInterrupt  # main: exit 130, nothing run
+
+    monkeypatch.setattr("hil.runners.sim.run_sim", start)
+    assert main(["sim", *argv, "--quiet", "--record", str(tmp_path / "run.mcap")]) == 130
+    return [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+
+
+def test_an_imu_rate_past_the_classic_can_bus_is_warned_with_its_load(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """2 kHz on classic CAN is 108.7 % of the bus (docs/can-protocol.md): the session stretched
+    (5.435 s for --duration 5) and nothing said so."""
+    (line,) = _warned(capsys, tmp_path, monkeypatch, "--imu-rate", "2000", "--duration", "5")
+    assert line.startswith(
+        "hil sim: warning: the IMU at 2000 Hz loads its classic CAN (4 frames a sample) bus to 108.7 %"
+    )
+    assert "use --fd (one frame a sample) or --imu-rate 1840 or lower" in line, line
+    assert _warned(capsys, tmp_path, monkeypatch, "--imu-rate", "2000", "--fd", "--duration", "5") == []
+    assert _warned(capsys, tmp_path, monkeypatch, "--imu-rate", "1000", "--duration", "5") == []
+
+
+def test_the_warned_rate_is_the_bus_model_s_own() -> None:
+    from hil.can.codec import ImuCanCodec
+
+    codec = ImuCanCodec.from_dbc()
+    assert codec.bus_load(1840) <= 1.0 < codec.bus_load(1841)
+    assert (
+        round(codec.bus_load(2000) * 100, 1) == 108.7
+        and round(codec.bus_load(2000, fd=True) * 100, 1) == 21.6
+    )
+
+
+def test_a_gnss_baud_too_slow_for_the_message_set_is_warned_with_the_line_load(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """uav_survey's receiver sends 5 fixes a second: its default NMEA set overruns 9600 baud."""
+    args = ["--scenario", "uav_survey", "--duration", "5", "--gnss-protocol", "nmea"]
+    (line,) = _warned(capsys, tmp_path, monkeypatch, *args, "--gnss-baud", "9600")
+    assert line.startswith(
+        "hil sim: warning: the GNSS line at 9600 baud is loaded to 164.6 % by nmea at 5 fixes"
+    ), line
+    assert "use --gnss-baud 19200 or more, or fewer --gnss-messages" in line, line
+    assert _warned(capsys, tmp_path, monkeypatch, *args, "--gnss-baud", "19200") == []
+
+
+def test_the_line_load_is_what_the_uart_overruns_at() -> None:
+    """Past a load of 1 the receiver's UART model drops epochs; at or below it, none."""
+    from hil.nodes.gnss_emulator import TYPICAL_EPOCH, encoder, line_load
+    from hil.wire.line import Uart
+
+    n = len(encoder("nmea", [], "GN").encode_epoch(TYPICAL_EPOCH))
+    for baud, over in ((9600, True), (19200, False)):
+        assert (line_load(["nmea"], [], baud, 5.0) > 1.0) is over
+        uart = Uart(baud)
+        lost = sum(uart.send(n, k * 200_000_000) is None for k in range(100))
+        assert (lost > 0) is over, (baud, lost)
