@@ -109,6 +109,18 @@ def run_hil(
     )
 
 
+def spoof_event_toml(t_start_s: float, t_end_s: float) -> str:
+    """A scenario's ``gnss_spoof`` event: 500 m north claiming σ 0.5 m (the tests' one spoof)."""
+    return f"""
+[[event]]
+kind = "gnss_spoof"
+t_start_s = {t_start_s}
+t_end_s = {t_end_s}
+offset_ned_m = [500.0, 0.0, 0.0]
+sigma_m = 0.5
+"""
+
+
 SIM_RECORDING_SCENARIO = """
 name = "simrec"
 seed = 11

@@ -30,7 +30,7 @@ from hil.bus.inbox import AIDING_CAP, PACER_CAP
 from hil.fusion.core import parse_journal_id
 from hil.messages import NavSolution
 from hil.record.mcapio import Session, read_session
-from tests.conftest import REPO, hil_cmd
+from tests.conftest import REPO, hil_cmd, spoof_event_toml
 
 pytestmark = pytest.mark.slow
 
@@ -41,17 +41,7 @@ SPOOF = {"start": 7.0, "seconds": 5.0, "seq_base": 5_000_000}
 FLOOD_SEQ_BASE = 1_000_000  # bus_attack's default
 FORGE_START = 7.0
 RECEIVER_SPOOF = (7.0, 12.0)
-SCENARIO = (
-    (REPO / "hil/scenarios/straight_level.toml").read_text()
-    + f"""
-[[event]]
-kind = "gnss_spoof"
-t_start_s = {RECEIVER_SPOOF[0]}
-t_end_s = {RECEIVER_SPOOF[1]}
-offset_ned_m = [500.0, 0.0, 0.0]
-sigma_m = 0.5
-"""
-)
+SCENARIO = (REPO / "hil/scenarios/straight_level.toml").read_text() + spoof_event_toml(*RECEIVER_SPOOF)
 
 
 def _attack(endpoint: str, start: float, *args: str) -> subprocess.Popen[str]:

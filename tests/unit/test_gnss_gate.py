@@ -27,6 +27,7 @@ from hil.fusion.ideal import ideal_inputs
 from hil.messages import FusionSettings, GnssFix, ImuSample
 from hil.nav.scenario import parse_scenario
 from hil.nav.trajectory import TruthGenerator
+from tests.conftest import spoof_event_toml
 
 BASE = """
 name = "gate"
@@ -51,14 +52,7 @@ kind = "hold"
 duration_s = 50.0
 """
 SPOOF = (25.0, 35.0)
-SPOOF_EVENT = f"""
-[[event]]
-kind = "gnss_spoof"
-t_start_s = {SPOOF[0]}
-t_end_s = {SPOOF[1]}
-offset_ned_m = [500.0, 0.0, 0.0]
-sigma_m = 0.5
-"""
+SPOOF_EVENT = spoof_event_toml(*SPOOF)
 OUTAGE_EVENT = f"""
 [[event]]
 kind = "gnss_outage"

@@ -27,6 +27,7 @@ from hil.fusion.ideal import ideal_inputs
 from hil.messages import ImuSample
 from hil.nav.scenario import parse_scenario
 from hil.nav.trajectory import TruthGenerator
+from tests.conftest import spoof_event_toml
 
 DURATION_S = 20.0
 FAULT_AT_S = 2.0
@@ -104,14 +105,7 @@ def test_without_the_reset_the_gate_locks_gnss_out_as_recordings_before_it_did()
 
 
 def test_a_spoof_still_raises_and_holds_the_alarm_until_it_ends() -> None:
-    spoof = f"""
-[[event]]
-kind = "gnss_spoof"
-t_start_s = {SPOOF_S[0]}
-t_end_s = {SPOOF_S[1]}
-offset_ned_m = [500.0, 0.0, 0.0]
-sigma_m = 0.5
-"""
+    spoof = spoof_event_toml(*SPOOF_S)
     run = _run(0.05, spoof)
     events = [(k, t) for k, t, _d in run["events"]]  # type: ignore[attr-defined]
     assert [k for k, _t in events] == [
