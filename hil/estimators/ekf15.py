@@ -118,6 +118,7 @@ from hil.nav.attitude import (
 )
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
+from hil.nav.sensor_specs import G0_MPS2
 from hil.nav.strapdown import (
     LazyNavState,
     StrapdownState,
@@ -470,8 +471,7 @@ class Ekf15(Estimator):
         self._align: deque[tuple[int, F64, F64, float]] = deque()  # (t_ns, v_gnss NE, Σ f dt, σ_v)
         self._heading_held = 0  # GNSS fixes whose heading part was held back
         self._heading_resets = 0
-        self._f_b = (0.0, 0.0, -9.80665)  # mean body specific force of the last covariance block
-        self.gnss_resets = 0
+        self._f_b = (0.0, 0.0, -G0_MPS2)  # mean body specific force of the last covariance block
 
     # -- propagation ---------------------------------------------------------------------------
     def on_imu(self, imu: ImuInput, ins: NavState) -> None:
@@ -701,7 +701,6 @@ class Ekf15(Estimator):
         self.p[0:9, 0:9] = np.diag([*np.square(sig).tolist(), tilt_var, tilt_var, yaw_var])
         self._consecutive = 0
         self._align.clear()
-        self.gnss_resets += 1
 
     def _predict_fix(self, gnss: GnssInput) -> tuple[F64, F64, F64, F64]:
         """The fix as the INS predicts it (antenna position at the time of validity, antenna

@@ -34,6 +34,7 @@ from hil.record.mcapio import (
     session_first_path,
     split_first_path,
     stream_session,
+    summary_metadata,
 )
 
 
@@ -374,8 +375,9 @@ def _parts_lines(path: Path, part: dict[str, str]) -> list[str]:
     later part, which one it is (``hil info`` describes the one file it is given)."""
     index = part.get("index", "0")
     if index != "0":
-        first = session_first_path(path, int(index) if index.isdigit() else 0)
-        if RESTART_PART_NAME.search(split_first_path(path, int(index) if index.isdigit() else 0).stem):
+        n = int(index) if index.isdigit() else 0
+        first = session_first_path(path, n)
+        if RESTART_PART_NAME.search(split_first_path(path, n).stem):
             return [
                 f"parts:     part {index} of a restarted recorder's split file, after "
                 f"{part.get('previous', '?')}, continuing the session begun in {first.name} (hil rerun, "
@@ -385,9 +387,8 @@ def _parts_lines(path: Path, part: dict[str, str]) -> list[str]:
             f"parts:     part {index} of a split recording, after {part.get('previous', '?')} (the run and "
             f"the whole session: its first file)"
         ]
-    restart = RESTART_PART_NAME.search(path.stem)
-    if restart:
-        first = path.with_name(f"{path.stem[: restart.start()]}{path.suffix}")
+    if RESTART_PART_NAME.search(path.stem):
+        first = session_first_path(path)
         return [
             f"parts:     a restarted recorder's file, continuing the session begun in {first.name} "
             f"(hil rerun, replay, report and export of that file read the whole session)"
@@ -411,16 +412,9 @@ def _session_line(path: Path, index: str) -> list[str]:
     files = session_files(path)
     if len(files) < 2:
         return []
-    from mcap.reader import make_reader
-
-    try:
-        with open(files[-1], "rb") as fh:
-            found = [m for m in make_reader(fh).iter_metadata() if m.name == "completeness"]
-    except Exception:  # the last file is cut short too: no summary to read it from
-        found = []
-    if not found:
+    comp = summary_metadata(files[-1], "completeness")
+    if comp is None:  # the last file is cut short too: no summary to read it from
         return [f"session:   its last file, {files[-1].name}, has no completeness summary (cut short)"]
-    comp = dict(found[-1].metadata)
     return [
         f"session:   missing={comp.get('missing')} replay_ready={comp.get('replay_ready')} over all "
         f"{len(files)} files (the completeness of its last, {files[-1].name})"

@@ -145,6 +145,24 @@ class Matcher:
             del self.recomputed_pending[key]
             self.released.add(*key)
 
+    def excuse(self, excused: Callable[[int], bool]) -> int:
+        """Leave out of ``first`` the differences of outputs whose time (the recomputed one's
+        ``t_ns``) ``excused`` says cannot be vouched for; how many were left out. The first
+        difference is then the first among the rest, as ``first`` would have named it."""
+        rest = [d for d in self.diffs if not excused(d[1])]
+        n = len(self.diffs) - len(rest)
+        if n:
+            first = min(rest, key=lambda d: d[0]) if rest else None
+            if first is None:
+                self.first = None
+            else:
+                order, _t, key, theirs, mine = first
+                self.first = (
+                    order,
+                    self.describe(key, theirs, mine) if theirs else f"{key[0]} seq {key[1]} differs",
+                )
+        return n
+
     def pending_before(self, log_ns: int) -> list[tuple[str, int]]:
         """Recorded outputs never recomputed that were recorded before ``log_ns``."""
         return sorted(k for k in self.recorded_pending if self.recorded_t.get(k, 0) < log_ns)

@@ -208,13 +208,12 @@ def session_note(files: list[Path], did: str) -> str | None:
     )
 
 
-def cut_notes(cut: list[str]) -> list[str]:
+def cut_notes(cut: list[tuple[str, str]]) -> list[str]:
     """What a tool says of files of a session cut short before a later one continues it
-    (``SessionStream.cut_files``: each file's truncation reason)."""
+    (``SessionStream.cut_files``: each file's name and why its reading stopped)."""
     out = []
-    for entry in cut:
-        name, _, why = entry.partition(": ")
-        why = why.strip().rstrip(":")
+    for name, reason in cut:
+        why = reason.strip().rstrip(":")
         out.append(
             f"{name} is cut short{f' ({why})' if why else ''}: its recorder was killed, and the session "
             "continues in the next file; read up to the cut"
@@ -229,6 +228,22 @@ _RUN_METADATA_WITHIN = 100_000
 RUN_IDENTITY = ("rig", "scenario", "scenario_sha256", "seed", "start_epoch_ns")
 
 
+def summary_metadata(path: Path, name: str) -> dict[str, str] | None:
+    """The metadata record ``name`` of a finished file, from its summary's metadata index (which
+    points at it wherever it is); None when it has none or no readable summary (a cut file)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            reader = make_reader(fh)
+            if reader.get_summary() is None:
+                return None
+            found = [m for m in reader.iter_metadata() if m.name == name]
+    except Exception:  # no readable summary: a crashed recorder's file
+        return None
+    return dict(found[-1].metadata) if found else None
+
+
 def run_identity(path: Path, *, leading: bool = False) -> dict[str, str] | None:
     """The run ``path`` was recorded in (its ``hil`` metadata's ``RUN_IDENTITY`` keys); None when
     it says none. From the summary's metadata index, which points at the record (a piece ``hil
@@ -239,16 +254,9 @@ def run_identity(path: Path, *, leading: bool = False) -> dict[str, str] | None:
     def identity(meta: dict[str, str]) -> dict[str, str]:
         return {k: meta[k] for k in RUN_IDENTITY if k in meta}
 
-    from mcap.reader import make_reader
-
-    try:
-        with open(path, "rb") as fh:
-            reader = make_reader(fh)
-            if reader.get_summary() is not None:
-                found = [m for m in reader.iter_metadata() if m.name == "hil"]
-                return identity(dict(found[0].metadata)) if found else None
-    except Exception:  # no readable summary (a crashed file): read below
-        pass
+    if is_finished(path):  # the summary's index says where, or that there is none
+        meta = summary_metadata(path, "hil")
+        return identity(meta) if meta is not None else None
     try:
         for n, (kind, rec) in enumerate(iter_records(path)):
             if kind == "metadata" and rec.name == "hil":
@@ -1569,7 +1577,8 @@ class SessionStream:
         self.truncation_reason = ""
         # files cut short that a later one continues (a killed recorder's, before the restarted
         # one's part): read up to the cut, and not the session's end, so not ``truncated``
-        self.cut_files: list[str] = []
+        self.cut_files: list[tuple[str, str]] = []
+        self._cut_why = ""  # why the reading of the last file stopped
 
     def __iter__(self) -> Iterator[Record]:
         self.metadata = {}
@@ -1581,7 +1590,7 @@ class SessionStream:
         for k, path in enumerate(self.paths):
             n = 0
             if self.truncated:  # the file before was cut, and this one continues the session
-                self.cut_files.append(self.truncation_reason)
+                self.cut_files.append((self.paths[k - 1].name, self._cut_why))
                 self.truncated, self.truncation_reason = False, ""
             # a restarted recorder's first file: what was published before it started is recovered
             restarted_ns: int | None = None if k == 0 or not RESTART_PART_NAME.search(path.stem) else -1
@@ -1609,6 +1618,7 @@ class SessionStream:
                 elif kind == "truncated":
                     self.truncated = True
                     self.truncation_reason = f"{path.name}: {rec}"
+                    self._cut_why = str(rec)
             if not n and self.truncated and not self.metadata:
                 raise RecordingError(f"{path} is not a readable MCAP file ({self.truncation_reason})")
 

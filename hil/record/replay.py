@@ -97,7 +97,7 @@ class ReplayStats:
     span_s: float = 0.0  # recorded time the last pass sent: its first message to its last
     truncated: str = ""
     session: str = ""  # ``session_note`` of the session's files, replayed end to end ("" one)
-    cut: list[str] = field(default_factory=list)  # files cut short that a later one continues
+    cut: list[tuple[str, str]] = field(default_factory=list)  # files cut short that a later one continues
 
     def summary(self) -> str:
         rate = self.sent / self.wall_s if self.wall_s > 0 else 0.0
@@ -302,12 +302,12 @@ def recorded_span_ns(path: str | Path) -> int | None:
 def session_records(path: str | Path) -> Iterator[tuple[str, Any]]:
     """``iter_records`` of the recording and of its split parts, end to end: one session. A file
     cut short before the last (a killed recorder's, continued by its restarted one) is a
-    ``("cut", "<name>: <why>")`` there, not ``truncated``: the session goes on."""
+    ``("cut", (name, why))`` there, not ``truncated``: the session goes on."""
     files = session_files(path)
     for k, f in enumerate(files):
         for kind, rec in iter_records(f):
             if kind == "truncated" and k < len(files) - 1:
-                yield "cut", f"{f.name}: {rec}"
+                yield "cut", (f.name, str(rec))
             else:
                 yield kind, rec
 

@@ -265,7 +265,6 @@ class _FusionRerun:
     pushed: int = 0
     used: int = 0
     n_out: int = 0
-    live_consumed: int = -1
     outputs: list[NavSolution] = field(default_factory=list)
     last_log_ns: int = 0
     last_journal_log_ns: int = -1  # log time of the last journal record read
@@ -292,13 +291,12 @@ class _FusionRerun:
     realign_pending: int | None = None
     restarts: int = 0
     pushed_released: int = -1  # the push count of the last input rerun
-    # for ``_lost_from``: each journal as (its fusion's session, watermark, consumed); the
+    # for ``_lost_spans``: each journal as (its fusion's session, watermark, consumed); the
     # sessions of the restarted fusions, in order; each life's start and the stamps it was fed
     journal_marks: list[tuple[str, int, int]] = field(default_factory=list)
     realigned_sessions: list[str] = field(default_factory=list)
     life_starts_ns: dict[int, int] = field(default_factory=dict)
     fed_stamps: dict[int, array[int]] = field(default_factory=dict)  # 8 bytes an input
-    consumed_by: dict[str, int] = field(default_factory=dict)  # journal session -> its count
 
     def __post_init__(self) -> None:
         self.matcher = Matcher(self._difference, "recomputed", self.window_ns, _nav_current_form)
@@ -331,8 +329,6 @@ class _FusionRerun:
                 self._recorded_nav(r)
         elif t.endswith("/fusion/journal"):
             self._journal(r)
-        elif t.endswith("/event/fusion") and self._realigned_event(r):
-            pass
         elif self.run is None and t.endswith("/run"):
             m = r.decode()
             assert isinstance(m, RunInfo)
@@ -343,17 +339,19 @@ class _FusionRerun:
             for early in self.early_nav:
                 self._recorded_nav(early)
             self.early_nav.clear()
+        elif t.endswith("/event/fusion"):  # (the legacy configuration event: the branch above)
+            self._realigned_event(r)
         if self.node is None and self.run is not None and self.cfg is not None:
             self._start(FusionNode.for_rerun(self.run, self.cfg))
         if self.realign_pending is not None and self.node is not None:
             self._try_realign()
 
-    def _realigned_event(self, r: Record) -> bool:
-        """A restarted fusion's ``realigned`` event (True): a new life of the fusion from the IMU
-        sample it names (``_try_realign``, once that sample is read). Its other events: False."""
+    def _realigned_event(self, r: Record) -> None:
+        """A restarted fusion's ``realigned`` event: a new life of the fusion from the IMU sample
+        it names (``_try_realign``, once that sample is read)."""
         ev = r.decode()
         if not isinstance(ev, Event) or ev.kind != "realigned":
-            return False
+            return
         seq = realigned_imu_seq(ev.detail)
         if seq is None:
             raise RecordingError(
@@ -362,7 +360,6 @@ class _FusionRerun:
             )
         self.realign_pending = seq
         self.realigned_sessions.append(r.publisher.partition(":")[0])
-        return True
 
     def _try_realign(self) -> None:
         """The life before the re-alignment ended: its inputs through the old core, then a new core
@@ -473,10 +470,7 @@ class _FusionRerun:
         assert isinstance(j, FusionJournal)
         self.last_journal_log_ns = max(self.last_journal_log_ns, r.log_time_ns)
         # each life of the fusion (a process, a Zenoh session) counts its own
-        life = r.publisher.partition(":")[0]
-        self.consumed_by[life] = max(self.consumed_by.get(life, -1), j.consumed)
-        self.journal_marks.append((life, j.watermark_ns, j.consumed))
-        self.live_consumed = sum(self.consumed_by.values())
+        self.journal_marks.append((r.publisher.partition(":")[0], j.watermark_ns, j.consumed))
         for d in j.dropped:
             _why, name, source = parse_journal_id(d)
             sensor, _, seq = name.partition(":")
@@ -620,7 +614,7 @@ class _FusionRerun:
             self.n_out,
             self.used,
             n_dropped,
-            self.live_consumed,
+            self._live_consumed(),
             diff,
             if_cut,
             unverified,
@@ -628,6 +622,14 @@ class _FusionRerun:
             spans,
             after_loss,
         )
+
+    def _live_consumed(self) -> int:
+        """What the live fusion consumed, by its journals: each life's last count, summed (-1: no
+        journal)."""
+        last: dict[str, int] = {}
+        for session, _w, consumed in self.journal_marks:
+            last[session] = max(last.get(session, -1), consumed)
+        return sum(last.values()) if last else -1
 
     def _lost_spans(self) -> list[tuple[int, int]]:
         """Where the recording lacks inputs the live fusion took: a journal counts the inputs its
@@ -668,12 +670,8 @@ class _FusionRerun:
         def lost(t_ns: int) -> bool:
             return any(a < t_ns < b for a, b in spans)
 
-        kept_diffs = [d for d in m.diffs if not lost(d[1])]
-        after = len(m.diffs) - len(kept_diffs)
-        diff = None
-        if kept_diffs:
-            _order, _t, key, theirs, mine = min(kept_diffs, key=lambda d: d[0])
-            diff = self._difference(key, theirs, mine) if theirs else f"nav/{key[0]} seq {key[1]} differs"
+        after = m.excuse(lost)
+        diff = m.first[1] if m.first else None
         kept = []
         for key in missing:
             try:

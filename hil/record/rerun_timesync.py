@@ -378,7 +378,8 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         now_ns = rig_time_ns(tail[1], start_ns)
     side.finish(now_ns)
     matcher, late, counts = side.matcher, side.late, side.counts
-    recovered = _excuse_recovered(matcher, recovery)
+    # a difference of what was read in a stretch a restarted recorder recovered is not one
+    recovered = matcher.excuse(lambda t: any(lo <= t <= hi for lo, hi in recovery))
     # a recorded re-stamp whose raw measurement the file lacks (lost while no recorder wrote, the
     # re-stamp recovered from the time sync's cache): nothing to recompute it from
     no_raw = [k for k in matcher.recorded_pending if k not in side.raw_seen]
@@ -405,29 +406,6 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         restarted=lives.n_later,
         restarts_s=lives.times_s(),
     )
-
-
-def _excuse_recovered(matcher: Matcher, recovery: list[list[int]]) -> int:
-    """Leave out of the verdict the differences of re-stamps computed from measurements read in a
-    stretch a restarted recorder recovered (``recovery``: their log times); how many."""
-    if not recovery:
-        return 0
-
-    def recovered(t_ns: int) -> bool:
-        return any(lo <= t_ns <= hi for lo, hi in recovery)
-
-    rest = [d for d in matcher.diffs if not recovered(d[1])]
-    if len(rest) < len(matcher.diffs):
-        first = min(rest, key=lambda d: d[0]) if rest else None
-        if first is None:
-            matcher.first = None
-        else:
-            order, _t, key, theirs, mine = first
-            text = (
-                _synced_difference(key, theirs, mine) if theirs else f"synced/{key[0]} seq {key[1]} differs"
-            )
-            matcher.first = (order, text)
-    return len(matcher.diffs) - len(rest)
 
 
 def _first_difference(

@@ -348,7 +348,7 @@ def _scan_session(
         out.attachments.update(res.attachments)
         out.messages += res.messages
         if res.truncated and f is not files[-1]:  # a killed recorder's, continued by the next
-            out.cut.append(f"{f.name}: {res.truncation_reason}")
+            out.cut.append((f.name, res.truncation_reason))
         elif res.truncated:
             out.truncated, out.truncation_reason = True, res.truncation_reason
         before += size

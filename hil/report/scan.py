@@ -68,7 +68,7 @@ class ScanResult:
     truncated: bool = False
     truncation_reason: str = ""
     bytes_total: int = 0
-    cut: list[str] = field(default_factory=list)  # a session's files cut short before the last
+    cut: list[tuple[str, str]] = field(default_factory=list)  # a session's files cut short before the last
 
 
 def _str(buf: bytes | memoryview, off: int) -> tuple[str, int]:
