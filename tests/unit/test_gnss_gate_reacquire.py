@@ -55,10 +55,7 @@ def _run(saturated_s: float, extra: str = "", gnss_reset: bool = True) -> dict[s
             inputs[i] = msgspec.structs.replace(m, dtheta_b_rad=th, dvel_b_mps=dv, status=flags)
     cfg = FusionConfig(estimators=DEFAULT_ESTIMATORS, output_every=40, gnss_reset=gnss_reset)
     core = FusionCore.for_scenario(s, cfg)
-    out = []
-    for m in inputs:
-        out += core.push(m, "receiver")
-    out += core.flush()
+    out = [o for m in inputs for o in core.push(m, "receiver")] + core.flush()
     errors = {}
     for name in ("ins", *DEFAULT_ESTIMATORS):
         sols = [o for o in out if o.estimator == name]
