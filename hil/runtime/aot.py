@@ -1,0 +1,254 @@
+"""The navigation kernels compiled ahead of time: one extension module, imported in a millisecond.
+
+Loading numba's cached kernels costs every process that runs the fusion ~0.45 s before its first
+input (importing numba ~0.2 s, its compiler's set-up and the 17 cached kernels ~0.25 s): an eighth
+of a two-minute rerun, and of every test that starts a fusion. numba's ahead-of-time compiler
+(``numba.pycc``) builds the same kernels (:func:`hil.runtime.jit._compile_kernels`, their own
+Python source, callees and signatures) into a C extension that needs neither numba nor LLVM when
+it loads. It is the same code generator without fast-math: no reassociation, no fused
+multiply-add (its target is the generic x86-64 CPU, which has none), the same libm calls, so the
+bits are the JIT's and the Python kernels' (checked when it loads, as the JIT's are, and by
+``tests/unit/test_aot.py``).
+
+``python -m hil.runtime.aot`` builds it (``make`` does, after installing; ~10 s, a C compiler
+needed). Its name carries a digest of the kernels' sources, numba's and numpy's versions and the
+interpreter, so an edited kernel or an upgraded numba leaves it unused (not wrong) until it is
+built again, and :func:`hil.runtime.jit.enable` loads numba's kernels as before. Where no module
+was built (no compiler, a Docker image), nothing changes but the start-up time.
+
+The entry points unbox their operands without numba's type dispatch: an array of another dtype or
+layout would be read as if it were right. So each is wrapped to check its array operands (dtype,
+dimensions, C order where compiled for it, writeable) and raise ``TypeError`` as numba's
+dispatcher does; the kernels that fall back to Python on such operands still do."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import importlib.util
+import json
+import os
+import sys
+import sysconfig
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+#: where the module is looked for and built: this directory, then beside the package, then the
+#: user's cache
+DIR_ENV = "HIL_KERNELS_DIR"
+_PREFIX = "hil_kernels_"
+_KERNEL_SOURCES = (
+    "hil/nav/strapdown.py",
+    "hil/nav/kernels.py",
+    "hil/estimators/compensation.py",
+    "hil/nav/earth.py",
+    "hil/nav/attitude.py",
+    "hil/fusion/predictor.py",
+    "hil/estimators/feedback.py",
+    "hil/estimators/ekf15.py",
+    "hil/runtime/jit.py",
+    "hil/runtime/aot.py",
+)
+#: an array operand's check: its place, dimensions, C order required, written to
+_ArrayArg = tuple[int, int, bool, bool]
+
+
+def _root() -> Path:
+    return Path(__file__).resolve().parents[2]
+
+
+def digest() -> str | None:
+    """The kernels' sources, numba's and numpy's versions, the interpreter and the machine, in 12
+    hex digits; None where numba is not installed. Reads numba's version file, not numba (whose
+    import is what this module saves)."""
+    spec = importlib.util.find_spec("numba")
+    if spec is None or spec.origin is None:
+        return None
+    import numpy
+
+    h = hashlib.sha256()
+    h.update((Path(spec.origin).parent / "_version.py").read_bytes())
+    h.update(f"{numpy.__version__} {sys.version} {sysconfig.get_platform()}".encode())
+    h.update(_cpu().encode())
+    root = _root()
+    for rel in _KERNEL_SOURCES:
+        h.update((root / rel).read_bytes())
+    return h.hexdigest()[:12]
+
+
+def _cpu() -> str:
+    """This CPU's model and flags (the module is compiled for them: another CPU builds its own)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        import platform
+
+        return platform.processor() or platform.machine()
+    lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags", "Features", "CPU part"))]
+    return "\n".join(dict.fromkeys(lines))
+
+
+def directories(env: Mapping[str, str] | None = None) -> list[Path]:
+    """Where the module may be: ``HIL_KERNELS_DIR``, the package's ``__pycache__``, the user's
+    cache directory (the first writable one is where :func:`build` writes)."""
+    env = os.environ if env is None else env
+    out = [Path(env[DIR_ENV])] if env.get(DIR_ENV) else []
+    out.append(Path(__file__).resolve().parent / "__pycache__")
+    cache = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    out.append(Path(cache) / "hil")
+    return out
+
+
+def _file_name(dig: str) -> str:
+    return _PREFIX + dig + (importlib.machinery.EXTENSION_SUFFIXES[0])
+
+
+def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., Any]], Path] | None:
+    """The kernels built for these sources (by their ``hil.runtime.jit._compiled`` names, array
+    operands checked) and the module's path; None when none was built for them."""
+    dig = digest()
+    if dig is None:
+        return None
+    for d in directories() if dirs is None else dirs:
+        path = d / _file_name(dig)
+        spec_path = path.with_name(_PREFIX + dig + ".json")
+        if not path.is_file() or not spec_path.is_file():
+            continue
+        try:
+            operands = json.loads(spec_path.read_text())
+            spec = importlib.util.spec_from_file_location(_PREFIX + dig, path)
+            assert spec is not None and spec.loader is not None
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        except (OSError, ImportError, ValueError, AssertionError) as err:
+            sys.stderr.write(f"hil: warning: {path} does not load ({err}); numba's kernels are used\n")
+            return None
+        kernels = {name: _guarded(getattr(module, name), name, n, a) for name, (n, a) in operands.items()}
+        return kernels, path
+    return None
+
+
+def _guarded(fn: Callable[..., Any], name: str, nargs: int, arrays: list[_ArrayArg]) -> Callable[..., Any]:
+    """``fn`` behind a check of its array operands (``TypeError`` as numba's dispatcher raises for
+    operands it was not compiled for); ``fn`` itself when it takes no array. The check is written
+    out for its operands (a loop over them cost a kernel call ~0.7 µs, as much as its work)."""
+    if not arrays:
+        return fn
+    import numpy as np
+
+    params = ", ".join(f"a{i}" for i in range(nargs))
+    wrong = []
+    for i, ndim, c_order, written in arrays:
+        a = f"a{i}"
+        wrong.append(f"type({a}) is not nd or {a}.dtype is not f8 and {a}.dtype != f8 or {a}.ndim != {ndim}")
+        if c_order:
+            wrong.append(f"not {a}.flags.c_contiguous")
+        if written:
+            wrong.append(f"not {a}.flags.writeable")
+    src = (
+        f"def {name}({params}):\n"
+        f"    if {' or '.join(wrong)}:\n"
+        f"        raise TypeError('{name}: an array operand is not the one it was compiled for')\n"
+        f"    return fn({params})\n"
+    )
+    scope: dict[str, Any] = {"nd": np.ndarray, "f8": np.dtype(np.float64), "fn": fn}
+    exec(compile(src, f"<hil.runtime.aot: {name}>", "exec"), scope)
+    return scope[name]  # type: ignore[no-any-return]
+
+
+def build(out_dir: Path | None = None) -> Path:
+    """Compile every kernel (:func:`hil.runtime.jit._compile_kernels`) into the extension module
+    for these sources, written (atomically, beside a JSON of each entry point's array operands)
+    to ``out_dir`` or the first writable of :func:`directories`; its path."""
+    import shutil
+    import tempfile
+
+    from hil.runtime import jit
+
+    dig = digest()
+    if dig is None:
+        raise RuntimeError("numba is not installed: pip install numba")
+    target = out_dir if out_dir is not None else _writable(directories())
+    target.mkdir(parents=True, exist_ok=True)
+    numba = jit._import_numba()
+    from numba.core import types as nbtypes
+    from numba.core.codegen import AOTCPUCodegen
+    from numba.pycc import CC
+
+    compiled = jit._compile_kernels(numba)
+    operands: dict[str, tuple[int, list[_ArrayArg]]] = {}
+    with tempfile.TemporaryDirectory(dir=target) as tmp:
+        cc = CC(_PREFIX + dig)
+        cc.output_dir = tmp
+        cc.verbose = False
+        # for this CPU, as numba's JIT compiles: its model and the features it reports (a VM may
+        # hide some its model has), not the generic x86-64 (~0.3 s slower a two-minute rerun)
+        cc.target_cpu = "host"
+        for name in sorted(compiled):  # those put in place and those the tests call (libm_square)
+            sig = compiled[name].nopython_signatures[0]
+            cc.export(name, sig)(compiled[name].py_func)
+            operands[name] = (
+                len(sig.args),
+                [
+                    (i, t.ndim, t.layout == "C", t.mutable)
+                    for i, t in enumerate(sig.args)
+                    if isinstance(t, nbtypes.Array)
+                ],
+            )
+        features = AOTCPUCodegen._customize_tm_features
+        AOTCPUCodegen._customize_tm_features = AOTCPUCodegen._get_host_cpu_features  # type: ignore[method-assign]
+        try:
+            cc.compile()
+        finally:
+            AOTCPUCodegen._customize_tm_features = features  # type: ignore[method-assign]
+        built = Path(tmp) / _file_name(dig)
+        spec = Path(tmp) / (_PREFIX + dig + ".json")
+        spec.write_text(json.dumps(operands))
+        final = target / built.name
+        os.replace(spec, target / spec.name)  # the operands first: a module is never found without
+        shutil.move(str(built), str(final))
+    return final
+
+
+def _writable(dirs: list[Path]) -> Path:
+    for d in dirs:
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(d, os.W_OK):
+            return d
+    among = ", ".join(map(str, dirs))
+    raise RuntimeError(f"no writable directory for the kernels among {among}: set {DIR_ENV}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(
+        prog="python -m hil.runtime.aot",
+        description="Build the navigation kernels ahead of time (a C compiler needed): every "
+        "process that runs the fusion then starts ~0.45 s sooner, with the same bits.",
+    )
+    p.add_argument(
+        "--dir",
+        type=Path,
+        default=None,
+        help=f"where to write it (default: ${DIR_ENV}, the package's __pycache__, ~/.cache/hil)",
+    )
+    a = p.parse_args(argv)
+    try:
+        path = build(a.dir)
+    except Exception as err:  # no compiler, no numba: the JIT path still works
+        sys.stderr.write(
+            f"hil: the kernels were not built ahead of time ({type(err).__name__}: {err}); "
+            "numba's cached kernels are used instead (start-up ~0.45 s slower)\n"
+        )
+        return 1
+    sys.stdout.write(f"built {path}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,148 @@
+"""The kernels built ahead of time (hil.runtime.aot) give the Python kernels' bits, as numba's JIT
+ones do, load without numba, and refuse operands they were not compiled for instead of misreading
+them. Built here into a temporary directory, so this holds whether or not ``make`` built one."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil.runtime import aot
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# CI (HIL_REQUIRE_VCAN, set by .ci/run, which installs gcc) never skips
+pytestmark = pytest.mark.skipif(
+    shutil.which("cc") is None and shutil.which("gcc") is None and not os.environ.get("HIL_REQUIRE_VCAN"),
+    reason="no C compiler to build the kernels ahead of time (.ci/run installs gcc)",
+)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Built by the command ``make`` runs, which says what it built."""
+    d = tmp_path_factory.mktemp("kernels")
+    res = _run([sys.executable, "-m", "hil.runtime.aot", "--dir", str(d)], _env(d))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith(f"built {d}/hil_kernels_")
+    assert sorted(p.suffix for p in d.iterdir()) == [".json", ".so"]
+    yield d
+
+
+def _env(kernels_dir: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "HIL_JIT"}
+    return dict(env, HIL_KERNELS_DIR=str(kernels_dir), PYTHONPATH=str(ROOT), **extra)
+
+
+def _run(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(args, env=env, capture_output=True, text=True, timeout=600, cwd=ROOT)
+
+
+def test_they_load_without_numba_and_are_put_in_place(built: Path) -> None:
+    code = (
+        "import sys\n"
+        "from hil.runtime import jit\n"
+        "from hil.nav import strapdown\n"
+        "print(jit.enable()); print(jit.source()); print('numba' in sys.modules)\n"
+        "print(strapdown._step is jit.compiled_kernel('_step'))\n"
+    )
+    res = _run([sys.executable, "-c", code], _env(built))
+    assert res.returncode == 0, res.stderr
+    state, source, numba_loaded, in_place = res.stdout.split("\n")[:4]
+    assert state == "compiled"
+    assert source.startswith(f"ahead of time ({built}/hil_kernels_")
+    assert (numba_loaded, in_place) == ("False", "True")
+    res = _run([sys.executable, "-c", code], _env(built, HIL_JIT="numba"))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split("\n")[1:3] == ["numba's cache", "True"]
+
+
+def test_every_kernel_gives_the_python_bits(built: Path) -> None:
+    """The JIT kernels' tests (random operands, each kernel against its Python one and einsum's
+    orders), run with these in place."""
+    res = _run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            "tests/unit/test_jit.py",
+            "-k",
+            "compiled",
+        ],
+        _env(built),
+    )
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
+    assert " passed" in res.stdout and "failed" not in res.stdout
+
+
+def test_a_recording_made_with_numbas_kernels_reruns_bit_for_bit_with_these(
+    built: Path, tmp_path: Path
+) -> None:
+    rec = tmp_path / "s.mcap"
+    sim = _run(
+        [
+            sys.executable,
+            "-m",
+            "hil.cli",
+            "sim",
+            "--scenario",
+            "uav_survey",
+            "--duration",
+            "8",
+            "--record",
+            str(rec),
+        ],
+        _env(built, HIL_JIT="numba"),
+    )
+    assert sim.returncode == 0, sim.stderr
+    res = _run(
+        [sys.executable, "-m", "hil.cli", "rerun", str(rec), "--core", "fusion", "--verify"], _env(built)
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "bit-identical" in res.stdout
+
+
+def test_an_operand_they_were_not_compiled_for_is_refused_not_misread(built: Path) -> None:
+    loaded = aot.load([built])
+    assert loaded is not None
+    kernels, _path = loaded
+    expm = kernels["expm"]  # compiled for a C-ordered float64 matrix
+    m = np.random.default_rng(3).normal(size=(4, 4)) * 0.1
+    want = expm(m.copy())
+    for bad in (m.astype(np.float32), np.asfortranarray(m)[:, :], np.ones((4, 8))[:, ::2], [[1.0]], m[0]):
+        with pytest.raises(TypeError, match="expm: an array operand"):
+            expm(bad)
+    readonly = m.copy()
+    readonly.flags.writeable = False
+    with pytest.raises(TypeError):
+        expm(readonly)
+    assert expm(m.copy()).tobytes() == want.tobytes()
+
+
+def test_a_module_for_other_sources_or_a_damaged_one_is_not_used(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert aot.load([tmp_path]) is None  # none built there
+    stale = tmp_path / "stale"
+    stale.mkdir()
+    for f in built.iterdir():  # a module of other sources: another digest in its name
+        shutil.copy(f, stale / f.name.replace("hil_kernels_", "hil_kernels_0"))
+    assert aot.load([stale]) is None
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    for f in built.iterdir():
+        shutil.copy(f, damaged / f.name)
+    so = next(damaged.glob("hil_kernels_*.so"))
+    so.write_bytes(b"not an ELF file")
+    assert aot.load([damaged]) is None
+    assert "does not load" in capsys.readouterr().err
