@@ -19,7 +19,7 @@ import bisect
 import heapq
 import json
 from array import array
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -282,7 +282,9 @@ class _FusionRerun:
     rank: dict[str, int] = field(default_factory=dict)
     # for the worker: (message, publisher, predicted, payload as recorded)
     batch: list[_Pending] = field(default_factory=list)
-    in_flight: list[_Pending] | None = None  # the batch the worker runs
+    # the batches sent to the (first) worker whose solutions are not read yet: the next one is sent
+    # before the last one's are read, so the worker never waits for this process between two
+    ahead: deque[list[_Pending]] = field(default_factory=deque)
     # split: the batch the second worker runs, with the first's solutions of it
     in_flight_b: tuple[list[_Pending], list[list[Replayed]]] | None = None
     # a restarted fusion (its ``realigned`` event): the current life's re-alignment (align_ns,
@@ -523,39 +525,37 @@ class _FusionRerun:
             self.n_out += 1
         m.release_before(input_key(msg)[0])
 
-    def _take_in_flight(self) -> None:
-        if self.in_flight is not None:
-            assert self.remote is not None
-            for (msg, *_), sols in zip(self.in_flight, self.remote.replayed(), strict=True):
-                self._compare(msg, sols)
-            self.in_flight = None
-
     def _send_batch(self) -> None:
-        """The batch to the worker, once done with the one before (compared meanwhile)."""
+        """The batch to the worker, then the solutions of the one before it compared (all of them
+        once there is nothing more to send: the end)."""
         assert self.remote is not None
         if self.remote2 is not None:
             self._send_split()
             return
-        self._take_in_flight()
+        keep = 0
         if self.batch:
             self.remote.replay(_encoded(self.batch), self.keep_outputs)
-            self.in_flight, self.batch = self.batch, []
+            self.ahead.append(self.batch)
+            self.batch, keep = [], 1
+        while len(self.ahead) > keep:
+            for (msg, *_), sols in zip(self.ahead.popleft(), self.remote.replayed(), strict=True):
+                self._compare(msg, sols)
 
     def _send_split(self) -> None:
-        """Two cores: the first (with the gate's reference) one batch ahead of the second, which
-        takes that batch with the first's gate verdicts on it. A worker is sent more only once
-        its reply is read (a worker blocked writing a reply reads nothing), the first as soon as
-        it is: it runs batch N while the second runs N - 1 (a worker; ``LocalNode``: this process,
-        at once) and this process reads N + 1 and compares N - 2."""
+        """Two cores: the first (with the gate's reference) a batch or two ahead of the second,
+        which takes a batch with the first's gate verdicts on it. The first is sent batch N + 1
+        before its solutions of N are read, so it goes from one to the next without waiting; the
+        second runs N (a worker; ``LocalNode``: this process, at once) once they are, while
+        this process reads N + 2 and compares N - 1. (Neither side waits for ever on the other:
+        one waiting for room in its ring takes in what the other says, ``_Link``.)"""
         a, b, shares = self.remote, self.remote2, self.shares
         assert a is not None and b is not None and shares is not None
-        done_a = None
-        if self.in_flight is not None:
-            done_a = (self.in_flight, *a.replayed_split())
-            self.in_flight = None
+        keep = 0
         if self.batch:
             a.replay(_encoded(self.batch), self.keep_outputs, shares[0], verdicts=True)
-            self.in_flight, self.batch = self.batch, []
+            self.ahead.append(self.batch)
+            self.batch, keep = [], 1
+        done_a = (self.ahead.popleft(), *a.replayed_split()) if len(self.ahead) > keep else None
         if self.in_flight_b is not None:
             self._merge(*self.in_flight_b, b.replayed())
             self.in_flight_b = None
@@ -574,7 +574,7 @@ class _FusionRerun:
     def drain(self) -> None:
         """Every input handed to the worker(s) recomputed and compared."""
         if self.remote is not None:
-            while self.batch or self.in_flight is not None or self.in_flight_b is not None:
+            while self.batch or self.ahead or self.in_flight_b is not None:
                 self._send_batch()
 
     def close(self) -> None:
