@@ -161,6 +161,10 @@ REPLAY_BATCH = 4096
 # runs the last alone; half the batch halves both (uav_survey 120 s: 2.99-3.12 s against
 # 3.08-3.34 s, three runs each, 2026-12-06)
 REPLAY_BATCH_HERE = 2048
+# the first batch a worker is sent: the sizes double from there, so the pipeline fills in a few
+# milliseconds instead of a whole batch's work (uav_survey 120 s: the first batch held this process
+# ~0.1 s)
+REPLAY_BATCH_FIRST = 128
 # two workers share the estimators when there are at least twice this many, by default on this
 # many CPUs (see ``split_estimators``)
 SPLIT_MIN_EACH = 2
@@ -274,6 +278,9 @@ class _FusionRerun:
     # a heavy configuration (``share_here_pays``)
     here: bool | None = None
     batch_size: int = 0  # inputs a worker is sent at a time (``_start``)
+    # the next batch's size: from REPLAY_BATCH_FIRST, doubled up to ``batch_size`` (a worker's
+    # first batch, or this process's share of the last, is run while the other side waits)
+    sending: int = 0
     # with two workers: the second (or this process's share), each one's estimators (``only``),
     # and every solution's place in one core's output of an input (the free INS, then the
     # configuration's order)
@@ -406,6 +413,7 @@ class _FusionRerun:
         that share its estimators: the kernels are compiled where it runs, with the same bits."""
         self.node = node
         self.batch_size = REPLAY_BATCH
+        self.sending = REPLAY_BATCH_FIRST
         if not (self.worker if self.worker is not None else worker_pays(node)):
             jit.enable()
             freeze_command_startup()
@@ -509,8 +517,9 @@ class _FusionRerun:
                 self._compare(msg, replay_encoded(node, [(msg, source, predicted)], self.keep_outputs)[0])
                 continue
             self.batch.append((msg, source, predicted, payload))
-            if len(self.batch) >= self.batch_size:
+            if len(self.batch) >= self.sending:
                 self._send_batch()
+                self.sending = min(2 * self.sending, self.batch_size)
         if upto_ns is None:  # the end: what the worker still holds
             self.drain()
 
