@@ -1,11 +1,13 @@
-"""``hil bench jit``: the fusion with its kernels compiled (``HIL_JIT=1``) against Python (``0``).
+"""``hil bench jit``: the fusion with its kernels compiled against Python (``HIL_JIT=0``), both
+ways they are compiled: numba's cached kernels (``HIL_JIT=numba``) and those built ahead of time
+(:mod:`hil.runtime.aot`, what ``HIL_JIT=1`` loads where ``make`` built them).
 
 One ``hil sim --record`` (compiled, the default), then ``hil rerun --core fusion --verify`` of it
-by both, alternating (Python first on even repeats), each a child process measured by its own
+each way, in turn (the order rotated each repeat), each a child process measured by its own
 rusage (:func:`hil.bench.offline.run_child`: user + system, which a busy machine slows far less
-than wall time). The Python reruns verify the compiled recording bit for bit, which is the kernels'
-contract (:mod:`hil.runtime.jit`). Also timed: a process that imports numba and loads the cached
-kernels, which every compiled process pays once, against one that only imports the switch.
+than wall time). Every rerun verifies the recording bit for bit, which is the kernels' contract
+(:mod:`hil.runtime.jit`). Also timed: a process that loads the kernels each way, which every
+compiled process pays once, against one that only imports the switch.
 """
 
 from __future__ import annotations
@@ -24,6 +26,19 @@ _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemE
 _LOAD = "from hil.runtime import jit; raise SystemExit(0 if jit.enable() == 'compiled' else 3)"
 _IMPORT = "import hil.runtime.jit"
 _TREE = Path(__file__).resolve().parents[2]
+
+
+def _source(tmp: Path) -> str:
+    """Where a process of this tree takes its compiled kernels from by default
+    (``hil.runtime.jit.source``)."""
+    import subprocess
+
+    code = "from hil.runtime import jit; jit.enable(); print(jit.source())"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HIL_")} | {"PYTHONPATH": str(_TREE)}
+    res = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=tmp, capture_output=True, text=True, timeout=300
+    )
+    return res.stdout.strip() or f"no answer ({res.stderr.strip()[-200:]})"
 
 
 def main(argv: list[str]) -> int:
@@ -55,43 +70,60 @@ def main(argv: list[str]) -> int:
             if rc != 0:
                 print(f"hil bench jit: hil sim exited {rc}", file=sys.stderr)
                 return 1
-            loaded = run_child(_TREE, ["-c", _LOAD], {"HIL_JIT": "1"})[0]
-            load_cpu = loaded - run_child(_TREE, ["-c", _IMPORT])[0]
+            imported = run_child(_TREE, ["-c", _IMPORT])[0]
         except RuntimeError as err:
             print(f"hil bench jit: {err}", file=sys.stderr)
             return 1
-        rows: dict[str, list[float]] = {"0": [], "1": []}
-        verified: dict[str, list[bool]] = {"0": [], "1": []}
+        default = _source(tmp)
+        ways = ["0", "numba"] + (["1"] if default.startswith("ahead of time") else [])
+        load_cpu = {j: run_child(_TREE, ["-c", _LOAD], {"HIL_JIT": j})[0] - imported for j in ways[1:]}
+        rows: dict[str, list[float]] = {j: [] for j in ways}
+        walls: dict[str, list[float]] = {j: [] for j in ways}
+        verified: dict[str, list[bool]] = {j: [] for j in ways}
         for i in range(a.repeat):
-            for j in ("0", "1") if i % 2 == 0 else ("1", "0"):
+            for j in ways[i % len(ways) :] + ways[: i % len(ways)]:
                 rerun = ["-c", _RUN, "rerun", str(rec), "--core", "fusion", "--verify"]
-                cpu, _wall, rc = run_child(_TREE, rerun, {"HIL_JIT": j})
+                cpu, wall, rc = run_child(_TREE, rerun, {"HIL_JIT": j})
                 rows[j].append(cpu)
+                walls[j].append(wall)
                 verified[j].append(rc == 0)  # --verify exits 1 on the first differing output
-    py, cc = sum(rows["0"]) / a.repeat, sum(rows["1"]) / a.repeat
-    body = "\n".join(
-        [
-            f"`hil sim --scenario {a.scenario} --duration {a.duration:g} --record` with the kernels compiled "
-            f"({sim_cpu:.1f} s of CPU, {sim_wall:.1f} s wall: {a.duration / sim_wall:.2f}× real time on the "
-            f"wall clock, the fusion in its worker), then `hil rerun --core fusion --verify` of it with "
-            f"`HIL_JIT=0` and `HIL_JIT=1`, {a.repeat} each, alternating; CPU of each child (user + system). "
-            f"Load average (1 min) {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end on "
-            f"{os.cpu_count()} cores: compare the ratio.",
-            "",
-            "| rerun --core fusion --verify | CPU s per run | mean | × real time (CPU) | verified |",
-            "| --- | --- | ---: | ---: | --- |",
-            f"| Python (`HIL_JIT=0`) | {', '.join(f'{c:.1f}' for c in rows['0'])} | {py:.1f} | "
-            f"{a.duration / py:.2f} | {'all' if all(verified['0']) else 'FAILED'} |",
-            f"| compiled (`HIL_JIT=1`) | {', '.join(f'{c:.1f}' for c in rows['1'])} | {cc:.1f} | "
-            f"{a.duration / cc:.2f} | {'all' if all(verified['1']) else 'FAILED'} |",
-            "",
-            f"CPU ratio compiled / Python: **{cc / py:.3f}** (per pair: "
-            f"{', '.join(f'{c / p:.3f}' for p, c in zip(rows['0'], rows['1'], strict=True))}). "
-            f"Importing numba and loading the cached kernels (`jit.enable()` compiled them): "
-            f"{load_cpu:.2f} s of CPU per process, in the compiled figures above.",
-        ]
-    )
+    mean = {j: sum(v) / a.repeat for j, v in rows.items()}
+    label = {
+        "0": "Python (`HIL_JIT=0`)",
+        "numba": "numba's cache (`HIL_JIT=numba`)",
+        "1": "ahead of time (`HIL_JIT=1`, `make`)",
+    }
+    lines = [
+        f"`hil sim --scenario {a.scenario} --duration {a.duration:g} --record` with the kernels compiled "
+        f"({sim_cpu:.1f} s of CPU, {sim_wall:.1f} s wall: {a.duration / sim_wall:.2f}× real time on the "
+        f"wall clock, the fusion in its worker), then `hil rerun --core fusion --verify` of it each way, "
+        f"{a.repeat} each, in turn; CPU of each child (user + system, its worker included). Load average "
+        f"(1 min) {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end on {os.cpu_count()} "
+        "cores: compare the ratios.",
+        "",
+        "| rerun --core fusion --verify | CPU s per run | mean | × real time (CPU) | wall s per run | "
+        "kernels loaded, CPU s | verified |",
+        "| --- | --- | ---: | ---: | --- | ---: | --- |",
+    ]
+    for j in ways:
+        load = f"{load_cpu[j]:.2f}" if j in load_cpu else "–"
+        lines.append(
+            f"| {label[j]} | {', '.join(f'{c:.2f}' for c in rows[j])} | {mean[j]:.2f} | "
+            f"{a.duration / mean[j]:.2f} | {', '.join(f'{w:.2f}' for w in walls[j])} | {load} | "
+            f"{'all' if all(verified[j]) else 'FAILED'} |"
+        )
+    ratios = [f"numba / Python **{mean['numba'] / mean['0']:.3f}**"]
+    if "1" in mean:
+        ratios.append(f"ahead of time / numba **{mean['1'] / mean['numba']:.3f}**")
+    else:
+        ratios.append(f"none built ahead of time here ({default}: `make kernels` builds them)")
+    lines += [
+        "",
+        "CPU ratios: " + "; ".join(ratios) + ". Loading the kernels (`jit.enable()`, less importing "
+        "the switch) is in the compiled figures above.",
+    ]
+    body = "\n".join(lines)
     print(body)
     if not a.no_write:
         write_section("jit", body, command_line())
-    return 0 if all(verified["0"] + verified["1"]) else 1
+    return 0 if all(all(v) for v in verified.values()) else 1

@@ -532,7 +532,7 @@ class _FusionRerun:
             if est in self.produced:
                 m.recomputed((est, seq), payload, self.n_out, stamp_ns)
             self.n_out += 1
-        m.release_before(input_key(msg)[0])
+        m.release_before(msg.stamp_ns)  # the total order's first key
 
     def _send_batch(self) -> None:
         """The batch to the worker, then the solutions of the one before it compared (all of them

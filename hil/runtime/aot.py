@@ -8,7 +8,7 @@ Python source, callees and signatures) into a C extension that needs neither num
 it loads. It is the same code generator without fast-math: no reassociation, no fused
 multiply-add (its target is the generic x86-64 CPU, which has none), the same libm calls, so the
 bits are the JIT's and the Python kernels' (checked when it loads, as the JIT's are, and by
-``tests/unit/test_aot.py``).
+``tests/unit/test_aot.py``). :mod:`hil.runtime.prebuilt` finds and loads it.
 
 ``python -m hil.runtime.aot`` builds it (``make`` does, after installing; ~10 s, a C compiler
 needed). Its name carries a digest of the kernels' sources, numba's and numpy's versions and the
@@ -28,138 +28,12 @@ kernel (``ramp_step``: 0.41 µs unchecked, 1.22 µs checked, 0.70 µs through nu
 
 from __future__ import annotations
 
-import hashlib
-import importlib.machinery
-import importlib.util
 import json
 import os
 import sys
-import sysconfig
-from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
 
-#: where the module is looked for and built: this directory, then beside the package, then the
-#: user's cache
-DIR_ENV = "HIL_KERNELS_DIR"
-_PREFIX = "hil_kernels_"
-_KERNEL_SOURCES = (
-    "hil/nav/strapdown.py",
-    "hil/nav/kernels.py",
-    "hil/estimators/compensation.py",
-    "hil/nav/earth.py",
-    "hil/nav/attitude.py",
-    "hil/fusion/predictor.py",
-    "hil/estimators/feedback.py",
-    "hil/estimators/ekf15.py",
-    "hil/runtime/jit.py",
-    "hil/runtime/aot.py",
-)
-#: an array operand's check: its place, dimensions, C order required, written to
-_ArrayArg = tuple[int, int, bool, bool]
-
-
-def _root() -> Path:
-    return Path(__file__).resolve().parents[2]
-
-
-def digest() -> str | None:
-    """The kernels' sources, numba's and numpy's versions, the interpreter and the machine, in 12
-    hex digits; None where numba is not installed. Reads numba's version file, not numba (whose
-    import is what this module saves)."""
-    spec = importlib.util.find_spec("numba")
-    if spec is None or spec.origin is None:
-        return None
-    import numpy
-
-    h = hashlib.sha256()
-    h.update((Path(spec.origin).parent / "_version.py").read_bytes())
-    h.update(f"{numpy.__version__} {sys.version} {sysconfig.get_platform()}".encode())
-    h.update(_cpu().encode())
-    root = _root()
-    for rel in _KERNEL_SOURCES:
-        h.update((root / rel).read_bytes())
-    return h.hexdigest()[:12]
-
-
-def _cpu() -> str:
-    """This CPU's model and flags (the module is compiled for them: another CPU builds its own)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        import platform
-
-        return platform.processor() or platform.machine()
-    lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags", "Features", "CPU part"))]
-    return "\n".join(dict.fromkeys(lines))
-
-
-def directories(env: Mapping[str, str] | None = None) -> list[Path]:
-    """Where the module may be: ``HIL_KERNELS_DIR``, the package's ``__pycache__``, the user's
-    cache directory (the first writable one is where :func:`build` writes)."""
-    env = os.environ if env is None else env
-    out = [Path(env[DIR_ENV])] if env.get(DIR_ENV) else []
-    out.append(Path(__file__).resolve().parent / "__pycache__")
-    cache = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    out.append(Path(cache) / "hil")
-    return out
-
-
-def _file_name(dig: str) -> str:
-    return _PREFIX + dig + (importlib.machinery.EXTENSION_SUFFIXES[0])
-
-
-def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., Any]], Path] | None:
-    """The kernels built for these sources (by their ``hil.runtime.jit._compiled`` names, array
-    operands checked) and the module's path; None when none was built for them."""
-    dig = digest()
-    if dig is None:
-        return None
-    for d in directories() if dirs is None else dirs:
-        path = d / _file_name(dig)
-        spec_path = path.with_name(_PREFIX + dig + ".json")
-        if not path.is_file() or not spec_path.is_file():
-            continue
-        try:
-            operands = json.loads(spec_path.read_text())
-            spec = importlib.util.spec_from_file_location(_PREFIX + dig, path)
-            assert spec is not None and spec.loader is not None
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-        except (OSError, ImportError, ValueError, AssertionError) as err:
-            sys.stderr.write(f"hil: warning: {path} does not load ({err}); numba's kernels are used\n")
-            return None
-        kernels = {name: _guarded(getattr(module, name), name, n, a) for name, (n, a) in operands.items()}
-        return kernels, path
-    return None
-
-
-def _guarded(fn: Callable[..., Any], name: str, nargs: int, arrays: list[_ArrayArg]) -> Callable[..., Any]:
-    """``fn`` behind a check of its array operands (``TypeError`` as numba's dispatcher raises for
-    operands it was not compiled for); ``fn`` itself when it takes no array. The check is written
-    out for its operands (a loop over them cost a kernel call ~0.7 µs, as much as its work)."""
-    if not arrays:
-        return fn
-    import numpy as np
-
-    params = ", ".join(f"a{i}" for i in range(nargs))
-    wrong = []
-    for i, ndim, c_order, written in arrays:
-        a = f"a{i}"
-        wrong.append(f"type({a}) is not nd or {a}.dtype is not f8 and {a}.dtype != f8 or {a}.ndim != {ndim}")
-        if c_order:
-            wrong.append(f"not {a}.flags.c_contiguous")
-        if written:
-            wrong.append(f"not {a}.flags.writeable")
-    src = (
-        f"def {name}({params}):\n"
-        f"    if {' or '.join(wrong)}:\n"
-        f"        raise TypeError('{name}: an array operand is not the one it was compiled for')\n"
-        f"    return fn({params})\n"
-    )
-    scope: dict[str, Any] = {"nd": np.ndarray, "f8": np.dtype(np.float64), "fn": fn}
-    exec(compile(src, f"<hil.runtime.aot: {name}>", "exec"), scope)
-    return scope[name]  # type: ignore[no-any-return]
+from hil.runtime.prebuilt import DIR_ENV, PREFIX, ArrayArg, digest, directories, file_name
 
 
 def build(out_dir: Path | None = None) -> Path:
@@ -182,9 +56,9 @@ def build(out_dir: Path | None = None) -> Path:
     from numba.pycc import CC
 
     compiled = jit._compile_kernels(numba)
-    operands: dict[str, tuple[int, list[_ArrayArg]]] = {}
+    operands: dict[str, tuple[int, list[ArrayArg]]] = {}
     with tempfile.TemporaryDirectory(dir=target) as tmp:
-        cc = CC(_PREFIX + dig)
+        cc = CC(PREFIX + dig)
         cc.output_dir = tmp
         cc.verbose = False
         # for this CPU, as numba's JIT compiles: its model and the features it reports (a VM may
@@ -207,8 +81,8 @@ def build(out_dir: Path | None = None) -> Path:
             cc.compile()
         finally:
             AOTCPUCodegen._customize_tm_features = features  # type: ignore[method-assign]
-        built = Path(tmp) / _file_name(dig)
-        spec = Path(tmp) / (_PREFIX + dig + ".json")
+        built = Path(tmp) / file_name(dig)
+        spec = Path(tmp) / (PREFIX + dig + ".json")
         spec.write_text(json.dumps(operands))
         final = target / built.name
         os.replace(spec, target / spec.name)  # the operands first: a module is never found without

@@ -73,7 +73,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from hil.runtime import aot
+from hil.runtime import prebuilt
 from hil.runtime.heap import freeze_startup, offline_collector
 
 JIT_ENV = "HIL_JIT"
@@ -233,7 +233,7 @@ def _enable(env: Mapping[str, str]) -> str:
         return why
     from hil.nav import kernels
 
-    built = None if why == _NUMBA_ONLY else aot.load(aot.directories(env))
+    built = None if why == _NUMBA_ONLY else prebuilt.load(prebuilt.directories(env))
     if built is not None:  # the module built ahead of time (hil.runtime.aot): numba not imported
         _compiled.update(built[0])
         _source = f"ahead of time ({built[1]})"

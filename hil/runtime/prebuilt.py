@@ -1,0 +1,138 @@
+"""The navigation kernels built ahead of time (:mod:`hil.runtime.aot` builds them), found and
+loaded: what :func:`hil.runtime.jit.enable` tries before numba. Apart from the builder so that
+loading them imports neither numba nor :mod:`hil.runtime.jit`."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import importlib.util
+import json
+import os
+import sys
+import sysconfig
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+#: where the module is looked for and built: this directory, then beside the package, then the
+#: user's cache
+DIR_ENV = "HIL_KERNELS_DIR"
+PREFIX = "hil_kernels_"
+_KERNEL_SOURCES = (
+    "hil/nav/strapdown.py",
+    "hil/nav/kernels.py",
+    "hil/estimators/compensation.py",
+    "hil/nav/earth.py",
+    "hil/nav/attitude.py",
+    "hil/fusion/predictor.py",
+    "hil/estimators/feedback.py",
+    "hil/estimators/ekf15.py",
+    "hil/runtime/jit.py",
+    "hil/runtime/aot.py",
+    "hil/runtime/prebuilt.py",
+)
+#: an array operand's check: its place, dimensions, C order required, written to
+ArrayArg = tuple[int, int, bool, bool]
+
+
+def _root() -> Path:
+    return Path(__file__).resolve().parents[2]
+
+
+def digest() -> str | None:
+    """The kernels' sources, numba's and numpy's versions, the interpreter and the machine, in 12
+    hex digits; None where numba is not installed. Reads numba's version file, not numba (whose
+    import is what this module saves)."""
+    spec = importlib.util.find_spec("numba")
+    if spec is None or spec.origin is None:
+        return None
+    import numpy
+
+    h = hashlib.sha256()
+    h.update((Path(spec.origin).parent / "_version.py").read_bytes())
+    h.update(f"{numpy.__version__} {sys.version} {sysconfig.get_platform()}".encode())
+    h.update(_cpu().encode())
+    root = _root()
+    for rel in _KERNEL_SOURCES:
+        h.update((root / rel).read_bytes())
+    return h.hexdigest()[:12]
+
+
+def _cpu() -> str:
+    """This CPU's model and flags (the module is compiled for them: another CPU builds its own)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        import platform
+
+        return platform.processor() or platform.machine()
+    lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags", "Features", "CPU part"))]
+    return "\n".join(dict.fromkeys(lines))
+
+
+def directories(env: Mapping[str, str] | None = None) -> list[Path]:
+    """Where the module may be: ``HIL_KERNELS_DIR``, the package's ``__pycache__``, the user's
+    cache directory (the first writable one is where :func:`build` writes)."""
+    env = os.environ if env is None else env
+    out = [Path(env[DIR_ENV])] if env.get(DIR_ENV) else []
+    out.append(Path(__file__).resolve().parent / "__pycache__")
+    cache = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    out.append(Path(cache) / "hil")
+    return out
+
+
+def file_name(dig: str) -> str:
+    return PREFIX + dig + (importlib.machinery.EXTENSION_SUFFIXES[0])
+
+
+def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., Any]], Path] | None:
+    """The kernels built for these sources (by their ``hil.runtime.jit._compiled`` names, array
+    operands checked) and the module's path; None when none was built for them."""
+    dig = digest()
+    if dig is None:
+        return None
+    for d in directories() if dirs is None else dirs:
+        path = d / file_name(dig)
+        spec_path = path.with_name(PREFIX + dig + ".json")
+        if not path.is_file() or not spec_path.is_file():
+            continue
+        try:
+            operands = json.loads(spec_path.read_text())
+            spec = importlib.util.spec_from_file_location(PREFIX + dig, path)
+            assert spec is not None and spec.loader is not None
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        except (OSError, ImportError, ValueError, AssertionError) as err:
+            sys.stderr.write(f"hil: warning: {path} does not load ({err}); numba's kernels are used\n")
+            return None
+        kernels = {name: _guarded(getattr(module, name), name, a) for name, (_n, a) in operands.items()}
+        return kernels, path
+    return None
+
+
+def _guarded(fn: Callable[..., Any], name: str, arrays: list[ArrayArg]) -> Callable[..., Any]:
+    """``fn`` behind a check of its array operands (``TypeError`` as numba's dispatcher raises for
+    operands it was not compiled for); ``fn`` itself when none is to be checked."""
+    if not arrays:
+        return fn
+    import numpy as np
+
+    nd, f8 = np.ndarray, np.dtype(np.float64)
+    checks = [tuple(a) for a in arrays]
+
+    def kernel(*args: Any) -> Any:
+        for i, ndim, c_order, written in checks:
+            a = args[i]
+            if (
+                type(a) is not nd
+                or (a.dtype is not f8 and a.dtype != f8)
+                or a.ndim != ndim
+                or (c_order and not a.flags.c_contiguous)
+                or (written and not a.flags.writeable)
+            ):
+                raise TypeError(f"{name}: operand {i} is not the array it was compiled for")
+        return fn(*args)
+
+    kernel.__name__ = kernel.__qualname__ = name
+    return kernel
