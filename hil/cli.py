@@ -447,7 +447,11 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
     if record.exists():
         print()
-        print(describe(str(record)))  # its further parts too, if it was split
+        failings: list[str] = []
+        print(describe(str(record), verdicts=failings))  # its further parts too, if it was split
+        for f in failings:  # a rig whose services all stayed up but did not navigate
+            print(f"hil up: FAILED: {f}", file=sys.stderr)
+            rc = rc or 1
         for part in sup.record_parts:
             state = "present" if part.exists() else "MISSING"
             print(f"hil up: a restarted recorder continued in {part} ({state})")
@@ -647,6 +651,12 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
         print()
         print(describe(str(record), parallel=True))
+    from hil.record.info import fusion_refusal
+
+    refused = fusion_refusal(res.fusion_counts)
+    if refused is not None:  # the run went to its end, but did not navigate: not a success
+        print(f"hil sim: FAILED: the fusion {refused}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from array import array
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -198,14 +198,8 @@ class Summary:
             counts = decode(ServiceStatus, self.fusion_status).counter_map()
         except ValueError:  # msgspec's errors: a status that does not read says nothing here
             return None
-        late, consumed = counts.get("dropped_late.imu", 0), counts.get("consumed", 0)
-        if late == 0 or late < 0.1 * (late + consumed):
-            return None
-        return (
-            f"fusion:    refused {late} IMU samples as late (dropped_late.imu) and took {consumed} "
-            "inputs: its horizon ran ahead of their stamps, so its solutions thin out or stop; "
-            "event/fusion says when (latency_over_bound)"
-        )
+        refused = fusion_refusal(counts)
+        return None if refused is None else f"fusion:    {refused}"
 
     def foreign_summary(self) -> dict[str, object]:
         """What publishers that are not the rig's sent: messages per topic, and who."""
@@ -421,9 +415,27 @@ def _session_line(path: Path, index: str) -> list[str]:
     ]
 
 
-def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str:
+def fusion_refusal(counts: Mapping[str, int]) -> str | None:
+    """What a fusion that refused a tenth or more of its IMU samples as late did (its status
+    counters), or None: its horizon ran ahead of the samples' stamps, and its solutions thin out
+    or stop while every service stays up. ``hil info`` says it; ``hil up`` and ``hil sim`` also
+    exit 1 for it, a run that did not navigate being no success."""
+    late, consumed = counts.get("dropped_late.imu", 0), counts.get("consumed", 0)
+    if late == 0 or late < 0.1 * (late + consumed):
+        return None
+    return (
+        f"refused {late} IMU samples as late (dropped_late.imu) and took {consumed} "
+        "inputs: its horizon ran ahead of their stamps, so its solutions thin out or stop; "
+        "event/fusion says when (latency_over_bound)"
+    )
+
+
+def describe(
+    path: str, *, accuracy: bool = True, parallel: bool = False, verdicts: list[str] | None = None
+) -> str:
     """What ``hil info`` prints. ``parallel``: a large file read by two processes at once (a
-    command's own process, which may fork: not a live rig's supervisor)."""
+    command's own process, which may fork: not a live rig's supervisor). ``verdicts``: where
+    the run's failings it finds are added (the fusion's ``fusion_refusal``), for an exit code."""
     summary, s = _scan(path, derived=True, accuracy=accuracy, parallel=parallel)  # Foxglove's listed too
     infos = summary.channel_infos()
     t0 = min((c.first_ns for c in infos), default=0)
@@ -496,6 +508,8 @@ def describe(path: str, *, accuracy: bool = True, parallel: bool = False) -> str
     stalled = summary.fusion_line()
     if stalled:
         lines.append(stalled)
+        if verdicts is not None:
+            verdicts.append("the fusion " + stalled.removeprefix("fusion:").strip())
     restarted = [c for c in infos if c.restarts]
     if restarted:
         # a restart is its own fact, not loss: the publisher counts again in a new generation

@@ -115,6 +115,7 @@ class SimResult:
     wall_s: float
     warnings: list[str] = field(default_factory=list)
     stopped_at_s: float | None = None  # rig time where ``stop`` ended the run (None: it ran out)
+    fusion_counts: dict[str, int] = field(default_factory=dict)  # the fusion's last status counters
 
     @property
     def summary(self) -> str:
@@ -372,6 +373,7 @@ class _Session:
         self.part = 0
         self.part_t0_ns = 0
         self.n_written = 0
+        self.last_counts: dict[str, list[Any]] = {}  # each node's counters in its last status
         self._seqs: dict[str, int] = {}
         self._chans: dict[str, int | None] = {}  # per key, its channel (None: not recorded)
 
@@ -492,6 +494,7 @@ class _Session:
     def status(self, t_ns: int, snap: list[tuple[str, list[Any], str]]) -> None:
         """Each node's counters as its live service would report them; nothing host-dependent."""
         for name, node_counts, last_error in snap:
+            self.last_counts[name] = node_counts
             key = f"status/{name}"
             st = ServiceStatus(
                 seq=self.next_seq(key),
@@ -575,7 +578,8 @@ def run_sim(opts: SimOptions) -> SimResult:
         raise write_failed(opts.record, err) or err from None
     stopped = None if sess.stopped_at_ns is None else sess.stopped_at_ns / 1e9
     wall_s = time.monotonic() - t_wall
-    return SimResult(opts.record, sess.n_written, run.duration_s, wall_s, warnings, stopped)
+    fusion = {c.key: c.value for c in sess.last_counts.get("fusion", [])}
+    return SimResult(opts.record, sess.n_written, run.duration_s, wall_s, warnings, stopped, fusion)
 
 
 def _keep_earlier(record: Path) -> list[str]:

@@ -204,7 +204,8 @@ def test_a_chunk_at_once_gives_what_one_message_at_a_time_gives(tmp_path: Path) 
 def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, late: int, says: bool) -> None:
     """A clock step put the IMU samples 100 s ahead and the fusion refused the rest of the run
     as late (3001 of ~3200): every service stayed up, hil info and hil sim's summary said
-    nothing. The fusion's last status counts it; a tenth or more of the IMU input is a line."""
+    nothing. The fusion's last status counts it; a tenth or more of the IMU input is a line, and
+    a failing for the exit code of hil up."""
     from hil.messages import Count, ServiceStatus
 
     path = tmp_path / "s.mcap"
@@ -223,10 +224,15 @@ def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, lat
             seq=i,
         )
     w.close()
-    lines = [ln for ln in describe(str(path)).splitlines() if ln.startswith("fusion:")]
+    failings: list[str] = []
+    lines = [ln for ln in describe(str(path), verdicts=failings).splitlines() if ln.startswith("fusion:")]
     assert (
         (lines == [lines[0]] and f"refused {late} IMU samples as late" in lines[0]) if says else not lines
     ), lines
+    # what hil up prints as FAILED (and exits 1 for): the same finding
+    assert failings == (
+        [f"the fusion refused {late} IMU samples as late" + lines[0].split("as late", 1)[1]] if says else []
+    )
 
 
 @pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")
