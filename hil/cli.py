@@ -339,7 +339,6 @@ def cmd_up(a: argparse.Namespace) -> int:
     from hil.bus.identity import rig_key_from_env
     from hil.bus.keys import check_name
     from hil.nav.scenario import load_scenario
-    from hil.record.info import describe
     from hil.runtime.supervisor import Supervisor, UpOptions
 
     check_name("rig", a.rig)
@@ -445,20 +444,27 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"hil up: restart: {line}")
     for f in sup.failures:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
-    if record.exists():
-        print()
-        failings: list[str] = []
-        print(describe(str(record), verdicts=failings))  # its further parts too, if it was split
-        for f in failings:  # a rig whose services all stayed up but did not navigate
-            print(f"hil up: FAILED: {f}", file=sys.stderr)
-            rc = rc or 1
-        for part in sup.record_parts:
-            state = "present" if part.exists() else "MISSING"
-            print(f"hil up: a restarted recorder continued in {part} ({state})")
-    else:
+    described = _up_recording(record, sup.record_parts)
+    return rc or described
+
+
+def _up_recording(record: Path, parts: list[Path]) -> int:
+    """``hil up``'s closing description of its recording; 1 when there is none, or when it shows
+    that the run did not navigate (its services all up, its fusion refusing its IMU input)."""
+    from hil.record.info import describe
+
+    if not record.exists():
         print(f"hil up: no recording was written at {record}", file=sys.stderr)
-        rc = rc or 1
-    return rc
+        return 1
+    print()
+    failings: list[str] = []
+    print(describe(str(record), verdicts=failings))  # its further parts too, if it was split
+    for f in failings:
+        print(f"hil up: FAILED: {f}", file=sys.stderr)
+    for part in parts:
+        state = "present" if part.exists() else "MISSING"
+        print(f"hil up: a restarted recorder continued in {part} ({state})")
+    return 1 if failings else 0
 
 
 def _check_dut(path: str) -> None:
