@@ -47,6 +47,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--duration", type=float, default=600.0, help="rig seconds simulated")
     ap.add_argument("--repeat", type=int, default=2, help="reruns of each kind (alternating order)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
+    ap.add_argument("--section", default="jit", help="the docs/benchmarks.md section to write")
     a = ap.parse_args(argv)
     if a.duration <= 0 or a.repeat < 1:
         print("hil bench jit: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
@@ -125,5 +126,5 @@ def main(argv: list[str]) -> int:
     body = "\n".join(lines)
     print(body)
     if not a.no_write:
-        write_section("jit", body, command_line())
+        write_section(a.section, body, command_line())
     return 0 if all(all(v) for v in verified.values()) else 1
