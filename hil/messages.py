@@ -373,6 +373,9 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # sample reacquires at once (hil.fusion.gnss_gate's rule 4); absent in recordings made
     # before it, whose gate let one fix through
     gnss_reset: bool = False
+    # that reset at a flagged IMU sample only while GNSS is trusted (not while its fixes are being
+    # rejected: a spoof); absent in recordings made before it, whose reset took any fix
+    gnss_reset_needs_trust: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

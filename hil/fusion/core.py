@@ -79,6 +79,9 @@ class FusionConfig:
     # a reacquired fix re-initialises the estimators that can (and a flagged IMU sample makes the
     # INS no witness until one has): hil.fusion.gnss_gate's rule 4; False: one fix let through
     gnss_reset: bool = True
+    # ... and a flagged IMU sample does so only while GNSS is trusted (rule 4; False: recordings
+    # before it, where a spoof under way at the fault was the reset's truth)
+    gnss_reset_needs_trust: bool = True
     gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
     # a publisher's GNSS fixes closer together than this share of the receiver's period are
     # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
@@ -121,6 +124,7 @@ class FusionConfig:
             gnss_reacquire_after_ns=self.gnss_reacquire_after_ns,
             gnss_gate_reference=self.gnss_gate_reference,
             gnss_reset=self.gnss_reset,
+            gnss_reset_needs_trust=self.gnss_reset_needs_trust,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
@@ -136,6 +140,7 @@ class FusionConfig:
             reference=self.gnss_gate_reference,
             floor_sigma=self.gnss_sigma_floor,
             reset=self.gnss_reset,
+            reset_needs_trust=self.gnss_reset_needs_trust,
         )
 
     @classmethod

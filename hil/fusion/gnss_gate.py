@@ -36,7 +36,11 @@ update (``FusionCore``; the estimators themselves are untouched):
    prediction. The same, without waiting: an IMU sample flagged saturated or faulty
    (``note_imu_fault``) makes the INS no witness of anything until a fix has been taken after
    it, so the first fix ``IMU_SETTLE_NS`` after the last flagged sample reacquires at once (the
-   fixes before it are held: counted in ``held``, neither used nor held against GNSS). Each
+   fixes before it are held: counted in ``held``, neither used nor held against GNSS) -- unless
+   GNSS was under suspicion when the fault came (its fixes being rejected: a spoof the gate was
+   holding out would otherwise be taken as the reset's truth, and the alarm cleared by the next
+   spoofed fix). Then nothing is a witness: the fixes are judged as before, and only the
+   ``reacquire_after`` of unbroken rejection lets one through, the alarm raised meanwhile. Each
    reacquisition is a ``gnss_integrity_reacquired`` event; an alarm it interrupts clears only
    when a fix passes the gate on its own (``gnss_integrity_restored``).
 
@@ -128,6 +132,7 @@ class GateSettings:
     reference: str  # the estimator whose prediction and covariance decide for all ("": none)
     floor_sigma: bool  # rule 1
     reset: bool = False  # rule 4 (False: a recording made before it, one fix let through)
+    reset_needs_trust: bool = False  # rule 4's IMU fault only with GNSS trusted (False: before it)
 
 
 @dataclass
@@ -310,7 +315,11 @@ class GnssGate:
         """Why this fix re-initialises the navigation (rule 4), "held" if it must wait, "" if
         neither: a flagged IMU sample since the last fix taken, or rejection for too long."""
         fault = self.imu_fault_ns
-        if fault is not None and (tr.last_accept_ns is None or fault >= tr.last_accept_ns):
+        if (
+            fault is not None
+            and (tr.last_accept_ns is None or fault >= tr.last_accept_ns)
+            and (tr.reject_since_ns is None or not self.settings.reset_needs_trust)  # GNSS suspect
+        ):
             return "held" if stamp_ns - fault < IMU_SETTLE_NS else "imu_fault"
         since = tr.reject_since_ns
         if not ok and since is not None and stamp_ns - since >= self.settings.reacquire_after_ns:

@@ -42,7 +42,9 @@ def _scenario(extra: str = "") -> str:
 
 
 @cache
-def _run(saturated_s: float, extra: str = "", gnss_reset: bool = True) -> dict[str, object]:
+def _run(
+    saturated_s: float, extra: str = "", gnss_reset: bool = True, needs_trust: bool = True
+) -> dict[str, object]:
     s = parse_scenario(_scenario(extra))
     truth = TruthGenerator(s)
     inputs = ideal_inputs(s, truth)
@@ -53,7 +55,12 @@ def _run(saturated_s: float, extra: str = "", gnss_reset: bool = True) -> dict[s
             dv = [FULL_SCALE[1] if v >= 0 else -FULL_SCALE[1] for v in m.dvel_b_mps]
             flags = GYRO_SATURATED | ACCEL_SATURATED
             inputs[i] = msgspec.structs.replace(m, dtheta_b_rad=th, dvel_b_mps=dv, status=flags)
-    cfg = FusionConfig(estimators=DEFAULT_ESTIMATORS, output_every=40, gnss_reset=gnss_reset)
+    cfg = FusionConfig(
+        estimators=DEFAULT_ESTIMATORS,
+        output_every=40,
+        gnss_reset=gnss_reset,
+        gnss_reset_needs_trust=needs_trust,
+    )
     core = FusionCore.for_scenario(s, cfg)
     out = [o for m in inputs for o in core.push(m, "receiver")] + core.flush()
     errors = {}
@@ -124,3 +131,25 @@ def test_a_fix_stamped_during_the_saturation_is_held_not_counted_against_gnss() 
     _k, _t, detail = run["events"][0]  # type: ignore[index]
     assert detail["held"] >= 10  # 1 s of 10 Hz fixes while the IMU was flagged
     assert not any(k == "gnss_integrity_alarm" for k, _t, _d in run["events"])  # type: ignore[attr-defined]
+
+
+def test_a_spoof_the_gate_was_holding_out_when_the_imu_faulted_is_not_taken_for_the_reset() -> None:
+    """QA (session 34): a spoof under way at the saturation was the reset's truth -- ekf15 jumped
+    to it and the next spoofed fix, passing on that prediction, cleared the alarm. With GNSS under
+    suspicion at the fault, nothing is a witness: no reset at the fault, the alarm raised and held
+    to the end (the 30 s of rejection that would let fixes through again are not reached here)."""
+    spoof = spoof_event_toml(1.0, 8.0)  # under way 1 s before the saturation at 2 s
+    run = _run(0.05, spoof)
+    kinds = [k for k, _t, _d in run["events"]]  # type: ignore[attr-defined]
+    assert kinds == ["gnss_integrity_alarm"], run["events"]
+    _k, when, _d = run["events"][0]  # type: ignore[index]
+    assert 1.0 + 1.9 <= when <= 1.0 + 2.2
+    counters = run["counters"]
+    assert "gnss_gate.reset.ekf15" not in counters  # type: ignore[operator]
+    assert counters["gnss_gate.rejected.ekf15"] >= 10 * (DURATION_S - 1.0) - 2  # type: ignore[index]
+    # a recording made before this rule (gnss_reset_needs_trust absent) reruns as it ran: the
+    # spoof taken at the reset, 0.05 s after the saturation
+    before = _run(0.05, spoof, needs_trust=False)
+    first = before["events"][0]  # type: ignore[index]
+    assert first[0] == "gnss_integrity_reacquired" and first[2]["reason"] == "imu_fault", before["events"]
+    assert before["counters"]["gnss_gate.reset.ekf15"] == 1  # type: ignore[index]
