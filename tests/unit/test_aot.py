@@ -67,20 +67,8 @@ def test_they_load_without_numba_and_are_put_in_place(built: Path) -> None:
 def test_every_kernel_gives_the_python_bits(built: Path) -> None:
     """The JIT kernels' tests (random operands, each kernel against its Python one and einsum's
     orders), run with these in place."""
-    res = _run(
-        [
-            sys.executable,
-            "-m",
-            "pytest",
-            "-q",
-            "-p",
-            "no:cacheprovider",
-            "tests/unit/test_jit.py",
-            "-k",
-            "compiled",
-        ],
-        _env(built),
-    )
+    runner = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
+    res = _run([*runner, "tests/unit/test_jit.py", "-k", "compiled"], _env(built))
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
     assert " passed" in res.stdout and "failed" not in res.stdout
 
