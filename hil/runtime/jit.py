@@ -234,6 +234,10 @@ def _enable(env: Mapping[str, str]) -> str:
     from hil.nav import kernels
 
     built = None if why == _NUMBA_ONLY else prebuilt.load(prebuilt.directories(env))
+    lacking = sorted({key for key, _homes, _fb in _PLACES.values()} - set(built[0])) if built else []
+    if built is not None and lacking:  # a module whose operands file names fewer kernels
+        sys.stderr.write(f"hil: warning: {built[1]} lacks {', '.join(lacking)}; numba's kernels are used\n")
+        built = None
     if built is not None:  # the module built ahead of time (hil.runtime.aot): numba not imported
         _compiled.update(built[0])
         _source = f"ahead of time ({built[1]})"

@@ -4,6 +4,7 @@ them. Built here into a temporary directory, so this holds whether or not ``make
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -134,3 +135,27 @@ def test_a_module_for_other_sources_or_a_damaged_one_is_not_used(
     so.write_bytes(b"not an ELF file")
     assert prebuilt.load([damaged]) is None
     assert "does not load" in capsys.readouterr().err
+    # an operands file that names a kernel the module lacks, or is not the builder's shape (each
+    # in a directory of its own: a module file loaded once is never written over)
+    for i, text in enumerate(('{"no_such_kernel": [1, []]}', '{"expm": 3}', "[not json")):
+        d = tmp_path / f"operands{i}"
+        d.mkdir()
+        for f in built.iterdir():
+            shutil.copy(f, d / f.name)
+        next(d.glob("hil_kernels_*.json")).write_text(text)
+        assert prebuilt.load([d]) is None, text
+        assert "does not load" in capsys.readouterr().err
+
+
+def test_a_module_whose_operands_file_names_fewer_kernels_is_not_put_in_place(
+    built: Path, tmp_path: Path
+) -> None:
+    for f in built.iterdir():
+        shutil.copy(f, tmp_path / f.name)
+    spec = next(tmp_path.glob("hil_kernels_*.json"))
+    spec.write_text(json.dumps({"_step": json.loads(spec.read_text())["_step"]}))
+    code = "from hil.runtime import jit; print(jit.enable()); print(jit.source())"
+    res = _run([sys.executable, "-c", code], _env(tmp_path))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split("\n")[:2] == ["compiled", "numba's cache"]
+    assert "lacks _advance, _carry, _corrected_run" in res.stderr
