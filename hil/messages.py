@@ -376,6 +376,9 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # that reset at a flagged IMU sample only while GNSS is trusted (not while its fixes are being
     # rejected: a spoof); absent in recordings made before it, whose reset took any fix
     gnss_reset_needs_trust: bool = False
+    # that reset re-initialises the free INS too, and the open-loop filters that correct it start
+    # again on the fix; absent in recordings made before it, whose free INS kept the fault's error
+    gnss_reset_free_ins: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

@@ -446,7 +446,8 @@ class CompensationEstimator(Estimator):
         # and the INS, reset and bias-corrected, is itself what coasts.
         self.line_coast = line_coast and coast_after is None
         coast = coast_after if feedback is None else None
-        self.core = CompensationCore(schedule, 6, restart_after_s, coast, innovation_tau_s)
+        self._core_args = (schedule, 6, restart_after_s, coast, innovation_tau_s)
+        self.core = CompensationCore(*self._core_args)
         self.core.advance_to(init.stamp_ns)
         self.loop = None if feedback is None else ClosedLoopIns(init, **feedback)
         self._ins: NavState | None = None
@@ -488,6 +489,17 @@ class CompensationEstimator(Estimator):
         pos_ins = ins.pos_ned_m + ins.vel_ned_mps * dt_s
         dv = ins.vel_ned_mps - gnss.vel_ned_mps
         self._input(gnss, pos_ins - gnss.pos_ned_m, dv)
+
+    def restart_on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
+        """The fusion re-initialised the free INS on this fix (its gate's rule 4, after an IMU
+        fault): the error the filter estimated of the INS before is not this one's. Open loop, the
+        filter starts again at this fix, as at its start; in the feedback form (an INS of its own,
+        which nothing re-initialises) the fix is taken as any other."""
+        if self.loop is None:
+            self.core = CompensationCore(*self._core_args)
+            self.core.advance_to(gnss.stamp_ns)
+            self._ins = ins
+        self.on_gnss(gnss, ins)
 
     def _input(self, gnss: GnssInput, dp: F64, dv: F64) -> None:
         d = np.concatenate([dp, dv])

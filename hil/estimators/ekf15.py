@@ -108,13 +108,12 @@ import numpy as np
 from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
 from hil.nav import strapdown
 from hil.nav.attitude import (
-    euler_to_quat,
+    levelled_attitude,
     quat_from_rotvec_floats,
     quat_multiply,
     quat_multiply_floats,
     quat_normalise,
     quat_normalise_floats,
-    quat_to_euler,
 )
 from hil.nav.earth import OMEGA_IE_RADPS, cross, radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv, norm, solve
@@ -679,14 +678,8 @@ class Ekf15(Estimator):
         the ground track, position and velocity from the fix, and the covariance of all three set
         to what those sources know (decorrelated from the biases, which keep theirs)."""
         self._propagate_covariance()
-        fx, fy, fz = self._f_b
-        roll, pitch = math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
-        vn, ve = float(gnss.vel_ned_mps[0]), float(gnss.vel_ned_mps[1])
-        if math.hypot(vn, ve) >= RESET_TRACK_MIN_SPEED_MPS:
-            yaw, yaw_var = math.atan2(ve, vn), RESET_YAW_SIGMA_RAD**2
-        else:  # no track to take it from: the heading kept, as unknown
-            yaw, yaw_var = float(quat_to_euler(np.asarray(self.ins.q_nb))[2]), _YAW_VAR_MAX
-        q = euler_to_quat([roll, pitch, yaw])
+        q, tracked = levelled_attitude(self._f_b, gnss.vel_ned_mps, self.ins.q_nb, RESET_TRACK_MIN_SPEED_MPS)
+        yaw_var = RESET_YAW_SIGMA_RAD**2 if tracked else _YAW_VAR_MAX  # no track: the heading kept, unknown
         self.ins = self.ins.replace(q_nb=quat_normalise_floats(*q.tolist()))
         self._nav_dirty = True
         pos_tov, vel_pred, _, _ = self._predict_fix(gnss)  # with the new attitude's lever arm

@@ -86,6 +86,7 @@ class ScalarKfEstimator(Estimator):
         self.q_rate = np.array([q_pos_m2ps] * 3 + [q_vel_m2ps3] * 3)
         self.eps = np.zeros(6)
         self.d = np.array([d0_pos_m2] * 3 + [d0_vel_m2ps2] * 3)
+        self._d0 = self.d.copy()
         self.gain = np.zeros(6)
         self._t_last_ns = init.stamp_ns
         self._ins: NavState | None = None
@@ -124,6 +125,16 @@ class ScalarKfEstimator(Estimator):
         if self.loop is not None:  # the closed-loop Kalman reset: ε̂ into the INS, the filter at 0
             self.loop.reset(self.eps[:3], self.eps[3:])
             self.eps = np.zeros(6)
+
+    def restart_on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
+        """The fusion re-initialised the free INS on this fix (its gate's rule 4, after an IMU
+        fault): the error estimated of the INS before is not this one's. Open loop, the filter
+        starts again as at its start, on this fix; in the feedback form (an INS of its own, which
+        nothing re-initialises) the fix is taken as any other."""
+        if self.loop is None:
+            self.eps, self.d, self.gain = np.zeros(6), self._d0.copy(), np.zeros(6)
+            self._ins = ins
+        self.on_gnss(gnss, ins)
 
     def solution(self) -> NavState:
         if self.loop is not None:

@@ -36,6 +36,7 @@ from hil.fusion.predictor import NO_BIAS, Motion, OutputPredictor, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
 from hil.nav.earth import _origin_floats, ned_to_lla_one
 from hil.nav.limits import MAX_GNSS_SIGMA
+from hil.nav.sensor_specs import G0_MPS2
 from hil.nav.types import NavState, nav_floats
 from hil.sensor_table import SENSOR_NAMES, SENSORS, rank_of
 
@@ -82,6 +83,9 @@ class FusionConfig:
     # ... and a flagged IMU sample does so only while GNSS is trusted (rule 4; False: recordings
     # before it, where a spoof under way at the fault was the reset's truth)
     gnss_reset_needs_trust: bool = True
+    # ... and the free INS too, the open-loop filters (which correct it) starting again on that
+    # fix (rule 4; False: recordings before it, whose free INS kept what the fault left)
+    gnss_reset_free_ins: bool = True
     gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
     # a publisher's GNSS fixes closer together than this share of the receiver's period are
     # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
@@ -125,6 +129,7 @@ class FusionConfig:
             gnss_gate_reference=self.gnss_gate_reference,
             gnss_reset=self.gnss_reset,
             gnss_reset_needs_trust=self.gnss_reset_needs_trust,
+            gnss_reset_free_ins=self.gnss_reset_free_ins,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
@@ -351,7 +356,7 @@ class FusionCore:
         self._block_steps = [(e.name, block_step_of(e)) for e in self._ests]
         # who re-initialises on a fix the gate reacquires (rule 4); the others take it as a fix
         self._resets: dict[str, Callable[[Any], None] | None] = {
-            e.name: getattr(e, "reset_to_gnss", None) for e in self._ests
+            e.name: getattr(e, "reset_to_gnss", None) or self._restart_of(e) for e in self._ests
         }
         self._pacer = {n for n in SENSOR_NAMES if SENSORS[n].paces_fusion}
         self._heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = []
@@ -370,6 +375,7 @@ class FusionCore:
         self.gate_verdicts: dict[str, bool | None] | None = None
         self.gate_relay: dict[str, bool | None] | None = None
         self._last_imu_ns = self.init.stamp_ns
+        self._last_row: tuple[float, ...] | None = None  # the last IMU sample's (dt, Δθ, Δv)
         # the stamp of each GNSS publisher's last fix taken in (the rate rule)
         self._gnss_min_gap_ns = 0
         if self.receiver is not None and cfg.gnss_min_interval > 0:
@@ -400,6 +406,35 @@ class FusionCore:
         self._latency_events: list[Transition] = []
         self._latency_max_ns: dict[str, int] = {}
         self._last_refused_ns: dict[str, int] = {}
+
+    def _restart_of(self, est: Estimator) -> Callable[[Any], None] | None:
+        """How an estimator that corrects the free INS starts again on the fix that re-initialised
+        it (``gnss_reset_free_ins``): given the fix and the new free INS."""
+        restart = getattr(est, "restart_on_gnss", None) if self.config.gnss_reset_free_ins else None
+        if restart is None:
+            return None
+        return lambda gnss: restart(gnss, self._ins_nav)
+
+    def _reset_free_ins(self, gnss: Any) -> None:
+        """The free INS re-initialised on a fix the gate reacquired (rule 4, after an IMU fault):
+        position and velocity from the fix (carried to the last IMU sample), tilt levelled from
+        that sample's specific force, heading from the ground track (ekf15's reset does the same;
+        ``hil.nav.attitude.levelled_attitude``). The fault left it tens of degrees off, which no
+        filter correcting it can pull back."""
+        from hil.estimators.ekf15 import RESET_TRACK_MIN_SPEED_MPS
+        from hil.nav.attitude import levelled_attitude
+
+        row = self._last_row  # None before the first IMU sample: the body level, at rest
+        f_b = (0.0, 0.0, -G0_MPS2) if row is None else (row[4] / row[0], row[5] / row[0], row[6] / row[0])
+        old = self._sd.StrapdownState.of(self._ins)
+        q, _tracked = levelled_attitude(f_b, gnss.vel_ned_mps, old.q, RESET_TRACK_MIN_SPEED_MPS)
+        lag_s = (self._last_imu_ns - gnss.stamp_ns) * 1e-9
+        pos = [float(p) + float(v) * lag_s for p, v in zip(gnss.pos_ned_m, gnss.vel_ned_mps, strict=True)]
+        lat, lon, alt = ned_to_lla_one(pos[0], pos[1], pos[2], *self._origin)
+        vel = [float(v) for v in gnss.vel_ned_mps]
+        self._ins = self._sd.StrapdownState(lat, lon, alt, vel, q.tolist(), old[10:13], old[13:16])
+        self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
+        self._inc("gnss_gate.reset.ins")
 
     @property
     def estimators(self) -> list[Estimator]:
@@ -740,6 +775,7 @@ class FusionCore:
         d, v = msg.dtheta_b_rad, msg.dvel_b_mps
         row = (dt_s, float(d[0]), float(d[1]), float(d[2]), float(v[0]), float(v[1]), float(v[2]))
         self._ins = self._sd.strapdown_step_f(self._ins, *row[1:], dt_s)
+        self._last_row = row
         self._last_imu_ns = msg.stamp_ns
         if msg.status & IMU_FAULT_STATUS and self.gate is not None:
             self.gate.note_imu_fault(msg.stamp_ns)
@@ -782,6 +818,9 @@ class FusionCore:
             if ins_nav is None:  # no IMU step yet: the initial state
                 ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
             reset = self.gate.reset if self.gate is not None and msg.sensor == "gnss" else ()
+            if reset and self.config.gnss_reset_free_ins:
+                self._reset_free_ins(data)
+                ins_nav = self._ins_nav
             for name, handle in handlers:
                 if name in self._failed or not allowed.get(name, True):
                     continue

@@ -32,11 +32,13 @@ update (``FusionCore``; the estimators themselves are untouched):
    its own gate, the next fix is rejected here again and the clock restarts -- GNSS locked out
    for good. So the reacquiring fix goes to every estimator, and those that can
    (``reset_to_gnss``: ekf15) reset position and velocity to it with their covariance opened, as
-   PX4's EKF2 resets to GNSS after its no-aiding timeout; the next fixes are judged on the reset
-   prediction. The same, without waiting: an IMU sample flagged saturated or faulty
-   (``note_imu_fault``) makes the INS no witness of anything until a fix has been taken after
-   it, so the first fix ``IMU_SETTLE_NS`` after the last flagged sample reacquires at once (the
-   fixes before it are held: counted in ``held``, neither used nor held against GNSS) -- unless
+   PX4's EKF2 resets to GNSS after its no-aiding timeout; the fusion re-initialises the free INS
+   on it too, and the open-loop filters that correct the free INS start again on it
+   (``restart_on_gnss``); the next fixes are judged on the reset prediction. The same, without
+   waiting: an IMU sample flagged saturated or faulty (``note_imu_fault``) makes the INS no
+   witness of anything until a fix has been taken after it, so the first fix ``IMU_SETTLE_NS``
+   after the last flagged sample reacquires at once (the fixes before it are held: counted in
+   ``held``, neither used nor held against GNSS) -- unless
    GNSS was under suspicion when the fault came (its fixes being rejected: a spoof the gate was
    holding out would otherwise be taken as the reset's truth, and the alarm cleared by the next
    spoofed fix). Then nothing is a witness: the fixes are judged as before, and only the

@@ -244,3 +244,18 @@ def rotate(q: ArrayLike, v: ArrayLike) -> F64:
 def attitude_error_rad(q_est: ArrayLike, q_true: ArrayLike) -> F64:
     """Rotation vector of q_est ⊗ q_true*, NED axes: the small-angle tilt/heading error."""
     return quat_to_rotvec(quat_multiply(q_est, quat_conjugate(q_true)))
+
+
+def levelled_attitude(
+    f_b: tuple[float, float, float], vel_ned: ArrayLike, q_nb: ArrayLike, min_track_speed_mps: float
+) -> tuple[F64, bool]:
+    """q_nb re-initialised from what an INS can trust after an IMU fault: tilt levelled from the
+    specific force (roll, pitch of ``f_b``, the body's ``-g`` when unaccelerated), heading from the
+    ground track (``vel_ned``) at ``min_track_speed_mps`` and above, else the heading ``q_nb`` has;
+    and whether the heading came from the track."""
+    fx, fy, fz = f_b
+    roll, pitch = math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
+    vn, ve = float(np.asarray(vel_ned)[0]), float(np.asarray(vel_ned)[1])
+    tracked = math.hypot(vn, ve) >= min_track_speed_mps
+    yaw = math.atan2(ve, vn) if tracked else float(quat_to_euler(np.asarray(q_nb))[2])
+    return euler_to_quat([roll, pitch, yaw]), tracked
