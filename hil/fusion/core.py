@@ -220,6 +220,10 @@ def block_step_of(est: Any) -> Callable[[ImuBlock], None]:
     return each
 
 
+# a relayed verdict's companion entry (``gate_relay``): the reference re-initialised on that fix
+_RESET_MARK = "#reset"
+
+
 def input_key(msg: Measurement) -> tuple[int, int, int]:
     """The total order: rig time of validity, then the sensor's rank, then seq."""
     return (msg.stamp_ns, rank_of(msg.sensor), msg.seq)
@@ -860,10 +864,12 @@ class FusionCore:
         key = "" if relay is None and kept is None else input_id(msg, source)
         # none relayed for this fix: the reference core had no estimator left to take it, so
         # the reference had failed, and each decides on its own (as it did there)
-        relayed = None if relay is None else (relay.pop(key, None),)
+        relayed = None if relay is None else (relay.pop(key, None), bool(relay.pop(key + _RESET_MARK, False)))
         allowed = gate.verdicts(floored, names, solution, self._last_imu_ns, source, relayed)
         if kept is not None:
             kept[key] = gate.reference_ok
+            if gate.reset and gate.reference_ok is not None:  # the reference re-initialised on it
+                kept[key + _RESET_MARK] = True
         for t in gate.transitions[n_transitions:]:
             self._inc(f"gnss_gate.{t.kind.removeprefix('gnss_integrity_')}")
         refused = [n for n in names if not allowed.get(n, True)]

@@ -215,7 +215,7 @@ class GnssGate:
         solution: Callable[[str], NavState | None],
         imu_stamp_ns: int,
         publisher: str = "",
-        relayed: tuple[bool | None] | None = None,
+        relayed: tuple[bool | None, bool] | None = None,
     ) -> dict[str, bool]:
         """Which of the estimators ``names`` take ``gnss`` (already floored); ``solution(name)``
         is an estimator's solution at the last IMU stamp (None: it has none, it failed);
@@ -223,14 +223,17 @@ class GnssGate:
 
         ``reference_ok`` says afterwards what the reference decided for all (None: it did not,
         each decided on its own). ``relayed``: that verdict of another core that runs the
-        reference on the same inputs (a split ``hil rerun``): ``(ok,)`` decides for all as the
-        reference would have, ``(None,)`` lets each decide on its own, as there."""
+        reference on the same inputs (a split ``hil rerun``): ``(ok, reset)`` decides for all as
+        the reference would have, and re-initialises them all where it did (rule 4), ``(None,
+        False)`` lets each decide on its own, as there."""
         ref = self.settings.reference
         self.reset = set()
         if relayed is not None:
             ok_all = self.reference_ok = relayed[0]
             if ok_all is not None:
                 self.decided_by.update((n, ref) for n in names)
+                if relayed[1]:
+                    self.reset.update(names)
                 return {n: ok_all for n in names}
         else:
             sol = solution(ref) if ref in names else None

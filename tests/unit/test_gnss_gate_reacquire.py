@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -41,6 +42,19 @@ def _scenario(extra: str = "") -> str:
     return text.replace("duration_s = 3600.0", f"duration_s = {DURATION_S}") + extra
 
 
+def saturated_inputs(inputs: list[Any], at_s: float, saturated_s: float) -> list[Any]:
+    """``inputs`` with the IMU samples of ``saturated_s`` from ``at_s`` driven to the DBC's full
+    scale and flagged, as the emulator's ``imu_saturated`` and the CAN codec make them."""
+    t0, t1 = at_s * 1e9, (at_s + saturated_s) * 1e9
+    for i, m in enumerate(inputs):
+        if isinstance(m, ImuSample) and t0 <= m.stamp_ns < t1:
+            th = [FULL_SCALE[0] if v >= 0 else -FULL_SCALE[0] for v in m.dtheta_b_rad]
+            dv = [FULL_SCALE[1] if v >= 0 else -FULL_SCALE[1] for v in m.dvel_b_mps]
+            flags = GYRO_SATURATED | ACCEL_SATURATED
+            inputs[i] = msgspec.structs.replace(m, dtheta_b_rad=th, dvel_b_mps=dv, status=flags)
+    return inputs
+
+
 @cache
 def _run(
     saturated_s: float,
@@ -51,14 +65,7 @@ def _run(
 ) -> dict[str, object]:
     s = parse_scenario(_scenario(extra))
     truth = TruthGenerator(s)
-    inputs = ideal_inputs(s, truth)
-    t0, t1 = FAULT_AT_S * 1e9, (FAULT_AT_S + saturated_s) * 1e9
-    for i, m in enumerate(inputs):
-        if isinstance(m, ImuSample) and t0 <= m.stamp_ns < t1:
-            th = [FULL_SCALE[0] if v >= 0 else -FULL_SCALE[0] for v in m.dtheta_b_rad]
-            dv = [FULL_SCALE[1] if v >= 0 else -FULL_SCALE[1] for v in m.dvel_b_mps]
-            flags = GYRO_SATURATED | ACCEL_SATURATED
-            inputs[i] = msgspec.structs.replace(m, dtheta_b_rad=th, dvel_b_mps=dv, status=flags)
+    inputs = saturated_inputs(ideal_inputs(s, truth), FAULT_AT_S, saturated_s)
     cfg = FusionConfig(
         estimators=DEFAULT_ESTIMATORS,
         output_every=40,

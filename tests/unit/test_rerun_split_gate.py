@@ -20,6 +20,7 @@ from hil.messages import encode
 from hil.nav.scenario import parse_scenario
 from hil.nav.trajectory import TruthGenerator
 from tests.unit.test_fusion_horizon import SCENARIO as HORIZON_FLIGHT
+from tests.unit.test_gnss_gate_reacquire import saturated_inputs
 
 # the horizon tests' flight (hold, turn, hold; 10 Hz fixes) with a 15 m pulse at 25 s
 SCENARIO = (
@@ -38,7 +39,7 @@ SHARE_B = ("comp1", "kfvel")
 
 
 @cache
-def _run() -> dict[str, object]:
+def _run(saturated_s: float = 0.0) -> dict[str, object]:
     s = parse_scenario(SCENARIO)
     cfg = FusionConfig(estimators=("comp1", "compvs", "kfvel", "ekf15"))
     full, a, b, b_own = (
@@ -48,7 +49,10 @@ def _run() -> dict[str, object]:
     a.gate_verdicts, b.gate_relay = {}, {}
     relayed: list[bool | None] = []
     out: dict[str, list[bytes]] = {"full": [], "b": [], "b_own": []}
-    for m in ideal_inputs(s, TruthGenerator(s)):
+    inputs = ideal_inputs(s, TruthGenerator(s))
+    if saturated_s:
+        inputs = saturated_inputs(inputs, 5.0, saturated_s)
+    for m in inputs:
         out["full"] += [encode(x) for x in full.replay(m) if x.estimator in SHARE_B]
         a.replay(m)
         relayed += a.gate_verdicts.values()
@@ -72,3 +76,14 @@ def test_the_core_without_the_reference_recomputes_with_its_verdicts() -> None:
 def test_without_the_verdicts_the_share_decides_otherwise() -> None:
     out = _run()["out"]
     assert out["b_own"] != out["full"]  # type: ignore[index]
+
+
+def test_the_core_without_the_reference_is_re_initialised_where_the_reference_was() -> None:
+    """After a flagged IMU fault the reference re-initialises every estimator on one fix (and
+    the free INS, the open-loop filters starting again): the core without it was told the
+    verdict, not the reset, and its comp1 and kfvel went on from the INS the fault left."""
+    r = _run(0.05)
+    out = r["out"]
+    assert len(out["full"]) >= 1000  # type: ignore[index]
+    assert out["b"] == out["full"]  # type: ignore[index]
+    assert r["left"] == {}
