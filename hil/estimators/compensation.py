@@ -75,6 +75,7 @@ from hil.estimators.lti import (
     shared_zoh_cache,
     stacked_step,
 )
+from hil.nav.attitude import RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD
 from hil.nav.portable import c_einsum, dot, mv, norm, solve
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
@@ -495,10 +496,12 @@ class CompensationEstimator(Estimator):
         fault): the error the filter estimated of the INS before is not this one's. Open loop, the
         filter starts again at this fix, as at its start; in the feedback form (an INS of its own,
         which nothing re-initialises) the fix is taken as any other."""
+        self.core = CompensationCore(*self._core_args)
+        self.core.advance_to(gnss.stamp_ns)
         if self.loop is None:
-            self.core = CompensationCore(*self._core_args)
-            self.core.advance_to(gnss.stamp_ns)
             self._ins = ins
+        else:  # its own INS, as far off: taken from the free INS just re-initialised
+            self.loop.reinitialise(ins, RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD)
         self.on_gnss(gnss, ins)
 
     def _input(self, gnss: GnssInput, dp: F64, dv: F64) -> None:

@@ -108,6 +108,9 @@ import numpy as np
 from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState
 from hil.nav import strapdown
 from hil.nav.attitude import (
+    RESET_TILT_SIGMA_RAD,
+    RESET_TRACK_MIN_SPEED_MPS,
+    RESET_YAW_SIGMA_RAD,
     levelled_attitude,
     quat_from_rotvec_floats,
     quat_multiply,
@@ -130,13 +133,6 @@ from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 _DEG = math.pi / 180.0
 _RTH = 60.0  # sqrt(3600 s/h)
 _YAW_VAR_MAX = math.pi**2 / 3.0  # a heading uniform on the circle: σ = π/√3 (104°)
-# A reset from GNSS (``reset_to_gnss``): the tilt levelled from the specific force is off by the
-# horizontal acceleration over g (0.1 rad: a 1 m/s² manoeuvre); the heading taken from the ground
-# track by the crab or sideslip angle (0.2 rad: beyond the small-angle bound, so held and aligned
-# in motion as a heading of unknown size is), from a track of at least this speed
-RESET_TILT_SIGMA_RAD = 0.1
-RESET_YAW_SIGMA_RAD = 0.2
-RESET_TRACK_MIN_SPEED_MPS = 5.0
 _new_state = tuple.__new__  # a StrapdownState of the run's 16 floats, as strapdown_step_f makes it
 
 

@@ -50,7 +50,7 @@ from hil.estimators.base import GnssInput, ImuBlock, ImuInput, InitialState
 from hil.estimators.ekf15 import _frame_terms, _mv3, _write_error_blocks, bias_walk_psd, covariance_step
 from hil.nav import strapdown as _sd
 from hil.nav.attitude import quat_from_rotvec_floats, quat_multiply_floats, quat_normalise_floats
-from hil.nav.earth import radii_of_curvature_one
+from hil.nav.earth import ned_to_lla_one, radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv
 from hil.nav.strapdown import LazyNavState, StrapdownState, c_nb_floats, strapdown_from_initial, to_nav_state
 from hil.nav.types import F64, NavState, nav_floats
@@ -118,6 +118,7 @@ class Corrector:
                 + [p0_accel_bias_mps2] * 3
             )
         )
+        self.p0 = self.p.copy()  # where a re-initialisation opens it back to (``reinitialise``)
         self.qc = np.diag(
             [accel_vrw_mps_rts**2] * 3
             + [gyro_arw_rad_rts**2] * 3
@@ -369,6 +370,26 @@ class ClosedLoopIns:
         alt = alt0 + d2  # δp_D = −δh
         self._st = (lat, lon, alt, st[3] - e0, st[4] - e1, st[5] - e2, *st[6:])
         self.corrector.dv = self.corrector.dv - dv
+        self._dirty = True
+
+    def reinitialise(self, ins: NavState, tilt_sigma_rad: float, yaw_sigma_rad: float) -> None:
+        """This INS taken from the fusion's free INS re-initialised on a fix after an IMU fault
+        (position, velocity, levelled attitude: ``FusionCore._reset_free_ins``): the fault left it
+        as far off as that one. Its bias estimates stay; the corrector's covariance of velocity and
+        attitude is opened to what the re-initialisation knows, decorrelated from the biases, and
+        the velocity error it believed in is dropped."""
+        self._predict()
+        lat, lon, alt = ned_to_lla_one(*ins.pos_ned_m.tolist(), *self._origin)
+        v, q = ins.vel_ned_mps.tolist(), np.asarray(ins.q_nb, dtype=float).tolist()
+        self._st = (lat, lon, alt, *v, *q, *self._st[10:])
+        c = self.corrector
+        p = c.p.copy()
+        p[0:6, :] = 0.0
+        p[:, 0:6] = 0.0
+        tilt, yaw = tilt_sigma_rad**2, yaw_sigma_rad**2
+        p[0:6, 0:6] = np.diag([*np.diag(c.p0)[0:3].tolist(), tilt, tilt, yaw])
+        c.p = p
+        c.dv = np.zeros(3)
         self._dirty = True
 
     def att_sigma_rad(self) -> F64:

@@ -26,6 +26,7 @@ import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState, aligned_nav
 from hil.estimators.feedback import ClosedLoopIns
+from hil.nav.attitude import RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
 
@@ -131,9 +132,11 @@ class ScalarKfEstimator(Estimator):
         fault): the error estimated of the INS before is not this one's. Open loop, the filter
         starts again as at its start, on this fix; in the feedback form (an INS of its own, which
         nothing re-initialises) the fix is taken as any other."""
+        self.eps, self.d, self.gain = np.zeros(6), self._d0.copy(), np.zeros(6)
         if self.loop is None:
-            self.eps, self.d, self.gain = np.zeros(6), self._d0.copy(), np.zeros(6)
             self._ins = ins
+        else:  # its own INS, as far off: taken from the free INS just re-initialised
+            self.loop.reinitialise(ins, RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD)
         self.on_gnss(gnss, ins)
 
     def solution(self) -> NavState:

@@ -425,8 +425,7 @@ class FusionCore:
         that sample's specific force, heading from the ground track (ekf15's reset does the same;
         ``hil.nav.attitude.levelled_attitude``). The fault left it tens of degrees off, which no
         filter correcting it can pull back."""
-        from hil.estimators.ekf15 import RESET_TRACK_MIN_SPEED_MPS
-        from hil.nav.attitude import levelled_attitude
+        from hil.nav.attitude import RESET_TRACK_MIN_SPEED_MPS, levelled_attitude
 
         row = self._last_row  # None before the first IMU sample: the body level, at rest
         f_b = (0.0, 0.0, -G0_MPS2) if row is None else (row[4] / row[0], row[5] / row[0], row[6] / row[0])

@@ -246,6 +246,16 @@ def attitude_error_rad(q_est: ArrayLike, q_true: ArrayLike) -> F64:
     return quat_to_rotvec(quat_multiply(q_est, quat_conjugate(q_true)))
 
 
+# A re-initialisation from GNSS after an IMU fault (ekf15's ``reset_to_gnss``, the fusion's free
+# INS, the feedback INS): the tilt levelled from the specific force is off by the horizontal
+# acceleration over g (0.1 rad: a 1 m/s² manoeuvre); the heading taken from the ground track by
+# the crab or sideslip angle (0.2 rad: beyond the small-angle bound, so held and aligned in motion
+# as a heading of unknown size is), from a track of at least this speed
+RESET_TILT_SIGMA_RAD = 0.1
+RESET_YAW_SIGMA_RAD = 0.2
+RESET_TRACK_MIN_SPEED_MPS = 5.0
+
+
 def levelled_attitude(
     f_b: tuple[float, float, float], vel_ned: ArrayLike, q_nb: ArrayLike, min_track_speed_mps: float
 ) -> tuple[F64, bool]:

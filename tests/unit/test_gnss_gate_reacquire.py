@@ -22,7 +22,7 @@ import msgspec
 import numpy as np
 
 from hil.can.codec import ACCEL_SATURATED, GYRO_SATURATED
-from hil.estimators.registry import DEFAULT_ESTIMATORS
+from hil.estimators.registry import DEFAULT_ESTIMATORS, FEEDBACK_CAPABLE
 from hil.fusion.core import IMU_FAULT_STATUS, FusionConfig, FusionCore
 from hil.fusion.ideal import ideal_inputs
 from hil.messages import ImuSample
@@ -62,6 +62,7 @@ def _run(
     gnss_reset: bool = True,
     needs_trust: bool = True,
     free_ins: bool = True,
+    feedback: tuple[str, ...] = (),
 ) -> dict[str, object]:
     s = parse_scenario(_scenario(extra))
     truth = TruthGenerator(s)
@@ -72,6 +73,7 @@ def _run(
         gnss_reset=gnss_reset,
         gnss_reset_needs_trust=needs_trust,
         gnss_reset_free_ins=free_ins,
+        feedback=feedback,
     )
     core = FusionCore.for_scenario(s, cfg)
     out = [o for m in inputs for o in core.push(m, "receiver")] + core.flush()
@@ -129,6 +131,23 @@ def test_after_a_saturation_every_estimator_is_back_near_gnss() -> None:
         assert min(_max_after(before, n, after_s) for n in names if n != "ekf15") > 100.0
         counters = run["counters"]
         assert all(counters[f"gnss_gate.reset.{n}"] == 1 for n in names), counters  # type: ignore[index]
+
+
+def test_after_a_saturation_the_feedback_form_is_back_near_gnss_too() -> None:
+    """The filters in feedback form (a consumer IMU's defaults: each on an INS of its own, which
+    the fault left as far off) take their INS from the free INS just re-initialised, the
+    corrector's velocity and attitude covariance opened; each filter starts again on the fix."""
+    names = ("ins", *DEFAULT_ESTIMATORS)
+    feedback = tuple(e for e in DEFAULT_ESTIMATORS if e in FEEDBACK_CAPABLE)
+    assert len(feedback) == 5
+    for saturated_s in (0.05, 1.0):
+        after_s = FAULT_AT_S + saturated_s + 3.0
+        run = _run(saturated_s, feedback=feedback)
+        before = _run(saturated_s, free_ins=False, feedback=feedback)
+        worst = {n: _max_after(run, n, after_s) for n in names}
+        assert max(worst.values()) < 3 * GNSS_SIGMA_M, (saturated_s, worst)
+        # before: 121-589 m after 0.05 s (comp1 alone pulled its own INS back), 0.4-5.6 km after 1 s
+        assert max(_max_after(before, n, after_s) for n in feedback) > 5 * max(worst.values())
 
 
 def test_without_the_reset_the_gate_locks_gnss_out_as_recordings_before_it_did() -> None:
