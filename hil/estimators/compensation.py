@@ -75,7 +75,6 @@ from hil.estimators.lti import (
     shared_zoh_cache,
     stacked_step,
 )
-from hil.nav.attitude import RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD
 from hil.nav.portable import c_einsum, dot, mv, norm, solve
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
@@ -493,15 +492,16 @@ class CompensationEstimator(Estimator):
 
     def restart_on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
         """The fusion re-initialised the free INS on this fix (its gate's rule 4, after an IMU
-        fault): the error the filter estimated of the INS before is not this one's. Open loop, the
-        filter starts again at this fix, as at its start; in the feedback form (an INS of its own,
-        which nothing re-initialises) the fix is taken as any other."""
+        fault): the error the filter estimated of the INS before is not this one's, so it starts
+        again at this fix, as at its start. Open loop it corrects that free INS from now on; in the
+        feedback form its own INS, which the fault left as far off, is taken from it
+        (``ClosedLoopIns.reinitialise``)."""
         self.core = CompensationCore(*self._core_args)
         self.core.advance_to(gnss.stamp_ns)
         if self.loop is None:
             self._ins = ins
         else:  # its own INS, as far off: taken from the free INS just re-initialised
-            self.loop.reinitialise(ins, RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD)
+            self.loop.reinitialise(ins)
         self.on_gnss(gnss, ins)
 
     def _input(self, gnss: GnssInput, dp: F64, dv: F64) -> None:

@@ -109,7 +109,6 @@ from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, Initia
 from hil.nav import strapdown
 from hil.nav.attitude import (
     RESET_TILT_SIGMA_RAD,
-    RESET_TRACK_MIN_SPEED_MPS,
     RESET_YAW_SIGMA_RAD,
     levelled_attitude,
     quat_from_rotvec_floats,
@@ -674,7 +673,7 @@ class Ekf15(Estimator):
         the ground track, position and velocity from the fix, and the covariance of all three set
         to what those sources know (decorrelated from the biases, which keep theirs)."""
         self._propagate_covariance()
-        q, tracked = levelled_attitude(self._f_b, gnss.vel_ned_mps, self.ins.q_nb, RESET_TRACK_MIN_SPEED_MPS)
+        q, tracked = levelled_attitude(self._f_b, gnss.vel_ned_mps, self.ins.q_nb)
         yaw_var = RESET_YAW_SIGMA_RAD**2 if tracked else _YAW_VAR_MAX  # no track: the heading kept, unknown
         self.ins = self.ins.replace(q_nb=quat_normalise_floats(*q.tolist()))
         self._nav_dirty = True

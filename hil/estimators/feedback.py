@@ -49,7 +49,13 @@ import numpy as np
 from hil.estimators.base import GnssInput, ImuBlock, ImuInput, InitialState
 from hil.estimators.ekf15 import _frame_terms, _mv3, _write_error_blocks, bias_walk_psd, covariance_step
 from hil.nav import strapdown as _sd
-from hil.nav.attitude import quat_from_rotvec_floats, quat_multiply_floats, quat_normalise_floats
+from hil.nav.attitude import (
+    RESET_TILT_SIGMA_RAD,
+    RESET_YAW_SIGMA_RAD,
+    quat_from_rotvec_floats,
+    quat_multiply_floats,
+    quat_normalise_floats,
+)
 from hil.nav.earth import ned_to_lla_one, radii_of_curvature_one
 from hil.nav.portable import dot, inv, mm, mmt, mv
 from hil.nav.strapdown import LazyNavState, StrapdownState, c_nb_floats, strapdown_from_initial, to_nav_state
@@ -372,7 +378,12 @@ class ClosedLoopIns:
         self.corrector.dv = self.corrector.dv - dv
         self._dirty = True
 
-    def reinitialise(self, ins: NavState, tilt_sigma_rad: float, yaw_sigma_rad: float) -> None:
+    def reinitialise(
+        self,
+        ins: NavState,
+        tilt_sigma_rad: float = RESET_TILT_SIGMA_RAD,
+        yaw_sigma_rad: float = RESET_YAW_SIGMA_RAD,
+    ) -> None:
         """This INS taken from the fusion's free INS re-initialised on a fix after an IMU fault
         (position, velocity, levelled attitude: ``FusionCore._reset_free_ins``): the fault left it
         as far off as that one. Its bias estimates stay; the corrector's covariance of velocity and

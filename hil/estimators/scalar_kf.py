@@ -26,7 +26,6 @@ import numpy as np
 
 from hil.estimators.base import Estimator, GnssInput, ImuBlock, ImuInput, InitialState, aligned_nav
 from hil.estimators.feedback import ClosedLoopIns
-from hil.nav.attitude import RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD
 from hil.nav.types import F64, FloatNavState, NavState, nav_floats
 
 
@@ -129,14 +128,15 @@ class ScalarKfEstimator(Estimator):
 
     def restart_on_gnss(self, gnss: GnssInput, ins: NavState) -> None:
         """The fusion re-initialised the free INS on this fix (its gate's rule 4, after an IMU
-        fault): the error estimated of the INS before is not this one's. Open loop, the filter
-        starts again as at its start, on this fix; in the feedback form (an INS of its own, which
-        nothing re-initialises) the fix is taken as any other."""
+        fault): the error the filter estimated of the INS before is not this one's, so it starts
+        again at this fix, as at its start. Open loop it corrects that free INS from now on; in the
+        feedback form its own INS, which the fault left as far off, is taken from it
+        (``ClosedLoopIns.reinitialise``)."""
         self.eps, self.d, self.gain = np.zeros(6), self._d0.copy(), np.zeros(6)
         if self.loop is None:
             self._ins = ins
         else:  # its own INS, as far off: taken from the free INS just re-initialised
-            self.loop.reinitialise(ins, RESET_TILT_SIGMA_RAD, RESET_YAW_SIGMA_RAD)
+            self.loop.reinitialise(ins)
         self.on_gnss(gnss, ins)
 
     def solution(self) -> NavState:

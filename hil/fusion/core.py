@@ -34,6 +34,7 @@ from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_b
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.fusion.predictor import NO_BIAS, Motion, OutputPredictor, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
+from hil.nav.attitude import levelled_attitude
 from hil.nav.earth import _origin_floats, ned_to_lla_one
 from hil.nav.limits import MAX_GNSS_SIGMA
 from hil.nav.sensor_specs import G0_MPS2
@@ -425,12 +426,10 @@ class FusionCore:
         that sample's specific force, heading from the ground track (ekf15's reset does the same;
         ``hil.nav.attitude.levelled_attitude``). The fault left it tens of degrees off, which no
         filter correcting it can pull back."""
-        from hil.nav.attitude import RESET_TRACK_MIN_SPEED_MPS, levelled_attitude
-
         row = self._last_row  # None before the first IMU sample: the body level, at rest
         f_b = (0.0, 0.0, -G0_MPS2) if row is None else (row[4] / row[0], row[5] / row[0], row[6] / row[0])
         old = self._sd.StrapdownState.of(self._ins)
-        q, _tracked = levelled_attitude(f_b, gnss.vel_ned_mps, old.q, RESET_TRACK_MIN_SPEED_MPS)
+        q, _tracked = levelled_attitude(f_b, gnss.vel_ned_mps, old.q)
         lag_s = (self._last_imu_ns - gnss.stamp_ns) * 1e-9
         pos = [float(p) + float(v) * lag_s for p, v in zip(gnss.pos_ned_m, gnss.vel_ned_mps, strict=True)]
         lat, lon, alt = ned_to_lla_one(pos[0], pos[1], pos[2], *self._origin)

@@ -38,11 +38,11 @@ update (``FusionCore``; the estimators themselves are untouched):
    waiting: an IMU sample flagged saturated or faulty (``note_imu_fault``) makes the INS no
    witness of anything until a fix has been taken after it, so the first fix ``IMU_SETTLE_NS``
    after the last flagged sample reacquires at once (the fixes before it are held: counted in
-   ``held``, neither used nor held against GNSS) -- unless
-   GNSS was under suspicion when the fault came (its fixes being rejected: a spoof the gate was
-   holding out would otherwise be taken as the reset's truth, and the alarm cleared by the next
-   spoofed fix). Then nothing is a witness: the fixes are judged as before, and only the
-   ``reacquire_after`` of unbroken rejection lets one through, the alarm raised meanwhile. Each
+   ``held``, neither used nor held against GNSS) -- unless GNSS was under suspicion when the
+   fault came (its fixes being rejected: a spoof the gate was holding out would otherwise be
+   taken as the reset's truth, and the alarm cleared by the next spoofed fix). Then nothing is a
+   witness: the fixes are judged as before, and only the ``reacquire_after`` of unbroken
+   rejection lets one through, the alarm raised meanwhile. Each
    reacquisition is a ``gnss_integrity_reacquired`` event; an alarm it interrupts clears only
    when a fix passes the gate on its own (``gnss_integrity_restored``).
 

@@ -257,7 +257,10 @@ RESET_TRACK_MIN_SPEED_MPS = 5.0
 
 
 def levelled_attitude(
-    f_b: tuple[float, float, float], vel_ned: ArrayLike, q_nb: ArrayLike, min_track_speed_mps: float
+    f_b: tuple[float, float, float],
+    vel_ned: ArrayLike,
+    q_nb: ArrayLike,
+    min_track_speed_mps: float = RESET_TRACK_MIN_SPEED_MPS,
 ) -> tuple[F64, bool]:
     """q_nb re-initialised from what an INS can trust after an IMU fault: tilt levelled from the
     specific force (roll, pitch of ``f_b``, the body's ``-g`` when unaccelerated), heading from the

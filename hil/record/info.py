@@ -119,7 +119,7 @@ class Summary:
         self.publishers: set[str] = set()
         self.truth: tuple[array[int], array[float], array[float]] = (array("q"), array("d"), array("d"))
         self.nav: dict[str, tuple[array[int], array[float], array[float]]] = {}
-        self.fusion_status: bytes | None = None  # the fusion's last status (``fusion_line``)
+        self.fusion_status: bytes | None = None  # the fusion's last status (``fusion_refused``)
 
     def add(self, r: Record) -> None:
         self.add_many((r,))
@@ -185,7 +185,7 @@ class Summary:
             )
         return out
 
-    def fusion_line(self) -> str | None:
+    def fusion_refused(self) -> str | None:
         """A fusion that refused much of its IMU input as late: its horizon ran ahead of the
         samples' stamps (a clock step the time sync put in the future, a stalled source), and
         its solutions thin out or stop while every service stays up. Said, not left to be
@@ -198,8 +198,7 @@ class Summary:
             counts = decode(ServiceStatus, self.fusion_status).counter_map()
         except ValueError:  # msgspec's errors: a status that does not read says nothing here
             return None
-        refused = fusion_refusal(counts)
-        return None if refused is None else f"fusion:    {refused}"
+        return fusion_refusal(counts)
 
     def foreign_summary(self) -> dict[str, object]:
         """What publishers that are not the rig's sent: messages per topic, and who."""
@@ -505,11 +504,11 @@ def describe(
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
     lines += _session_line(Path(path), index)
-    stalled = summary.fusion_line()
-    if stalled:
-        lines.append(stalled)
+    refused = summary.fusion_refused()
+    if refused:
+        lines.append(f"fusion:    {refused}")
         if verdicts is not None:
-            verdicts.append("the fusion " + stalled.removeprefix("fusion:").strip())
+            verdicts.append(f"the fusion {refused}")
     restarted = [c for c in infos if c.restarts]
     if restarted:
         # a restart is its own fact, not loss: the publisher counts again in a new generation

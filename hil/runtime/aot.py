@@ -56,7 +56,7 @@ def build(out_dir: Path | None = None) -> Path:
     from numba.pycc import CC
 
     compiled = jit._compile_kernels(numba)
-    operands: dict[str, tuple[int, list[ArrayArg]]] = {}
+    operands: dict[str, list[ArrayArg]] = {}  # each entry point's array operands to check
     with tempfile.TemporaryDirectory(dir=target) as tmp:
         cc = CC(PREFIX + dig)
         cc.output_dir = tmp
@@ -74,7 +74,7 @@ def build(out_dir: Path | None = None) -> Path:
                 for i, t in enumerate(sig.args)
                 if isinstance(t, nbtypes.Array)
             ]
-            operands[name] = (len(sig.args), arrays if name in checked else [])
+            operands[name] = arrays if name in checked else []
         features = AOTCPUCodegen._customize_tm_features
         AOTCPUCodegen._customize_tm_features = AOTCPUCodegen._get_host_cpu_features  # type: ignore[method-assign]
         try:

@@ -103,7 +103,7 @@ def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., An
             assert spec is not None and spec.loader is not None
             module = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(module)
-            kernels = {name: _guarded(getattr(module, name), name, a) for name, (_n, a) in operands.items()}
+            kernels = {name: _guarded(getattr(module, name), name, a) for name, a in operands.items()}
         except (OSError, ImportError, ValueError, TypeError, AttributeError, AssertionError) as err:
             sys.stderr.write(f"hil: warning: {path} does not load ({err}); numba's kernels are used\n")
             return None
