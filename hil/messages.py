@@ -379,6 +379,14 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # that reset re-initialises the free INS too, and the open-loop filters that correct it start
     # again on the fix; absent in recordings made before it, whose free INS kept the fault's error
     gnss_reset_free_ins: bool = False
+    # that reset levels the tilt against the GNSS velocity's rate (a turn's acceleration) and the
+    # free INS's on the mean of its recent clean samples; absent in recordings made before it,
+    # levelled on a = 0 and the free INS on its last sample
+    gnss_reset_accel: bool = False
+    # the gate's run of rejected fixes (its alarm, its reacquisition after gnss_reacquire_after_ns)
+    # ends only when a publisher's fixes pass for gnss_alarm_after_ns; absent in recordings made
+    # before it, where one fix that passed ended it
+    gnss_reacquire_needs_passes: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

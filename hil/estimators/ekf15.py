@@ -665,15 +665,17 @@ class Ekf15(Estimator):
         if z_hold is not None:  # every fix: the gate's S assumes the small angles this is not
             self._align_heading(gnss)
 
-    def reset_to_gnss(self, gnss: GnssInput) -> None:
+    def reset_to_gnss(self, gnss: GnssInput, accel_ned: tuple[float, float, float] | None = None) -> None:
         """Re-initialise on a fix the fusion's gate reacquired (hil.fusion.gnss_gate, rule 4).
         The INS is beyond what a linear update can pull back (a saturated IMU leaves tens of
         degrees of attitude error) and the covariance does not know it, so, as PX4's EKF2 resets
         to GNSS after its no-aiding timeout: tilt levelled from the specific force, heading from
         the ground track, position and velocity from the fix, and the covariance of all three set
-        to what those sources know (decorrelated from the biases, which keep theirs)."""
+        to what those sources know (decorrelated from the biases, which keep theirs).
+        ``accel_ned``: the vehicle's acceleration from the GNSS velocity (the fusion's), which the
+        levelling takes out of the specific force (a turn's would read as a tilt)."""
         self._propagate_covariance()
-        q, tracked = levelled_attitude(self._f_b, gnss.vel_ned_mps, self.ins.q_nb)
+        q, tracked = levelled_attitude(self._f_b, gnss.vel_ned_mps, self.ins.q_nb, accel_ned=accel_ned)
         yaw_var = RESET_YAW_SIGMA_RAD**2 if tracked else _YAW_VAR_MAX  # no track: the heading kept, unknown
         self.ins = self.ins.replace(q_nb=quat_normalise_floats(*q.tolist()))
         self._nav_dirty = True

@@ -24,6 +24,7 @@ from __future__ import annotations
 import heapq
 import math
 import weakref
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +35,7 @@ from hil.estimators.base import INPUTS, Estimator, ImuBlock, InitialState, imu_b
 from hil.fusion.gnss_gate import GateSettings, GnssGate, ReceiverModel, Transition
 from hil.fusion.predictor import NO_BIAS, Motion, OutputPredictor, carry_rows
 from hil.messages import FusionJournal, FusionSettings, GnssFix, ImuSample, Measurement, NavSolution
-from hil.nav.attitude import levelled_attitude
+from hil.nav.attitude import RESET_ACCEL_SPAN_NS, levelled_attitude, velocity_rate
 from hil.nav.earth import _origin_floats, ned_to_lla_one
 from hil.nav.limits import MAX_GNSS_SIGMA
 from hil.nav.sensor_specs import G0_MPS2
@@ -87,6 +88,14 @@ class FusionConfig:
     # ... and the free INS too, the open-loop filters (which correct it) starting again on that
     # fix (rule 4; False: recordings before it, whose free INS kept what the fault left)
     gnss_reset_free_ins: bool = True
+    # ... levelling the tilt against the acceleration the GNSS velocity shows (a turn's, which
+    # levelling on the specific force alone takes for a tilt) and, for the free INS, on the mean
+    # specific force of the clean samples of the last RESET_LEVEL_WINDOW_NS (False: recordings
+    # before it, levelled on a = 0 and on the last sample alone, whose quantization tilted it)
+    gnss_reset_accel: bool = True
+    # rule 3's run of rejected fixes ends only when a publisher's fixes have passed for
+    # gnss_alarm_after_ns, not at one that passes (False: recordings before it, where one did)
+    gnss_reacquire_needs_passes: bool = True
     gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
     # a publisher's GNSS fixes closer together than this share of the receiver's period are
     # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
@@ -131,6 +140,8 @@ class FusionConfig:
             gnss_reset=self.gnss_reset,
             gnss_reset_needs_trust=self.gnss_reset_needs_trust,
             gnss_reset_free_ins=self.gnss_reset_free_ins,
+            gnss_reset_accel=self.gnss_reset_accel,
+            gnss_reacquire_needs_passes=self.gnss_reacquire_needs_passes,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
@@ -147,6 +158,7 @@ class FusionConfig:
             floor_sigma=self.gnss_sigma_floor,
             reset=self.gnss_reset,
             reset_needs_trust=self.gnss_reset_needs_trust,
+            reacquire_needs_passes=self.gnss_reacquire_needs_passes,
         )
 
     @classmethod
@@ -223,6 +235,11 @@ def block_step_of(est: Any) -> Callable[[ImuBlock], None]:
 
 # a relayed verdict's companion entry (``gate_relay``): the reference re-initialised on that fix
 _RESET_MARK = "#reset"
+# a reset after an IMU fault levels the free INS on the mean specific force of the clean samples
+# of this long (the newest first; at most _CLEAN_ROWS_MAX of them: 0.1 s at 2 kHz)
+RESET_LEVEL_WINDOW_NS = 100_000_000
+_CLEAN_ROWS_MAX = 256
+_RECENT_FIXES_MAX = 64  # more than RESET_ACCEL_SPAN_NS of a 20 Hz receiver's
 
 
 def input_key(msg: Measurement) -> tuple[int, int, int]:
@@ -360,9 +377,11 @@ class FusionCore:
         }
         self._block_steps = [(e.name, block_step_of(e)) for e in self._ests]
         # who re-initialises on a fix the gate reacquires (rule 4); the others take it as a fix
-        self._resets: dict[str, Callable[[Any], None] | None] = {
+        self._resets: dict[str, Callable[..., None] | None] = {
             e.name: getattr(e, "reset_to_gnss", None) or self._restart_of(e) for e in self._ests
         }
+        # those that re-initialise themselves, told the GNSS acceleration (``gnss_reset_accel``)
+        self._resets_accel = {e.name for e in self._ests if getattr(e, "reset_to_gnss", None) is not None}
         self._pacer = {n for n in SENSOR_NAMES if SENSORS[n].paces_fusion}
         self._heap: list[tuple[tuple[int, int, int], int, Measurement, str]] = []
         # the aiding entries in the heap (arrival ids), and the furthest-ahead first, lazily
@@ -381,6 +400,11 @@ class FusionCore:
         self.gate_relay: dict[str, bool | None] | None = None
         self._last_imu_ns = self.init.stamp_ns
         self._last_row: tuple[float, ...] | None = None  # the last IMU sample's (dt, Δθ, Δv)
+        # the IMU samples since the last flagged one, newest last (stamp, row): the free INS's
+        # reset levels on their mean specific force (``gnss_reset_accel``)
+        self._clean_rows: deque[tuple[int, tuple[float, ...]]] = deque(maxlen=_CLEAN_ROWS_MAX)
+        # the GNSS fixes taken in, (stamp, velocity), newest last: the velocity's rate at a reset
+        self._recent_fixes: deque[tuple[int, Any]] = deque(maxlen=_RECENT_FIXES_MAX)
         # the stamp of each GNSS publisher's last fix taken in (the rate rule)
         self._gnss_min_gap_ns = 0
         if self.receiver is not None and cfg.gnss_min_interval > 0:
@@ -420,16 +444,36 @@ class FusionCore:
             return None
         return lambda gnss: restart(gnss, self._ins_nav)
 
-    def _reset_free_ins(self, gnss: Any) -> None:
+    def _level_force(self) -> tuple[float, float, float] | None:
+        """The mean specific force of the clean IMU samples of the last ``RESET_LEVEL_WINDOW_NS``
+        (None: none since the fault). One sample's is its quantization too: an accelerometer
+        step of a tactical IMU at 400 Hz (0.24 m/s²) is 24 mrad of tilt."""
+        rows = self._clean_rows
+        if not rows:
+            return None
+        since = rows[-1][0] - RESET_LEVEL_WINDOW_NS
+        dt = dx = dy = dz = 0.0
+        for stamp_ns, row in reversed(rows):
+            if stamp_ns < since:
+                break
+            dt += row[0]
+            dx += row[4]
+            dy += row[5]
+            dz += row[6]
+        return (dx / dt, dy / dt, dz / dt) if dt > 0.0 else None
+
+    def _reset_free_ins(self, gnss: Any, accel: tuple[float, float, float] | None = None) -> None:
         """The free INS re-initialised on a fix the gate reacquired (rule 4, after an IMU fault):
         position and velocity from the fix (carried to the last IMU sample), tilt levelled from
         that sample's specific force, heading from the ground track (ekf15's reset does the same;
         ``hil.nav.attitude.levelled_attitude``). The fault left it tens of degrees off, which no
         filter correcting it can pull back."""
-        row = self._last_row  # None before the first IMU sample: the body level, at rest
-        f_b = (0.0, 0.0, -G0_MPS2) if row is None else (row[4] / row[0], row[5] / row[0], row[6] / row[0])
+        f_b = self._level_force() if self.config.gnss_reset_accel else None
+        if f_b is None:
+            row = self._last_row  # None before the first IMU sample: the body level, at rest
+            f_b = (0.0, 0.0, -G0_MPS2) if row is None else (row[4] / row[0], row[5] / row[0], row[6] / row[0])
         old = self._sd.StrapdownState.of(self._ins)
-        q, _tracked = levelled_attitude(f_b, gnss.vel_ned_mps, old.q)
+        q, _tracked = levelled_attitude(f_b, gnss.vel_ned_mps, old.q, accel_ned=accel)
         lag_s = (self._last_imu_ns - gnss.stamp_ns) * 1e-9
         pos = [float(p) + float(v) * lag_s for p, v in zip(gnss.pos_ned_m, gnss.vel_ned_mps, strict=True)]
         lat, lon, alt = ned_to_lla_one(pos[0], pos[1], pos[2], *self._origin)
@@ -779,8 +823,12 @@ class FusionCore:
         self._ins = self._sd.strapdown_step_f(self._ins, *row[1:], dt_s)
         self._last_row = row
         self._last_imu_ns = msg.stamp_ns
-        if msg.status & IMU_FAULT_STATUS and self.gate is not None:
-            self.gate.note_imu_fault(msg.stamp_ns)
+        if msg.status & IMU_FAULT_STATUS:
+            self._clean_rows.clear()
+            if self.gate is not None:
+                self.gate.note_imu_fault(msg.stamp_ns)
+        else:
+            self._clean_rows.append((msg.stamp_ns, row))
         # built lazily: most estimators read the free INS at a fix or an output only
         ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
         block = self._block
@@ -820,15 +868,19 @@ class FusionCore:
             if ins_nav is None:  # no IMU step yet: the initial state
                 ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
             reset = self.gate.reset if self.gate is not None and msg.sensor == "gnss" else ()
+            accel = self._gnss_accel(data) if reset and self.config.gnss_reset_accel else None
             if reset and self.config.gnss_reset_free_ins:
-                self._reset_free_ins(data)
+                self._reset_free_ins(data, accel)
                 ins_nav = self._ins_nav
             for name, handle in handlers:
                 if name in self._failed or not allowed.get(name, True):
                     continue
                 try:
                     if name in reset and self._resets.get(name) is not None:
-                        self._resets[name](data)
+                        if accel is not None and name in self._resets_accel:
+                            self._resets[name](data, accel_ned=accel)
+                        else:
+                            self._resets[name](data)
                         self._inc(f"gnss_gate.reset.{name}")
                         continue
                     handle(data, ins_nav)
@@ -836,6 +888,17 @@ class FusionCore:
                     self._fail(name, err)
         if msg.sensor == "gnss":
             self._last_gnss_seq = msg.seq
+            self._recent_fixes.append((data.stamp_ns, data.vel_ned_mps))
+
+    def _gnss_accel(self, fix: Any) -> tuple[float, float, float] | None:
+        """The acceleration the GNSS velocity shows at ``fix`` and over the ``RESET_ACCEL_SPAN_NS``
+        before it (``velocity_rate``; None: levelled on a = 0). The receiver's velocity is not the
+        IMU's to doubt after an IMU fault."""
+        since = fix.stamp_ns - RESET_ACCEL_SPAN_NS
+        fixes = [f for f in self._recent_fixes if since <= f[0] < fix.stamp_ns]
+        fixes.append((fix.stamp_ns, fix.vel_ned_mps))
+        # at the middle of the samples the free INS levels on
+        return velocity_rate(fixes, fix.vel_sigma_mps, self._last_imu_ns - RESET_LEVEL_WINDOW_NS // 2)
 
     def _gate(
         self, data: Any, names: list[str], msg: Measurement, source: str

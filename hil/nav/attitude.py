@@ -8,9 +8,12 @@ given and returned as [roll, pitch, yaw] in radians.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from hil.nav.sensor_specs import G0_MPS2
 
 F64 = NDArray[np.float64]
 
@@ -256,19 +259,117 @@ RESET_YAW_SIGMA_RAD = 0.2
 RESET_TRACK_MIN_SPEED_MPS = 5.0
 
 
+# the acceleration a reset levels against: the GNSS velocity's least-squares rate over the fixes of
+# the last RESET_ACCEL_SPAN_NS, taken when it stands out of its own noise (RESET_ACCEL_SIGNIFICANCE
+# of its σ: a 10 Hz receiver's 0.2 m/s velocity noise is 2.8 m/s² between two fixes, 0.2 m/s² over a
+# second), else a = 0: unaccelerated, the mean specific force levels the body exactly
+RESET_ACCEL_SPAN_NS = 1_000_000_000
+RESET_ACCEL_SIGNIFICANCE = 3.0
+
+
+def velocity_rate(
+    fixes: Sequence[tuple[int, Sequence[float]]], vel_sigma_mps: Sequence[float], at_ns: int | None = None
+) -> tuple[float, float, float] | None:
+    """The acceleration shown by GNSS velocities ``(stamp_ns, vel_ned)`` (oldest first), at
+    ``at_ns`` (default the last fix's stamp): each axis's least-squares slope -- the mean over the
+    fixes, half their span late -- with its horizontal part turned on by the track's turn rate to
+    ``at_ns`` (in a 12 °/s turn the mean lags 6°: 0.5 m/s² of its 5 m/s²). None with fewer than two
+    fixes, when they span no time, or when no axis's slope stands ``RESET_ACCEL_SIGNIFICANCE`` σ
+    (from ``vel_sigma_mps`` and the fixes' spread in time) out of zero."""
+    n = len(fixes)
+    if n < 2:
+        return None
+    t0 = fixes[-1][0]
+    ts = [(t - t0) * 1e-9 for t, _ in fixes]
+    tm = sum(ts) / n
+    stt = sum((t - tm) ** 2 for t in ts)
+    if stt <= 0.0:
+        return None
+
+    def slope(values: list[float]) -> float:
+        vm = sum(values) / n
+        return sum((t - tm) * (v - vm) for t, v in zip(ts, values, strict=True)) / stt
+
+    a = [slope([float(v[axis]) for _, v in fixes]) for axis in range(3)]
+    bound = RESET_ACCEL_SIGNIFICANCE / math.sqrt(stt)
+    if all(abs(x) <= bound * float(s) for x, s in zip(a, vel_sigma_mps, strict=True)):
+        return None
+    if all(math.hypot(float(v[0]), float(v[1])) >= RESET_TRACK_MIN_SPEED_MPS for _, v in fixes):
+        track = [math.atan2(float(v[1]), float(v[0])) for _, v in fixes]
+        unwrapped = [track[0]]
+        for x in track[1:]:
+            unwrapped.append(unwrapped[-1] + _wrap(x - unwrapped[-1]))
+        turn = slope(unwrapped) * (((t0 if at_ns is None else at_ns) - t0) * 1e-9 - tm)
+        c, s_ = math.cos(turn), math.sin(turn)
+        a[0], a[1] = c * a[0] - s_ * a[1], s_ * a[0] + c * a[1]
+    return (a[0], a[1], a[2])
+
+
 def levelled_attitude(
     f_b: tuple[float, float, float],
     vel_ned: ArrayLike,
     q_nb: ArrayLike,
     min_track_speed_mps: float = RESET_TRACK_MIN_SPEED_MPS,
+    accel_ned: tuple[float, float, float] | None = None,
 ) -> tuple[F64, bool]:
     """q_nb re-initialised from what an INS can trust after an IMU fault: tilt levelled from the
-    specific force (roll, pitch of ``f_b``, the body's ``-g`` when unaccelerated), heading from the
-    ground track (``vel_ned``) at ``min_track_speed_mps`` and above, else the heading ``q_nb`` has;
-    and whether the heading came from the track."""
-    fx, fy, fz = f_b
-    roll, pitch = math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
+    specific force, heading from the ground track (``vel_ned``) at ``min_track_speed_mps`` and
+    above, else the heading ``q_nb`` has; and whether the heading came from the track.
+
+    Levelled, ``f_b`` is taken for the body's ``-g``: true unaccelerated, 28° of roll off in a
+    coordinated turn (f_b then lies along the body's z axis whatever the bank). ``accel_ned``,
+    the vehicle's acceleration (the GNSS velocity's rate), gives the specific force the body
+    feels, ``a - g`` in NED: roll and pitch are those that turn ``f_b`` onto it at this heading
+    (``_tilt_onto``); without it, ``a = 0``."""
     vn, ve = float(np.asarray(vel_ned)[0]), float(np.asarray(vel_ned)[1])
     tracked = math.hypot(vn, ve) >= min_track_speed_mps
     yaw = math.atan2(ve, vn) if tracked else float(quat_to_euler(np.asarray(q_nb))[2])
+    fx, fy, fz = f_b
+    if accel_ned is None:
+        roll, pitch = math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
+    else:
+        roll, pitch = _tilt_onto(f_b, accel_ned, yaw)
     return euler_to_quat([roll, pitch, yaw]), tracked
+
+
+def _tilt_onto(
+    f_b: tuple[float, float, float], accel_ned: tuple[float, float, float], yaw: float
+) -> tuple[float, float]:
+    """Roll and pitch (ZYX Euler, at ``yaw``) that turn the body's specific force ``f_b`` onto
+    the direction of ``a - g`` in NED: ``C_nb f_b = f_n`` with ``C_nb = Rz(yaw) Ry(pitch)
+    Rx(roll)``, so ``Ry(pitch) Rx(roll) f_b = Rz(yaw)^T f_n = h``. Rx leaves the x component,
+    which fixes pitch up to two values; roll then turns ``f_b``'s y, z onto ``h`` rotated back by
+    that pitch. Of the pitches within ±90°, the one that leaves the body nearer upright (a
+    vehicle re-initialised in flight is not on its back). Directions only: the norms differ by
+    noise and by g's model."""
+    fx, fy, fz = f_b
+    nb = math.sqrt(fx * fx + fy * fy + fz * fz)
+    an, ae, ad = accel_ned
+    gn, ge, gd = an, ae, ad - G0_MPS2
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    hx, hy, hz = cy * gn + sy * ge, -sy * gn + cy * ge, gd
+    nh = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if nb == 0.0 or nh == 0.0:  # no direction to level on: the body level
+        return 0.0, 0.0
+    bx, by, bz = fx / nb, fy / nb, fz / nb
+    hx, hy, hz = hx / nh, hy / nh, hz / nh
+    # x: bx = hx cos(p) - hz sin(p) = r cos(p + alpha)
+    r, alpha = math.hypot(hx, hz), math.atan2(hz, hx)
+    c = math.acos(max(-1.0, min(1.0, bx / r))) if r > 0.0 else 0.5 * math.pi
+    best: tuple[float, float, float] | None = None
+    for p in (_wrap(c - alpha), _wrap(-c - alpha)):
+        if abs(p) > 0.5 * math.pi:  # the body's x axis against the heading: not this yaw's
+            continue
+        ty, tz = hy, hx * math.sin(p) + hz * math.cos(p)
+        r_ = _wrap(math.atan2(tz, ty) - math.atan2(bz, by))
+        upright = math.cos(r_) * math.cos(p)  # the body's z axis on the down axis: cos(tilt)
+        if best is None or upright > best[0]:
+            best = (upright, r_, p)
+    if best is None:  # f_n straight along the heading: no pitch within the Euler range turns f_b onto it
+        return math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
+    return best[1], best[2]
+
+
+def _wrap(a: float) -> float:
+    """An angle in (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))

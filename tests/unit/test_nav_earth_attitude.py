@@ -86,3 +86,66 @@ def test_the_quaternion_float_twins_keep_numpys_answer_where_math_would_raise() 
         for q in ((0.0, 0.0, 0.0, 0.0), (math.inf, 0.0, 0.0, 0.0), (math.nan, 1.0, 0.0, 0.0)):
             want = att.quat_normalise(np.array(q)).tolist()
             assert np.array_equal(list(att.quat_normalise_floats(*q)), want, equal_nan=True)
+
+
+def test_levelling_against_the_acceleration_recovers_any_upright_attitude() -> None:
+    """``levelled_attitude`` with ``accel_ned``: the roll and pitch that turn the specific force
+    onto ``a - g`` at the track's heading, for attitudes within ±46° roll, ±34° pitch and
+    accelerations of 1 m/s² per axis (a coordinated 28° bank's 5.2 m/s² included); with a = 0
+    the levelling on f_b alone, to rounding."""
+    rng = np.random.default_rng(7)
+    g = 9.80665
+    cases = [
+        (
+            math.radians(28.0),
+            0.0,
+            0.4,
+            np.array([-math.sin(0.4), math.cos(0.4), 0.0]) * g * math.tan(math.radians(28.0)),
+        )
+    ]
+    for _ in range(500):
+        cases.append(
+            (rng.uniform(-0.8, 0.8), rng.uniform(-0.6, 0.6), rng.uniform(-3.0, 3.0), rng.normal(0.0, 1.0, 3))
+        )
+    for roll, pitch, yaw, a in cases:
+        c = att.quat_to_dcm(att.euler_to_quat([roll, pitch, yaw]))
+        f_b = c.T @ (a - np.array([0.0, 0.0, g]))
+        vel = [10.0 * math.cos(yaw), 10.0 * math.sin(yaw), 0.0]
+        q, tracked = att.levelled_attitude(
+            tuple(f_b.tolist()), vel, [1.0, 0.0, 0.0, 0.0], accel_ned=tuple(a.tolist())
+        )
+        assert tracked
+        np.testing.assert_allclose(att.quat_to_euler(q), [roll, pitch, yaw], atol=1e-9)
+    q0, _ = att.levelled_attitude(tuple(f_b.tolist()), vel, [1.0, 0.0, 0.0, 0.0])
+    q1, _ = att.levelled_attitude(tuple(f_b.tolist()), vel, [1.0, 0.0, 0.0, 0.0], accel_ned=(0.0, 0.0, 0.0))
+    np.testing.assert_allclose(q0, q1, atol=1e-12)
+    c = att.quat_to_dcm(att.euler_to_quat(list(cases[0][:3])))
+    f_turn = c.T @ (cases[0][3] - np.array([0.0, 0.0, g]))
+    q_level, _ = att.levelled_attitude(
+        tuple(f_turn.tolist()), [math.cos(0.4), math.sin(0.4), 0.0], [1, 0, 0, 0], 0.5
+    )
+    # levelled on f_b alone, the turn's whole 28° bank is taken for level
+    assert abs(att.quat_to_euler(q_level)[0]) < 1e-9
+
+
+def test_the_gnss_velocitys_rate_in_a_turn_and_in_noise() -> None:
+    """``velocity_rate``: a steady 12 °/s turn at 50 m/s sampled at 10 Hz over a second gives its
+    centripetal acceleration at the last fix (the mean, turned on by the track's rate); velocity
+    noise alone (σ 0.2 m/s, straight and level) gives None: levelled on a = 0."""
+    w, speed = math.radians(12.0), 50.0
+    fixes = []
+    for k in range(11):
+        t = k * 0.1
+        psi = w * t
+        fixes.append((round(t * 1e9), [speed * math.cos(psi), speed * math.sin(psi), 0.0]))
+    a = att.velocity_rate(fixes, [0.2, 0.2, 0.2])
+    assert a is not None
+    psi_end = w * 1.0
+    want = speed * w * np.array([-math.sin(psi_end), math.cos(psi_end), 0.0])
+    np.testing.assert_allclose(a, want, atol=0.01 * speed * w)
+    rng = np.random.default_rng(3)
+    quiet = [
+        (round(k * 1e8), (np.array([50.0, 0.0, 0.0]) + rng.normal(0.0, 0.2, 3)).tolist()) for k in range(11)
+    ]
+    assert att.velocity_rate(quiet, [0.2, 0.2, 0.2]) is None
+    assert att.velocity_rate(fixes[:1], [0.2, 0.2, 0.2]) is None
