@@ -458,7 +458,9 @@ def _up_recording(record: Path, parts: list[Path]) -> int:
         return 1
     print()
     failings: list[str] = []
-    print(describe(str(record), verdicts=failings))  # its further parts too, if it was split
+    # split, or continued by a restarted recorder: the verdict is the session's last fusion
+    # status, in whichever file it is (describe of a session's first file reads it there)
+    print(describe(str(record), verdicts=failings))
     for f in failings:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
     for part in parts:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from array import array
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,6 +29,7 @@ from hil.record.mcapio import (
     RecordingError,
     Session,
     file_halves,
+    iter_records,
     next_in_session,
     session_files,
     session_first_path,
@@ -186,19 +187,9 @@ class Summary:
         return out
 
     def fusion_refused(self) -> str | None:
-        """A fusion that refused much of its IMU input as late: its horizon ran ahead of the
-        samples' stamps (a clock step the time sync put in the future, a stalled source), and
-        its solutions thin out or stop while every service stays up. Said, not left to be
-        found in the status counters: a tenth of the IMU samples or more."""
-        if self.fusion_status is None:
-            return None
-        from hil.messages import ServiceStatus, decode
-
-        try:
-            counts = decode(ServiceStatus, self.fusion_status).counter_map()
-        except ValueError:  # msgspec's errors: a status that does not read says nothing here
-            return None
-        return fusion_refusal(counts)
+        """``fusion_refusal`` of this file's last fusion status (None: it holds none)."""
+        counts = status_counters(self.fusion_status)
+        return None if counts is None else fusion_refusal(counts)
 
     def foreign_summary(self) -> dict[str, object]:
         """What publishers that are not the rig's sent: messages per topic, and who."""
@@ -414,6 +405,42 @@ def _session_line(path: Path, index: str) -> list[str]:
     ]
 
 
+def status_counters(payload: bytes | None) -> dict[str, int] | None:
+    """A recorded ``ServiceStatus``'s counters; None for none, or one that does not read (it
+    then says nothing here)."""
+    if payload is None:
+        return None
+    from hil.messages import ServiceStatus, decode
+
+    try:
+        return decode(ServiceStatus, payload).counter_map()
+    except ValueError:  # msgspec's errors
+        return None
+
+
+def _is_fusion_status(topic: str) -> bool:
+    return topic.endswith("/status/fusion")
+
+
+def last_fusion_status(files: Sequence[Path]) -> tuple[bytes, Path] | None:
+    """The last fusion status of a session's ``files`` (in order) and the file that holds it, or
+    None. Its counters count from the fusion's start, so the session's last one covers the run,
+    whichever part the recorder had rotated to (a split session's first file holds only the
+    status of its first stretch). Read from the last file back, each only for that topic; a file
+    that cannot be read says nothing, and the one before it is asked."""
+    for path in reversed(files):
+        last = None
+        try:
+            for kind, r in iter_records(path, keep=_is_fusion_status):
+                if kind == "message" and r.schema == "hil.ServiceStatus":
+                    last = r.payload
+        except (RecordingError, OSError):
+            continue
+        if last is not None:
+            return last, path
+    return None
+
+
 def fusion_refusal(counts: Mapping[str, int]) -> str | None:
     """What a fusion that refused a tenth or more of its IMU samples as late did (its status
     counters), or None: its horizon ran ahead of the samples' stamps, and its solutions thin out
@@ -427,6 +454,20 @@ def fusion_refusal(counts: Mapping[str, int]) -> str | None:
         "inputs: its horizon ran ahead of their stamps, so its solutions thin out or stop; "
         "event/fusion says when (latency_over_bound)"
     )
+
+
+def _fusion_verdict(path: Path, index: str, summary: Summary) -> tuple[str | None, str]:
+    """The fusion's refusal (``fusion_refusal``) and, when it is not this file's, where it was
+    read. Of a session's first file, which stands for the run (its exit code, ``hil up``'s
+    description), the session's last fusion status wherever it is (``last_fusion_status``);
+    of a later part, its own: its counters as they stood at its end."""
+    if index == "0" and not RESTART_PART_NAME.search(path.stem):
+        later = last_fusion_status(session_files(path)[1:])
+        if later is not None:
+            counts = status_counters(later[0])
+            refused = None if counts is None else fusion_refusal(counts)
+            return refused, f" (the session's last fusion status, in {later[1].name})"
+    return summary.fusion_refused(), ""
 
 
 def describe(
@@ -504,9 +545,9 @@ def describe(
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
     lines += _session_line(Path(path), index)
-    refused = summary.fusion_refused()
+    refused, held_in = _fusion_verdict(Path(path), index, summary)
     if refused:
-        lines.append(f"fusion:    {refused}")
+        lines.append(f"fusion:    {refused}{held_in}")
         if verdicts is not None:
             verdicts.append(f"the fusion {refused}")
     restarted = [c for c in infos if c.restarts]
