@@ -235,6 +235,34 @@ def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, lat
     )
 
 
+@pytest.mark.parametrize(("late", "says"), [(170, True), (19, False), (0, False)])
+def test_a_fusion_that_refused_its_gnss_fixes_as_late_is_said(tmp_path: Path, late: int, says: bool) -> None:
+    """--fusion-lag below the receiver's latency: 170 of 199 fixes refused, every estimator
+    coasting, and hil info said nothing (QA). A tenth or more of the fixes handed to the fusion
+    (inputs.gnss) is a line naming the source and a failing; an outage (fewer fixes) is not."""
+    from hil.messages import Count, ServiceStatus
+
+    path = tmp_path / "s.mcap"
+    counters = [
+        Count("dropped_late.gnss", late),
+        Count("consumed", 8000 + 199 - late),
+        Count("horizon_lag_ms", 1),
+        Count("inputs.gnss", 199),
+        Count("inputs.imu", 8000),
+    ]
+    st = ServiceStatus(
+        seq=0, stamp_ns=0, service="fusion", state="running", pid=1, uptime_s=0, counters=counters
+    )
+    w = SessionWriter(path, spill_index=False)
+    w.write("hil/bench/status/fusion", ServiceStatus, encode(st), log_time_ns=0, publish_time_ns=0, seq=0)
+    w.close()
+    failings: list[str] = []
+    lines = [ln for ln in describe(str(path), verdicts=failings).splitlines() if ln.startswith("fusion:")]
+    said = f"fusion:    refused {late} of its 199 GNSS fixes as late (dropped_late.gnss): they reached it more than its lag (1 ms"
+    assert [ln.startswith(said) for ln in lines] == ([True] if says else [])
+    assert failings == ["the fusion " + ln.removeprefix("fusion:    ") for ln in lines]
+
+
 def _fusion_part(path: Path, index: int, statuses: list[tuple[int, int]], first_s: int) -> None:
     """A file of a split session (``index`` 0: its first) holding the fusion's statuses, each
     ``(dropped_late.imu, consumed)``, once a second from ``first_s``: the counters count from the
@@ -316,7 +344,7 @@ def test_a_split_session_that_refused_early_and_recovered_is_no_failure(tmp_path
     ]
     parts.append([(800, 23799)])
     early = _split_session(tmp_path, parts)
-    assert _scan(early[0], derived=False, accuracy=True)[0].fusion_refused() is not None  # its own
+    assert _scan(early[0], derived=False, accuracy=True)[0].fusion_refusals() != []  # its own
     failings: list[str] = []
     text = describe(str(early[0]), verdicts=failings)
     assert "fusion:" not in text and failings == []
