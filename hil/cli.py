@@ -317,6 +317,37 @@ def _warn_loads(prog: str, scenario: Any, a: argparse.Namespace, wire: dict[str,
         print(f"{prog}: warning: {line}", file=sys.stderr)
 
 
+def lag_warning(scenario: Any, lag_s: float | None) -> str | None:
+    """Why the fusion will refuse the scenario's GNSS fixes as late, or None: its lag (``lag_s``,
+    ``--fusion-lag``; None: the fusion's default, which ``hil up`` runs) below the receiver's
+    output latency (the scenario's ``gnss.latency_s``, plus its jitter). Said before the run,
+    not refused: a run may be meant to test exactly that (its end then says FAILED)."""
+    from hil.nodes.fusion import DEFAULT_LAG_S
+
+    g = scenario.gnss
+    lag, latency, worst = DEFAULT_LAG_S if lag_s is None else lag_s, g.latency_s, g.latency_s + g.jitter_s
+    if lag >= worst:
+        return None
+    which = "its fixes" if lag < latency else "the fixes its jitter takes past it"
+    said = f"--fusion-lag {lag:g} s" if lag_s is not None else f"the fusion's lag ({lag:g} s, its default)"
+    fix = (
+        f"give --fusion-lag above {worst:g} s to fuse them"
+        if lag_s is not None
+        else f"lower the scenario's gnss.latency_s (hil sim --fusion-lag above {worst:g} s fuses them)"
+    )
+    return (
+        f"{said} is below the GNSS receiver's output latency in scenario {scenario.name!r} "
+        f"(gnss.latency_s {latency:g} s + jitter_s {g.jitter_s:g} s): the fusion will refuse {which} "
+        f"as late and its estimators go without GNSS; {fix}"
+    )
+
+
+def _warn_lag(prog: str, scenario: Any, lag_s: float | None) -> None:
+    line = lag_warning(scenario, lag_s)
+    if line:
+        print(f"{prog}: warning: {line}", file=sys.stderr)
+
+
 _WIRE_KEYS = ("gnss_protocol", "gnss_messages", "gnss_baud")  # _gnss_wire's, as UpOptions has them
 _BAUDS = (4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)  # a UART's usual rates
 
@@ -410,6 +441,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     _keep_earlier_recording(record)
     _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
     _warn_loads("hil up", scenario, a, {k: getattr(opts, k) for k in _WIRE_KEYS})
+    _warn_lag("hil up", scenario, None)
     if not opts.gnss_protocol:
         from hil.faults import unwired_line_fault_warnings
 
@@ -458,7 +490,9 @@ def _up_recording(record: Path, parts: list[Path]) -> int:
         return 1
     print()
     failings: list[str] = []
-    print(describe(str(record), verdicts=failings))  # its further parts too, if it was split
+    # split, or continued by a restarted recorder: the verdict is the session's last fusion
+    # status, in whichever file it is (describe of a session's first file reads it there)
+    print(describe(str(record), verdicts=failings))
     for f in failings:
         print(f"hil up: FAILED: {f}", file=sys.stderr)
     for part in parts:
@@ -611,6 +645,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
         scenario_overrides(scenario, imu_rate_hz=a.imu_rate)  # one line if refused
     wire = _gnss_wire(a, live=False)
     _warn_loads("hil sim", scenario, a, wire)
+    _warn_lag("hil sim", scenario, a.fusion_lag)
     record = a.record or _default_record_path(a.scenario)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 
@@ -657,13 +692,12 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
         print()
         print(describe(str(record), parallel=True))
-    from hil.record.info import fusion_refusal
+    from hil.record.info import fusion_refusals
 
-    refused = fusion_refusal(res.fusion_counts)
-    if refused is not None:  # the run went to its end, but did not navigate: not a success
-        print(f"hil sim: FAILED: the fusion {refused}", file=sys.stderr)
-        return 1
-    return 0
+    refused = fusion_refusals(res.fusion_counts)
+    for line in refused:  # the run went to its end, but did not navigate: not a success
+        print(f"hil sim: FAILED: the fusion {line}", file=sys.stderr)
+    return 1 if refused else 0
 
 
 def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:

@@ -245,6 +245,8 @@ class FusionNode(Node):
         assert core is not None
         sols = core.push(msg, source)
         self.pushed += 1
+        # per source, taken or refused: what its refusals (dropped_late.<sensor>) are a share of
+        self.inc("inputs." + msg.sensor)
         if core.last_error:
             self.error("errors.estimator", core.last_error)
             core.last_error = ""

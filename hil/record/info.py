@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from array import array
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,6 +29,7 @@ from hil.record.mcapio import (
     RecordingError,
     Session,
     file_halves,
+    iter_records,
     next_in_session,
     session_files,
     session_first_path,
@@ -119,7 +120,7 @@ class Summary:
         self.publishers: set[str] = set()
         self.truth: tuple[array[int], array[float], array[float]] = (array("q"), array("d"), array("d"))
         self.nav: dict[str, tuple[array[int], array[float], array[float]]] = {}
-        self.fusion_status: bytes | None = None  # the fusion's last status (``fusion_refused``)
+        self.fusion_status: bytes | None = None  # the fusion's last status (``fusion_refusals``)
 
     def add(self, r: Record) -> None:
         self.add_many((r,))
@@ -185,20 +186,10 @@ class Summary:
             )
         return out
 
-    def fusion_refused(self) -> str | None:
-        """A fusion that refused much of its IMU input as late: its horizon ran ahead of the
-        samples' stamps (a clock step the time sync put in the future, a stalled source), and
-        its solutions thin out or stop while every service stays up. Said, not left to be
-        found in the status counters: a tenth of the IMU samples or more."""
-        if self.fusion_status is None:
-            return None
-        from hil.messages import ServiceStatus, decode
-
-        try:
-            counts = decode(ServiceStatus, self.fusion_status).counter_map()
-        except ValueError:  # msgspec's errors: a status that does not read says nothing here
-            return None
-        return fusion_refusal(counts)
+    def fusion_refusals(self) -> list[str]:
+        """``fusion_refusals`` of this file's last fusion status (none when it holds none)."""
+        counts = status_counters(self.fusion_status)
+        return [] if counts is None else fusion_refusals(counts)
 
     def foreign_summary(self) -> dict[str, object]:
         """What publishers that are not the rig's sent: messages per topic, and who."""
@@ -414,19 +405,97 @@ def _session_line(path: Path, index: str) -> list[str]:
     ]
 
 
-def fusion_refusal(counts: Mapping[str, int]) -> str | None:
-    """What a fusion that refused a tenth or more of its IMU samples as late did (its status
-    counters), or None: its horizon ran ahead of the samples' stamps, and its solutions thin out
-    or stop while every service stays up. ``hil info`` says it; ``hil up`` and ``hil sim`` also
-    exit 1 for it, a run that did not navigate being no success."""
-    late, consumed = counts.get("dropped_late.imu", 0), counts.get("consumed", 0)
-    if late == 0 or late < 0.1 * (late + consumed):
+def status_counters(payload: bytes | None) -> dict[str, int] | None:
+    """A recorded ``ServiceStatus``'s counters; None for none, or one that does not read (it
+    then says nothing here)."""
+    if payload is None:
         return None
-    return (
-        f"refused {late} IMU samples as late (dropped_late.imu) and took {consumed} "
-        "inputs: its horizon ran ahead of their stamps, so its solutions thin out or stop; "
-        "event/fusion says when (latency_over_bound)"
-    )
+    from hil.messages import ServiceStatus, decode
+
+    try:
+        return decode(ServiceStatus, payload).counter_map()
+    except ValueError:  # msgspec's errors
+        return None
+
+
+def _is_fusion_status(topic: str) -> bool:
+    return topic.endswith("/status/fusion")
+
+
+def last_fusion_status(files: Sequence[Path]) -> tuple[bytes, Path] | None:
+    """The last fusion status of a session's ``files`` (in order) and the file that holds it, or
+    None. Its counters count from the fusion's start, so the session's last one covers the run,
+    whichever part the recorder had rotated to (a split session's first file holds only the
+    status of its first stretch). Read from the last file back, each only for that topic; a file
+    that cannot be read says nothing, and the one before it is asked."""
+    for path in reversed(files):
+        last = None
+        try:
+            for kind, r in iter_records(path, keep=_is_fusion_status):
+                if kind == "message" and r.schema == "hil.ServiceStatus":
+                    last = r.payload
+        except (RecordingError, OSError):
+            continue
+        if last is not None:
+            return last, path
+    return None
+
+
+#: the share of a source's inputs a fusion may refuse as late before the run is said not to have
+#: navigated on it (the IMU's: of all it took)
+LATE_SHARE = 0.1
+
+
+def fusion_refusals(counts: Mapping[str, int]) -> list[str]:
+    """What a fusion that refused much of an input as late did (its status counters), one line
+    a source; none for a fusion that fused its inputs. ``hil info`` says them; ``hil up`` and
+    ``hil sim`` also exit 1 for them, a run that did not navigate being no success.
+
+    The IMU: a tenth or more of its samples (of all the inputs it took): its horizon ran ahead of
+    the samples' stamps, and its solutions thin out or stop while every service stays up.
+    An aiding source (GNSS): a tenth or more of the fixes handed to it (``inputs.<sensor>``,
+    taken or refused) came behind its horizon -- later after their time of validity than its
+    lag -- and the estimators went without them, as in an outage that never ends. A GNSS outage
+    is no refusal: the fixes that never came are not counted. A status without
+    ``inputs.<sensor>`` (a fusion before that counter) is judged on the IMU alone."""
+    out = []
+    late, consumed = counts.get("dropped_late.imu", 0), counts.get("consumed", 0)
+    if late and late >= LATE_SHARE * (late + consumed):
+        out.append(
+            f"refused {late} IMU samples as late (dropped_late.imu) and took {consumed} "
+            "inputs: its horizon ran ahead of their stamps, so its solutions thin out or stop; "
+            "event/fusion says when (latency_over_bound)"
+        )
+    from hil.sensor_table import SENSOR_NAMES, SENSORS
+
+    lag_ms = counts.get("horizon_lag_ms")
+    lag = f" ({lag_ms} ms, horizon_lag_ms)" if lag_ms is not None else ""
+    for sensor in SENSOR_NAMES:
+        n, late = counts.get(f"inputs.{sensor}"), counts.get(f"dropped_late.{sensor}", 0)
+        if SENSORS[sensor].paces_fusion or n is None or not late or late < LATE_SHARE * n:
+            continue
+        what = "GNSS fixes" if sensor == "gnss" else f"{sensor} inputs"
+        out.append(
+            f"refused {late} of its {n} {what} as late (dropped_late.{sensor}): they reached it more "
+            f"than its lag{lag} after their time of validity, so its estimators went without them; "
+            f"raise the fusion's lag (--fusion-lag, lag_s) above the receiver's latency "
+            "(event/fusion: latency_over_bound)"
+        )
+    return out
+
+
+def _fusion_verdict(path: Path, index: str, summary: Summary) -> tuple[list[str], str]:
+    """The fusion's refusals (``fusion_refusals``) and, when they are not this file's, where its
+    status was read. Of a session's first file, which stands for the run (its exit code, ``hil
+    up``'s description), the session's last fusion status wherever it is
+    (``last_fusion_status``); of a later part, its own: its counters as they stood at its end."""
+    if index == "0" and not RESTART_PART_NAME.search(path.stem):
+        later = last_fusion_status(session_files(path)[1:])
+        if later is not None:
+            counts = status_counters(later[0])
+            refused = [] if counts is None else fusion_refusals(counts)
+            return refused, f" (the session's last fusion status, in {later[1].name})"
+    return summary.fusion_refusals(), ""
 
 
 def describe(
@@ -434,7 +503,7 @@ def describe(
 ) -> str:
     """What ``hil info`` prints. ``parallel``: a large file read by two processes at once (a
     command's own process, which may fork: not a live rig's supervisor). ``verdicts``: where
-    the run's failings it finds are added (the fusion's ``fusion_refusal``), for an exit code."""
+    the run's failings it finds are added (the fusion's ``fusion_refusals``), for an exit code."""
     summary, s = _scan(path, derived=True, accuracy=accuracy, parallel=parallel)  # Foxglove's listed too
     infos = summary.channel_infos()
     t0 = min((c.first_ns for c in infos), default=0)
@@ -504,11 +573,11 @@ def describe(
     else:
         lines.append("recorder:  no completeness summary (the recorder did not finish the file)")
     lines += _session_line(Path(path), index)
-    refused = summary.fusion_refused()
-    if refused:
-        lines.append(f"fusion:    {refused}")
+    refused, held_in = _fusion_verdict(Path(path), index, summary)
+    for line in refused:
+        lines.append(f"fusion:    {line}{held_in}")
         if verdicts is not None:
-            verdicts.append(f"the fusion {refused}")
+            verdicts.append(f"the fusion {line}")
     restarted = [c for c in infos if c.restarts]
     if restarted:
         # a restart is its own fact, not loss: the publisher counts again in a new generation

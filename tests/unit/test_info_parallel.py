@@ -10,8 +10,8 @@ import pytest
 from hil.messages import SEQ_GENERATION_SHIFT, CaptureTruth, EstimatorHealth, encode
 from hil.record import info
 from hil.record.completeness import SeqTracker
-from hil.record.info import Summary, _scan, _scan_halves, _SeqRuns, describe, info_json
-from hil.record.mcapio import DamagedRecordingError, SessionWriter, file_halves, iter_records
+from hil.record.info import Summary, _scan, _scan_halves, _SeqRuns, describe, info_json, last_fusion_status
+from hil.record.mcapio import DamagedRecordingError, SessionWriter, file_halves, iter_records, session_files
 from hil.runners.sim_worker import worker_possible
 
 GOLDEN = Path(__file__).parents[1] / "replay" / "golden" / "straight_level_4s.mcap"
@@ -233,6 +233,135 @@ def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, lat
     assert failings == (
         [f"the fusion refused {late} IMU samples as late" + lines[0].split("as late", 1)[1]] if says else []
     )
+
+
+@pytest.mark.parametrize(("late", "says"), [(170, True), (19, False), (0, False)])
+def test_a_fusion_that_refused_its_gnss_fixes_as_late_is_said(tmp_path: Path, late: int, says: bool) -> None:
+    """--fusion-lag below the receiver's latency: 170 of 199 fixes refused, every estimator
+    coasting, and hil info said nothing (QA). A tenth or more of the fixes handed to the fusion
+    (inputs.gnss) is a line naming the source and a failing; an outage (fewer fixes) is not."""
+    from hil.messages import Count, ServiceStatus
+
+    path = tmp_path / "s.mcap"
+    counters = [
+        Count("dropped_late.gnss", late),
+        Count("consumed", 8000 + 199 - late),
+        Count("horizon_lag_ms", 1),
+        Count("inputs.gnss", 199),
+        Count("inputs.imu", 8000),
+    ]
+    st = ServiceStatus(
+        seq=0, stamp_ns=0, service="fusion", state="running", pid=1, uptime_s=0, counters=counters
+    )
+    w = SessionWriter(path, spill_index=False)
+    w.write("hil/bench/status/fusion", ServiceStatus, encode(st), log_time_ns=0, publish_time_ns=0, seq=0)
+    w.close()
+    failings: list[str] = []
+    lines = [ln for ln in describe(str(path), verdicts=failings).splitlines() if ln.startswith("fusion:")]
+    said = f"fusion:    refused {late} of its 199 GNSS fixes as late (dropped_late.gnss): they reached it more than its lag (1 ms"
+    assert [ln.startswith(said) for ln in lines] == ([True] if says else [])
+    assert failings == ["the fusion " + ln.removeprefix("fusion:    ") for ln in lines]
+
+
+def _fusion_part(path: Path, index: int, statuses: list[tuple[int, int]], first_s: int) -> None:
+    """A file of a split session (``index`` 0: its first) holding the fusion's statuses, each
+    ``(dropped_late.imu, consumed)``, once a second from ``first_s``: the counters count from the
+    fusion's start, whichever file the recorder writes them to."""
+    from hil.messages import Count, ServiceStatus
+    from hil.record.mcapio import part_metadata, split_part_path
+
+    w = SessionWriter(path, spill_index=False)
+    if index:
+        w.add_metadata(
+            "part", {"index": index, **part_metadata(split_part_path(path.parent / "s.mcap", index - 1))}
+        )
+    for k, (late, consumed) in enumerate(statuses):
+        i = first_s + k
+        counters = [Count("dropped_late.imu", late), Count("consumed", consumed)]
+        st = ServiceStatus(
+            seq=i, stamp_ns=i * 10**9, service="fusion", state="running", pid=1, uptime_s=i, counters=counters
+        )
+        w.write(
+            "hil/bench/status/fusion",
+            ServiceStatus,
+            encode(st),
+            log_time_ns=i * 10**9,
+            publish_time_ns=i * 10**9,
+            seq=i,
+        )
+    w.close()
+
+
+def _split_session(tmp_path: Path, parts: list[list[tuple[int, int]]]) -> list[Path]:
+    from hil.record.mcapio import split_part_path
+
+    first = tmp_path / "s.mcap"
+    files = [split_part_path(first, k) for k in range(len(parts))]
+    n = 0
+    for k, (path, statuses) in enumerate(zip(files, parts, strict=True)):
+        _fusion_part(path, k, statuses, n)
+        n += len(statuses)
+    assert session_files(first) == files
+    return files
+
+
+def test_a_split_sessions_verdict_is_its_last_fusion_status_wherever_it_is(tmp_path: Path) -> None:
+    """hil up --split-s judged the exit code on the first part's fusion counters only (QA): a
+    run that refused 1200 of its last part's IMU samples (14.6 % by the end) exited 0, and one
+    that refused 800 early on (3.3 % of the whole run) exited 1. The counters count from the
+    fusion's start: the session's last status is the run's, and the first file, which stands
+    for the run (hil up describes it, its exit code from what that finds), says it."""
+    late = _split_session(
+        tmp_path,
+        [
+            [(0, 400 * i) for i in range(1, 11)],
+            [(0, 4000 + 400 * i) for i in range(1, 11)],
+            [(0, 8000), (1200, 6999)],
+        ],
+    )
+    found = last_fusion_status(late)
+    assert found is not None and found[1] == late[2]
+    failings: list[str] = []
+    lines = [ln for ln in describe(str(late[0]), verdicts=failings).splitlines() if ln.startswith("fusion:")]
+    assert lines == [
+        "fusion:    refused 1200 IMU samples as late (dropped_late.imu) and took 6999 inputs: its horizon ran "
+        "ahead of their stamps, so its solutions thin out or stop; event/fusion says when "
+        "(latency_over_bound) (the session's last fusion status, in s_0002.mcap)"
+    ]
+    where = " (the session's last fusion status, in s_0002.mcap)"
+    assert failings == ["the fusion " + lines[0].removeprefix("fusion:    ").removesuffix(where)]
+    # the last part itself: its own status, the same finding
+    assert "fusion:    refused 1200 IMU samples as late" in describe(str(late[2]))
+    # a middle part: its counters as they stood at its end (nothing refused by then)
+    assert "fusion:" not in describe(str(late[1]))
+
+
+def test_a_split_session_that_refused_early_and_recovered_is_no_failure(tmp_path: Path) -> None:
+    """800 IMU samples refused in the first 10 s (16 % of the first part), 800 of 24599 (3.3 %)
+    by the end: the first file's own status says refused, the session's does not."""
+    parts = [[(800, 400 * i) for i in range(1, 11)]] + [
+        [(800, 4000 + 4000 * k + 400 * i) for i in range(1, 11)] for k in range(4)
+    ]
+    parts.append([(800, 23799)])
+    early = _split_session(tmp_path, parts)
+    assert _scan(early[0], derived=False, accuracy=True)[0].fusion_refusals() != []  # its own
+    failings: list[str] = []
+    text = describe(str(early[0]), verdicts=failings)
+    assert "fusion:" not in text and failings == []
+
+
+def test_the_last_fusion_status_is_taken_from_the_last_file_that_has_one(tmp_path: Path) -> None:
+    """A last part too short to hold a status (the recorder rotated just before the end): the one
+    before it has the session's last."""
+    files = _split_session(tmp_path, [[(0, 400), (0, 800)], [(500, 1200), (1500, 1300)], []])
+    found = last_fusion_status(files)
+    assert found is not None and found[1] == files[1]
+    failings: list[str] = []
+    describe(str(files[0]), verdicts=failings)
+    assert [f.split(" and took")[0] for f in failings] == [
+        "the fusion refused 1500 IMU samples as late (dropped_late.imu)"
+    ]
+    assert last_fusion_status(files[2:]) is None
 
 
 @pytest.mark.skipif(not worker_possible(), reason="needs fork and two CPUs")

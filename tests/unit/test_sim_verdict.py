@@ -36,3 +36,88 @@ def test_hil_sim_exits_1_when_its_fusion_refused_much_of_the_imu_input(
     failed = [ln for ln in err.splitlines() if ln.startswith("hil sim: FAILED:")]
     said = f"hil sim: FAILED: the fusion refused {late} IMU samples as late (dropped_late.imu)"
     assert [ln.startswith(said) for ln in failed] == ([True] if rc else [])
+
+
+def test_hil_sim_exits_1_when_its_fusion_refused_its_gnss_fixes_as_late(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """--fusion-lag below the receiver's latency (straight_level: 0.1 s) refused 170 of 199 fixes
+    and exited 0, saying nothing but a latency_over_bound event (QA; uav_survey 60 s at 0.01 s:
+    285 of ~300, every estimator >1.2 km off). Now a line before the run, and FAILED after it."""
+    record = tmp_path / "lag.mcap"
+    argv = ["sim", "--scenario", "straight_level", "--duration", "5", "--fusion-lag", "0.001", "--quiet"]
+    assert main([*argv, "--record", str(record)]) == 1
+    out, err = capsys.readouterr()
+    assert out.startswith("hil sim: 5 s of rig time") and record.is_file()
+    lines = err.splitlines()
+    assert lines[0] == (
+        "hil sim: warning: --fusion-lag 0.001 s is below the GNSS receiver's output latency in scenario "
+        "'straight_level' (gnss.latency_s 0.1 s + jitter_s 0.002 s): the fusion will refuse its fixes "
+        "as late and its estimators go without GNSS; give --fusion-lag above 0.102 s to fuse them"
+    )
+    failed = [ln for ln in lines if ln.startswith("hil sim: FAILED:")]
+    assert len(failed) == 1 and failed[0].startswith("hil sim: FAILED: the fusion refused ")
+    assert " of its 49 GNSS fixes as late (dropped_late.gnss)" in failed[0]
+    assert "raise the fusion's lag (--fusion-lag, lag_s) above the receiver's latency" in failed[0]
+    # hil info says it of the file, from the fusion's own counters
+    assert main(["info", str(record)]) == 0
+    fusion = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fusion:")]
+    assert fusion == [failed[0].replace("hil sim: FAILED: the fusion ", "fusion:    ")]
+
+
+@pytest.mark.parametrize("scenario", ["straight_level", "outage"])
+def test_a_normal_run_and_a_gnss_outage_exit_0_with_no_warning(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, scenario: str
+) -> None:
+    """The default lag (0.5 s) is above the scenario's receiver latency: no warning; an outage
+    is fixes that never came, not fixes refused as late: no FAILED."""
+    if scenario == "outage":
+        base = Path(__file__).parents[2] / "hil" / "scenarios" / "straight_level.toml"
+        path = tmp_path / "outage.toml"
+        event = '\n[[event]]\nkind = "gnss_outage"\nt_start_s = 1.0\nt_end_s = 4.0\n'
+        path.write_text(base.read_text() + event)
+        scenario = str(path)
+    record = tmp_path / "run.mcap"
+    argv = ["sim", "--scenario", scenario, "--duration", "5", "--quiet", "--record", str(record)]
+    assert main(argv) == 0
+    _out, err = capsys.readouterr()
+    assert err == ""
+
+
+def test_the_gnss_rule_is_a_tenth_of_the_fixes_handed_to_the_fusion() -> None:
+    from hil.record.info import fusion_refusals
+
+    base = {"consumed": 8000, "horizon_lag_ms": 500, "inputs.imu": 8000}
+    assert fusion_refusals({**base, "inputs.gnss": 200, "dropped_late.gnss": 19}) == []
+    (line,) = fusion_refusals({**base, "inputs.gnss": 200, "dropped_late.gnss": 20})
+    assert line.startswith("refused 20 of its 200 GNSS fixes as late (dropped_late.gnss): they reached it ")
+    assert "more than its lag (500 ms, horizon_lag_ms) after their time of validity" in line
+    # an outage: fewer fixes, none refused
+    assert fusion_refusals({**base, "inputs.gnss": 40}) == []
+    # a status from before inputs.<sensor>: the IMU rule alone, as it was
+    assert fusion_refusals({**base, "dropped_late.gnss": 170}) == []
+    # both at once: a line each, the IMU's first
+    both = fusion_refusals({**base, "dropped_late.imu": 900, "inputs.gnss": 20, "dropped_late.gnss": 20})
+    assert [b.split(" as late")[0] for b in both] == [
+        "refused 900 IMU samples",
+        "refused 20 of its 20 GNSS fixes",
+    ]
+
+
+def test_a_lag_below_the_receivers_latency_is_said_for_hil_sim_and_hil_up() -> None:
+    """hil sim's --fusion-lag, and hil up's fusion at its default lag (0.5 s; it has no flag)."""
+    from dataclasses import replace
+
+    from hil.cli import lag_warning
+    from hil.nav.scenario import load_scenario
+
+    s = load_scenario("uav_survey")  # gnss latency 0.08 s + jitter 0.005 s
+    assert lag_warning(s, None) is None and lag_warning(s, 0.085) is None
+    assert "will refuse its fixes as late" in (lag_warning(s, 0.01) or "")
+    assert "will refuse the fixes its jitter takes past it as late" in (lag_warning(s, 0.082) or "")
+    slow = replace(s, gnss=replace(s.gnss, latency_s=0.7))
+    said = lag_warning(slow, None)
+    assert said is not None and said.startswith("the fusion's lag (0.5 s, its default) is below the GNSS ")
+    assert said.endswith(
+        "lower the scenario's gnss.latency_s (hil sim --fusion-lag above 0.705 s fuses them)"
+    )
