@@ -14,7 +14,9 @@ bits are the JIT's and the Python kernels' (checked when it loads, as the JIT's 
 needed). Its name carries a digest of the kernels' sources, numba's and numpy's versions and the
 interpreter, so an edited kernel or an upgraded numba leaves it unused (not wrong) until it is
 built again, and :func:`hil.runtime.jit.enable` loads numba's kernels as before. Where no module
-was built (no compiler, a Docker image), nothing changes but the start-up time.
+was built (no compiler, a Docker image), nothing changes but the start-up time. Its operands file
+records the module's size and sha256, checked before it is loaded: a file cut short was mapped,
+and killed the process that read past its end (SIGBUS).
 
 The entry points unbox their operands without numba's type dispatch: an array of another dtype or
 layout would be read as if it were right. The kernels whose callers may pass such operands and
@@ -33,13 +35,15 @@ import os
 import sys
 from pathlib import Path
 
-from hil.runtime.prebuilt import DIR_ENV, PREFIX, ArrayArg, digest, directories, file_name
+from hil.runtime.prebuilt import DIR_ENV, PREFIX, ArrayArg, digest, directories, file_name, module_record
 
 
 def build(out_dir: Path | None = None) -> Path:
     """Compile every kernel (:func:`hil.runtime.jit._compile_kernels`) into the extension module
-    for these sources, written (atomically, beside a JSON of each entry point's array operands)
-    to ``out_dir`` or the first writable of :func:`directories`; its path."""
+    for these sources, written (atomically, beside a JSON of each entry point's array operands
+    and the module's size and sha256, which the loader checks before it maps it) to ``out_dir``
+    or the first writable of :func:`directories`; its path. A module already there is replaced
+    (renamed over, never written in place: a process that has it mapped keeps its own)."""
     import shutil
     import tempfile
 
@@ -83,7 +87,7 @@ def build(out_dir: Path | None = None) -> Path:
             AOTCPUCodegen._customize_tm_features = features  # type: ignore[method-assign]
         built = Path(tmp) / file_name(dig)
         spec = Path(tmp) / (PREFIX + dig + ".json")
-        spec.write_text(json.dumps(operands))
+        spec.write_text(json.dumps({"module": module_record(built.read_bytes()), "operands": operands}))
         final = target / built.name
         os.replace(spec, target / spec.name)  # the operands first: a module is never found without
         shutil.move(str(built), str(final))

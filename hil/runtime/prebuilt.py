@@ -88,7 +88,10 @@ def file_name(dig: str) -> str:
 
 def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., Any]], Path] | None:
     """The kernels built for these sources (by their ``hil.runtime.jit._compiled`` names, array
-    operands checked) and the module's path; None when none was built for them."""
+    operands checked) and the module's path; None when none was built for them. A module is
+    loaded only once its size and sha256 are those its build recorded in its operands file: a
+    file cut short or written over would be mapped, and read past its end (SIGBUS) or run as
+    whatever it holds."""
     dig = digest()
     if dig is None:
         return None
@@ -98,17 +101,55 @@ def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., An
         if not path.is_file() or not spec_path.is_file():
             continue
         try:
-            operands = json.loads(spec_path.read_text())
+            spec_text = spec_path.read_text()
+            data = path.read_bytes()  # read once: the bytes checked are those loaded, unless replaced
+            built = json.loads(spec_text)
+            if not isinstance(built, dict) or not isinstance(built.get("module"), dict):
+                _not_used(path, f"{spec_path.name} records no size and sha256 of it (an older builder's)")
+                return None
+            differs = _differs(data, built["module"])
+            if differs:
+                _not_used(path, differs)
+                return None
+            operands = built["operands"]
             spec = importlib.util.spec_from_file_location(PREFIX + dig, path)
             assert spec is not None and spec.loader is not None
             module = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(module)
             kernels = {name: _guarded(getattr(module, name), name, a) for name, a in operands.items()}
-        except (OSError, ImportError, ValueError, TypeError, AttributeError, AssertionError) as err:
-            sys.stderr.write(f"hil: warning: {path} does not load ({err}); numba's kernels are used\n")
+        except (OSError, ImportError, ValueError, TypeError, AttributeError, AssertionError, KeyError) as err:
+            _not_used(path, f"it does not load ({err})")
             return None
         return kernels, path
     return None
+
+
+#: what runs instead
+NUMBA_USED = "numba's kernels are used (compiled on a machine's first use, ~12 s)"
+#: what to run for a module of these sources
+BUILD_IT = "`make kernels` (python -m hil.runtime.aot) builds them for these sources"
+
+
+def _warn(line: str) -> None:
+    sys.stderr.write(f"hil: warning: {line}\n")
+
+
+def _not_used(path: Path, why: str) -> None:
+    _warn(f"{path} is not used: {why}; {NUMBA_USED}; {BUILD_IT}")
+
+
+def module_record(data: bytes) -> dict[str, Any]:
+    """What the builder records of the module it wrote, and the loader checks before it maps it."""
+    return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def _differs(data: bytes, recorded: Mapping[str, Any]) -> str:
+    """Why these bytes are not the module its build recorded; "" when they are."""
+    if len(data) != recorded.get("bytes"):
+        return f"it is {len(data)} bytes, not the {recorded.get('bytes')} built (cut short, or written over)"
+    if hashlib.sha256(data).hexdigest() != recorded.get("sha256"):
+        return "its sha256 is not that of the module built (written over)"
+    return ""
 
 
 def _guarded(fn: Callable[..., Any], name: str, arrays: list[ArrayArg]) -> Callable[..., Any]:

@@ -120,42 +120,100 @@ def test_an_operand_they_were_not_compiled_for_is_refused_not_misread(built: Pat
     assert expm(m.copy()).tobytes() == want.tobytes()
 
 
+def _copy(built: Path, to: Path) -> tuple[Path, Path]:
+    """The module and its operands file copied into a directory of their own (a module file loaded
+    once is never written over: the process that loaded it has it mapped)."""
+    to.mkdir(parents=True, exist_ok=True)
+    for f in built.iterdir():
+        shutil.copy(f, to / f.name)
+    return next(to.glob("hil_kernels_*.so")), next(to.glob("hil_kernels_*.json"))
+
+
+def _operands(spec: Path, operands: object) -> None:
+    """The operands file with these operands, the module's size and sha256 as built."""
+    spec.write_text(json.dumps(dict(json.loads(spec.read_text()), operands=operands)))
+
+
+def _warnings(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("hil: warning: ")]
+
+
 def test_a_module_for_other_sources_or_a_damaged_one_is_not_used(
     built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert prebuilt.load([tmp_path]) is None  # none built there
+    assert capsys.readouterr().err == ""  # and nothing to say
     stale = tmp_path / "stale"
     stale.mkdir()
     for f in built.iterdir():  # a module of other sources: another digest in its name
         shutil.copy(f, stale / f.name.replace("hil_kernels_", "hil_kernels_0"))
     assert prebuilt.load([stale]) is None
     damaged = tmp_path / "damaged"
-    damaged.mkdir()
-    for f in built.iterdir():
-        shutil.copy(f, damaged / f.name)
-    so = next(damaged.glob("hil_kernels_*.so"))
-    so.write_bytes(b"not an ELF file")
+    so, spec = _copy(built, damaged)
+    so.write_bytes(b"not an ELF file")  # recorded as built: the loader's own refusal
+    spec.write_text(
+        json.dumps(dict(json.loads(spec.read_text()), module=prebuilt.module_record(so.read_bytes())))
+    )
+    capsys.readouterr()
     assert prebuilt.load([damaged]) is None
     assert "does not load" in capsys.readouterr().err
-    # an operands file that names a kernel the module lacks, or is not the builder's shape (each
-    # in a directory of its own: a module file loaded once is never written over)
-    for i, text in enumerate(('{"no_such_kernel": []}', '{"expm": 3}', "[not json")):
-        d = tmp_path / f"operands{i}"
-        d.mkdir()
-        for f in built.iterdir():
-            shutil.copy(f, d / f.name)
-        next(d.glob("hil_kernels_*.json")).write_text(text)
-        assert prebuilt.load([d]) is None, text
+    # an operands file that names a kernel the module lacks, or is not the builder's shape
+    for i, operands in enumerate(({"no_such_kernel": []}, {"expm": 3}, None)):
+        _so, spec = _copy(built, tmp_path / f"operands{i}")
+        if operands is None:
+            spec.write_text("[not json")
+        else:
+            _operands(spec, operands)
+        assert prebuilt.load([spec.parent]) is None, operands
         assert "does not load" in capsys.readouterr().err
+
+
+def _load_in_a_process(d: Path) -> subprocess.CompletedProcess[str]:
+    """``prebuilt.load`` of ``d`` in a process of its own: one that maps a damaged module may die."""
+    code = f"from pathlib import Path\nfrom hil.runtime import prebuilt\nprint(prebuilt.load([Path({str(d)!r})]))"
+    return _run([sys.executable, "-c", code], _env(d))
+
+
+def test_a_module_cut_short_or_written_over_is_refused_before_it_is_mapped(
+    built: Path, tmp_path: Path
+) -> None:
+    """Its first 1000 bytes beside its operands file killed the process (SIGBUS, exit 135, no
+    word); the builder records the module's size and sha256, checked before it is loaded."""
+    so, _spec = _copy(built, tmp_path / "short")
+    so.write_bytes(so.read_bytes()[:1000])
+    res = _load_in_a_process(so.parent)
+    assert res.returncode == 0, res
+    assert res.stdout == "None\n"
+    (line,) = _warnings(res.stderr)
+    assert line.startswith(f"hil: warning: {so} is not used: it is 1000 bytes, not the ")
+    assert "cut short" in line and "numba's kernels are used" in line and "make kernels" in line
+    so, _spec = _copy(built, tmp_path / "over")
+    data = bytearray(so.read_bytes())
+    data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)  # the same size, its second half zeros
+    so.write_bytes(bytes(data))
+    res = _load_in_a_process(so.parent)
+    assert (res.returncode, res.stdout) == (0, "None\n"), res
+    (line,) = _warnings(res.stderr)
+    assert line.startswith(f"hil: warning: {so} is not used: its sha256 is not that of the module built")
+
+
+def test_a_module_without_its_size_and_sha256_is_treated_as_stale(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An older builder's operands file (the operands alone): not loaded, said."""
+    so, spec = _copy(built, tmp_path / "older")
+    spec.write_text(json.dumps(json.loads(spec.read_text())["operands"]))
+    assert prebuilt.load([so.parent]) is None
+    (line,) = _warnings(capsys.readouterr().err)
+    assert line.startswith(f"hil: warning: {so} is not used: {spec.name} records no size and sha256 of it")
+    assert "make kernels" in line
 
 
 def test_a_module_whose_operands_file_names_fewer_kernels_is_not_put_in_place(
     built: Path, tmp_path: Path
 ) -> None:
-    for f in built.iterdir():
-        shutil.copy(f, tmp_path / f.name)
-    spec = next(tmp_path.glob("hil_kernels_*.json"))
-    spec.write_text(json.dumps({"_step": json.loads(spec.read_text())["_step"]}))
+    _so, spec = _copy(built, tmp_path)
+    _operands(spec, {"_step": json.loads(spec.read_text())["operands"]["_step"]})
     code = "from hil.runtime import jit; print(jit.enable()); print(jit.source())"
     res = _run([sys.executable, "-c", code], _env(tmp_path))
     assert res.returncode == 0, res.stderr
