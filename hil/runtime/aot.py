@@ -13,10 +13,11 @@ bits are the JIT's and the Python kernels' (checked when it loads, as the JIT's 
 ``python -m hil.runtime.aot`` builds it (``make`` does, after installing; ~10 s, a C compiler
 needed). Its name carries a digest of the kernels' sources, numba's and numpy's versions and the
 interpreter, so an edited kernel or an upgraded numba leaves it unused (not wrong) until it is
-built again, and :func:`hil.runtime.jit.enable` loads numba's kernels as before. Where no module
-was built (no compiler, a Docker image), nothing changes but the start-up time. Its operands file
-records the module's size and sha256, checked before it is loaded: a file cut short was mapped,
-and killed the process that read past its end (SIGBUS).
+built again, and :func:`hil.runtime.jit.enable` loads numba's kernels as before, said in one line
+on stderr (:func:`hil.runtime.prebuilt.load`). Where no module was built (no compiler, a Docker
+image), nothing changes but the start-up time, and nothing is said. Its operands file records the
+module's size and sha256, checked before it is loaded: a file cut short was mapped, and killed
+the process that read past its end (SIGBUS).
 
 The entry points unbox their operands without numba's type dispatch: an array of another dtype or
 layout would be read as if it were right. The kernels whose callers may pass such operands and

@@ -168,6 +168,111 @@ def test_a_module_for_other_sources_or_a_damaged_one_is_not_used(
         assert "does not load" in capsys.readouterr().err
 
 
+def test_a_module_for_other_sources_is_named_with_what_to_run(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A kernel edited since the build (another digest): numba's kernels, compiled for ~12 s,
+    and one line saying which module was found, why it is not used and what builds it (there
+    was none: the compile went unexplained)."""
+    for f in built.iterdir():
+        shutil.copy(f, tmp_path / f.name.replace("hil_kernels_", "hil_kernels_0"))
+    assert prebuilt.load([tmp_path]) is None
+    (line,) = _warnings(capsys.readouterr().err)
+    assert f"{tmp_path}/hil_kernels_0" in line and "was built for other sources" in line
+    assert (
+        "numba's kernels are used" in line and "make kernels" in line and "python -m hil.runtime.aot" in line
+    )
+
+
+def test_a_named_directory_that_is_none_is_said_and_an_absent_default_is_not(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``HIL_KERNELS_DIR`` missing, or a file: one line each (it was silence, and numba's ~12 s
+    compile); the package's ``__pycache__`` or the user's cache missing is a checkout where
+    nothing was built, which says nothing."""
+    defaults = [tmp_path / "no_pycache", tmp_path / "no_cache"]
+
+    def directories(env: dict[str, str] | None = None) -> list[Path]:
+        assert env is not None
+        return ([Path(env["HIL_KERNELS_DIR"])] if env.get("HIL_KERNELS_DIR") else []) + defaults
+
+    monkeypatch.setattr(prebuilt, "directories", directories)
+    assert prebuilt.load(env={}) is None
+    assert capsys.readouterr().err == ""
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for named, why in ((tmp_path / "nope", "does not exist"), (afile, "is not a directory")):
+        assert prebuilt.load(env={"HIL_KERNELS_DIR": str(named)}) is None
+        (line,) = _warnings(capsys.readouterr().err)
+        assert line.startswith(f"hil: warning: HIL_KERNELS_DIR={named} {why}: numba's kernels are used")
+        assert "make kernels" in line
+
+
+def test_a_directory_that_may_not_be_searched_is_said_not_raised(
+    built: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Its module's ``is_file`` raised PermissionError out of ``load`` (a traceback from ``hil
+    rerun --one-process``, a worker gone without a word otherwise): now one line, numba's kernels,
+    and the next directory still looked in."""
+    closed = tmp_path / "closed"
+    closed.mkdir()
+    is_file = Path.is_file
+
+    def denied(self: Path) -> bool:
+        if self.parent == closed:
+            raise PermissionError(13, "Permission denied", str(self))
+        return is_file(self)
+
+    monkeypatch.setattr(Path, "is_file", denied)
+    assert prebuilt.load([closed]) is None
+    (line,) = _warnings(capsys.readouterr().err)
+    assert line.startswith(f"hil: warning: {closed} cannot be searched (Permission denied): numba's kernels")
+    loaded = prebuilt.load([closed, built])  # a good module after it: used, and said so
+    assert loaded is not None and loaded[1].parent == built
+    (line,) = _warnings(capsys.readouterr().err)
+    assert line.endswith(f"the kernels built ahead of time in {loaded[1]} are used")
+
+
+def _no_dac(d: Path) -> list[str]:
+    """``d`` made mode 000, and a command prefix under which it cannot be read: none for a user,
+    setpriv dropping root's file-access capabilities for root (skipped where it cannot)."""
+    d.chmod(0)
+    if os.geteuid() != 0:
+        return []
+    caps = "-dac_override,-dac_read_search"
+    prefix = ["setpriv", f"--bounding-set={caps}", f"--inh-caps={caps}"]
+    dropped = shutil.which("setpriv") is not None and subprocess.run([*prefix, "true"]).returncode == 0
+    if not dropped or subprocess.run([*prefix, "ls", str(d)], capture_output=True).returncode == 0:
+        d.chmod(0o700)
+        pytest.skip("root, and no setpriv to drop the capability to read a mode-000 directory")
+    return prefix
+
+
+def test_an_unreadable_kernels_dir_reruns_with_numbas_kernels_and_says_so(tmp_path: Path) -> None:
+    """The QA reproduction: ``HIL_KERNELS_DIR`` a mode-000 directory, ``hil rerun --verify`` with
+    the fusion in its worker (it died: "Broken pipe") and in one process (a PermissionError)."""
+    rec = tmp_path / "s.mcap"
+    sim = [sys.executable, "-m", "hil.cli", "sim", "--scenario", "uav_survey", "--duration", "4"]
+    res = _run([*sim, "--record", str(rec), "--quiet"], _env(tmp_path, HIL_JIT="numba"))
+    assert res.returncode == 0, res.stderr
+    closed = tmp_path / "closed"
+    closed.mkdir()
+    prefix = _no_dac(closed)
+    try:
+        for how in ([], ["--one-process"]):
+            rerun = [sys.executable, "-m", "hil.cli", "rerun", str(rec), "--core", "fusion", "--verify", *how]
+            res = _run([*prefix, *rerun], _env(closed))
+            assert res.returncode == 0, res.stdout + res.stderr
+            assert "bit-identical" in res.stdout
+            warned = _warnings(res.stderr)
+            assert warned and all(
+                line.startswith(f"hil: warning: HIL_KERNELS_DIR={closed} cannot be searched")
+                for line in warned
+            ), res.stderr
+    finally:
+        closed.chmod(0o700)
+
+
 def _load_in_a_process(d: Path) -> subprocess.CompletedProcess[str]:
     """``prebuilt.load`` of ``d`` in a process of its own: one that maps a damaged module may die."""
     code = f"from pathlib import Path\nfrom hil.runtime import prebuilt\nprint(prebuilt.load([Path({str(d)!r})]))"
@@ -200,13 +305,18 @@ def test_a_module_cut_short_or_written_over_is_refused_before_it_is_mapped(
 def test_a_module_without_its_size_and_sha256_is_treated_as_stale(
     built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """An older builder's operands file (the operands alone): not loaded, said."""
+    """An older builder's operands file (the operands alone), or none at all: not loaded, said."""
     so, spec = _copy(built, tmp_path / "older")
     spec.write_text(json.dumps(json.loads(spec.read_text())["operands"]))
     assert prebuilt.load([so.parent]) is None
     (line,) = _warnings(capsys.readouterr().err)
     assert line.startswith(f"hil: warning: {so} is not used: {spec.name} records no size and sha256 of it")
     assert "make kernels" in line
+    so, spec = _copy(built, tmp_path / "alone")
+    spec.unlink()
+    assert prebuilt.load([so.parent]) is None
+    (line,) = _warnings(capsys.readouterr().err)
+    assert line.startswith(f"hil: warning: {so} is not used: it has no operands file")
 
 
 def test_a_module_whose_operands_file_names_fewer_kernels_is_not_put_in_place(
