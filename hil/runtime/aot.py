@@ -34,17 +34,20 @@ from __future__ import annotations
 import json
 import os
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 from hil.runtime.prebuilt import DIR_ENV, PREFIX, ArrayArg, digest, directories, file_name, module_record
 
 
-def build(out_dir: Path | None = None) -> Path:
+def build(out_dir: Path | None = None, env: Mapping[str, str] | None = None) -> Path:
     """Compile every kernel (:func:`hil.runtime.jit._compile_kernels`) into the extension module
     for these sources, written (atomically, beside a JSON of each entry point's array operands
-    and the module's size and sha256, which the loader checks before it maps it) to ``out_dir``
-    or the first writable of :func:`directories`; its path. A module already there is replaced
-    (renamed over, never written in place: a process that has it mapped keeps its own)."""
+    and the module's size and sha256, which the loader checks before it maps it) to ``out_dir``,
+    else ``HIL_KERNELS_DIR`` (refused, ``RuntimeError``, where it is no directory this user may
+    write: not built elsewhere behind the back of whoever named it), else the first writable of
+    :func:`directories`; its path. A module already there is replaced (renamed over, never
+    written in place: a process that has it mapped keeps its own)."""
     import shutil
     import tempfile
 
@@ -53,7 +56,7 @@ def build(out_dir: Path | None = None) -> Path:
     dig = digest()
     if dig is None:
         raise RuntimeError("numba is not installed: pip install numba")
-    target = out_dir if out_dir is not None else _writable(directories())
+    target = out_dir if out_dir is not None else _target(os.environ if env is None else env)
     target.mkdir(parents=True, exist_ok=True)
     numba = jit._import_numba()
     from numba.core import types as nbtypes
@@ -95,6 +98,30 @@ def build(out_dir: Path | None = None) -> Path:
     return final
 
 
+def _target(env: Mapping[str, str]) -> Path:
+    """Where :func:`build` writes without ``--dir``: ``HIL_KERNELS_DIR`` (made if missing) or
+    refused, else the first writable of the others."""
+    dirs = directories(env)
+    if not env.get(DIR_ENV):
+        return _writable(dirs)
+    d = dirs[0]
+    why = ""
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        why = "is not a directory"
+    except OSError as err:
+        why = f"cannot be made ({err.strerror or err})"
+    if not why and not os.access(d, os.W_OK | os.X_OK):
+        why = "may not be written by this user"
+    if why:
+        raise RuntimeError(
+            f"{DIR_ENV}={env[DIR_ENV]} {why}: set it to a directory this user may write, or unset it "
+            f"(then the first writable of {', '.join(map(str, dirs[1:]))})"
+        )
+    return d
+
+
 def _writable(dirs: list[Path]) -> Path:
     for d in dirs:
         try:
@@ -119,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         "--dir",
         type=Path,
         default=None,
-        help=f"where to write it (default: ${DIR_ENV}, the package's __pycache__, ~/.cache/hil)",
+        help=f"where to write it (default: ${DIR_ENV}, refused if it cannot be written; unset, the first "
+        "writable of the package's __pycache__ and ~/.cache/hil)",
     )
     a = p.parse_args(argv)
     try:

@@ -319,6 +319,24 @@ def test_a_module_without_its_size_and_sha256_is_treated_as_stale(
     assert line.startswith(f"hil: warning: {so} is not used: it has no operands file")
 
 
+def test_the_builder_refuses_a_kernels_dir_it_cannot_write(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``HIL_KERNELS_DIR`` a file: the builder wrote into the package's ``__pycache__`` without a
+    word, where another environment naming that directory never looks. Refused in one line, before
+    anything is compiled."""
+    from hil.runtime import aot
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    monkeypatch.setenv("HIL_KERNELS_DIR", str(afile))
+    monkeypatch.setattr(aot, "_writable", lambda dirs: pytest.fail(f"would write to the first of {dirs}"))
+    assert aot.main([]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert f"HIL_KERNELS_DIR={afile} is not a directory: set it to a directory this user may write" in err
+
+
 def test_a_module_whose_operands_file_names_fewer_kernels_is_not_put_in_place(
     built: Path, tmp_path: Path
 ) -> None:
