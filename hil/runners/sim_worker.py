@@ -240,6 +240,16 @@ class _Link:
                 self._inbox += into[pos : pos + n]
                 self._took += n
 
+    def drain(self) -> None:
+        """Take in, and drop unread, all the other side says until its end: a child that has
+        stopped serving (its failure said) stays until its caller closes, so that a caller still
+        sending (``hil sim`` runs windows ahead) reads why instead of failing on a closed socket
+        ("Broken pipe")."""
+        with contextlib.suppress(EOFError):
+            while True:
+                self._take_in()
+                self._inbox.clear()
+
     def close(self) -> None:
         """Shut down (a side waiting sees its end) and close."""
         with contextlib.suppress(OSError):
@@ -298,7 +308,11 @@ class ForkedChild:
     """A forked child serving ``serve(link)`` on its end of a ``_Link`` (``RemoteNode``,
     ``RemoteTail``): requests out, replies in, either side's failure a ``WorkerError`` naming
     it, and the child stopped and reaped by :meth:`close`. The child never returns into the
-    caller's code: it leaves with ``os._exit``, whatever happens.
+    caller's code: it leaves with ``os._exit``, whatever happens. What it raises is said to the
+    caller before it leaves, and the child then stays until the caller closes (:meth:`_Link.drain`):
+    a failing ``setup`` as one line naming the cause (``("setup", why)``), anything else out of
+    ``serve`` with its traceback (``("error", text)``), each a ``WorkerError`` at the caller's next
+    reply -- never only a closed socket ("Broken pipe") that says nothing of why.
 
     The child freezes the heap it inherits before anything else (``gc.freeze``): garbage the
     caller had not collected yet is never finalized there. A finalizer run in a fork can block
@@ -314,14 +328,17 @@ class ForkedChild:
         serve: Callable[[_Link], None],
         request_ring: int = SMALL_RING_BYTES,
         reply_ring: int = SMALL_RING_BYTES,
+        setup: Callable[[], object] | None = None,
     ) -> None:
         """``request_ring``, ``reply_ring``: bytes each way that one side may have said and the
-        other not read yet, without either waiting."""
+        other not read yet, without either waiting. ``setup``: called first in the child."""
         parent, child = socket.socketpair()
         requests, replies = mmap.mmap(-1, request_ring), mmap.mmap(-1, reply_ring)
         pid = os.fork()
         if pid == 0:
             code = 1
+            link = None
+            starting = True
             try:
                 gc.freeze()
                 # Ctrl-C reaches the whole process group: the caller decides how the run ends
@@ -329,8 +346,15 @@ class ForkedChild:
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
                 signal.signal(signal.SIGTERM, signal.SIG_IGN)
                 parent.close()
-                serve(_Link(child, replies, requests, lambda why: EOFError(why)))
+                link = _Link(child, replies, requests, lambda why: EOFError(why))
+                if setup is not None:
+                    setup()
+                starting = False
+                serve(link)
                 code = 0
+            except BaseException as err:  # said to the caller, which raises it: it leaves below
+                if link is not None:
+                    _say_failure(link, err, starting)
             finally:
                 os._exit(code)
         child.close()
@@ -353,6 +377,8 @@ class ForkedChild:
             raise self._died(err) from err
         if reply[0] == "error":
             raise WorkerError(f"hil: the {self.name} worker failed:\n{reply[1]}")
+        if reply[0] == "setup":  # it never started serving: one line, the cause
+            raise WorkerError(f"hil: the {self.name} worker could not start: {reply[1]}")
         if reply[0] == "raise":  # the worker has stopped
             raise reply[1]
         return reply
@@ -372,6 +398,29 @@ class ForkedChild:
                     os.waitpid(self.pid, 0)
                     return
                 time.sleep(0.005)
+
+
+def _say_failure(link: _Link, err: BaseException, starting: bool) -> None:
+    """In a child: what it raised said to the caller -- while ``starting`` (its ``setup``) in one
+    line, the exception and where it was raised, else with its traceback -- and then everything
+    the caller sends taken in and dropped until it closes (``_Link.drain``). Nothing, if the
+    caller is gone already."""
+    if starting:
+        where = traceback.extract_tb(err.__traceback__)[-1:]
+        at = f" ({_short(where[0].filename)}:{where[0].lineno} in {where[0].name})" if where else ""
+        said = " ".join(ln.strip() for ln in traceback.format_exception_only(err) if ln.strip())
+        reply: tuple[Any, ...] = ("setup", said + at)
+    else:
+        reply = ("error", "".join(traceback.format_exception(err)))
+    with contextlib.suppress(Exception):  # EOFError: the caller is gone
+        link.say(reply)
+    link.drain()
+
+
+def _short(filename: str) -> str:
+    """A source file of this checkout from its root (``hil/runtime/prebuilt.py``), others as they are."""
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return os.path.relpath(filename, root) if filename.startswith(root + os.sep) else filename
 
 
 class ForkedCall(ForkedChild):
@@ -411,11 +460,9 @@ class RemoteNode(ForkedChild):
         self.name = node.name
 
         def serve(link: _Link) -> None:  # the worker
-            if setup is not None:
-                setup()
             _serve(node, link)
 
-        super().__init__(serve)
+        super().__init__(serve, setup=setup)
 
     def replay(
         self,
@@ -565,11 +612,9 @@ class RemoteTail(ForkedChild):
         self._snapshot = [(n.name, n.counters(), n.last_error) for n in nodes[split:]]
 
         def serve(link: _Link) -> None:  # the worker
-            if setup is not None:
-                setup()
             _serve_tail(make_scheduler(), split, link, prepare)
 
-        super().__init__(serve, REQUEST_RING_BYTES, REPLY_RING_BYTES)
+        super().__init__(serve, REQUEST_RING_BYTES, REPLY_RING_BYTES, setup)
 
     def window(self, boxes: list[list[tuple[Any, ...]]], t_end_ns: int) -> None:
         """Each tail node's inputs from upstream (``portable`` events), before ``t_end_ns``."""
@@ -624,6 +669,7 @@ def _serve_tail(
             reply = ("error", traceback.format_exc())
         say(reply)
         if reply[0] == "error":
+            link.drain()  # a caller sending windows ahead reads this, not a closed socket
             return
 
 
@@ -647,6 +693,7 @@ def _serve(node: Node, link: _Link) -> None:
             reply = ("error", traceback.format_exc())
         say(reply)
         if reply[0] in ("error", "raise"):
+            link.drain()
             return
 
 

@@ -13,8 +13,11 @@ bits are the JIT's and the Python kernels' (checked when it loads, as the JIT's 
 ``python -m hil.runtime.aot`` builds it (``make`` does, after installing; ~10 s, a C compiler
 needed). Its name carries a digest of the kernels' sources, numba's and numpy's versions and the
 interpreter, so an edited kernel or an upgraded numba leaves it unused (not wrong) until it is
-built again, and :func:`hil.runtime.jit.enable` loads numba's kernels as before. Where no module
-was built (no compiler, a Docker image), nothing changes but the start-up time.
+built again, and :func:`hil.runtime.jit.enable` loads numba's kernels as before, said in one line
+on stderr (:func:`hil.runtime.prebuilt.load`). Where no module was built (no compiler, a Docker
+image), nothing changes but the start-up time, and nothing is said. Its operands file records the
+module's size and sha256, checked before it is loaded: a file cut short was mapped, and killed
+the process that read past its end (SIGBUS).
 
 The entry points unbox their operands without numba's type dispatch: an array of another dtype or
 layout would be read as if it were right. The kernels whose callers may pass such operands and
@@ -31,15 +34,20 @@ from __future__ import annotations
 import json
 import os
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
-from hil.runtime.prebuilt import DIR_ENV, PREFIX, ArrayArg, digest, directories, file_name
+from hil.runtime.prebuilt import DIR_ENV, PREFIX, ArrayArg, digest, directories, file_name, module_record
 
 
-def build(out_dir: Path | None = None) -> Path:
+def build(out_dir: Path | None = None, env: Mapping[str, str] | None = None) -> Path:
     """Compile every kernel (:func:`hil.runtime.jit._compile_kernels`) into the extension module
-    for these sources, written (atomically, beside a JSON of each entry point's array operands)
-    to ``out_dir`` or the first writable of :func:`directories`; its path."""
+    for these sources, written (atomically, beside a JSON of each entry point's array operands
+    and the module's size and sha256, which the loader checks before it maps it) to ``out_dir``,
+    else ``HIL_KERNELS_DIR`` (refused, ``RuntimeError``, where it is no directory this user may
+    write: not built elsewhere behind the back of whoever named it), else the first writable of
+    :func:`directories`; its path. A module already there is replaced (renamed over, never
+    written in place: a process that has it mapped keeps its own)."""
     import shutil
     import tempfile
 
@@ -48,7 +56,7 @@ def build(out_dir: Path | None = None) -> Path:
     dig = digest()
     if dig is None:
         raise RuntimeError("numba is not installed: pip install numba")
-    target = out_dir if out_dir is not None else _writable(directories())
+    target = out_dir if out_dir is not None else _target(os.environ if env is None else env)
     target.mkdir(parents=True, exist_ok=True)
     numba = jit._import_numba()
     from numba.core import types as nbtypes
@@ -83,11 +91,35 @@ def build(out_dir: Path | None = None) -> Path:
             AOTCPUCodegen._customize_tm_features = features  # type: ignore[method-assign]
         built = Path(tmp) / file_name(dig)
         spec = Path(tmp) / (PREFIX + dig + ".json")
-        spec.write_text(json.dumps(operands))
+        spec.write_text(json.dumps({"module": module_record(built.read_bytes()), "operands": operands}))
         final = target / built.name
         os.replace(spec, target / spec.name)  # the operands first: a module is never found without
         shutil.move(str(built), str(final))
     return final
+
+
+def _target(env: Mapping[str, str]) -> Path:
+    """Where :func:`build` writes without ``--dir``: ``HIL_KERNELS_DIR`` (made if missing) or
+    refused, else the first writable of the others."""
+    dirs = directories(env)
+    if not env.get(DIR_ENV):
+        return _writable(dirs)
+    d = dirs[0]
+    why = ""
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        why = "is not a directory"
+    except OSError as err:
+        why = f"cannot be made ({err.strerror or err})"
+    if not why and not os.access(d, os.W_OK | os.X_OK):
+        why = "may not be written by this user"
+    if why:
+        raise RuntimeError(
+            f"{DIR_ENV}={env[DIR_ENV]} {why}: set it to a directory this user may write, or unset it "
+            f"(then the first writable of {', '.join(map(str, dirs[1:]))})"
+        )
+    return d
 
 
 def _writable(dirs: list[Path]) -> Path:
@@ -114,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         "--dir",
         type=Path,
         default=None,
-        help=f"where to write it (default: ${DIR_ENV}, the package's __pycache__, ~/.cache/hil)",
+        help=f"where to write it (default: ${DIR_ENV}, refused if it cannot be written; unset, the first "
+        "writable of the package's __pycache__ and ~/.cache/hil)",
     )
     a = p.parse_args(argv)
     try:

@@ -233,7 +233,7 @@ def _enable(env: Mapping[str, str]) -> str:
         return why
     from hil.nav import kernels
 
-    built = None if why == _NUMBA_ONLY else prebuilt.load(prebuilt.directories(env))
+    built = None if why == _NUMBA_ONLY else prebuilt.load(env=env)
     lacking = sorted({key for key, _homes, _fb in _PLACES.values()} - set(built[0])) if built else []
     if built is not None and lacking:  # a module whose operands file names fewer kernels
         sys.stderr.write(f"hil: warning: {built[1]} lacks {', '.join(lacking)}; numba's kernels are used\n")

@@ -86,29 +86,124 @@ def file_name(dig: str) -> str:
     return PREFIX + dig + (importlib.machinery.EXTENSION_SUFFIXES[0])
 
 
-def load(dirs: Iterable[Path] | None = None) -> tuple[dict[str, Callable[..., Any]], Path] | None:
+def load(
+    dirs: Iterable[Path] | None = None, env: Mapping[str, str] | None = None
+) -> tuple[dict[str, Callable[..., Any]], Path] | None:
     """The kernels built for these sources (by their ``hil.runtime.jit._compiled`` names, array
-    operands checked) and the module's path; None when none was built for them."""
+    operands checked) and the module's path; None when none was built for them, or it is not
+    used: then numba's kernels run, said in one line on stderr whenever there is something to
+    say (a module found and why it is not used, a named directory that is none; nothing where
+    no module was ever built and none is named: a checkout without a C compiler).
+
+    ``dirs``: where to look, each one named (say so where it is not a directory or cannot be
+    searched); default :func:`directories` of ``env`` (the process's), of which only
+    ``HIL_KERNELS_DIR`` is named (the package's ``__pycache__`` and the user's cache may well
+    not exist). A module is loaded only once its size and sha256 are those its build recorded
+    in its operands file: a file cut short or written over would be mapped, and read past its
+    end (SIGBUS) or run as whatever it holds."""
     dig = digest()
     if dig is None:
         return None
-    for d in directories() if dirs is None else dirs:
+    if dirs is None:
+        env = os.environ if env is None else env
+        dirs = directories(env)
+        named = {dirs[0]: f"{DIR_ENV}={env[DIR_ENV]}"} if env.get(DIR_ENV) else {}
+    else:
+        dirs = list(dirs)
+        named = {d: str(d) for d in dirs}
+    notes: list[str] = []  # why a directory named gave nothing
+    searched: list[Path] = []
+    for d in dirs:
         path = d / file_name(dig)
         spec_path = path.with_name(PREFIX + dig + ".json")
-        if not path.is_file() or not spec_path.is_file():
-            continue
         try:
-            operands = json.loads(spec_path.read_text())
+            if not d.is_dir():
+                if d in named:
+                    notes.append(f"{named[d]} {'is not a directory' if d.exists() else 'does not exist'}")
+                continue
+            found, has_operands = path.is_file(), spec_path.is_file()
+        except OSError as err:  # a directory that may not be searched (its mode, its parent's)
+            notes.append(f"{named.get(d, d)} cannot be searched ({err.strerror or err})")
+            continue
+        searched.append(d)
+        if not found:
+            continue
+        if not has_operands:
+            _not_used(path, f"it has no operands file ({spec_path.name})")
+            return None
+        try:
+            spec_text = spec_path.read_text()
+            data = path.read_bytes()  # read once: the bytes checked are those loaded, unless replaced
+            built = json.loads(spec_text)
+            if not isinstance(built, dict) or not isinstance(built.get("module"), dict):
+                _not_used(path, f"{spec_path.name} records no size and sha256 of it (an older builder's)")
+                return None
+            differs = _differs(data, built["module"])
+            if differs:
+                _not_used(path, differs)
+                return None
+            operands = built["operands"]
             spec = importlib.util.spec_from_file_location(PREFIX + dig, path)
             assert spec is not None and spec.loader is not None
             module = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(module)
             kernels = {name: _guarded(getattr(module, name), name, a) for name, a in operands.items()}
-        except (OSError, ImportError, ValueError, TypeError, AttributeError, AssertionError) as err:
-            sys.stderr.write(f"hil: warning: {path} does not load ({err}); numba's kernels are used\n")
+        except (OSError, ImportError, ValueError, TypeError, AttributeError, AssertionError, KeyError) as err:
+            _not_used(path, f"it does not load ({err})")
             return None
+        if notes:
+            _warn(f"{'; '.join(notes)}: the kernels built ahead of time in {path} are used")
         return kernels, path
+    stale = _newest_other(searched)
+    if stale is not None:
+        notes.append(f"{stale} was built for other sources ({OTHER_SOURCES})")
+    if notes:
+        _warn(f"{'; '.join(notes)}: {NUMBA_USED}; {BUILD_IT}")
     return None
+
+
+#: what makes another digest
+OTHER_SOURCES = "a kernel edited since, or another numba, numpy, Python or CPU"
+#: what runs instead
+NUMBA_USED = "numba's kernels are used (compiled on a machine's first use, ~12 s)"
+#: what to run for a module of these sources
+BUILD_IT = "`make kernels` (python -m hil.runtime.aot) builds them for these sources"
+
+
+def _warn(line: str) -> None:
+    sys.stderr.write(f"hil: warning: {line}\n")
+
+
+def _not_used(path: Path, why: str) -> None:
+    _warn(f"{path} is not used: {why}; {NUMBA_USED}; {BUILD_IT}")
+
+
+def module_record(data: bytes) -> dict[str, Any]:
+    """What the builder records of the module it wrote, and the loader checks before it maps it."""
+    return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def _differs(data: bytes, recorded: Mapping[str, Any]) -> str:
+    """Why these bytes are not the module its build recorded; "" when they are."""
+    if len(data) != recorded.get("bytes"):
+        return f"it is {len(data)} bytes, not the {recorded.get('bytes')} built (cut short, or written over)"
+    if hashlib.sha256(data).hexdigest() != recorded.get("sha256"):
+        return "its sha256 is not that of the module built (written over)"
+    return ""
+
+
+def _newest_other(dirs: Iterable[Path]) -> Path | None:
+    """The newest module for other sources in these directories (None: there is none)."""
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    found: list[tuple[float, Path]] = []
+    for d in dirs:
+        try:
+            for entry in os.scandir(d):
+                if entry.name.startswith(PREFIX) and entry.name.endswith(suffix) and entry.is_file():
+                    found.append((entry.stat().st_mtime, Path(entry.path)))
+        except OSError:
+            continue
+    return max(found)[1] if found else None
 
 
 def _guarded(fn: Callable[..., Any], name: str, arrays: list[ArrayArg]) -> Callable[..., Any]:

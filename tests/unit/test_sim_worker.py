@@ -244,6 +244,86 @@ def test_a_killed_worker_is_an_error() -> None:
         remote.close()
 
 
+def _denied() -> None:
+    """A worker's setup that fails, as loading the kernels from an unreadable directory did."""
+    raise PermissionError(13, "Permission denied", "/kernels/hil_kernels_x.so")
+
+
+def _windows_past_the_ring(remote: RemoteTail, first_ns: int) -> None:
+    """Windows sent ahead, as ``hil sim`` sends them, three request rings' worth in all: a worker
+    that has left can never take them, so the sender waits on it and sees it gone."""
+    payload = b"x" * (2 << 20)
+    for k in range(3 * REQUEST_RING_BYTES // len(payload)):
+        t = first_ns + k * 10_000_000
+        remote.window([[(t, -1, 1, "event/a", payload)]], t + 10_000_000)
+
+
+def test_a_worker_whose_setup_fails_says_why_in_one_line() -> None:
+    """A setup that raises in the child (the kernels' loading) is the caller's ``WorkerError``,
+    one line naming the cause and where it was raised. It was the child's silent exit: "Broken
+    pipe" or "Connection reset by peer", and nothing of why."""
+    from hil.runners.sim_worker import RemoteNode
+
+    remote = RemoteNode(_Ticker(_run_info()), setup=_denied)
+    try:
+        remote.call(_counters)
+        with pytest.raises(WorkerError) as err:
+            remote.called()
+    finally:
+        remote.close()
+    said = str(err.value)
+    assert "\n" not in said
+    assert said.startswith(
+        "hil: the ticker worker could not start: PermissionError: [Errno 13] Permission denied"
+    )
+    assert "/kernels/hil_kernels_x.so" in said and "test_sim_worker.py:" in said and "in _denied" in said
+    with pytest.raises(ChildProcessError):
+        os.waitpid(remote.pid, os.WNOHANG)  # reaped
+
+
+def test_a_tail_whose_setup_fails_says_why_to_a_sim_sending_windows_ahead() -> None:
+    """``hil sim`` sends its worker windows ahead before it reads a reply: the child that could
+    not start stays until closed, taking them in, so the sim reads its reason (it had left: the
+    sim's next send found its socket closed, "Broken pipe")."""
+    nodes: list[Node] = [_Ticker(_run_info())]
+    remote = RemoteTail(nodes, 0, lambda: Scheduler(nodes, _no_write, None), setup=_denied)  # type: ignore[arg-type]
+    try:
+        _windows_past_the_ring(remote, 0)
+        with pytest.raises(WorkerError, match=r"^hil: the ticker worker could not start: PermissionError"):
+            remote.result()
+    finally:
+        _closes_and_reaps(remote)
+
+
+def test_a_tail_that_fails_midway_says_why_to_a_sim_sending_windows_ahead() -> None:
+    """The same for a window that raises: its traceback, not a closed socket, even with the
+    windows after it sent before its reply is read."""
+    remote = _tail(_Ticker(_run_info(), fail_at_ns=10_000_000))
+    try:
+        remote.window([[]], 30_000_000)
+        _windows_past_the_ring(remote, 30_000_000)
+        with pytest.raises(WorkerError, match="boom at 10000000"):
+            remote.result()
+    finally:
+        _closes_and_reaps(remote)
+
+
+@pytest.mark.skipif(not worker_possible(), reason="hil sim forks its worker with two CPUs")
+def test_hil_sim_whose_worker_cannot_start_says_why(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from hil.runtime import jit
+
+    monkeypatch.setattr(jit, "enable_for_run", _denied)  # the worker's setup (forked: it has this)
+    with pytest.raises(WorkerError) as err:
+        run_sim(
+            SimOptions(scenario="uav_survey", duration_s=4.0, record=tmp_path / "s.mcap", fusion_worker=True)
+        )
+    assert str(err.value).startswith("hil: the fusion worker could not start: PermissionError: [Errno 13]")
+
+
+def _counters(node: Node) -> object:
+    return node.counters()
+
+
 class _Chatty(_Ticker):
     """Publishes far more per window than the reply ring holds (20 MB)."""
 
