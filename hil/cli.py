@@ -319,7 +319,7 @@ def _warn_loads(prog: str, scenario: Any, a: argparse.Namespace, wire: dict[str,
 
 def lag_warning(scenario: Any, lag_s: float | None) -> str | None:
     """Why the fusion will refuse the scenario's GNSS fixes as late, or None: its lag (``lag_s``,
-    ``--fusion-lag``; None: the fusion's default, which ``hil up`` runs) below the receiver's
+    ``--fusion-lag``; None: the fusion's default) below the receiver's
     output latency (the scenario's ``gnss.latency_s``, plus its jitter). Said before the run,
     not refused: a run may be meant to test exactly that (its end then says FAILED)."""
     from hil.nodes.fusion import DEFAULT_LAG_S
@@ -330,11 +330,7 @@ def lag_warning(scenario: Any, lag_s: float | None) -> str | None:
         return None
     which = "its fixes" if lag < latency else "the fixes its jitter takes past it"
     said = f"--fusion-lag {lag:g} s" if lag_s is not None else f"the fusion's lag ({lag:g} s, its default)"
-    fix = (
-        f"give --fusion-lag above {worst:g} s to fuse them"
-        if lag_s is not None
-        else f"lower the scenario's gnss.latency_s (hil sim --fusion-lag above {worst:g} s fuses them)"
-    )
+    fix = f"give --fusion-lag above {worst:g} s to fuse them"
     return (
         f"{said} is below the GNSS receiver's output latency in scenario {scenario.name!r} "
         f"(gnss.latency_s {latency:g} s + jitter_s {g.jitter_s:g} s): the fusion will refuse {which} "
@@ -413,6 +409,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         estimators=_estimators(a.estimators),
         feedback=a.feedback,
         ekf_calibration=a.ekf_calibration,
+        lag_s=a.fusion_lag,
+        output_predictor=not a.no_output_predictor,
         input_batch_ms=a.input_batch_ms,
         can_batch_ms=a.can_batch_ms,
         live=not a.quiet,
@@ -441,7 +439,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     _keep_earlier_recording(record)
     _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
     _warn_loads("hil up", scenario, a, {k: getattr(opts, k) for k in _WIRE_KEYS})
-    _warn_lag("hil up", scenario, None)
+    _warn_lag("hil up", scenario, a.fusion_lag)
     if not opts.gnss_protocol:
         from hil.faults import unwired_line_fault_warnings
 
@@ -1262,6 +1260,7 @@ def _add_up_parser(sub: Any) -> None:
     """``hil up``'s options (the live rig)."""
     up = sub.add_parser("up", help="run the live rig: every service as its own process")
     _add_run_args(up, None)
+    _add_fusion_args(up)
     up.add_argument("--speed", type=speed, default=1.0, help="rig clock K times faster than real time")
     up.add_argument("--channel", default="vcan0", help="CAN channel of the IMU")
     up.add_argument(

@@ -59,5 +59,6 @@ def fill_options(service: str, source: Any, derived: dict[str, Any] | None = Non
     cls = options_class(service)
     raw = {f: getattr(source, f) for f in cls.__struct_fields__ if hasattr(source, f)}
     raw.update(derived or {})
+    raw = {k: v for k, v in raw.items() if v is not None}  # None: not given, the service's default
     decode_options(cls, raw, service)  # refuse here, before any process starts
-    return {k: v for k, v in raw.items() if v is not None}
+    return raw

@@ -136,6 +136,10 @@ class UpOptions:
     estimators: list[str] = field(default_factory=list)
     feedback: str = "auto"  # seed estimators in feedback form (hil.nodes.fusion.FusionOptions)
     ekf_calibration: str = "auto"  # ekf15's calibration states (same)
+    # the fusion horizon's lag and its output predictor (same; hil sim's --fusion-lag and
+    # --no-output-predictor): None, the fusion's default lag
+    lag_s: float | None = None
+    output_predictor: bool = True
     # time sync's and the fusion's input batching window (hil.nodes.base.BatchedInputOptions)
     input_batch_ms: float = 0.0
     # the CAN bridge's read window (hil.nodes.can_bridge.CanBridgeOptions.can_batch_ms)

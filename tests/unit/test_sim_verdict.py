@@ -105,7 +105,7 @@ def test_the_gnss_rule_is_a_tenth_of_the_fixes_handed_to_the_fusion() -> None:
 
 
 def test_a_lag_below_the_receivers_latency_is_said_for_hil_sim_and_hil_up() -> None:
-    """hil sim's --fusion-lag, and hil up's fusion at its default lag (0.5 s; it has no flag)."""
+    """``--fusion-lag`` (hil sim and hil up), and a fusion at its default lag (0.5 s)."""
     from dataclasses import replace
 
     from hil.cli import lag_warning
@@ -118,6 +118,20 @@ def test_a_lag_below_the_receivers_latency_is_said_for_hil_sim_and_hil_up() -> N
     slow = replace(s, gnss=replace(s.gnss, latency_s=0.7))
     said = lag_warning(slow, None)
     assert said is not None and said.startswith("the fusion's lag (0.5 s, its default) is below the GNSS ")
-    assert said.endswith(
-        "lower the scenario's gnss.latency_s (hil sim --fusion-lag above 0.705 s fuses them)"
-    )
+    assert said.endswith("give --fusion-lag above 0.705 s to fuse them")
+
+
+def test_hil_up_takes_the_fusion_lag_and_predictor_as_hil_sim_does() -> None:
+    """QA (session 36): the FAILED line for GNSS refused as late says to raise --fusion-lag, which
+    hil up did not have. It does now, and it reaches the fusion service's options; unset, the
+    fusion's own default (nothing passed)."""
+    from hil.cli import build_parser
+    from hil.runtime.options import fill_options
+    from hil.runtime.supervisor import UpOptions
+
+    a = build_parser().parse_args(["up", "--fusion-lag", "0.3", "--no-output-predictor"])
+    assert a.fusion_lag == 0.3 and a.no_output_predictor
+    opts = fill_options("fusion", UpOptions(lag_s=a.fusion_lag, output_predictor=not a.no_output_predictor))
+    assert opts["lag_s"] == 0.3 and opts["output_predictor"] is False
+    assert "lag_s" not in fill_options("fusion", UpOptions())
+    assert "lag_s" not in fill_options("timesync", UpOptions(lag_s=0.3))  # the fusion's alone
