@@ -387,6 +387,9 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # ends only when a publisher's fixes pass for gnss_alarm_after_ns; absent in recordings made
     # before it, where one fix that passed ended it
     gnss_reacquire_needs_passes: bool = False
+    # the reset's fix after an IMU fault continues the GNSS track before the fault, or it is held
+    # out as rejected; absent in recordings made before it, whose reset took the first fix after
+    gnss_reset_checks_track: bool = False
 
 
 class FaultCommand(Message, frozen=True, kw_only=True):

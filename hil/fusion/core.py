@@ -96,6 +96,9 @@ class FusionConfig:
     # rule 3's run of rejected fixes ends only when a publisher's fixes have passed for
     # gnss_alarm_after_ns, not at one that passes (False: recordings before it, where one did)
     gnss_reacquire_needs_passes: bool = True
+    # rule 4's fix after an IMU fault must continue the GNSS track before it (a spoof that began
+    # inside the fault is held out, not taken for truth); False: recordings before it
+    gnss_reset_checks_track: bool = True
     gnss_sigma_floor: bool = True  # a fix's σ never below the receiver model's
     # a publisher's GNSS fixes closer together than this share of the receiver's period are
     # refused at arrival ("rate" in the journal): a receiver cannot fix faster than it does,
@@ -142,6 +145,7 @@ class FusionConfig:
             gnss_reset_free_ins=self.gnss_reset_free_ins,
             gnss_reset_accel=self.gnss_reset_accel,
             gnss_reacquire_needs_passes=self.gnss_reacquire_needs_passes,
+            gnss_reset_checks_track=self.gnss_reset_checks_track,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
             output_predictor=self.output_predictor,
@@ -159,6 +163,7 @@ class FusionConfig:
             reset=self.gnss_reset,
             reset_needs_trust=self.gnss_reset_needs_trust,
             reacquire_needs_passes=self.gnss_reacquire_needs_passes,
+            reset_checks_track=self.gnss_reset_checks_track,
         )
 
     @classmethod

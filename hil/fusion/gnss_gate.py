@@ -41,7 +41,10 @@ update (``FusionCore``; the estimators themselves are untouched):
    waiting: an IMU sample flagged saturated or faulty (``note_imu_fault``) makes the INS no
    witness of anything until a fix has been taken after it, so the first fix ``IMU_SETTLE_NS``
    after the last flagged sample reacquires at once (the fixes before it are held: counted in
-   ``held``, neither used nor held against GNSS) -- unless GNSS was under suspicion when the
+   ``held``, neither used nor held against GNSS) -- if it continues the GNSS track before the
+   fault (``reset_checks_track``: the last fix taken, carried by its velocity, within
+   ``TRACK_SIGMAS`` σ and ``TRACK_ACCEL_MPS2``; a fix off it, a spoof that began inside the fault,
+   is rejected and the next one on it reacquires) -- unless GNSS was under suspicion when the
    fault came (its fixes being rejected: a spoof the gate was holding out would otherwise be
    taken as the reset's truth, and the alarm cleared by the next spoofed fix). Then nothing is a
    witness: the fixes are judged as before, and only the ``reacquire_after`` of unbroken
@@ -74,6 +77,10 @@ UNAIDED_WINDOW_S = 60.0  # tilt a gyro bias builds unaided over this long sets t
 EWMA_ALPHA = 0.1  # weight of one accepted innovation in an estimator's achieved-error mean
 IMU_SETTLE_NS = 50_000_000  # clean IMU after a flagged sample before a fix may re-initialise on it
 _MAX_PUBLISHERS = 1024  # publishers a gate track keeps a run of passing fixes for
+# the GNSS track check of a fix after an IMU fault: the vehicle's acceleration bound (2 g) and
+# the σ per axis beyond which its position or velocity does not continue the last fix taken
+TRACK_ACCEL_MPS2 = 2.0 * 9.80665
+TRACK_SIGMAS = 5.0
 
 
 def _fl(v: Any) -> list[float]:
@@ -90,6 +97,17 @@ def _recip(d: float) -> float:
     """``1.0 / d`` as numpy divides: ±inf for a zero (a fix that claims σ 0 with the floor off),
     where Python would raise."""
     return 1.0 / d if d != 0.0 else math.copysign(math.inf, d)
+
+
+def _fix_of(gnss: GnssInput) -> tuple[int, list[float], list[float], list[float], list[float]]:
+    """A fix as a gate track keeps it (``GateTrack.last_fix``)."""
+    return (
+        gnss.stamp_ns,
+        _fl(gnss.pos_ned_m),
+        _fl(gnss.vel_ned_mps),
+        _fl(gnss.pos_sigma_m),
+        _fl(gnss.vel_sigma_mps),
+    )
 
 
 def _ewma(mean: F64, excess: list[float]) -> F64:
@@ -142,6 +160,10 @@ class GateSettings:
     # rule 3's run of rejections ends only when a publisher's fixes pass for alarm_after, not at
     # one fix that passes (False: recordings before it, where one did and restarted the clock)
     reacquire_needs_passes: bool = False
+    # rule 4's fix after an IMU fault must agree with the GNSS track before the fault (the last fix
+    # taken, carried by its velocity within TRACK_ACCEL_MPS2): else it is held and counted as
+    # rejected (False: recordings before it, where the first fix after the fault was the truth)
+    reset_checks_track: bool = False
 
 
 @dataclass
@@ -162,6 +184,9 @@ class GateTrack:
     # per publisher: the stamp of the first fix of its current run of passing fixes, while a run
     # of rejections is on (``reacquire_needs_passes``)
     passes: dict[str, int] = field(default_factory=dict)
+    # the last fix taken (accepted or reacquired): stamp, position, velocity and their σ, the
+    # GNSS track a fix after an IMU fault is checked against (``reset_checks_track``)
+    last_fix: tuple[int, list[float], list[float], list[float], list[float]] | None = None
     alarmed: bool = False
     alarm_since_ns: int = 0
     m_pos: F64 = field(default_factory=lambda: np.zeros(3))
@@ -307,12 +332,14 @@ class GnssGate:
         ok = nis_p <= chi2 and nis_v <= chi2
         since = tr.reject_since_ns
         if self.settings.reset:
-            why = self._reacquire_reason(tr, gnss.stamp_ns, ok)
+            why = self._reacquire_reason(tr, gnss, ok)
             if why == "held":
                 tr.held += 1
                 return False
-            if why:
-                self._reacquire(tr, gnss.stamp_ns, why)
+            if why == "off_track":
+                ok = False
+            elif why:
+                self._reacquire(tr, gnss, why)
                 return True
         elif not ok and since is not None and gnss.stamp_ns - since >= self.settings.reacquire_after_ns:
             ok = True
@@ -321,31 +348,67 @@ class GnssGate:
         if ok:
             excess_p = [y - r for y, r in zip(yy_p, r_p, strict=True)]
             excess_v = [y - r for y, r in zip(yy_v, r_v, strict=True)]
-            ended = self._accepted(tr, gnss.stamp_ns, excess_p, excess_v, publisher)
+            ended = self._accepted(tr, gnss, excess_p, excess_v, publisher)
         else:
             self._rejected(tr, gnss.stamp_ns, publisher)
         self._alarm(tr, gnss.stamp_ns, publisher, ended)
         return ok
 
-    def _reacquire_reason(self, tr: GateTrack, stamp_ns: int, ok: bool) -> str:
-        """Why this fix re-initialises the navigation (rule 4), "held" if it must wait, "" if
-        neither: a flagged IMU sample since the last fix taken, or rejection for too long."""
+    def _reacquire_reason(self, tr: GateTrack, gnss: GnssInput, ok: bool) -> str:
+        """Why this fix re-initialises the navigation (rule 4): "imu_fault" (a flagged IMU sample
+        since the last fix taken) or "rejected" (rejection for too long); "held" if it must wait
+        (within the settle after the fault), "off_track" if it is to be rejected whatever the INS
+        says (after the fault, with ``reset_checks_track``, a fix that does not continue the GNSS
+        track: a spoof that began inside the fault; the next that does re-initialises); "" if
+        none of these."""
+        stamp_ns = gnss.stamp_ns
         fault = self.imu_fault_ns
-        if (
-            fault is not None
-            and (tr.last_accept_ns is None or fault >= tr.last_accept_ns)
-            and (tr.reject_since_ns is None or not self.settings.reset_needs_trust)  # GNSS suspect
-        ):
-            return "held" if stamp_ns - fault < IMU_SETTLE_NS else "imu_fault"
         since = tr.reject_since_ns
-        if not ok and since is not None and stamp_ns - since >= self.settings.reacquire_after_ns:
-            return "rejected"
-        return ""
+        checks = self.settings.reset_checks_track
+        too_long = since is not None and stamp_ns - since >= self.settings.reacquire_after_ns
+        # GNSS under suspicion when the fault came: rejections that began before it (those after
+        # it, with the track check, are its own: fixes off the track)
+        suspect = (
+            since is not None
+            and self.settings.reset_needs_trust
+            and not (checks and fault is not None and since > fault)
+        )
+        if fault is not None and (tr.last_accept_ns is None or fault >= tr.last_accept_ns) and not suspect:
+            if stamp_ns - fault < IMU_SETTLE_NS:
+                return "held"
+            if not (checks and self._off_track(tr, gnss)):
+                return "imu_fault"
+            return "rejected" if too_long else "off_track"
+        return "rejected" if not ok and too_long else ""
 
-    def _reacquire(self, tr: GateTrack, stamp_ns: int, why: str) -> None:
+    def _off_track(self, tr: GateTrack, gnss: GnssInput) -> bool:
+        """Whether ``gnss`` does not continue the last fix taken: its position beyond that fix
+        carried by its velocity, or its velocity beyond that fix's, by more than
+        ``TRACK_SIGMAS`` σ per axis (the two fixes' σ) plus what ``TRACK_ACCEL_MPS2`` makes of the
+        time between (½aΔt², aΔt). The receiver is not the IMU: its track is a witness the fault
+        left, and a spoof that jumps 500 m is off it."""
+        last = tr.last_fix
+        if last is None:
+            return False
+        dt = (gnss.stamp_ns - last[0]) * 1e-9
+        if dt <= 0.0:
+            return False
+        a = TRACK_ACCEL_MPS2
+        pos, vel = _fl(gnss.pos_ned_m), _fl(gnss.vel_ned_mps)
+        ps, vs = _fl(gnss.pos_sigma_m), _fl(gnss.vel_sigma_mps)
+        for i in range(3):
+            bound_p = TRACK_SIGMAS * math.hypot(ps[i], last[3][i]) + 0.5 * a * dt * dt
+            bound_v = TRACK_SIGMAS * math.hypot(vs[i], last[4][i]) + a * dt
+            if abs(pos[i] - (last[1][i] + last[2][i] * dt)) > bound_p or abs(vel[i] - last[2][i]) > bound_v:
+                return True
+        return False
+
+    def _reacquire(self, tr: GateTrack, gnss: GnssInput, why: str) -> None:
         """Take the fix as a re-initialisation: no innovation of it is an achieved error, and a
         raised alarm stays raised until a fix passes on the reset prediction."""
+        stamp_ns = gnss.stamp_ns
         since = tr.reject_since_ns if why == "rejected" else self.imu_fault_ns
+        tr.last_fix = _fix_of(gnss)
         tr.reacquired += 1
         tr.accepted += 1
         tr.last_accept_ns = tr.last_reset_ns = stamp_ns
@@ -362,15 +425,18 @@ class GnssGate:
         self.transitions.append(Transition(kind, tr.name, stamp_ns, json.dumps(detail)))
 
     def _accepted(
-        self, tr: GateTrack, stamp_ns: int, excess_p: list[float], excess_v: list[float], publisher: str
+        self, tr: GateTrack, gnss: GnssInput, excess_p: list[float], excess_v: list[float], publisher: str
     ) -> bool:
         """A fix that passed; whether it ends the run of rejections (rule 3), if one is on. One
         that passes does not, with ``reacquire_needs_passes``, until its publisher's fixes have
         passed for ``alarm_after``: a diverged reference's grown covariance lets one through now
         and then (a filter that then rejects it in its own gate), which restarted the reacquire
         clock each time and kept GNSS out for good."""
+        stamp_ns = gnss.stamp_ns
         tr.accepted += 1
         tr.last_accept_ns = stamp_ns
+        if self.settings.reset_checks_track:
+            tr.last_fix = _fix_of(gnss)
         tr.m_pos = _ewma(tr.m_pos, excess_p)
         tr.m_vel = _ewma(tr.m_vel, excess_v)
         if tr.reject_since_ns is not None and self.settings.reacquire_needs_passes:

@@ -223,10 +223,12 @@ def test_a_recording_made_before_the_gate_reruns_without_it() -> None:
     assert cfg.gnss_gate_chi2 == 0.0 and not cfg.gnss_sigma_floor and cfg.gnss_min_interval == 0.0
     # nor the rules added since: a reset levelled on a = 0 and one sample, one passing fix ending
     # a run of rejections (session 36), where the fusion today does otherwise
-    assert not cfg.gnss_reset_accel and not cfg.gnss_reacquire_needs_passes
-    assert not cfg.gate_settings().reacquire_needs_passes
+    assert (
+        not cfg.gnss_reset_accel and not cfg.gnss_reacquire_needs_passes and not cfg.gnss_reset_checks_track
+    )
+    assert not cfg.gate_settings().reacquire_needs_passes and not cfg.gate_settings().reset_checks_track
     now = FusionConfig()
-    assert now.gnss_reset_accel and now.gnss_reacquire_needs_passes
+    assert now.gnss_reset_accel and now.gnss_reacquire_needs_passes and now.gnss_reset_checks_track
     assert FusionConfig.from_settings(now.settings(0, 0)) == now
     s, _truth, _msgs = _inputs(BASE)
     assert FusionCore.for_scenario(s, cfg).gate is None

@@ -90,6 +90,7 @@ def _run(
     feedback: tuple[str, ...] = (),
     reset_accel: bool = True,
     needs_passes: bool = True,
+    checks_track: bool = True,
     segments: str = HOLD,
     duration_s: float = DURATION_S,
     fault_at_s: float = FAULT_AT_S,
@@ -109,6 +110,7 @@ def _run(
         gnss_reset_free_ins=free_ins,
         gnss_reset_accel=reset_accel,
         gnss_reacquire_needs_passes=needs_passes,
+        gnss_reset_checks_track=checks_track,
         feedback=feedback,
     )
     core = FusionCore.for_scenario(s, cfg)
@@ -234,7 +236,15 @@ def test_a_spoof_the_gate_was_holding_out_when_the_imu_faulted_is_not_taken_for_
     assert counters["gnss_gate.rejected.ekf15"] >= 10 * (DURATION_S - 1.0) - 2  # type: ignore[index]
     # a recording made before this rule (gnss_reset_needs_trust absent) reruns as it ran: the
     # spoof taken at the reset, 0.05 s after the saturation
-    before = _run(0.05, spoof, needs_trust=False, free_ins=False)
+    before = _run(
+        0.05,
+        spoof,
+        needs_trust=False,
+        free_ins=False,
+        reset_accel=False,
+        needs_passes=False,
+        checks_track=False,
+    )
     first = before["events"][0]  # type: ignore[index]
     assert first[0] == "gnss_integrity_reacquired" and first[2]["reason"] == "imu_fault", before["events"]
     assert before["counters"]["gnss_gate.reset.ekf15"] == 1  # type: ignore[index]
@@ -279,27 +289,37 @@ def test_the_free_ins_reset_levels_on_the_mean_not_one_quantized_sample() -> Non
     assert np.mean([f["ins"] for f in finals[True]]) < 0.35 * np.mean([f["ins"] for f in finals[False]])
 
 
-def test_a_spoof_inside_the_saturation_is_held_out_within_one_reacquire_after() -> None:
-    """QA (session 36): a spoof that starts inside a saturation is the first fix after it, and so
-    the reset's truth (nothing witnesses against it); once the spoof ended, every genuine fix was
-    rejected -- but now and then one passed the reference's grown covariance (and ekf15's own
-    gate then rejected it), which ended the run of rejections and restarted rule 3's 30 s: GNSS
-    stayed out past 60 s, every estimator 0.3-1.1 km off. A run of rejections now ends only when
-    fixes pass for alarm_after; the reacquisition comes 30 s after the spoof's last fix."""
+def test_a_spoof_that_begins_inside_the_saturation_is_not_the_resets_truth() -> None:
+    """QA (session 36): a spoof that starts inside a saturation is the first fix after it, so it
+    was the reset's truth; once it ended, every genuine fix was rejected, but now and then one
+    passed the reference's grown covariance (ekf15's own gate then rejecting it), which ended the
+    run of rejections and restarted rule 3's 30 s: GNSS stayed out past 60 s, every estimator
+    0.3-1.1 km off (both rules off: what recordings before them rerun).
+
+    Now the fix after the fault must continue the GNSS track before it (the last fix taken,
+    carried by its velocity, within 5 σ and 2 g): the spoofed ones, 500 m off it, are held out as
+    rejected, and the first genuine fix after the spoof re-initialises. Without that check, a run
+    of rejections ends only when fixes have passed for 2 s, so the reset onto the spoof costs at
+    most one reacquire_after (30 s) after it ends."""
     spoof = spoof_event_toml(10.5, 12.0)
-    run = _run(1.0, spoof, fault_at_s=10.0, duration_s=60.0)
-    before = _run(1.0, spoof, fault_at_s=10.0, duration_s=60.0, needs_passes=False)
-    events = [(k, t, d.get("reason")) for k, t, d in run["events"]]  # type: ignore[attr-defined]
-    reacquired = [t for k, t, why in events if k == "gnss_integrity_reacquired" and why == "rejected"]
-    assert len(reacquired) == 1 and 12.0 + 29.5 <= reacquired[0] <= 12.0 + 30.5, events
+    kw: dict[str, Any] = {"fault_at_s": 10.0, "duration_s": 60.0}
     names = ("ins", *DEFAULT_ESTIMATORS)
-    worst = {n: _max_after(run, n, reacquired[0] + 5.0) for n in names if n != "ins"}
+
+    def resets(run: dict[str, object]) -> list[tuple[float, str]]:
+        return [(t, d["reason"]) for k, t, d in run["events"] if k == "gnss_integrity_reacquired"]  # type: ignore[attr-defined]
+
+    run = _run(1.0, spoof, **kw)
+    [(when, why)] = resets(run)
+    assert why == "imu_fault" and 12.0 <= when <= 12.15, run["events"]  # the first fix after the spoof
+    assert max(_max_after(run, n, when + 5.0) for n in names if n != "ins") < 3 * GNSS_SIGMA_M
+    assert run["counters"]["gnss_gate.rejected.ekf15"] >= 8  # type: ignore[index]  # the spoofed fixes
+
+    passes = _run(1.0, spoof, checks_track=False, **kw)
+    later = [t for t, why in resets(passes) if why == "rejected"]
+    assert len(later) == 1 and 12.0 + 29.5 <= later[0] <= 12.0 + 30.5, passes["events"]
+    worst = {n: _max_after(passes, n, later[0] + 5.0) for n in names if n != "ins"}
     assert max(worst.values()) < 3 * GNSS_SIGMA_M, worst
-    assert not any(
-        k == "gnss_integrity_reacquired" and why == "rejected"
-        for k, _t, why in [
-            (k, t, d.get("reason"))
-            for k, t, d in before["events"]  # type: ignore[attr-defined]
-        ]
-    ), before["events"]
+
+    before = _run(1.0, spoof, checks_track=False, needs_passes=False, **kw)
+    assert [why for _t, why in resets(before)] == ["imu_fault"], before["events"]  # onto the spoof
     assert min(_max_after(before, n, 55.0) for n in names if n != "ins") > 100.0
