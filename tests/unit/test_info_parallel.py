@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -206,23 +207,12 @@ def test_a_fusion_that_refused_much_of_its_imu_input_is_said(tmp_path: Path, lat
     as late (3001 of ~3200): every service stayed up, hil info and hil sim's summary said
     nothing. The fusion's last status counts it; a tenth or more of the IMU input is a line, and
     a failing for the exit code of hil up."""
-    from hil.messages import Count, ServiceStatus
+    from hil.messages import Count
 
     path = tmp_path / "s.mcap"
     w = SessionWriter(path, spill_index=False)
     for i, n in enumerate((0, late)):
-        counters = [Count("dropped_late.imu", n), Count("consumed", 215 * (i + 1) * 4)]
-        st = ServiceStatus(
-            seq=i, stamp_ns=i * 10**9, service="fusion", state="running", pid=1, uptime_s=i, counters=counters
-        )
-        w.write(
-            "hil/bench/status/fusion",
-            ServiceStatus,
-            encode(st),
-            log_time_ns=i * 10**9,
-            publish_time_ns=i * 10**9,
-            seq=i,
-        )
+        _write_fusion_status(w, i, [Count("dropped_late.imu", n), Count("consumed", 215 * (i + 1) * 4)])
     w.close()
     failings: list[str] = []
     lines = [ln for ln in describe(str(path), verdicts=failings).splitlines() if ln.startswith("fusion:")]
@@ -263,11 +253,22 @@ def test_a_fusion_that_refused_its_gnss_fixes_as_late_is_said(tmp_path: Path, la
     assert failings == ["the fusion " + ln.removeprefix("fusion:    ") for ln in lines]
 
 
+def _write_fusion_status(w: SessionWriter, i: int, counters: list[Any]) -> None:
+    """The fusion's status number ``i`` (at ``i`` s) with ``counters``, written to ``w``."""
+    from hil.messages import ServiceStatus
+
+    st = ServiceStatus(
+        seq=i, stamp_ns=i * 10**9, service="fusion", state="running", pid=1, uptime_s=i, counters=counters
+    )
+    t = i * 10**9
+    w.write("hil/bench/status/fusion", ServiceStatus, encode(st), log_time_ns=t, publish_time_ns=t, seq=i)
+
+
 def _fusion_part(path: Path, index: int, statuses: list[tuple[int, int]], first_s: int) -> None:
     """A file of a split session (``index`` 0: its first) holding the fusion's statuses, each
     ``(dropped_late.imu, consumed)``, once a second from ``first_s``: the counters count from the
     fusion's start, whichever file the recorder writes them to."""
-    from hil.messages import Count, ServiceStatus
+    from hil.messages import Count
     from hil.record.mcapio import part_metadata, split_part_path
 
     w = SessionWriter(path, spill_index=False)
@@ -276,19 +277,7 @@ def _fusion_part(path: Path, index: int, statuses: list[tuple[int, int]], first_
             "part", {"index": index, **part_metadata(split_part_path(path.parent / "s.mcap", index - 1))}
         )
     for k, (late, consumed) in enumerate(statuses):
-        i = first_s + k
-        counters = [Count("dropped_late.imu", late), Count("consumed", consumed)]
-        st = ServiceStatus(
-            seq=i, stamp_ns=i * 10**9, service="fusion", state="running", pid=1, uptime_s=i, counters=counters
-        )
-        w.write(
-            "hil/bench/status/fusion",
-            ServiceStatus,
-            encode(st),
-            log_time_ns=i * 10**9,
-            publish_time_ns=i * 10**9,
-            seq=i,
-        )
+        _write_fusion_status(w, first_s + k, [Count("dropped_late.imu", late), Count("consumed", consumed)])
     w.close()
 
 
