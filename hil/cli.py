@@ -338,10 +338,22 @@ def lag_warning(scenario: Any, lag_s: float | None) -> str | None:
     )
 
 
-def _warn_lag(prog: str, scenario: Any, lag_s: float | None) -> None:
-    line = lag_warning(scenario, lag_s)
-    if line:
-        print(f"{prog}: warning: {line}", file=sys.stderr)
+def lag_run_warning(lag_s: float | None, duration_s: float | None) -> str | None:
+    """Why nothing will be fused, or None: a ``--fusion-lag`` as long as the run or longer (the
+    horizon never moves: every estimator publishes its initial state carried by the IMU)."""
+    if lag_s is None or duration_s is None or lag_s < duration_s:
+        return None
+    return (
+        f"--fusion-lag {lag_s:g} s is the whole run ({duration_s:g} s) or more: the fusion's horizon "
+        "never moves, no input is fused, and every estimator publishes its initial state carried "
+        "forward by the IMU; give a lag well under the run's length"
+    )
+
+
+def _warn_lag(prog: str, scenario: Any, lag_s: float | None, duration_s: float | None) -> None:
+    for line in (lag_warning(scenario, lag_s), lag_run_warning(lag_s, duration_s)):
+        if line:
+            print(f"{prog}: warning: {line}", file=sys.stderr)
 
 
 _WIRE_KEYS = ("gnss_protocol", "gnss_messages", "gnss_baud")  # _gnss_wire's, as UpOptions has them
@@ -439,7 +451,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     _keep_earlier_recording(record)
     _check_writable(opts.record, opts.log_dir)  # type: ignore[arg-type]  # makes the log dir: last
     _warn_loads("hil up", scenario, a, {k: getattr(opts, k) for k in _WIRE_KEYS})
-    _warn_lag("hil up", scenario, a.fusion_lag)
+    _warn_lag("hil up", scenario, a.fusion_lag, opts.duration_s)
     if not opts.gnss_protocol:
         from hil.faults import unwired_line_fault_warnings
 
@@ -643,7 +655,9 @@ def cmd_sim(a: argparse.Namespace) -> int:
         scenario_overrides(scenario, imu_rate_hz=a.imu_rate)  # one line if refused
     wire = _gnss_wire(a, live=False)
     _warn_loads("hil sim", scenario, a, wire)
-    _warn_lag("hil sim", scenario, a.fusion_lag)
+    _warn_lag(
+        "hil sim", scenario, a.fusion_lag, a.duration if a.duration is not None else scenario.duration_s
+    )
     record = a.record or _default_record_path(a.scenario)
     bar = Progress("sim", unit="s rig time", enabled=False if a.quiet else None)
 

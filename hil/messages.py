@@ -383,10 +383,6 @@ class FusionSettings(Message, frozen=True, kw_only=True):
     # free INS's on the mean of its recent clean samples; absent in recordings made before it,
     # levelled on a = 0 and the free INS on its last sample
     gnss_reset_accel: bool = False
-    # the gate's run of rejected fixes (its alarm, its reacquisition after gnss_reacquire_after_ns)
-    # ends only when a publisher's fixes pass for gnss_alarm_after_ns; absent in recordings made
-    # before it, where one fix that passed ended it
-    gnss_reacquire_needs_passes: bool = False
     # the reset's fix after an IMU fault continues the GNSS track before the fault, or it is held
     # out as rejected; absent in recordings made before it, whose reset took the first fix after
     gnss_reset_checks_track: bool = False

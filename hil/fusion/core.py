@@ -93,9 +93,6 @@ class FusionConfig:
     # specific force of the clean samples of the last RESET_LEVEL_WINDOW_NS (False: recordings
     # before it, levelled on a = 0 and on the last sample alone, whose quantization tilted it)
     gnss_reset_accel: bool = True
-    # rule 3's run of rejected fixes ends only when a publisher's fixes have passed for
-    # gnss_alarm_after_ns, not at one that passes (False: recordings before it, where one did)
-    gnss_reacquire_needs_passes: bool = True
     # rule 4's fix after an IMU fault must continue the GNSS track before it (a spoof that began
     # inside the fault is held out, not taken for truth); False: recordings before it
     gnss_reset_checks_track: bool = True
@@ -144,7 +141,6 @@ class FusionConfig:
             gnss_reset_needs_trust=self.gnss_reset_needs_trust,
             gnss_reset_free_ins=self.gnss_reset_free_ins,
             gnss_reset_accel=self.gnss_reset_accel,
-            gnss_reacquire_needs_passes=self.gnss_reacquire_needs_passes,
             gnss_reset_checks_track=self.gnss_reset_checks_track,
             gnss_sigma_floor=self.gnss_sigma_floor,
             gnss_min_interval=self.gnss_min_interval,
@@ -162,7 +158,6 @@ class FusionConfig:
             floor_sigma=self.gnss_sigma_floor,
             reset=self.gnss_reset,
             reset_needs_trust=self.gnss_reset_needs_trust,
-            reacquire_needs_passes=self.gnss_reacquire_needs_passes,
             reset_checks_track=self.gnss_reset_checks_track,
         )
 
@@ -897,9 +892,12 @@ class FusionCore:
 
     def _gnss_accel(self, fix: Any) -> tuple[float, float, float] | None:
         """The acceleration the GNSS velocity shows at ``fix`` and over the ``RESET_ACCEL_SPAN_NS``
-        before it (``velocity_rate``; None: levelled on a = 0). The receiver's velocity is not the
+        before it, or one and a half receiver periods where that is longer (``velocity_rate``;
+        None: levelled on a = 0). The receiver's velocity is not the
         IMU's to doubt after an IMU fault."""
-        since = fix.stamp_ns - RESET_ACCEL_SPAN_NS
+        # at least the fix before it: a 1 Hz receiver's last second holds one fix
+        period = self.receiver.period_ns if self.receiver is not None else 0
+        since = fix.stamp_ns - max(RESET_ACCEL_SPAN_NS, 3 * period // 2)
         fixes = [f for f in self._recent_fixes if since <= f[0] < fix.stamp_ns]
         fixes.append((fix.stamp_ns, fix.vel_ned_mps))
         # at the middle of the samples the free INS levels on

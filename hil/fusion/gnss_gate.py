@@ -26,10 +26,7 @@ update (``FusionCore``; the estimators themselves are untouched):
    passes, or it has sent nothing rejected for ``alarm_after``), a ``gnss_integrity_restored``. After
    ``reacquire_after`` of unbroken rejection the gate lets fixes through again (counted as
    ``reacquired``): a navigator that disagrees with GNSS for that long is more likely the one
-   that is wrong. Unbroken: with ``reacquire_needs_passes``, a run of rejections (and its alarm)
-   ends only once a publisher's fixes have passed for ``alarm_after``, not at one fix that passes
-   (a diverged reference's grown covariance admits one now and then, which restarted the clock
-   and kept GNSS out for good).
+   that is wrong.
 4. **A reacquired fix re-initialises the navigation** (``reset``; off in recordings made before
    it). Letting one fix through is not enough: a filter whose INS has diverged rejects it in
    its own gate, the next fix is rejected here again and the clock restarts -- GNSS locked out
@@ -76,7 +73,6 @@ G0 = 9.80665
 UNAIDED_WINDOW_S = 60.0  # tilt a gyro bias builds unaided over this long sets the fallback growth
 EWMA_ALPHA = 0.1  # weight of one accepted innovation in an estimator's achieved-error mean
 IMU_SETTLE_NS = 50_000_000  # clean IMU after a flagged sample before a fix may re-initialise on it
-_MAX_PUBLISHERS = 1024  # publishers a gate track keeps a run of passing fixes for
 # the GNSS track check of a fix after an IMU fault: the vehicle's acceleration bound (2 g) and
 # the σ per axis beyond which its position or velocity does not continue the last fix taken
 TRACK_ACCEL_MPS2 = 2.0 * 9.80665
@@ -157,9 +153,6 @@ class GateSettings:
     floor_sigma: bool  # rule 1
     reset: bool = False  # rule 4 (False: a recording made before it, one fix let through)
     reset_needs_trust: bool = False  # rule 4's IMU fault only with GNSS trusted (False: before it)
-    # rule 3's run of rejections ends only when a publisher's fixes pass for alarm_after, not at
-    # one fix that passes (False: recordings before it, where one did and restarted the clock)
-    reacquire_needs_passes: bool = False
     # rule 4's fix after an IMU fault must agree with the GNSS track before the fault (the last fix
     # taken, carried by its velocity within TRACK_ACCEL_MPS2): else it is held and counted as
     # rejected (False: recordings before it, where the first fix after the fault was the truth)
@@ -181,9 +174,6 @@ class GateTrack:
     reject_since_ns: int | None = None  # stamp of the first fix of the current rejection run
     # per publisher: [first, last] stamp of its current run of rejected fixes (for the alarm)
     runs: dict[str, list[int]] = field(default_factory=dict)
-    # per publisher: the stamp of the first fix of its current run of passing fixes, while a run
-    # of rejections is on (``reacquire_needs_passes``)
-    passes: dict[str, int] = field(default_factory=dict)
     # the last fix taken (accepted or reacquired): stamp, position, velocity and their σ, the
     # GNSS track a fix after an IMU fault is checked against (``reset_checks_track``)
     last_fix: tuple[int, list[float], list[float], list[float], list[float]] | None = None
@@ -344,14 +334,13 @@ class GnssGate:
         elif not ok and since is not None and gnss.stamp_ns - since >= self.settings.reacquire_after_ns:
             ok = True
             tr.reacquired += 1
-        ended = ok
         if ok:
             excess_p = [y - r for y, r in zip(yy_p, r_p, strict=True)]
             excess_v = [y - r for y, r in zip(yy_v, r_v, strict=True)]
-            ended = self._accepted(tr, gnss, excess_p, excess_v, publisher)
+            self._accepted(tr, gnss, excess_p, excess_v)
         else:
-            self._rejected(tr, gnss.stamp_ns, publisher)
-        self._alarm(tr, gnss.stamp_ns, publisher, ended)
+            self._rejected(tr, gnss.stamp_ns)
+        self._alarm(tr, gnss.stamp_ns, publisher, ok)
         return ok
 
     def _reacquire_reason(self, tr: GateTrack, gnss: GnssInput, ok: bool) -> str:
@@ -413,7 +402,6 @@ class GnssGate:
         tr.accepted += 1
         tr.last_accept_ns = tr.last_reset_ns = stamp_ns
         tr.reject_since_ns = None
-        tr.passes.clear()
         detail: dict[str, object] = {"gate": tr.name, "reason": why, "reset": True}
         detail["reacquired"] = tr.reacquired
         if why == "rejected" and since is not None:
@@ -424,36 +412,17 @@ class GnssGate:
         kind = "gnss_integrity_reacquired"
         self.transitions.append(Transition(kind, tr.name, stamp_ns, json.dumps(detail)))
 
-    def _accepted(
-        self, tr: GateTrack, gnss: GnssInput, excess_p: list[float], excess_v: list[float], publisher: str
-    ) -> bool:
-        """A fix that passed; whether it ends the run of rejections (rule 3), if one is on. One
-        that passes does not, with ``reacquire_needs_passes``, until its publisher's fixes have
-        passed for ``alarm_after``: a diverged reference's grown covariance lets one through now
-        and then (a filter that then rejects it in its own gate), which restarted the reacquire
-        clock each time and kept GNSS out for good."""
-        stamp_ns = gnss.stamp_ns
+    def _accepted(self, tr: GateTrack, gnss: GnssInput, excess_p: list[float], excess_v: list[float]) -> None:
         tr.accepted += 1
-        tr.last_accept_ns = stamp_ns
+        tr.last_accept_ns = gnss.stamp_ns
         if self.settings.reset_checks_track:
             tr.last_fix = _fix_of(gnss)
         tr.m_pos = _ewma(tr.m_pos, excess_p)
         tr.m_vel = _ewma(tr.m_vel, excess_v)
-        if tr.reject_since_ns is not None and self.settings.reacquire_needs_passes:
-            first = tr.passes.get(publisher)
-            if first is None:
-                if len(tr.passes) >= _MAX_PUBLISHERS:  # bounded whatever a flood names
-                    return False
-                first = tr.passes[publisher] = stamp_ns
-            if stamp_ns - first < self.settings.alarm_after_ns:
-                return False
         tr.reject_since_ns = None
-        tr.passes.clear()
-        return True
 
-    def _rejected(self, tr: GateTrack, stamp_ns: int, publisher: str) -> None:
+    def _rejected(self, tr: GateTrack, stamp_ns: int) -> None:
         tr.rejected += 1
-        tr.passes.pop(publisher, None)
         if tr.reject_since_ns is None:
             tr.reject_since_ns = stamp_ns
 

@@ -135,3 +135,14 @@ def test_hil_up_takes_the_fusion_lag_and_predictor_as_hil_sim_does() -> None:
     assert opts["lag_s"] == 0.3 and opts["output_predictor"] is False
     assert "lag_s" not in fill_options("fusion", UpOptions())
     assert "lag_s" not in fill_options("timesync", UpOptions(lag_s=0.3))  # the fusion's alone
+
+
+def test_a_lag_as_long_as_the_run_is_said() -> None:
+    """QA (session 36): ``--fusion-lag 60`` on a 10 s run fused nothing (every estimator printed
+    the same numbers) and said nothing."""
+    from hil.cli import lag_run_warning
+
+    said = lag_run_warning(60.0, 10.0)
+    assert said is not None and said.startswith("--fusion-lag 60 s is the whole run (10 s) or more")
+    assert lag_run_warning(0.5, 10.0) is None and lag_run_warning(None, 10.0) is None
+    assert lag_run_warning(10.0, None) is None  # hil up without --duration: until stopped
