@@ -43,7 +43,9 @@ update (``FusionCore``; the estimators themselves are untouched):
    ``TRACK_SIGMAS`` σ and ``TRACK_ACCEL_MPS2``; a fix off it, a spoof that began inside the fault,
    is rejected and the next one on it reacquires) -- unless GNSS was under suspicion when the
    fault came (its fixes being rejected: a spoof the gate was holding out would otherwise be
-   taken as the reset's truth, and the alarm cleared by the next spoofed fix). Then nothing is a
+   taken as the reset's truth, and the alarm cleared by the next spoofed fix; with
+   ``reset_checks_track``, that fix's publisher's fixes: a stranger's beside the genuine receiver
+   do not hold the receiver's out). Then nothing is a
    witness: the fixes are judged as before, and only the ``reacquire_after`` of unbroken
    rejection lets one through, the alarm raised meanwhile. Each
    reacquisition is a ``gnss_integrity_reacquired`` event; an alarm it interrupts clears only
@@ -73,6 +75,7 @@ G0 = 9.80665
 UNAIDED_WINDOW_S = 60.0  # tilt a gyro bias builds unaided over this long sets the fallback growth
 EWMA_ALPHA = 0.1  # weight of one accepted innovation in an estimator's achieved-error mean
 IMU_SETTLE_NS = 50_000_000  # clean IMU after a flagged sample before a fix may re-initialise on it
+_MAX_PUBLISHERS = 1024  # publishers a gate track names in a run of rejections
 # the GNSS track check of a fix after an IMU fault: the vehicle's acceleration bound (2 g) and
 # the σ per axis beyond which its position or velocity does not continue the last fix taken
 TRACK_ACCEL_MPS2 = 2.0 * 9.80665
@@ -177,6 +180,9 @@ class GateTrack:
     # the last fix taken (accepted or reacquired): stamp, position, velocity and their σ, the
     # GNSS track a fix after an IMU fault is checked against (``reset_checks_track``)
     last_fix: tuple[int, list[float], list[float], list[float], list[float]] | None = None
+    # the publishers whose fixes the current run of rejections holds (``reset_checks_track``: the
+    # suspicion an IMU fault meets is theirs, not a genuine receiver's beside a stranger)
+    rejected_by: set[str] = field(default_factory=set)
     alarmed: bool = False
     alarm_since_ns: int = 0
     m_pos: F64 = field(default_factory=lambda: np.zeros(3))
@@ -322,7 +328,7 @@ class GnssGate:
         ok = nis_p <= chi2 and nis_v <= chi2
         since = tr.reject_since_ns
         if self.settings.reset:
-            why = self._reacquire_reason(tr, gnss, ok)
+            why = self._reacquire_reason(tr, gnss, ok, publisher)
             if why == "held":
                 tr.held += 1
                 return False
@@ -339,17 +345,19 @@ class GnssGate:
             excess_v = [y - r for y, r in zip(yy_v, r_v, strict=True)]
             self._accepted(tr, gnss, excess_p, excess_v)
         else:
-            self._rejected(tr, gnss.stamp_ns)
+            self._rejected(tr, gnss.stamp_ns, publisher)
         self._alarm(tr, gnss.stamp_ns, publisher, ok)
         return ok
 
-    def _reacquire_reason(self, tr: GateTrack, gnss: GnssInput, ok: bool) -> str:
+    def _reacquire_reason(self, tr: GateTrack, gnss: GnssInput, ok: bool, publisher: str = "") -> str:
         """Why this fix re-initialises the navigation (rule 4): "imu_fault" (a flagged IMU sample
         since the last fix taken) or "rejected" (rejection for too long); "held" if it must wait
         (within the settle after the fault), "off_track" if it is to be rejected whatever the INS
         says (after the fault, with ``reset_checks_track``, a fix that does not continue the GNSS
         track: a spoof that began inside the fault; the next that does re-initialises); "" if
-        none of these."""
+        none of these. With the track check, GNSS is under suspicion for this fix's publisher's
+        rejections only: a stranger's spoof beside the genuine receiver does not hold the
+        receiver's fix out (QA, session 36: 30 s of lock-out, ekf15 2.4 km off)."""
         stamp_ns = gnss.stamp_ns
         fault = self.imu_fault_ns
         since = tr.reject_since_ns
@@ -361,6 +369,7 @@ class GnssGate:
             since is not None
             and self.settings.reset_needs_trust
             and not (checks and fault is not None and since > fault)
+            and (not checks or publisher in tr.rejected_by)
         )
         if fault is not None and (tr.last_accept_ns is None or fault >= tr.last_accept_ns) and not suspect:
             if stamp_ns - fault < IMU_SETTLE_NS:
@@ -402,6 +411,7 @@ class GnssGate:
         tr.accepted += 1
         tr.last_accept_ns = tr.last_reset_ns = stamp_ns
         tr.reject_since_ns = None
+        tr.rejected_by.clear()
         detail: dict[str, object] = {"gate": tr.name, "reason": why, "reset": True}
         detail["reacquired"] = tr.reacquired
         if why == "rejected" and since is not None:
@@ -420,11 +430,14 @@ class GnssGate:
         tr.m_pos = _ewma(tr.m_pos, excess_p)
         tr.m_vel = _ewma(tr.m_vel, excess_v)
         tr.reject_since_ns = None
+        tr.rejected_by.clear()
 
-    def _rejected(self, tr: GateTrack, stamp_ns: int) -> None:
+    def _rejected(self, tr: GateTrack, stamp_ns: int, publisher: str = "") -> None:
         tr.rejected += 1
         if tr.reject_since_ns is None:
             tr.reject_since_ns = stamp_ns
+        if len(tr.rejected_by) < _MAX_PUBLISHERS:  # bounded whatever a flood names
+            tr.rejected_by.add(publisher)
 
     def _alarm(self, tr: GateTrack, stamp_ns: int, publisher: str, ok: bool) -> None:
         """Raise or clear the alarm on the publishers' runs of rejected fixes (rule 3)."""

@@ -354,3 +354,46 @@ def test_a_fix_rejected_just_before_the_fault_does_not_hold_gnss_out_after_it() 
     assert len(reacquired) == 1 and reacquired[0][1] == "imu_fault" and 10.05 < reacquired[0][0] <= 10.25
     assert run["counters"]["gnss_gate.rejected.ekf15"] >= 1  # type: ignore[index]  # the jumped fix
     assert _max_after(run, "ekf15", 13.0) < GNSS_SIGMA_M
+
+
+def test_a_strangers_spoof_does_not_hold_the_genuine_receivers_fix_out_after_a_fault() -> None:
+    """QA (session 36): a stranger publishing fixes 500 m off beside the genuine receiver kept the
+    gate's run of rejections going, so an IMU fault met 'GNSS under suspicion' and no reset
+    came: 30 s of every fix rejected, ekf15 2.4 km off. With the track check the suspicion is the
+    publisher's own: the receiver's first fix after the fault re-initialises, the stranger's stay
+    rejected."""
+
+    def run(checks_track: bool) -> tuple[list[Any], dict[str, Any], Any]:
+        s = parse_scenario(_scenario(duration_s=30.0))
+        truth = TruthGenerator(s)
+        inputs = saturated_inputs(ideal_inputs(s, truth), 10.0, 0.05)
+        cfg = FusionConfig(
+            estimators=DEFAULT_ESTIMATORS, output_every=40, gnss_reset_checks_track=checks_track
+        )
+        core = FusionCore.for_scenario(s, cfg)
+        out = []
+        for m in inputs:
+            out += core.push(m, "receiver")
+            if isinstance(m, GnssFix) and 8e9 <= m.stamp_ns < 20e9:
+                pos = [m.pos_ned_m[0] + 500.0, *m.pos_ned_m[1:]]
+                lat = m.lat_deg + 500.0 / 111_194.9
+                spoof = msgspec.structs.replace(
+                    m, seq=m.seq + 10**6, stamp_ns=m.stamp_ns + 1, pos_ned_m=pos, lat_deg=lat
+                )
+                out += core.push(spoof, "stranger")
+        out += core.flush()
+        ekf = [o for o in out if o.estimator == "ekf15"]
+        t = np.array([o.stamp_ns for o in ekf])
+        h = np.hypot(*(np.array([o.pos_ned_m for o in ekf])[:, :2] - truth.sample(t).pos_ned_m[:, :2]).T)
+        events = [(e.kind, e.stamp_ns / 1e9, json.loads(e.detail)) for e in core.take_gate_events()]
+        return events, core.status_counters(), (t, h)
+
+    events, counters, (t, h) = run(True)
+    resets = [(when, d["reason"]) for k, when, d in events if k == "gnss_integrity_reacquired"]
+    assert len(resets) == 1 and resets[0][1] == "imu_fault" and 10.05 < resets[0][0] <= 10.25, events
+    assert float(np.max(h[t >= 13e9])) < GNSS_SIGMA_M
+    assert counters["gnss_gate.rejected.ekf15"] >= 100  # the stranger's fixes, 8-20 s
+    events_before, _c, (t0, h0) = run(False)
+    # before: no reset at the fault (the 30 s of rule 3 end past this run), ekf15 drifting
+    assert not any(k == "gnss_integrity_reacquired" for k, _w, _d in events_before), events_before
+    assert float(np.max(h0[(t0 >= 13e9) & (t0 < 25e9)])) > 500.0
