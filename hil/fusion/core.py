@@ -404,7 +404,7 @@ class FusionCore:
         # reset levels on their mean specific force (``gnss_reset_accel``)
         self._clean_rows: deque[tuple[int, tuple[float, ...]]] = deque(maxlen=_CLEAN_ROWS_MAX)
         # the GNSS fixes taken in, (stamp, velocity), newest last: the velocity's rate at a reset
-        self._recent_fixes: deque[tuple[int, Any]] = deque(maxlen=_RECENT_FIXES_MAX)
+        self._recent_fixes: deque[tuple[int, Any, str]] = deque(maxlen=_RECENT_FIXES_MAX)
         # the stamp of each GNSS publisher's last fix taken in (the rate rule)
         self._gnss_min_gap_ns = 0
         if self.receiver is not None and cfg.gnss_min_interval > 0:
@@ -868,7 +868,7 @@ class FusionCore:
             if ins_nav is None:  # no IMU step yet: the initial state
                 ins_nav = self._ins_nav = self._sd.LazyNavState(self._ins, self._origin)
             reset = self.gate.reset if self.gate is not None and msg.sensor == "gnss" else ()
-            accel = self._gnss_accel(data) if reset and self.config.gnss_reset_accel else None
+            accel = self._gnss_accel(data, source) if reset and self.config.gnss_reset_accel else None
             if reset and self.config.gnss_reset_free_ins:
                 self._reset_free_ins(data, accel)
                 ins_nav = self._ins_nav
@@ -888,9 +888,9 @@ class FusionCore:
                     self._fail(name, err)
         if msg.sensor == "gnss":
             self._last_gnss_seq = msg.seq
-            self._recent_fixes.append((data.stamp_ns, data.vel_ned_mps))
+            self._recent_fixes.append((data.stamp_ns, data.vel_ned_mps, source))
 
-    def _gnss_accel(self, fix: Any) -> tuple[float, float, float] | None:
+    def _gnss_accel(self, fix: Any, source: str = "") -> tuple[float, float, float] | None:
         """The acceleration the GNSS velocity shows at ``fix`` and over the ``RESET_ACCEL_SPAN_NS``
         before it, or one and a half receiver periods where that is longer (``velocity_rate``;
         None: levelled on a = 0). The receiver's velocity is not the
@@ -898,7 +898,8 @@ class FusionCore:
         # at least the fix before it: a 1 Hz receiver's last second holds one fix
         period = self.receiver.period_ns if self.receiver is not None else 0
         since = fix.stamp_ns - max(RESET_ACCEL_SPAN_NS, 3 * period // 2)
-        fixes = [f for f in self._recent_fixes if since <= f[0] < fix.stamp_ns]
+        # the reset fix's publisher's alone: a stranger's velocities beside it are no witness
+        fixes = [(t, v) for t, v, src in self._recent_fixes if since <= t < fix.stamp_ns and src == source]
         fixes.append((fix.stamp_ns, fix.vel_ned_mps))
         # at the middle of the samples the free INS levels on
         return velocity_rate(fixes, fix.vel_sigma_mps, self._last_imu_ns - RESET_LEVEL_WINDOW_NS // 2)
