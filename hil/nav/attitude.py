@@ -273,9 +273,37 @@ def velocity_rate(
     """The acceleration shown by GNSS velocities ``(stamp_ns, vel_ned)`` (oldest first), at
     ``at_ns`` (default the last fix's stamp): each axis's least-squares slope -- the mean over the
     fixes, half their span late -- with its horizontal part turned on by the track's turn rate to
-    ``at_ns`` (in a 12 °/s turn the mean lags 6°: 0.5 m/s² of its 5 m/s²). None with fewer than two
-    fixes, when they span no time, or when no axis's slope stands ``RESET_ACCEL_SIGNIFICANCE`` σ
-    (from ``vel_sigma_mps`` and the fixes' spread in time) out of zero."""
+    ``at_ns`` (in a 12 °/s turn the mean lags 6°: 0.5 m/s² of its 5 m/s²). An acceleration that
+    changed within the fixes (a fit whose residuals stand out of the velocity noise:
+    ``_changed``) is taken again from the newer half of them, down to three. None with fewer than
+    two fixes, when they span no time, or when no axis's slope stands ``RESET_ACCEL_SIGNIFICANCE``
+    σ (from ``vel_sigma_mps`` and the fixes' spread in time) out of zero."""
+    while True:
+        fit = _velocity_fit(fixes, vel_sigma_mps)
+        if fit is None or len(fixes) < 6 or not fit[2]:
+            break
+        fixes = fixes[len(fixes) // 2 :]
+    if fit is None:
+        return None
+    a, turn_rate, _changed, significant, tm = fit
+    if not significant:
+        return None
+    if turn_rate is not None:
+        t0 = fixes[-1][0]
+        turn = turn_rate * (((t0 if at_ns is None else at_ns) - t0) * 1e-9 - tm)
+        c, s_ = math.cos(turn), math.sin(turn)
+        a = [c * a[0] - s_ * a[1], s_ * a[0] + c * a[1], a[2]]
+    return (a[0], a[1], a[2])
+
+
+def _velocity_fit(
+    fixes: Sequence[tuple[int, Sequence[float]]], vel_sigma_mps: Sequence[float]
+) -> tuple[list[float], float | None, bool, bool, float] | None:
+    """The least-squares line through each axis's velocities: its slopes, the track's turn rate
+    (None below ``RESET_TRACK_MIN_SPEED_MPS``), whether the residuals say the acceleration changed
+    (an axis's χ² beyond its dof by ``4 sqrt(2 dof)``: in a turn at 12 °/s over a second the
+    curvature stays within it), whether a slope is significant, and the fixes' mean time (s, from
+    the last). None with fewer than two fixes or none spread in time."""
     n = len(fixes)
     if n < 2:
         return None
@@ -286,23 +314,29 @@ def velocity_rate(
     if stt <= 0.0:
         return None
 
-    def slope(values: list[float]) -> float:
+    def line(values: list[float]) -> tuple[float, float]:
         vm = sum(values) / n
-        return sum((t - tm) * (v - vm) for t, v in zip(ts, values, strict=True)) / stt
+        slope = sum((t - tm) * (v - vm) for t, v in zip(ts, values, strict=True)) / stt
+        return slope, sum((v - vm - slope * (t - tm)) ** 2 for t, v in zip(ts, values, strict=True))
 
-    a = [slope([float(v[axis]) for _, v in fixes]) for axis in range(3)]
-    bound = RESET_ACCEL_SIGNIFICANCE / math.sqrt(stt)
-    if all(abs(x) <= bound * float(s) for x, s in zip(a, vel_sigma_mps, strict=True)):
-        return None
+    a, changed, significant = [], False, False
+    dof = n - 2
+    for axis in range(3):
+        slope, rss = line([float(v[axis]) for _, v in fixes])
+        sigma = float(vel_sigma_mps[axis])
+        if dof > 0 and sigma > 0.0 and rss / (sigma * sigma) > dof + 4.0 * math.sqrt(2.0 * dof):
+            changed = True
+        if abs(slope) > RESET_ACCEL_SIGNIFICANCE * sigma / math.sqrt(stt):
+            significant = True
+        a.append(slope)
+    turn_rate = None
     if all(math.hypot(float(v[0]), float(v[1])) >= RESET_TRACK_MIN_SPEED_MPS for _, v in fixes):
         track = [math.atan2(float(v[1]), float(v[0])) for _, v in fixes]
         unwrapped = [track[0]]
         for x in track[1:]:
             unwrapped.append(unwrapped[-1] + _wrap(x - unwrapped[-1]))
-        turn = slope(unwrapped) * (((t0 if at_ns is None else at_ns) - t0) * 1e-9 - tm)
-        c, s_ = math.cos(turn), math.sin(turn)
-        a[0], a[1] = c * a[0] - s_ * a[1], s_ * a[0] + c * a[1]
-    return (a[0], a[1], a[2])
+        turn_rate = line(unwrapped)[0]
+    return a, turn_rate, changed, significant, tm
 
 
 def levelled_attitude(

@@ -149,3 +149,21 @@ def test_the_gnss_velocitys_rate_in_a_turn_and_in_noise() -> None:
     ]
     assert att.velocity_rate(quiet, [0.2, 0.2, 0.2]) is None
     assert att.velocity_rate(fixes[:1], [0.2, 0.2, 0.2]) is None
+
+
+def test_the_gnss_velocitys_rate_after_the_acceleration_changed_is_the_new_one() -> None:
+    """QA (session 36): 8 m/s² forward, then 8 m/s² braking from half a second before the last
+    fix: the line through the second's velocities has a slope near zero, and the free INS was
+    levelled 28° off. Its residuals stand far out of the 0.2 m/s noise, so the rate is taken again
+    from the newer half: the braking's."""
+    fixes = []
+    for k in range(11):
+        t = k * 0.1
+        v = 50.0 + 8.0 * min(t, 0.45) - 8.0 * max(0.0, t - 0.45)
+        fixes.append((round(t * 1e9), [v, 0.0, 0.0]))
+    a = att.velocity_rate(fixes, [0.2, 0.2, 0.2])
+    assert a is not None and abs(a[0] + 8.0) < 0.5 and abs(a[1]) < 1e-9, a
+    # a steady acceleration keeps the whole second (its line fits): the same 8 m/s² either way
+    steady = [(round(k * 1e8), [50.0 - 0.8 * k, 0.0, 0.0]) for k in range(11)]
+    b = att.velocity_rate(steady, [0.2, 0.2, 0.2])
+    assert b is not None and abs(b[0] + 8.0) < 1e-9
