@@ -274,11 +274,25 @@ def _clean_up(
 _GRACE_S = float(os.environ.get("HIL_TEST_LEFTOVER_GRACE_S", "5"))
 
 
+def _signal_handlers() -> dict[str, Any]:
+    return {name: signal.getsignal(getattr(signal, name)) for name in ("SIGINT", "SIGTERM")}
+
+
 @pytest.fixture(autouse=True)
 def _no_leftovers(request: pytest.FixtureRequest) -> Iterator[None]:
     procs, sessions, threads = _descendants(), _open_sessions(), _live_threads()
+    handlers = _signal_handlers()
     yield
     problems = _clean_up(procs, sessions, threads, grace_s=_GRACE_S)
+    changed = [
+        f"{name} handler {handlers[name]!r} -> {h!r}"
+        for name, h in _signal_handlers().items()
+        if h != handlers[name]
+    ]
+    if changed:  # code run in-process must give the signals back: a library user's Ctrl-C too
+        for name, h in handlers.items():
+            signal.signal(getattr(signal, name), h)
+        problems += changed
     if problems:
         pytest.fail(f"{request.node.nodeid} left behind: " + " | ".join(problems), pytrace=False)
 

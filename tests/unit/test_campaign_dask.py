@@ -306,10 +306,16 @@ def test_local_workers_ignore_sigint_the_driver_alone_takes_ctrl_c(cluster: Any,
     (`cluster`: the module's keeps the resource tracker started, as in the killed-worker test.)"""
     from hil.campaign.driver import connect
 
-    client, own, _what = connect(DriverOptions(out_dir=tmp_path, workers=1, progress=False))
+    # the premise, set here: a driver that takes Ctrl-C (a pytest-xdist worker once reached this
+    # test with SIGINT ignored, and the workers would then inherit that whatever connect did)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        assert set(client.run(_sigint_disposition).values()) == {"ignored"}
+        client, own, _what = connect(DriverOptions(out_dir=tmp_path, workers=1, progress=False))
+        try:
+            assert set(client.run(_sigint_disposition).values()) == {"ignored"}
+        finally:
+            client.close()
+            own.close()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the driver's, restored
     finally:
-        client.close()
-        own.close()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the driver's, restored
+        signal.signal(signal.SIGINT, before)
