@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     # cantools (~0.1 s of CPU at import) reads the DBC once, in from_dbc: after the service
     # said it is ready (the node is built on the run's announcement, before time zero)
     import cantools
+    import numpy as np
 
 DEVICE_TIME_BITS = 48
 DEVICE_TIME_MODULO = 1 << DEVICE_TIME_BITS
@@ -492,9 +493,8 @@ class ImuCanCodec:
         except Exception:  # re-raised precisely by _quantise_checked below
             fast = False
         if fast:
-            g0 = g1 = g2 = s0 = s1 = s2 = 0
-        else:
-            a0, a1, a2, v0, v1, v2, g0, g1, g2, s0, s1, s2 = self._quantise_checked(dtheta_b_rad, dvel_b_mps)
+            return self._emit(t, st, a0, a1, a2, v0, v1, v2)
+        a0, a1, a2, v0, v1, v2, g0, g1, g2, s0, s1, s2 = self._quantise_checked(dtheta_b_rad, dvel_b_mps)
         raws = (t, st, a0, a1, a2, v0, v1, v2, g0, g1, g2, s0, s1, s2)
         if self._last_status != st or self.samples_encoded % self.status_every == 0:
             out = [self.encode_status(st)]
@@ -502,8 +502,40 @@ class ImuCanCodec:
         else:
             out = self._encode_frames(self._tx_counter, *raws)
         self.samples_encoded += 1
-        self.saturated_samples += int(not fast and (g0 or g1 or g2 or s0 or s1 or s2))
+        self.saturated_samples += int(g0 or g1 or g2 or s0 or s1 or s2)
         return out
+
+    def _emit(
+        self, t: int, st: int, a0: int, a1: int, a2: int, v0: int, v1: int, v2: int
+    ) -> list[can.Message]:
+        """The frames of a sample whose six raw deltas are within full scale (none saturated)."""
+        if self._last_status != st or self.samples_encoded % self.status_every == 0:
+            out = [self.encode_status(st)]
+            out += self._encode_frames(self._tx_counter, t, st, a0, a1, a2, v0, v1, v2, 0, 0, 0, 0, 0, 0)
+        else:
+            out = self._encode_frames(self._tx_counter, t, st, a0, a1, a2, v0, v1, v2, 0, 0, 0, 0, 0, 0)
+        self.samples_encoded += 1
+        return out
+
+    def quantise_block(
+        self, dtheta_b_rad: np.ndarray, dvel_b_mps: np.ndarray
+    ) -> list[tuple[int, ...] | None]:
+        """Each row's six raw deltas as ``encode_sample`` rounds them (``np.rint`` is round half
+        to even on the same quotient as ``round``), or None where one is not finite or beyond
+        full scale (that sample goes the checked way): a block of samples in one numpy pass."""
+        import numpy as np
+
+        lsb_a, lsb_v, max_a, max_v = self._q
+        with np.errstate(invalid="ignore", over="ignore"):
+            ra = np.rint(np.asarray(dtheta_b_rad, dtype=np.float64) / lsb_a)
+            rv = np.rint(np.asarray(dvel_b_mps, dtype=np.float64) / lsb_v)
+            ok = (np.abs(ra) <= max_a).all(axis=1) & (np.abs(rv) <= max_v).all(axis=1)  # NaN: False
+        raws = np.where(ok[:, None], np.hstack((ra, rv)), 0.0).astype(np.int64).tolist()
+        return [tuple(r) if good else None for r, good in zip(raws, ok.tolist(), strict=True)]
+
+    def encode_quantised(self, device_stamp_ns: int, raws: tuple[int, ...]) -> list[can.Message]:
+        """``encode_sample`` of a sample whose raw deltas ``quantise_block`` gave (status 0)."""
+        return self._emit(self._time_raw(device_stamp_ns), 0, *raws)
 
     @property
     def _raw_max_angle(self) -> int:

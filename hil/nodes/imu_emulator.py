@@ -77,6 +77,10 @@ class ImuEmulatorNode(Node):
         self.k = 0  # samples done; sample k ends at (k+1)*dt
         self._batch: Any = None
         self._i = 0
+        self._t_true: list[int] = []
+        self._stamps: list[int] = []  # the block's device stamps, computed at clock revision:
+        self._stamps_revision = -1
+        self._raws: list[tuple[int, ...] | None] = []  # the block's raw deltas (None: checked way)
         self._commands: list[FaultCommand] = []
         self._not_sent: dict[str, int] = {}
 
@@ -132,21 +136,30 @@ class ImuEmulatorNode(Node):
         if self._batch is None or self._i >= len(self._batch.t_ns):
             t_end = ((self.k + 1) * self.dt_ns // BLOCK_NS + 1) * BLOCK_NS
             n = min(self.n_total, (t_end - 1) // self.dt_ns) - self.k
-            self._batch = self.core.next_batch(max(1, n))
+            b = self._batch = self.core.next_batch(max(1, n))
             self._i = 0
+            # the block's device stamps and raw deltas in one numpy pass each, as the per-sample
+            # calls would give them (the stamps until a commanded clock step makes them stale)
+            self._t_true = b.t_ns.tolist()
+            self._stamps = self.clock.device_ns_array(b.t_ns).tolist()
+            self._stamps_revision = self.clock.revision
+            self._raws = self.codec.quantise_block(b.dtheta_b_rad, b.dvel_b_mps)
         b, i = self._batch, self._i
         self._i += 1
-        return int(b.t_ns[i]), b.dtheta_b_rad[i], b.dvel_b_mps[i]
+        return self._t_true[i], b.dtheta_b_rad[i], b.dvel_b_mps[i]
 
     def _sample(self, now_ns: int, outs: list[Out]) -> None:
         k = self.k
         t_true, dtheta, dvel = self._next_increments()
+        i = self._i - 1
         if self._commands:
             self._take_commands(t_true, outs)
         for edge, f in self.faults.timeline.edges(t_true):
             outs.append(self.event(edge, fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin), t_true))
         act = self.faults.apply(k, t_true, dtheta, dvel)
-        dev = self.clock.device_ns(t_true)
+        dev = (
+            self._stamps[i] if self._stamps_revision == self.clock.revision else self.clock.device_ns(t_true)
+        )
         if act.corrupt_frames:
             self.corruptor.arm(act.corrupt_frames)
         if act.send and (k + 1) % self.sync_every == 0:
@@ -163,9 +176,14 @@ class ImuEmulatorNode(Node):
                 burst.corrupted = self.corruptor.pending > 0  # _release corrupts it now if so
                 outs.append(self._release(burst))
         # encoded even when not sent: the device's counters and SampleCount advance
+        raws = self._raws[i] if act.dtheta_b_rad is dtheta and act.dvel_b_mps is dvel else None
         try:
-            frames: list[Any] | None = self.codec.encode_sample(
-                device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
+            frames: list[Any] | None = (
+                self.codec.encode_sample(
+                    device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
+                )
+                if raws is None
+                else self.codec.encode_quantised(dev, raws)
             )
         except (EncodeError, TypeError, ValueError) as err:
             self.error("tx_encode_errors", f"sample not encodable: {err}")

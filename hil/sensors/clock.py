@@ -227,6 +227,13 @@ def _log_ufunc() -> np.ufunc:
     return np.frompyfunc(math.log, 1, 1)
 
 
+@cache
+def _cos_ufunc() -> np.ufunc:
+    import numpy as np
+
+    return np.frompyfunc(math.cos, 1, 1)
+
+
 def _gauss_array(key: int, t_ns: np.ndarray) -> np.ndarray:
     import numpy as np
 
@@ -234,8 +241,10 @@ def _gauss_array(key: int, t_ns: np.ndarray) -> np.ndarray:
     h2 = _mix64_array(h1)
     u1 = ((h1 >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
     u2 = (h2 >> np.uint64(11)).astype(np.float64) * 2.0**-53
-    # math.log elementwise: numpy's log is SIMD-dispatched per CPU, and this must equal _gauss_of
-    return np.sqrt(-2.0 * np.asarray(_log_ufunc()(u1), dtype=float)) * np.cos(2.0 * np.pi * u2)
+    # math.log and math.cos elementwise: numpy's are SIMD-dispatched per CPU (their last bit can
+    # differ from libm's), and this must equal _gauss_of on every machine: hil sim stamps with it
+    cos = np.asarray(_cos_ufunc()(2.0 * math.pi * u2), dtype=float)
+    return np.sqrt(-2.0 * np.asarray(_log_ufunc()(u1), dtype=float)) * cos
 
 
 @dataclass
@@ -252,6 +261,7 @@ class DeviceClock:
     _cum_ppm_s: np.ndarray = field(init=False, repr=False)  # ∫ wander up to k s
     _key_stamp: int = field(init=False, repr=False)
     _key_latch: int = field(init=False, repr=False)
+    revision: int = field(default=0, init=False)  # steps added: stamps computed ahead are stale
 
     def __post_init__(self) -> None:
         import numpy as np
@@ -320,7 +330,8 @@ class DeviceClock:
         return self._q_ns
 
     def device_ns_array(self, true_ns: np.ndarray) -> np.ndarray:
-        """Vectorised :meth:`device_ns` (identical results), for benches and tests."""
+        """Vectorised :meth:`device_ns` (identical results): the IMU emulator's stamps a block
+        ahead (stale once ``revision`` moves), benches and tests."""
         import numpy as np
 
         t = np.asarray(true_ns, dtype=np.int64)
@@ -340,6 +351,7 @@ class DeviceClock:
     def add_step(self, t_ns: int, step_ns: int) -> None:
         """A clock step from now on (a commanded ``clock_step`` fault)."""
         self._steps = sorted([*self._steps, (int(t_ns), int(step_ns))])
+        self.revision += 1
 
     def latch_ns(self, true_ns: int) -> int:
         """The rig clock's latch of a time-tag edge at true instant ``true_ns`` (latch jitter)."""

@@ -388,3 +388,41 @@ def test_a_dbc_without_saturation_flags_is_refused_when_loaded_naming_them(tmp_p
     dbc.write_text("\n".join(line for line in text.splitlines() if "GyroSatY" not in line))
     with pytest.raises(CodecError, match="GyroSatY"):
         ImuCanCodec.from_dbc(dbc)
+
+
+def test_a_block_quantised_ahead_gives_the_frames_of_sample_by_sample(codec: ImuCanCodec) -> None:
+    """The IMU emulator rounds a second of samples in one numpy pass: ties at half an LSB,
+    values at and beyond full scale, NaN and inf must come out as ``encode_sample``'s, the rows
+    it cannot take (None) going the checked way there."""
+    twin = ImuCanCodec.from_dbc(fd=codec.fd)
+    rng = np.random.default_rng(SEED)
+    lsb_a, lsb_v = codec.dtheta_lsb_rad, codec.dvel_lsb_mps
+    dth = rng.normal(0.0, 2e-4, (64, 3))
+    dv = rng.normal(0.0, 2e-2, (64, 3))
+    dth[1] = np.array([0.5, 1.5, -2.5]) * lsb_a  # ties: half to even
+    dv[2] = np.array([0.5, -0.5, 3.5]) * lsb_v
+    dth[3, 0] = codec.dtheta_max_rad  # at full scale: in
+    dth[4, 1] = codec.dtheta_max_rad * 1.5  # beyond: saturated
+    dv[5, 2] = -codec.dvel_max_mps * 2
+    dth[6, 2], dv[7, 0], dv[8, 1] = np.nan, np.inf, -np.inf
+    raws = codec.quantise_block(dth, dv)
+    assert [i for i, r in enumerate(raws) if r is None] == [4, 5, 6, 7, 8]
+    for i in range(64):
+        dev = 1_000_000_000 + i * 2_500_000
+        try:
+            want = [
+                (f.arbitration_id, bytes(f.data))
+                for f in twin.encode_sample(device_stamp_ns=dev, dtheta_b_rad=dth[i], dvel_b_mps=dv[i])
+            ]
+        except EncodeError:
+            assert raws[i] is None and i in (6, 7, 8)
+            continue
+        r = raws[i]
+        got = (
+            codec.encode_quantised(dev, r)
+            if r is not None
+            else codec.encode_sample(device_stamp_ns=dev, dtheta_b_rad=dth[i], dvel_b_mps=dv[i])
+        )
+        assert [(f.arbitration_id, bytes(f.data)) for f in got] == want, i
+    assert codec.samples_encoded == twin.samples_encoded == 61
+    assert codec.saturated_samples == twin.saturated_samples == 2

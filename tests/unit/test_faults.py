@@ -154,3 +154,39 @@ def test_a_line_burst_of_no_whole_sensible_size_is_refused_as_command_and_as_eve
 def test_a_line_burst_within_the_bound_is_taken() -> None:
     check_fault("gnss_line_burst", "", {"bytes": 300.0})
     check_fault("gnss_line_burst", "", {})  # the default, 64
+
+
+def test_a_clock_step_commanded_mid_block_stamps_as_the_clock_model_does() -> None:
+    """The IMU emulator stamps a second of samples ahead; a commanded step makes those stale:
+    from its sample on, the stamps are the clock model's with the step, sample by sample."""
+    import numpy as np
+
+    from hil.can.codec import ImuCanCodec, ImuFrameAssembler
+    from hil.messages import FaultCommand, Param
+    from hil.nav.scenario import scenario_for_run
+    from hil.nodes.base import CAN_TX
+    from hil.nodes.imu_emulator import ImuEmulatorNode, ImuEmulatorOptions
+    from hil.runners.sim import SimOptions, sim_run_info
+    from hil.sensors.clock import device_clock_for
+
+    run = sim_run_info(SimOptions(scenario="static", duration_s=3.0))
+    node = ImuEmulatorNode(run, ImuEmulatorOptions())
+    asm = ImuFrameAssembler(ImuCanCodec.from_dbc())
+    stamps: list[int] = []
+    t = node.next_tick_ns()
+    while t is not None:
+        if t == 1_502_500_000:  # mid-block: 1.5 s into the second block
+            cmd = FaultCommand(
+                seq=0, stamp_ns=t, kind="clock_step", target="imu", params=[Param(key="step_s", value=0.25)]
+            )
+            node.on_message("control/fault", cmd, t)
+        for key, burst in node.tick(t):
+            if key == CAN_TX:
+                stamps += [
+                    s.device_stamp_ns for f in burst.frames for s in asm.feed(f) if hasattr(s, "dtheta_b_rad")
+                ]
+        t = node.next_tick_ns()
+    clock = device_clock_for(scenario_for_run(run), "imu")
+    t_true = np.arange(1, len(stamps) + 1, dtype=np.int64) * node.dt_ns
+    want = [clock.device_ns(int(x)) + (250_000_000 if x >= 1_502_500_000 else 0) for x in t_true]
+    assert len(stamps) == 1200 and stamps == want
