@@ -171,9 +171,19 @@ class FusionConfig:
         return cls(estimators=tuple(m.estimators), feedback=tuple(m.feedback), **fields)
 
 
+_INF = math.inf
+
+
 def implausible(msg: Measurement, cfg: FusionConfig) -> str:
     """Why an input cannot be a measurement ("" if it can): non-finite or absurd values."""
     if isinstance(msg, ImuSample):
+        d, v, m, n = msg.dtheta_b_rad, msg.dvel_b_mps, cfg.max_dtheta_rad, cfg.max_dvel_mps
+        if (  # the common case, unrolled: a chained comparison is False for NaN and, m finite, inf
+            m < _INF and n < _INF and len(d) == 3 and len(v) == 3
+            and -m <= d[0] <= m and -m <= d[1] <= m and -m <= d[2] <= m
+            and -n <= v[0] <= n and -n <= v[1] <= n and -n <= v[2] <= n
+        ):  # fmt: skip
+            return ""
         if not all(math.isfinite(v) and abs(v) <= cfg.max_dtheta_rad for v in msg.dtheta_b_rad):
             return "dtheta"
         if not all(math.isfinite(v) and abs(v) <= cfg.max_dvel_mps for v in msg.dvel_b_mps):

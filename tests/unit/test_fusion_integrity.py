@@ -145,3 +145,50 @@ def test_ekf_reconverges_within_10_s_after_gnss_returns() -> None:
 def test_variable_structure_filter_restarts_its_schedule_when_gnss_returns() -> None:
     r = _run()
     assert r["health"]["compvs"]["restarts"] == r["compvs_restarts_in_outage"] + 1  # type: ignore[index,operator]
+
+
+def test_an_imu_sample_is_implausible_exactly_when_a_value_is_not_finite_or_beyond_its_bound() -> None:
+    """``implausible``'s unrolled common case against its definition, value by value: at and just
+    beyond each bound, NaN, both infinities, with finite and infinite bounds."""
+    import itertools
+    import math
+
+    from hil.fusion.core import implausible
+    from hil.messages import ImuSample
+
+    def reference(d: list[float], v: list[float], cfg: FusionConfig) -> str:
+        if not all(math.isfinite(x) and abs(x) <= cfg.max_dtheta_rad for x in d):
+            return "dtheta"
+        if not all(math.isfinite(x) and abs(x) <= cfg.max_dvel_mps for x in v):
+            return "dvel"
+        return ""
+
+    odd = [
+        0.0,
+        1.0,
+        -1.0,
+        math.nextafter(1.0, 2.0),
+        -100.0,
+        math.nextafter(100.0, 200.0),
+        math.nan,
+        math.inf,
+        -math.inf,
+    ]
+    seen = set()
+    for cfg in (FusionConfig(), FusionConfig(max_dtheta_rad=math.inf, max_dvel_mps=math.inf)):
+        for x, y, axis in itertools.product(odd, odd, range(3)):
+            d, v = [0.1, -0.1, 0.0], [1.0, 2.0, -3.0]
+            d[axis], v[2 - axis] = x, y
+            msg = ImuSample(
+                seq=0,
+                stamp_ns=0,
+                device_stamp_ns=0,
+                rx_stamp_ns=0,
+                dt_ns=2_500_000,
+                dtheta_b_rad=d,
+                dvel_b_mps=v,
+            )
+            got = implausible(msg, cfg)
+            assert got == reference(d, v, cfg), (d, v, cfg.max_dtheta_rad)
+            seen.add(got)
+    assert seen == {"", "dtheta", "dvel"}
