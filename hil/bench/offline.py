@@ -22,6 +22,13 @@ done; wall time says what the second core gave, and only on a machine with a cor
 a time limit (``--timeout``) and its own process group: one still going then is killed with its
 worker, and the bench stops with a line that names it.
 
+``--instructions S`` also counts, with valgrind's cachegrind, the instructions each process of
+each tree's ``hil sim`` executes (the sim's own process and its forked worker), for an S-second
+sim less a 2-second one (the start-up), per rig second. A count does not move with the machine's
+speed or load, so both trees run at once, and a change of a few percent shows where time
+ratios on a VM whose speed moves by a third within minutes cannot: the process with the larger
+count is the one the sim's wall time waits for.
+
 The two trees' recordings are compared topic by topic (log time, publish time, sequence, payload:
 what ``tools/recording_diff.py`` compares). ``--profile`` adds each tree's cProfile top entries
 of one ``hil sim``.
@@ -34,6 +41,7 @@ import contextlib
 import hashlib
 import os
 import pstats
+import shutil
 import signal
 import subprocess
 import sys
@@ -189,6 +197,79 @@ def run_pair(
     return recs
 
 
+_COUNT_BASE_S = 2.0  # the counted sim's start-up and first windows, taken off each count
+
+
+def _sim_instructions(tree: Path, sim_args: list[str], rig_s: float, tmp: Path) -> subprocess.Popen[bytes]:
+    """``hil sim`` of ``rig_s`` under cachegrind (instructions only), started: each process
+    (the sim's own, its forked worker) writes its count to ``tmp/<label>.<pid>``."""
+    args = list(sim_args)
+    args[args.index("--duration") + 1] = f"{rig_s:g}"
+    out = tmp / f"cg-{rig_s:g}"
+    out.mkdir(exist_ok=True)
+    argv = ["valgrind", "--tool=cachegrind", "--cache-sim=no", f"--cachegrind-out-file={out}/%p"]
+    argv += [sys.executable, "-c", _RUN, "sim", *args, "--record", str(out / "sim.mcap"), "--quiet"]
+    return subprocess.Popen(
+        argv,
+        cwd=tree,
+        env=_env(tree),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+def _counts(out: Path, pid: int) -> tuple[int, int]:
+    """(the sim's own process, its workers) instructions from cachegrind's files in ``out``."""
+    own = workers = 0
+    for f in out.iterdir():
+        if not f.name.isdigit():
+            continue
+        ir = next((int(x.split()[1]) for x in f.read_text().splitlines() if x.startswith("summary:")), 0)
+        if int(f.name) == pid:
+            own += ir
+        else:
+            workers += ir
+    return own, workers
+
+
+def count_instructions(
+    trees: list[Tree], sim_args: list[str], rig_s: float, tmp: Path, timeout_s: float
+) -> list[str]:
+    """Each tree's ``hil sim`` of ``rig_s`` and of ``_COUNT_BASE_S`` under cachegrind, both trees at
+    once (a count does not depend on what else runs: the figure for a VM whose speed moves by
+    a third within minutes); per process, the instructions of the rig seconds in between."""
+    runs: dict[tuple[str, float], tuple[subprocess.Popen[bytes], Path]] = {}
+    # a first short run, not counted: valgrind's virtual CPU is not the host's, so numba's cache
+    # and the kernels built ahead of time for the host are not used the first time (compiling
+    # them was ~50 G instructions of a worker)
+    for dur in (-_COUNT_BASE_S, _COUNT_BASE_S, rig_s):
+        for t in trees:
+            d = tmp / f"count-{'ref' if t is trees[0] else 'head'}{'-warm' if dur < 0 else ''}"
+            d.mkdir(exist_ok=True)
+            runs[(t.label, dur)] = (_sim_instructions(t.path, sim_args, abs(dur), d), d / f"cg-{abs(dur):g}")
+        for t in trees:
+            proc, _ = runs[(t.label, dur)]
+            status, _ru = _wait(proc, timeout_s)
+            if status is None or os.waitstatus_to_exitcode(status) not in (0, 1):
+                raise RuntimeError(f"hil sim under cachegrind in {t.path} failed or did not finish")
+    per: dict[str, tuple[float, float]] = {}
+    for t in trees:
+        (p1, d1), (p0, d0) = runs[(t.label, rig_s)], runs[(t.label, _COUNT_BASE_S)]
+        (o1, w1), (o0, w0) = _counts(d1, p1.pid), _counts(d0, p0.pid)
+        n = rig_s - _COUNT_BASE_S
+        per[t.label] = ((o1 - o0) / n, (w1 - w0) / n)
+    (ro, rw), (ho, hw) = per[trees[0].label], per[trees[1].label]
+    g = 1e-6
+    return [
+        f"| process | {trees[0].label} M instructions per rig s | this tree | ratio |",
+        "| --- | ---: | ---: | ---: |",
+        f"| the sim's own | {ro * g:.1f} | {ho * g:.1f} | {ho / ro:.3f} |",
+        f"| its worker | {rw * g:.1f} | {hw * g:.1f} | {hw / rw if rw else float('nan'):.3f} |",
+        f"| both | {(ro + rw) * g:.1f} | {(ho + hw) * g:.1f} | {(ho + hw) / (ro + rw):.3f} |",
+    ]
+
+
 def profile_top(tree: Path, hil_args: list[str], tmp: Path, n: int) -> list[str]:
     """cProfile of one ``hil ...`` run by ``tree``: the top ``n`` functions by own time.
 
@@ -274,11 +355,26 @@ def main(argv: list[str]) -> int:
         help="kill a run still going after S seconds and stop with exit 1 (default: 600 + 20 s per rig s)",
     )
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="add each tree's top N (cProfile)")
+    ap.add_argument(
+        "--instructions",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="also count each tree's instructions per rig second of an S-second sim under valgrind's "
+        "cachegrind, per process (needs valgrind; ~2 s of wall time per rig second)",
+    )
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/benchmarks.md alone")
     ap.add_argument("--section", default="offline", help="the docs/benchmarks.md section to write")
     a = ap.parse_args(argv)
     if a.duration <= 0 or a.repeat < 1:
         print("hil bench offline: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
+        return 2
+    if a.instructions and (a.instructions <= _COUNT_BASE_S or shutil.which("valgrind") is None):
+        why = "valgrind is not installed (apt install valgrind)" if a.instructions > _COUNT_BASE_S else ""
+        print(
+            f"hil bench offline: --instructions needs {why or f'more than {_COUNT_BASE_S:g} rig s'}",
+            file=sys.stderr,
+        )
         return 2
     if a.timeout is not None and a.timeout <= 0:
         print("hil bench offline: --timeout must be > 0 seconds", file=sys.stderr)
@@ -336,12 +432,17 @@ def main(argv: list[str]) -> int:
                 if kept is not None:
                     first_ref = kept
             profiles = run_profiles(trees, sim_args, first_ref, tmp, a.profile) if a.profile else []
+            counted = (
+                count_instructions(trees, sim_args, a.instructions, tmp, 120.0 + 10.0 * a.instructions)
+                if a.instructions
+                else []
+            )
         except RuntimeError as err:
             print(f"hil bench offline: {err}", file=sys.stderr)
             return 1
         finally:
             remove_ref_tree(ref_path)
-    body = report(a, trees, sim_args, (load0[0], os.getloadavg()[0]), same, differ, profiles)
+    body = report(a, trees, sim_args, (load0[0], os.getloadavg()[0]), same, differ, profiles, counted)
     print(body)
     if not a.no_write:
         write_section(a.section, body, command_line())
@@ -356,6 +457,7 @@ def report(
     same: list[str],
     differ: list[str],
     profiles: list[tuple[str, list[str]]],
+    counted: list[str] | None = None,
 ) -> str:
     verify = ", ".join(
         f"{t.label} {'failed ' + '/'.join(t.verify_failed) if t.verify_failed else 'bit-identical'}"
@@ -380,6 +482,15 @@ def report(
         f"payload); differing or in one only: {', '.join(differ) or 'none'}. Rerun --verify of "
         f"{trees[0].label}'s recording: {verify}.",
     ]
+    if counted:
+        lines += [
+            "",
+            f"Instructions (valgrind's cachegrind) of `hil sim` with `--duration {a.instructions:g}`, less "
+            f"those of `--duration {_COUNT_BASE_S:g}` (start-up), per rig second: the work itself, whatever "
+            "the machine's speed or load.",
+            "",
+            *counted,
+        ]
     for label, top in profiles:
         lines += ["", f"cProfile of {label}, top {a.profile} by own time:"]
         lines += ["", *top]

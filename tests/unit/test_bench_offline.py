@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -39,6 +42,7 @@ def test_digests_tell_a_changed_payload_from_equal_ones(tmp_path: Path) -> None:
         ["HEAD", "--duration", "1", "--estimators", "ins,ekf16"],
         ["HEAD", "--duration", "1", "--imu-rate", "5"],
         ["HEAD", "--duration", "1", "--timeout", "0"],
+        ["HEAD", "--duration", "1", "--instructions", "2"],
     ],
 )
 def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
@@ -48,8 +52,9 @@ def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], capsys: pytest.C
 
 
 def test_a_ref_tree_is_timed_with_its_kernels_already_compiled(tmp_path: Path) -> None:
-    """REF's fresh worktree has no numba cache: ``warm_kernels`` fills it before anything is
-    timed (else REF's first timed run pays the ~10 s compile and its mean favours this tree)."""
+    """REF's fresh worktree has no numba cache and no kernels built ahead of time: ``warm_kernels``
+    makes both before anything is timed (else REF's first timed run pays the ~10 s compile and
+    its mean favours this tree, and REF runs numba's kernels where this tree runs its own)."""
     from hil.bench.versus import ref_tree, remove_ref_tree, warm_kernels
 
     tree = ref_tree("HEAD", tmp_path)
@@ -58,6 +63,8 @@ def test_a_ref_tree_is_timed_with_its_kernels_already_compiled(tmp_path: Path) -
         warm_kernels(tree)
         cached = {p.name.split(".")[0] for p in tree.rglob("*.nbi")}
         assert {"strapdown", "kernels", "predictor"} <= cached, cached
+        if shutil.which("cc") or shutil.which("gcc"):  # built as make builds them, as this tree's are
+            assert list((tree / "hil" / "runtime" / "__pycache__").glob("hil_kernels_*.so"))
     finally:
         remove_ref_tree(tree)
 
@@ -112,3 +119,24 @@ def test_hil_bench_of_what_is_not_a_benchmark_is_one_line_naming_them(
     assert (
         "offline" in listed and "rig" in listed and "seeds_common" not in listed and "capture" not in listed
     )
+
+
+@pytest.mark.skipif(shutil.which("valgrind") is None, reason="needs valgrind (.ci/run installs it)")
+def test_instructions_are_counted_per_process_the_forked_worker_apart(tmp_path: Path) -> None:
+    """``--instructions`` reads cachegrind's count of each process: the forked child's work is
+    the worker's, not the sim's own process's."""
+    code = (
+        "import os\npid = os.fork()\nif pid == 0:\n    sum(range(3_000_000))\n    os._exit(0)\n"
+        "os.waitpid(pid, 0)\n"
+    )
+    argv = ["valgrind", "--tool=cachegrind", "--cache-sim=no", f"--cachegrind-out-file={tmp_path}/%p"]
+    proc = subprocess.Popen([*argv, sys.executable, "-S", "-c", code], stderr=subprocess.DEVNULL)
+    try:
+        assert proc.wait(timeout=300) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    own, worker = offline._counts(tmp_path, proc.pid)
+    assert len(list(tmp_path.iterdir())) == 2
+    assert own > 1_000_000 and worker > own + 30_000_000  # ~3e6 additions of Python ints: > 10 each
