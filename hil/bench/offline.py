@@ -240,19 +240,27 @@ def count_instructions(
     once (a count does not depend on what else runs: the figure for a VM whose speed moves by
     a third within minutes); per process, the instructions of the rig seconds in between."""
     runs: dict[tuple[str, float], tuple[subprocess.Popen[bytes], Path]] = {}
-    # a first short run, not counted: valgrind's virtual CPU is not the host's, so numba's cache
-    # and the kernels built ahead of time for the host are not used the first time (compiling
-    # them was ~50 G instructions of a worker)
+    # a first short run, not counted: a tree that runs numba's kernels (none built ahead of time)
+    # finds its cache keyed to the host's CPU, which valgrind's virtual one is not, and compiles
+    # them in its first run (seen: ~50 G instructions of a worker)
     for dur in (-_COUNT_BASE_S, _COUNT_BASE_S, rig_s):
-        for t in trees:
-            d = tmp / f"count-{'ref' if t is trees[0] else 'head'}{'-warm' if dur < 0 else ''}"
-            d.mkdir(exist_ok=True)
-            runs[(t.label, dur)] = (_sim_instructions(t.path, sim_args, abs(dur), d), d / f"cg-{abs(dur):g}")
-        for t in trees:
-            proc, _ = runs[(t.label, dur)]
-            status, _ru = _wait(proc, timeout_s)
-            if status is None or os.waitstatus_to_exitcode(status) not in (0, 1):
-                raise RuntimeError(f"hil sim under cachegrind in {t.path} failed or did not finish")
+        started: list[subprocess.Popen[bytes]] = []
+        try:
+            for t in trees:
+                d = tmp / f"count-{'ref' if t is trees[0] else 'head'}{'-warm' if dur < 0 else ''}"
+                d.mkdir(exist_ok=True)
+                started.append(_sim_instructions(t.path, sim_args, abs(dur), d))
+                runs[(t.label, dur)] = (started[-1], d / f"cg-{abs(dur):g}")
+            for t, proc in zip(trees, started, strict=True):
+                status, _ru = _wait(proc, timeout_s)
+                if status is None or os.waitstatus_to_exitcode(status) not in (0, 1):
+                    raise RuntimeError(f"hil sim under cachegrind in {t.path} failed or did not finish")
+        finally:  # one failed or this process was interrupted: the other tree's run goes too
+            for proc in started:
+                if proc.returncode is None and proc.poll() is None:
+                    with contextlib.suppress(ProcessLookupError, PermissionError):
+                        os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait()
     per: dict[str, tuple[float, float]] = {}
     for t in trees:
         (p1, d1), (p0, d0) = runs[(t.label, rig_s)], runs[(t.label, _COUNT_BASE_S)]

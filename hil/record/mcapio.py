@@ -128,6 +128,11 @@ class _ChunkCrcError(Exception):
     """A chunk whose decompressed records do not match its CRC."""
 
 
+class _IndexMismatch(Exception):
+    """A message index that cannot be its chunk's: badly framed, or an entry outside the chunk's
+    time span or data (an indexed reader, Foxglove's, would seek there)."""
+
+
 def no_run_message(name: str, records: Any) -> str:
     """Why a rerun found no run: a later part of a split recording (the run is announced in the
     first), a file cut off before it, or not a rig session."""
@@ -493,6 +498,7 @@ def _u64(ns: int) -> int:
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # the record length counts what follows opcode and length
 _OP_MESSAGE = int(Opcode.MESSAGE)  # an enum member's lookup, once
+_OP_MESSAGE_INDEX = int(Opcode.MESSAGE_INDEX)
 
 
 @functools.cache
@@ -1344,6 +1350,8 @@ def _iter_items(
             raise unsupported_compression(path, reader.at, str(err).split(": ")[-1]) from None
         except _ChunkCrcError:
             raise damaged(path, reader.at, "a chunk that fails its CRC") from None
+        except _IndexMismatch:
+            raise damaged(path, reader.at, "a message index that does not fit its chunk") from None
         except Exception as err:  # McapError, EOF, zstd errors on a half-written chunk and similar
             what = f"{type(err).__name__}: {err}".rstrip(": ")
             if is_finished(path):  # a closed file has no half-written tail: this is damage
@@ -1383,6 +1391,7 @@ class _FastReader:
         self.n = 0
         self.at = 0  # the byte offset of the record being read (where damage is reported)
         self.schemas: dict[int, Schema] = {}
+        self._last_chunk: tuple[int, int, int] | None = None  # start, end, size: its indexes follow
         # channel id -> (topic, schema name, publisher, origin); None: a channel left out
         # (derived, or a foreign one ``keep`` leaves out), _SKIPPED: one whose log times count
         self.channels: dict[int, tuple[str, str, str, str] | None] = {}
@@ -1432,6 +1441,8 @@ class _FastReader:
         if part is not None:
             stop = part.stop
         read, head, tell = self._read, _RECORD_HEAD, self.fh.tell
+        indexes: list[bytes] = []  # the message indexes after the last chunk, checked together
+        indexes_at = 0
         while True:
             self.at = tell()
             if stop is not None and self.at >= stop:
@@ -1442,6 +1453,15 @@ class _FastReader:
                 raise RecordLengthLimitExceeded(opcode, length, _RECORD_SIZE_LIMIT)
             body = read(length)
             self._count()
+            if opcode == _OP_MESSAGE_INDEX:
+                if not indexes:
+                    indexes_at = self.at
+                indexes.append(body)
+                continue
+            if indexes:  # what followed the chunk before this record were its indexes
+                here, self.at = self.at, indexes_at  # damage is said at the first of them
+                self._check_indexes(indexes)
+                self.at, indexes = here, []
             if opcode == Opcode.CHUNK:
                 yield "messages", self._chunk(body)
             elif opcode == Opcode.MESSAGE:
@@ -1461,7 +1481,7 @@ class _FastReader:
                     raise InvalidMagic(MAGIC)
                 yield from self.tail()
                 return
-            # message indexes, chunk indexes, statistics, ...: nothing iter_records gives
+            # chunk indexes, statistics, ...: nothing iter_records gives
 
     def _definition(self, opcode: int, body: bytes) -> None:
         if opcode == Opcode.SCHEMA:
@@ -1470,8 +1490,33 @@ class _FastReader:
         else:
             self._channel(Channel.read(_stream(body)))
 
+    def _check_indexes(self, bodies: list[bytes]) -> None:
+        """The message indexes that followed a chunk, against it: each framed as its length says,
+        each entry's log time within the chunk's span and its offset within the chunk's records.
+        The data itself is read, not the index; but a file whose index is damaged is damaged.
+        All of a chunk's at once, in one numpy pass: reading a uav_survey 120 s file spent 24 ms
+        on them (~1 % of its reading; one index at a time took 81 ms)."""
+        unpack, n_data = struct.unpack_from, 0
+        for body in bodies:
+            if len(body) < 6:
+                raise _IndexMismatch()
+            (n,) = unpack("<I", body, 2)
+            if 6 + n != len(body) or n % 16:
+                raise _IndexMismatch()
+            n_data += n
+        if self._last_chunk is None or n_data == 0:  # the second half's first records: no chunk
+            return
+        import numpy as np
+
+        start, end, size = self._last_chunk
+        pairs = np.frombuffer(b"".join([b[6:] for b in bodies]), "<u8").reshape(-1, 2)
+        times, offsets = pairs[:, 0], pairs[:, 1]
+        if int(times.min()) < start or int(times.max()) > end or int(offsets.max()) >= size:
+            raise _IndexMismatch()
+
     def _chunk(self, body: bytes) -> list[Record]:
-        _start, _end, size, crc, n_comp = _CHUNK_HEAD.unpack_from(body, 0)
+        start, end, size, crc, n_comp = _CHUNK_HEAD.unpack_from(body, 0)
+        self._last_chunk = (start, end, size)
         at = _CHUNK_HEAD.size
         compression = str(body[at : at + n_comp], "utf-8")
         at += n_comp

@@ -158,3 +158,45 @@ def test_short_records_at_a_chunks_end_whole_and_cut_at_every_byte(tmp_path: Pat
     for n in range(len(data)):
         cut.write_bytes(data[:n])
         assert list(_ours(cut)) == list(_reference(cut)), n
+
+
+def _first_message_index(data: bytes) -> int:
+    """The offset of the first message index record (after the first chunk) in a finished file."""
+    import struct
+
+    pos = 8
+    while pos < len(data):
+        op, n = struct.unpack_from("<BQ", data, pos)
+        if op == 0x07:
+            return pos
+        pos += 9 + n
+    raise AssertionError("no message index")
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["an entry's offset past the chunk", "an entry's log time before the chunk", "the entries' length"],
+)
+def test_a_damaged_message_index_is_a_damaged_file(recording: Path, tmp_path: Path, damage: str) -> None:
+    """The data is read, not the index, but an indexed reader (Foxglove's) seeks by it: a finished
+    file whose index cannot be its chunk's is damaged, at that record, as a failed chunk CRC is."""
+    import struct
+
+    from hil.record.mcapio import DamagedRecordingError
+
+    data = bytearray(recording.read_bytes())
+    at = _first_message_index(bytes(data))
+    body = at + 9  # channel id (2), entries' length (4), then (log time, offset) pairs
+    if damage == "an entry's offset past the chunk":
+        struct.pack_into("<Q", data, body + 6 + 8, 2**40)
+    elif damage == "an entry's log time before the chunk":
+        struct.pack_into("<Q", data, body + 6, 1)
+    else:
+        struct.pack_into("<I", data, body + 2, struct.unpack_from("<I", data, body + 2)[0] - 16)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    assert list(_ours(recording))[-1][0] != "truncated"  # the original reads whole
+    with pytest.raises(
+        DamagedRecordingError, match=rf"damaged at byte {at}\b.*a message index that does not fit its chunk"
+    ):
+        list(iter_records(bad))
