@@ -204,7 +204,7 @@ _COUNT_BASE_S = 2.0  # the counted sim's start-up and first windows, taken off e
 
 def _sim_instructions(tree: Path, sim_args: list[str], rig_s: float, tmp: Path) -> subprocess.Popen[bytes]:
     """``hil sim`` of ``rig_s`` under cachegrind (instructions only), started: each process
-    (the sim's own, its forked worker) writes its count to ``tmp/<label>.<pid>``."""
+    (the sim's own, its forked worker) writes its count to ``tmp/cg-<rig_s>/<pid>``."""
     args = list(sim_args)
     args[args.index("--duration") + 1] = f"{rig_s:g}"
     out = tmp / f"cg-{rig_s:g}"
@@ -241,18 +241,18 @@ def count_instructions(
     """Each tree's ``hil sim`` of ``rig_s`` and of ``_COUNT_BASE_S`` under cachegrind, both trees at
     once (a count does not depend on what else runs: the figure for a VM whose speed moves by
     a third within minutes); per process, the instructions of the rig seconds in between."""
-    runs: dict[tuple[str, float], tuple[subprocess.Popen[bytes], Path]] = {}
+    runs: dict[tuple[str, str], tuple[subprocess.Popen[bytes], Path]] = {}
     # a first short run, not counted: a tree that runs numba's kernels (none built ahead of time)
     # finds its cache keyed to the host's CPU, which valgrind's virtual one is not, and compiles
     # them in its first run (seen: ~50 G instructions of a worker)
-    for dur in (-_COUNT_BASE_S, _COUNT_BASE_S, rig_s):
+    for stage, dur in (("warm", _COUNT_BASE_S), ("base", _COUNT_BASE_S), ("counted", rig_s)):
         started: list[subprocess.Popen[bytes]] = []
         try:
             for t in trees:
-                d = tmp / f"count-{'ref' if t is trees[0] else 'head'}{'-warm' if dur < 0 else ''}"
+                d = tmp / f"count-{'ref' if t is trees[0] else 'head'}-{stage}"
                 d.mkdir(exist_ok=True)
-                started.append(_sim_instructions(t.path, sim_args, abs(dur), d))
-                runs[(t.label, dur)] = (started[-1], d / f"cg-{abs(dur):g}")
+                started.append(_sim_instructions(t.path, sim_args, dur, d))
+                runs[(t.label, stage)] = (started[-1], d / f"cg-{dur:g}")
             for t, proc in zip(trees, started, strict=True):
                 status, _ru = _wait(proc, timeout_s)
                 if status is None or os.waitstatus_to_exitcode(status) not in (0, 1):
@@ -265,7 +265,7 @@ def count_instructions(
                     proc.wait()
     per: dict[str, tuple[float, float]] = {}
     for t in trees:
-        (p1, d1), (p0, d0) = runs[(t.label, rig_s)], runs[(t.label, _COUNT_BASE_S)]
+        (p1, d1), (p0, d0) = runs[(t.label, "counted")], runs[(t.label, "base")]
         (o1, w1), (o0, w0) = _counts(d1, p1.pid), _counts(d0, p0.pid)
         n = rig_s - _COUNT_BASE_S
         per[t.label] = ((o1 - o0) / n, (w1 - w0) / n)
@@ -379,12 +379,11 @@ def main(argv: list[str]) -> int:
     if a.duration <= 0 or a.repeat < 1:
         print("hil bench offline: --duration must be > 0 and --repeat >= 1", file=sys.stderr)
         return 2
-    if a.instructions and (a.instructions <= _COUNT_BASE_S or shutil.which("valgrind") is None):
-        why = "valgrind is not installed (apt install valgrind)" if a.instructions > _COUNT_BASE_S else ""
-        print(
-            f"hil bench offline: --instructions needs {why or f'more than {_COUNT_BASE_S:g} rig s'}",
-            file=sys.stderr,
-        )
+    if a.instructions and a.instructions <= _COUNT_BASE_S:
+        print(f"hil bench offline: --instructions needs more than {_COUNT_BASE_S:g} rig s", file=sys.stderr)
+        return 2
+    if a.instructions and shutil.which("valgrind") is None:
+        print("hil bench offline: --instructions needs valgrind (apt install valgrind)", file=sys.stderr)
         return 2
     if a.timeout is not None and a.timeout <= 0:
         print("hil bench offline: --timeout must be > 0 seconds", file=sys.stderr)

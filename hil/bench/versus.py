@@ -149,9 +149,10 @@ def _cpu(side: Side, name: str) -> float:
 def warm_kernels(tree: Path) -> None:
     """The tree's compiled kernels as on a machine that has run the rig before: built ahead of
     time where its revision has them (``python -m hil.runtime.aot``, as ``make`` does), else in
-    numba's cache (``hil.runtime.jit``): REF's fresh worktree would otherwise compile them (~10 s of CPU) in
-    its first timed run, whose mean then favoured this tree (until 2026-12-05: the sim rows of the
-    sections before ``offline-session21``, where REF's cache was cold, carry that bias)."""
+    numba's cache (``hil.runtime.jit``): REF's fresh worktree would otherwise compile them
+    (~10 s of CPU) in its first timed run, whose mean then favoured this tree (until 2026-12-05:
+    the sim rows of the sections before ``offline-session21``, where REF's cache was cold,
+    carry that bias)."""
     code = "from hil.runtime import jit; jit.enable(); print(getattr(jit, 'source', lambda: '')())"
     r = subprocess.run(
         [sys.executable, "-c", code], env=_env(tree), cwd=tree, check=False, capture_output=True, text=True

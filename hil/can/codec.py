@@ -495,25 +495,17 @@ class ImuCanCodec:
         if fast:
             return self._emit(t, st, a0, a1, a2, v0, v1, v2)
         a0, a1, a2, v0, v1, v2, g0, g1, g2, s0, s1, s2 = self._quantise_checked(dtheta_b_rad, dvel_b_mps)
-        raws = (t, st, a0, a1, a2, v0, v1, v2, g0, g1, g2, s0, s1, s2)
-        if self._last_status != st or self.samples_encoded % self.status_every == 0:
-            out = [self.encode_status(st)]
-            out += self._encode_frames(self._tx_counter, *raws)
-        else:
-            out = self._encode_frames(self._tx_counter, *raws)
-        self.samples_encoded += 1
         self.saturated_samples += int(g0 or g1 or g2 or s0 or s1 or s2)
-        return out
+        return self._emit(t, st, a0, a1, a2, v0, v1, v2, g0, g1, g2, s0, s1, s2)
 
-    def _emit(
-        self, t: int, st: int, a0: int, a1: int, a2: int, v0: int, v1: int, v2: int
-    ) -> list[can.Message]:
-        """The frames of a sample whose six raw deltas are within full scale (none saturated)."""
-        if self._last_status != st or self.samples_encoded % self.status_every == 0:
-            out = [self.encode_status(st)]
-            out += self._encode_frames(self._tx_counter, t, st, a0, a1, a2, v0, v1, v2, 0, 0, 0, 0, 0, 0)
-        else:
-            out = self._encode_frames(self._tx_counter, t, st, a0, a1, a2, v0, v1, v2, 0, 0, 0, 0, 0, 0)
+    def _emit(self, t: int, st: int, *raws: int) -> list[can.Message]:
+        """The frames of a sample from its raw values (six deltas, then the six saturation flags:
+        none given, none set), the status frame first when due."""
+        if len(raws) == 6:
+            raws += (0, 0, 0, 0, 0, 0)
+        due = self._last_status != st or self.samples_encoded % self.status_every == 0
+        out = [self.encode_status(st)] if due else []
+        out += self._encode_frames(self._tx_counter, t, st, *raws)
         self.samples_encoded += 1
         return out
 

@@ -349,7 +349,7 @@ class GnssGate:
         self._alarm(tr, gnss.stamp_ns, publisher, ok)
         return ok
 
-    def _reacquire_reason(self, tr: GateTrack, gnss: GnssInput, ok: bool, publisher: str = "") -> str:
+    def _reacquire_reason(self, tr: GateTrack, gnss: GnssInput, ok: bool, publisher: str) -> str:
         """Why this fix re-initialises the navigation (rule 4): "imu_fault" (a flagged IMU sample
         since the last fix taken) or "rejected" (rejection for too long); "held" if it must wait
         (within the settle after the fault), "off_track" if it is to be rejected whatever the INS
@@ -432,7 +432,7 @@ class GnssGate:
         tr.reject_since_ns = None
         tr.rejected_by.clear()
 
-    def _rejected(self, tr: GateTrack, stamp_ns: int, publisher: str = "") -> None:
+    def _rejected(self, tr: GateTrack, stamp_ns: int, publisher: str) -> None:
         tr.rejected += 1
         if tr.reject_since_ns is None:
             tr.reject_since_ns = stamp_ns

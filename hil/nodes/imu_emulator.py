@@ -78,7 +78,7 @@ class ImuEmulatorNode(Node):
         self._batch: Any = None
         self._i = 0
         self._t_true: list[int] = []
-        self._stamps: list[int] = []  # the block's device stamps, computed at clock revision:
+        self._stamps: list[int] = []  # the block's device stamps, at clock revision _stamps_revision
         self._stamps_revision = -1
         self._raws: list[tuple[int, ...] | None] = []  # the block's raw deltas (None: checked way)
         self._commands: list[FaultCommand] = []
@@ -132,7 +132,8 @@ class ImuEmulatorNode(Node):
                 self.corruptor(frame)
         return CAN_TX, burst
 
-    def _next_increments(self) -> tuple[int, Any, Any]:
+    def _next_increments(self) -> tuple[int, int, Any, Any]:
+        """The next sample's index in its block, true time and increments."""
         if self._batch is None or self._i >= len(self._batch.t_ns):
             t_end = ((self.k + 1) * self.dt_ns // BLOCK_NS + 1) * BLOCK_NS
             n = min(self.n_total, (t_end - 1) // self.dt_ns) - self.k
@@ -146,12 +147,11 @@ class ImuEmulatorNode(Node):
             self._raws = self.codec.quantise_block(b.dtheta_b_rad, b.dvel_b_mps)
         b, i = self._batch, self._i
         self._i += 1
-        return self._t_true[i], b.dtheta_b_rad[i], b.dvel_b_mps[i]
+        return i, self._t_true[i], b.dtheta_b_rad[i], b.dvel_b_mps[i]
 
     def _sample(self, now_ns: int, outs: list[Out]) -> None:
         k = self.k
-        t_true, dtheta, dvel = self._next_increments()
-        i = self._i - 1
+        i, t_true, dtheta, dvel = self._next_increments()
         if self._commands:
             self._take_commands(t_true, outs)
         for edge, f in self.faults.timeline.edges(t_true):
