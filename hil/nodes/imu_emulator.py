@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from hil.can.codec import EncodeError, ImuCanCodec
+from hil.can.codec import EncodeError, ImuCanCodec, PreparedFrames
 from hil.faults import (
     IMU_FAULTS,
     DelayLine,
@@ -81,6 +81,7 @@ class ImuEmulatorNode(Node):
         self._stamps: list[int] = []  # the block's device stamps, at clock revision _stamps_revision
         self._stamps_revision = -1
         self._raws: list[tuple[int, ...] | None] = []  # the block's raw deltas (None: checked way)
+        self._prepared: PreparedFrames | None = None  # the block's frames, encoded ahead
         self._commands: list[FaultCommand] = []
         self._not_sent: dict[str, int] = {}
 
@@ -142,9 +143,12 @@ class ImuEmulatorNode(Node):
             # the block's device stamps and raw deltas in one numpy pass each, as the per-sample
             # calls would give them (the stamps until a commanded clock step makes them stale)
             self._t_true = b.t_ns.tolist()
-            self._stamps = self.clock.device_ns_array(b.t_ns).tolist()
+            stamps = self.clock.device_ns_array(b.t_ns)
+            self._stamps = stamps.tolist()
             self._stamps_revision = self.clock.revision
-            self._raws = self.codec.quantise_block(b.dtheta_b_rad, b.dvel_b_mps)
+            # and the frames' words (counters, signals, CRCs), as encode_quantised would make them
+            self._prepared = self.codec.prepare_block(stamps, b.dtheta_b_rad, b.dvel_b_mps)
+            self._raws = self._prepared.raws
         b, i = self._batch, self._i
         self._i += 1
         return i, self._t_true[i], b.dtheta_b_rad[i], b.dvel_b_mps[i]
@@ -157,9 +161,8 @@ class ImuEmulatorNode(Node):
         for edge, f in self.faults.timeline.edges(t_true):
             outs.append(self.event(edge, fault_detail(f.kind, f.t0_ns, f.t1_ns, f.params, f.origin), t_true))
         act = self.faults.apply(k, t_true, dtheta, dvel)
-        dev = (
-            self._stamps[i] if self._stamps_revision == self.clock.revision else self.clock.device_ns(t_true)
-        )
+        fresh = self._stamps_revision == self.clock.revision
+        dev = self._stamps[i] if fresh else self.clock.device_ns(t_true)
         if act.corrupt_frames:
             self.corruptor.arm(act.corrupt_frames)
         if act.send and (k + 1) % self.sync_every == 0:
@@ -178,13 +181,15 @@ class ImuEmulatorNode(Node):
         # encoded even when not sent: the device's counters and SampleCount advance
         raws = self._raws[i] if act.dtheta_b_rad is dtheta and act.dvel_b_mps is dvel else None
         try:
-            frames: list[Any] | None = (
-                self.codec.encode_sample(
+            frames: list[Any] | None = None
+            if raws is None:
+                frames = self.codec.encode_sample(
                     device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
                 )
-                if raws is None
-                else self.codec.encode_quantised(dev, raws)
-            )
+            elif fresh:  # the block's words, made with this stamp (None: stale, encoded here)
+                frames = self.codec.encode_prepared(self._prepared, i)  # type: ignore[arg-type]
+            if frames is None and raws is not None:
+                frames = self.codec.encode_quantised(dev, raws)
         except (EncodeError, TypeError, ValueError) as err:
             self.error("tx_encode_errors", f"sample not encodable: {err}")
             frames = None

@@ -426,3 +426,65 @@ def test_a_block_quantised_ahead_gives_the_frames_of_sample_by_sample(codec: Imu
         assert [(f.arbitration_id, bytes(f.data)) for f in got] == want, i
     assert codec.samples_encoded == twin.samples_encoded == 61
     assert codec.saturated_samples == twin.saturated_samples == 2
+
+
+def test_a_block_encoded_ahead_sends_the_frames_of_sample_by_sample(codec: ImuCanCodec) -> None:
+    """The IMU emulator encodes a second of classic frames ahead (words, counters, CRCs in numpy):
+    each sample sent from the block must be the frames ``encode_sample`` makes in turn --
+    across the counter's wrap, the status frame's turns (every 40th, and after a status change),
+    a device time past the 48-bit wrap, and the rows the block cannot take (sent the checked
+    way in between without making the rest stale); after a sample refused as not encodable, whose
+    counters did not advance, the rest is stale and goes the usual way. CAN FD is not prepared."""
+    twin = ImuCanCodec.from_dbc(fd=codec.fd)
+    rng = np.random.default_rng(SEED)
+    n = 90
+    dth = rng.normal(0.0, 2e-4, (n, 3))
+    dv = rng.normal(0.0, 2e-2, (n, 3))
+    dth[4, 1] = codec.dtheta_max_rad * 1.5  # saturated: not prepared
+    dv[85, 0] = np.nan  # not encodable, refused both ways: nothing advances, the rest is stale
+    dev = [(1 << 48) - 30 * 2_500_000 + i * 2_500_000 for i in range(n)]  # wraps at sample 30
+    block = codec.prepare_block(np.array(dev, dtype=np.int64), dth, dv)
+    assert block.raws == codec.quantise_block(dth, dv)
+    prepared = 0
+    for i in range(n):
+        status = 3 if i == 20 else 0  # a status change: the next sample repeats the status frame
+        try:
+            want = [
+                (f.arbitration_id, bytes(f.data))
+                for f in twin.encode_sample(
+                    device_stamp_ns=dev[i], dtheta_b_rad=dth[i], dvel_b_mps=dv[i], status=status
+                )
+            ]
+        except EncodeError:
+            assert i == 85 and block.raws[i] is None
+            with pytest.raises(EncodeError):
+                codec.encode_sample(device_stamp_ns=dev[i], dtheta_b_rad=dth[i], dvel_b_mps=dv[i])
+            continue
+        got = codec.encode_prepared(block, i) if status == 0 else None
+        if got is None:
+            got = codec.encode_sample(
+                device_stamp_ns=dev[i], dtheta_b_rad=dth[i], dvel_b_mps=dv[i], status=status
+            )
+        else:
+            prepared += 1
+        assert [(f.arbitration_id, bytes(f.data)) for f in got] == want, i
+    assert codec.samples_encoded == twin.samples_encoded == n - 1
+    if codec.fd:
+        assert block.words is None and prepared == 0
+    else:
+        assert prepared == 83  # 0..84 but the saturated one and the status change
+
+
+def test_a_stale_block_is_refused_and_changes_nothing() -> None:
+    """A block prepared before its samples' counters moved some other way is stale: refused, no
+    counter or sample count advanced (the emulator then encodes the sample itself)."""
+    codec = ImuCanCodec.from_dbc()
+    dth, dv = np.full((3, 3), 1e-4), np.full((3, 3), 1e-2)
+    stamps = np.arange(3, dtype=np.int64) * 2_500_000
+    old = codec.prepare_block(stamps, dth, dv)
+    new = codec.prepare_block(stamps, dth, dv)
+    assert codec.encode_prepared(new, 0) is not None  # the counters move on from the same start
+    counters, encoded = dict(codec._tx_counter), codec.samples_encoded
+    assert codec.encode_prepared(old, 0) is None
+    assert codec._tx_counter == counters and codec.samples_encoded == encoded
+    assert codec.encode_prepared(old, 1) is not None  # sample 1's words: the counters now
