@@ -63,6 +63,7 @@ class CanBridgeNode(Node):
         opts: CanBridgeOptions = self.options  # type: ignore[assignment]
         self.channel = opts.channel
         self.raw_key = f"can/{self.channel}"
+        self._publish_raw = opts.publish_raw
         self.codec = ImuCanCodec.from_dbc(opts.dbc, fd=opts.fd)
         self.assembler = ImuFrameAssembler(self.codec)
         rate = opts.rate_hz
@@ -97,14 +98,19 @@ class CanBridgeNode(Node):
         """``key`` ``@can/<channel>``: a frame read off the bus, received at rig time ``now_ns``."""
         if not key.startswith(CAN_RX):
             return []
-        outs: list[Out] = []
-        if self.options.publish_raw:  # type: ignore[attr-defined]
-            outs.append((self.raw_key, can_frame_msg(self.next_seq(self.raw_key), now_ns, self.channel, msg)))
+        outs: list[Out]
+        if self._publish_raw:
+            raw_key, seqs = self.raw_key, self._seqs
+            n = seqs.get(raw_key, 0)  # next_seq, inline: once per frame read
+            seqs[raw_key] = n + 1
+            outs = [(raw_key, can_frame_msg(self._seq_base | n, now_ns, self.channel, msg))]
+        else:
+            outs = []
         if self.dut is not None and msg.arbitration_id in self._dut_ids:
             self._dut_frame(msg, now_ns, outs)
             return outs
-        items = self.assembler.feed(msg)
         asm = self.assembler
+        items = asm.feed(msg)
         if asm.problems != self._seen_problems:
             self._seen_problems = asm.problems
             kind, detail = asm.last_problem
