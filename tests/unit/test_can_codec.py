@@ -369,6 +369,22 @@ def test_unrolled_crc_expression_equals_p01_crc(frame_length: int) -> None:
             assert crc_of(int.from_bytes(data, "little")) == e2e.p01_crc(0x1A5, data, data_length)
 
 
+@pytest.mark.parametrize("frame_length", [2, 5, 8])
+def test_the_crc_of_a_block_of_words_equals_p01_crc(frame_length: int) -> None:
+    """The numpy CRC the emulator's blocks use: every data length (odd ones end on a single
+    byte), the bytes past the data length set, a Data ID with both bytes set."""
+    rng = np.random.default_rng(SEED + 5)
+    data = rng.integers(0, 256, (200, frame_length), dtype=np.uint8)
+    padded = np.zeros((200, 8), dtype=np.uint8)
+    padded[:, :frame_length] = data
+    words = padded.view("<u8").ravel()
+    for data_length in range(2, frame_length + 1):
+        got = e2e.p01_crc_array(0x1A5, data_length, frame_length, words).tolist()
+        assert got == [e2e.p01_crc(0x1A5, bytes(row), data_length) for row in data]
+    with pytest.raises(ValueError, match="over 8 bytes"):
+        e2e.p01_crc_array(0x1A5, 9, 9, words)
+
+
 def test_decoded_sample_fast_constructor_is_the_dataclass() -> None:
     from hil.can.codec import _new_sample
 
