@@ -186,8 +186,8 @@ class ImuEmulatorNode(Node):
                 frames = self.codec.encode_sample(
                     device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
                 )
-            elif fresh:  # the block's words, made with this stamp (None: stale, encoded here)
-                frames = self.codec.encode_prepared(self._prepared, i)  # type: ignore[arg-type]
+            elif fresh and self._prepared is not None:  # the block's words, made with this stamp
+                frames = self.codec.encode_prepared(self._prepared, i)  # None: stale, encoded below
             if frames is None and raws is not None:
                 frames = self.codec.encode_quantised(dev, raws)
         except (EncodeError, TypeError, ValueError) as err:

@@ -47,24 +47,17 @@ class CanWireModel:
 
     def arrivals(self, burst: CanBurst, t_emit_ns: int) -> list[tuple[int, Any]]:
         """``(rx_ns, frame)`` of each frame of ``burst``, which left at ``t_emit_ns``."""
-        ft = CAN_FRAME_TIME_NS
-        frames = burst.frames
         if burst.sync:
             self._sync_capture = burst.capture_ns
-            nom = self._latch.latch_ns(burst.capture_ns) + self.latency_ns + ft
+            nominal = [self._latch.latch_ns(burst.capture_ns) + self.latency_ns + CAN_FRAME_TIME_NS]
         else:
             t_burst = t_emit_ns + self.latency_ns + round(self._extra_ns(burst.index))
             first = 1 if self._sync_capture == burst.capture_ns else 0  # behind its sync frame
-            nom = t_burst + (first + 1) * ft
-            if not frames:
-                return []
-        # each frame's nominal arrival one frame time after the one before; the bus is FIFO
-        last = self.last_rx_ns
+            nominal = [t_burst + (j + 1) * CAN_FRAME_TIME_NS for j in range(first, first + len(burst.frames))]
         out: list[tuple[int, Any]] = []
-        for frame in frames if not burst.sync else frames[:1]:
-            last = nom if nom > last + ft else last + ft
-            frame.timestamp = last * 1e-9  # python-can's receive stamp (rig seconds here)
-            out.append((last, frame))
-            nom += ft
-        self.last_rx_ns = last
+        for nom, frame in zip(nominal, burst.frames, strict=False):
+            rx = max(nom, self.last_rx_ns + CAN_FRAME_TIME_NS)  # the bus is FIFO
+            self.last_rx_ns = rx
+            frame.timestamp = rx * 1e-9  # python-can's receive stamp (rig seconds here)
+            out.append((rx, frame))
         return out
