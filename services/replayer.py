@@ -14,6 +14,7 @@ import threading
 from typing import Any
 
 from hil.runtime.argtypes import OneLineParser, bounded_float, bounded_int, seconds
+from hil.runtime.signals import EventSetter
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
@@ -110,8 +111,9 @@ def run(a: argparse.Namespace) -> int:
     # must also interrupt the blocking read of the Enter key, so there it stays KeyboardInterrupt.
     sigs = (signal.SIGTERM,) if a.step else (signal.SIGINT, signal.SIGTERM)
     prev = {s: signal.getsignal(s) for s in sigs}
+    setter = EventSetter(stop)  # not stop.set() in the handler: hil.runtime.signals says why
     for s in prev:
-        signal.signal(s, lambda *_: stop.set())
+        signal.signal(s, setter)
     session = open_session()
     bus: Any = None
     line: Any = None
@@ -141,6 +143,7 @@ def run(a: argparse.Namespace) -> int:
     finally:
         for s, h in prev.items():
             signal.signal(s, h)
+        setter.close()  # a signal just before: its stop is set by now
         if bus is not None:
             bus.shutdown()
         if line is not None:

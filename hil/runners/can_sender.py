@@ -48,6 +48,7 @@ from hil.runners.pacing import (
     realtime_priority,
     short_slice,
 )
+from hil.runtime.signals import EventSetter
 
 READY_TIMEOUT_S = 30.0
 
@@ -268,7 +269,7 @@ def main(argv: list[str]) -> int:
     inbox = Connection(int(argv[1]), writable=False)
     out = Connection(int(argv[2]), readable=False)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, EventSetter(stop))  # not stop.set() there: hil.runtime.signals
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops us (Ctrl-C reaches the group)
     try:
         child = _Child(cfg, out, stop)

@@ -40,6 +40,7 @@ from hil.bus.session import BusConfig, open_session
 from hil.messages import Event, Message, RunInfo, ServiceStatus
 from hil.runtime.clock import RigClock
 from hil.runtime.heap import HeapTrimmer
+from hil.runtime.signals import EventSetter
 
 log = logging.getLogger(__name__)
 
@@ -304,9 +305,7 @@ def install_signal_handlers(stop: threading.Event) -> None:
     stderr and lets it run on (``kill -USR1 PID``: where a service that does not stop is stuck;
     the supervisor's log and a test's captured output then hold it)."""
 
-    def handler(_signum: int, _frame: object) -> None:
-        stop.set()
-
+    handler = EventSetter(stop)  # never stop.set() in the handler: hil.runtime.signals says why
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
     faulthandler.register(signal.SIGUSR1, all_threads=True)

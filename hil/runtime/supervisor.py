@@ -37,6 +37,7 @@ from hil.runners.pacing import RIG_CPUS_ENV, pin_process, unpin_process
 from hil.runtime.clock import RigClock
 from hil.runtime.options import fill_options
 from hil.runtime.registry import SERVICES, STOP_STAGES
+from hil.runtime.signals import EventSetter
 
 
 def proc_cpu_seconds(pid: int, tree: bool = True) -> float | None:
@@ -644,6 +645,7 @@ class Supervisor:
         subs.append(Subscriber(session, keys.control("fault"), FaultCommand, self._on_fault, stats))
         self._schedule_scenario_kills()
         prev = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        self._stop_setter = EventSetter(self.stop)  # hil.runtime.signals: never stop.set() there
         for s in prev:
             signal.signal(s, self._on_stop_signal)
         t_start = self._t_start = time.monotonic()
@@ -659,6 +661,7 @@ class Supervisor:
             self._final_accounting()
             for s, h in prev.items():
                 signal.signal(s, h)
+            self._stop_setter.close()
             for sub in subs:
                 sub.undeclare()
             self._event_pub = None
@@ -672,7 +675,7 @@ class Supervisor:
             run = self.view.run
             if run is not None:
                 self.stopped_at_s = RigClock(run.start_epoch_ns, run.speed).now_ns() / 1e9
-        self.stop.set()
+        self._stop_setter()
 
     def stop_line(self) -> str | None:
         """A run a signal cut short of its ``--duration``: when, so the summary says it (the
