@@ -442,6 +442,8 @@ class ImuCanCodec:
             raise CodecError(f"DBC {str(p)!r} not found (set HIL_DBC or pass a path)") from err
         except Exception as err:  # cantools raises several parse error types
             raise CodecError(f"DBC {str(p)!r} does not parse: {err}") from err
+        if not isinstance(db, cantools.database.can.Database):  # (a DBC is read as one)
+            raise CodecError(f"DBC {str(p)!r} is not a CAN database")
         return cls(db, fd=fd, source=str(p))
 
     @property
@@ -469,7 +471,9 @@ class ImuCanCodec:
             return -raw_max, True
         return raw, False
 
-    def _quantise_checked(self, dtheta: Sequence[float], dvel: Sequence[float]) -> list[int]:
+    def _quantise_checked(
+        self, dtheta: Sequence[float] | np.ndarray, dvel: Sequence[float] | np.ndarray
+    ) -> list[int]:
         """Raw deltas then saturation flags (the encoder's order), axis by axis: the first bad
         value met raises, as it always has; the path of saturated or unencodable samples."""
         lsb_a, lsb_v, max_a, max_v = self._q
@@ -494,8 +498,8 @@ class ImuCanCodec:
         self,
         *,
         device_stamp_ns: int,
-        dtheta_b_rad: Sequence[float],
-        dvel_b_mps: Sequence[float],
+        dtheta_b_rad: Sequence[float] | np.ndarray,
+        dvel_b_mps: Sequence[float] | np.ndarray,
         status: int = 0,
     ) -> list[can.Message]:
         """Frames of one sample, in transmission order (status frame first when due).
@@ -561,7 +565,8 @@ class ImuCanCodec:
         with np.errstate(invalid="ignore", over="ignore"):
             ra = np.rint(np.asarray(dtheta_b_rad, dtype=np.float64) / lsb_a)
             rv = np.rint(np.asarray(dvel_b_mps, dtype=np.float64) / lsb_v)
-            ok = (np.abs(ra) <= max_a).all(axis=1) & (np.abs(rv) <= max_v).all(axis=1)  # NaN: False
+            # NaN compares False: not ok
+            ok = np.asarray((np.abs(ra) <= max_a).all(axis=1) & (np.abs(rv) <= max_v).all(axis=1))
         return np.where(ok[:, None], np.hstack((ra, rv)), 0.0).astype(np.int64), ok
 
     def prepare_block(

@@ -911,7 +911,7 @@ def _chunks_at_zstd_level_1() -> None:
     import mcap.writer
 
     if getattr(mcap.writer, "zstandard", None) is not None and mcap.writer.zstandard is not _Zstd1:
-        mcap.writer.zstandard = _Zstd1  # type: ignore[attr-defined]
+        mcap.writer.zstandard = _Zstd1  # type: ignore[attr-defined,assignment]
 
 
 class SessionWriter:
@@ -947,7 +947,8 @@ class SessionWriter:
         self._add_many = appender.add_many if appender is not None and sys.byteorder == "little" else None
         self.queue = MessageQueue()
         self._schemas: dict[str, int] = {}
-        self._channels: dict[tuple[str, str], int] = {}
+        # the contract's channels by (topic, publisher), the Foxglove well-known ones by topic
+        self._channels: dict[tuple[str, str] | str, int] = {}
         self._publishers_per_topic: dict[str, int] = {}
         self._raw_channels: dict[tuple[str, str], int] = {}
         # each Foxglove topic's message count over the session (its parts too): its sequence
@@ -962,14 +963,14 @@ class SessionWriter:
         q = self.queue
         if not q.chans:
             return
-        many = self._add_many is not None and len(q.chans) >= BATCH_MIN
-        columns = self._columns(q) if many else None
-        if columns is None:  # the library's add_message, one at a time, as write() does
+        add_many = self._add_many
+        columns = self._columns(q) if add_many is not None and len(q.chans) >= BATCH_MIN else None
+        if columns is None or add_many is None:  # the library's add_message, one at a time, as write() does
             for c, lg, d, pb, sq in zip(q.chans, q.logs, q.datas, q.pubs, q.seqs, strict=True):
                 self._add_message(c, _u64(lg), d, _u64(pb), sq & 0xFFFFFFFF)
         else:
             logs, pubs, seqs = columns
-            self._add_many(q.chans, logs, q.datas, pubs, seqs)
+            add_many(q.chans, logs, q.datas, pubs, seqs)
         for col in (q.chans, q.logs, q.datas, q.pubs, q.seqs):
             col.clear()
 
@@ -1447,7 +1448,8 @@ class _FastReader:
         if part is not None:
             stop = part.stop
         read, head, tell = self._read, _RECORD_HEAD, self.fh.tell
-        check, indexes = self.check_indexes, []  # the message indexes after the last chunk
+        check = self.check_indexes
+        indexes: list[Any] = []  # the message indexes after the last chunk
         indexes_at = 0
         while True:
             self.at = tell()
@@ -1688,7 +1690,7 @@ class SessionStream:
                             r.recovered = r.publish_time_ns < restarted_ns
                     yield from rec
                 elif kind == "skipped":
-                    prev = self.skipped_tail
+                    prev: tuple[int, int] | None = self.skipped_tail
                     self.skipped_tail = rec if prev is None else (max(prev[0], rec[0]), rec[1])
                 elif kind == "metadata":
                     self.metadata[rec.name] = dict(rec.metadata)

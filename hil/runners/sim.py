@@ -317,7 +317,11 @@ def sim_nodes(run: RunInfo, opts: SimOptions) -> list[Node]:
     world, each sensor's emulator of the sensor table (a CAN device followed by the bridge that
     reads its bus), the time sync, the fusion."""
     nodes: list[Node] = [WorldNode(run, WorldOptions(announce_every_s=0.0, truth_batch=1))]
-    wire = {"protocol": opts.gnss_protocol, "baud": opts.gnss_baud, "messages": opts.gnss_messages}
+    wire: dict[str, Any] = {
+        "protocol": opts.gnss_protocol,
+        "baud": opts.gnss_baud,
+        "messages": opts.gnss_messages,
+    }
     for sensor in SENSOR_NAMES:
         cls = node_class(SENSORS[sensor].emulator)
         fields = cls.Options.__struct_fields__
@@ -408,13 +412,13 @@ class _Session:
                 for d in ev[8]:  # type: ignore[misc]
                     w.queue_wellknown(d, log_ns)
             else:
-                data_(encode(msg))
+                data_(encode(msg))  # type: ignore[arg-type]  # a Message: Prepared went above
                 pub_(epoch + msg.stamp_ns)  # type: ignore[union-attr]
                 seq_(msg.seq)  # type: ignore[union-attr]
                 # the CAN frames, IMU samples and capture times (most of the traffic) derive
                 # none: the converter is not called (test_sim_worker: the same file if it were)
                 if derives(type(msg)):
-                    for d in convert(key, msg, log_ns):
+                    for d in convert(key, msg, log_ns):  # type: ignore[arg-type]
                         w.queue_wellknown(d, log_ns)
             n += 1
         self.n_written += n
