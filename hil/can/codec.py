@@ -190,6 +190,17 @@ def _compile_decoder(name: str, fields: list[SignalField]) -> Any:
     return _exec(f"def decode_word(word):\n    return {{{items}}}\n", f"<dbc:{name}>", "decode_word", {})
 
 
+def _message_expr(lay: FrameLayout, word: str) -> str:
+    """The generated code's frame of ``lay`` holding ``word`` (its bytes as a little-endian int):
+    python-can's positional constructor (its documented argument order; the keyword form costs
+    twice as much)."""
+    n = lay.length
+    return (
+        f"Message(0.0, {lay.frame_id}, False, False, False, None, {n}, "
+        f"bytearray({word}.to_bytes({n}, 'little')), {lay.is_fd}, True, {lay.brs})"
+    )
+
+
 def _compile_encoder(layouts: Sequence[FrameLayout], params: Sequence[str]) -> Any:
     """Generate ``encode_frames(counters, *raws) -> [can.Message]``: ``layouts``' frames in order.
 
@@ -212,8 +223,7 @@ def _compile_encoder(layouts: Sequence[FrameLayout], params: Sequence[str]) -> A
             f"    ctr[{fid}] = (c + 1) % {COUNTER_MODULO}",
             f"    w = {' | '.join(terms)}",
             f"    w |= {p01_crc_expr(fid, lay.e2e_length, n, 'w')}",
-            f"    m{i} = Message(0.0, {fid}, False, False, False, None, {n}, "
-            f"bytearray(w.to_bytes({n}, 'little')), {lay.is_fd}, True, {lay.brs})",
+            f"    m{i} = {_message_expr(lay, 'w')}",
         ]
     lines.append(f"    return [{', '.join(f'm{i}' for i in range(len(layouts)))}]")
     src, name = "\n".join(lines) + "\n", "+".join(lay.name for lay in layouts)
@@ -231,11 +241,9 @@ def _compile_prepared(layouts: Sequence[FrameLayout]) -> Any:
     stale = " or ".join(f"ctr[{fid}] != (c0[{j}] + k) % {m}" for j, fid in enumerate(ids))
     lines = ["def frames(ctr, k, c0, words):", f"    if {stale}:", "        return None"]
     for j, lay in enumerate(layouts):
-        fid, n = lay.frame_id, lay.length
         lines += [
-            f"    ctr[{fid}] = (c0[{j}] + k + 1) % {m}",
-            f"    m{j} = Message(0.0, {fid}, False, False, False, None, {n}, "
-            f"bytearray(words[{j}].to_bytes({n}, 'little')), {lay.is_fd}, True, {lay.brs})",
+            f"    ctr[{lay.frame_id}] = (c0[{j}] + k + 1) % {m}",
+            f"    m{j} = {_message_expr(lay, f'words[{j}]')}",
         ]
     lines.append(f"    return [{', '.join(f'm{j}' for j in range(len(layouts)))}]")
     src, name = "\n".join(lines) + "\n", "+".join(lay.name for lay in layouts)
@@ -245,7 +253,7 @@ def _compile_prepared(layouts: Sequence[FrameLayout]) -> Any:
 @dataclass
 class PreparedFrames:
     """A block of samples encoded ahead (``ImuCanCodec.prepare_block``): each sample's raw deltas
-    as ``quantise_block`` gives them, and its frames' words (rolling counter, signals, E2E CRC)
+    as ``encode_sample`` rounds them, and its frames' words (rolling counter, signals, E2E CRC)
     as ``encode_quantised`` would make them when the block's samples are encoded in turn."""
 
     counters: tuple[int, ...]  # each sample frame's rolling counter at the block's first sample
@@ -542,32 +550,15 @@ class ImuCanCodec:
         none given, none set), the status frame first when due."""
         if len(raws) == 6:
             raws += (0, 0, 0, 0, 0, 0)
-        due = self._last_status != st or self.samples_encoded % self.status_every == 0
-        out = [self.encode_status(st)] if due else []
-        out += self._encode_frames(self._tx_counter, t, st, *raws)
+        return self._sent(st, self._encode_frames(self._tx_counter, t, st, *raws))
+
+    def _sent(self, st: int, frames: list[can.Message]) -> list[can.Message]:
+        """A sample's ``frames`` as they go out: the status frame first when due (a changed
+        status, or every ``status_every``-th sample), and the sample counted."""
+        if self._last_status != st or self.samples_encoded % self.status_every == 0:
+            frames.insert(0, self.encode_status(st))
         self.samples_encoded += 1
-        return out
-
-    def quantise_block(
-        self, dtheta_b_rad: np.ndarray, dvel_b_mps: np.ndarray
-    ) -> list[tuple[int, ...] | None]:
-        """Each row's six raw deltas as ``encode_sample`` rounds them (``np.rint`` is round half
-        to even on the same quotient as ``round``), or None where one is not finite or beyond
-        full scale (that sample goes the checked way): a block of samples in one numpy pass."""
-        raws, ok = self._quantised(dtheta_b_rad, dvel_b_mps)
-        return [tuple(r) if good else None for r, good in zip(raws.tolist(), ok.tolist(), strict=True)]
-
-    def _quantised(self, dtheta_b_rad: np.ndarray, dvel_b_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(raw deltas, n x 6 int64, zero where not ok; whether each row is encodable as is)."""
-        import numpy as np
-
-        lsb_a, lsb_v, max_a, max_v = self._q
-        with np.errstate(invalid="ignore", over="ignore"):
-            ra = np.rint(np.asarray(dtheta_b_rad, dtype=np.float64) / lsb_a)
-            rv = np.rint(np.asarray(dvel_b_mps, dtype=np.float64) / lsb_v)
-            # NaN compares False: not ok
-            ok = np.asarray((np.abs(ra) <= max_a).all(axis=1) & (np.abs(rv) <= max_v).all(axis=1))
-        return np.where(ok[:, None], np.hstack((ra, rv)), 0.0).astype(np.int64), ok
+        return frames
 
     def prepare_block(
         self, device_stamps_ns: np.ndarray, dtheta_b_rad: np.ndarray, dvel_b_mps: np.ndarray
@@ -582,7 +573,16 @@ class ImuCanCodec:
         counters and refuses a stale block. Classic frames only (a word of at most 8 bytes)."""
         import numpy as np
 
-        raw, ok = self._quantised(dtheta_b_rad, dvel_b_mps)
+        # each row's six raw deltas as encode_sample rounds them (np.rint is round half to even
+        # on the same quotient as round), or None where one is not finite or beyond full scale
+        # (that sample goes the checked way)
+        lsb_a, lsb_v, max_a, max_v = self._q
+        with np.errstate(invalid="ignore", over="ignore"):
+            ra = np.rint(np.asarray(dtheta_b_rad, dtype=np.float64) / lsb_a)
+            rv = np.rint(np.asarray(dvel_b_mps, dtype=np.float64) / lsb_v)
+            # NaN compares False: not ok
+            ok = np.asarray((np.abs(ra) <= max_a).all(axis=1) & (np.abs(rv) <= max_v).all(axis=1))
+        raw = np.where(ok[:, None], np.hstack((ra, rv)), 0.0).astype(np.int64)
         raws = [tuple(r) if good else None for r, good in zip(raw.tolist(), ok.tolist(), strict=True)]
         lays = self.sample_layouts
         counters = tuple(self._tx_counter[lay.frame_id] for lay in lays)
@@ -611,15 +611,10 @@ class ImuCanCodec:
         if block.words is None or block.raws[k] is None:
             return None
         frames = self._prepared_frames(self._tx_counter, k, block.counters, block.words[k])
-        if frames is None:
-            return None
-        if self._last_status != 0 or self.samples_encoded % self.status_every == 0:  # _emit's rule
-            frames.insert(0, self.encode_status(0))
-        self.samples_encoded += 1
-        return frames
+        return None if frames is None else self._sent(0, frames)
 
     def encode_quantised(self, device_stamp_ns: int, raws: tuple[int, ...]) -> list[can.Message]:
-        """``encode_sample`` of a sample whose raw deltas ``quantise_block`` gave (status 0)."""
+        """``encode_sample`` of a sample whose raw deltas ``prepare_block`` gave (status 0)."""
         return self._emit(self._time_raw(device_stamp_ns), 0, *raws)
 
     @property

@@ -11,6 +11,7 @@ final XOR, over ``[DataID low byte, DataID high byte, data bytes except the CRC 
 
 from __future__ import annotations
 
+import functools
 import struct
 from typing import Any
 
@@ -115,16 +116,12 @@ def p01_crc_array(data_id: int, data_length: int, frame_length: int, words: Any)
     return reg
 
 
-_NP_TABLES: list[Any] = []
-
-
+@functools.cache
 def _tables_np() -> tuple[Any, Any]:
     """The look-up tables as numpy arrays, made on first use (numpy only where blocks are)."""
-    if not _NP_TABLES:
-        import numpy as np
+    import numpy as np
 
-        _NP_TABLES.extend((np.array(_TABLE, dtype=np.int64), np.array(_TABLE16, dtype=np.int64)))
-    return _NP_TABLES[0], _NP_TABLES[1]
+    return np.array(_TABLE, dtype=np.int64), np.array(_TABLE16, dtype=np.int64)
 
 
 def next_counter(counter: int) -> int:

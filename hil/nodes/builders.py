@@ -69,19 +69,19 @@ def clock_model_msg(seq: int, stamp_ns: int, m: Any) -> ClockModel:
 
 
 def can_frame_msg(seq: int, rx_ns: int, channel: str, msg: can.Message) -> CanFrame:
-    """``CanFrame`` of a python-can message received at rig time ``rx_ns``. A flag that is not a
-    bool (a bus that sets 0 or 1) is made one; the data's hex without a copy when it fits (up to
-    64 bytes): the bridge makes one per frame read, ~1600 a second at 400 Hz on classic CAN."""
+    """``CanFrame`` of a python-can message received at rig time ``rx_ns``; the data's hex without
+    a copy when it fits (up to 64 bytes): the bridge makes one per frame read, ~1600 a second at
+    400 Hz on classic CAN."""
     d = msg.data
     return CanFrame(
         seq=seq,
         stamp_ns=rx_ns,
         channel=channel,
         arbitration_id=msg.arbitration_id & 0x1FFFFFFF,
-        is_extended_id=msg.is_extended_id is True or bool(msg.is_extended_id),
-        is_fd=msg.is_fd is True or bool(msg.is_fd),
-        bitrate_switch=msg.bitrate_switch is True or bool(msg.bitrate_switch),
-        is_error_frame=msg.is_error_frame is True or bool(msg.is_error_frame),
+        is_extended_id=bool(msg.is_extended_id),
+        is_fd=bool(msg.is_fd),
+        bitrate_switch=bool(msg.bitrate_switch),
+        is_error_frame=bool(msg.is_error_frame),
         data_hex=d.hex() if len(d) <= 64 else bytes(d[:64]).hex(),
     )
 

@@ -98,14 +98,9 @@ class CanBridgeNode(Node):
         """``key`` ``@can/<channel>``: a frame read off the bus, received at rig time ``now_ns``."""
         if not key.startswith(CAN_RX):
             return []
-        outs: list[Out]
+        outs: list[Out] = []
         if self._publish_raw:
-            raw_key, seqs = self.raw_key, self._seqs
-            n = seqs.get(raw_key, 0)  # next_seq, inline: once per frame read
-            seqs[raw_key] = n + 1
-            outs = [(raw_key, can_frame_msg(self._seq_base | n, now_ns, self.channel, msg))]
-        else:
-            outs = []
+            outs.append((self.raw_key, can_frame_msg(self.next_seq(self.raw_key), now_ns, self.channel, msg)))
         if self.dut is not None and msg.arbitration_id in self._dut_ids:
             self._dut_frame(msg, now_ns, outs)
             return outs

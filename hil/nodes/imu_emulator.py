@@ -80,8 +80,8 @@ class ImuEmulatorNode(Node):
         self._t_true: list[int] = []
         self._stamps: list[int] = []  # the block's device stamps, at clock revision _stamps_revision
         self._stamps_revision = -1
-        self._raws: list[tuple[int, ...] | None] = []  # the block's raw deltas (None: checked way)
-        self._prepared: PreparedFrames | None = None  # the block's frames, encoded ahead
+        # the block encoded ahead: raw deltas (None: the checked way) and its frames' words
+        self._prepared = PreparedFrames((), [], None)
         self._commands: list[FaultCommand] = []
         self._not_sent: dict[str, int] = {}
 
@@ -146,9 +146,9 @@ class ImuEmulatorNode(Node):
             stamps = self.clock.device_ns_array(b.t_ns)
             self._stamps = stamps.tolist()
             self._stamps_revision = self.clock.revision
-            # and the frames' words (counters, signals, CRCs), as encode_quantised would make them
+            # and its raw deltas and frames' words (counters, signals, CRCs), as the per-sample
+            # encoding would make them
             self._prepared = self.codec.prepare_block(stamps, b.dtheta_b_rad, b.dvel_b_mps)
-            self._raws = self._prepared.raws
         b, i = self._batch, self._i
         self._i += 1
         return i, self._t_true[i], b.dtheta_b_rad[i], b.dvel_b_mps[i]
@@ -179,17 +179,17 @@ class ImuEmulatorNode(Node):
                 burst.corrupted = self.corruptor.pending > 0  # _release corrupts it now if so
                 outs.append(self._release(burst))
         # encoded even when not sent: the device's counters and SampleCount advance
-        raws = self._raws[i] if act.dtheta_b_rad is dtheta and act.dvel_b_mps is dvel else None
+        raws = self._prepared.raws[i] if act.dtheta_b_rad is dtheta and act.dvel_b_mps is dvel else None
         try:
-            frames: list[Any] | None = None
+            frames: list[Any] | None
             if raws is None:
                 frames = self.codec.encode_sample(
                     device_stamp_ns=dev, dtheta_b_rad=act.dtheta_b_rad, dvel_b_mps=act.dvel_b_mps
                 )
-            elif fresh and self._prepared is not None:  # the block's words, made with this stamp
-                frames = self.codec.encode_prepared(self._prepared, i)  # None: stale, encoded below
-            if frames is None and raws is not None:
-                frames = self.codec.encode_quantised(dev, raws)
+            else:  # the block's words, made with this stamp (a clock step since, or stale: here)
+                frames = self.codec.encode_prepared(self._prepared, i) if fresh else None
+                if frames is None:
+                    frames = self.codec.encode_quantised(dev, raws)
         except (EncodeError, TypeError, ValueError) as err:
             self.error("tx_encode_errors", f"sample not encodable: {err}")
             frames = None

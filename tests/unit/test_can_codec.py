@@ -421,7 +421,7 @@ def test_a_block_quantised_ahead_gives_the_frames_of_sample_by_sample(codec: Imu
     dth[4, 1] = codec.dtheta_max_rad * 1.5  # beyond: saturated
     dv[5, 2] = -codec.dvel_max_mps * 2
     dth[6, 2], dv[7, 0], dv[8, 1] = np.nan, np.inf, -np.inf
-    raws = codec.quantise_block(dth, dv)
+    raws = codec.prepare_block(np.zeros(64, dtype=np.int64), dth, dv).raws  # (the stamps unused here)
     assert [i for i, r in enumerate(raws) if r is None] == [4, 5, 6, 7, 8]
     for i in range(64):
         dev = 1_000_000_000 + i * 2_500_000
@@ -460,7 +460,6 @@ def test_a_block_encoded_ahead_sends_the_frames_of_sample_by_sample(codec: ImuCa
     dv[85, 0] = np.nan  # not encodable, refused both ways: nothing advances, the rest is stale
     dev = [(1 << 48) - 30 * 2_500_000 + i * 2_500_000 for i in range(n)]  # wraps at sample 30
     block = codec.prepare_block(np.array(dev, dtype=np.int64), dth, dv)
-    assert block.raws == codec.quantise_block(dth, dv)
     prepared = 0
     for i in range(n):
         status = 3 if i == 20 else 0  # a status change: the next sample repeats the status frame
