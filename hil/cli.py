@@ -721,10 +721,6 @@ def cmd_service(a: argparse.Namespace, rest: list[str]) -> int:
     if a.name is None:
         a.parser.print_help()
         return 0 if a.help else 2
-    # One process of several on the machine, its matrices tiny (15x15 at most): OpenBLAS's
-    # threads would only compete with the rig's other processes, and starting them costs ~40 ms
-    # of CPU at numpy's import, before the service can say ready. Set it to use more.
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from hil.runners.pacing import rig_cpus_from_env
 
     note = rig_cpus_from_env()  # hil up --rig-cpus: before any thread starts, so all inherit it
@@ -1566,6 +1562,11 @@ def build_parser(service_only: bool = False) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the program itself, not a caller with arguments of its own (a test)
         heap.command_process = True
+        # Every hil process is one of several on the machine (a service among the rig's, a sim
+        # or a rerun beside its forked worker), its matrices tiny (15x15 at most): OpenBLAS's
+        # threads would only compete with them, and starting them costs ~40 ms of CPU at
+        # numpy's import (before a service can say ready; in a sim's start-up). Set it to use more.
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     argv = sys.argv[1:] if argv is None else argv
     # `hil service NAME` is every process of `hil up`, whose start-up time zero waits for: the
     # whole command line's parsers (hil.faults, numpy with it) cost it ~0.2 s of CPU

@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -77,25 +78,61 @@ def test_hil_service_parses_the_same_with_its_own_parser_alone() -> None:
 
 
 _THREADS = """
-import os
+import os, sys
 import hil.runtime.service
 hil.runtime.service.run_service = lambda *a, **k: 0  # the service's entry: not run here
 from hil.cli import main
-main(["service", "fusion", "--rig", "x", "--options", "{}"])
-print(len(os.listdir("/proc/self/task")))
+sys.argv = ["hil", *sys.argv[1:]]  # the program itself (main() without arguments), as `hil` runs
+main()
+import numpy  # a command that did not import it (the service above, run_service replaced)
+print(os.environ.get("OPENBLAS_NUM_THREADS"), len(os.listdir("/proc/self/task")))
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/task")
 @pytest.mark.parametrize(("setting", "threads"), [(None, 1), ("2", 2)])
-def test_a_service_starts_no_blas_threads_unless_asked(setting: str | None, threads: int) -> None:
-    # a service's matrices are too small for OpenBLAS's threads; starting them costs start-up CPU
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["service", "fusion", "--rig", "x", "--options", "{}"],
+        [
+            "sim",
+            "--scenario",
+            "static",
+            "--duration",
+            "0.2",
+            "--estimators",
+            "ins",
+            "--record",
+            "{tmp}",
+            "--quiet",
+        ],
+    ],
+    ids=["service", "sim"],
+)
+def test_a_hil_process_starts_no_blas_threads_unless_asked(
+    setting: str | None, threads: int, command: list[str], tmp_path: Path
+) -> None:
+    # its matrices are too small for OpenBLAS's threads; starting them costs start-up CPU (a
+    # sim's are stopped again when it forks its worker: OpenBLAS's fork handler; its setting for
+    # the whole process is what tells)
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
     if setting is not None:
         env["OPENBLAS_NUM_THREADS"] = setting  # the user's setting wins
-    out = subprocess.run([sys.executable, "-c", _THREADS], cwd=REPO, env=env, capture_output=True, text=True)
+    args = [c.replace("{tmp}", str(tmp_path / "s.mcap")) for c in command]
+    out = subprocess.run(
+        [sys.executable, "-c", _THREADS, *args],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr[-2000:]
-    assert int(out.stdout.split()[-1]) == threads  # the main thread, and OpenBLAS's beyond it
+    setting_seen, n_threads = out.stdout.split()[-2:]
+    assert setting_seen == str(threads)
+    if command[0] == "service":
+        assert int(n_threads) == threads  # the main thread, and OpenBLAS's beyond it
 
 
 _RERUN_TIMESYNC = """
