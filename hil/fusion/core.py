@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import heapq
 import math
-import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -273,28 +272,6 @@ def parse_journal_id(entry: str) -> tuple[str, str, str]:
     return "", body, source
 
 
-_TRUTHS: list[tuple[weakref.ref[Any], Any]] = []  # the last few scenarios' truth generators
-
-
-def _truth_of(scenario: Any) -> Any:
-    """The scenario's :class:`~hil.nav.trajectory.TruthGenerator`, one per scenario object in a
-    process: ``hil rerun`` builds the fusion twice (the node, then the recording's configuration)
-    and the generator integrates the whole trajectory when it is built. Its ``sample`` is a pure
-    function of time, so sharing it changes no bit."""
-    from hil.nav.trajectory import TruthGenerator
-
-    for ref, truth in _TRUTHS:
-        if ref() is scenario:
-            return truth
-    truth = TruthGenerator(scenario)
-    try:
-        _TRUTHS.insert(0, (weakref.ref(scenario), truth))
-    except TypeError:  # a scenario that takes no weak reference is not remembered
-        return truth
-    del _TRUTHS[4:]
-    return truth
-
-
 BOUND_CLEAR_NS = 1_000_000_000  # a source beyond the latency bound is back after this long without a refusal
 JOURNAL_MAX_ENTRIES = 1_000  # per journal message: a flood's decisions go out in several
 
@@ -317,6 +294,7 @@ class FusionCore:
         re-alignment. Its outputs then differ from an uninterrupted run's, and say so in an event.
         """
         from hil.estimators.tuning import params_for
+        from hil.nav.trajectory import truth_for
 
         imu = scenario.imu.params
         params = params_for(
@@ -331,7 +309,7 @@ class FusionCore:
             for name in ("comp1", "comp2", "comp3", "comp3f", "compvs", "cf2", "cf3"):
                 params[name] = params.get(name, {}) | {"gnss_coast": False}
 
-        truth = _truth_of(scenario)
+        truth = truth_for(scenario)
         init = truth.initial_state()
         if align_ns > 0:
             from dataclasses import replace as dc_replace

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 from hil.messages import GnssFix, ImuSample
 from hil.nav.scenario import Scenario
-from hil.nav.trajectory import TruthGenerator
+from hil.nav.trajectory import TruthGenerator, truth_for
 from hil.sensors.gnss import GnssEmulatorCore
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
 
 
 def ideal_streams(s: Scenario, truth: TruthGenerator | None = None) -> tuple[list[ImuSample], list[GnssFix]]:
     """The scenario's IMU samples and GNSS fixes over its whole duration, each stream in order."""
-    truth = truth or TruthGenerator(s)
+    truth = truth or truth_for(s)
     imu = ImuEmulatorCore(s, truth, sensor_rng(s.seed, "imu")).next_batch(int(s.duration_s * s.imu.rate_hz))
     gnss = GnssEmulatorCore(s, truth, sensor_rng(s.seed, "gnss")).next_batch(int(s.duration_s * 1e9))
     dt_ns = round(1e9 / s.imu.rate_hz)

@@ -22,6 +22,7 @@ results do not depend on how callers batch their requests.
 from __future__ import annotations
 
 import math
+from types import MappingProxyType
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from hil.nav.earth import (
     radii_of_curvature_one,
     transport_rate_ned,
 )
-from hil.nav.scenario import KNOT_MAX_S, Scenario, compile_profile
+from hil.nav.scenario import KNOT_MAX_S, MotionSegment, Scenario, compile_profile
 from hil.nav.types import F64, I64, InitialState, TruthBatch
 
 _GL2 = 1.0 / math.sqrt(3.0)  # 2-point Gauss–Legendre nodes ±1/√3, weights 1
@@ -228,3 +229,56 @@ class TruthGenerator:
             vel_ned_mps=tb.vel_ned_mps[0].copy(),
             q_nb=tb.q_nb[0].copy(),
         )
+
+
+# The last few motions' generators: (the fields the generator reads, as their repr, which tells
+# -0.0 from 0.0 as their bits do; the generator).
+_TRUTHS: list[tuple[str, TruthGenerator]] = []
+_TRUTHS_KEPT = 4
+
+
+def truth_for(scenario: Scenario) -> TruthGenerator:
+    """The scenario's :class:`TruthGenerator`, one per motion in a process.
+
+    Building one integrates the whole trajectory (~50 ms for a two-minute flight, most of it the
+    RK4's Python loop); ``hil sim`` builds its nodes in one process, and the IMU emulator, the
+    GNSS emulator, the world and the fusion each parsed the run's scenario and built its own, as
+    ``hil rerun`` built the fusion's twice. ``sample`` is a pure function of time, and the
+    generator reads only the origin, the duration, the initial attitude and velocity and the
+    segments: scenarios equal in those (their values' repr, bit for bit) share one, whatever
+    else differs (seed, IMU, GNSS, events). A scenario whose fields have no faithful repr is
+    not remembered (its own generator)."""
+    motion = (
+        scenario.origin_lat_deg,
+        scenario.origin_lon_deg,
+        scenario.origin_alt_m,
+        scenario.duration_s,
+        scenario.initial_euler_deg,
+        scenario.initial_vel_body_mps,
+        scenario.segments,
+    )
+    if not _faithful(motion):
+        return TruthGenerator(scenario)
+    key = repr(motion)
+    for i, (k, truth) in enumerate(_TRUTHS):
+        if k == key:
+            if i:
+                _TRUTHS.insert(0, _TRUTHS.pop(i))
+            return truth
+    truth = TruthGenerator(scenario)
+    _TRUTHS.insert(0, (key, truth))
+    del _TRUTHS[_TRUTHS_KEPT:]
+    return truth
+
+
+def _faithful(x: object) -> bool:
+    """Values whose repr tells any two of them apart (a numpy array's elides its middle)."""
+    if x is None or type(x) in (float, int, str, bool):
+        return True
+    if type(x) in (tuple, list):
+        return all(_faithful(v) for v in x)  # type: ignore[attr-defined]
+    if type(x) is MotionSegment:
+        return _faithful(x.kind) and _faithful(x.params)
+    if type(x) in (dict, MappingProxyType):
+        return all(_faithful(k) and _faithful(v) for k, v in x.items())  # type: ignore[attr-defined]
+    return False

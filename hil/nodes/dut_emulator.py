@@ -15,7 +15,7 @@ import numpy as np
 
 from hil.can.dut_emulator import DutNavEncoder, load_dut
 from hil.nav.scenario import scenario_for_run
-from hil.nav.trajectory import TruthGenerator
+from hil.nav.trajectory import truth_for
 from hil.nodes.base import CAN_TX, CanBurst, CanWriterOptions, Node, OptionsError, Out
 from hil.sensors.imu import sensor_rng
 
@@ -43,7 +43,7 @@ class DutEmulatorNode(Node):
             raise OptionsError(f"dut_emulator: option dut_mapping: {err}") from None
         self.encoder = DutNavEncoder(db, m)
         s = scenario_for_run(run)
-        self.truth = TruthGenerator(s)
+        self.truth = truth_for(s)
         self.rng = sensor_rng(s.seed, "dut")
         self.dt_ns = round(1e9 / o.rate_hz)
         self.n_total = int(run.duration_s * o.rate_hz)

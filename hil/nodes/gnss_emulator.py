@@ -48,7 +48,7 @@ from hil.faults import (
 from hil.faults import fault_detail as _detail
 from hil.messages import CaptureTruth, FaultCommand, TimeTag
 from hil.nav.scenario import DEFAULT_SPOOF_SIGMA_M, ScenarioEvent, scenario_for_run
-from hil.nav.trajectory import TruthGenerator
+from hil.nav.trajectory import truth_for
 from hil.nodes.base import SERIAL_TX, Input, LineBurst, Node, NodeOptions, Out
 from hil.nodes.builders import gnss_fix_msg
 from hil.sensors.clock import device_clock_for
@@ -197,7 +197,7 @@ class GnssEmulatorNode(Node):
         # line's need one (without it they are announced fault_ignored, not applied)
         self.line_faults = LineFaults(run.seed, s.events)
         self._last_fix: Any = None
-        self.core = GnssEmulatorCore(s, TruthGenerator(s), sensor_rng(s.seed, "gnss"))
+        self.core = GnssEmulatorCore(s, truth_for(s), sensor_rng(s.seed, "gnss"))
         self.clock = device_clock_for(s, "gnss")
         self.timeline = device_timeline(s.events, "gnss")
         self.end_ns = int(run.duration_s * 1e9)

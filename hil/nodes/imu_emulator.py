@@ -34,7 +34,7 @@ from hil.faults import (
 )
 from hil.messages import CaptureTruth, FaultCommand
 from hil.nav.scenario import scenario_for_run
-from hil.nav.trajectory import TruthGenerator
+from hil.nav.trajectory import truth_for
 from hil.nodes.base import CAN_TX, CanBurst, CanWriterOptions, Input, Node, Out
 from hil.sensors.clock import clock_config_for, device_clock_for
 from hil.sensors.imu import ImuEmulatorCore, sensor_rng
@@ -61,7 +61,7 @@ class ImuEmulatorNode(Node):
         super().__init__(run, options)
         opts: ImuEmulatorOptions = self.options  # type: ignore[assignment]
         s = scenario_for_run(run)
-        self.core = ImuEmulatorCore(s, TruthGenerator(s), sensor_rng(s.seed, "imu"))
+        self.core = ImuEmulatorCore(s, truth_for(s), sensor_rng(s.seed, "imu"))
         self.clock = device_clock_for(s, "imu")
         self.can_wire_latency_ns = round(clock_config_for(s, "imu").transport_latency_s * 1e9)
         self.codec = ImuCanCodec.from_dbc(opts.dbc, fd=opts.fd)

@@ -24,7 +24,7 @@ import numpy as np
 from hil.messages import RunInfo
 from hil.nav.limits import MAX_DURATION_S, MAX_SPEED, MIN_SPEED
 from hil.nav.scenario import scenario_for_run
-from hil.nav.trajectory import TruthGenerator
+from hil.nav.trajectory import truth_for
 from hil.nodes.base import Node, NodeOptions, Out
 from hil.nodes.builders import truth_msg
 
@@ -83,7 +83,7 @@ class WorldNode(Node):
     def __init__(self, run: RunInfo, options: WorldOptions | None = None) -> None:
         super().__init__(run, options)
         opts: WorldOptions = self.options  # type: ignore[assignment]
-        self.truth = TruthGenerator(scenario_for_run(run))
+        self.truth = truth_for(scenario_for_run(run))
         self.dt_ns = round(1e9 / opts.truth_rate_hz)
         self.n_total = int(run.duration_s * 1e9) // self.dt_ns + 1
         self.k = 0

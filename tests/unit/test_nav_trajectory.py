@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
 from hil.nav import earth
 from hil.nav.attitude import quat_to_euler
-from hil.nav.scenario import load_scenario, parse_scenario
-from hil.nav.trajectory import TruthGenerator
+from hil.nav.scenario import MotionSegment, load_scenario, parse_scenario, scenario_overrides
+from hil.nav.trajectory import TruthGenerator, truth_for
 
 TURN = """
 name = "turn"
@@ -101,3 +102,38 @@ def test_initial_state_is_the_truth_at_zero() -> None:
     assert init.stamp_ns == 0
     assert np.allclose(init.vel_ned_mps, [50.0, 0.0, 0.0])
     assert init.lat_rad == init.origin_lat_rad == math.radians(50.45)
+
+
+def test_one_truth_generator_per_motion_in_a_process() -> None:
+    # hil sim's nodes each parse the run's scenario: one generator for all of them (building it
+    # integrates the whole trajectory), another for any change of the motion it reads
+    base = load_scenario("uav_survey")
+    again = parse_scenario(base.source_text, base.name)  # equal, not the same object
+    assert again is not base
+    shared = truth_for(base)
+    assert truth_for(again) is shared
+    assert truth_for(scenario_overrides(base, seed=base.seed + 1, imu_rate_hz=1000)) is shared
+    longer = truth_for(scenario_overrides(base, duration_s=base.duration_s + 1.0))
+    assert longer is not shared and longer.duration_ns == round((base.duration_s + 1.0) * 1e9)
+    moved = dataclasses.replace(base, origin_alt_m=base.origin_alt_m + 1.0)
+    assert truth_for(moved) is not shared
+    assert truth_for(moved).initial_state().alt_m == base.origin_alt_m + 1.0
+    # -0.0 is not 0.0 to the bits of what follows from it
+    level = dataclasses.replace(base, initial_euler_deg=(0.0, 0.0, 0.0))
+    signed = dataclasses.replace(base, initial_euler_deg=(-0.0, 0.0, 0.0))
+    assert truth_for(level) is not truth_for(signed)
+    # what the generator gives is what a generator of its own gives, bit for bit
+    t = np.arange(0, 10_000_000_000, 7_000_000, dtype=np.int64)
+    own, cached = TruthGenerator(again).sample(t), truth_for(again).sample(t)
+    for f in dataclasses.fields(own):
+        assert np.array_equal(getattr(own, f.name), getattr(cached, f.name))
+
+
+def test_a_motion_without_a_faithful_repr_gets_a_generator_of_its_own() -> None:
+    # a numpy array's repr elides its middle: two different ones could read the same
+    base = load_scenario("straight_level")
+    seg = base.segments[0]
+    odd = dataclasses.replace(
+        base, segments=(MotionSegment(seg.kind, {**seg.params, "note": np.zeros(2000)}), *base.segments[1:])
+    )
+    assert truth_for(odd) is not truth_for(odd)
