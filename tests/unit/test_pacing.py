@@ -383,11 +383,19 @@ def test_hil_up_says_how_many_samples_left_late_and_what_would_help() -> None:
     line = sup.pacing_line()
     assert line.startswith("IMU frames: 536 of 8000 samples") and "7.4 ms" in line
     assert ("--rig-cpus 0" in line) == ((os.cpu_count() or 1) >= 2)
+    assert "--rt-priority 50" in line and line.endswith("(docs/timing.md)")
     sup.view.status["imu_emulator"] = status("imu_emulator", {"tx_late_samples": 20, "tx_late_max_us": 900})
-    assert "--rig-cpus" not in sup.pacing_line()  # on time: no advice
+    assert "--rig-cpus" not in sup.pacing_line() and "--rt-priority" not in sup.pacing_line()  # on time
+    late = status("imu_emulator", {"tx_late_samples": 536, "tx_late_max_us": 7448})
     placed = Supervisor(UpOptions(live=False, rig_cpus=[0], cpu_affinity=[1]))
     placed.view.status.update(sup.view.status)
-    placed.view.status["imu_emulator"] = status(
-        "imu_emulator", {"tx_late_samples": 536, "tx_late_max_us": 7448}
+    placed.view.status["imu_emulator"] = late
+    line = placed.pacing_line()
+    assert "--rig-cpus" not in line and "--rt-priority 50" in line  # placed: priority is what is left
+    rt = Supervisor(UpOptions(live=False, rt_priority=50))
+    rt.view.status.update(sup.view.status)
+    rt.view.status["imu_emulator"] = late
+    assert (
+        rt.pacing_line()
+        == "IMU frames: 536 of 8000 samples handed to the bus more than 200 µs late (worst 7.4 ms)"
     )
-    assert "--rig-cpus" not in placed.pacing_line()  # already placed: the figure alone
