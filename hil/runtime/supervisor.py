@@ -922,7 +922,9 @@ class Supervisor:
         if (os.cpu_count() or 1) >= 2 and not o.rig_cpus and not o.cpu_affinity:
             helps.append("--cpu-affinity 1 --rig-cpus 0 gives the sender a CPU of its own")
         # measured on a 2-CPU VM at 400 Hz: p99 88-141 µs at SCHED_FIFO 50, 320-1082 µs without
-        helps.append("--rt-priority 50 real-time priority where permitted (root or CAP_SYS_NICE)")
+        helps.append(
+            "--rt-priority 50 runs the sender at real-time priority where permitted (root or CAP_SYS_NICE)"
+        )
         return f"{line}; {', or '.join(helps)} (docs/timing.md)"
 
     def cpu_table(self) -> str:
