@@ -58,6 +58,7 @@ def _measure_rig(
 ) -> tuple[int, list[str], dict[str, Any]]:
     """:func:`_one_rig`, and its figures as numbers (CPU per service, fused latency)."""
     load_before = os.getloadavg()[0]
+    sleep_us, handoff_us = wakeup_cost_us()
     with tempfile.TemporaryDirectory() as d:
         rec = Path(d) / "bench.mcap"
         sup = Supervisor(
@@ -94,14 +95,28 @@ def _measure_rig(
         f"IMU {imu.count} samples ({imu.count / a.duration:.1f} Hz), GNSS {gnss.count} fixes, "
         f"sequence gaps: **{gaps}**.",
         "",
-        "| service | CPU s | share of one core |",
-        "| --- | ---: | ---: |",
+        "| service | CPU s | share of one core | wake-ups/s |",
+        "| --- | ---: | ---: | ---: |",
     ]
+    win = sup.cpu_window_s
     for name, cpu in sorted(sup.cpu_s.items(), key=lambda kv: -kv[1]):
-        lines.append(f"| {name} | {cpu:.2f} | {100 * cpu / sup.cpu_window_s:.1f} % |")
+        wake = sup.wakeups.get(name, 0) / win
+        lines.append(f"| {name} | {cpu:.2f} | {100 * cpu / win:.1f} % | {wake:.0f} |")
     total = sum(sup.cpu_s.values())
-    lines.append(f"| **all** | {total:.2f} | **{100 * total / sup.cpu_window_s:.1f} %** |")
-    lines += ["", f"CPU per IMU sample over the rig: {1e3 * total / max(1, imu.count):.2f} ms."]
+    woken = sum(sup.wakeups.values())
+    lines.append(f"| **all** | {total:.2f} | **{100 * total / win:.1f} %** | {woken / win:.0f} |")
+    lines += [
+        "",
+        f"CPU per IMU sample over the rig: {1e3 * total / max(1, imu.count):.2f} ms; wake-ups per IMU "
+        f"sample: {woken / max(1, imu.count):.1f}.",
+        "",
+        f"Wake-ups = the voluntary context switches of every thread of the service (Zenoh's "
+        f"included): each time one blocked and was woken. What one costs on this machine, measured "
+        f"just before the run: **{sleep_us:.1f} µs** of CPU for a thread's 0.5 ms sleep and its "
+        f"wake-up, **{handoff_us:.1f} µs** more when one thread hands an item to another that "
+        f"waits for it (`hil.bench.rig.wakeup_cost_us`); at the first figure the rig's wake-ups "
+        f"alone come to ~{100 * woken / win * sleep_us * 1e-6:.1f} % of a core.",
+    ]
     lines += [
         "",
         f"Latency from an IMU sample's true capture to its arrival at the recorder (ms), of what was "
@@ -134,9 +149,40 @@ def _measure_rig(
         "per_sample_ms": 1e3 * total / max(1, imu.count),
         "fused": fused,
         "gaps": gaps,
+        "wakeups": {k: v / win for k, v in sup.wakeups.items()},
         "load": load_before,
     }
     return 0, lines, figures
+
+
+def wakeup_cost_us(n: int = 1000, sleep_s: float = 0.0005) -> tuple[float, float]:
+    """CPU per wake-up on this machine, in µs: (a thread sleeping ``sleep_s`` and woken by its
+    timer, the extra of a hand-over to a second thread blocked on a queue). Bare metal takes a
+    few µs; a VM whose timer and wake-up interrupts exit to the hypervisor takes tens, and a live
+    rig wakes thousands of times a second (docs/benchmarks.md, session 40)."""
+    import queue
+    import threading
+    import time
+
+    t0 = time.process_time()
+    for _ in range(n):
+        time.sleep(sleep_s)
+    sleep_us = (time.process_time() - t0) / n * 1e6
+    q: queue.SimpleQueue[int] = queue.SimpleQueue()
+
+    def take() -> None:
+        for _ in range(n):
+            q.get()
+
+    t = threading.Thread(target=take, name="wakeup-cost", daemon=True)
+    t0 = time.process_time()
+    t.start()
+    for i in range(n):
+        q.put(i)
+        time.sleep(sleep_s)  # the taker is blocked again before the next put
+    t.join(timeout=60.0)
+    both_us = (time.process_time() - t0) / n * 1e6
+    return sleep_us, max(0.0, both_us - sleep_us)
 
 
 def _batch_windows(a: argparse.Namespace, windows: list[float]) -> tuple[int, list[str]]:
@@ -183,7 +229,8 @@ def _batch_windows(a: argparse.Namespace, windows: list[float]) -> tuple[int, li
 
 
 _RUN = "import sys; from hil.cli import main; sys.argv[0] = 'hil'; raise SystemExit(main())"
-_CPU_ROW = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+([0-9.]+) %$")
+# (an older tree's table has no wake-ups column)
+_CPU_ROW = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+([0-9.]+) %(?:\s+[0-9]+ wake-ups/s)?$")
 _CPU_HEAD = re.compile(r"^CPU over ([0-9.]+) s of wall time")
 
 

@@ -55,6 +55,32 @@ def proc_cpu_seconds(pid: int, tree: bool = True) -> float | None:
     return cpu
 
 
+def proc_wakeups(pid: int, tree: bool = True) -> int | None:
+    """How often a live process's threads blocked and were woken again: their voluntary context
+    switches (Linux ``/proc/<pid>/task/*/status``), None where unavailable. On a VM each costs
+    tens of µs of CPU (docs/benchmarks.md, session 40), so a rig's count says where its CPU goes
+    beside the work itself. ``tree``: with its live child processes'. A thread that has ended is
+    no longer counted: the rig's threads live as long as their process."""
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return None
+    n = 0
+    for tid in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/status") as fh:
+                for line in fh:
+                    if line.startswith("voluntary_ctxt_switches:"):
+                        n += int(line.split()[1])
+                        break
+        except (OSError, ValueError, IndexError):
+            continue  # a thread that ended meanwhile
+    if tree:
+        for kid in _children(pid):
+            n += proc_wakeups(kid) or 0
+    return n
+
+
 def _children(pid: int) -> list[int]:
     out: list[int] = []
     try:
@@ -188,6 +214,7 @@ class Child:
     stopping: bool = False
     restarts: int = 0
     final_cpu_s: float | None = None  # user + system CPU at its end (from wait4's rusage)
+    final_wakeups: int | None = None  # its voluntary context switches at its end (wait4's rusage)
 
 
 class LiveView:
@@ -349,11 +376,16 @@ class Supervisor:
         self.ready_cpu_s: dict[str, float] = {}  # per service, its process's CPU when first seen ready
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
         self._cpu_base: dict[str, float] = {}
+        # per service, its threads' wake-ups (voluntary context switches) since time zero, as cpu_s
+        self.wakeups: dict[str, int] = {}
+        self._wake_base: dict[str, int] = {}
+        self._wake_dead: dict[str, int] = {}
         self._cpu_base_t = time.monotonic()
         self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
         # per run (or HIL_RIG_KEY's): the rig's processes' Zenoh ids derive from it
         self.rig_key = rig_key_from_env() or new_rig_key()
         self._cpu_self_base = _own_cpu_seconds()
+        self._wake_self_base = _own_wakeups()
         self._cpu_dead: dict[str, float] = {}  # CPU of the earlier lives of restarted services
         self._restarting: dict[str, tuple[float, int]] = {}  # name -> (when it died, new pid)
         self.downtime_s: dict[str, float] = {}  # per restarted service: dead until ready again
@@ -716,8 +748,10 @@ class Supervisor:
             if run is not None and not self._cpu_base:
                 self._cpu_base_t = time.monotonic()
                 self._cpu_self_base = _own_cpu_seconds()
+                self._wake_self_base = _own_wakeups()
                 for name, c in self.children.items():
                     self._cpu_base[name] = proc_cpu_seconds(c.proc.pid) or 0.0
+                    self._wake_base[name] = proc_wakeups(c.proc.pid) or 0
             if run is not None and o.duration_s is not None:
                 clock = RigClock(run.start_epoch_ns, run.speed)
                 if clock.now_ns() >= int((o.duration_s + 0.3) * 1e9):
@@ -782,14 +816,18 @@ class Supervisor:
             return None
         child.proc.returncode = os.waitstatus_to_exitcode(status)
         child.final_cpu_s = usage.ru_utime + usage.ru_stime
+        child.final_wakeups = usage.ru_nvcsw
         return child.proc.returncode
 
     def _retire_cpu(self, name: str, child: Child) -> None:
         """Add a dead life's CPU (since time zero, or since its own start) to the service's total."""
         spent = (child.final_cpu_s or 0.0) - self._cpu_base.get(name, 0.0)
         self._cpu_dead[name] = self._cpu_dead.get(name, 0.0) + max(0.0, spent)
+        woken = (child.final_wakeups or 0) - self._wake_base.get(name, 0)
+        self._wake_dead[name] = self._wake_dead.get(name, 0) + max(0, woken)
         if self._cpu_base:
             self._cpu_base[name] = 0.0  # the next life is counted from its own start
+            self._wake_base[name] = 0
 
     def _check_degraded(self) -> None:
         """Say at once, on the console, when a service reports itself degraded (a recorder that
@@ -863,7 +901,11 @@ class Supervisor:
             cpu = proc_cpu_seconds(c.proc.pid) if c.proc.returncode is None else c.final_cpu_s
             live = max(0.0, cpu - self._cpu_base.get(name, 0.0)) if cpu is not None else 0.0
             self.cpu_s[name] = self._cpu_dead.get(name, 0.0) + live
+            woken = proc_wakeups(c.proc.pid) if c.proc.returncode is None else c.final_wakeups
+            live_w = max(0, woken - self._wake_base.get(name, 0)) if woken is not None else 0
+            self.wakeups[name] = self._wake_dead.get(name, 0) + live_w
         self.cpu_s["supervisor"] = max(0.0, _own_cpu_seconds() - self._cpu_self_base)
+        self.wakeups["supervisor"] = max(0, _own_wakeups() - self._wake_self_base)
 
     def ready_s(self) -> dict[str, float]:
         """Seconds from each service's process start to its first ready status (the world waits
@@ -930,11 +972,14 @@ class Supervisor:
     def cpu_table(self) -> str:
         if not self.cpu_s or self.cpu_window_s <= 0:
             return ""
-        rows = [f"CPU over {self.cpu_window_s:.1f} s of wall time (share of one core):"]
+        w = self.cpu_window_s
+        rows = [f"CPU over {w:.1f} s of wall time (share of one core; wake-ups: its threads' a second):"]
         for name, cpu in sorted(self.cpu_s.items(), key=lambda kv: -kv[1]):
-            rows.append(f"  {name:<14}{cpu:8.2f} s  {100 * cpu / self.cpu_window_s:6.1f} %")
+            wake = f"  {self.wakeups[name] / w:7.0f} wake-ups/s" if name in self.wakeups else ""
+            rows.append(f"  {name:<14}{cpu:8.2f} s  {100 * cpu / w:6.1f} %{wake}")
         total = sum(self.cpu_s.values())
-        rows.append(f"  {'all':<14}{total:8.2f} s  {100 * total / self.cpu_window_s:6.1f} %")
+        wake = f"  {sum(self.wakeups.values()) / w:7.0f} wake-ups/s" if self.wakeups else ""
+        rows.append(f"  {'all':<14}{total:8.2f} s  {100 * total / w:6.1f} %{wake}")
         return "\n".join(rows)
 
     def _stop_all(self) -> None:
@@ -975,6 +1020,13 @@ def _own_cpu_seconds() -> float:
     """user + system CPU of this process (every thread; children not included)."""
     t = os.times()
     return t.user + t.system
+
+
+def _own_wakeups() -> int:
+    """Voluntary context switches of this process (every thread; children not included)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw
 
 
 def _tail(path: Path, n: int = 8) -> str:

@@ -156,7 +156,7 @@ def test_a_restart_that_never_becomes_ready_fails_the_run(
     assert f"fusion was restarted (pid {second}) but is not ready after 6 s" in err, err[-3000:]
     assert f"fusion died (killed by signal 9); restarted (1/1) as pid {second}" in out
     # and the CPU table has no negative figure, fusion's two lives and the supervisor included
-    rows = dict(re.findall(r"^  (\w+)\s+(-?[\d.]+) s\s+-?[\d.]+ %$", out, flags=re.M))
+    rows = dict(re.findall(r"^  (\w+)\s+(-?[\d.]+) s\s+-?[\d.]+ %\s+\d+ wake-ups/s$", out, flags=re.M))
     assert {"fusion", "supervisor", "recorder"} <= set(rows), out
     assert all(float(v) >= 0 for v in rows.values()), rows
     assert float(rows["fusion"]) > 0 and float(rows["supervisor"]) > 0, rows

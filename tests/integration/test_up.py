@@ -74,12 +74,18 @@ def test_up_exits_zero_and_prints_a_summary(
     assert path.is_file()
     assert "hil/itest/sensor/imu" in proc.stdout  # the hil info summary at the end
     assert "CAN vcan0" in proc.stdout  # says which CAN transport in one line
-    # the CPU table holds every service, the supervisor (its hub and view) and the sum of them
-    cpu_row = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+[0-9.]+ %$")
-    rows = {m[1]: float(m[2]) for ln in proc.stdout.splitlines() if (m := cpu_row.match(ln))}
+    # the CPU table holds every service, the supervisor (its hub and view) and the sum of them,
+    # each with its threads' wake-ups a second (the IMU emulator's with its CAN sender process's,
+    # which sleeps before each IMU sample it is not late for: 400 a second here)
+    cpu_row = re.compile(r"^\s+(\w+)\s+([0-9.]+) s\s+[0-9.]+ %\s+(\d+) wake-ups/s$")
+    lines = proc.stdout.splitlines()
+    rows = {m[1]: float(m[2]) for ln in lines if (m := cpu_row.match(ln))}
+    wakes = {m[1]: int(m[3]) for ln in lines if (m := cpu_row.match(ln))}
     assert {"recorder", "fusion", "supervisor", "all"} <= rows.keys(), proc.stdout[-3000:]
     assert rows["supervisor"] > 0.0
     assert rows["all"] == pytest.approx(sum(v for k, v in rows.items() if k != "all"), abs=0.05)
+    assert min(wakes.values()) > 0 and wakes["imu_emulator"] >= 100, proc.stdout[-3000:]
+    assert wakes["all"] == pytest.approx(sum(v for k, v in wakes.items() if k != "all"), abs=len(wakes))
 
 
 def test_recording_holds_every_contract_type_valid_against_schemas(

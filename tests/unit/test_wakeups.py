@@ -1,0 +1,68 @@
+"""Where a live rig's CPU goes beside the work: how often its threads block and are woken.
+
+``hil up``'s CPU table and ``hil bench rig`` count each service's wake-ups (voluntary context
+switches of every thread, from /proc); on a VM each costs tens of µs of CPU."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+
+from hil.bench.rig import _cpu_of, wakeup_cost_us
+from hil.runtime.supervisor import proc_wakeups
+
+
+def test_a_process_wake_ups_count_every_thread_and_its_children() -> None:
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import time\nfor _ in range(400): time.sleep(0.001)\ninput()"],
+        stdin=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        before = proc_wakeups(os.getpid(), tree=False)
+        assert before is not None
+        done, counted, release = threading.Event(), threading.Event(), threading.Event()
+
+        def sleeper() -> None:  # a thread of this process that blocks 50 times, then waits
+            for _ in range(50):
+                done.wait(0.001)
+            counted.set()
+            release.wait(60)
+
+        t = threading.Thread(target=sleeper)
+        t.start()
+        try:
+            assert counted.wait(60)
+            after = proc_wakeups(os.getpid(), tree=False)  # (a thread that ended is not counted)
+        finally:
+            release.set()
+            t.join(timeout=60)
+        assert after is not None and after - before >= 50
+        # the child's 400 sleeps show in the tree's count, not in the process's own
+        polls = 0
+        while (proc_wakeups(os.getpid()) or 0) - (proc_wakeups(os.getpid(), tree=False) or 0) < 400:
+            polls += 1
+            assert polls < 1200, "the child's sleeps never showed in the tree's count (60 s)"
+            done.wait(0.05)
+    finally:
+        child.communicate("\n", timeout=60)
+    assert proc_wakeups(2**22 + 7) is None  # no such process
+
+
+def test_the_cpu_table_is_read_with_and_without_its_wake_ups_column() -> None:
+    new = (
+        "CPU over 30.0 s of wall time (share of one core; wake-ups: its threads' a second):\n"
+        "  fusion            2.77 s     9.2 %      458 wake-ups/s\n"
+        "  all               3.00 s    10.0 %      500 wake-ups/s\n"
+    )
+    old = "CPU over 30.0 s of wall time (share of one core):\n  fusion            2.77 s     9.2 %\n"
+    assert _cpu_of(new) == (30.0, {"fusion": 2.77})
+    assert _cpu_of(old) == (30.0, {"fusion": 2.77})
+
+
+def test_measuring_the_wake_up_cost_leaves_no_thread_behind() -> None:
+    sleep_us, handoff_us = wakeup_cost_us(n=50)
+    assert sleep_us > 0.0 and handoff_us >= 0.0
+    assert not [t for t in threading.enumerate() if t.name == "wakeup-cost"]
