@@ -20,8 +20,8 @@ from hil.bus.endpoint import viewer_bus
 from hil.bus.keys import Keys, check_name
 from hil.bus.pubsub import Stats, Subscriber
 from hil.bus.session import open_session
-from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth
-from hil.runtime.supervisor import LiveView, TableDrawer
+from hil.messages import RunInfo, ServiceStatus
+from hil.runtime.supervisor import LiveView, SolutionSampler, TableDrawer
 
 
 def connect(rig: str) -> zenoh.Session:
@@ -40,16 +40,16 @@ class MonitorOptions:
     once: bool = False  # print one table after the first status and return
 
 
-def attach(session: zenoh.Session, rig: str, view: LiveView) -> list[Subscriber]:
-    """Subscribe ``view`` to one rig's status, run, truth and solutions."""
+def attach(session: zenoh.Session, rig: str, view: LiveView) -> tuple[list[Subscriber], SolutionSampler]:
+    """Subscribe ``view`` to one rig's status and run; its truth and solutions through a
+    ``SolutionSampler`` (drained before each table: no wake-up per solution, as ``hil up``)."""
     keys = Keys(rig)
     stats = Stats()
-    return [
+    subs = [
         Subscriber(session, keys.status("*"), ServiceStatus, view.on_status, stats),
         Subscriber(session, keys.run(), RunInfo, view.on_run, stats),
-        Subscriber(session, keys.truth(), Truth, view.on_truth, stats),
-        Subscriber(session, keys.nav("*"), NavSolution, view.on_nav, stats),
     ]
+    return subs, SolutionSampler(session, keys, view, stats)
 
 
 def run_monitor(
@@ -57,7 +57,7 @@ def run_monitor(
 ) -> int:
     """Draw the table until ``stop``, the duration, or (``once``) the first status; 1 if none came."""
     view = LiveView()
-    subs = attach(session, opts.rig, view)
+    subs, sampler = attach(session, opts.rig, view)
     drawer = TableDrawer(out)
     t0 = time.monotonic()
     interval = opts.interval_s if drawer.tty or opts.once else max(opts.interval_s, 5.0)
@@ -69,15 +69,18 @@ def run_monitor(
                 break
             if opts.once:
                 if view.status and now - t0 >= opts.interval_s:
+                    sampler.drain()
                     drawer.draw(view.table(now - t0, title=f"hil monitor {opts.rig}"))
                     return 0
                 continue
             if now - last >= interval:
                 last = now
+                sampler.drain()
                 drawer.draw(view.table(now - t0, title=f"hil monitor {opts.rig}"))
     finally:
         for s in subs:
             s.undeclare()
+        sampler.undeclare()
     if not view.status:
         _cfg, how = viewer_bus(opts.rig)
         drawer.draw(

@@ -235,12 +235,20 @@ class Subscriber(Generic[M]):
         self._sub = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        for raw in _payloads(sample, key, self.stats):
-            _deliver(self.cls, self.handler, key, raw, self.stats)
+        deliver_sample(sample, self.cls, self.handler, self.stats)
 
     def undeclare(self) -> None:
         self._sub.undeclare()
+
+
+def deliver_sample(
+    sample: zenoh.Sample, cls: type[M], handler: Callable[[M, str], None], stats: Stats
+) -> None:
+    """What a ``Subscriber`` does with a sample, for one taken from a Zenoh channel: each of its
+    messages decoded as a ``cls`` and handed on; what fails is counted, never raised."""
+    key = str(sample.key_expr)
+    for raw in _payloads(sample, key, stats):
+        _deliver(cls, handler, key, raw, stats)
 
 
 class DispatchSubscriber:

@@ -25,11 +25,12 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+import zenoh
 
 from hil.bus.endpoint import RigAccess, remove_stale_run_files
 from hil.bus.identity import RIG_KEY_ENV, ZENOH_ID_ENV, new_rig_key, rig_key_from_env, rig_zid
 from hil.bus.keys import Keys
-from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber
+from hil.bus.pubsub import MISS_DETECTION_ENV, Publisher, Stats, Subscriber, deliver_sample
 from hil.bus.session import BusConfig, open_session, use_rig_runtime
 from hil.messages import Event, FaultCommand, NavSolution, RunInfo, ServiceStatus, Truth
 from hil.record.mcapio import restart_part_path
@@ -226,6 +227,7 @@ class LiveView:
     """
 
     STALE_S = 3.0
+    TRUTH_MATCH_NS = 20_000_000  # a solution is compared with a truth sample at most this far apart
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
@@ -277,7 +279,7 @@ class LiveView:
         for name, sol in self.nav_last.items():
             # nearest truth sample in time (truth is 100 Hz, solutions are stamped on the IMU grid)
             best = min(self.truth, key=lambda t: abs(t.stamp_ns - sol.stamp_ns))
-            if abs(best.stamp_ns - sol.stamp_ns) > 20_000_000:
+            if abs(best.stamp_ns - sol.stamp_ns) > self.TRUTH_MATCH_NS:
                 continue
             d = np.subtract(sol.pos_ned_m, best.pos_ned_m)
             self.errors_m[name] = float(np.hypot(d[0], d[1]))
@@ -331,6 +333,71 @@ class LiveView:
             return "\n".join(lines)
 
 
+class SolutionSampler:
+    """The table's error line without a Python wake-up per message. The solutions and the truth
+    land in Zenoh's own ring buffers (``RingChannel``: no thread of ours, no GIL; the oldest
+    dropped when full); each :meth:`drain` (once per table drawn) takes the newest solution of
+    each estimator and the newest truth batches from them, decoding only those. A 400 Hz rig
+    publishes ~360 of these a second (seven estimators at 50 Hz, ten truth batches): delivered to
+    a callback one by one they cost ``hil up``'s supervisor ~1.6 % of a core on a 2-CPU VM, where a
+    wake-up costs ~28 µs (docs/benchmarks.md, session 40)."""
+
+    NAV_RING = 2048  # ~5.8 s of seven estimators at 50 Hz: a draw every 5 s still sees each one's newest
+    NAV_KEEP = 16  # each estimator's newest solutions looked at (0.32 s at 50 Hz)
+    TRUTH_RING = 64  # truth batches, ten a second: 6.4 s
+    TRUTH_KEEP = 8  # the newest batches decoded (0.8 s at 100 Hz)
+
+    def __init__(self, session: zenoh.Session, keys: Keys, view: LiveView, stats: Stats) -> None:
+        self.view = view
+        self.stats = stats
+        self.decoded = 0  # samples decoded by drain(): a few per estimator and TRUTH_KEEP a draw
+        self._nav = session.declare_subscriber(keys.nav("*"), zenoh.handlers.RingChannel(self.NAV_RING))
+        self._truth = session.declare_subscriber(keys.truth(), zenoh.handlers.RingChannel(self.TRUTH_RING))
+
+    def drain(self) -> None:
+        """Hand the view the newest truth and, per estimator, its newest solution that the truth
+        reaches: the world publishes its truth ten rows at a time, so the very newest solution
+        is often ahead of every truth row (by 30-130 ms at 400 Hz) and could not be compared."""
+        newest: dict[str, deque[zenoh.Sample]] = {}
+        while (s := self._nav.try_recv()) is not None:
+            key = str(s.key_expr)
+            q = newest.get(key)
+            if q is None:
+                q = newest[key] = deque(maxlen=self.NAV_KEEP)
+            q.append(s)
+        truth: deque[zenoh.Sample] = deque(maxlen=self.TRUTH_KEEP)
+        while (s := self._truth.try_recv()) is not None:
+            truth.append(s)
+        view = self.view
+        for s in truth:
+            deliver_sample(s, Truth, view.on_truth, self.stats)
+        self.decoded += len(truth)
+        with view.lock:
+            reach = view.truth[-1].stamp_ns + view.TRUTH_MATCH_NS if view.truth else None
+        got: list[NavSolution] = []
+
+        def keep(m: NavSolution, _k: str) -> None:
+            got.append(m)
+
+        for q in newest.values():
+            chosen: NavSolution | None = None
+            for s in reversed(q):  # newest first
+                got.clear()
+                deliver_sample(s, NavSolution, keep, self.stats)
+                self.decoded += 1
+                if got and chosen is None:
+                    chosen = got[-1]  # the newest, should none be reached by the truth
+                if got and (reach is None or got[-1].stamp_ns <= reach):
+                    chosen = got[-1]
+                    break
+            if chosen is not None:
+                view.on_nav(chosen, "")
+
+    def undeclare(self) -> None:
+        self._nav.undeclare()
+        self._truth.undeclare()
+
+
 class TableDrawer:
     """Redraws a multi-line table in place on a TTY; appends it (less often) otherwise."""
 
@@ -371,6 +438,7 @@ class Supervisor:
         self._kills: list[tuple[int, str, str]] = []  # (rig ns, service, origin): kill_service faults
         self._kill_lock = threading.Lock()
         self.view = LiveView()
+        self._sampler: SolutionSampler | None = None  # the table's solutions and truth (--quiet: none)
         self.cpu_s: dict[str, float] = {}  # per service, sampled just before the stop
         self.spawned_at: dict[str, float] = {}  # per service, monotonic time of its (last) start
         self.ready_cpu_s: dict[str, float] = {}  # per service, its process's CPU when first seen ready
@@ -666,11 +734,8 @@ class Supervisor:
             Subscriber(session, keys.status("*"), ServiceStatus, self.view.on_status, stats),
             Subscriber(session, keys.run(), RunInfo, self.view.on_run, stats),
         ]
-        if o.live:  # the table's error column; --quiet draws no table (~450 messages a second less)
-            subs += [
-                Subscriber(session, keys.truth(), Truth, self.view.on_truth, stats),
-                Subscriber(session, keys.nav("*"), NavSolution, self.view.on_nav, stats),
-            ]
+        # the table's error line (--quiet draws no table): taken from rings at each draw
+        self._sampler = SolutionSampler(session, keys, self.view, stats) if o.live else None
         self._event_pub = Publisher(
             session, keys.event("supervisor"), Event, stats, miss_detection=o.zenoh_miss_detection
         )
@@ -696,6 +761,8 @@ class Supervisor:
             self._stop_setter.close()
             for sub in subs:
                 sub.undeclare()
+            if self._sampler is not None:
+                self._sampler.undeclare()
             self._event_pub = None
             session.close()
             self._remove_run_files(mask)
@@ -765,6 +832,8 @@ class Supervisor:
             if o.live and now - last_print >= (1.0 if tty else 5.0):
                 last_print = now
                 alive = {n: c.proc.poll() is None for n, c in self.children.items()}
+                if self._sampler is not None:
+                    self._sampler.drain()
                 drawer.draw(self.view.table(now - t_start, alive))
 
     def _check_deaths(self) -> bool:

@@ -12,13 +12,14 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from hil.bus.keys import Keys
-from hil.bus.pubsub import Publisher
+from hil.bus.pubsub import Publisher, Stats
 from hil.bus.session import BusConfig, open_session
 from hil.messages import NavSolution, RunInfo, ServiceStatus, Truth, counts, rates
-from hil.runtime.supervisor import LiveView
+from hil.runtime.supervisor import LiveView, SolutionSampler
 from tests.conftest import REPO, free_port, hil_cmd
 
 RIG = "monrig"
@@ -175,3 +176,94 @@ def test_monitor_once_without_a_rig_answers_within_its_wait() -> None:
     )
     assert r.returncode == 1, r.stdout + r.stderr
     assert "no status from rig 'nobody'" in r.stdout
+
+
+def _truth(seq: int, t: int) -> Truth:
+    zero = [0.0, 0.0, 0.0]
+    return Truth(
+        seq=seq,
+        stamp_ns=t,
+        lat_deg=0,
+        lon_deg=0,
+        alt_m=0,
+        pos_ned_m=zero,
+        vel_ned_mps=zero,
+        q_nb=[1.0, 0.0, 0.0, 0.0],
+        f_b_mps2=zero,
+        w_ib_b_radps=zero,
+    )
+
+
+def _solution(seq: int, t: int, name: str, north: float, east: float) -> NavSolution:
+    return NavSolution(
+        seq=seq,
+        stamp_ns=t,
+        estimator=name,
+        pos_ned_m=[north, east, 0.0],
+        vel_ned_mps=[0.0, 0.0, 0.0],
+        q_nb=[1.0, 0.0, 0.0, 0.0],
+        lat_deg=0,
+        lon_deg=0,
+        alt_m=0,
+    )
+
+
+def test_the_table_takes_each_estimators_newest_solution_from_a_ring() -> None:
+    """``hil up``'s and ``hil monitor``'s error line: the solutions and truth wait in Zenoh's
+    rings and each draw decodes only the last truth batches and each estimator's newest solution
+    the truth reaches, not every one of the ~360 a second a 400 Hz rig publishes (each a Python
+    wake-up)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    hub = open_session(BusConfig(mode="router", listen=(endpoint,), connect=()))
+    viewer = None
+    sampler = None
+    try:
+        viewer = open_session(BusConfig(mode="client", connect=(endpoint,), listen=()))
+        k = Keys(RIG)
+        view = LiveView()
+        sampler = SolutionSampler(viewer, k, view, Stats())
+        truth = Publisher(hub, k.truth(), Truth)
+        navs = {n: Publisher(hub, k.nav(n), NavSolution) for n in ("ekf15", "ins")}
+        t = 0
+
+        def publish(n: int, north: float, east: float, truth_too: bool = True) -> None:
+            nonlocal t
+            for _ in range(n):
+                t += 20_000_000
+                if truth_too:
+                    truth.put(_truth(truth.next_seq(), t))
+                for name, p in navs.items():
+                    p.put(_solution(p.next_seq(), t, name, north, east if name == "ekf15" else 0.0))
+
+        deadline = time.monotonic() + 60
+        while not view.nav_seen and time.monotonic() < deadline:  # until the routes are up
+            publish(1, 300.0, 400.0)
+            time.sleep(0.05)
+            sampler.drain()
+        assert view.nav_seen, "no solution reached the sampler within 60 s"
+        before = sampler.decoded
+        publish(200, 300.0, 400.0)  # 600 messages the table never needs
+        publish(1, 3.0, 4.0)  # the last the truth reaches: ekf15 5 m off truth, ins 3 m
+        # newer solutions than any truth (the world publishes its truth ten rows at a time):
+        # nothing to compare them with, so the error is the one before them
+        t += 20_000_000  # (one 20 ms on would still be within reach of the last truth)
+        publish(3, 300.0, 400.0, truth_too=False)
+        drains = 0
+        line = ""
+        while time.monotonic() < deadline:
+            sampler.drain()
+            drains += 1
+            line = next((ln for ln in view.table(1.0).splitlines() if "error vs truth" in ln), "")
+            if "ekf15 5.0" in line and "ins 3.0" in line:
+                break
+            time.sleep(0.05)
+        assert "ekf15 5.0" in line and "ins 3.0" in line, line
+        # each drain decoded at most NAV_KEEP solutions of each estimator and TRUTH_KEEP truths
+        keep = 2 * SolutionSampler.NAV_KEEP + SolutionSampler.TRUTH_KEEP
+        assert sampler.decoded - before <= drains * keep < 600
+    finally:
+        if sampler is not None:
+            sampler.undeclare()
+        if viewer is not None:
+            viewer.close()
+        hub.close()
