@@ -336,8 +336,8 @@ class LiveView:
 class SolutionSampler:
     """The table's error line without a Python wake-up per message. The solutions and the truth
     land in Zenoh's own ring buffers (``RingChannel``: no thread of ours, no GIL; the oldest
-    dropped when full); each :meth:`drain` (once per table drawn) takes the newest solution of
-    each estimator and the newest truth batches from them, decoding only those. A 400 Hz rig
+    dropped when full); each :meth:`drain` (once per table drawn) takes the newest truth batches
+    and each estimator's newest solution that truth reaches, decoding only those. A 400 Hz rig
     publishes ~360 of these a second (seven estimators at 50 Hz, ten truth batches): delivered to
     a callback one by one they cost ``hil up``'s supervisor ~1.6 % of a core on a 2-CPU VM, where a
     wake-up costs ~28 µs (docs/benchmarks.md, session 40)."""
