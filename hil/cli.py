@@ -1329,11 +1329,11 @@ def _add_up_parser(sub: Any) -> None:
     up.add_argument(
         "--can-batch-ms",
         type=bounded_float(0.0, 100.0, unit="ms"),
-        default=10.0,
+        default=None,  # UpOptions.can_batch_ms (test_input_batch_options: the same)
         help="the CAN bridge reads the IMU's frames in windows this many ms apart and publishes "
         "each window's samples as one message: fewer messages and wake-ups in every service for up "
         "to this much more latency downstream of the bridge; the wire and the samples' receive "
-        "stamps are unchanged (default 10; 0: each sample at once)",
+        "stamps are unchanged (default: 20 up to 500 Hz, 10 above; 0: each sample at once)",
     )
     up.add_argument("--quiet", action="store_true", help="no live table")
     up.add_argument("--dut", default=None, help="device under test on the CAN bus: its mapping TOML")

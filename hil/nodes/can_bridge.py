@@ -35,6 +35,16 @@ from hil.nodes.builders import can_frame_msg, imu_sample_msg
 from hil.timesync.sample_index import ImuSampleIndexer
 
 
+def read_window_ms(rate_hz: float) -> float:
+    """The CAN bridge's read window when none is asked for: 20 ms up to 500 Hz (at most ten
+    samples a window), 10 ms above. At 400 Hz, on a 2-CPU VM where a thread's wake-up costs ~30 µs
+    of CPU, 20 ms took the rig to 0.84-0.91x the CPU of 10 ms (four alternating pairs) for the
+    fused output's p99 30-33 ms after its IMU sample instead of 19-22 ms (the target: 50 ms); at
+    1 kHz it gave p99 49 ms, and at 2 kHz with CAN FD the same CPU as 10 ms with p99 241 ms
+    against 83 ms (docs/benchmarks.md, session 40)."""
+    return 20.0 if rate_hz <= 500.0 else 10.0
+
+
 class CanBridgeOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
     channel: str = "vcan0"  # CAN channel read
     interface: str | None = None  # python-can interface; None: socketcan if the channel exists, else hilzenoh
@@ -46,8 +56,9 @@ class CanBridgeOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fi
     # meanwhile before the outputs go out: each key's messages of that read (raw frames, IMU
     # samples) leave as one batch, one Zenoh message and one wake-up of each subscriber, instead
     # of one per sample. The samples keep their receive stamps (the frames'), so time sync and
-    # the fusion compute the same; only their delivery waits. 0: each sample's outputs at once.
-    can_batch_ms: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] = 10.0
+    # the fusion compute the same; only their delivery waits. 0: each sample's outputs at once;
+    # None: by the IMU's rate (read_window_ms).
+    can_batch_ms: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] | None = None
     dut_mapping: str | None = None  # a device under test on this bus: its mapping TOML
 
 
@@ -74,6 +85,8 @@ class CanBridgeNode(Node):
                 self.error("errors.scenario", f"IMU rate from the run's scenario: {err}; assuming 400 Hz")
                 rate = 400.0
         self.indexer = ImuSampleIndexer(max(1, round(1e9 / rate)), wait_for_count=bool(opts.resume))
+        # the live runner's read window (hil.runners.live), ms
+        self.read_window_ms = opts.can_batch_ms if opts.can_batch_ms is not None else read_window_ms(rate)
         self._seen_problems = 0
         self._seen_status = 0
         self._seen_lost = 0

@@ -141,7 +141,7 @@ class NodeService(Service):
         self._sender_dead = False
         self._due: deque[tuple[int, list[Out], str]] = deque()  # outputs held for their rig time
         self._bursts: list[tuple[int, int, Any]] = []  # (due, computed at, burst) not yet submitted
-        self._can_batch_s = float(getattr(self.opts, "can_batch_ms", 0.0)) / 1e3  # a CAN reader's window
+        self._can_batch_s = 0.0  # a CAN reader's window: its node's (run_loop)
 
     # -- setup: subscriptions and publishers before time zero -----------------------------------
     def setup(self) -> None:
@@ -296,6 +296,8 @@ class NodeService(Service):
 
     def run_loop(self, run: RunInfo, clock: RigClock) -> None:
         node = self.make_node(run)
+        # the CAN bridge's read window, chosen by the node (its option, else by the IMU's rate)
+        self._can_batch_s = float(getattr(node, "read_window_ms", 0.0)) / 1e3
         # Everything built so far (modules, the node, its estimators) lives as long as the process:
         # out of the collector's reach, a full collection scans only what the run makes, not the
         # ~27k objects a fusion service's imports leave: pauses that landed on the output's latency.
@@ -532,7 +534,7 @@ class NodeService(Service):
             self.ctx.stop.wait(0.2)
             return
         if frame is not None and self._can_batch_s > 0.0:
-            # the read window (CanBridgeOptions.can_batch_ms): the frames of the next few ms queue
+            # the read window (CanBridgeNode.read_window_ms): the frames of the next few ms queue
             # on the bus, stamped as they arrive, and are read in this one wake-up
             self.ctx.stop.wait(self._can_batch_s)
             self.stats.inc("in.can_reads")

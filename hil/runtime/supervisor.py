@@ -170,8 +170,9 @@ class UpOptions:
     output_predictor: bool = True
     # time sync's and the fusion's input batching window (hil.nodes.base.BatchedInputOptions)
     input_batch_ms: float = 0.0
-    # the CAN bridge's read window (hil.nodes.can_bridge.CanBridgeOptions.can_batch_ms)
-    can_batch_ms: float = 10.0
+    # the CAN bridge's read window (hil.nodes.can_bridge.CanBridgeOptions.can_batch_ms), ms;
+    # None: by the IMU's rate (hil.nodes.can_bridge.read_window_ms)
+    can_batch_ms: float | None = None
     live: bool = True
     log_dir: Path | None = None
     restart: int = 0  # restarts allowed per service (0: a death ends the run)

@@ -50,17 +50,42 @@ def test_bench_rig_refuses_an_impossible_read_window(capsys: pytest.CaptureFixtu
 
 
 def test_the_can_bridge_takes_its_read_window_and_hil_up_fills_it() -> None:
-    # one default, on by default (the rig's messages per IMU sample), wherever it is written
+    # one default (None: by the IMU's rate), wherever it is written
     from hil.cli import build_parser
 
     up_args = build_parser().parse_args(["up"])
-    assert UpOptions().can_batch_ms == options_class("can_bridge")().can_batch_ms == 10.0  # type: ignore[attr-defined]
+    assert UpOptions().can_batch_ms is options_class("can_bridge")().can_batch_ms is None  # type: ignore[attr-defined]
     assert up_args.can_batch_ms == UpOptions().can_batch_ms
-    assert fill_options("can_bridge", UpOptions())["can_batch_ms"] == 10.0
+    assert "can_batch_ms" not in fill_options("can_bridge", UpOptions())  # the service's default
     assert fill_options("can_bridge", UpOptions(can_batch_ms=0.0))["can_batch_ms"] == 0.0
+    assert build_parser().parse_args(["up", "--can-batch-ms", "5"]).can_batch_ms == 5.0
     assert "can_batch_ms" not in fill_options("fusion", UpOptions())
     with pytest.raises(OptionsError, match="can_batch_ms"):
         decode_options(options_class("can_bridge"), {"can_batch_ms": 250.0}, "can_bridge")
+
+
+@pytest.mark.parametrize(
+    ("rate_hz", "asked", "window_ms"),
+    [
+        (400, None, 20.0),
+        (500, None, 20.0),
+        (1000, None, 10.0),
+        (2000, None, 10.0),
+        (400, 5.0, 5.0),
+        (2000, 0.0, 0.0),
+    ],
+)
+def test_the_read_window_follows_the_imu_rate_unless_one_is_asked_for(
+    rate_hz: int, asked: float | None, window_ms: float
+) -> None:
+    """20 ms up to 500 Hz, where it saves the rig's CPU; 10 ms above, where 20 saved nothing and
+    tripled the fused output's tail (docs/benchmarks.md, session 40)."""
+    from hil.nodes.can_bridge import CanBridgeNode, CanBridgeOptions
+    from hil.runners.sim import SimOptions, sim_run_info
+
+    run = sim_run_info(SimOptions(scenario="straight_level", duration_s=5.0, imu_rate_hz=rate_hz))
+    node = CanBridgeNode(run, CanBridgeOptions(can_batch_ms=asked))
+    assert node.read_window_ms == window_ms
 
 
 def test_hil_up_refuses_an_impossible_read_window(capsys: pytest.CaptureFixture[str]) -> None:
