@@ -38,7 +38,7 @@ from hil.timesync.sample_index import ImuSampleIndexer
 def read_window_ms(rate_hz: float) -> float:
     """The CAN bridge's read window when none is asked for: 20 ms up to 500 Hz (at most ten
     samples a window), 10 ms above. At 400 Hz, on a 2-CPU VM where a thread's wake-up costs ~30 µs
-    of CPU, 20 ms took the rig to 0.84-0.91x the CPU of 10 ms (four alternating pairs) for the
+    of CPU, 20 ms took the rig to 0.84-0.92x the CPU of 10 ms (five alternating pairs) for the
     fused output's p99 30-33 ms after its IMU sample instead of 19-22 ms (the target: 50 ms); at
     1 kHz it gave p99 49 ms, and at 2 kHz with CAN FD the same CPU as 10 ms with p99 241 ms
     against 83 ms (docs/benchmarks.md, session 40)."""
