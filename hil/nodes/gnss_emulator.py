@@ -213,7 +213,10 @@ class GnssEmulatorNode(Node):
         # skip what was due while dead; the core still draws its noise (the same stream after)
         skipped = len(self.core.next_batch(min(now_ns, self.end_ns)).t_valid_ns)
         self.fix_index = skipped
-        self.next_pps_s = now_ns // _S + 1
+        # the next whole second's edge; a run's first is at 1 s, also for a restart before time
+        # zero (the world's lead: now_ns < 0), which gave an edge at 0 s with seq -1, refused by
+        # time sync and the recorder as an invalid TimeTag
+        self.next_pps_s = max(1, now_ns // _S + 1)
         detail = f"gnss_emulator restarted at t={now_ns / 1e9:.3f} s: resumes at fix seq {skipped}"
         return [self.event("resumed", detail, now_ns)]
 

@@ -234,6 +234,12 @@ def test_killed_services_are_restarted_rejoin_the_run_and_are_recorded(tmp_path:
     # no service log holds a traceback
     for log in (tmp_path / "s.logs").glob("*.log"):
         assert "Traceback" not in log.read_text(errors="replace"), log
+    # and no service, restarted or not, published a message the recorder refused (a GNSS receiver
+    # restarted before time zero put a PPS time tag with seq -1 on the bus)
+    for sess in both:
+        st = decode(ServiceStatus, sess.by_topic("hil/suprig/status/recorder")[-1].payload)
+        refused = {c.key: c.value for c in st.counters if c.key.startswith("rejected.") and c.value}
+        assert not refused, (refused, st.last_error)
     # and the session reruns whole from its first file, bit for bit: the killed recorder's file up
     # to its cut, then the restarted one's part, and the fusion in its two lives (once, rerun read
     # the first file only, and the part alone has no fusion configuration)

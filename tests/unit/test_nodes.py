@@ -193,6 +193,25 @@ def test_a_gnss_outage_commanded_before_time_zero_starts_at_time_zero() -> None:
     assert valid and min(valid) >= 2_000_000_000 and max(valid) > 4_000_000_000
 
 
+@pytest.mark.parametrize("restart_ns", [-400_000_000, 0, 2_300_000_000])
+def test_a_restarted_gnss_receiver_s_pps_edges_carry_the_second_as_seq(restart_ns: int) -> None:
+    """GIVEN the GNSS emulator restarted (resume) before time zero, at it or mid-run WHEN it runs
+    to the end THEN each PPS time tag's seq is its edge's second less one, as in a run never
+    restarted: none negative (a restart during the world's lead put an edge at 0 s with seq -1,
+    refused by time sync and the recorder), none repeated."""
+    from hil.messages import TimeTag
+    from hil.nodes.gnss_emulator import GnssEmulatorNode, GnssEmulatorOptions
+
+    node = GnssEmulatorNode(_run(5.0), GnssEmulatorOptions(resume=1))
+    node.start(restart_ns)
+    outs = []
+    while (t := node.next_tick_ns()) is not None:
+        outs += node.tick(max(t, restart_ns))
+    seqs = [m.seq for k, m in outs if k == "timetag/gnss" and isinstance(m, TimeTag)]
+    first = max(1, restart_ns // 1_000_000_000 + 1)
+    assert seqs == list(range(first - 1, 5)), seqs
+
+
 def test_fusion_node_publishes_its_config_journal_and_health_on_the_rig_clock() -> None:
     node = FusionNode(_run(), FusionOptions(estimators=["kfvel"]))
     ((key, cfg),) = node.start(0)
