@@ -149,7 +149,6 @@ def _measure_rig(
         "per_sample_ms": 1e3 * total / max(1, imu.count),
         "fused": fused,
         "gaps": gaps,
-        "wakeups": {k: v / win for k, v in sup.wakeups.items()},
         "load": load_before,
     }
     return 0, lines, figures

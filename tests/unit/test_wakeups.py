@@ -47,7 +47,11 @@ def test_a_process_wake_ups_count_every_thread_and_its_children() -> None:
             assert polls < 1200, "the child's sleeps never showed in the tree's count (60 s)"
             done.wait(0.05)
     finally:
-        child.communicate("\n", timeout=60)
+        try:
+            child.communicate("\n", timeout=60)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
     assert proc_wakeups(2**22 + 7) is None  # no such process
 
 
