@@ -330,7 +330,7 @@ def test_batched_inputs_lose_nothing_and_rerun_bit_for_bit(tmp_path: Path) -> No
         assert counters["in.batches"] > 0
         # 400 Hz of IMU samples into a 10 ms window: several inputs per wake-up, never one each
         assert counters["in.batched_inputs"] >= 2 * counters["in.batches"], counters
-    # the IMU emulator (compute_batch_ms, default 10 ms) computes several ticks per wake-up and
+    # the IMU emulator (compute_batch_ms, default 20 ms) computes several ticks per wake-up and
     # publishes its capture truth in batches: one wake-up per tick and per output would be ~0.5;
     # every sample still left on the wire and every capture was published
     emu = decode(ServiceStatus, s.by_topic("hil/batched/status/imu_emulator")[-1].payload).counter_map()
