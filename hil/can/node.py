@@ -41,6 +41,12 @@ _COUNTERS = (
 )
 
 
+def _what(frames: Sequence[can.Message]) -> str:
+    """What a failed transport write carried, for its error text (built only on a failure)."""
+    more = f" (+{len(frames) - 1} frames)" if len(frames) > 1 else ""
+    return f"send 0x{frames[0].arbitration_id:X}{more}"
+
+
 class CanTransmitter:
     """Send frames onto ``bus``; what the live runner does with a node's CAN output.
 
@@ -152,41 +158,42 @@ class CanTransmitter:
         """``call`` (one transport write of ``frames``) under the retry policy: a failure is retried
         with a doubling back-off, then its frames are counted dropped."""
         delay = self.backoff_s
-        what = f"send 0x{frames[0].arbitration_id:X}" + (
-            f" (+{len(frames) - 1} frames)" if len(frames) > 1 else ""
-        )
         for attempt in range(self.retries + 1):
             try:
                 call()
             except can.CanOperationError as err:
                 full = err.error_code == errno.ENOBUFS or "buffer" in str(err).lower()
-                self._count("tx_buffer_full" if full else "tx_bus_error", f"{what}: {err}")
+                self._count("tx_buffer_full" if full else "tx_bus_error", f"{_what(frames)}: {err}")
                 if attempt < self.retries:
                     self._counts["tx_retries"] += 1
                     self._sleep(delay)
                     delay *= 2
                 continue
             except can.CanError as err:  # any other python-can failure: same policy
-                self._count("tx_bus_error", f"{what}: {err}")
+                self._count("tx_bus_error", f"{_what(frames)}: {err}")
                 if attempt < self.retries:
                     self._counts["tx_retries"] += 1
                     self._sleep(delay)
                     delay *= 2
                 continue
             self._counts["tx_frames"] += len(frames)
-            for frame in frames:
-                self._account(frame)
+            self._account(frames)
             return True
         for _ in frames:
             self._count("tx_dropped_frames")
         return False
 
-    def _account(self, frame: can.Message) -> None:
-        key = (len(frame.data), bool(frame.is_fd), bool(frame.bitrate_switch))
-        busy = self._busy_cache.get(key)
-        if busy is None:
-            bits = frame_bits(key[0], fd=key[1], brs=key[2], extended=False)
-            busy = self._busy_cache[key] = bits.seconds(self.nominal_bitrate, self.data_bitrate)
+    def _account(self, frames: Sequence[can.Message]) -> None:
+        """The wire time of frames sent together, as one entry of the last second's load."""
+        busy = 0.0
+        cache = self._busy_cache
+        for frame in frames:
+            key = (len(frame.data), bool(frame.is_fd), bool(frame.bitrate_switch))
+            one = cache.get(key)
+            if one is None:
+                bits = frame_bits(key[0], fd=key[1], brs=key[2], extended=False)
+                one = cache[key] = bits.seconds(self.nominal_bitrate, self.data_bitrate)
+            busy += one
         now = self._now()
         self._busy.append((now, busy))
         self._busy_sum += busy

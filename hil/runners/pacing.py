@@ -484,10 +484,12 @@ class PacedSender:
         # spin takes the CPU the node needs to compute the next samples (measured at load 18,
         # 400 Hz: the sender spun 45 % of the time and the node fell seconds behind)
         behind = backlog and self.cfg.rt_priority > 0 and now - due_ns > self.cfg.late_tolerance_ns
+        bits_ns = [self.wire.frame_ns(frame) for frame in burst.frames]  # once per frame
         ends = []
-        for frame in burst.frames:
-            t += self.wire.frame_ns(frame)
-            ends.append(t + self.cfg.wire_latency_ns)
+        latency = self.cfg.wire_latency_ns
+        for ns in bits_ns:
+            t += ns
+            ends.append(t + latency)
         ok, first = True, 0
         if self.sink.carries_stamps:
             left = self._wait_hand(ends[-1], behind)
@@ -505,14 +507,16 @@ class PacedSender:
                 first = first or left
         self.bus_free_ns = t
         self.sink.count_burst(ok, False)
-        sched = self._on_ideal_wire(due_ns, burst.frames)
-        ideal = sched + self.wire.frame_ns(burst.frames[0]) + self.cfg.wire_latency_ns
-        self._account(burst, due_ns, ideal, first, submitted_ns)
+        sched = self._on_ideal_wire(due_ns, burst.frames, sum(bits_ns))
+        self._account(burst, due_ns, sched + bits_ns[0] + latency, first, submitted_ns)
 
-    def _on_ideal_wire(self, due_ns: int, frames: Sequence[Any]) -> int:
-        """Put ``frames`` on the ideal wire from ``due_ns``; the instant their first bit starts."""
+    def _on_ideal_wire(self, due_ns: int, frames: Sequence[Any], bits_ns: int | None = None) -> int:
+        """Put ``frames`` (their wire time ``bits_ns`` where known) on the ideal wire from
+        ``due_ns``; the instant their first bit starts."""
         sched = max(due_ns, self.ideal_free_ns)
-        self.ideal_free_ns = sched + sum(self.wire.frame_ns(f) for f in frames)
+        if bits_ns is None:
+            bits_ns = sum(self.wire.frame_ns(f) for f in frames)
+        self.ideal_free_ns = sched + bits_ns
         return sched
 
     def _send_sync(self, burst: CanBurst, due_ns: int) -> None:
