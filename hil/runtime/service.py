@@ -221,6 +221,8 @@ class Service:
                 )
             )
         except Exception as err:  # a closing session must not take the process down
+            # its seq is spent: the gap it leaves in the recording is explained by the next status
+            self.stats.error("errors.status_publish", f"status seq {seq}: {type(err).__name__}: {err}")
             log.debug("status publish failed: %s", err)
 
     def _on_run(self, run: RunInfo, _key: str) -> None:

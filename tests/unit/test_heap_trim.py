@@ -1,4 +1,5 @@
-"""Heap trimming gives a thread arena's free pages back, and every service reports it in status."""
+"""Heap trimming gives a thread arena's free pages back, and every service reports it in status
+(and a status that could not go out in the next one)."""
 
 from __future__ import annotations
 
@@ -116,6 +117,25 @@ def _statuses(
     del sub
     probe.close()
     return got
+
+
+class _IdleWithABadFirstCounter(_Idle):
+    """Its first status cannot be built (a counter that is no integer): that status is lost."""
+
+    calls = 0
+
+    def extra_status(self) -> dict[str, int]:
+        self.calls += 1
+        return {"bad": float("nan")} if self.calls == 1 else {}  # type: ignore[dict-item]
+
+
+def test_a_status_that_cannot_go_out_is_counted_in_the_next(zenoh_hub: str) -> None:
+    # a lost status leaves a gap in its seqs in the recording: the next status says where and why
+    got = _statuses({}, "t-status-lost", 2.5, _IdleWithABadFirstCounter)
+    assert got and got[0].seq == 1, [m.seq for m in got]  # seq 0 was spent on the lost one
+    last = got[-1].counter_map()
+    assert last["errors.status_publish"] == 1 and "bad" not in last
+    assert got[-1].last_error.startswith("status seq 0: ValueError"), got[-1].last_error
 
 
 def test_service_trims_on_schedule_and_reports(zenoh_hub: str) -> None:
