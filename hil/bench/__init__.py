@@ -12,6 +12,7 @@ import platform
 import re
 import subprocess
 import sys
+import time
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -20,15 +21,38 @@ DEFAULT_DOC = Path("docs/benchmarks.md")
 _HEADER = """# Benchmarks
 
 Every section below was written by the command it names, on the machine it names. Re-run the
-command to refresh it; nothing here is typed by hand.
+command to refresh it; nothing here is typed by hand. Sections written since 2026-12-07 also name
+the machine's Python speed in that hour (a fixed loop, `hil.bench.python_loop_s`): this VM's
+drifted 0.66-1.39 s in one day, so figures of different hours compare through it, and the ratios
+of one run (`--versus`, alternating rounds) need no such help.
 """
+
+
+_LOOP_S: float | None = None
+
+
+def _loop_tenth_s() -> float:
+    t0 = time.perf_counter()
+    sum(i * i for i in range(1_000_000))
+    return time.perf_counter() - t0
+
+
+def python_loop_s() -> float:
+    """This machine's Python speed, taken once per process when a section is written (the
+    bench's load has ended by then): seconds for ``sum(i * i for i in range(10**7))``, ten times
+    the best of five tenths. A VM's speed drifts from hour to hour (here 0.66-1.39 s in one day),
+    so figures of different hours compare only through it; ratios within one run do not need it."""
+    global _LOOP_S
+    if _LOOP_S is None:
+        _LOOP_S = 10 * min(_loop_tenth_s() for _ in range(5))
+    return _LOOP_S
 
 
 def machine_line() -> str:
     """Where the figures came from, so a reader can compare like with like."""
     return (
         f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"{datetime.now(UTC).strftime('%Y-%m-%d')}"
+        f"{datetime.now(UTC).strftime('%Y-%m-%d')}, a fixed Python loop {python_loop_s():.2f} s"
     )
 
 

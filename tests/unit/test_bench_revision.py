@@ -1,12 +1,14 @@
 """A bench row names the code it measured: the commit, and ``+edits`` when the checkout differs
-from it (figures of uncommitted code were once labelled with the commit before them)."""
+from it (figures of uncommitted code were once labelled with the commit before them); a section
+names the machine's Python speed in that hour (a VM's drifts)."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 from pathlib import Path
 
-from hil.bench import tree_revision
+from hil.bench import python_loop_s, tree_revision, write_section
 
 
 def _git(repo: Path, *args: str) -> str:
@@ -35,3 +37,12 @@ def test_a_checkout_with_edits_is_labelled_so(tmp_path: Path) -> None:
     assert tree_revision(str(tmp_path)) == head
     (tmp_path / "a.py").write_text("x = 2\n")
     assert tree_revision(str(tmp_path)) == f"{head}+edits"
+
+
+def test_a_section_names_the_machines_python_speed(tmp_path: Path) -> None:
+    doc = write_section("probe", "| a | b |", "hil bench probe", tmp_path / "benchmarks.md")
+    line = next(ln for ln in doc.read_text().splitlines() if ln.startswith("Machine: "))
+    m = re.search(r", a fixed Python loop (\d+\.\d\d) s$", line)
+    assert m, line
+    # taken once per process: every section of one bench run names the same figure
+    assert float(m.group(1)) == round(python_loop_s(), 2) > 0
