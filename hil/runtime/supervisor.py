@@ -59,6 +59,28 @@ def proc_wakeups(pid: int, tree: bool = True) -> int | None:
     return _over_tree(pid, _own_wakeups_of, tree)
 
 
+@dataclass(frozen=True)
+class Usage:
+    """What a process spent: CPU seconds (user + system) and wake-ups (voluntary context
+    switches), counted together from one base (time zero, or a life's start)."""
+
+    cpu_s: float = 0.0
+    wakeups: int = 0
+
+    def __add__(self, other: Usage) -> Usage:
+        return Usage(self.cpu_s + other.cpu_s, self.wakeups + other.wakeups)
+
+    def since(self, base: Usage) -> Usage:
+        """Spent after ``base``; never negative (a successor's count starts again at 0)."""
+        return Usage(max(0.0, self.cpu_s - base.cpu_s), max(0, self.wakeups - base.wakeups))
+
+
+def proc_usage(pid: int) -> Usage | None:
+    """A live process's and its live children's :class:`Usage`; None where /proc has no CPU for it."""
+    cpu = proc_cpu_seconds(pid)
+    return None if cpu is None else Usage(cpu, proc_wakeups(pid) or 0)
+
+
 def _over_tree(pid: int, own: Callable[[int], _N | None], tree: bool) -> _N | None:
     """``own(pid)``, with every live descendant's added when ``tree``; None where unavailable."""
     value = own(pid)
@@ -231,8 +253,7 @@ class Child:
     log_fh: IO[bytes]
     stopping: bool = False
     restarts: int = 0
-    final_cpu_s: float | None = None  # user + system CPU at its end (from wait4's rusage)
-    final_wakeups: int | None = None  # its voluntary context switches at its end (wait4's rusage)
+    final: Usage | None = None  # its CPU and wake-ups at its end (from wait4's rusage)
 
 
 class LiveView:
@@ -462,18 +483,15 @@ class Supervisor:
         self.spawned_at: dict[str, float] = {}  # per service, monotonic time of its (last) start
         self.ready_cpu_s: dict[str, float] = {}  # per service, its process's CPU when first seen ready
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
-        self._cpu_base: dict[str, float] = {}
         # per service, its threads' wake-ups (voluntary context switches) since time zero, as cpu_s
         self.wakeups: dict[str, int] = {}
-        self._wake_base: dict[str, int] = {}
-        self._wake_dead: dict[str, int] = {}
+        self._base: dict[str, Usage] = {}  # per live process, its usage at time zero (empty: before)
         self._cpu_base_t = time.monotonic()
         self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
         # per run (or HIL_RIG_KEY's): the rig's processes' Zenoh ids derive from it
         self.rig_key = rig_key_from_env() or new_rig_key()
-        self._cpu_self_base = _own_cpu_seconds()
-        self._wake_self_base = _own_wakeups()
-        self._cpu_dead: dict[str, float] = {}  # CPU of the earlier lives of restarted services
+        self._self_base = _own_usage()
+        self._dead: dict[str, Usage] = {}  # the earlier lives of restarted services
         self._restarting: dict[str, tuple[float, int]] = {}  # name -> (when it died, new pid)
         self.downtime_s: dict[str, float] = {}  # per restarted service: dead until ready again
         self._degraded_seen: set[str] = set()
@@ -831,13 +849,11 @@ class Supervisor:
             self._check_restarts()
             self._note_ready_cpu()
             run = self.view.run
-            if run is not None and not self._cpu_base:
+            if run is not None and not self._base:
                 self._cpu_base_t = time.monotonic()
-                self._cpu_self_base = _own_cpu_seconds()
-                self._wake_self_base = _own_wakeups()
+                self._self_base = _own_usage()
                 for name, c in self.children.items():
-                    self._cpu_base[name] = proc_cpu_seconds(c.proc.pid) or 0.0
-                    self._wake_base[name] = proc_wakeups(c.proc.pid) or 0
+                    self._base[name] = proc_usage(c.proc.pid) or Usage()
             if run is not None and o.duration_s is not None:
                 clock = RigClock(run.start_epoch_ns, run.speed)
                 if clock.now_ns() >= int((o.duration_s + 0.3) * 1e9):
@@ -903,19 +919,15 @@ class Supervisor:
         if pid == 0:
             return None
         child.proc.returncode = os.waitstatus_to_exitcode(status)
-        child.final_cpu_s = usage.ru_utime + usage.ru_stime
-        child.final_wakeups = usage.ru_nvcsw
+        child.final = Usage(usage.ru_utime + usage.ru_stime, usage.ru_nvcsw)
         return child.proc.returncode
 
     def _retire_cpu(self, name: str, child: Child) -> None:
         """Add a dead life's CPU (since time zero, or since its own start) to the service's total."""
-        spent = (child.final_cpu_s or 0.0) - self._cpu_base.get(name, 0.0)
-        self._cpu_dead[name] = self._cpu_dead.get(name, 0.0) + max(0.0, spent)
-        woken = (child.final_wakeups or 0) - self._wake_base.get(name, 0)
-        self._wake_dead[name] = self._wake_dead.get(name, 0) + max(0, woken)
-        if self._cpu_base:
-            self._cpu_base[name] = 0.0  # the next life is counted from its own start
-            self._wake_base[name] = 0
+        spent = (child.final or Usage()).since(self._base.get(name, Usage()))
+        self._dead[name] = self._dead.get(name, Usage()) + spent
+        if self._base:
+            self._base[name] = Usage()  # the next life is counted from its own start
 
     def _check_degraded(self) -> None:
         """Say at once, on the console, when a service reports itself degraded (a recorder that
@@ -966,7 +978,7 @@ class Supervisor:
     def _silent_imu(self, min_run_s: float = 3.0) -> str | None:
         """The IMU is the rig's clock: a run whose CAN bridge decoded not one sample produced no
         navigation at all, yet every service stayed up -- so say so instead of exiting 0."""
-        if "can_bridge" not in self.children or not self._cpu_base:
+        if "can_bridge" not in self.children or not self._base:
             return None  # no bridge in this rig, or the run never started
         ran_s = time.monotonic() - self._cpu_base_t
         st = self.view.status.get("can_bridge")
@@ -986,14 +998,12 @@ class Supervisor:
         service's earlier lives included), and the supervisor's own."""
         self.cpu_window_s = time.monotonic() - self._cpu_base_t
         for name, c in self.children.items():
-            cpu = proc_cpu_seconds(c.proc.pid) if c.proc.returncode is None else c.final_cpu_s
-            live = max(0.0, cpu - self._cpu_base.get(name, 0.0)) if cpu is not None else 0.0
-            self.cpu_s[name] = self._cpu_dead.get(name, 0.0) + live
-            woken = proc_wakeups(c.proc.pid) if c.proc.returncode is None else c.final_wakeups
-            live_w = max(0, woken - self._wake_base.get(name, 0)) if woken is not None else 0
-            self.wakeups[name] = self._wake_dead.get(name, 0) + live_w
-        self.cpu_s["supervisor"] = max(0.0, _own_cpu_seconds() - self._cpu_self_base)
-        self.wakeups["supervisor"] = max(0, _own_wakeups() - self._wake_self_base)
+            now = proc_usage(c.proc.pid) if c.proc.returncode is None else c.final
+            live = now.since(self._base.get(name, Usage())) if now is not None else Usage()
+            total = self._dead.get(name, Usage()) + live
+            self.cpu_s[name], self.wakeups[name] = total.cpu_s, total.wakeups
+        own = _own_usage().since(self._self_base)
+        self.cpu_s["supervisor"], self.wakeups["supervisor"] = own.cpu_s, own.wakeups
 
     def ready_s(self) -> dict[str, float]:
         """Seconds from each service's process start to its first ready status (the world waits
@@ -1104,17 +1114,12 @@ class Supervisor:
                 c.log_fh.close()
 
 
-def _own_cpu_seconds() -> float:
-    """user + system CPU of this process (every thread; children not included)."""
-    t = os.times()
-    return t.user + t.system
-
-
-def _own_wakeups() -> int:
-    """Voluntary context switches of this process (every thread; children not included)."""
+def _own_usage() -> Usage:
+    """This process's CPU and voluntary context switches (every thread; children not included)."""
     import resource
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return Usage(r.ru_utime + r.ru_stime, r.ru_nvcsw)
 
 
 def _tail(path: Path, n: int = 8) -> str:

@@ -11,7 +11,7 @@ import sys
 import threading
 
 from hil.bench.rig import _cpu_of, wakeup_cost_us
-from hil.runtime.supervisor import proc_wakeups
+from hil.runtime.supervisor import Usage, proc_usage, proc_wakeups
 
 
 def test_a_process_wake_ups_count_every_thread_and_its_children() -> None:
@@ -53,6 +53,19 @@ def test_a_process_wake_ups_count_every_thread_and_its_children() -> None:
             child.kill()
             child.wait()
     assert proc_wakeups(2**22 + 7) is None  # no such process
+
+
+def test_a_services_usage_adds_its_lives_and_never_goes_negative() -> None:
+    # a restarted service: its first life from time zero to its death, its second from its start
+    base, died = Usage(1.5, 300), Usage(4.0, 1300)
+    second = Usage(0.8, 200).since(Usage())
+    assert died.since(base) + second == Usage(3.3, 1200)
+    # a successor's count starts again at 0: measured against the old base it is nothing, not
+    # negative (the table once showed "fusion -0.93 s")
+    assert Usage(0.2, 10).since(base) == Usage(0.0, 0)
+    mine = proc_usage(os.getpid())
+    assert mine is not None and mine.cpu_s > 0 and mine.wakeups > 0
+    assert proc_usage(2**22 + 7) is None  # no such process
 
 
 def test_the_cpu_table_is_read_with_and_without_its_wake_ups_column() -> None:
