@@ -27,6 +27,23 @@ RUN set -eu; \
     if [ "$PIP_OFFLINE" = 1 ]; then src="--no-index --find-links /wheels"; else src=""; fi; \
     /opt/venv/bin/pip install -q $src --no-build-isolation --no-deps . ; \
     /opt/venv/bin/python -c "import can, hil.can.zenoh_bus, services.world; can.Bus; print('hil image ok')"
+# The fusion's kernels compiled ahead of time (hil.runtime.aot) into the installed package, for
+# this machine's CPU: a container then loads them in a millisecond, where numba otherwise compiles
+# them at every start (seconds of a core, beside the running fusion). numba's toolchain wants a C
+# and a C++ compiler. Best effort: a build that cannot reach Debian's mirror for them, or another
+# CPU at run time, gets numba's kernels as before. Run from /tmp: the installed package, not /src.
+RUN set -u; \
+    cd /tmp; \
+    py=/opt/venv/bin/python; \
+    inc="$($py -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"; \
+    pkgs="gcc g++ libc6-dev"; [ -f "$inc/Python.h" ] || pkgs="$pkgs python3-dev"; \
+    if apt-get update -qq >/dev/null 2>&1 \
+       && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $pkgs >/dev/null 2>&1; then \
+        $py -m hil.runtime.aot --dir "$($py -c 'import hil.runtime, os; print(os.path.join(os.path.dirname(hil.runtime.__file__), "__pycache__"))')" \
+            || echo "hil image: the kernels were not built ahead of time; numba compiles them at run time"; \
+    else \
+        echo "hil image: no C compiler (apt-get could not install $pkgs); numba compiles the kernels at run time"; \
+    fi
 
 FROM ${BASE_IMAGE}
 ENV PATH=/opt/venv/bin:/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \

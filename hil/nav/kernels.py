@@ -44,6 +44,10 @@ from hil.nav.types import F64
 #: Whether :mod:`hil.runtime.jit` has put the compiled kernels in place in this process (the
 #: fusion's status counts it as ``kernels.compiled``).
 compiled = False
+#: Whether they came from the module built ahead of time (``hil.runtime.aot``), not numba's
+#: compiler: ``kernels.ahead_of_time`` in the fusion's status (an image or a checkout that built
+#: none compiles them at each start, seconds of a core)
+ahead_of_time = False
 
 _pow = math.pow  # Python's: the C library's pow, as float.__pow__ calls it; compiled: see jit
 

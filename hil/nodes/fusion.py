@@ -320,6 +320,7 @@ class FusionNode(Node):
         core = self.core
         out = core.status_counters() if core is not None else {"held_for_alignment": len(self._held)}
         out["kernels.compiled"] = int(kernels.compiled)  # hil.runtime.jit: 0 runs at Python's speed
+        out["kernels.ahead_of_time"] = int(kernels.ahead_of_time)  # hil.runtime.aot's module
         out.update(self.counts)
         return out
 

@@ -257,6 +257,7 @@ def _enable(env: Mapping[str, str]) -> str:
     for name, (_key, homes, _fallback) in _PLACES.items():
         _python.setdefault(name, _get(homes[0]))
     kernels.compiled = True
+    kernels.ahead_of_time = built is not None
     kept = []
     for name, (key, homes, fallback) in _PLACES.items():
         check = _CHECKS.get(name)  # the kernels that follow numpy's loops or libm: checked here first

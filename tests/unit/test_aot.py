@@ -53,16 +53,19 @@ def test_they_load_without_numba_and_are_put_in_place(built: Path) -> None:
         "from hil.nav import strapdown\n"
         "print(jit.enable()); print(jit.source()); print('numba' in sys.modules)\n"
         "print(strapdown._step is jit.compiled_kernel('_step'))\n"
+        "from hil.nav import kernels; print(kernels.compiled, kernels.ahead_of_time)\n"
     )
     res = _run([sys.executable, "-c", code], _env(built))
     assert res.returncode == 0, res.stderr
-    state, source, numba_loaded, in_place = res.stdout.split("\n")[:4]
+    state, source, numba_loaded, in_place, counted = res.stdout.split("\n")[:5]
     assert state == "compiled"
     assert source.startswith(f"ahead of time ({built}/hil_kernels_")
     assert (numba_loaded, in_place) == ("False", "True")
+    assert counted == "True True"  # the fusion's status: kernels.compiled, kernels.ahead_of_time
     res = _run([sys.executable, "-c", code], _env(built, HIL_JIT="numba"))
     assert res.returncode == 0, res.stderr
     assert res.stdout.split("\n")[1:3] == ["numba's cache", "True"]
+    assert res.stdout.split("\n")[4] == "True False"
 
 
 def test_every_kernel_gives_the_python_bits(built: Path) -> None:
