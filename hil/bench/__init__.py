@@ -23,7 +23,7 @@ _HEADER = """# Benchmarks
 Every section below was written by the command it names, on the machine it names. Re-run the
 command to refresh it; nothing here is typed by hand. Sections written since 2026-12-07 also name
 the machine's Python speed in that hour (a fixed loop, `hil.bench.python_loop_s`): this VM's
-drifted 0.66-1.39 s in one day, so figures of different hours compare through it, and the ratios
+drifted 0.57-1.39 s in one day, so figures of different hours compare through it, and the ratios
 of one run (`--versus`, alternating rounds) need no such help.
 """
 
@@ -40,7 +40,7 @@ def _loop_tenth_s() -> float:
 def python_loop_s() -> float:
     """This machine's Python speed, taken once per process when a section is written (the
     bench's load has ended by then): seconds for ``sum(i * i for i in range(10**7))``, ten times
-    the best of five tenths. A VM's speed drifts from hour to hour (here 0.66-1.39 s in one day),
+    the best of five tenths. A VM's speed drifts from hour to hour (here 0.57-1.39 s in one day),
     so figures of different hours compare only through it; ratios within one run do not need it."""
     global _LOOP_S
     if _LOOP_S is None:
