@@ -99,11 +99,10 @@ def _measure_rig(
         "| --- | ---: | ---: | ---: |",
     ]
     win = sup.cpu_window_s
-    for name, cpu in sorted(sup.cpu_s.items(), key=lambda kv: -kv[1]):
-        wake = sup.wakeups.get(name, 0) / win
-        lines.append(f"| {name} | {cpu:.2f} | {100 * cpu / win:.1f} % | {wake:.0f} |")
-    total = sum(sup.cpu_s.values())
-    woken = sum(sup.wakeups.values())
+    for name, u in sorted(sup.usage.items(), key=lambda kv: -kv[1].cpu_s):
+        lines.append(f"| {name} | {u.cpu_s:.2f} | {100 * u.cpu_s / win:.1f} % | {u.wakeups / win:.0f} |")
+    total = sum(u.cpu_s for u in sup.usage.values())
+    woken = sum(u.wakeups for u in sup.usage.values())
     lines.append(f"| **all** | {total:.2f} | **{100 * total / win:.1f} %** | {woken / win:.0f} |")
     lines += [
         "",

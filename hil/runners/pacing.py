@@ -471,7 +471,8 @@ class PacedSender:
         now = self.clock.now_ns()
         if self.cfg.late_policy == "skip" and self.cfg.period_ns and now - due_ns >= self.cfg.period_ns:
             self.counts["tx_late_skipped_samples"] += 1  # its slot has passed: the next one is due
-            self._on_ideal_wire(due_ns, burst.frames)  # a device that never stalls sent it
+            # a device that never stalls sent it
+            self._on_ideal_wire(due_ns, sum(self.wire.frame_ns(f) for f in burst.frames))
             return
         # on a bus that carries stamps, at normal priority, a late burst keeps its place on the
         # wire's schedule (stamps from its tick or the previous frame, never from when this
@@ -507,15 +508,13 @@ class PacedSender:
                 first = first or left
         self.bus_free_ns = t
         self.sink.count_burst(ok, False)
-        sched = self._on_ideal_wire(due_ns, burst.frames, sum(bits_ns))
+        sched = self._on_ideal_wire(due_ns, sum(bits_ns))
         self._account(burst, due_ns, sched + bits_ns[0] + latency, first, submitted_ns)
 
-    def _on_ideal_wire(self, due_ns: int, frames: Sequence[Any], bits_ns: int | None = None) -> int:
-        """Put ``frames`` (their wire time ``bits_ns`` where known) on the ideal wire from
-        ``due_ns``; the instant their first bit starts."""
+    def _on_ideal_wire(self, due_ns: int, bits_ns: int) -> int:
+        """Put frames of wire time ``bits_ns`` on the ideal wire from ``due_ns``; the instant
+        their first bit starts."""
         sched = max(due_ns, self.ideal_free_ns)
-        if bits_ns is None:
-            bits_ns = sum(self.wire.frame_ns(f) for f in frames)
         self.ideal_free_ns = sched + bits_ns
         return sched
 
@@ -528,7 +527,7 @@ class PacedSender:
         meet the stated instant within ``SYNC_CLAIM_TOL_NS``, or the tag is re-stamped later
         (three tries) or dropped."""
         frames = list(burst.frames)
-        self._on_ideal_wire(due_ns, frames[:1])
+        self._on_ideal_wire(due_ns, self.wire.frame_ns(frames[0]))
         for _attempt in range(3):
             first = max(due_ns, self.bus_free_ns, self.clock.now_ns())
             if first != burst.capture_ns:

@@ -479,12 +479,10 @@ class Supervisor:
         self._kill_lock = threading.Lock()
         self.view = LiveView()
         self._sampler: SolutionSampler | None = None  # the table's solutions and truth (--quiet: none)
-        self.cpu_s: dict[str, float] = {}  # per service, sampled just before the stop
+        self.usage: dict[str, Usage] = {}  # per service, since time zero, sampled just before the stop
         self.spawned_at: dict[str, float] = {}  # per service, monotonic time of its (last) start
         self.ready_cpu_s: dict[str, float] = {}  # per service, its process's CPU when first seen ready
         self.cpu_window_s = 0.0  # wall time those CPU seconds were spent in
-        # per service, its threads' wake-ups (voluntary context switches) since time zero, as cpu_s
-        self.wakeups: dict[str, int] = {}
         self._base: dict[str, Usage] = {}  # per live process, its usage at time zero (empty: before)
         self._cpu_base_t = time.monotonic()
         self.viewer: Child | None = None  # ``hil foxglove`` for ``--foxglove``: serves, never fails the run
@@ -1000,10 +998,18 @@ class Supervisor:
         for name, c in self.children.items():
             now = proc_usage(c.proc.pid) if c.proc.returncode is None else c.final
             live = now.since(self._base.get(name, Usage())) if now is not None else Usage()
-            total = self._dead.get(name, Usage()) + live
-            self.cpu_s[name], self.wakeups[name] = total.cpu_s, total.wakeups
-        own = _own_usage().since(self._self_base)
-        self.cpu_s["supervisor"], self.wakeups["supervisor"] = own.cpu_s, own.wakeups
+            self.usage[name] = self._dead.get(name, Usage()) + live
+        self.usage["supervisor"] = _own_usage().since(self._self_base)
+
+    @property
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds per service (and the supervisor) since time zero: :attr:`usage`'s."""
+        return {name: u.cpu_s for name, u in self.usage.items()}
+
+    @property
+    def wakeups(self) -> dict[str, int]:
+        """Wake-ups (voluntary context switches of every thread) per service since time zero."""
+        return {name: u.wakeups for name, u in self.usage.items()}
 
     def ready_s(self) -> dict[str, float]:
         """Seconds from each service's process start to its first ready status (the world waits
@@ -1068,20 +1074,22 @@ class Supervisor:
         return f"{line}; {', or '.join(helps)} (docs/timing.md)"
 
     def cpu_table(self) -> str:
-        if not self.cpu_s or self.cpu_window_s <= 0:
+        if not self.usage or self.cpu_window_s <= 0:
             return ""
         w = self.cpu_window_s
+
+        def row(name: str, u: Usage) -> str:
+            return (
+                f"  {name:<14}{u.cpu_s:8.2f} s  {100 * u.cpu_s / w:6.1f} %  {u.wakeups / w:7.0f} wake-ups/s"
+            )
+
         rows = [f"CPU over {w:.1f} s of wall time (share of one core; wake-ups: its threads' a second):"]
-        for name, cpu in sorted(self.cpu_s.items(), key=lambda kv: -kv[1]):
-            wake = f"  {self.wakeups[name] / w:7.0f} wake-ups/s" if name in self.wakeups else ""
-            rows.append(f"  {name:<14}{cpu:8.2f} s  {100 * cpu / w:6.1f} %{wake}")
-        total = sum(self.cpu_s.values())
-        wake = f"  {sum(self.wakeups.values()) / w:7.0f} wake-ups/s" if self.wakeups else ""
-        rows.append(f"  {'all':<14}{total:8.2f} s  {100 * total / w:6.1f} %{wake}")
+        rows += [row(name, u) for name, u in sorted(self.usage.items(), key=lambda kv: -kv[1].cpu_s)]
+        rows.append(row("all", sum(self.usage.values(), Usage())))
         return "\n".join(rows)
 
     def _stop_all(self) -> None:
-        if self.children and not self.cpu_s:
+        if self.children and not self.usage:
             self._sample_cpu()
         for stage in STOP_STAGES:
             procs = [self.children[n] for n in stage if n in self.children]

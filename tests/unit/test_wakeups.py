@@ -80,6 +80,6 @@ def test_the_cpu_table_is_read_with_and_without_its_wake_ups_column() -> None:
 
 
 def test_measuring_the_wake_up_cost_leaves_no_thread_behind() -> None:
-    sleep_us, handoff_us = wakeup_cost_us(n=50)
-    assert sleep_us > 0.0 and handoff_us >= 0.0
+    sleep_us, _handoff_us = wakeup_cost_us(n=50)
+    assert sleep_us > 0.0  # (a hand-over's extra is clamped at 0: nothing to assert of it alone)
     assert not [t for t in threading.enumerate() if t.name == "wakeup-cost"]
