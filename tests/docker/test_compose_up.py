@@ -1,5 +1,8 @@
 """``docker compose up`` for real: build the image, run the whole stack ~30 s, stop, audit the recording.
 
+The image is usually built already by then (``test_image``, beside the live tests; this test is
+the last live one, tests/conftest.py): ``_image.ensure`` then finds its layers cached.
+
 No image registry is reachable in CI, so the image is built on a debootstrap base with a host-side
 wheelhouse (deploy/build-base-image.sh) and the router runs from the project's image
 (docker-compose.local-router.yml); users get python:3.11-slim and the official zenohd. The kernel
@@ -21,28 +24,19 @@ import pytest
 
 from hil.messages import ServiceStatus, decode
 from hil.record.mcapio import read_session
-from tests.docker import _engine
+from tests.docker import _engine, _image
 from tests.docker._recording import CONTRACT_TYPES, audit
 
 pytestmark = [pytest.mark.docker, pytest.mark.slow, pytest.mark.timeout(900)]
 
 RUN_S = float(os.environ.get("HIL_DOCKER_RUN_S", "30"))
-SRC = Path(os.environ.get("HIL_DOCKER_SRC") or _engine.REPO)  # the checkout to build (default: this one)
+_run = _image.run
 
 
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def _run(
-    cmd: list[str], env: dict[str, str], timeout: float, check: bool = True
-) -> subprocess.CompletedProcess[str]:
-    r = subprocess.run(cmd, cwd=SRC, env=env, capture_output=True, text=True, timeout=timeout)
-    if check and r.returncode != 0:
-        raise AssertionError(f"{' '.join(cmd)} -> {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
-    return r
 
 
 def _wait_for_run(port: int, rig: str, timeout_s: float) -> float | None:
@@ -76,44 +70,25 @@ def _wait_for_run(port: int, rig: str, timeout_s: float) -> float | None:
 
 
 def test_compose_up_records_the_whole_rig(tmp_path: Path) -> None:
-    reason = _engine.engine_reason()
-    if reason:
-        _engine.unavailable(reason)
+    figures = _image.ensure()
     compose = _engine.compose_cmd()
     assert compose is not None
-    env = dict(os.environ)
     project = f"hiltest{os.getpid()}"
     port = _free_port()
-    env.update(
+    env = _image.build_env(
         COMPOSE_PROJECT_NAME=project,
-        HIL_IMAGE="hil:test",
-        HIL_BASE_IMAGE=os.environ.get("HIL_DOCKER_BASE_IMAGE", "localpy:bookworm"),
-        HIL_PIP_OFFLINE="1",
         HIL_ROUTER_PORT=str(port),
         HIL_RIG="bench",
         HIL_RECORD_FILE="session.mcap",
         HIL_DURATION_S="null",
     )
-    figures: dict[str, float] = {}
-    t = time.monotonic()
-    base = subprocess.run(
-        ["bash", str(SRC / "deploy/build-base-image.sh")], cwd=SRC, env=env, capture_output=True, text=True
-    )
-    if base.returncode != 0:
-        _engine.unavailable(f"cannot make the offline base image/wheelhouse: {base.stderr.strip()[-300:]}")
-    figures["base_image_s"] = time.monotonic() - t
-
-    files = ["-f", "docker-compose.yml", "-f", "docker-compose.local-router.yml"]
-    dc = [*compose, *files]
-    t = time.monotonic()
-    _run([*dc, "build"], env, timeout=900)
-    figures["build_s"] = time.monotonic() - t
+    dc = [*compose, *_image.COMPOSE_FILES]
     # whether the build stage could compile the fusion's kernels ahead of time (it needs Debian's
     # mirror for a compiler): what the image itself finds, on this machine's CPU
     probe = "from hil.runtime import prebuilt; print(prebuilt.load() is not None)"
     aot = (
         _run(
-            ["docker", "run", "--rm", "--entrypoint", "/opt/venv/bin/python", "hil:test", "-c", probe],
+            ["docker", "run", "--rm", "--entrypoint", "/opt/venv/bin/python", _image.IMAGE, "-c", probe],
             env,
             120,
         )

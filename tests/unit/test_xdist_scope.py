@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from tests.conftest import POOLED_MODULES, SERIAL_SCOPE, VCAN_SCOPE, xdist_scope
+from tests.conftest import IMAGE_SCOPE, POOLED_MODULES, SERIAL_SCOPE, VCAN_SCOPE, last_live_last, xdist_scope
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -26,6 +26,30 @@ def test_live_tests_share_one_unit_and_the_vcan_tier_has_its_own() -> None:
         "tests/vcan/test_replay_vcan.py::test_replayed_frames_decode_to_the_recorded_samples_with_their_spacing",
     ]
     assert {xdist_scope(n) for n in vcan} == {VCAN_SCOPE} != {SERIAL_SCOPE}
+
+
+def test_the_image_is_built_beside_the_live_tests_and_composed_after_them() -> None:
+    """The image's build is a unit of its own (the free worker makes it while the live tests
+    run); the compose test that runs it goes last in the live unit, and only it moves."""
+    image = [
+        "tests/docker/test_image.py::test_the_image_holds_this_checkout_s_package",
+        "tests/docker/test_image.py::test_the_cli_answers_in_the_image",
+    ]
+    assert {xdist_scope(n) for n in image} == {IMAGE_SCOPE}
+    assert IMAGE_SCOPE not in (SERIAL_SCOPE, VCAN_SCOPE)
+    compose = "tests/docker/test_compose_up.py::test_compose_up_records_the_whole_rig"
+    nodeids = [
+        "tests/docker/test_compose_static.py::test_a",
+        compose,
+        "tests/docker/test_image.py::test_b",
+        "tests/integration/test_up.py::test_c",
+        "tests/multihost/test_security.py::test_d",
+        "tests/unit/test_e.py::test_f",
+    ]
+    ordered = [nodeids[i] for i in last_live_last(nodeids)]
+    assert ordered == [*nodeids[:1], *nodeids[2:], compose]
+    without = nodeids[2:] + nodeids[:1]
+    assert [without[i] for i in last_live_last(without)] == without  # nothing else moves
 
 
 def test_pure_tests_are_pooled_one_by_one_and_offline_modules_whole() -> None:
