@@ -270,9 +270,10 @@ class FusionJournal(Message, frozen=True, kw_only=True):
     that were not used, as ``"<why>:<sensor>:<seq>[@<publisher>]"`` (why: ``late`` behind the
     watermark (older than the latency bound), ``order`` an IMU sample at the stamp of another one
     the output predictor holds, ``dup``, ``future``, ``implausible``, ``inbox`` dropped by the service's
-    bounded inbox, ``overflow`` evicted from the reorder buffer; the publisher is the Zenoh source id,
-    absent offline). ``gated`` lists the GNSS fixes the integrity gate kept from estimators, as
-    ``"<sensor>:<seq>[@<publisher>]"`` (from all) or ``"...>estimator"`` (from that one): not
+    bounded inbox, ``overflow`` evicted from the reorder buffer, ``prealign`` valid before a restarted
+    fusion's re-alignment; the publisher is the Zenoh source id, absent offline). ``gated`` lists
+    the GNSS fixes the integrity gate kept from estimators, as ``"<sensor>:<seq>[@<publisher>]"``
+    (from all) or ``"...>estimator"`` (from that one): not
     needed to rerun (the gate is deterministic), but the record of what was refused and why.
     A span with many decisions is published as several journals.
     """

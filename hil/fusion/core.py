@@ -284,6 +284,9 @@ class FusionCore:
     counters: dict[str, int] = field(default_factory=dict)
     params: dict[str, dict[str, Any]] = field(default_factory=dict)  # per estimator, e.g. from tuning
     receiver: ReceiverModel | None = None  # the scenario's GNSS receiver: without it, no gate
+    # a restarted fusion's re-alignment (``for_scenario``'s ``align_ns``; 0: none): an input valid
+    # before it is older than the state the core starts from, and is refused (``prealign``)
+    align_ns: int = 0
 
     @classmethod
     def for_scenario(cls, scenario: Any, config: FusionConfig, align_ns: int = 0) -> FusionCore:
@@ -324,7 +327,8 @@ class FusionCore:
                 vel_ned_mps=tb.vel_ned_mps[0].copy(),
                 q_nb=tb.q_nb[0].copy(),
             )
-        return cls(init, config, params=params, receiver=ReceiverModel.for_scenario(scenario))
+        receiver = ReceiverModel.for_scenario(scenario)
+        return cls(init, config, params=params, receiver=receiver, align_ns=max(0, align_ns))
 
     def start_output_seq(self, seq: int) -> None:
         """Number outputs from ``seq`` on (a restarted fusion must not reuse an earlier seq)."""
@@ -518,6 +522,14 @@ class FusionCore:
             self._inc("input_gaps")
             self._newest_ns = msg.stamp_ns
         self._future_lead_ns, self._future_run = None, 0
+        if msg.stamp_ns < self.align_ns:
+            # A restarted fusion keeps nothing from before its re-alignment: not what it held
+            # (``FusionNode._realign``), nor what reaches it after -- a fix published before its
+            # subscription to the fixes took effect is never received, one published just after
+            # is, and only this refusal (journaled, as rerun reads it) makes the two alike.
+            self._inc(f"dropped_before_alignment.{msg.sensor}")
+            self._dropped.append("prealign:" + input_id(msg, source))
+            return []
         pacer = msg.sensor in self._pacer
         late = msg.stamp_ns <= self._horizon_ns if self.predictor is not None else key <= self._last_key
         if late:
