@@ -273,9 +273,9 @@ class FusionJournal(Message, frozen=True, kw_only=True):
     bounded inbox, ``overflow`` evicted from the reorder buffer, ``prealign`` valid before a restarted
     fusion's re-alignment; the publisher is the Zenoh source id, absent offline). ``gated`` lists
     the GNSS fixes the integrity gate kept from estimators, as ``"<sensor>:<seq>[@<publisher>]"``
-    (from all) or ``"...>estimator"`` (from that one): not
-    needed to rerun (the gate is deterministic), but the record of what was refused and why.
-    A span with many decisions is published as several journals.
+    (from all) or ``"...>estimator"`` (from that one): not needed to rerun (the gate is
+    deterministic), but the record of what was refused and why. A span with many decisions is
+    published as several journals.
     """
 
     watermark_ns: Ns

@@ -5,9 +5,8 @@ runs on the worker that is not running the live tests) and ``test_compose_up`` (
 live tests). On a clean machine the build -- a debootstrap base, the wheelhouse, the image with
 its kernels compiled ahead of time -- made the compose test take 183 s against 47 s with every
 layer cached (2026-12-07); made beside the live tests, the live worker's chain no longer waits
-for it. Both go through :func:`ensure` under one
-file lock, so they never build at once (nor two suites on one machine): whoever comes second
-finds every layer cached and is done in seconds.
+for it. Both go through :func:`ensure` under one file lock, so they never build at once (nor two
+suites of one user): whoever comes second finds every layer cached and is done in seconds.
 """
 
 from __future__ import annotations
@@ -24,7 +23,7 @@ from tests.docker import _engine
 SRC = Path(os.environ.get("HIL_DOCKER_SRC") or _engine.REPO)  # the checkout to build (default: this one)
 IMAGE = "hil:test"
 COMPOSE_FILES = ("-f", "docker-compose.yml", "-f", "docker-compose.local-router.yml")
-LOCK = Path(tempfile.gettempdir()) / "hil-docker-image.lock"
+LOCK = Path(tempfile.gettempdir()) / f"hil-docker-image-{os.getuid()}.lock"  # a user's own to open
 
 
 def build_env(**extra: str) -> dict[str, str]:
