@@ -376,7 +376,8 @@ class _FusionRerun:
 
         Which inputs those are follows from how it took them: it held what it received until
         the first IMU sample (``first``), kept of that what is stamped at or after the alignment,
-        and took everything after (less what it journaled as dropped). It received what was
+        and took everything after that is (less what it journaled as dropped; ``release`` leaves
+        out the rest: refused if it came, and whether it came is chance). It received what was
         published after the IMU sample before ``first``, which it did not receive; the file
         holds the time sync's messages in the order they were published (one publisher, one
         link), and the heap's push count is that order."""
@@ -506,8 +507,14 @@ class _FusionRerun:
             stream = _stream(msg.sensor, source)
             if (stream, msg.seq) in self.rerun_ids:
                 continue  # a second copy of an input already decided
-            self.rerun_ids.add(stream, msg.seq)
             i = input_id(msg, source)
+            if self.realigned is not None and msg.stamp_ns < self.realigned[0]:
+                # valid before this life's re-alignment: refused if it reached the restarted
+                # fusion (journaled ``prealign``), or never received -- its subscription to that
+                # stream took effect later than the IMU's -- and not taken either way
+                self.present.pop(i, None)
+                continue
+            self.rerun_ids.add(stream, msg.seq)
             if self.present.pop(i) - self.dropped[i] <= 0:
                 continue
             self.used += 1
