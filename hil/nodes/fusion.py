@@ -186,7 +186,14 @@ class FusionNode(Node):
     refuses_foreign = True
     name = "fusion"
     Options = FusionOptions
-    inputs = tuple(Input(f"synced/{s}", {"synced": SENSORS[s].message}) for s in SENSOR_NAMES)
+    # The aiding streams' subscriptions are declared before the IMU's: a restarted fusion takes
+    # what was published after the IMU sample before the first one it received (``hil rerun``
+    # infers the same from the publish order), and declared first on the one session, an aiding
+    # stream's subscription has taken effect at the hub by the time the IMU's has.
+    inputs = tuple(
+        Input(f"synced/{s}", {"synced": SENSORS[s].message})
+        for s in sorted(SENSOR_NAMES, key=lambda n: SENSORS[n].paces_fusion)
+    )
 
     def __init__(self, run: Any, options: FusionOptions | None = None) -> None:
         super().__init__(run, options)

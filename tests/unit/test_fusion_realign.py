@@ -123,3 +123,13 @@ def test_a_fix_valid_before_the_alignment_changes_nothing_whether_it_arrives_or_
     assert with_fix.core.counters.get("dropped_before_alignment.gnss") == 1
     assert f"prealign:gnss:{before.seq}" in with_fix.core.take_dropped()
     assert "dropped_before_alignment.gnss" not in without.core.counters
+
+
+def test_the_fusion_subscribes_to_its_aiding_streams_before_the_imu() -> None:
+    """A restarted fusion takes what was published after the IMU sample before its first (rerun
+    infers that from the publish order): declared before the IMU's on the one session, the fixes'
+    subscription has taken effect at the hub by the time the IMU's has."""
+    from hil.sensor_table import SENSORS
+
+    paces = [SENSORS[i.key.split("/")[1]].paces_fusion for i in FusionNode.inputs]
+    assert paces == sorted(paces) and paces[-1] and not paces[0], [i.key for i in FusionNode.inputs]
