@@ -262,6 +262,14 @@ def input_id(msg: Measurement, source: str = "") -> str:
     return f"{msg.sensor}:{msg.seq}@{source}" if source else f"{msg.sensor}:{msg.seq}"
 
 
+def before_alignment(stamp_ns: int, align_ns: int) -> bool:
+    """An input a fusion aligned at ``align_ns`` (a restarted one: ``realign_point``; 0 for a run
+    from the start) never takes: valid before the state it starts from. The one rule for what it
+    held (``FusionNode._realign``), what reaches it after (``FusionCore.push``: ``prealign``) and
+    what ``hil rerun`` gives each life (whether such an input reached it live is chance)."""
+    return stamp_ns < align_ns
+
+
 def parse_journal_id(entry: str) -> tuple[str, str, str]:
     """``(why, "sensor:seq", publisher)`` of a ``dropped`` entry (``why`` "" when it has none, as
     in recordings made before reasons were given; publisher "" when it was not known)."""
@@ -522,7 +530,7 @@ class FusionCore:
             self._inc("input_gaps")
             self._newest_ns = msg.stamp_ns
         self._future_lead_ns, self._future_run = None, 0
-        if msg.stamp_ns < self.align_ns:
+        if before_alignment(msg.stamp_ns, self.align_ns):
             # A restarted fusion keeps nothing from before its re-alignment: not what it held
             # (``FusionNode._realign``), nor what reaches it after -- a fix published before its
             # subscription to the fixes took effect is never received, one published just after

@@ -37,7 +37,7 @@ from hil.estimators.registry import (
     default_feedback,
 )
 from hil.estimators.tuning import BIAS_MODELS
-from hil.fusion.core import FREE_INS, FusionConfig, FusionCore
+from hil.fusion.core import FREE_INS, FusionConfig, FusionCore, before_alignment
 from hil.messages import EstimatorHealth, ImuSample, Measurement, NavSolution
 from hil.nav import kernels
 from hil.nav.scenario import scenario_for_run
@@ -272,7 +272,8 @@ class FusionNode(Node):
         self.core = FusionCore.for_scenario(self.scenario, self.config, align_ns=align_ns)
         self.core.start_output_seq(first_seq)
         outs = [self.event("realigned", realigned_detail(align_ns, msg.seq, first_seq), now_ns)]
-        held, self._held = [(m, src) for m, src in self._held if m.stamp_ns >= align_ns], []
+        held, self._held = self._held, []
+        held = [(m, src) for m, src in held if not before_alignment(m.stamp_ns, align_ns)]
         for m, src in held:  # nothing from before the alignment
             outs.extend(self._push(m, src))
         return outs

@@ -27,7 +27,7 @@ from typing import Any
 
 import msgspec
 
-from hil.fusion.core import FREE_INS, FusionConfig, input_id, input_key, parse_journal_id
+from hil.fusion.core import FREE_INS, FusionConfig, before_alignment, input_id, input_key, parse_journal_id
 from hil.messages import (
     Event,
     FusionJournal,
@@ -394,7 +394,9 @@ class _FusionRerun:
         received_after = max(before) if before else (-1 if self.last_key is None else self.pushed_released)
 
         def taken(e: tuple[Any, int, Measurement, str, bytes]) -> bool:
-            return e[1] >= first[1] or (e[1] > received_after and e[2].stamp_ns >= point[0])
+            if e[1] >= first[1]:
+                return True
+            return e[1] > received_after and not before_alignment(e[2].stamp_ns, point[0])
 
         later = [e for e in heap if taken(e)]
         self.heap = [e for e in heap if not taken(e)]
@@ -508,7 +510,7 @@ class _FusionRerun:
             if (stream, msg.seq) in self.rerun_ids:
                 continue  # a second copy of an input already decided
             i = input_id(msg, source)
-            if self.realigned is not None and msg.stamp_ns < self.realigned[0]:
+            if self.realigned is not None and before_alignment(msg.stamp_ns, self.realigned[0]):
                 # valid before this life's re-alignment: refused if it reached the restarted
                 # fusion (journaled ``prealign``), or never received -- its subscription to that
                 # stream took effect later than the IMU's -- and not taken either way

@@ -921,7 +921,7 @@ class Supervisor:
         return child.proc.returncode
 
     def _retire_cpu(self, name: str, child: Child) -> None:
-        """Add a dead life's CPU (since time zero, or since its own start) to the service's total."""
+        """Add a dead life's usage (since time zero, or since its own start) to the service's total."""
         spent = (child.final or Usage()).since(self._base.get(name, Usage()))
         self._dead[name] = self._dead.get(name, Usage()) + spent
         if self._base:
@@ -1005,11 +1005,6 @@ class Supervisor:
     def cpu_s(self) -> dict[str, float]:
         """CPU seconds per service (and the supervisor) since time zero: :attr:`usage`'s."""
         return {name: u.cpu_s for name, u in self.usage.items()}
-
-    @property
-    def wakeups(self) -> dict[str, int]:
-        """Wake-ups (voluntary context switches of every thread) per service since time zero."""
-        return {name: u.wakeups for name, u in self.usage.items()}
 
     def ready_s(self) -> dict[str, float]:
         """Seconds from each service's process start to its first ready status (the world waits

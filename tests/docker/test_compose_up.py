@@ -30,7 +30,6 @@ from tests.docker._recording import CONTRACT_TYPES, audit
 pytestmark = [pytest.mark.docker, pytest.mark.slow, pytest.mark.timeout(900)]
 
 RUN_S = float(os.environ.get("HIL_DOCKER_RUN_S", "30"))
-_run = _image.run
 
 
 def _free_port() -> int:
@@ -87,7 +86,7 @@ def test_compose_up_records_the_whole_rig(tmp_path: Path) -> None:
     # mirror for a compiler): what the image itself finds, on this machine's CPU
     probe = "from hil.runtime import prebuilt; print(prebuilt.load() is not None)"
     aot = (
-        _run(
+        _image.run(
             ["docker", "run", "--rm", "--entrypoint", "/opt/venv/bin/python", _image.IMAGE, "-c", probe],
             env,
             120,
@@ -97,30 +96,30 @@ def test_compose_up_records_the_whole_rig(tmp_path: Path) -> None:
     )
     try:
         t = time.monotonic()
-        _run([*dc, "up", "-d", "--no-build", "--pull", "never"], env, timeout=180)
+        _image.run([*dc, "up", "-d", "--no-build", "--pull", "never"], env, timeout=180)
         figures["up_s"] = time.monotonic() - t
         to_run = _wait_for_run(port, "bench", timeout_s=120)
         if to_run is None:
-            logs = _run([*dc, "logs", "--tail", "20"], env, timeout=60, check=False).stdout
+            logs = _image.run([*dc, "logs", "--tail", "20"], env, timeout=60, check=False).stdout
             raise AssertionError(f"world never announced the run within 120 s of up\n{logs[-4000:]}")
         figures["up_to_run_s"] = figures["up_s"] + to_run
         time.sleep(RUN_S)
-        ps = _run([*dc, "ps", "-a", "--format", "json"], env, timeout=60).stdout
+        ps = _image.run([*dc, "ps", "-a", "--format", "json"], env, timeout=60).stdout
         states = [json.loads(line) for line in ps.splitlines() if line.strip()]
         running = {s["Service"]: s["State"] for s in states}
         assert all(v == "running" for v in running.values()), f"not all running after {RUN_S} s: {running}"
         t = time.monotonic()
-        _run([*dc, "stop", "--timeout", "90"], env, timeout=300)
+        _image.run([*dc, "stop", "--timeout", "90"], env, timeout=300)
         figures["stop_s"] = time.monotonic() - t
-        ps = _run([*dc, "ps", "-a", "--format", "json"], env, timeout=60).stdout
+        ps = _image.run([*dc, "ps", "-a", "--format", "json"], env, timeout=60).stdout
         exits = {s["Service"]: s["ExitCode"] for s in (json.loads(x) for x in ps.splitlines() if x.strip())}
         assert all(code == 0 for code in exits.values()), f"exit codes after stop: {exits}"
         rec = tmp_path / "session.mcap"
-        _run(["docker", "cp", f"{project}-recorder-1:/data/session.mcap", str(rec)], env, timeout=120)
-        logs = _run([*dc, "logs", "--no-color"], env, timeout=60, check=False).stdout
+        _image.run(["docker", "cp", f"{project}-recorder-1:/data/session.mcap", str(rec)], env, timeout=120)
+        logs = _image.run([*dc, "logs", "--no-color"], env, timeout=60, check=False).stdout
         (tmp_path / "compose.log").write_text(logs)
     finally:
-        _run([*dc, "down", "-v", "--remove-orphans", "--timeout", "30"], env, timeout=300, check=False)
+        _image.run([*dc, "down", "-v", "--remove-orphans", "--timeout", "30"], env, timeout=300, check=False)
 
     info = subprocess.run(
         [sys.executable, "-m", "hil.cli", "info", str(rec), "--no-accuracy"],
