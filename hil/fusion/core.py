@@ -728,11 +728,12 @@ class FusionCore:
             self._aiding_max = [e for e in self._aiding_max if -e[3] in self._aiding_live]
             heapq.heapify(self._aiding_max)
 
-    def note_dropped(self, msg: Measurement, source: str = "") -> None:
-        """An input the service's bounded inbox dropped before it reached the core: journaled,
+    def note_dropped(self, msg: Measurement, source: str = "", why: str = "inbox") -> None:
+        """An input the service dropped before it reached the core (``inbox``: its bounded inbox;
+        ``held``: a restarted fusion's full list of inputs held for its re-alignment): journaled,
         so ``hil rerun`` leaves out what the live core never saw."""
-        self._inc(f"dropped_inbox.{msg.sensor}")
-        self._dropped.append("inbox:" + input_id(msg, source))
+        self._inc(f"dropped_{why}.{msg.sensor}")
+        self._dropped.append(f"{why}:" + input_id(msg, source))
 
     def flush(self) -> list[NavSolution]:
         """End of input: release everything still buffered."""

@@ -22,6 +22,7 @@ there on, less what that process journaled as dropped.
 
 from __future__ import annotations
 
+import collections
 import math
 import re
 from typing import Any
@@ -37,7 +38,14 @@ from hil.estimators.registry import (
     default_feedback,
 )
 from hil.estimators.tuning import BIAS_MODELS
-from hil.fusion.core import FREE_INS, FusionConfig, FusionCore, before_alignment
+from hil.fusion.core import (
+    FREE_INS,
+    JOURNAL_MAX_ENTRIES,
+    FusionConfig,
+    FusionCore,
+    before_alignment,
+    input_id,
+)
 from hil.messages import EstimatorHealth, ImuSample, Measurement, NavSolution
 from hil.nav import kernels
 from hil.nav.scenario import scenario_for_run
@@ -66,10 +74,16 @@ def realign_point(first_imu: ImuSample, output_every: int) -> tuple[int, int]:
 _REALIGNED_SEQ = re.compile(r"\(the start of imu seq (\d+)\)")
 
 
-def realigned_detail(align_ns: int, imu_seq: int, first_seq: int) -> str:
+_FIRST_RECEIVED = re.compile(r"; first received: ([^;]*)$")
+
+
+def realigned_detail(align_ns: int, imu_seq: int, first_seq: int, first_received: list[str]) -> str:
+    """``first_received``: the first input of each stream the new life received before its first
+    IMU sample (``input_id``), so that rerun takes exactly what it did (``realigned_first_received``)."""
     return (
         f"fusion restarted: estimators re-aligned from truth at t={align_ns / 1e9:.4f} s "
-        f"(the start of imu seq {imu_seq}); outputs numbered from {first_seq}"
+        f"(the start of imu seq {imu_seq}); outputs numbered from {first_seq}; "
+        f"first received: {', '.join(first_received) or 'nothing else'}"
     )
 
 
@@ -78,6 +92,23 @@ def realigned_imu_seq(detail: str) -> int | None:
     (``realigned_detail``); None if the detail does not say."""
     m = _REALIGNED_SEQ.search(detail)
     return int(m.group(1)) if m else None
+
+
+def realigned_first_received(detail: str) -> dict[tuple[str, str], int] | None:
+    """Per stream (sensor, publisher), the seq of the first input a restarted fusion received
+    before its first IMU sample (``realigned_detail``): it received every later one of that
+    stream, and none of a stream not named before that sample. None: a recording made before
+    the event said so (rerun infers it from the publish order)."""
+    m = _FIRST_RECEIVED.search(detail)
+    if m is None:
+        return None
+    firsts: dict[tuple[str, str], int] = {}
+    for entry in m.group(1).split(", "):
+        name, _, source = entry.partition("@")
+        sensor, _, seq = name.partition(":")
+        if seq.isdigit():
+            firsts[(sensor, source)] = int(seq)
+    return firsts
 
 
 class FusionOptions(BatchedInputOptions, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -207,6 +238,14 @@ class FusionNode(Node):
         if not opts.resume:
             self.core = FusionCore.for_scenario(self.scenario, self.config)
         self._held: list[tuple[Measurement, str]] = []
+        # a restarted fusion, until its first IMU sample: each stream's first input received
+        # (``realigned_detail``), and what it received but did not hold (its inbox dropped it,
+        # or the held list was full): journaled once the core exists, as rerun takes every
+        # input of a stream from its first on
+        self._first_received: dict[tuple[str, str], str] = {}
+        self._held_dropped: collections.deque[tuple[Measurement, str, str]] = collections.deque(
+            maxlen=JOURNAL_MAX_ENTRIES
+        )
         self.pushed = 0  # inputs handed to the core (lockstep replay counts them)
         self._next_journal = JOURNAL_PERIOD_NS
         self._next_health = HEALTH_PERIOD_NS
@@ -246,6 +285,9 @@ class FusionNode(Node):
         """An input the live inbox dropped: journaled, so rerun leaves it out too."""
         if self.core is not None:
             self.core.note_dropped(msg, source)
+        else:  # received while the restarted fusion holds: journaled at its re-alignment
+            self._first_received.setdefault((msg.sensor, source), input_id(msg, source))
+            self._held_dropped.append((msg, source, "inbox"))
 
     def _push(self, msg: Measurement, source: str = "") -> list[Out]:
         core = self.core
@@ -265,13 +307,23 @@ class FusionNode(Node):
         return outs
 
     def _realign(self, msg: Measurement, source: str, now_ns: int) -> list[Out]:
+        self._first_received.setdefault((msg.sensor, source), input_id(msg, source))
         self._held.append((msg, source))
         if not isinstance(msg, ImuSample):
+            if 0 < self.config.max_buffered_aiding < len(self._held):  # bounded through an IMU outage
+                old, old_source = self._held.pop(0)
+                self.inc(f"dropped_held.{old.sensor}")
+                self._held_dropped.append((old, old_source, "held"))
             return []
         align_ns, first_seq = realign_point(msg, self.config.output_every)
         self.core = FusionCore.for_scenario(self.scenario, self.config, align_ns=align_ns)
         self.core.start_output_seq(first_seq)
-        outs = [self.event("realigned", realigned_detail(align_ns, msg.seq, first_seq), now_ns)]
+        firsts = list(self._first_received.values())
+        outs = [self.event("realigned", realigned_detail(align_ns, msg.seq, first_seq, firsts), now_ns)]
+        for m, src, why in self._held_dropped:  # rerun would take them: journaled as dropped
+            if not before_alignment(m.stamp_ns, align_ns):
+                self.core.note_dropped(m, src, why)
+        self._held_dropped.clear()
         held, self._held = self._held, []
         held = [(m, src) for m, src in held if not before_alignment(m.stamp_ns, align_ns)]
         for m, src in held:  # nothing from before the alignment

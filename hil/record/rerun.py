@@ -38,7 +38,7 @@ from hil.messages import (
     current_form,
     decode,
 )
-from hil.nodes.fusion import FusionNode, realign_point, realigned_imu_seq
+from hil.nodes.fusion import FusionNode, realign_point, realigned_first_received, realigned_imu_seq
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
     PayloadError,
@@ -298,6 +298,8 @@ class _FusionRerun:
     # first output seq), and the IMU seq of one whose sample is not read yet (``_try_realign``)
     realigned: tuple[int, int] | None = None
     realign_pending: int | None = None
+    # its event's first input received per stream before that sample (None: an older recording)
+    realign_firsts: dict[tuple[str, str], int] | None = None
     restarts: int = 0
     pushed_released: int = -1  # the push count of the last input rerun
     # for ``_lost_spans``: each journal as (its fusion's session, watermark, consumed); the
@@ -368,6 +370,7 @@ class _FusionRerun:
                 f"({ev.detail!r}): the restarted fusion's inputs cannot be told"
             )
         self.realign_pending = seq
+        self.realign_firsts = realigned_first_received(ev.detail)
         self.realigned_sessions.append(r.publisher.partition(":")[0])
 
     def _try_realign(self) -> None:
@@ -377,10 +380,14 @@ class _FusionRerun:
         Which inputs those are follows from how it took them: it held what it received until
         the first IMU sample (``first``), kept of that what is stamped at or after the alignment,
         and took everything after that is (less what it journaled as dropped; ``release`` leaves
-        out the rest: refused if it came, and whether it came is chance). It received what was
-        published after the IMU sample before ``first``, which it did not receive; the file
-        holds the time sync's messages in the order they were published (one publisher, one
-        link), and the heap's push count is that order."""
+        out the rest: refused if it came, and whether it came is chance). Its event names the
+        first input of each stream it received before ``first``: it received every later one of
+        that stream (one publisher, one link: in seq order), and none of another stream before
+        ``first``, whose subscription had taken effect by then (declared before the IMU's on its
+        one session) -- the file holds the time sync's messages in the order they were
+        published, and the heap's push count is that order. A recording made before the event
+        said so: what was published after the IMU sample before ``first``, which it did not
+        receive (a fix published just before a subscription took effect was taken wrongly)."""
         seq = self.realign_pending
         heap = self.heap
         found = [e for e in heap if e[2].sensor == "imu" and e[2].seq == seq]
@@ -389,14 +396,21 @@ class _FusionRerun:
         self.realign_pending = None
         first = min(found, key=lambda e: e[1])
         point = realign_point(first[2], self.cfg.output_every)  # type: ignore[arg-type]
+        firsts = self.realign_firsts
         before = [e[1] for e in heap if e[2].sensor == "imu" and e[1] < first[1]]
         # no sample before it held: the last one rerun, or none at all (it took everything)
         received_after = max(before) if before else (-1 if self.last_key is None else self.pushed_released)
 
+        def received(e: tuple[Any, int, Measurement, str, bytes]) -> bool:
+            if firsts is None:
+                return e[1] > received_after
+            from_seq = firsts.get((e[2].sensor, e[3]))
+            return from_seq is not None and e[2].seq >= from_seq
+
         def taken(e: tuple[Any, int, Measurement, str, bytes]) -> bool:
             if e[1] >= first[1]:
                 return True
-            return e[1] > received_after and not before_alignment(e[2].stamp_ns, point[0])
+            return received(e) and not before_alignment(e[2].stamp_ns, point[0])
 
         later = [e for e in heap if taken(e)]
         self.heap = [e for e in heap if not taken(e)]

@@ -378,13 +378,17 @@ def test_a_restarted_fusion_reruns_bit_identical_from_its_realignment(tmp_path: 
     assert "VERIFY OK" in res.stdout, res.stdout
     # ... with the event recorded before the sample it names, streamed or the file whole; and
     # without the event the second life cannot be told, and verify fails (the event is what it reads)
-    from hil.nodes.fusion import realigned_imu_seq
+    from hil.nodes.fusion import realigned_first_received, realigned_imu_seq
     from hil.record.rerun import RERUN_WINDOW_S, rerun_fusion_records
 
     records = list(read_session(out).records)
     (event,) = [r for r in records if r.topic.endswith("/event/fusion") and r.decode().kind == "realigned"]  # type: ignore[attr-defined]
     imu_seq = realigned_imu_seq(event.decode().detail)  # type: ignore[attr-defined]
     assert imu_seq is not None
+    # ... the event naming the first input of each stream the new process received (rerun's
+    # inputs for it), the IMU sample among them
+    firsts = realigned_first_received(event.decode().detail)  # type: ignore[attr-defined]
+    assert firsts is not None and imu_seq in firsts.values(), event.decode().detail  # type: ignore[attr-defined]
     moved = _with_event_before_sample(records, event, imu_seq)
     for window_ns in (round(RERUN_WINDOW_S * 1e9), None):
         again = rerun_fusion_records(moved, window_ns=window_ns, worker=False)

@@ -10,6 +10,7 @@ solution before their first IMU step) carried by the output predictor over the 0
 
 from __future__ import annotations
 
+import dataclasses
 from functools import cache
 from typing import Any
 
@@ -19,7 +20,7 @@ import numpy as np
 from hil.fusion.ideal import ideal_streams
 from hil.messages import Event, GnssFix, ImuSample, NavSolution
 from hil.nav.trajectory import TruthGenerator
-from hil.nodes.fusion import FusionNode, FusionOptions
+from hil.nodes.fusion import FusionNode, FusionOptions, realigned_first_received, realigned_imu_seq
 from hil.runners.sim import SimOptions, sim_run_info
 
 RESTART_NS = 10_000_000_000
@@ -133,3 +134,58 @@ def test_the_fusion_subscribes_to_its_aiding_streams_before_the_imu() -> None:
 
     paces = [SENSORS[i.key.split("/")[1]].paces_fusion for i in FusionNode.inputs]
     assert paces == sorted(paces) and paces[-1] and not paces[0], [i.key for i in FusionNode.inputs]
+
+
+def test_the_realigned_event_names_the_first_input_of_each_stream_received_before_the_first_sample() -> None:
+    """What ``hil rerun`` gives a restarted life: from its first input of each stream on. A fix
+    received before the first IMU sample is named with its publisher; a stream not named before
+    that sample had nothing received (rerun takes none of it from before)."""
+    run, inputs, _truth = _rig()
+    first_imu = next(m for m in inputs if isinstance(m, ImuSample))
+    fix = next(m for m in inputs if isinstance(m, GnssFix))
+    node = FusionNode(run, FusionOptions(resume=1))
+    assert node.on_message_from("synced/gnss", fix, fix.stamp_ns, "zid:19") == []
+    outs = node.on_message_from("synced/imu", first_imu, first_imu.stamp_ns, "zid:16")
+    (event,) = [o for _k, o in outs if isinstance(o, Event)]
+    assert event.kind == "realigned"
+    assert realigned_imu_seq(event.detail) == first_imu.seq
+    assert realigned_first_received(event.detail) == {
+        ("gnss", "zid:19"): fix.seq,
+        ("imu", "zid:16"): first_imu.seq,
+    }
+    alone = FusionNode(run, FusionOptions(resume=1))
+    outs = alone.on_message_from("synced/imu", first_imu, first_imu.stamp_ns, "")
+    (event,) = [o for _k, o in outs if isinstance(o, Event)]
+    assert realigned_first_received(event.detail) == {("imu", ""): first_imu.seq}
+    assert (
+        realigned_first_received("fusion restarted: ... (the start of imu seq 7); outputs numbered from 1")
+        is None
+    )
+
+
+def test_inputs_received_while_holding_but_not_held_are_journaled_at_the_realignment() -> None:
+    """GIVEN a restarted fusion waiting for its first IMU sample (an IMU outage) whose held list
+    is bounded, WHEN more fixes arrive than it holds, and its inbox drops one, THEN the oldest go
+    (counted ``dropped_held``) and, where valid after the alignment, are journaled with the inbox's
+    drop -- rerun takes every input of a stream from its first received on, so what the live
+    core never saw must be in the journal."""
+    run, inputs, _truth = _rig()
+    first_imu = next(m for m in inputs if isinstance(m, ImuSample))
+    node = FusionNode(run, FusionOptions(resume=1))
+    node.config = dataclasses.replace(node.config, max_buffered_aiding=2)
+    base = first_imu.stamp_ns  # stamped after the alignment (a lagging IMU stream): all valid
+    fix = next(m for m in inputs if isinstance(m, GnssFix))
+    fixes = [msgspec.structs.replace(fix, seq=100 + k, stamp_ns=base + k * 1000) for k in range(5)]
+    stale = msgspec.structs.replace(fix, seq=99, stamp_ns=base - 1_000_000_000)
+    node.on_dropped("synced/gnss", stale, "p")  # before the alignment: refused either way
+    for f in fixes[:4]:
+        node.on_message_from("synced/gnss", f, f.stamp_ns, "p")
+    node.on_dropped("synced/gnss", fixes[4], "p")
+    assert node.counters().get("dropped_held.gnss") == 2
+    outs = node.on_message_from("synced/imu", first_imu, first_imu.stamp_ns, "p")
+    event = next(o for _k, o in outs if isinstance(o, Event))
+    assert realigned_first_received(event.detail) == {("gnss", "p"): 99, ("imu", "p"): first_imu.seq}
+    assert node.core is not None
+    dropped = node.core.take_dropped()
+    assert dropped[:3] == ["held:gnss:100@p", "held:gnss:101@p", "inbox:gnss:104@p"], dropped
+    assert not any(d.endswith("gnss:99@p") for d in dropped)
