@@ -74,6 +74,7 @@ def realign_point(first_imu: ImuSample, output_every: int) -> tuple[int, int]:
 _REALIGNED_SEQ = re.compile(r"\(the start of imu seq (\d+)\)")
 
 
+MAX_FIRST_RECEIVED = 64  # streams a restarted fusion's realigned event names (the rig has a handful)
 _FIRST_RECEIVED = re.compile(r"; first received: ([^;]*)$")
 
 
@@ -286,7 +287,7 @@ class FusionNode(Node):
         if self.core is not None:
             self.core.note_dropped(msg, source)
         else:  # received while the restarted fusion holds: journaled at its re-alignment
-            self._first_received.setdefault((msg.sensor, source), input_id(msg, source))
+            self._note_received(msg, source)
             self._held_dropped.append((msg, source, "inbox"))
 
     def _push(self, msg: Measurement, source: str = "") -> list[Out]:
@@ -306,8 +307,14 @@ class FusionNode(Node):
             outs.append(self.event(t.kind, t.detail, t.stamp_ns))
         return outs
 
+    def _note_received(self, msg: Measurement, source: str) -> None:
+        stream = (msg.sensor, source)
+        # bounded: a flood of made-up publishers (a bus without the rig's key) names no more
+        if stream not in self._first_received and len(self._first_received) < MAX_FIRST_RECEIVED:
+            self._first_received[stream] = input_id(msg, source)
+
     def _realign(self, msg: Measurement, source: str, now_ns: int) -> list[Out]:
-        self._first_received.setdefault((msg.sensor, source), input_id(msg, source))
+        self._note_received(msg, source)
         self._held.append((msg, source))
         if not isinstance(msg, ImuSample):
             if 0 < self.config.max_buffered_aiding < len(self._held):  # bounded through an IMU outage

@@ -382,10 +382,11 @@ class _FusionRerun:
         and took everything after that is (less what it journaled as dropped; ``release`` leaves
         out the rest: refused if it came, and whether it came is chance). Its event names the
         first input of each stream it received before ``first``: it received every later one of
-        that stream (one publisher, one link: in seq order), and none of another stream before
-        ``first``, whose subscription had taken effect by then (declared before the IMU's on its
-        one session) -- the file holds the time sync's messages in the order they were
-        published, and the heap's push count is that order. A recording made before the event
+        that stream (one publisher, one link: in seq order), none published before ``first`` of
+        a stream it does not name, and everything published after ``first`` (the aiding
+        streams' subscriptions are declared before the IMU's on its one session) -- the file
+        holds the time sync's messages in the order they were published, and the heap's push
+        count is that order. A recording made before the event
         said so: what was published after the IMU sample before ``first``, which it did not
         receive (a fix published just before a subscription took effect was taken wrongly)."""
         seq = self.realign_pending

@@ -20,7 +20,13 @@ import numpy as np
 from hil.fusion.ideal import ideal_streams
 from hil.messages import Event, GnssFix, ImuSample, NavSolution
 from hil.nav.trajectory import TruthGenerator
-from hil.nodes.fusion import FusionNode, FusionOptions, realigned_first_received, realigned_imu_seq
+from hil.nodes.fusion import (
+    MAX_FIRST_RECEIVED,
+    FusionNode,
+    FusionOptions,
+    realigned_first_received,
+    realigned_imu_seq,
+)
 from hil.runners.sim import SimOptions, sim_run_info
 
 RESTART_NS = 10_000_000_000
@@ -189,3 +195,19 @@ def test_inputs_received_while_holding_but_not_held_are_journaled_at_the_realign
     dropped = node.core.take_dropped()
     assert dropped[:3] == ["held:gnss:100@p", "held:gnss:101@p", "inbox:gnss:104@p"], dropped
     assert not any(d.endswith("gnss:99@p") for d in dropped)
+
+
+def test_a_flood_of_publishers_while_holding_names_a_bounded_number_of_streams() -> None:
+    """On a bus without the rig's key a stranger can make up publishers: the event (and what the
+    node keeps to write it) stays bounded."""
+    run, inputs, _truth = _rig()
+    first_imu = next(m for m in inputs if isinstance(m, ImuSample))
+    fix = next(m for m in inputs if isinstance(m, GnssFix))
+    node = FusionNode(run, FusionOptions(resume=1))
+    for k in range(3 * MAX_FIRST_RECEIVED):
+        node.on_message_from("synced/gnss", fix, fix.stamp_ns, f"made-up:{k}")
+    outs = node.on_message_from("synced/imu", first_imu, first_imu.stamp_ns, "rig:16")
+    (event,) = [o for _k, o in outs if isinstance(o, Event)]
+    firsts = realigned_first_received(event.detail)
+    assert firsts is not None and len(firsts) == MAX_FIRST_RECEIVED
+    assert ("gnss", "made-up:0") in firsts
