@@ -14,10 +14,11 @@ A fusion restarted mid-run (option ``resume``) re-aligns: it holds its inputs un
 IMU sample and builds every estimator from the run's truth where that sample's interval starts
 (an in-flight re-alignment; the rig knows truth, a real unit would use its last good solution),
 then numbers its outputs after ``imu_seq // output_every + 1`` so no seq repeats one from before the death,
-and says so in a ``realigned`` event naming that sample. ``hil rerun`` reruns each life of the
-fusion on its own: the first on the inputs before the re-alignment, each later one from a core
-re-aligned where the event says (``realign_point``, ``realigned_imu_seq``), on the inputs from
-there on, less what that process journaled as dropped.
+and says so in a ``realigned`` event naming that sample and the first input of each stream it
+received before it. ``hil rerun`` reruns each life of the fusion on its own: the first on the
+inputs before the re-alignment, each later one from a core re-aligned where the event says
+(``realign_point``, ``realigned_imu_seq``), on the inputs that process received
+(``realigned_first_received``), less what it journaled as dropped.
 """
 
 from __future__ import annotations
