@@ -327,6 +327,7 @@ class FusionNode(Node):
         self.core = FusionCore.for_scenario(self.scenario, self.config, align_ns=align_ns)
         self.core.start_output_seq(first_seq)
         firsts = list(self._first_received.values())
+        self._first_received.clear()  # said once: later inputs go to the core
         outs = [self.event("realigned", realigned_detail(align_ns, msg.seq, first_seq, firsts), now_ns)]
         for m, src, why in self._held_dropped:  # rerun would take them: journaled as dropped
             if not before_alignment(m.stamp_ns, align_ns):
