@@ -41,7 +41,6 @@ from hil.estimators.registry import (
 from hil.estimators.tuning import BIAS_MODELS
 from hil.fusion.core import (
     FREE_INS,
-    JOURNAL_MAX_ENTRIES,
     FusionConfig,
     FusionCore,
     before_alignment,
@@ -76,6 +75,10 @@ _REALIGNED_SEQ = re.compile(r"\(the start of imu seq (\d+)\)")
 
 
 MAX_FIRST_RECEIVED = 64  # streams a restarted fusion's realigned event names (the rig has a handful)
+# inputs a restarted fusion received but did not hold, kept to journal at its re-alignment: past
+# this the oldest are forgotten, which were received long before its first IMU sample and so are
+# valid before its alignment (refused either way, nothing to journal)
+MAX_HELD_DROPPED = 1_000
 _FIRST_RECEIVED = re.compile(r"; first received: ([^;]*)$")
 
 
@@ -246,7 +249,7 @@ class FusionNode(Node):
         # input of a stream from its first on
         self._first_received: dict[tuple[str, str], str] = {}
         self._held_dropped: collections.deque[tuple[Measurement, str, str]] = collections.deque(
-            maxlen=JOURNAL_MAX_ENTRIES
+            maxlen=MAX_HELD_DROPPED
         )
         self.pushed = 0  # inputs handed to the core (lockstep replay counts them)
         self._next_journal = JOURNAL_PERIOD_NS

@@ -386,9 +386,9 @@ class _FusionRerun:
         a stream it does not name, and everything published after ``first`` (the aiding
         streams' subscriptions are declared before the IMU's on its one session) -- the file
         holds the time sync's messages in the order they were published, and the heap's push
-        count is that order. A recording made before the event
-        said so: what was published after the IMU sample before ``first``, which it did not
-        receive (a fix published just before a subscription took effect was taken wrongly)."""
+        count is that order. A recording made before the event named them is read by inference:
+        what was published after the IMU sample before ``first``, which it did not receive
+        (wrong for a fix published just before the subscription to the fixes took effect)."""
         seq = self.realign_pending
         heap = self.heap
         found = [e for e in heap if e[2].sensor == "imu" and e[2].seq == seq]
@@ -413,8 +413,11 @@ class _FusionRerun:
                 return True
             return received(e) and not before_alignment(e[2].stamp_ns, point[0])
 
-        later = [e for e in heap if taken(e)]
-        self.heap = [e for e in heap if not taken(e)]
+        later: list[tuple[Any, int, Measurement, str, bytes]] = []
+        earlier: list[tuple[Any, int, Measurement, str, bytes]] = []
+        for e in heap:
+            (later if taken(e) else earlier).append(e)
+        self.heap = earlier
         heapq.heapify(self.heap)
         self.release(None)  # the old life's inputs, and every worker drained
         self.close()

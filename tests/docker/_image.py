@@ -63,13 +63,7 @@ def ensure() -> dict[str, float]:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or when the process dies
         figures["waited_s"] = time.monotonic() - t
         t = time.monotonic()
-        base = subprocess.run(
-            ["bash", str(SRC / "deploy/build-base-image.sh")],
-            cwd=SRC,
-            env=env,
-            capture_output=True,
-            text=True,
-        )
+        base = run(["bash", str(SRC / "deploy/build-base-image.sh")], env, timeout=900, check=False)
         if base.returncode != 0:
             _engine.unavailable(
                 f"cannot make the offline base image/wheelhouse: {base.stderr.strip()[-300:]}"
