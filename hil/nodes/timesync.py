@@ -27,10 +27,18 @@ The core may hold a few measurements while it decides whether the device clock s
 ones are released by the next measurement, by an idle flush when the sensor has been silent for
 ``IDLE_FLUSH_NS`` of rig time (not during the start-up hold, which has its own bound), or at the
 end of input. Clock models go out once a second.
+
+A restarted time sync (``hil up --restart``: option ``resume``) is a fresh core on what its new
+process received, which depends on when its subscription took effect. So on the first input of
+each sensor it publishes a ``first_input`` event naming that input (``first_input_detail``):
+per sensor, one process publishes the measurements and tags over one link, in order, so the new
+core took exactly that input and every later one of the sensor, and ``hil rerun --core timesync``
+rebuilds it from there (``first_input_named``).
 """
 
 from __future__ import annotations
 
+import re
 from collections import deque
 from typing import Any, ClassVar
 
@@ -47,6 +55,23 @@ from hil.timesync.core import TimeSyncCore
 IDLE_FLUSH_NS = 200_000_000  # release held measurements of a sensor silent this long
 DEDUP_WINDOW = 8192  # recent seqs per sensor remembered to refuse a repeat
 CLOCK_PERIOD_NS = 1_000_000_000
+
+_FIRST_INPUT = re.compile(r"the first input it received of (\w+): ((?:timetag|sensor)/\w+):(-?\d+)@(\S*)")
+
+
+def first_input_detail(sensor: str, key: str, seq: int, source: str) -> str:
+    """A restarted time sync's ``first_input`` event: the input of ``sensor`` its fresh core began
+    with (``key`` ``timetag/<sensor>`` or ``sensor/<sensor>``, its seq and publisher)."""
+    return (
+        f"time sync restarted: a fresh core re-stamps {sensor} from the first input it received "
+        f"of {sensor}: {key}:{seq}@{source}"
+    )
+
+
+def first_input_named(detail: str) -> tuple[str, str, int, str] | None:
+    """(sensor, key, seq, publisher) from a ``first_input`` event's detail; None if it names none."""
+    m = _FIRST_INPUT.search(detail)
+    return (m[1], m[2], int(m[3]), m[4]) if m else None
 
 
 class TimeSyncNode(Node):
@@ -65,6 +90,18 @@ class TimeSyncNode(Node):
         self._next_clock = CLOCK_PERIOD_NS
         self._arrivals_at_flush: dict[str, int] = {}
         self._recent: dict[str, tuple[set[int], deque[int]]] = {}
+        # a restarted time sync: the sensors whose first input it has not named yet (bounded by
+        # the sensor table: inputs come only on its sensors' keys)
+        self._unnamed: set[str] = set(SENSOR_NAMES) if self.generation > 0 else set()
+
+    def on_message_from(self, key: str, msg: Any, now_ns: int, source: str) -> list[Out]:
+        if self._unnamed:
+            sensor = key.rpartition("/")[2]
+            if sensor in self._unnamed:
+                self._unnamed.discard(sensor)
+                detail = first_input_detail(sensor, key, msg.seq, source)
+                return [self.event("first_input", detail, now_ns), *self.on_message(key, msg, now_ns)]
+        return self.on_message(key, msg, now_ns)
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
         if isinstance(msg, TimeTag):

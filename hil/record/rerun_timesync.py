@@ -26,9 +26,12 @@ order and run once their batch's re-stamps are back, so it decides exactly as on
 s in two (this process 1.46 s of CPU, the worker 1.65 s).
 
 A time sync restarted mid-run (``hil up --restart``) is a fresh core on what its new process
-received, which the recording cannot tell exactly (``_Lives``): its re-stamps (another Zenoh
-session publishes them) are counted as not verifiable, in a note naming the restart, and the
-first life's are compared as ever.
+received: its ``first_input`` events name, per sensor, the first input it took (it took every
+later one of that sensor: one publisher, one link, in order), so a fresh core here is fed from
+there (``_LaterLife``) and its re-stamps (another Zenoh session publishes them) are compared as
+the first life's are. A recording made before the events said so (or one that lost them) cannot
+tell which time tags the new life took first (``_Lives``): those re-stamps are counted as not
+verifiable, in a note naming the restart.
 
 Also not covered: a measurement the live service released by its *idle* flush (a sensor silent for
 ``IDLE_FLUSH_S`` while the core held samples around a suspected clock step) was stamped with the
@@ -37,6 +40,7 @@ mapping of that wall-clock moment, which a recording cannot tell; verify then na
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -44,7 +48,7 @@ from typing import Any
 import msgspec
 
 from hil.messages import Event, RunInfo, TimeTag, decode, encode, schema_name
-from hil.nodes.timesync import TimeSyncNode
+from hil.nodes.timesync import TimeSyncNode, first_input_named
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
     Record,
@@ -80,6 +84,9 @@ class TimesyncRerun:
     # the rig time (s) of each restart
     restarted: int = 0
     restarts_s: tuple[float, ...] = ()
+    # recorded re-stamps of restarted time syncs compared against a core fed from the first
+    # input each one named (``_LaterLife``)
+    restarted_compared: int = 0
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
@@ -119,6 +126,40 @@ NODE_BATCH = 4096
 _NodeInput = tuple[str, str, str, bytes, int]
 # one re-stamp as the matcher takes it: sensor, seq, encoded bytes
 _Restamp = tuple[str, int, bytes]
+# a later life's inputs read before its ``first_input`` event, per sensor: the event comes just
+# after the input it names (the new process publishes it on taking it), so a few suffice; 4096 is
+# ~10 s of a 400 Hz IMU's samples
+RECENT_INPUTS = 4096
+
+
+class _Seq(msgspec.Struct):
+    seq: int
+
+
+_seq_of = msgspec.json.Decoder(_Seq).decode
+
+
+@dataclass
+class _LaterLife:
+    """A restarted time sync's core, rebuilt here: fed, per sensor, from the first input its
+    ``first_input`` event names. Its re-stamps are matched under ``label`` (``<sensor> (life N)``),
+    apart from the first life's, whose core goes on being fed what it would have taken."""
+
+    n: int  # 2: the first restart's
+    node: TimeSyncNode
+    fed: set[str] = field(default_factory=set)  # sensors being fed
+    waiting: dict[str, tuple[str, int, str]] = field(default_factory=dict)  # named, not read yet
+
+    def label(self, sensor: str) -> str:
+        return f"{sensor} (life {self.n})"
+
+    def restamps(self, inputs: list[_NodeInput]) -> list[_Restamp]:
+        return [(self.label(s), q, p) for outs in restamps(self.node, inputs) for s, q, p in outs]
+
+
+def _sensor_of(label: str) -> str:
+    """The sensor of a matcher key's label (a later life's ``<sensor> (life N)``, or the sensor)."""
+    return label.partition(" ")[0]
 
 
 def restamps(node: TimeSyncNode, inputs: list[_NodeInput]) -> list[list[_Restamp]]:
@@ -159,6 +200,10 @@ class _TimesyncMatch:
         self.ops: list[tuple[int, Any]] = []
         self.in_flight: list[tuple[int, Any]] | None = None  # the operations of the batch sent
         self.raw_seen = SeqSet()  # (sensor, seq) of every raw measurement read
+        # restarted time syncs (their Zenoh session) rebuilt here, and each sensor's latest inputs
+        # of a live recording (for an event read after the input it names)
+        self.lives: dict[str, _LaterLife] = {}
+        self.recent: dict[str, deque[tuple[_NodeInput, str]]] = {}
 
     def start(self, node: TimeSyncNode) -> None:
         self.node = node
@@ -166,7 +211,9 @@ class _TimesyncMatch:
         if self.worker if self.worker is not None else worker_possible():
             self.remote = RemoteNode(node)
 
-    def handle(self, topic: str, schema: str, payload: bytes, sequence: int, now_ns: int) -> None:
+    def handle(
+        self, topic: str, schema: str, payload: bytes, sequence: int, now_ns: int, publisher: str = ""
+    ) -> None:
         routes = self.routes
         if topic in routes:
             rt = routes[topic]
@@ -179,8 +226,11 @@ class _TimesyncMatch:
             self.raw_seen.add(sensor, sequence)
         if kind == "timetag" or (kind == "sensor" and schema in _RAW):
             self.counts["tags" if kind == "timetag" else "meas"] += 1
-            self.batch.append((kind, key, schema, payload, now_ns))
+            item = (kind, key, schema, payload, now_ns)
+            self.batch.append(item)
             self.ops.append((now_ns, None))
+            if publisher:  # a live recording: a time sync may restart in it
+                self._later_input(sensor, item, publisher, now_ns)
             if len(self.batch) >= NODE_BATCH:
                 self.flush()
         elif kind == "synced" and schema in _RAW:
@@ -191,6 +241,57 @@ class _TimesyncMatch:
 
     def release(self, t_ns: int) -> None:
         self.ops.append((t_ns, ()))
+
+    def _later_input(self, sensor: str, item: _NodeInput, publisher: str, now_ns: int) -> None:
+        """An input to the restarted time syncs' cores here that take it, and to the recent ones."""
+        recent = self.recent.get(sensor)
+        if recent is None:
+            recent = self.recent[sensor] = deque(maxlen=RECENT_INPUTS)
+        recent.append((item, publisher))
+        for life in self.lives.values():
+            if sensor in life.fed:
+                self.ops.append((now_ns, life.restamps([item])))
+            elif sensor in life.waiting and self._is_named(life.waiting[sensor], item, publisher):
+                del life.waiting[sensor]
+                life.fed.add(sensor)
+                self.ops.append((now_ns, life.restamps([item])))
+
+    @staticmethod
+    def _is_named(named: tuple[str, int, str], item: _NodeInput, publisher: str) -> bool:
+        key, seq, source = named
+        return item[1] == key and publisher == source and _seq_of(item[3]).seq == seq
+
+    def first_input(self, session: str, named: tuple[str, str, int, str], now_ns: int) -> None:
+        """A restarted time sync's ``first_input`` event: its core here (made on its first event)
+        fed that input of the sensor, if already read, and every later one."""
+        assert self.node is not None
+        life = self.lives.get(session)
+        if life is None:
+            life = self.lives[session] = _LaterLife(len(self.lives) + 2, TimeSyncNode(self.node.run))
+        sensor, key, seq, source = named
+        if sensor in life.fed or sensor in life.waiting:
+            return  # said once per sensor; a second one is not the live node's
+        recent = list(self.recent.get(sensor, ()))
+        at = next(
+            (i for i, (item, p) in enumerate(recent) if self._is_named((key, seq, source), item, p)), None
+        )
+        if at is None:
+            life.waiting[sensor] = (key, seq, source)
+            return
+        life.fed.add(sensor)
+        self.ops.append((now_ns, life.restamps([item for item, _p in recent[at:]])))
+
+    def compares(self, session: str, sensor: str) -> str | None:
+        """The matcher's label for a recorded re-stamp of ``sensor`` by a restarted time sync, if
+        its core here is fed (or waits for the input its event named); None: not verifiable."""
+        life = self.lives.get(session)
+        if life is None or not (sensor in life.fed or sensor in life.waiting):
+            return None
+        return life.label(sensor)
+
+    def recorded_later(self, label: str, sequence: int, payload: bytes, now_ns: int) -> None:
+        self.counts["order"] += 1
+        self.ops.append((now_ns, ((label, sequence), payload, self.counts["order"])))
 
     def flush(self) -> None:
         """The batch to the node side; with a worker, the batch before it matched meanwhile."""
@@ -218,6 +319,10 @@ class _TimesyncMatch:
                     m.recomputed((sensor, seq), payload, -1, now_ns)
                     counts["out"] += 1
                 i += 1
+            elif type(op) is list:  # a restarted time sync's re-stamps, made here (_LaterLife)
+                for label, seq, payload in op:
+                    m.recomputed((label, seq), payload, -1, now_ns)
+                    counts["out"] += 1
             elif op:
                 pair, payload, order = op
                 if pair in m.released:
@@ -235,6 +340,8 @@ class _TimesyncMatch:
         else:
             assert self.node is not None
             outs = _finish(self.node, now_ns)
+        for life in self.lives.values():
+            outs = outs + [(life.label(s), q, p) for s, q, p in _finish(life.node, now_ns)]
         for sensor, seq, payload in outs:
             self.matcher.recomputed((sensor, seq), payload, -1, now_ns)
             self.counts["out"] += 1
@@ -262,14 +369,16 @@ class _Lives:
     subscription opened. Its first re-stamp names the first measurement it took, but not which of
     the time tags published between that one and the measurement before it reached it (GNSS: a
     1 Hz PPS tag falls there once in ten 10 Hz fixes), and a tag more or less is another tag filter
-    and other stamps; so its re-stamps are counted as not verifiable, never compared against the
-    first life's core, which the rerun goes on feeding."""
+    and other stamps. Its ``first_input`` events name them (``_LaterLife``: a core here fed from
+    there, its re-stamps compared); without them its re-stamps are counted as not verifiable,
+    never compared against the first life's core, which the rerun goes on feeding."""
 
     first: str | None = None  # the first life's Zenoh session
     later: list[str] = field(default_factory=list)  # the later lives' sessions, in order
     first_out_ns: list[int] = field(default_factory=list)  # rig log time of each one's first output
     restarted_ns: list[int] = field(default_factory=list)  # the supervisor's service_restarted events
     n_later: int = 0  # recorded re-stamps of the later lives
+    n_compared: int = 0  # of those, compared (``_LaterLife``)
 
     def is_later(self, r: Record, now_ns: int) -> bool:
         """Is ``r`` (a ``synced/*`` record) a later life's re-stamp? Counted if so."""
@@ -297,15 +406,23 @@ class _Lives:
 
 
 def restart_note(res: TimesyncRerun) -> list[str]:
-    """The note of a time sync restarted mid-run: when, and how many re-stamps it leaves out."""
+    """The note of a time sync restarted mid-run: when, how many of its re-stamps were compared
+    (a core rebuilt from the first inputs it named) and how many it leaves out."""
     if not res.restarts_s:
         return []
     at = ", ".join(f"t={t:.1f} s" for t in res.restarts_s)
     n = len(res.restarts_s)
+    when = f"note: the time sync restarted {'at' if n == 1 else f'{n} times, at'} {at}"
+    if not res.restarted:
+        return [
+            f"{when} (a new process, a fresh core: rebuilt here from the first input of each sensor it "
+            f"named in its first_input events): its {res.restarted_compared} re-stamps after that compared"
+        ]
+    compared = f"; {res.restarted_compared} others compared" if res.restarted_compared else ""
     return [
-        f"note: the time sync restarted {'at' if n == 1 else f'{n} times, at'} {at} (a new process, a fresh "
-        "core this rerun does not rebuild: which time tags it took before its first measurement the "
-        f"recording cannot tell): its {res.restarted} re-stamps after that are not verifiable"
+        f"{when} (a new process, a fresh core this rerun does not rebuild: which time tags it took "
+        "before its first measurement the recording cannot tell, no first_input event names it): its "
+        f"{res.restarted} re-stamps after that are not verifiable{compared}"
     ]
 
 
@@ -343,8 +460,19 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
         if r.topic.endswith("/event/supervisor"):
             lives.supervisor_event(r)
+        elif r.topic.endswith("/event/timesync") and side.node is not None:
+            ev = r.decode()
+            named = (
+                first_input_named(ev.detail) if isinstance(ev, Event) and ev.kind == "first_input" else None
+            )
+            if named is not None:
+                side.first_input(r.publisher.partition(":")[0], named, now_ns)
         elif "/synced/" in r.topic and lives.is_later(r, now_ns):
             if side.node is not None:
+                label = side.compares(r.publisher.partition(":")[0], r.topic.rpartition("/")[2])
+                if label is not None and r.schema in _RAW:
+                    lives.n_compared += 1
+                    side.recorded_later(label, r.sequence, r.payload, now_ns)
                 side.release(now_ns)  # what handle() does with a record it does not match
             continue
         if r.recovered and side.node is not None:
@@ -369,7 +497,7 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
             else:
                 held.append(r)
                 continue
-        side.handle(r.topic, r.schema, r.payload, r.sequence, now_ns)
+        side.handle(r.topic, r.schema, r.payload, r.sequence, now_ns, r.publisher)
     if side.node is None:
         raise RecordingError(no_run_message(name, records))
     tail = getattr(records, "skipped_tail", None)
@@ -382,9 +510,16 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
     recovered = matcher.excuse(lambda t: any(lo <= t <= hi for lo, hi in recovery))
     # a recorded re-stamp whose raw measurement the file lacks (lost while no recorder wrote, the
     # re-stamp recovered from the time sync's cache): nothing to recompute it from
-    no_raw = [k for k in matcher.recorded_pending if k not in side.raw_seen]
+    no_raw = [k for k in matcher.recorded_pending if (_sensor_of(k[0]), k[1]) not in side.raw_seen]
     for k in no_raw:
         del matcher.recorded_pending[k]
+    # a restarted time sync's re-stamps of a sensor whose named first input the file lacks (or
+    # held too far from its event): no core here took them, not verifiable
+    unfed = {life.label(s) for life in side.lives.values() for s in life.waiting}
+    not_fed = [k for k in matcher.recorded_pending if k[0] in unfed]
+    for k in not_fed:
+        del matcher.recorded_pending[k]
+    not_compared = lives.n_later - lives.n_compared
     strict = _first_difference(matcher, late, list(matcher.recorded_pending))
     early = matcher.pending_before(now_ns - TAIL_NS)
     if_cut = _first_difference(matcher, late, early)
@@ -397,14 +532,15 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         counts["meas"],
         counts["tags"],
         counts["out"],
-        matcher.n_recorded + lives.n_later,
+        matcher.n_recorded + not_compared,
         strict,
         if_cut,
         unverified=unverified,
         recovered=recovered,
         no_raw=len(no_raw),
-        restarted=lives.n_later,
+        restarted=not_compared + len(not_fed),
         restarts_s=lives.times_s(),
+        restarted_compared=lives.n_compared - len(not_fed),
     )
 
 
@@ -439,6 +575,7 @@ def timesync_topic(topic: str) -> bool:
         or parts[2] in ("timetag", "sensor", "synced")
         or topic.endswith("/run")
         or topic.endswith("/event/supervisor")  # a restarted time sync's ``service_restarted``
+        or topic.endswith("/event/timesync")  # and its ``first_input`` events
     )
 
 
