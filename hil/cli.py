@@ -968,9 +968,11 @@ def cmd_foxglove(a: argparse.Namespace) -> int:
         session.close()
     c = server.counters
     rejected = sum(v for k, v in c.items() if k.startswith("rejected"))
+    clients = c.get("relay.clients", 0) + c.get("relay.clients.first_name", 0)
     print(
         f"hil foxglove: served {c.get('messages', 0)} messages and {c.get('derived', 0)} derived on "
-        f"{len(server.channels())} channels; rejected {rejected}"
+        f"{len(server.channels())} channels to {clients} client(s) "
+        f"({c.get('relay.clients.first_name', 0)} under foxglove.websocket.v1); rejected {rejected}"
     )
     if not c.get("messages", 0):  # served nothing: say why, as hil monitor does (it said nothing, exit 0)
         from hil.bus.endpoint import viewer_bus

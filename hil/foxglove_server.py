@@ -2,11 +2,12 @@
 
 Subscribes ``hil/<rig>/**`` on a Zenoh session (the one ``hil monitor`` opens: ``hil.monitor.connect``)
 and serves it over the Foxglove WebSocket protocol with the official SDK's server
-(``foxglove-sdk``: subprotocol ``foxglove.sdk.v1``): one channel per key, named as the key, with
-its ``hil.*`` JSON Schema and the payload as published, plus the well-known types the recorder
-writes beside the messages (``hil.wellknown``: the one conversion), so Foxglove's Map, 3D, Plot
-and Log panels show the rig as they show a recording, with the same layout
-(``docs/foxglove-layout.json``). A channel is advertised when its first message arrives.
+(``foxglove-sdk``, behind ``hil.foxglove_relay``, which takes the protocol under both its
+subprotocol names, ``foxglove.sdk.v1`` and ``foxglove.websocket.v1``): one channel per key,
+named as the key, with its ``hil.*`` JSON Schema and the payload as published, plus the
+well-known types the recorder writes beside the messages (``hil.wellknown``: the one conversion),
+so Foxglove's Map, 3D, Plot and Log panels show the rig as they show a recording, with the same
+layout (``docs/foxglove-layout.json``). A channel is advertised when its first message arrives.
 
 Times are those of a recording (``hil.record.mcapio``): each message goes out with log time =
 the run's start epoch + its receive time on the rig clock (the wall clock before the run's
@@ -27,6 +28,7 @@ import msgspec
 import zenoh
 
 from hil.bus.keys import Keys, type_for_key
+from hil.foxglove_relay import Relay
 from hil.messages import (
     Event,
     GnssFix,
@@ -47,6 +49,9 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 # the types the well-known conversion reads (the others are served without being decoded)
 _DERIVES = (Truth, GnssFix, NavSolution, Event, ServiceStatus, RunInfo)
+
+
+UPSTREAM_HOST = "127.0.0.1"  # where the SDK's server listens, behind the relay
 
 
 def parse_listen(text: str) -> tuple[str, int]:
@@ -78,13 +83,22 @@ class FoxgloveServer:
         self._wellknown = WellKnown()
         self._start: int | None = None
         self._speed = 1.0
+        # the SDK's server on a loopback port of its own, and hil's port the relay's, which takes
+        # the protocol under both its names (hil.foxglove_relay)
         try:
             self._server = foxglove.start_server(
-                name=f"hil rig {self.rig}", host=self.host, port=self.port, context=self._context
+                name=f"hil rig {self.rig}", host=UPSTREAM_HOST, port=0, context=self._context
             )
         except RuntimeError as err:  # the SDK's FoxgloveError: bind failures and the like
-            raise OSError(f"cannot serve Foxglove on {self.host}:{self.port}: {err}") from None
-        self.port = int(self._server.port)
+            raise OSError(f"cannot serve Foxglove on {UPSTREAM_HOST}: {err}") from None
+        try:
+            self._relay = Relay(self.host, self.port, (UPSTREAM_HOST, int(self._server.port)))
+        except OSError as err:
+            self._server.stop()
+            raise OSError(
+                f"cannot serve Foxglove on {self.host}:{self.port}: {err.strerror or err}"
+            ) from None
+        self.port = self._relay.port
         self._sub = self.session.declare_subscriber(self.keys.all(), self._on_sample)
 
     @property
@@ -155,7 +169,10 @@ class FoxgloveServer:
         try:
             self._sub.undeclare()
         finally:
+            self._relay.close()
             self._server.stop()
+            for k, v in self._relay.counters.items():  # clients (and under which name), refusals
+                self._count(f"relay.{k}", v)
 
 
 _SCHEMA_BYTES: dict[type[Any], bytes] = {}

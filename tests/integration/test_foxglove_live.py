@@ -2,7 +2,10 @@
 foxglove-sdk's server speaks) against ``hil up --foxglove`` and against ``hil foxglove --rig R``
 attached to the same running rig: channels advertised with their schemas, messages received and
 decoded -- the rig's JSON with its ``hil.*`` schema, Foxglove's well-known types (protobuf) with
-the schema the server advertised, by the MCAP project's protobuf decoder."""
+the schema the server advertised, by the MCAP project's protobuf decoder. Beside them the client
+Foxglove Studio was before the SDK -- ws-protocol's own ``FoxgloveClient``, in node, offering only
+``foxglove.websocket.v1`` (``tools/mcapjs/wsclient.mjs``) -- against ``hil up --foxglove``: the
+SDK's server alone answered it HTTP 400 (``hil.foxglove_relay``)."""
 
 from __future__ import annotations
 
@@ -10,10 +13,12 @@ import asyncio
 import base64
 import json
 import os
+import shutil
 import signal
 import struct
 import subprocess
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +29,7 @@ from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
 from hil.bus.keys import type_for_key
-from hil.messages import decode
+from hil.messages import NavSolution, decode
 from hil.schemas_io import foxglove_schema_problems
 from tests.conftest import REPO, free_port, hil_cmd
 
@@ -164,6 +169,50 @@ def _check(seen: Seen) -> None:
     assert (static.parent_frame_id, static.child_frame_id) == ("enu", "ned")
 
 
+WSCLIENT = REPO / "tools" / "mcapjs" / "wsclient.mjs"
+PRE_SDK_TOPICS = (f"hil/{RIG}/nav/ekf15", "/foxglove/fix/truth")
+
+
+def pre_sdk_client_installed() -> bool:
+    return bool(shutil.which("node")) and (REPO / "tools/mcapjs/node_modules/@foxglove/ws-protocol").is_dir()
+
+
+def _pre_sdk_session(url: str, timeout_s: float) -> dict[str, Any]:
+    """ws-protocol's FoxgloveClient (node), connecting again until the server is up: its report
+    (``tools/mcapjs/wsclient.mjs``) once it has 2 messages of each of PRE_SDK_TOPICS."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = deadline - time.monotonic()
+        js = subprocess.run(
+            ["node", str(WSCLIENT), url, str(max(1, int(left))), "2", *PRE_SDK_TOPICS],
+            capture_output=True,
+            text=True,
+            timeout=left + 30,
+        )
+        assert js.returncode == 0, js.stderr
+        got: dict[str, Any] = json.loads(js.stdout)
+        if got["serverName"] is not None or time.monotonic() > deadline:
+            return got
+        time.sleep(0.5)  # not listening yet
+
+
+def _check_pre_sdk(got: dict[str, Any]) -> None:
+    assert got["subprotocol"] == "foxglove.websocket.v1" and got["serverName"] == f"hil rig {RIG}", got
+    assert got["errors"] == [], got["errors"]
+    channels = {ch["topic"]: ch for ch in got["channels"]}
+    for topic in PRE_SDK_TOPICS:
+        assert len(got["messages"].get(topic, [])) >= 2, (topic, sorted(channels))
+    for log_ns, data in got["messages"][f"hil/{RIG}/nav/ekf15"]:
+        assert int(log_ns) > 10**17 and decode(NavSolution, base64.b64decode(data)).estimator == "ekf15"
+    ch = channels["/foxglove/fix/truth"]
+    schema = Schema(id=1, name=ch["schemaName"], encoding="protobuf", data=base64.b64decode(ch["schema"]))
+    decoder = DecoderFactory().decoder_for("protobuf", schema)
+    assert decoder is not None
+    for _log, data in got["messages"]["/foxglove/fix/truth"]:
+        fix = decoder(base64.b64decode(data))
+        assert 40 < fix.latitude < 60 and fix.frame_id == "truth"
+
+
 def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM, timeout: float = 90) -> str:
     if proc.poll() is None:
         proc.send_signal(sig)
@@ -204,20 +253,34 @@ def test_foxglove_clients_see_the_live_rig_from_hil_up_and_from_hil_foxglove(
         text=True,
     )
     out_up = out_attached = ""
+    pool = ThreadPoolExecutor(1)
     try:
-        # WHEN a Foxglove-protocol client connects to each
+        # WHEN a Foxglove-protocol client connects to each, and the pre-SDK client to hil up's
+        pre_sdk = (
+            pool.submit(_pre_sdk_session, f"ws://127.0.0.1:{p_up}", 120)
+            if pre_sdk_client_installed()
+            else None
+        )
+
         async def both() -> tuple[Seen, Seen]:
             return await asyncio.gather(
                 _session(f"ws://127.0.0.1:{p_up}", 180), _session(f"ws://127.0.0.1:{p_attached}", 180)
             )
 
         seen_up, seen_attached = asyncio.run(both())
+        got_pre_sdk = pre_sdk.result() if pre_sdk is not None else None
     finally:
+        pool.shutdown(wait=True)  # the node client ends by its own timeout
         out_attached = _stop(attached, signal.SIGINT)
         out_up = _stop(up)
     # THEN both advertise the rig's topics with schemas and deliver decodable messages
     _check(seen_up)
     _check(seen_attached)
+    # and the client that offers only the protocol's first name is served on the same port
+    if got_pre_sdk is not None:
+        _check_pre_sdk(got_pre_sdk)
+        served = (tmp_path / "up.logs" / "foxglove.log").read_text()
+        assert "(1 under foxglove.websocket.v1)" in served, served
     assert f"hil foxglove: rig '{RIG}' on ws://127.0.0.1:{p_attached}" in out_attached
     assert "served" in out_attached and attached.returncode == 0, out_attached
     assert f"Foxglove WebSocket on ws://127.0.0.1:{p_up}" in out_up
