@@ -47,11 +47,9 @@ from hil.wellknown import MESSAGE_ENCODING, SCHEMAS, WellKnown
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+UPSTREAM_HOST = "127.0.0.1"  # where the SDK's server listens, behind the relay (hil.foxglove_relay)
 # the types the well-known conversion reads (the others are served without being decoded)
 _DERIVES = (Truth, GnssFix, NavSolution, Event, ServiceStatus, RunInfo)
-
-
-UPSTREAM_HOST = "127.0.0.1"  # where the SDK's server listens, behind the relay
 
 
 def parse_listen(text: str) -> tuple[str, int]:
