@@ -47,6 +47,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
         "hil.progress",
         "hil.monitor",
         "hil.foxglove_server",
+        "hil.foxglove_relay",
         "hil.schemas_io",
         "hil",
     ),
