@@ -22,6 +22,7 @@ import contextlib
 import selectors
 import socket
 import threading
+import time
 from dataclasses import dataclass, field
 
 SDK_NAME = "foxglove.sdk.v1"
@@ -30,6 +31,14 @@ _HEADER = b"sec-websocket-protocol"
 MAX_HEAD = 16 * 1024  # an HTTP upgrade request is a few hundred bytes; past this it is not one
 HANDSHAKE_TIMEOUT_S = 10.0  # a client that connects and says nothing is let go
 MAX_CLIENTS = 32  # connections at a time (each holds two threads); more are answered 503
+RECV_BYTES = 256 * 1024
+# the server-to-client direction waits this long after a wake-up to send what came meanwhile in
+# one go: a live view's 4 ms. With a client subscribed to every channel of a 400 Hz rig (~3500
+# messages a second), `hil foxglove` used 11.9 % of a core through the relay against 10.8 % with
+# the client straight on the SDK's port, and 14.3 % against 12.6 % without gathering and with it
+# (two processes side by side on one rig each time, 20 s, 2026-12-07)
+GATHER_S = 0.004
+GATHER_MAX_BYTES = 4 * 1024 * 1024
 
 
 def _header_lines(head: bytes) -> list[bytes]:
@@ -93,6 +102,22 @@ def _read_head(sock: socket.socket) -> tuple[bytes, bytes] | None:
         buf += chunk
     at = buf.index(b"\r\n\r\n") + 4
     return buf[:at], buf[at:]
+
+
+def _gathered(src: socket.socket, first: bytes) -> tuple[bytes, bool]:
+    """``first`` and what else ``src`` holds now (up to ``GATHER_MAX_BYTES``), and whether ``src``
+    is still open."""
+    parts, size = [first], len(first)
+    while size < GATHER_MAX_BYTES:
+        try:
+            more = src.recv(RECV_BYTES, socket.MSG_DONTWAIT)
+        except (BlockingIOError, InterruptedError):
+            break
+        if not more:
+            return b"".join(parts), False
+        parts.append(more)
+        size += len(more)
+    return b"".join(parts), True
 
 
 def _shutdown(s: socket.socket) -> None:
@@ -197,7 +222,7 @@ class Relay:
             self._count("clients.first_name" if rename else "clients")
             client.settimeout(None)
             upstream.settimeout(None)
-            back = threading.Thread(target=self._copy, args=(upstream, client), daemon=True)
+            back = threading.Thread(target=self._copy, args=(upstream, client, GATHER_S), daemon=True)
             back.start()
             self._copy(client, upstream)
             back.join()
@@ -210,10 +235,20 @@ class Relay:
             _close(*socks)
 
     @staticmethod
-    def _copy(src: socket.socket, dst: socket.socket) -> None:
+    def _copy(src: socket.socket, dst: socket.socket, gather_s: float = 0.0) -> None:
+        """Bytes from ``src`` to ``dst`` until either side ends. ``gather_s``: after a wake-up,
+        wait that long and take everything that came meanwhile, so a stream of small messages
+        costs a wake-up and a send per gathering instead of per message (``GATHER_S``)."""
         try:
-            while chunk := src.recv(65536):
-                dst.sendall(chunk)
+            while chunk := src.recv(RECV_BYTES):
+                if gather_s:
+                    time.sleep(gather_s)
+                    chunk, more = _gathered(src, chunk)
+                    dst.sendall(chunk)
+                    if not more:
+                        break  # src ended while gathering
+                else:
+                    dst.sendall(chunk)
         except OSError:
             pass
         _shutdown(src)  # either side gone: both directions end

@@ -160,3 +160,16 @@ def test_more_clients_than_allowed_are_answered_503(relay: Relay, monkeypatch: p
         with socket.create_connection(("127.0.0.1", relay.port), timeout=30) as second:
             assert second.recv(100).startswith(b"HTTP/1.1 503")
     assert relay.counters == {"clients.first_name": 1, "refused.too_many_clients": 1}
+
+
+def test_what_came_meanwhile_goes_in_one_send_and_an_end_is_told() -> None:
+    a, b = socket.socketpair()
+    with a, b:
+        for part in (b"one", b"two", b"three"):
+            a.sendall(part)
+        first = b.recv(3)
+        assert foxglove_relay._gathered(b, first) == (b"onetwothree", True)
+        assert foxglove_relay._gathered(b, b"x") == (b"x", True)  # nothing more: not an end
+        a.sendall(b"last")
+        a.shutdown(socket.SHUT_WR)
+        assert foxglove_relay._gathered(b, b"") == (b"last", False)
