@@ -136,11 +136,15 @@ def _close(*socks: socket.socket) -> None:
 class Relay:
     """Listens on ``host:port`` (0: any free port, then ``port`` says which) and relays each
     connection to the Foxglove server on ``upstream`` (loopback), the handshake's names mapped
-    (``upstream_request``). ``close()`` stops listening and ends every connection."""
+    (``upstream_request``). ``close()`` stops listening and ends every connection.
+
+    Without ``upstream`` it only holds the port (connections wait in the backlog) until
+    ``start(upstream)``: the caller binds hil's port before the server takes a free one of its
+    own, which could otherwise be the very port asked for."""
 
     host: str
     port: int
-    upstream: tuple[str, int]
+    upstream: tuple[str, int] | None = None
     counters: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -159,6 +163,12 @@ class Relay:
         self._threads: list[threading.Thread] = []
         self._stopping = threading.Event()
         self._acceptor = threading.Thread(target=self._accept, name="foxglove-relay", daemon=True)
+        if self.upstream is not None:
+            self._acceptor.start()
+
+    def start(self, upstream: tuple[str, int]) -> None:
+        """Relay to ``upstream`` from now on (a relay made without one)."""
+        self.upstream = upstream
         self._acceptor.start()
 
     def _count(self, name: str) -> None:
@@ -204,6 +214,7 @@ class Relay:
                 return
             head, rest = got
             request, rename = upstream_request(head)
+            assert self.upstream is not None  # the acceptor runs only once it is known
             upstream = socket.create_connection(self.upstream, timeout=HANDSHAKE_TIMEOUT_S)
             with self._lock:
                 self._open.add(upstream)
@@ -256,7 +267,8 @@ class Relay:
 
     def close(self) -> None:
         self._stopping.set()
-        self._acceptor.join(timeout=5)
+        if self._acceptor.is_alive():
+            self._acceptor.join(timeout=5)
         self._listener.close()
         with self._lock:
             for s in self._open:

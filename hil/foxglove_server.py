@@ -81,22 +81,24 @@ class FoxgloveServer:
         self._wellknown = WellKnown()
         self._start: int | None = None
         self._speed = 1.0
-        # the SDK's server on a loopback port of its own, and hil's port the relay's, which takes
-        # the protocol under both its names (hil.foxglove_relay)
+        # hil's port the relay's, which takes the protocol under both its names
+        # (hil.foxglove_relay), bound first: the SDK's server then takes a free loopback port of
+        # its own, which cannot be the one asked for
+        try:
+            self._relay = Relay(self.host, self.port)
+        except OSError as err:
+            raise OSError(
+                f"cannot serve Foxglove on {self.host}:{self.port}: {err.strerror or err}"
+            ) from None
+        self.port = self._relay.port
         try:
             self._server = foxglove.start_server(
                 name=f"hil rig {self.rig}", host=UPSTREAM_HOST, port=0, context=self._context
             )
         except RuntimeError as err:  # the SDK's FoxgloveError: bind failures and the like
+            self._relay.close()
             raise OSError(f"cannot serve Foxglove on {UPSTREAM_HOST}: {err}") from None
-        try:
-            self._relay = Relay(self.host, self.port, (UPSTREAM_HOST, int(self._server.port)))
-        except OSError as err:
-            self._server.stop()
-            raise OSError(
-                f"cannot serve Foxglove on {self.host}:{self.port}: {err.strerror or err}"
-            ) from None
-        self.port = self._relay.port
+        self._relay.start((UPSTREAM_HOST, int(self._server.port)))
         self._sub = self.session.declare_subscriber(self.keys.all(), self._on_sample)
 
     @property

@@ -213,6 +213,21 @@ def _check_pre_sdk(got: dict[str, Any]) -> None:
         assert 40 < fix.latitude < 60 and fix.frame_id == "truth"
 
 
+def _wait_listening(port: int, proc: subprocess.Popen[str], timeout_s: float) -> None:
+    """Until something accepts TCP on ``port`` (loopback); fails if ``proc`` ended first."""
+    import socket
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=5):
+                return
+        except OSError:
+            assert proc.poll() is None, f"exited {proc.returncode} before listening on {port}"
+            assert time.monotonic() < deadline, f"nothing listens on {port} after {timeout_s} s"
+            time.sleep(0.3)
+
+
 def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM, timeout: float = 90) -> str:
     if proc.poll() is None:
         proc.send_signal(sig)
@@ -234,7 +249,9 @@ def test_foxglove_clients_see_the_live_rig_from_hil_up_and_from_hil_foxglove(
     zenoh_hub: str, tmp_path: Path
 ) -> None:
     # GIVEN a live rig on a hub, serving Foxglove itself, and a second server attached to it
-    p_up, p_attached = free_port(), free_port()
+    # (started once the first listens: each server takes a free port of its own behind hil's,
+    # which must not be the one a free_port() handed out and another process has yet to bind)
+    p_up = free_port()
     args = ["up", "--rig", RIG, "--duration", "40", "--quiet", "--record", str(tmp_path / "up.mcap")]
     up = subprocess.Popen(
         hil_cmd(*args, "--foxglove", f"127.0.0.1:{p_up}"),
@@ -244,17 +261,20 @@ def test_foxglove_clients_see_the_live_rig_from_hil_up_and_from_hil_foxglove(
         stderr=subprocess.STDOUT,
         text=True,
     )
-    attached = subprocess.Popen(
-        hil_cmd("foxglove", "--rig", RIG, "--listen", f"127.0.0.1:{p_attached}"),
-        cwd=REPO,
-        env=dict(os.environ),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    attached: subprocess.Popen[str] | None = None
     out_up = out_attached = ""
     pool = ThreadPoolExecutor(1)
     try:
+        _wait_listening(p_up, up, 120)
+        p_attached = free_port()
+        attached = subprocess.Popen(
+            hil_cmd("foxglove", "--rig", RIG, "--listen", f"127.0.0.1:{p_attached}"),
+            cwd=REPO,
+            env=dict(os.environ),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         # WHEN a Foxglove-protocol client connects to each, and the pre-SDK client to hil up's
         pre_sdk = (
             pool.submit(_pre_sdk_session, f"ws://127.0.0.1:{p_up}", 120)
@@ -271,8 +291,10 @@ def test_foxglove_clients_see_the_live_rig_from_hil_up_and_from_hil_foxglove(
         got_pre_sdk = pre_sdk.result() if pre_sdk is not None else None
     finally:
         pool.shutdown(wait=True)  # the node client ends by its own timeout
-        out_attached = _stop(attached, signal.SIGINT)
+        if attached is not None:
+            out_attached = _stop(attached, signal.SIGINT)
         out_up = _stop(up)
+    assert attached is not None
     # THEN both advertise the rig's topics with schemas and deliver decodable messages
     _check(seen_up)
     _check(seen_attached)
