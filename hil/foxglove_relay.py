@@ -251,15 +251,12 @@ class Relay:
         wait that long and take everything that came meanwhile, so a stream of small messages
         costs a wake-up and a send per gathering instead of per message (``GATHER_S``)."""
         try:
-            while chunk := src.recv(RECV_BYTES):
+            more = True
+            while more and (chunk := src.recv(RECV_BYTES)):
                 if gather_s:
                     time.sleep(gather_s)
-                    chunk, more = _gathered(src, chunk)
-                    dst.sendall(chunk)
-                    if not more:
-                        break  # src ended while gathering
-                else:
-                    dst.sendall(chunk)
+                    chunk, more = _gathered(src, chunk)  # more: False once src ended meanwhile
+                dst.sendall(chunk)
         except OSError:
             pass
         _shutdown(src)  # either side gone: both directions end

@@ -20,7 +20,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from hil.messages import SEQ_GENERATION_SHIFT
+from hil.messages import SEQ_GENERATION_SHIFT, payload_seq
 from hil.record.completeness import Completeness
 from hil.record.mcapio import (
     RESTART_PART_NAME,
@@ -39,19 +39,12 @@ from hil.record.mcapio import (
 )
 
 
-class _Seq(msgspec.Struct):
-    seq: int
-
-
-_SEQ = msgspec.json.Decoder(_Seq)
-
-
 def record_seq(r: Record) -> int:
     """The message's own ``seq``. MCAP's ``sequence`` field holds only its low 32 bits, which
     drops the restart generation (``hil.messages.SEQ_GENERATION_SHIFT``): a restarted publisher
     would read as repeating its seqs. ~1 us per message; a payload without one falls back."""
     try:
-        return _SEQ.decode(r.payload).seq
+        return payload_seq(r.payload)
     except (msgspec.DecodeError, msgspec.ValidationError):
         return r.sequence
 

@@ -47,7 +47,7 @@ from typing import Any
 
 import msgspec
 
-from hil.messages import Event, RunInfo, TimeTag, decode, encode, schema_name
+from hil.messages import Event, RunInfo, TimeTag, decode, encode, payload_seq, schema_name
 from hil.nodes.timesync import TimeSyncNode, first_input_named
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
@@ -130,13 +130,6 @@ _Restamp = tuple[str, int, bytes]
 # after the input it names (the new process publishes it on taking it), so a few suffice; 4096 is
 # ~10 s of a 400 Hz IMU's samples
 RECENT_INPUTS = 4096
-
-
-class _Seq(msgspec.Struct):
-    seq: int
-
-
-_seq_of = msgspec.json.Decoder(_Seq).decode
 
 
 @dataclass
@@ -259,7 +252,7 @@ class _TimesyncMatch:
     @staticmethod
     def _is_named(named: tuple[str, int, str], item: _NodeInput, publisher: str) -> bool:
         key, seq, source = named
-        return item[1] == key and publisher == source and _seq_of(item[3]).seq == seq
+        return item[1] == key and publisher == source and payload_seq(item[3]) == seq
 
     def first_input(self, session: str, named: tuple[str, str, int, str], now_ns: int) -> None:
         """A restarted time sync's ``first_input`` event: its core here (made on its first event)

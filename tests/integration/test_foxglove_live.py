@@ -15,6 +15,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import struct
 import subprocess
 import time
@@ -215,8 +216,6 @@ def _check_pre_sdk(got: dict[str, Any]) -> None:
 
 def _wait_listening(port: int, proc: subprocess.Popen[str], timeout_s: float) -> None:
     """Until something accepts TCP on ``port`` (loopback); fails if ``proc`` ended first."""
-    import socket
-
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -313,7 +312,6 @@ def test_foxglove_clients_see_the_live_rig_from_hil_up_and_from_hil_foxglove(
 
 
 def test_a_bad_or_taken_port_is_one_line_before_anything_starts(tmp_path: Path) -> None:
-    import socket
 
     proc = subprocess.run(
         hil_cmd("up", "--foxglove", "abc", "--duration", "1"),
