@@ -235,11 +235,12 @@ def recover(src: str | Path, out: str | Path | None = None) -> RecoverResult:
 
 
 def _payload_seq(data: bytes) -> int | None:
-    from hil.record.info import _SEQ
+    """The seq of a recovered payload, None if it has none (hil.messages.payload_seq)."""
+    from hil.messages import payload_seq
 
     try:
-        return _SEQ.decode(data).seq
-    except Exception:
+        return payload_seq(data)
+    except Exception:  # a recovered payload may be anything: no seq
         return None
 
 
