@@ -136,12 +136,14 @@ RECENT_INPUTS = 4096
 class _LaterLife:
     """A restarted time sync's core, rebuilt here: fed, per sensor, from the first input its
     ``first_input`` event names. Its re-stamps are matched under ``label`` (``<sensor> (life N)``),
-    apart from the first life's, whose core goes on being fed what it would have taken."""
+    apart from the first life's. From there the lives before it are no longer fed that sensor
+    (``_TimesyncMatch._take_over``)."""
 
     n: int  # 2: the first restart's
     node: TimeSyncNode
     fed: set[str] = field(default_factory=set)  # sensors being fed
     waiting: dict[str, tuple[str, int, str]] = field(default_factory=dict)  # named, not read yet
+    retired: set[str] = field(default_factory=set)  # sensors a later life took over: no longer fed
 
     def label(self, sensor: str) -> str:
         return f"{sensor} (life {self.n})"
@@ -197,6 +199,10 @@ class _TimesyncMatch:
         # of a live recording (for an event read after the input it names)
         self.lives: dict[str, _LaterLife] = {}
         self.recent: dict[str, deque[tuple[_NodeInput, str]]] = {}
+        # sensors a restarted time sync took over from the first life: that process was dead by
+        # then, so its core here is no longer fed them (nothing recorded to compare its re-stamps of
+        # them with)
+        self.retired: set[str] = set()
 
     def start(self, node: TimeSyncNode) -> None:
         self.node = node
@@ -220,10 +226,13 @@ class _TimesyncMatch:
         if kind == "timetag" or (kind == "sensor" and schema in _RAW):
             self.counts["tags" if kind == "timetag" else "meas"] += 1
             item = (kind, key, schema, payload, now_ns)
-            self.batch.append(item)
-            self.ops.append((now_ns, None))
             if publisher:  # a live recording: a time sync may restart in it
                 self._later_input(sensor, item, publisher, now_ns)
+            if sensor in self.retired:
+                self.ops.append((now_ns, ()))
+                return
+            self.batch.append(item)
+            self.ops.append((now_ns, None))
             if len(self.batch) >= NODE_BATCH:
                 self.flush()
         elif kind == "synced" and schema in _RAW:
@@ -241,13 +250,28 @@ class _TimesyncMatch:
         if recent is None:
             recent = self.recent[sensor] = deque(maxlen=RECENT_INPUTS)
         recent.append((item, publisher))
-        for life in self.lives.values():
+        lives = self.lives.values()
+        for life in lives:  # first the life this input begins, so that the one before it stops here
+            if sensor in life.waiting and self._is_named(life.waiting[sensor], item, publisher):
+                del life.waiting[sensor]
+                self._take_over(life, sensor)
+        for life in lives:
             if sensor in life.fed:
                 self.ops.append((now_ns, life.restamps([item])))
-            elif sensor in life.waiting and self._is_named(life.waiting[sensor], item, publisher):
-                del life.waiting[sensor]
-                life.fed.add(sensor)
-                self.ops.append((now_ns, life.restamps([item])))
+
+    def _take_over(self, life: _LaterLife, sensor: str) -> None:
+        """``life`` fed ``sensor`` from its first input on; the lives before it no longer are.
+
+        The supervisor restarts a service once its process is gone, so the earlier lives had died
+        before this one subscribed: whatever their cores here would make of later inputs was
+        never published, and a rerun of a run restarted N times would pay N+1 cores to the end
+        of the file for one's worth of comparisons."""
+        life.fed.add(sensor)
+        self.retired.add(sensor)
+        for earlier in self.lives.values():
+            if earlier.n < life.n and sensor in earlier.fed:
+                earlier.fed.discard(sensor)
+                earlier.retired.add(sensor)
 
     @staticmethod
     def _is_named(named: tuple[str, int, str], item: _NodeInput, publisher: str) -> bool:
@@ -262,7 +286,7 @@ class _TimesyncMatch:
         if life is None:
             life = self.lives[session] = _LaterLife(len(self.lives) + 2, TimeSyncNode(self.node.run))
         sensor, key, seq, source = named
-        if sensor in life.fed or sensor in life.waiting:
+        if sensor in life.fed or sensor in life.waiting or sensor in life.retired:
             return  # said once per sensor; a second one is not the live node's
         recent = list(self.recent.get(sensor, ()))
         at = next(
@@ -271,14 +295,14 @@ class _TimesyncMatch:
         if at is None:
             life.waiting[sensor] = (key, seq, source)
             return
-        life.fed.add(sensor)
+        self._take_over(life, sensor)
         self.ops.append((now_ns, life.restamps([item for item, _p in recent[at:]])))
 
     def compares(self, session: str, sensor: str) -> str | None:
         """The matcher's label for a recorded re-stamp of ``sensor`` by a restarted time sync, if
         its core here is fed (or waits for the input its event named); None: not verifiable."""
         life = self.lives.get(session)
-        if life is None or not (sensor in life.fed or sensor in life.waiting):
+        if life is None or not (sensor in life.fed or sensor in life.waiting or sensor in life.retired):
             return None
         return life.label(sensor)
 

@@ -130,26 +130,38 @@ def sim_records(tmp_path_factory: pytest.TempPathFactory) -> tuple[Record, ...]:
 
 
 def _relived(
-    sources: tuple[Record, ...], event_first: bool = False, name_next: str | None = None, shift_ns: int = 0
+    sources: tuple[Record, ...],
+    event_first: bool = False,
+    name_next: str | None = None,
+    shift_ns: int = 0,
+    cuts: tuple[int, ...] = (2000,),
 ) -> tuple[list[Record], int, int]:
-    """``sources`` (a sim recording) as a live session whose time sync was restarted at IMU seq 2000: its
-    inputs from their publishers, the first life's re-stamps up to there, then a fresh core's
-    (TimeSyncNode, as the restarted process runs) of every input from there on, with its
+    """``sources`` (a sim recording) as a live session whose time sync was restarted at IMU seq
+    2000 (``cuts``: at each of these): its inputs from their publishers, the first life's
+    re-stamps up to there, then a fresh core's (TimeSyncNode, as the restarted process runs) of
+    every input from there on (to the next cut, where that process died), with its
     ``first_input`` event per sensor just after (``event_first``: just before) the input it names.
     ``name_next``: that sensor's event names the input after the one the core began with (a tag
-    more or less). ``shift_ns``: the later life's recorded re-stamps moved (another core's)."""
+    more or less). ``shift_ns``: the later lives' recorded re-stamps moved (another core's)."""
     records = list(sources)
-    cut = next(i for i, r in enumerate(records) if r.topic.endswith("/sensor/imu") and r.sequence == 2000)
-    rig = records[cut].topic.rsplit("/", 2)[0]
+    at = [
+        next(i for i, r in enumerate(records) if r.topic.endswith("/sensor/imu") and r.sequence == c)
+        for c in cuts
+    ]
+    rig = records[at[0]].topic.rsplit("/", 2)[0]
     run = decode(RunInfo, next(r for r in records if r.topic.endswith("/run")).payload)
     node = TimeSyncNode(run)
     out: list[Record] = []
     named: set[str] = set()
     n_first = n_later = 0
+    life = 1
     for i, r in enumerate(records):
+        if i in at:  # the process died here; the supervisor started a new one
+            life += 1
+            node, named = TimeSyncNode(run), set()
         _, _, kind, sensor = r.topic.split("/") if r.topic.count("/") == 3 else ("", "", "", "")
         if kind == "synced":
-            if i < cut:  # the first life's; it died at the cut
+            if i < at[0]:  # the first life's; it died at the cut
                 out.append(dataclasses.replace(r, publisher="old:16"))
                 n_first += 1
             continue
@@ -157,7 +169,7 @@ def _relived(
             out.append(r)
             continue
         r = dataclasses.replace(r, publisher=f"{sensor}-publisher:3")
-        if i < cut:
+        if i < at[0]:
             out.append(r)
             continue
         key = f"{kind}/{sensor}"
@@ -174,14 +186,18 @@ def _relived(
                 detail=first_input_detail(sensor, key, seq, r.publisher),
             )
             event = [
-                Record(f"{rig}/event/timesync", "hil.Event", encode(ev), r.log_time_ns, 0, ev.seq, "new:9")
+                Record(
+                    f"{rig}/event/timesync", "hil.Event", encode(ev), r.log_time_ns, 0, ev.seq, f"new{life}:9"
+                )
             ]
         out.extend([*event, r] if event_first else [r, *event])
         for _k, m in node.on_message(key, msg, 0):
             if shift_ns:
                 m = msgspec.structs.replace(m, stamp_ns=m.stamp_ns + shift_ns)
             out.append(
-                Record(f"{rig}/synced/{sensor}", r.schema, encode(m), r.log_time_ns, 0, m.seq, "new:16")
+                Record(
+                    f"{rig}/synced/{sensor}", r.schema, encode(m), r.log_time_ns, 0, m.seq, f"new{life}:16"
+                )
             )
             n_later += 1
     return out, n_first, n_later
@@ -253,3 +269,20 @@ def test_a_restarted_time_sync_names_the_first_input_of_each_sensor_once(
     assert {
         e.detail.split(" re-stamps ")[1].split()[0]: first_input_named(e.detail) for e in later
     } == expected
+
+
+@pytest.mark.parametrize(("worker", "event_first"), [(False, False), (True, False), (False, True)])
+def test_each_life_is_fed_only_until_the_next_one_takes_over(
+    sim_records: tuple[Record, ...], worker: bool, event_first: bool
+) -> None:
+    # restarted twice: each life's core here re-stamps from the first input its event named to
+    # the first input the next life's names (that process had died), not to the end of the file
+    records, n_first, n_later = _relived(sim_records, event_first, cuts=(1500, 3000))
+    res = rerun_timesync_records(records, worker=worker)
+    assert res.difference is None, res.difference
+    assert (res.restarted, res.restarted_compared, res.restarts_s.__len__()) == (0, n_later, 2)
+    assert res.n_recorded == n_first + n_later and n_first > 1000 and n_later > 2500
+    # the recorded ones, and where the event comes after the input it names, the dead life's
+    # re-stamp of that input (it was fed before the event was read): one per sensor and restart
+    extra = 0 if event_first else 2 * 2
+    assert res.n_recomputed == n_first + n_later + extra, (res.n_recomputed, n_first, n_later)
