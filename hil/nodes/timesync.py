@@ -24,9 +24,17 @@ redelivery, or a stranger's copy -- would otherwise leave as a second ``synced/g
 the same publisher, which no journal could tell from the first.
 
 The core may hold a few measurements while it decides whether the device clock stepped; held
-ones are released by the next measurement, by an idle flush when the sensor has been silent for
-``IDLE_FLUSH_NS`` of rig time (not during the start-up hold, which has its own bound), or at the
-end of input. Clock models go out once a second.
+ones are released by the verdict, at the end of input, or when their sensor falls silent: before
+its next input stamped more than ``IDLE_RELEASE_NS`` after the last measurement's arrival (not
+during the start-up hold, which has its own bound). That rule reads only the sensor's own inputs,
+so ``hil rerun --core timesync`` releases where the service did. The service does not wait for
+that input: every ``IDLE_TICK_NS`` of its clock it releases what a sensor silent for
+``IDLE_RELEASE_NS`` plus ``IDLE_MARGIN_NS`` holds (the rule will hold for any input still on its
+way, unless it was that long on it), so a held fix reaches the fusion within its horizon. Should
+the next input prove the rule wrong (stamped within ``IDLE_RELEASE_NS`` after all: the process
+or the bus stalled), that is counted (``idle_release_early.<sensor>``) and said on
+``event/timesync``: a rerun's re-stamps of that sensor differ from there. Clock models go out once
+a second.
 
 A restarted time sync (``hil up --restart``: option ``resume``) is a fresh core on what its new
 process received, which depends on when its subscription took effect. So on the first input of
@@ -50,9 +58,10 @@ from hil.nodes.base import BatchedInputOptions, Input, Node, NodeOptions, Out
 from hil.nodes.builders import clock_model_msg
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.timesync.config import sync_configs_for
-from hil.timesync.core import TimeSyncCore
+from hil.timesync.core import IDLE_RELEASE_NS, TimeSyncCore
 
-IDLE_FLUSH_NS = 200_000_000  # release held measurements of a sensor silent this long
+IDLE_TICK_NS = 50_000_000  # how often the service looks for a silent sensor's held measurements
+IDLE_MARGIN_NS = 50_000_000  # how long an input may be on its way and still keep the rule true
 DEDUP_WINDOW = 8192  # recent seqs per sensor remembered to refuse a repeat
 CLOCK_PERIOD_NS = 1_000_000_000
 
@@ -86,9 +95,11 @@ class TimeSyncNode(Node):
         super().__init__(run, options)
         self.core: TimeSyncCore[Measurement] = TimeSyncCore(sync_configs_for(scenario_for_run(run)))
         self.end_ns = int(run.duration_s * 1e9)
-        self._next_flush = IDLE_FLUSH_NS
+        self._next_idle = IDLE_TICK_NS
         self._next_clock = CLOCK_PERIOD_NS
-        self._arrivals_at_flush: dict[str, int] = {}
+        # sensors released on the clock (``tick``): the last measurement's arrival before it, which
+        # the sensor's next input must be stamped more than IDLE_RELEASE_NS after
+        self._released_after: dict[str, int] = {}
         self._recent: dict[str, tuple[set[int], deque[int]]] = {}
         # a restarted time sync: the sensors whose first input it has not named yet (bounded by
         # the sensor table: inputs come only on its sensors' keys)
@@ -104,9 +115,15 @@ class TimeSyncNode(Node):
         return self.on_message(key, msg, now_ns)
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
+        if self._released_after:
+            early = self._released_early(msg, now_ns)
+            if early:
+                return early + self._take(msg)
+        return self._take(msg)
+
+    def _take(self, msg: Any) -> list[Out]:
         if isinstance(msg, TimeTag):
-            self.core.on_timetag(msg.sensor, msg.device_stamp_ns, msg.stamp_ns)
-            return []
+            return self._synced(self.core.on_timetag(msg.sensor, msg.device_stamp_ns, msg.stamp_ns))
         if msg.sensor not in SENSORS:
             self.error("rejected.sensor.unknown", f"no synced channel for sensor {msg.sensor!r}")
             return []
@@ -147,22 +164,46 @@ class TimeSyncNode(Node):
             out.append((f"synced/{m.sensor}", msgspec.structs.replace(m, stamp_ns=t, dt_ns=dt_rig)))
         return out
 
+    def _released_early(self, msg: Any, now_ns: int) -> list[Out]:
+        """The first input of a sensor this node released on its clock: was the rule true?"""
+        sensor = msg.sensor
+        last = self._released_after.get(sensor)
+        if last is None:
+            return []
+        s = self.core.sensors.get(sensor)
+        if isinstance(msg, TimeTag):
+            if s is None or s.cfg.source != "timetag":
+                return []  # a tag the core does not use moves nothing
+            stamp = msg.stamp_ns
+        else:
+            stamp = msg.rx_stamp_ns
+        del self._released_after[sensor]
+        if stamp - last > IDLE_RELEASE_NS:
+            return []
+        self.inc(f"idle_release_early.{sensor}")
+        detail = (
+            f"{sensor}: held measurements released {(now_ns - last) / 1e6:.0f} ms after the last one "
+            f"arrived, but {sensor} seq {msg.seq} (stamped {(stamp - last) / 1e6:.1f} ms after it) was "
+            f"still on its way: a rerun releases them after it, so its re-stamps of {sensor} differ "
+            "from here"
+        )
+        return [self.event("idle_release_early", detail, now_ns)]
+
     def next_tick_ns(self) -> int | None:
-        t = min(self._next_flush, self._next_clock)
+        t = min(self._next_idle, self._next_clock)
         return t if t <= self.end_ns else None
 
     def tick(self, now_ns: int) -> list[Out]:
         outs: list[Out] = []
-        if now_ns >= self._next_flush:
-            self._next_flush = (now_ns // IDLE_FLUSH_NS + 1) * IDLE_FLUSH_NS
+        if now_ns >= self._next_idle:
+            self._next_idle = (now_ns // IDLE_TICK_NS + 1) * IDLE_TICK_NS
             for name, s in self.core.sensors.items():
-                # not the start-up hold: it has its own bound (device time), and a stalled process
-                # (no arrivals for 200 ms of wall time on a loaded host) is not a silent sensor --
-                # releasing there stamped the first samples before the lock, which no rerun (whose
-                # clock is the inputs') could reproduce
-                if s.held and not s.startup_hold and self._arrivals_at_flush.get(name) == s.n_arrivals:
-                    outs.extend(self._synced(s.flush()))
-                self._arrivals_at_flush[name] = s.n_arrivals
+                # the rule the inputs apply (``SensorSync.idle_release_due``), sure to hold for an
+                # input on its way for less than the margin; never the start-up hold (its bound is
+                # device time: a stalled process is not a silent sensor)
+                if s.idle_release_due(now_ns - IDLE_MARGIN_NS) and s.last_rx_ns is not None:
+                    self._released_after[name] = s.last_rx_ns
+                    outs.extend(self._synced(s.release_held()))
         if now_ns >= self._next_clock:
             self._next_clock = (now_ns // CLOCK_PERIOD_NS + 1) * CLOCK_PERIOD_NS
             for m in list(self.core.mappings.values()):

@@ -33,9 +33,12 @@ the first life's are. A recording made before the events said so (or one that lo
 tell which time tags the new life took first (``_Lives``): those re-stamps are counted as not
 verifiable, in a note naming the restart.
 
-Also not covered: a measurement the live service released by its *idle* flush (a sensor silent for
-``IDLE_FLUSH_S`` while the core held samples around a suspected clock step) was stamped with the
-mapping of that wall-clock moment, which a recording cannot tell; verify then names it.
+What a silent sensor's held measurements are released by -- its next input stamped more than
+``IDLE_RELEASE_NS`` after the last measurement's arrival -- is a rule on that sensor's inputs, so
+the rerun releases where the service did; the service releases sooner on its clock, once the
+rule is sure to hold. Where an input proved it early (on its way longer than the margin: a
+stalled process or bus), the service said so (``idle_release_early`` on ``event/timesync``) and
+the rerun notes it: its re-stamps of that sensor differ from there, and verify names the first.
 """
 
 from __future__ import annotations
@@ -87,6 +90,8 @@ class TimesyncRerun:
     # recorded re-stamps of restarted time syncs compared against a core fed from the first
     # input each one named (``_LaterLife``)
     restarted_compared: int = 0
+    # the time sync's idle releases on its clock that an input proved early (its events)
+    early_releases: int = 0
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
@@ -443,6 +448,18 @@ def restart_note(res: TimesyncRerun) -> list[str]:
     ]
 
 
+def early_release_note(res: TimesyncRerun) -> list[str]:
+    """The note of idle releases the live time sync made early (``hil.nodes.timesync``)."""
+    if not res.early_releases:
+        return []
+    return [
+        f"note: the time sync released held measurements on its clock {res.early_releases} time(s) "
+        "while an input of that sensor was still on its way (idle_release_early on event/timesync: "
+        "a stalled process or bus); recomputed from the inputs they go out after that input, so "
+        "re-stamps of that sensor can differ from there"
+    ]
+
+
 def rerun_timesync_records(
     records: Iterable[Record], name: str = "recording", worker: bool | None = None
 ) -> TimesyncRerun:
@@ -469,6 +486,7 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
     now_ns = start_ns = 0
     recovery: list[list[int]] = []  # (first, last) rig log time of each recovered stretch
     lives = _Lives()
+    early_releases = 0
     for r in records:
         if r.skipped_log_ns >= 0 and side.node is not None:  # what handle() of those would have done
             side.release(rig_time_ns(r.skipped_log_ns, start_ns))
@@ -484,6 +502,8 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
             )
             if named is not None:
                 side.first_input(r.publisher.partition(":")[0], named, now_ns)
+            elif isinstance(ev, Event) and ev.kind == "idle_release_early":
+                early_releases += 1
         elif "/synced/" in r.topic and lives.is_later(r, now_ns):
             if side.node is not None:
                 label = side.compares(r.publisher.partition(":")[0], r.topic.rpartition("/")[2])
@@ -558,6 +578,7 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         restarted=not_compared + len(not_fed),
         restarts_s=lives.times_s(),
         restarted_compared=lives.n_compared - len(not_fed),
+        early_releases=early_releases,
     )
 
 
@@ -620,7 +641,7 @@ def rerun_timesync_report(
             f"note: {res.no_raw} recorded re-stamps have no raw measurement in the recording (lost while "
             "no recorder was writing; hil info shows the gaps in sensor/*): not verifiable"
         )
-    lines += restart_note(res)
+    lines += restart_note(res) + early_release_note(res)
     if res.recovered:
         lines.append(
             f"note: {res.recovered} re-stamps differ of measurements a restarted recorder recovered from "

@@ -72,6 +72,14 @@ T = TypeVar("T")
 
 SOURCES = ("timetag", "arrival", "off")
 
+# A held measurement waits for the step watch's verdict, but not while its sensor is silent: once
+# an input of the sensor comes stamped more than this after the last measurement's arrival, what
+# is held goes out first, under the mapping of then (``SensorSync.idle_release_due``). A rule on
+# the sensor's own inputs, so a rerun that feeds them in order releases at the same place as the
+# live service did; the service releases sooner, on its clock, once the rule is sure to hold
+# (``hil.nodes.timesync``), for the fusion's sake (a held 1 Hz fix would wait a second).
+IDLE_RELEASE_NS = 150_000_000
+
 
 @dataclass(frozen=True)
 class SyncConfig:
@@ -425,6 +433,7 @@ class _Held(Generic[T]):
     rx_ns: int
     resid: float
     count_jitter: bool = True  # False: part of a suspicious run, kept out of the jitter scale
+    out: bool = False  # released already (an idle release), still part of the step watch's run
 
 
 @dataclass
@@ -443,6 +452,7 @@ class SensorSync(Generic[T]):
     n_arrivals: int = 0
     since_reset: int = 0  # arrivals since the start or the last step
     last_device_ns: int | None = None  # device time of the previous arrival (the gross-step test)
+    last_rx_ns: int | None = None  # rig arrival of the previous measurement (the idle release)
     # tag-ruled step watch: the current run of same-side suspicious arrival residuals
     run_side: int = 0  # +1 above the floor (backward step?), -1 below (forward step?), 0 none
     run_first_ns: int = 0  # device time of the run's first arrival
@@ -474,9 +484,11 @@ class SensorSync(Generic[T]):
         self.jitter_ns = float(self.cfg.step_floor_ns) / 4
 
     # -- tags ---------------------------------------------------------------------------------
-    def on_timetag(self, device_ns: int, rig_latch_ns: int) -> None:
+    def on_timetag(self, device_ns: int, rig_latch_ns: int) -> list[tuple[T, int]]:
+        """A tag; what it returns is what an idle release let go before it (``idle_release_due``)."""
         if self.cfg.source != "timetag":
-            return
+            return []  # not used: it moves nothing, so it releases nothing either
+        released = self.release_held() if self.idle_release_due(rig_latch_ns) else []
         if not self.kf.initialised:
             line = self.hull.line()
             if line is not None and self.hull.span_ns >= self.cfg.min_span_ns:
@@ -497,6 +509,31 @@ class SensorSync(Generic[T]):
         elif verdict == "ok" and ruled:
             self._end_run()  # the tag fits: whatever the arrivals did was the transport
         self._refresh()
+        return released
+
+    def idle_release_due(self, stamp_ns: int) -> bool:
+        """Is what this sensor holds to go out before an input stamped ``stamp_ns`` (a
+        measurement's arrival, a tag's latch, rig clock)? Yes when the sensor has been silent for
+        more than ``IDLE_RELEASE_NS`` since its last measurement arrived (the start-up hold has
+        its own bound). The live service asks it with its clock less a margin (``tick``)."""
+        last = self.last_rx_ns
+        if not self.held or self.held[-1].out or self.startup_hold or last is None:
+            return False
+        return stamp_ns > last + IDLE_RELEASE_NS
+
+    def release_held(self) -> list[tuple[T, int]]:
+        """An idle release: what is held goes out under the mapping of the clock as it stood
+        before them, and stays in the step watch's run. A slow sensor's suspicious measurements
+        (a 1 Hz receiver's, timed by arrivals) can so still add up to a declared step, which
+        releasing them into the hull undid each time; from the step on the new mapping stamps."""
+        held = [h for h in self.held if not h.out]
+        if not held:
+            return []
+        self._refresh()
+        to_rig = self.mapping.to_rig
+        for h in held:
+            h.out = True
+        return [(h.item, to_rig(h.device_ns)) for h in held]
 
     def _tag_ruled(self) -> bool:
         """Tags decide steps and stamps: a locked-on filter that no step has invalidated."""
@@ -554,12 +591,14 @@ class SensorSync(Generic[T]):
             return [(item, rx_ns)]
         if self.startup_hold and not self._hold_applies():
             self.startup_hold = False
+        released = self.release_held() if self.idle_release_due(rx_ns) else []
+        self.last_rx_ns = rx_ns
         if self._hold_first_rx_ns is None:
             self._hold_first_rx_ns = rx_ns
         out = self._on_arrival(device_ns, rx_ns, item)
         if self.startup_hold and self._hold_over(rx_ns):
-            return self._end_hold()
-        return out
+            out = self._end_hold()
+        return released + out if released else out
 
     def _on_arrival(self, device_ns: int, rx_ns: int, item: T) -> list[tuple[T, int]]:
         """The step watch of one measurement: what it releases (into ``lock_q`` while holding)."""
@@ -734,12 +773,12 @@ class SensorSync(Generic[T]):
         self.since_reset += len(held)
         self._refresh()
         to_rig = self.mapping.to_rig
-        out: list[tuple[T, int]] = [(h.item, to_rig(h.device_ns)) for h in held]
+        out: list[tuple[T, int]] = [(h.item, to_rig(h.device_ns)) for h in held if not h.out]
         if learn and held:
             h = held[-1]
             floor = hull.at(h.device_ns)
             if floor is not None:
-                tag_off = out[-1][1] - h.device_ns  # the last one's rig stamp, under this mapping
+                tag_off = to_rig(h.device_ns) - h.device_ns  # the last one's rig stamp, under this mapping
                 self.delta_ns += (floor - tag_off - self.delta_ns) / 64.0
         if self.startup_hold:
             self._to_lock_q(held)
@@ -814,9 +853,10 @@ class TimeSyncCore(Generic[T]):
     def mapping(self, sensor: str) -> ClockMapping:
         return self.sensor(sensor).mapping
 
-    def on_timetag(self, sensor: str, device_ns: int, rig_latch_ns: int) -> None:
-        """A time-tag edge: ``device_ns`` on the device clock, latched at ``rig_latch_ns``."""
-        self.sensor(sensor).on_timetag(int(device_ns), int(rig_latch_ns))
+    def on_timetag(self, sensor: str, device_ns: int, rig_latch_ns: int) -> list[tuple[T, int]]:
+        """A time-tag edge: ``device_ns`` on the device clock, latched at ``rig_latch_ns``; returns
+        what an idle release let go before it (``SensorSync.idle_release_due``)."""
+        return self.sensor(sensor).on_timetag(int(device_ns), int(rig_latch_ns))
 
     def on_measurement(self, sensor: str, device_ns: int, rx_rig_ns: int, item: T) -> list[tuple[T, int]]:
         """A measurement stamped ``device_ns`` that arrived at ``rx_rig_ns`` (rig clock)."""

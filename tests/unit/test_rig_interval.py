@@ -80,7 +80,7 @@ def test_a_stalled_process_does_not_release_the_start_up_hold_before_the_lock() 
     idle flush once made `hil rerun --core timesync --verify` of a live run fail at seq 0."""
     from hil.messages import ImuSample, TimeTag
     from hil.nav.scenario import load_scenario
-    from hil.nodes.timesync import IDLE_FLUSH_NS, TimeSyncNode
+    from hil.nodes.timesync import IDLE_TICK_NS, TimeSyncNode
     from hil.nodes.world import run_info
 
     run = run_info(load_scenario("straight_level"), rig="t", start_epoch_ns=0, speed=1.0, duration_s=10.0)
@@ -109,7 +109,7 @@ def test_a_stalled_process_does_not_release_the_start_up_hold_before_the_lock() 
             out += node.on_message("sensor/imu", sample(k), k * 2_500_000)
             if stall and k == 200:  # the process stalls: ticks for a second of wall time, no arrival
                 for n in range(1, 6):
-                    out += node.tick(500_000_000 + n * IDLE_FLUSH_NS)
+                    out += node.tick(500_000_000 + n * IDLE_TICK_NS * 4)
                 assert [o for o in out if o[0] == "synced/imu"] == []
         assert node.core.mapping("imu").state == "locked"
         return [m for key, m in out if key == "synced/imu"]  # type: ignore[misc]
