@@ -591,14 +591,15 @@ class SensorSync(Generic[T]):
             return [(item, rx_ns)]
         if self.startup_hold and not self._hold_applies():
             self.startup_hold = False
-        released = self.release_held() if self.idle_release_due(rx_ns) else []
+        # (``held`` first: empty but around a suspected step, and this runs for every measurement)
+        released = self.release_held() if self.held and self.idle_release_due(rx_ns) else None
         self.last_rx_ns = rx_ns
         if self._hold_first_rx_ns is None:
             self._hold_first_rx_ns = rx_ns
         out = self._on_arrival(device_ns, rx_ns, item)
         if self.startup_hold and self._hold_over(rx_ns):
             out = self._end_hold()
-        return released + out if released else out
+        return out if released is None else released + out
 
     def _on_arrival(self, device_ns: int, rx_ns: int, item: T) -> list[tuple[T, int]]:
         """The step watch of one measurement: what it releases (into ``lock_q`` while holding)."""
