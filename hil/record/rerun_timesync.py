@@ -50,7 +50,7 @@ from typing import Any
 
 import msgspec
 
-from hil.messages import Event, RunInfo, TimeTag, decode, encode, payload_seq, schema_name
+from hil.messages import Event, RunInfo, ServiceStatus, TimeTag, decode, encode, payload_seq, schema_name
 from hil.nodes.timesync import TimeSyncNode, first_input_named
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
@@ -92,6 +92,9 @@ class TimesyncRerun:
     restarted_compared: int = 0
     # the time sync's idle releases on its clock that an input proved early (its events)
     early_releases: int = 0
+    # inputs the live time sync's bounded inbox dropped (its status counters, summed over its
+    # lives): which ones is not journaled, so the rerun fed them
+    inbox_dropped: int = 0
 
     def first_difference(self, truncated: bool = False) -> str | None:
         return self.difference_if_cut if truncated else self.difference
@@ -448,6 +451,29 @@ def restart_note(res: TimesyncRerun) -> list[str]:
     ]
 
 
+def _inputs_dropped(r: Record) -> int:
+    """How many of its inputs (measurements, tags) a ``status/timesync`` record says the
+    service's inbox has dropped so far (``inbox.dropped.<kind>``); 0 if it does not decode."""
+    try:
+        counters = decode(ServiceStatus, r.payload).counters
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return 0
+    return sum(
+        c.value for c in counters if c.key.startswith(("inbox.dropped.sensor.", "inbox.dropped.timetag."))
+    )
+
+
+def inbox_drop_note(res: TimesyncRerun) -> list[str]:
+    """The note of inputs the live time sync's inbox dropped (not journaled, unlike the fusion's)."""
+    if not res.inbox_dropped:
+        return []
+    return [
+        f"note: the time sync's inbox dropped {res.inbox_dropped} of its inputs (its status: "
+        "inbox.dropped.*; it fell that far behind); which ones is not journaled, so this rerun fed "
+        "them: re-stamps of that sensor after them can differ"
+    ]
+
+
 def early_release_note(res: TimesyncRerun) -> list[str]:
     """The note of idle releases the live time sync made early (``hil.nodes.timesync``)."""
     if not res.early_releases:
@@ -487,12 +513,18 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
     recovery: list[list[int]] = []  # (first, last) rig log time of each recovered stretch
     lives = _Lives()
     early_releases = 0
+    dropped: dict[str, int] = {}  # the time sync's inbox drops of its inputs, per life (Zenoh session)
     for r in records:
         if r.skipped_log_ns >= 0 and side.node is not None:  # what handle() of those would have done
             side.release(rig_time_ns(r.skipped_log_ns, start_ns))
         if r.foreign:  # the live time sync refused a stranger's measurements and tags
             continue
         now_ns = rig_time_ns(r.log_time_ns, start_ns)
+        if r.topic.endswith("/status/timesync"):
+            n = _inputs_dropped(r)
+            if n:
+                session = r.publisher.partition(":")[0]
+                dropped[session] = max(dropped.get(session, 0), n)  # cumulative within a life
         if r.topic.endswith("/event/supervisor"):
             lives.supervisor_event(r)
         elif r.topic.endswith("/event/timesync") and side.node is not None:
@@ -579,6 +611,7 @@ def _rerun(records: Iterable[Record], name: str, side: _TimesyncMatch) -> Timesy
         restarts_s=lives.times_s(),
         restarted_compared=lives.n_compared - len(not_fed),
         early_releases=early_releases,
+        inbox_dropped=sum(dropped.values()),
     )
 
 
@@ -614,6 +647,7 @@ def timesync_topic(topic: str) -> bool:
         or topic.endswith("/run")
         or topic.endswith("/event/supervisor")  # a restarted time sync's ``service_restarted``
         or topic.endswith("/event/timesync")  # and its ``first_input`` events
+        or topic.endswith("/status/timesync")  # what its inbox dropped
     )
 
 
@@ -641,7 +675,7 @@ def rerun_timesync_report(
             f"note: {res.no_raw} recorded re-stamps have no raw measurement in the recording (lost while "
             "no recorder was writing; hil info shows the gaps in sensor/*): not verifiable"
         )
-    lines += restart_note(res) + early_release_note(res)
+    lines += restart_note(res) + early_release_note(res) + inbox_drop_note(res)
     if res.recovered:
         lines.append(
             f"note: {res.recovered} re-stamps differ of measurements a restarted recorder recovered from "
