@@ -58,7 +58,7 @@ from hil.nodes.base import BatchedInputOptions, Input, Node, NodeOptions, Out
 from hil.nodes.builders import clock_model_msg
 from hil.sensor_table import SENSOR_NAMES, SENSORS
 from hil.timesync.config import sync_configs_for
-from hil.timesync.core import IDLE_RELEASE_NS, TimeSyncCore
+from hil.timesync.core import TimeSyncCore
 
 IDLE_TICK_NS = 50_000_000  # how often the service looks for a silent sensor's held measurements
 IDLE_MARGIN_NS = 50_000_000  # how long an input may be on its way and still keep the rule true
@@ -97,9 +97,8 @@ class TimeSyncNode(Node):
         self.end_ns = int(run.duration_s * 1e9)
         self._next_idle = IDLE_TICK_NS
         self._next_clock = CLOCK_PERIOD_NS
-        # sensors released on the clock (``tick``): the last measurement's arrival before it, which
-        # the sensor's next input must be stamped more than IDLE_RELEASE_NS after
-        self._released_after: dict[str, int] = {}
+        # sensors released on the clock (``tick``) whose next input is still to prove it right
+        self._released_on_clock: set[str] = set()
         self._recent: dict[str, tuple[set[int], deque[int]]] = {}
         # a restarted time sync: the sensors whose first input it has not named yet (bounded by
         # the sensor table: inputs come only on its sensors' keys)
@@ -115,7 +114,7 @@ class TimeSyncNode(Node):
         return self.on_message(key, msg, now_ns)
 
     def on_message(self, key: str, msg: Any, now_ns: int) -> list[Out]:
-        if self._released_after:
+        if self._released_on_clock:
             early = self._released_early(msg, now_ns)
             if early:
                 return early + self._take(msg)
@@ -165,27 +164,29 @@ class TimeSyncNode(Node):
         return out
 
     def _released_early(self, msg: Any, now_ns: int) -> list[Out]:
-        """The first input of a sensor this node released on its clock: was the rule true?"""
+        """The first input of a sensor this node released on its clock: did the rule the inputs
+        apply (``SensorSync.ends_silence``, against the last arrival: a tag does not move it)
+        hold for it?"""
         sensor = msg.sensor
-        last = self._released_after.get(sensor)
-        if last is None:
-            return []
         s = self.core.sensors.get(sensor)
+        if sensor not in self._released_on_clock or s is None or s.last_rx_ns is None:
+            return []
         if isinstance(msg, TimeTag):
-            if s is None or s.cfg.source != "timetag":
-                return []  # a tag the core does not use moves nothing
+            if s.cfg.source != "timetag":
+                return []  # a tag the core does not use moves nothing (``SensorSync.on_timetag``)
             stamp = msg.stamp_ns
         else:
             stamp = msg.rx_stamp_ns
-        del self._released_after[sensor]
-        if stamp - last > IDLE_RELEASE_NS:
+        self._released_on_clock.discard(sensor)
+        if s.ends_silence(stamp):
             return []
         self.inc(f"idle_release_early.{sensor}")
+        last = s.last_rx_ns
         detail = (
-            f"{sensor}: held measurements released {(now_ns - last) / 1e6:.0f} ms after the last one "
-            f"arrived, but {sensor} seq {msg.seq} (stamped {(stamp - last) / 1e6:.1f} ms after it) was "
-            f"still on its way: a rerun releases them after it, so its re-stamps of {sensor} differ "
-            "from here"
+            f"{sensor}: held measurements released on the clock, the sensor silent since its last "
+            f"arrival, but {sensor} seq {msg.seq} (stamped {(stamp - last) / 1e6:.1f} ms after that "
+            f"arrival, taken {(now_ns - last) / 1e6:.0f} ms after it) was still on its way: a rerun "
+            f"releases them after it, so its re-stamps of {sensor} differ from here"
         )
         return [self.event("idle_release_early", detail, now_ns)]
 
@@ -201,8 +202,8 @@ class TimeSyncNode(Node):
                 # the rule the inputs apply (``SensorSync.idle_release_due``), sure to hold for an
                 # input on its way for less than the margin; never the start-up hold (its bound is
                 # device time: a stalled process is not a silent sensor)
-                if s.idle_release_due(now_ns - IDLE_MARGIN_NS) and s.last_rx_ns is not None:
-                    self._released_after[name] = s.last_rx_ns
+                if s.idle_release_due(now_ns - IDLE_MARGIN_NS):
+                    self._released_on_clock.add(name)
                     outs.extend(self._synced(s.release_held()))
         if now_ns >= self._next_clock:
             self._next_clock = (now_ns // CLOCK_PERIOD_NS + 1) * CLOCK_PERIOD_NS

@@ -463,27 +463,23 @@ def _inputs_dropped(r: Record) -> int:
     )
 
 
-def inbox_drop_note(res: TimesyncRerun) -> list[str]:
-    """The note of inputs the live time sync's inbox dropped (not journaled, unlike the fusion's)."""
-    if not res.inbox_dropped:
-        return []
-    return [
-        f"note: the time sync's inbox dropped {res.inbox_dropped} of its inputs (its status: "
-        "inbox.dropped.*; it fell that far behind); which ones is not journaled, so this rerun fed "
-        "them: re-stamps of that sensor after them can differ"
-    ]
-
-
-def early_release_note(res: TimesyncRerun) -> list[str]:
-    """The note of idle releases the live time sync made early (``hil.nodes.timesync``)."""
-    if not res.early_releases:
-        return []
-    return [
-        f"note: the time sync released held measurements on its clock {res.early_releases} time(s) "
-        "while an input of that sensor was still on its way (idle_release_early on event/timesync: "
-        "a stalled process or bus); recomputed from the inputs they go out after that input, so "
-        "re-stamps of that sensor can differ from there"
-    ]
+def unjournaled_notes(res: TimesyncRerun) -> list[str]:
+    """What the live time sync did that its inputs do not tell (``hil.nodes.timesync``): idle
+    releases on its clock an input proved early (its events), inputs its inbox dropped (its
+    status; not journaled, unlike the fusion's). The rerun fed those inputs as they came."""
+    notes = []
+    if res.early_releases:
+        notes.append(
+            f"released held measurements on its clock {res.early_releases} time(s) while an input "
+            "of that sensor was still on its way (idle_release_early on event/timesync: a stalled "
+            "process or bus)"
+        )
+    if res.inbox_dropped:
+        notes.append(
+            f"dropped {res.inbox_dropped} of its inputs from its inbox (its status: inbox.dropped.*; "
+            "it fell that far behind; which ones is not journaled)"
+        )
+    return [f"note: the time sync {n}: re-stamps of that sensor after it can differ" for n in notes]
 
 
 def rerun_timesync_records(
@@ -675,7 +671,7 @@ def rerun_timesync_report(
             f"note: {res.no_raw} recorded re-stamps have no raw measurement in the recording (lost while "
             "no recorder was writing; hil info shows the gaps in sensor/*): not verifiable"
         )
-    lines += restart_note(res) + early_release_note(res) + inbox_drop_note(res)
+    lines += restart_note(res) + unjournaled_notes(res)
     if res.recovered:
         lines.append(
             f"note: {res.recovered} re-stamps differ of measurements a restarted recorder recovered from "

@@ -236,11 +236,13 @@ def recover(src: str | Path, out: str | Path | None = None) -> RecoverResult:
 
 def _payload_seq(data: bytes) -> int | None:
     """The seq of a recovered payload, None if it has none (hil.messages.payload_seq)."""
+    import msgspec
+
     from hil.messages import payload_seq
 
     try:
         return payload_seq(data)
-    except Exception:  # a recovered payload may be anything: no seq
+    except (msgspec.DecodeError, msgspec.ValidationError):  # a recovered payload may be anything
         return None
 
 

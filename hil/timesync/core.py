@@ -516,10 +516,15 @@ class SensorSync(Generic[T]):
         measurement's arrival, a tag's latch, rig clock)? Yes when the sensor has been silent for
         more than ``IDLE_RELEASE_NS`` since its last measurement arrived (the start-up hold has
         its own bound). The live service asks it with its clock less a margin (``tick``)."""
-        last = self.last_rx_ns
-        if not self.held or self.held[-1].out or self.startup_hold or last is None:
+        if not self.held or self.held[-1].out or self.startup_hold:
             return False
-        return stamp_ns > last + IDLE_RELEASE_NS
+        return self.ends_silence(stamp_ns)
+
+    def ends_silence(self, stamp_ns: int) -> bool:
+        """Is an input stamped ``stamp_ns`` more than ``IDLE_RELEASE_NS`` after the last
+        measurement's arrival (the idle release's test, held or not)?"""
+        last = self.last_rx_ns
+        return last is not None and stamp_ns > last + IDLE_RELEASE_NS
 
     def release_held(self) -> list[tuple[T, int]]:
         """An idle release: what is held goes out under the mapping of the clock as it stood

@@ -21,36 +21,16 @@ import pytest
 from msgspec.structs import replace
 
 from hil.messages import CaptureTruth, GnssFix, RunInfo, TimeTag, decode, encode
+from hil.nav.scenario import load_scenario, scenario_overrides
 from hil.nodes.timesync import IDLE_MARGIN_NS, IDLE_TICK_NS, TimeSyncNode
 from hil.record.mcapio import Record, read_session
-from hil.record.rerun_timesync import early_release_note, rerun_timesync_records
+from hil.record.rerun_timesync import rerun_timesync_records, unjournaled_notes
 from hil.runners.sim import SimOptions, run_sim
 from hil.timesync.core import IDLE_RELEASE_NS
 
 STEP_AT_S = 10.0
-SCENARIO = f"""
-name = "gnss_1hz_arrivals"
-seed = 4
-duration_s = 24.0
-[origin]
-lat_deg = 50.45
-lon_deg = 30.52
-alt_m = 300.0
-[initial]
-attitude_deg = [0.0, 0.0, 0.0]
-speed_mps = 50.0
-[imu]
-preset = "tactical"
-rate_hz = 400
-[gnss]
-rate_hz = 1.0
-pos_sigma_m = 2.0
-vel_sigma_mps = 0.2
-latency_s = 0.1
-jitter_s = 0.002
-[[segment]]
-kind = "hold"
-duration_s = 24.0
+# straight_level with a 1 Hz receiver timed by arrivals alone, its clock stepping +50 ms
+CLOCK = f"""
 [clock.gnss]
 timetag = false
 steps = [{{t_s = {STEP_AT_S}, step_s = 0.05}}]
@@ -61,7 +41,8 @@ steps = [{{t_s = {STEP_AT_S}, step_s = 0.05}}]
 def records(tmp_path_factory: pytest.TempPathFactory) -> tuple[Record, ...]:
     d = tmp_path_factory.mktemp("idle")
     scenario = d / "gnss_1hz_arrivals.toml"
-    scenario.write_text(SCENARIO)
+    base = scenario_overrides(load_scenario("straight_level"), name="gnss_1hz_arrivals", gnss_rate_hz=1.0)
+    scenario.write_text(base.source_text + CLOCK)
     path = d / "s.mcap"
     run_sim(
         SimOptions(
@@ -175,7 +156,7 @@ def test_a_rerun_notes_the_early_releases_the_recording_names(records: tuple[Rec
     said = Record(f"{rig}/event/timesync", "hil.Event", encode(ev), records[-1].log_time_ns, 0, ev.seq, "")
     res = rerun_timesync_records([*records, said], worker=False)
     assert res.early_releases == 1 and res.difference is None
-    assert early_release_note(res)[0].startswith(
+    assert unjournaled_notes(res)[0].startswith(
         "note: the time sync released held measurements on its clock 1"
     )
-    assert early_release_note(rerun_timesync_records(records, worker=False)) == []
+    assert unjournaled_notes(rerun_timesync_records(records, worker=False)) == []
