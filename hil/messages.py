@@ -160,9 +160,18 @@ class ImuSample(Message, frozen=True, kw_only=True):
     dvel_b_mps: Vec3
     status: int = 0  # built-in-test flags from the device
 
+    def arrival_ns(self) -> int:
+        """When its last frame came in: the IMU's minimum delay includes its frames' wire time."""
+        return self.rx_stamp_ns
+
 
 class GnssFix(Message, frozen=True, kw_only=True):
-    """A receiver fix; ``device_stamp_ns`` is its time of validity on the receiver clock."""
+    """A receiver fix; ``device_stamp_ns`` is its time of validity on the receiver clock.
+
+    Read off a serial line, ``rx_stamp_ns`` is when the read that completed the fix came in and
+    ``line_ns`` how long the line had been carrying the fix's epoch by then (its bytes at the
+    line's rate, from the first): the receiver's output latency ends ``line_ns`` before
+    ``rx_stamp_ns``. 0 for a fix that came on no line."""
 
     sensor: Name = "gnss"
     device_stamp_ns: Ns
@@ -177,11 +186,17 @@ class GnssFix(Message, frozen=True, kw_only=True):
     fix_type: Annotated[int, msgspec.Meta(ge=0, le=5)]
     num_sats: Annotated[int, msgspec.Meta(ge=0, le=200)]
     hdop: float
+    line_ns: Annotated[int, msgspec.Meta(ge=0, le=10**10)] = 0
+
+    def arrival_ns(self) -> int:
+        """When its output began to arrive: what the time sync's minimum delay (the receiver's
+        latency) is measured to."""
+        return self.rx_stamp_ns - self.line_ns
 
 
 #: A measurement of any sensor in ``hil.sensor_table`` (raw on ``sensor/<name>``, re-stamped on
 #: ``synced/<name>``): every one has ``sensor``, ``seq``, ``stamp_ns``, ``device_stamp_ns`` and
-#: ``rx_stamp_ns``.
+#: ``rx_stamp_ns``, and ``arrival_ns()``: the arrival its sensor's minimum delay is measured to.
 Measurement = ImuSample | GnssFix
 
 

@@ -7,7 +7,9 @@ publishes
 - ``serial/<port>``  every chunk read, byte for byte (``hil.SerialChunk``), so the recording holds
   the line and a replay can put it back on one;
 - ``sensor/gnss``    each fix decoded from the bytes -- the quantised numbers a device sees --
-  ``stamp_ns = rx_stamp_ns`` = the receive time of the chunk that completed it,
+  ``stamp_ns = rx_stamp_ns`` = the receive time of the chunk that completed it, ``line_ns`` =
+  how long the line had carried its epoch by then (``DecodedFix.line_bytes`` at ``baud``, at
+  most one receiver period: more is a line that paused mid-epoch),
   ``device_stamp_ns`` = its time of validity as the receiver printed it (GPS/UTC time) less the
   run's start epoch, ``seq`` = the epoch index (time of validity over the receiver's period: the
   emulator's capture truth carries the same), position in the scenario's NED frame.
@@ -35,7 +37,7 @@ from hil.nodes.base import SERIAL_RX, Node, NodeOptions, Out
 from hil.nodes.gnss_emulator import bridge_protocol, check_wire
 from hil.wire.base import DecodedFix
 from hil.wire.gnss_time import gps_ns_to_utc_ns
-from hil.wire.line import LineDecoder
+from hil.wire.line import LineDecoder, byte_time_ns
 
 NO_VERTICAL_SIGMA_MPS = 1000.0  # NMEA carries no vertical velocity: "0 m/s, σ 1 km/s" = unknown
 CHUNK_MAX_BYTES = 4096  # a longer read is recorded as several chunks
@@ -74,6 +76,7 @@ class GnssBridgeNode(Node):
         self.vel_sigma_mps = tuple(float(v) for v in s.gnss.vel_sigma_mps)
         self.pos_sigma_m = tuple(float(v) for v in s.gnss.pos_sigma_m)
         self.origin = (math.radians(run.origin_lat_deg), math.radians(run.origin_lon_deg), run.origin_alt_m)
+        self.byte_ns = byte_time_ns(o.baud)
         self.raw_key = f"serial/{o.port}"
         self._seen: dict[str, int] = {}
         self._last_k = -1
@@ -152,6 +155,7 @@ class GnssBridgeNode(Node):
             fix_type=min(max(fix_type, 0), 5),
             num_sats=min(max(f.num_sats or 0, 0), 200),
             hdop=float(f.hdop if f.hdop is not None else (f.pdop or 99.99)),
+            line_ns=min(round(f.line_bytes * self.byte_ns), self.period_ns),
         )
 
     def finish(self, now_ns: int) -> list[Out]:

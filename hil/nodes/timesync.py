@@ -23,6 +23,11 @@ its sensor) is refused (``rejected.duplicate_seq.<sensor>``): a second ``gnss:42
 redelivery, or a stranger's copy -- would otherwise leave as a second ``synced/gnss`` seq 42 of
 the same publisher, which no journal could tell from the first.
 
+A measurement's arrival is ``arrival_ns()``: for a fix read off a serial line, when its epoch's
+first byte came (``GnssFix.line_ns`` before the read that completed it), which is where the
+receiver's latency -- the minimum delay -- ends; the bytes' time on the line (the message set at
+the baud rate: ~27 ms of NMEA at 115200) would otherwise put every fix that much late.
+
 The core may hold a few measurements while it decides whether the device clock stepped; held
 ones are released by the verdict, at the end of input, or when their sensor falls silent: before
 its next input stamped more than ``IDLE_RELEASE_NS`` after the last measurement's arrival (not
@@ -132,7 +137,7 @@ class TimeSyncNode(Node):
                 f"sensor/{msg.sensor} seq {msg.seq} came again; the first one was re-stamped",
             )
             return []
-        return self._synced(self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.rx_stamp_ns, msg))
+        return self._synced(self.core.on_measurement(msg.sensor, msg.device_stamp_ns, msg.arrival_ns(), msg))
 
     def _repeat(self, sensor: str, seq: int) -> bool:
         recent = self._recent.get(sensor)
@@ -176,7 +181,7 @@ class TimeSyncNode(Node):
                 return []  # a tag the core does not use moves nothing (``SensorSync.on_timetag``)
             stamp = msg.stamp_ns
         else:
-            stamp = msg.rx_stamp_ns
+            stamp = msg.arrival_ns()
         self._released_on_clock.discard(sensor)
         if s.ends_silence(stamp):
             return []

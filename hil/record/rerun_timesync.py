@@ -116,6 +116,18 @@ def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> st
     return f"synced/{sensor} seq {seq}: payload bytes differ"
 
 
+def _synced_current_form(payload: bytes) -> bytes:
+    """A recorded re-stamp as today's encoder writes it. A recording made before a field was
+    appended to its type (``GnssFix.line_ns``) lacks it; the re-stamp recomputed from that
+    recording's raw measurement carries its default. Only called when the bytes differ."""
+    try:
+        sensor = msgspec.json.decode(payload).get("sensor")
+        kind = SENSORS.get(sensor) if isinstance(sensor, str) else None
+        return encode(decode(kind.message, payload)) if kind is not None else payload
+    except (msgspec.ValidationError, msgspec.DecodeError, AttributeError):
+        return payload
+
+
 # a restarted recorder's recovered messages come in a burst: what it recovered more than this much
 # log time apart is another stretch (another restart)
 RECOVERY_GAP_NS = 5_000_000_000
@@ -191,7 +203,7 @@ class _TimesyncMatch:
         self.worker = worker
         self.node: TimeSyncNode | None = None
         self.remote: RemoteNode | None = None
-        self.matcher = Matcher(_synced_difference, "recorded", HORIZON_NS)
+        self.matcher = Matcher(_synced_difference, "recorded", HORIZON_NS, _synced_current_form)
         self.late: list[tuple[int, tuple[str, int]]] = []  # recorded after their re-stamp was let go
         self.counts = {"meas": 0, "tags": 0, "out": 0, "order": 0}
         # topic -> (kind, sensor, the node's key): split once per topic, not per record

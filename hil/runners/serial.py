@@ -160,7 +160,8 @@ class LineWriter:
             raise LineError(f"--gnss-device {path}: cannot open it at {self.baud} baud: {err}") from None
 
     def write(self, data: bytes, start_wall_s: float) -> None:
-        """Put ``data`` on the line(s) from ``start_wall_s`` (time.time() seconds) at the baud rate."""
+        """Put ``data`` on the line(s) from ``start_wall_s`` (time.time() seconds) at the baud rate:
+        its first bit then, its last byte readable ``len(data)`` byte times later."""
         self._queue.put((start_wall_s, data))
 
     def _write_loop(self) -> None:
@@ -172,7 +173,9 @@ class LineWriter:
                 return
             start, data = item
             for i in range(0, len(data), per_chunk):
-                due = start + i * dt_s
+                # a byte is there for the reader once its stop bit is: each chunk is handed over
+                # when its last byte would have come in, not when its first began
+                due = start + min(i + per_chunk, len(data)) * dt_s
                 wait = due - time.time()
                 if wait > 0 and self._stop.wait(wait):
                     return

@@ -81,6 +81,10 @@ class DecodedFix:
     ``rx_ns`` is the ``rx_ns`` of the chunk that completed the epoch. ``messages`` lists the message
     types that made it, in arrival order. ``gps_time_ns`` is ``None`` when the stream did not give
     a full date (e.g. NMEA without RMC/ZDA); ``utc_time_of_day_ns`` is then still known.
+    ``first_byte_at`` is where its epoch's first message began among the bytes the decoder was fed
+    (-1: a decoder that does not say); ``line_bytes`` (set by ``hil.wire.line.LineDecoder``) how
+    many bytes the line carried from there to the end of that chunk: at the line's rate, how long
+    before ``rx_ns`` the epoch's output began -- what a receiver's latency is measured to.
     """
 
     protocol: str
@@ -99,6 +103,8 @@ class DecodedFix:
     hdop: float | None
     pdop: float | None
     vdop: float | None
+    first_byte_at: int = -1  # -1: not known
+    line_bytes: int = 0
 
 
 class WireDecoder(Protocol):
@@ -163,6 +169,8 @@ class StreamDecoder:
         self.last_problem = ""
         self._buf = bytearray()
         self._rx_ns = 0
+        self._at = 0  # bytes fed before ``_buf[0]``
+        self._msg_at = 0  # where the message being read began (set by ``_scan``)
 
     def problem(self, counter: str, what: str, amount: int = 1) -> None:
         self.counters[counter] += amount
@@ -174,7 +182,9 @@ class StreamDecoder:
         self._rx_ns = rx_ns
         self._buf += data
         out: list[DecodedFix] = []
-        del self._buf[: self._scan(self._buf, out)]
+        used = self._scan(self._buf, out)
+        del self._buf[:used]
+        self._at += used
         return out
 
     def flush(self) -> list[DecodedFix]:

@@ -10,13 +10,18 @@ the caller says when a message is ready and gets back when its first and last by
 port with both protocols on): it splits the stream into each protocol's messages by their start
 bytes and lengths (the protocol class's ``START`` and ``message_length``), hands each to its
 protocol's decoder and counts what is neither. With one protocol it is that protocol's decoder.
+Each fix it returns says how many bytes of its epoch the line carried up to the end of the chunk
+that completed it (``DecodedFix.line_bytes``), from the epoch's first message in any protocol
+(a u-blox port sends an epoch's NMEA sentences and UBX frames back to back): the receiver's
+latency ends at that first byte, and at 115200 baud the default NMEA set takes ~27 ms after it.
 A line at the wrong baud rate reads as a stream of garbage with no message in it: after
 ``BAUD_MISMATCH_BYTES`` such bytes in a row it says so (``baud_mismatch``), once per stretch.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections import deque
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from hil.wire import protocol
@@ -24,6 +29,8 @@ from hil.wire.base import DecodedFix
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 BAUD_MISMATCH_BYTES = 256  # this many bytes in a row with no message in them: the wrong baud rate
+PLACED_MESSAGES = 64  # recent messages a decoder's positions map back from (an epoch has < 20)
+SAME_EPOCH_NS = 5_000_000  # two protocols' fixes this close in GPS time are one epoch (NMEA: 10 ms digits)
 
 
 def byte_time_ns(baud: int) -> float:
@@ -74,6 +81,11 @@ class LineDecoder:
     last_problem: str = ""
     _buf: bytearray = field(default_factory=bytearray)
     _garbage_run: int = 0
+    # (GPS time, first byte on the line) of recent fixes of every protocol: one epoch's
+    _starts: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=8))
+    # several protocols: per decoder, (bytes fed to it, where on the line) of its recent messages
+    _placed: dict[str, deque[tuple[int, int]]] = field(default_factory=dict)
+    _fed: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.decoders: dict[str, Any] = {}
@@ -98,6 +110,39 @@ class LineDecoder:
             out = self._split(rx_ns)
         if self._valid_messages() > before:
             self._garbage_run = 0  # a message with a valid checksum: the baud rate is right
+        return self._on_line(out) if out else out
+
+    def _place(self, name: str, line_at: int, n: int) -> None:
+        """A message of ``n`` bytes at ``line_at`` on the line goes to ``name``'s decoder."""
+        placed = self._placed.get(name)
+        if placed is None:
+            placed = self._placed[name] = deque(maxlen=PLACED_MESSAGES)
+        fed = self._fed.get(name, 0)
+        placed.append((fed, line_at))
+        self._fed[name] = fed + n
+
+    def _on_line_at(self, fix: DecodedFix) -> int:
+        """Where on the line the fix's epoch began (-1: not known)."""
+        at = fix.first_byte_at
+        if at < 0 or len(self.decoders) == 1:
+            return at
+        for fed, line_at in reversed(self._placed.get(fix.protocol, ())):
+            if fed <= at:
+                return line_at + (at - fed)  # a decoder's message is fed whole: one stretch
+        return -1
+
+    def _on_line(self, fixes: list[DecodedFix]) -> list[DecodedFix]:
+        """Each fix with the bytes its epoch took on the line, from the epoch's first message in
+        any protocol to the end of what has been fed."""
+        end = self.counters["bytes"]
+        out = []
+        for fix in fixes:
+            first = self._on_line_at(fix)
+            t = fix.gps_time_ns
+            if t is not None and first >= 0:
+                first = min([first, *(at for t0, at in self._starts if abs(t0 - t) < SAME_EPOCH_NS)])
+                self._starts.append((t, first))
+            out.append(replace(fix, first_byte_at=first, line_bytes=end - first) if first >= 0 else fix)
         return out
 
     def _valid_messages(self) -> int:
@@ -114,6 +159,7 @@ class LineDecoder:
                     if n == 0:
                         return out  # the rest of the message is still on the way
                     if n > 0:
+                        self._place(name, self.counters["bytes"] - len(buf), n)
                         out += self.decoders[name].feed(bytes(buf[:n]), rx_ns)
                         del buf[:n]
                         break
@@ -145,7 +191,7 @@ class LineDecoder:
         out: list[DecodedFix] = []
         for dec in self.decoders.values():
             out += dec.flush()
-        return out
+        return self._on_line(out)
 
     def all_counters(self) -> dict[str, int]:
         """This line's counters and each protocol decoder's, prefixed with its name."""

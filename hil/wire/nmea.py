@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, ClassVar
 
 from hil.wire.base import (
@@ -334,11 +335,12 @@ _POSITION_KINDS = ("GGA", "RMC")
 class _Epoch:
     """Sentences gathered for one UTC time (``key`` None until a timed sentence arrives)."""
 
-    __slots__ = ("key", "kinds", "parts", "tod_ns")
+    __slots__ = ("at", "key", "kinds", "parts", "tod_ns")
 
-    def __init__(self, key: str | None, tod_ns: int | None) -> None:
+    def __init__(self, key: str | None, tod_ns: int | None, at: int) -> None:
         self.key = key
         self.tod_ns = tod_ns
+        self.at = at  # where its first sentence began on the line
         self.kinds: list[str] = []
         self.parts: dict[str, dict[str, Any]] = {}
 
@@ -448,6 +450,7 @@ class NmeaDecoder(StreamDecoder):
             if end + 1 - start > self._max_chars:
                 self.problem("too_long", f"sentence of {end + 1 - start} chars > {self._max_chars}")
             else:
+                self._msg_at = self._at + start
                 self._sentence(bytes(buf[start:end]), out)
             pos = end + 1
         return pos
@@ -510,7 +513,7 @@ class NmeaDecoder(StreamDecoder):
                 self._close(out)
                 epoch = None
         if epoch is None:
-            epoch = self._open = _Epoch(key, tod_ns)
+            epoch = self._open = _Epoch(key, tod_ns, self._msg_at)
         elif epoch.key is None and key is not None:
             epoch.key, epoch.tod_ns = key, tod_ns
         epoch.kinds.append(kind)
@@ -532,4 +535,4 @@ class NmeaDecoder(StreamDecoder):
             self.problem("malformed", f"epoch {epoch.key}: {exc}")
             return
         self.counters["fixes"] += 1
-        out.append(fix)
+        out.append(replace(fix, first_byte_at=epoch.at))

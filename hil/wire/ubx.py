@@ -293,10 +293,11 @@ class UbxProtocol:
 class _Epoch:
     """The NAV payloads received for one iTOW."""
 
-    __slots__ = ("itow_ms", "names", "payloads")
+    __slots__ = ("at", "itow_ms", "names", "payloads")
 
-    def __init__(self, itow_ms: int) -> None:
+    def __init__(self, itow_ms: int, at: int) -> None:
         self.itow_ms = itow_ms
+        self.at = at  # where its first frame began on the line
         self.names: list[str] = []
         self.payloads: dict[str, bytes] = {}
 
@@ -354,6 +355,7 @@ class UbxDecoder(StreamDecoder):
             if len(buf) < end:
                 pos = start
                 break
+            self._msg_at = self._at + start
             pos = self._frame(bytes(buf[start:end]), start, buf, out)
         return pos
 
@@ -394,7 +396,7 @@ class UbxDecoder(StreamDecoder):
             if itow_ms == self._closed_itow:
                 self.problem("late", f"{name} of the closed epoch iTOW {itow_ms}")
                 return
-            epoch = self._open = _Epoch(itow_ms)
+            epoch = self._open = _Epoch(itow_ms, self._msg_at)
         epoch.names.append(name)
         epoch.payloads[name] = payload
         if name == "NAV-EOE" or (not self._close_on_eoe and self._required.issubset(epoch.payloads)):
@@ -414,7 +416,7 @@ class UbxDecoder(StreamDecoder):
             self.problem("malformed", f"iTOW {epoch.itow_ms}: {exc}")
             return
         self.counters["fixes"] += 1
-        out.append(fix)
+        out.append(replace(fix, first_byte_at=epoch.at))
 
     def _time_from_week(self, itow_ms: int) -> int | None:
         """GPS ns from iTOW and the week of a recent TIM-TP or dated NAV-PVT (None before one)."""
