@@ -34,7 +34,7 @@ from hil.messages import GnssFix, SerialChunk
 from hil.nav.earth import lla_to_ned
 from hil.nav.scenario import scenario_for_run
 from hil.nodes.base import SERIAL_RX, Node, NodeOptions, Out
-from hil.nodes.gnss_emulator import bridge_protocol, check_wire
+from hil.nodes.gnss_emulator import bridge_protocol, check_wire, epoch_index
 from hil.wire.base import DecodedFix
 from hil.wire.gnss_time import gps_ns_to_utc_ns
 from hil.wire.line import LineDecoder, byte_time_ns
@@ -117,7 +117,7 @@ class GnssBridgeNode(Node):
             self.inc("dropped.line.undated_fixes")
             return None
         device_ns = gps_ns_to_utc_ns(f.gps_time_ns) - self.run.start_epoch_ns
-        k = round(device_ns / self.period_ns)
+        k = epoch_index(device_ns, self.period_ns)
         if k <= self._last_k:
             self.inc("dropped.line.repeated_epochs")
             return None

@@ -23,7 +23,9 @@ overruns and is counted), out on ``SERIAL_TX``; the fixes then reach the rig thr
 ``gnss_bridge`` node that reads the line, so the rig's own fusion sees what the device sees, and
 this node publishes no ``sensor/gnss`` itself. On a wire ``seq`` is the epoch index (time of
 validity over the period, what the bytes carry), an outage is output as "no fix" epochs as real
-receivers do, and UBX's TIM-TP announces each second's PPS.
+receivers do, and UBX's TIM-TP announces each second's PPS. The PPS tag then states the pulse's
+receiver time as the line states the fixes' (the published protocol's ``printed_time_ns``:
+NMEA's 10 ms), so the pulses and the fixes the rig reads tell one clock.
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ from hil.sensors.gnss import GnssEmulatorCore
 from hil.sensors.imu import sensor_rng
 from hil.wire import protocol as wire_protocol
 from hil.wire.base import ReceiverEpoch
-from hil.wire.gnss_time import utc_ns_to_gps_ns
+from hil.wire.gnss_time import gps_ns_to_utc_ns, utc_ns_to_gps_ns
 from hil.wire.line import BITS_PER_BYTE, Uart
 
 RESUME_AFTER_S = 2.0
@@ -114,6 +116,12 @@ FIX_NEEDS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
     "ubx": (("date and fix type", ("NAV-PVT",)),),
 }
 PPS_MESSAGES = {"ubx": ("TIM-TP",)}  # a protocol's time-pulse announcement, sent once a second
+
+
+def epoch_index(device_ns: int, period_ns: int) -> int:
+    """A fix's epoch index from its time of validity on the receiver's clock (the seq of a fix
+    read off a line: the bridge's, and the emulator's capture truth of it)."""
+    return round(device_ns / period_ns)
 
 
 def bridge_protocol(protocols: list[str]) -> str:
@@ -184,6 +192,8 @@ class GnssEmulatorNode(Node):
         self.wire = bool(o.protocol)
         if self.wire:
             self._encoders = [encoder(p, o.messages, o.talker) for p in o.protocol]
+            primary = self._encoders[o.protocol.index(bridge_protocol(o.protocol))]
+            self._printed_time = getattr(primary, "printed_time_ns", None)
             tim_tp = "ubx" in o.protocol and (not o.messages or "TIM-TP" in o.messages)
             self._ubx = self._encoders[o.protocol.index("ubx")] if tim_tp else None
             self._next_tim_tp_s = 0
@@ -330,13 +340,30 @@ class GnssEmulatorNode(Node):
                 stamp_ns=self.clock.latch_ns(t_edge),  # latched on the rig clock (latch jitter)
                 sensor="gnss",
                 kind="pps",
-                device_stamp_ns=self.clock.device_ns(t_edge),
+                device_stamp_ns=self._pulse_device_ns(t_edge),
             )
             outs.append(("timetag/gnss", tag))
             self.next_pps_s += 1
         return outs
 
     # -- on a wire ---------------------------------------------------------------------------
+    def _pulse_device_ns(self, t_edge_ns: int) -> int:
+        """The receiver's time of a PPS edge as the rig's tag states it. On a wire, as the line
+        states times (the fixes the rig reads): NMEA prints them to 10 ms, so a receiver clock
+        1.5 ms off its epochs' grid (the default) prints each fix 1.5 ms early and a pulse
+        stamped to the ns would put every fix that much early on the rig clock."""
+        device_ns = self.clock.device_ns(t_edge_ns)
+        if not self.wire:
+            return device_ns
+        return self._stated_device_ns(utc_ns_to_gps_ns(self.run.start_epoch_ns + device_ns))
+
+    def _stated_device_ns(self, gps_ns: int) -> int:
+        """A receiver time (GPS ns) as the line states it, on the run's device timeline: what
+        the bridge reads back (``device_stamp_ns``)."""
+        if self._printed_time is not None:
+            gps_ns = int(self._printed_time(gps_ns))
+        return gps_ns_to_utc_ns(gps_ns) - self.run.start_epoch_ns
+
     def _no_fix_epochs_before(self, t_valid_ns: int) -> None:
         """Epochs the core left out (an outage) up to ``t_valid_ns``: a receiver still outputs
         them, saying it has no fix."""
@@ -356,9 +383,12 @@ class GnssEmulatorNode(Node):
         ``b`` None: a "no fix" epoch, ``i`` its time of validity."""
         t_valid = int(b.t_valid_ns[i]) if b is not None else int(i)
         k = t_valid // self.core.period_ns
-        cap = CaptureTruth(seq=k, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid)
         act = self.line_faults.epoch(k, t_valid)
         epoch = self._epoch(b, i, t_valid)
+        # the epoch index its bytes will state (the bridge's seq): k, unless the receiver's clock
+        # is half a period or more off the true grid (a step, an offset)
+        seq = epoch_index(self._stated_device_ns(epoch.gps_time_ns), self.core.period_ns)
+        cap = CaptureTruth(seq=seq, stamp_ns=t_valid, sensor="gnss", true_stamp_ns=t_valid)
         if act.frozen and self._last_epoch is not None and epoch.fix_type:
             last = self._last_epoch  # the receiver repeats its last solution under a new time
             epoch = dataclasses.replace(

@@ -142,6 +142,9 @@ class WireProtocol(Protocol):
 
     def decoder(self) -> WireDecoder: ...
 
+    # optional: ``printed_time_ns(gps_ns)``, a time of validity as the protocol states it (its
+    # time field's resolution); without it, to the ns
+
 
 def select_messages(
     requested: tuple[str, ...] | None, default: tuple[str, ...], supported: tuple[str, ...], what: str

@@ -114,7 +114,7 @@ class _Fields:
     __slots__ = ("cog", "date", "ew", "fix", "hms", "kmh", "knots", "lat", "lon", "mode", "ns", "zda")
 
     def __init__(self, epoch: ReceiverEpoch) -> None:
-        grid_ns = (epoch.gps_time_ns + _CENTI_NS // 2) // _CENTI_NS * _CENTI_NS
+        grid_ns = NmeaProtocol.printed_time_ns(epoch.gps_time_ns)
         y, mo, d, h, mi, s, ns = gps_ns_to_utc_fields(grid_ns)
         self.hms = f"{h:02d}{mi:02d}{s:02d}.{ns // _CENTI_NS:02d}"
         self.date = f"{d:02d}{mo:02d}{y % 100:02d}"
@@ -203,6 +203,11 @@ class NmeaProtocol:
         self.messages = select_messages(messages, self.DEFAULT_MESSAGES, self.SUPPORTED_MESSAGES, "NMEA")
         self.talker = talker
         self._encoders = [_ENCODERS[m] for m in self.messages]
+
+    @staticmethod
+    def printed_time_ns(gps_ns: int) -> int:
+        """A time of validity as the sentences state it: to the nearest 10 ms (``hhmmss.ss``)."""
+        return (gps_ns + _CENTI_NS // 2) // _CENTI_NS * _CENTI_NS
 
     def encode_epoch(self, epoch: ReceiverEpoch) -> bytes:
         """All configured sentences of one epoch, in u-blox order, each ``$...*hh\\r\\n``."""

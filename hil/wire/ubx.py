@@ -257,6 +257,13 @@ class UbxProtocol:
             raise ValueError(f"UBX: {self.messages} has no position message (NAV-PVT or NAV-POSLLH)")
         self.talker = talker
 
+    def printed_time_ns(self, gps_ns: int) -> int:
+        """A time of validity as the frames state it: NAV-PVT's UTC fields and ``nano`` to the
+        ns, iTOW alone (NAV-POSLLH + NAV-VELNED) to the nearest ms."""
+        if "NAV-PVT" in self.messages:
+            return gps_ns
+        return (gps_ns + NS_PER_MS // 2) // NS_PER_MS * NS_PER_MS
+
     def encode_epoch(self, epoch: ReceiverEpoch) -> bytes:
         """All configured NAV messages of one epoch, in message-ID order."""
         itow_ms = _rounded_itow(epoch.gps_time_ns)
