@@ -223,6 +223,8 @@ class GnssEmulatorNode(Node):
         # skip what was due while dead; the core still draws its noise (the same stream after)
         skipped = len(self.core.next_batch(min(now_ns, self.end_ns)).t_valid_ns)
         self.fix_index = skipped
+        if self.wire:  # nor "no fix" epochs for the time it was dead: a dead receiver sends nothing
+            self._next_k = self.core.next_epoch
         # the next whole second's edge; a run's first is at 1 s, also for a restart before time
         # zero (the world's lead: now_ns < 0), which gave an edge at 0 s with seq -1, refused by
         # time sync and the recorder as an invalid TimeTag
@@ -327,6 +329,10 @@ class GnssEmulatorNode(Node):
                     self._order += 1
             if self.wire and self.core.next_epoch_ns() is None:
                 self._no_fix_epochs_before(self.end_ns + 1)
+            elif self.wire:
+                # the epochs the core has passed and left out (an outage) are "no fix" epochs now,
+                # each at its own output time -- not once the outage's end shows, all at once
+                self._no_fix_epochs_before(self.core.next_epoch * self.core.period_ns, passed=True)
         while self._pending and self._pending[0][0] <= now_ns:
             _t, _o, b, i = heapq.heappop(self._pending)
             outs.extend(self._wire_epoch(b, i, now_ns) if self.wire else self._fix(b, i, now_ns))
@@ -364,9 +370,10 @@ class GnssEmulatorNode(Node):
             gps_ns = int(self._printed_time(gps_ns))
         return gps_ns_to_utc_ns(gps_ns) - self.run.start_epoch_ns
 
-    def _no_fix_epochs_before(self, t_valid_ns: int) -> None:
+    def _no_fix_epochs_before(self, t_valid_ns: int, passed: bool = False) -> None:
         """Epochs the core left out (an outage) up to ``t_valid_ns``: a receiver still outputs
-        them, saying it has no fix."""
+        them, saying it has no fix. ``t_valid_ns`` is a real epoch's (done with it), or with
+        ``passed`` the first the core has not returned yet (still to come)."""
         period = self.core.period_ns
         while self._next_k * period < t_valid_ns:
             t = self._next_k * period
@@ -375,7 +382,8 @@ class GnssEmulatorNode(Node):
                 heapq.heappush(self._pending, (t_out, self._order, None, t))
                 self._order += 1
             self._next_k += 1
-        self._next_k = max(self._next_k, t_valid_ns // period + 1)
+        if not passed:
+            self._next_k = max(self._next_k, t_valid_ns // period + 1)
 
     def _wire_epoch(self, b: Any, i: int, now_ns: int) -> list[Out]:
         """One epoch onto the line (and its capture truth): the bytes wait for the UART.

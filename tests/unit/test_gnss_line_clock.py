@@ -1,5 +1,6 @@
 """A receiver on a line tells one clock: its PPS tag states the pulse as the line states the
-fixes' times, and its capture truth carries the epoch index its bytes state.
+fixes' times, its capture truth carries the epoch index its bytes state, and its "no fix" epochs
+of an outage leave at their own times.
 
 NMEA prints times to 10 ms. The emulated receiver's clock is 1.5 ms off its epochs' grid by
 default, so each NMEA fix said a time 1.5 ms early while the pulse was stamped to the ns: every
@@ -17,9 +18,13 @@ import pytest
 
 from hil.bench.capture import restamp_errors
 from hil.nav.scenario import load_scenario
+from hil.nodes.base import LineBurst
+from hil.nodes.gnss_emulator import GnssEmulatorNode, GnssEmulatorOptions
 from hil.record.mcapio import read_session
-from hil.runners.sim import SimOptions, run_sim
+from hil.runners.sim import SimOptions, run_sim, sim_run_info
 from hil.wire import protocol
+from hil.wire.gnss_time import gps_ns_to_utc_ns
+from hil.wire.line import LineDecoder
 
 
 def test_each_protocol_states_a_time_of_validity_at_its_fields_resolution() -> None:
@@ -71,3 +76,43 @@ def test_a_receiver_clock_stepped_half_a_period_is_scored_against_the_epoch_it_s
     assert len(before) > 50 and len(after) > 25
     assert np.max(np.abs(before)) < 10_000, (before.min(), before.max())
     assert np.max(np.abs(after)) < 10_000, (after.min(), after.max())
+
+
+def _line_epochs(tmp_path: Path, resume_at_ns: int | None = None) -> list[tuple[int, int]]:
+    """(first byte out, time of validity on the rig's device timeline) of every epoch the
+    receiver puts on an NMEA line in 5 s of ``straight_level`` with an outage 2-3 s."""
+    text = load_scenario("straight_level").source_text
+    path = tmp_path / "outage.toml"
+    path.write_text(text + '\n[[event]]\nkind = "gnss_outage"\nt_start_s = 2.0\nt_end_s = 3.0\n')
+    run = sim_run_info(SimOptions(scenario=str(path), duration_s=5.0))
+    node = GnssEmulatorNode(run, GnssEmulatorOptions(protocol=["nmea"], resume=resume_at_ns is not None))
+    start = resume_at_ns or 0
+    node.start(start)
+    bursts: list[LineBurst] = []
+    while (t := node.next_tick_ns()) is not None:
+        bursts += [m for _k, m in node.tick(max(t, start)) if isinstance(m, LineBurst)]
+    out = []
+    for b in bursts:
+        dec = LineDecoder(("nmea",))
+        (fix,) = dec.feed(b.data, b.end_ns)
+        assert fix.gps_time_ns is not None
+        out.append((b.start_ns, gps_ns_to_utc_ns(fix.gps_time_ns) - run.start_epoch_ns))
+    return out
+
+
+def test_an_outage_goes_out_as_no_fix_epochs_each_at_its_own_time(tmp_path: Path) -> None:
+    epochs = _line_epochs(tmp_path)
+    # THEN every epoch of the run, once, in order, each leaving its latency (0.1 s + < 2 ms of
+    # jitter) after its validity -- the outage's ones too; before, those left together at its end
+    # (1 s late at most) and delayed the first fix after it by their bytes (~0.3 s)
+    assert [round(v / 1e8) for _s, v in epochs] == list(range(49))
+    late = [s - v for s, v in epochs]
+    assert all(99_000_000 <= d <= 103_000_000 for d in late), late
+
+
+def test_a_restarted_receiver_sends_no_no_fix_epochs_for_the_time_it_was_dead(tmp_path: Path) -> None:
+    epochs = _line_epochs(tmp_path, resume_at_ns=3_450_000_000)
+    # THEN its first epoch is the first valid after the restart, on time (before: all 35 epochs
+    # it was dead for, at once)
+    assert [round(v / 1e8) for _s, v in epochs] == list(range(35, 49))
+    assert all(99_000_000 <= s - v <= 103_000_000 for s, v in epochs)
