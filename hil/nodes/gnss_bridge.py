@@ -76,7 +76,9 @@ class GnssBridgeNode(Node):
         self.vel_sigma_mps = tuple(float(v) for v in s.gnss.vel_sigma_mps)
         self.pos_sigma_m = tuple(float(v) for v in s.gnss.pos_sigma_m)
         self.origin = (math.radians(run.origin_lat_deg), math.radians(run.origin_lon_deg), run.origin_alt_m)
-        self.byte_ns = byte_time_ns(o.baud)
+        # a byte's time on the line in rig ns: the line keeps its baud rate in wall time, and rig
+        # time runs ``speed`` times as fast (``hil up --speed``)
+        self.byte_ns = byte_time_ns(o.baud) * float(run.speed)
         self.raw_key = f"serial/{o.port}"
         self._seen: dict[str, int] = {}
         self._last_k = -1

@@ -197,7 +197,9 @@ class GnssEmulatorNode(Node):
             tim_tp = "ubx" in o.protocol and (not o.messages or "TIM-TP" in o.messages)
             self._ubx = self._encoders[o.protocol.index("ubx")] if tim_tp else None
             self._next_tim_tp_s = 0
-            self.uart = Uart(o.baud, o.tx_buffer_bytes)
+            # in rig time: the line keeps its baud rate in wall time (``hil up --speed``)
+            self.line_baud = o.baud
+            self.uart = Uart(o.baud / float(run.speed), o.tx_buffer_bytes)
             self._last_epoch: ReceiverEpoch | None = None
             self._lines: list[tuple[int, int, bytes]] = []  # (first byte out, last byte done, bytes)
             self._next_k = 0  # the next epoch index to put on the wire (outages: "no fix" epochs)
@@ -420,7 +422,7 @@ class GnssEmulatorNode(Node):
             self.inc(f"fault.line.{act.corrupt or 'burst'}_epochs")
         slot = self.uart.send(len(data), now_ns)
         if slot is None:
-            self.error("line.overrun_epochs", f"UART overrun: {len(data)} bytes at {self.uart.baud} baud")
+            self.error("line.overrun_epochs", f"UART overrun: {len(data)} bytes at {self.line_baud} baud")
             self.inc("line.overrun_bytes", len(data))
         else:
             self._lines.append((slot[0], slot[1], data))

@@ -42,7 +42,7 @@ def byte_time_ns(baud: int) -> float:
 class Uart:
     """The transmit side: when each message's bytes go out, and which ones overrun the buffer."""
 
-    baud: int
+    baud: float  # in the caller's time: a line's baud rate over ``hil up --speed`` in rig time
     tx_buffer_bytes: int = 4096
     free_at_ns: int = -(2**62)  # when the line has sent everything handed to it so far
     sent_bytes: int = 0

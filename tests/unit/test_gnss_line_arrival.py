@@ -22,7 +22,9 @@ import pytest
 from hil.bench.capture import restamp_errors
 from hil.messages import GnssFix
 from hil.nav.scenario import load_scenario, scenario_overrides
+from hil.nodes.base import LineBurst
 from hil.nodes.gnss_bridge import GnssBridgeNode, GnssBridgeOptions
+from hil.nodes.gnss_emulator import GnssEmulatorNode, GnssEmulatorOptions
 from hil.nodes.timesync import TimeSyncNode
 from hil.record.mcapio import read_session
 from hil.runners.serial import LineWriter
@@ -166,3 +168,20 @@ def test_the_line_writer_hands_over_no_byte_before_its_last_bit_would_have_arriv
         if fd >= 0:
             os.close(fd)
         writer.close()
+
+
+def test_at_another_speed_the_line_keeps_its_baud_rate_in_wall_time() -> None:
+    # GIVEN ``hil up --speed 2``: rig time runs twice as fast as the wall clock the line is paced by
+    run = msgspec.structs.replace(sim_run_info(SimOptions(duration_s=5.0)), speed=2.0)
+    data = protocol("nmea")().encode_epoch(_epoch(utc_ns_to_gps_ns(run.start_epoch_ns + 1_000_000_000)))
+    bridge = GnssBridgeNode(run, GnssBridgeOptions(protocol=["nmea"], baud=115200))
+    (fix,) = [m for k, m in bridge.on_message("@serial/gnss", data, 2_000_000_000) if k == "sensor/gnss"]
+    # THEN the bytes' time on the line, in rig ns, is twice their wall time (27 ms of NMEA: 54)
+    assert fix.line_ns == round(len(data) * byte_time_ns(115200) * 2.0)
+    emulator = GnssEmulatorNode(run, GnssEmulatorOptions(protocol=["nmea"], baud=115200))
+    bursts = []
+    while (t := emulator.next_tick_ns()) is not None and t < 2_000_000_000:
+        bursts += [m for _k, m in emulator.tick(t) if isinstance(m, LineBurst)]
+    assert bursts and all(
+        b.end_ns - b.start_ns == round(len(b.data) * byte_time_ns(115200) * 2.0) for b in bursts
+    )
