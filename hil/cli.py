@@ -277,14 +277,18 @@ def _load_warnings(scenario: Any, a: argparse.Namespace, wire: dict[str, Any]) -
 
     out: list[str] = []
     rate = a.imu_rate or scenario.imu.rate_hz
+    # ``hil up --speed K``: the bus and the line keep their bit rates in wall time, where the rig
+    # sends K times as much a second
+    k = float(getattr(a, "speed", None) or 1.0)
+    at_speed = f" at --speed {k:g}" if k != 1.0 else ""
     try:
         codec = ImuCanCodec.from_dbc(fd=a.fd)
     except CodecError:  # a bad HIL_DBC: the IMU's service says so itself
         codec = None
-    load = codec.bus_load(rate) if codec is not None else 0.0
+    load = k * codec.bus_load(rate) if codec is not None else 0.0
     if codec is not None and load > 1.0:
         idle = codec.bus_load(0.0)  # the sync frame a second
-        top = int((1.0 - idle) / (codec.bus_load(1.0) - idle))
+        top = int((1.0 / k - idle) / (codec.bus_load(1.0) - idle))
         mode = "CAN FD" if a.fd else f"classic CAN ({len(codec.part_layouts)} frames a sample)"
         fix = (
             f"--imu-rate {top} or lower"
@@ -292,22 +296,22 @@ def _load_warnings(scenario: Any, a: argparse.Namespace, wire: dict[str, Any]) -
             else f"--fd (one frame a sample) or --imu-rate {top} or lower"
         )
         out.append(
-            f"the IMU at {rate} Hz loads its {mode} bus to {load * 100:.1f} %: its frames will queue and the "
-            f"session stretch past its duration; use {fix}"
+            f"the IMU at {rate} Hz{at_speed} loads its {mode} bus to {load * 100:.1f} %: its frames will "
+            f"queue and the session stretch past its duration; use {fix}"
         )
     protocols, messages, baud = wire["gnss_protocol"], wire["gnss_messages"], wire["gnss_baud"]
     if protocols:
         from hil.nodes.gnss_emulator import line_load
 
         fixes = scenario.gnss.rate_hz
-        line = line_load(protocols, messages, baud, fixes)
+        line = k * line_load(protocols, messages, baud, fixes)
         if line > 1.0:
-            least = next((b for b in _BAUDS if line_load(protocols, messages, b, fixes) <= 1.0), None)
+            least = next((b for b in _BAUDS if k * line_load(protocols, messages, b, fixes) <= 1.0), None)
             fix = f"--gnss-baud {least} or more" if least else "a faster line"
             out.append(
                 f"the GNSS line at {baud} baud is loaded to {line * 100:.1f} % by {'+'.join(protocols)} at "
-                f"{fixes:g} fixes a second: epochs will overrun the receiver's UART and be lost; use "
-                f"{fix}, or fewer --gnss-messages"
+                f"{fixes:g} fixes a second{at_speed}: epochs will overrun the receiver's UART and be lost; "
+                f"use {fix}, or fewer --gnss-messages"
             )
     return out
 

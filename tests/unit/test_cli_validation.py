@@ -282,3 +282,32 @@ def test_the_line_load_is_what_the_uart_overruns_at() -> None:
         uart = Uart(baud)
         lost = sum(uart.send(n, k * 200_000_000) is None for k in range(100))
         assert (lost > 0) is over, (baud, lost)
+
+
+def test_at_another_speed_the_bus_and_the_line_are_loaded_as_many_times_more() -> None:
+    """``hil up --speed 2``: the rig sends twice as much a wall second on a bus and a line that
+    keep their bit rates; the warnings were those of speed 1."""
+    import argparse
+
+    from hil.cli import _load_warnings
+    from hil.nav.scenario import load_scenario
+
+    uav = load_scenario("uav_survey")  # 5 fixes a second: 82.3 % of 19200 baud at speed 1
+    wire = {"gnss_protocol": ["nmea"], "gnss_messages": [], "gnss_baud": 19200}
+    at = argparse.Namespace(imu_rate=1000, fd=False, speed=1.0)
+    assert _load_warnings(uav, at, wire) == []
+    imu, line = _load_warnings(uav, argparse.Namespace(imu_rate=1000, fd=False, speed=2.0), wire)
+    assert imu.startswith(
+        "the IMU at 1000 Hz at --speed 2 loads its classic CAN (4 frames a sample) bus to 108.7"
+    ), imu
+    assert "--imu-rate 919 or lower" in imu, imu
+    assert (
+        _load_warnings(
+            uav, argparse.Namespace(imu_rate=919, fd=False, speed=2.0), {**wire, "gnss_baud": 38400}
+        )
+        == []
+    )
+    assert line.startswith(
+        "the GNSS line at 19200 baud is loaded to 164.6 % by nmea at 5 fixes a second at --speed 2"
+    )
+    assert "use --gnss-baud 38400 or more" in line, line
