@@ -130,6 +130,9 @@ class RunInfo(Message, frozen=True, kw_only=True):
     scenario_toml: Annotated[str, msgspec.Meta(max_length=32768)] = (
         ""  # so every host builds the same scenario
     )
+    # the IMU's samples travel as one CAN FD frame each (``--fd``), not four classic ones: the
+    # time sync's minimum delay of an IMU timed by arrivals is that frame's wire time
+    imu_can_fd: bool = False
 
 
 class Truth(Message, frozen=True, kw_only=True):

@@ -48,8 +48,9 @@ class SensorKind:
     clock: Mapping[str, Any] = field(default_factory=dict)
     # calibrated edge -> latch delay of its time tag, when [clock.<name>] does not say
     tag_latency_s: Callable[[Any, Any], float] = lambda cfg, scenario: 0.0
-    # known minimum measurement -> arrival delay, when [clock.<name>] does not say
-    min_delay_s: Callable[[Any, Any], float] = lambda cfg, scenario: float(cfg.transport_latency_s)
+    # known minimum measurement -> arrival delay, when [clock.<name>] does not say: of its clock
+    # config, the scenario and whether the IMU is on CAN FD (``RunInfo.imu_can_fd``)
+    min_delay_s: Callable[[Any, Any, bool], float] = lambda cfg, _s, _fd: float(cfg.transport_latency_s)
 
 
 def _imu_tag_latency_s(cfg: Any, _scenario: Any) -> float:
@@ -58,11 +59,12 @@ def _imu_tag_latency_s(cfg: Any, _scenario: Any) -> float:
     return float(cfg.transport_latency_s) + _frame_s()
 
 
-def _imu_min_delay_s(cfg: Any, _scenario: Any) -> float:
-    return float(cfg.transport_latency_s) + IMU_FRAMES_PER_SAMPLE * _frame_s()
+def _imu_min_delay_s(cfg: Any, _scenario: Any, can_fd: bool) -> float:
+    # a sample's arrival is its last frame's: four classic frames, or one CAN FD frame
+    return float(cfg.transport_latency_s) + (1 if can_fd else IMU_FRAMES_PER_SAMPLE) * _frame_s()
 
 
-def _gnss_min_delay_s(_cfg: Any, scenario: Any) -> float:
+def _gnss_min_delay_s(_cfg: Any, scenario: Any, _can_fd: bool) -> float:
     return float(scenario.gnss.latency_s)  # the receiver's output latency (PX4's EKF2_GPS_DELAY)
 
 

@@ -98,7 +98,8 @@ class TimeSyncNode(Node):
 
     def __init__(self, run: Any, options: Any = None) -> None:
         super().__init__(run, options)
-        self.core: TimeSyncCore[Measurement] = TimeSyncCore(sync_configs_for(scenario_for_run(run)))
+        configs = sync_configs_for(scenario_for_run(run), imu_can_fd=getattr(run, "imu_can_fd", False))
+        self.core: TimeSyncCore[Measurement] = TimeSyncCore(configs)
         self.end_ns = int(run.duration_s * 1e9)
         self._next_idle = IDLE_TICK_NS
         self._next_clock = CLOCK_PERIOD_NS

@@ -36,6 +36,7 @@ class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields
     duration_s: float | None = None  # None: the scenario's
     speed: float = 1.0  # rig seconds per wall second
     imu_rate_hz: int | None = None  # override the scenario's IMU rate (travels in RunInfo's text)
+    fd: bool = False  # the IMU on CAN FD (hil up --fd): said in RunInfo (``imu_can_fd``)
     truth_rate_hz: float = 100.0
     announce_every_s: float = 1.0  # RunInfo again this often (0: once)
     truth_batch: int = 10  # publish truth this many samples at a time (hil sim: 1, each at its time)
@@ -54,7 +55,13 @@ class WorldOptions(NodeOptions, frozen=True, kw_only=True, forbid_unknown_fields
 
 
 def run_info(
-    scenario: Any, *, rig: str, start_epoch_ns: int, speed: float, duration_s: float | None
+    scenario: Any,
+    *,
+    rig: str,
+    start_epoch_ns: int,
+    speed: float,
+    duration_s: float | None,
+    imu_can_fd: bool = False,
 ) -> RunInfo:
     """The run of ``scenario`` (a ``hil.nav.scenario.Scenario``): what every runner announces --
     ``hil up`` with time zero on the wall clock, ``hil sim`` with epoch 0."""
@@ -72,6 +79,7 @@ def run_info(
         origin_lon_deg=scenario.origin_lon_deg,
         origin_alt_m=scenario.origin_alt_m,
         scenario_toml=scenario.source_text,
+        imu_can_fd=imu_can_fd,
     )
 
 

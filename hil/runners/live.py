@@ -702,7 +702,14 @@ class WorldService(NodeService):
         # time zero on a whole second of UTC: a receiver's epochs then fall on its own grid, as a
         # real one's do on GPS time (and logs read better)
         start = -(-(wall_ns() + int(o.lead_s * 1e9)) // 1_000_000_000) * 1_000_000_000
-        return run_info(s, rig=self.keys.rig, start_epoch_ns=start, speed=o.speed, duration_s=o.duration_s)
+        return run_info(
+            s,
+            rig=self.keys.rig,
+            start_epoch_ns=start,
+            speed=o.speed,
+            duration_s=o.duration_s,
+            imu_can_fd=o.fd,
+        )
 
 
 def service_for(node_cls: type[Node], base: type[NodeService] = NodeService) -> type[NodeService]:

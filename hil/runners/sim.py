@@ -352,7 +352,9 @@ def sim_run_info(opts: SimOptions) -> RunInfo:
     if opts.imu_rate_hz:
         base = scenario_overrides(base, imu_rate_hz=int(opts.imu_rate_hz))
     start = base.start_utc_ns
-    return run_info(base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s)
+    return run_info(
+        base, rig=opts.rig, start_epoch_ns=start, speed=1.0, duration_s=opts.duration_s, imu_can_fd=opts.fd
+    )
 
 
 # a message as the file takes it, made by the worker that published it (``_Session.prepare``):

@@ -170,9 +170,10 @@ def parse_clock_table(sensor: str, table: Mapping[str, Any], base: DeviceClockCo
     return cfg
 
 
-def clock_config_for(scenario: Scenario, sensor: str) -> DeviceClockConfig:
+def clock_config_for(scenario: Scenario, sensor: str, *, imu_can_fd: bool = False) -> DeviceClockConfig:
     """The resolved clock config of ``sensor``: defaults, then ``[clock.<sensor>]``, then derived
-    latencies (``tag_latency_s``, ``min_delay_s``) filled in."""
+    latencies (``tag_latency_s``, ``min_delay_s``: the IMU's from its frames, one on CAN FD)
+    filled in."""
     tables = scenario.extra_tables.get("clock", {})
     if not isinstance(tables, Mapping):
         raise ScenarioError("[clock] must be a table of [clock.<sensor>] tables")
@@ -184,7 +185,7 @@ def clock_config_for(scenario: Scenario, sensor: str) -> DeviceClockConfig:
     if cfg.tag_latency_s is None:
         cfg = replace(cfg, tag_latency_s=kind.tag_latency_s(cfg, scenario) if kind else 0.0)
     if cfg.min_delay_s is None:
-        md = kind.min_delay_s(cfg, scenario) if kind else float(cfg.transport_latency_s)
+        md = kind.min_delay_s(cfg, scenario, imu_can_fd) if kind else float(cfg.transport_latency_s)
         cfg = replace(cfg, min_delay_s=md)
     return cfg
 

@@ -25,9 +25,10 @@ def is_interval_sensor(sensor: str) -> bool:
     return kind is not None and "dt_ns" in kind.message.__struct_fields__
 
 
-def sync_config_for(scenario: Scenario, sensor: str) -> SyncConfig:
-    """The SyncConfig of one sensor: source, tag latency and minimum delay from the clock table."""
-    c = clock_config_for(scenario, sensor)
+def sync_config_for(scenario: Scenario, sensor: str, *, imu_can_fd: bool = False) -> SyncConfig:
+    """The SyncConfig of one sensor: source, tag latency and minimum delay from the clock table
+    (the IMU's minimum delay by its frames: ``imu_can_fd``, the run's ``RunInfo.imu_can_fd``)."""
+    c = clock_config_for(scenario, sensor, imu_can_fd=imu_can_fd)
     source = c.sync or ("timetag" if c.timetag else "arrival")
     return SyncConfig(
         source=source,
@@ -38,5 +39,5 @@ def sync_config_for(scenario: Scenario, sensor: str) -> SyncConfig:
     )
 
 
-def sync_configs_for(scenario: Scenario) -> dict[str, SyncConfig]:
-    return {s: sync_config_for(scenario, s) for s in SYNCED_SENSORS}
+def sync_configs_for(scenario: Scenario, *, imu_can_fd: bool = False) -> dict[str, SyncConfig]:
+    return {s: sync_config_for(scenario, s, imu_can_fd=imu_can_fd) for s in SYNCED_SENSORS}
