@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.bench.capture import restamp_errors  # noqa: F401 - the benches' and tests' name for it
+from hil.bench.capture import restamp_errors  # the benches' and tests' name for it
 from hil.runtime.argtypes import OneLineParser, duration_s
 from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FRAMES_PER_SAMPLE
 from hil.sensors.clock import ClockStep, DeviceClock, DeviceClockConfig
@@ -306,8 +306,21 @@ def main(argv: list[str]) -> int:
         default=0.0,
         help="also run the live rig (hil up) this many seconds and add its IMU row (0: no)",
     )
+    ap.add_argument(
+        "--wire",
+        type=float,
+        default=0.0,
+        help="also run the rig on its wires (the receiver on a serial line, the IMU on CAN FD), "
+        "hil sim and hil up, this many seconds each, and add their rows (0: no)",
+    )
     a = ap.parse_args(argv)
     t0 = time.monotonic()
+    if a.wire > 0:  # alone: the other parts are the core's
+        rows = wire_rows(a.wire)
+        print(md_table(rows))
+        if not a.no_write:
+            write_section("timesync-wire", wire_text(a.wire, rows), command_line())
+        return 0
     results = [run_stream(c) for c in default_cases(a.duration)]
     rows = stream_rows(results)
     if a.live > 0:
@@ -370,3 +383,79 @@ def live_row(duration_s: float) -> dict[str, str]:
         "recovered after (s)": "-",
         "RMS µs (step+2 s on)": "-",
     }
+
+
+# -- the rig on its wires ------------------------------------------------------------------------
+
+#: (case, sensor, [clock.<sensor>] lines, wire options): the receiver on a serial line (NMEA, UBX,
+#: both) timed by arrivals alone and by its PPS, and the IMU on CAN FD timed by arrivals alone
+WIRE_CASES: tuple[tuple[str, str, str, dict[str, object]], ...] = (
+    ("GNSS NMEA line, arrivals", "gnss", "timetag = false", {"gnss_protocol": ["nmea"]}),
+    ("GNSS UBX line, arrivals", "gnss", "timetag = false", {"gnss_protocol": ["ubx"]}),
+    ("GNSS NMEA+UBX line, arrivals", "gnss", "timetag = false", {"gnss_protocol": ["nmea", "ubx"]}),
+    ("GNSS NMEA line, PPS", "gnss", "", {"gnss_protocol": ["nmea"]}),
+    ("IMU CAN FD, arrivals", "imu", "timetag = false", {"fd": True}),
+)
+WIRE_SETTLE_S = 10.0  # errors from here on: the arrival hull has its 2 s span and more
+
+
+def wire_rows(duration_s: float) -> list[dict[str, str]]:
+    """Each wire case through ``hil sim`` and ``hil up`` (straight_level, 115200 baud): the
+    re-stamping error of every synced measurement against the emulator's capture truth."""
+    import os
+
+    from hil.nav.scenario import load_scenario
+    from hil.record.mcapio import read_session
+    from hil.runners.sim import SimOptions, run_sim
+    from hil.runtime.supervisor import Supervisor, UpOptions
+
+    rows: list[dict[str, str]] = []
+    base = load_scenario("straight_level").source_text
+    with tempfile.TemporaryDirectory() as d:
+        for name, sensor, clock, wire in WIRE_CASES:
+            scenario = Path(d) / f"{sensor}_{len(rows)}.toml"
+            scenario.write_text(base + (f"\n[clock.{sensor}]\n{clock}\n" if clock else ""))
+            for mode in ("sim", "live"):
+                rec = Path(d) / f"{len(rows)}_{mode}.mcap"
+                load = os.getloadavg()[0]
+                if mode == "sim":
+                    kw = {k: v for k, v in wire.items() if k in ("gnss_protocol", "fd")}
+                    run_sim(SimOptions(scenario=str(scenario), duration_s=duration_s, record=rec, **kw))  # type: ignore[arg-type]
+                else:
+                    links = {"gnss_serial": str(Path(d) / "gnss0")} if "gnss_protocol" in wire else {}
+                    Supervisor(
+                        UpOptions(
+                            scenario=str(scenario), duration_s=duration_s, record=rec, rig="benchwire",
+                            live=False, log_dir=Path(d) / f"logs{len(rows)}", **wire, **links,  # type: ignore[arg-type]
+                        )
+                    ).run()  # fmt: skip
+                t, e = restamp_errors(read_session(rec), sensor)
+                e = e[t > WIRE_SETTLE_S] / 1e3
+                rows.append(
+                    {
+                        "case": f"{'SIM' if mode == 'sim' else 'LIVE'}: {name}"
+                        + (f" (load {load:.1f})" if mode == "live" else ""),
+                        "n": str(len(e)),
+                        "mean µs": f"{np.mean(e):+.1f}" if len(e) else "-",
+                        "min µs": f"{np.min(e):+.1f}" if len(e) else "-",
+                        "max µs": f"{np.max(e):+.1f}" if len(e) else "-",
+                    }
+                )
+    return rows
+
+
+def wire_text(duration_s: float, rows: list[dict[str, str]]) -> str:
+    return "\n".join(
+        [
+            "The rig on its wires: re-stamping error = synced stamp − the emulator's capture truth "
+            f"(matched by seq) of every measurement from {WIRE_SETTLE_S:g} s on, for `hil sim` and "
+            f"`hil up` of `straight_level` for {duration_s:g} s each: the GNSS receiver on a serial "
+            "line at 115200 baud (`--gnss-serial`, `--gnss-protocol`) timed by arrivals alone "
+            "(`[clock.gnss] timetag = false`: from the epoch's first byte, `GnssFix.line_ns`) and by "
+            "its PPS; the IMU on CAN FD (`--fd`) timed by arrivals alone (its minimum delay one "
+            "frame's, `RunInfo.imu_can_fd`). Live rows on this machine's pty and local CAN bus, "
+            "the load average before each.",
+            "",
+            md_table(rows),
+        ]
+    )
