@@ -25,6 +25,9 @@ from hil.messages import GnssFix, ImuSample, Message
 
 CAN_FRAME_TIME_NS = 135_000  # ~ one 8-byte classic frame at 1 Mbit/s with stuffing
 IMU_FRAMES_PER_SAMPLE = 4  # classic CAN: AxisX, AxisY, AxisZ, Time (the last completes the sample)
+# CAN FD: one 32-byte IMU_SampleFD frame a sample at 1 / 5 Mbit/s with stuffing
+# (``hil.can.busload.frame_bits``; the live sender and ``hil sim``'s bus pace it so)
+IMU_FD_FRAME_TIME_NS = 104_800
 
 
 def _frame_s() -> float:
@@ -61,7 +64,8 @@ def _imu_tag_latency_s(cfg: Any, _scenario: Any) -> float:
 
 def _imu_min_delay_s(cfg: Any, _scenario: Any, can_fd: bool) -> float:
     # a sample's arrival is its last frame's: four classic frames, or one CAN FD frame
-    return float(cfg.transport_latency_s) + (1 if can_fd else IMU_FRAMES_PER_SAMPLE) * _frame_s()
+    frames_ns = IMU_FD_FRAME_TIME_NS if can_fd else IMU_FRAMES_PER_SAMPLE * CAN_FRAME_TIME_NS
+    return float(cfg.transport_latency_s) + frames_ns * 1e-9
 
 
 def _gnss_min_delay_s(_cfg: Any, scenario: Any, _can_fd: bool) -> float:

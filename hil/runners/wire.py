@@ -6,7 +6,9 @@ frames leave together (when the node releases them), take ``transport_latency_s`
 exponential extra delay of mean ``transport_jitter_s`` -- one draw per sample index, from its own
 seeded stream, so the draws do not depend on which samples a fault kept off the bus -- and one
 frame's wire time each, first in first out. A sync frame goes first at its edge and carries the
-kernel-stamp latch jitter of the IMU's clock model; the data frames of that sample follow it.
+kernel-stamp latch jitter of the IMU's clock model; the data frames of that sample follow it. A
+frame's wire time is a classic 8-byte frame's, or the IMU's CAN FD frame's (``_wire_ns``), as
+the live sender paces them.
 """
 
 from __future__ import annotations
@@ -15,9 +17,15 @@ from typing import Any
 
 from hil.nav.scenario import Scenario
 from hil.nodes.base import CanBurst
-from hil.sensor_table import CAN_FRAME_TIME_NS
+from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FD_FRAME_TIME_NS
 from hil.sensors.clock import clock_config_for, device_clock_for
 from hil.sensors.imu import sensor_rng
+
+
+def _wire_ns(frame: Any) -> int:
+    """How long a frame occupies the bus: a classic one ``CAN_FRAME_TIME_NS`` (8 bytes at 1 Mbit/s),
+    the IMU's CAN FD one ``IMU_FD_FRAME_TIME_NS`` (32 bytes, data at 5 Mbit/s)."""
+    return IMU_FD_FRAME_TIME_NS if frame.is_fd else CAN_FRAME_TIME_NS
 
 
 class CanWireModel:
@@ -49,14 +57,18 @@ class CanWireModel:
         """``(rx_ns, frame)`` of each frame of ``burst``, which left at ``t_emit_ns``."""
         if burst.sync:
             self._sync_capture = burst.capture_ns
-            nominal = [self._latch.latch_ns(burst.capture_ns) + self.latency_ns + CAN_FRAME_TIME_NS]
+            nominal = [self._latch.latch_ns(burst.capture_ns) + self.latency_ns + _wire_ns(burst.frames[0])]
         else:
-            t_burst = t_emit_ns + self.latency_ns + round(self._extra_ns(burst.index))
-            first = 1 if self._sync_capture == burst.capture_ns else 0  # behind its sync frame
-            nominal = [t_burst + (j + 1) * CAN_FRAME_TIME_NS for j in range(first, first + len(burst.frames))]
+            t = t_emit_ns + self.latency_ns + round(self._extra_ns(burst.index))
+            if self._sync_capture == burst.capture_ns:  # behind its sync frame
+                t += CAN_FRAME_TIME_NS
+            nominal = []
+            for frame in burst.frames:
+                t += _wire_ns(frame)
+                nominal.append(t)
         out: list[tuple[int, Any]] = []
         for nom, frame in zip(nominal, burst.frames, strict=False):
-            rx = max(nom, self.last_rx_ns + CAN_FRAME_TIME_NS)  # the bus is FIFO
+            rx = max(nom, self.last_rx_ns + _wire_ns(frame))  # the bus is FIFO
             self.last_rx_ns = rx
             frame.timestamp = rx * 1e-9  # python-can's receive stamp (rig seconds here)
             out.append((rx, frame))

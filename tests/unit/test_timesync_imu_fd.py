@@ -25,7 +25,8 @@ from hil.timesync.config import sync_config_for
 def test_the_imu_s_minimum_delay_is_its_frames_wire_time() -> None:
     s = load_scenario("straight_level")
     classic, fd = sync_config_for(s, "imu"), sync_config_for(s, "imu", imu_can_fd=True)
-    assert (classic.min_delay_ns, fd.min_delay_ns) == (560_000, 155_000)  # 20 µs + 4 or 1 x 135 µs
+    # 20 µs + four classic frames of 135 µs, or one 32-byte CAN FD frame of 104.8 µs
+    assert (classic.min_delay_ns, fd.min_delay_ns) == (560_000, 124_800)
     # a delay the scenario states is its own, on any bus
     stated = load_scenario("straight_level").source_text + "\n[clock.imu]\nmin_delay_s = 0.0003\n"
     assert sync_config_for(parse_scenario(stated, "x"), "imu", imu_can_fd=True).min_delay_ns == 300_000
@@ -47,3 +48,16 @@ def test_an_imu_timed_by_arrivals_is_stamped_at_its_capture_on_either_bus(fd: bo
     assert np.max(np.abs(err)) < 20_000, (err.min(), err.max())
     res = rerun_timesync_records(records, worker=False)
     assert res.difference is None and res.n_recorded == res.n_recomputed
+
+
+def test_the_fd_frame_time_is_the_dbc_frame_s_on_the_bus_model() -> None:
+    """The sensor table's constant (it imports nothing of ``hil.can``) is what the live sender
+    paces the IMU's FD frame by: its DBC length, at the bus model's bit rates."""
+    from hil.can.busload import frame_bits
+    from hil.can.codec import ImuCanCodec
+    from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FD_FRAME_TIME_NS
+
+    lay = ImuCanCodec.from_dbc(fd=True).fd_layout
+    assert lay.is_fd and lay.length == 32
+    assert round(frame_bits(lay.length, fd=True, brs=lay.brs).seconds() * 1e9) == IMU_FD_FRAME_TIME_NS
+    assert round(frame_bits(8).seconds() * 1e9) == CAN_FRAME_TIME_NS
