@@ -57,6 +57,7 @@ from hil.record.mcapio import (
     session_files,
     session_note,
 )
+from hil.wire.line import BITS_PER_BYTE
 
 FUSION_INPUT = re.compile(r"^hil/[^/]+/synced/(imu|gnss)$")
 SPIN_S = 0.0005  # the last half millisecond before a deadline is spun, not slept (CAN spacing)
@@ -430,7 +431,10 @@ def replay(
                         stats.can_errors += 1
                 elif line is not None and rec.schema == "hil.SerialChunk":
                     data = bytes.fromhex(decode(SerialChunk, rec.payload).data_hex)
-                    line.write(data, time.time())  # as it was read: paced by the recording
+                    # as it was read, paced by the recording: its last byte readable now, the
+                    # line having carried it for its bytes' time at the line's baud rate
+                    baud = getattr(line, "baud", 0)
+                    line.write(data, time.time() - (len(data) * BITS_PER_BYTE / baud if baud else 0.0))
                     stats.sent_line_bytes += len(data)
                 else:
                     publisher(rec.topic, rec.schema).put(rec.payload)
