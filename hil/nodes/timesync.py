@@ -98,7 +98,7 @@ class TimeSyncNode(Node):
 
     def __init__(self, run: Any, options: Any = None) -> None:
         super().__init__(run, options)
-        configs = sync_configs_for(scenario_for_run(run), imu_can_fd=getattr(run, "imu_can_fd", False))
+        configs = sync_configs_for(scenario_for_run(run), imu_can_fd=run.imu_can_fd)
         self.core: TimeSyncCore[Measurement] = TimeSyncCore(configs)
         self.end_ns = int(run.duration_s * 1e9)
         self._next_idle = IDLE_TICK_NS

@@ -35,8 +35,8 @@ from hil.messages import (
     Measurement,
     NavSolution,
     RunInfo,
-    current_form,
     decode,
+    encoded_today,
 )
 from hil.nodes.fusion import FusionNode, realign_point, realigned_first_received, realigned_imu_seq
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
@@ -144,7 +144,7 @@ def _nav_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> str:
 
 def _nav_current_form(payload: bytes) -> bytes:
     """A recorded solution in the form today's encoder writes: the same values, the same bytes."""
-    return current_form(NavSolution, payload)
+    return encoded_today(NavSolution, payload)
 
 
 def _stream(sensor: str, publisher: str) -> str:

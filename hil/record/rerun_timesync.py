@@ -50,7 +50,17 @@ from typing import Any
 
 import msgspec
 
-from hil.messages import Event, RunInfo, ServiceStatus, TimeTag, decode, encode, payload_seq, schema_name
+from hil.messages import (
+    Event,
+    RunInfo,
+    ServiceStatus,
+    TimeTag,
+    decode,
+    encode,
+    encoded_today,
+    payload_seq,
+    schema_name,
+)
 from hil.nodes.timesync import TimeSyncNode, first_input_named
 from hil.record.matching import TAIL_NS, Matcher, SeqSet, truncation_notes, verdict
 from hil.record.mcapio import (
@@ -117,15 +127,15 @@ def _synced_difference(key: tuple[str, int], recorded: bytes, mine: bytes) -> st
 
 
 def _synced_current_form(payload: bytes) -> bytes:
-    """A recorded re-stamp as today's encoder writes it. A recording made before a field was
-    appended to its type (``GnssFix.line_ns``) lacks it; the re-stamp recomputed from that
-    recording's raw measurement carries its default. Only called when the bytes differ."""
+    """A recorded re-stamp as today's encoder writes it (``encoded_today`` of its sensor's type):
+    a recording made before a field was appended (``GnssFix.line_ns``) lacks it, the re-stamp
+    recomputed from its raw measurement carries the default. Only where the bytes differ."""
     try:
         sensor = msgspec.json.decode(payload).get("sensor")
-        kind = SENSORS.get(sensor) if isinstance(sensor, str) else None
-        return encode(decode(kind.message, payload)) if kind is not None else payload
-    except (msgspec.ValidationError, msgspec.DecodeError, AttributeError):
+    except (msgspec.DecodeError, AttributeError):
         return payload
+    kind = SENSORS.get(sensor) if isinstance(sensor, str) else None
+    return encoded_today(kind.message, payload) if kind is not None else payload
 
 
 # a restarted recorder's recovered messages come in a burst: what it recovered more than this much

@@ -348,10 +348,10 @@ class CanWire:
         self._cache: dict[tuple[int, bool, bool, bool], int] = {}
 
     def frame_ns(self, frame: Any) -> int:
-        key = (len(frame.data), bool(frame.is_fd), bool(frame.bitrate_switch), bool(frame.is_extended_id))
+        key = (len(frame.data), frame.is_fd, frame.bitrate_switch, frame.is_extended_id)
         ns = self._cache.get(key)
         if ns is None:
-            bits = frame_bits(key[0], fd=key[1], brs=key[2], extended=key[3])
+            bits = frame_bits(key[0], fd=bool(key[1]), brs=bool(key[2]), extended=bool(key[3]))
             ns = self._cache[key] = round(bits.seconds(self.nominal_bitrate, self.data_bitrate) * 1e9)
         return ns
 

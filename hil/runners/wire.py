@@ -7,8 +7,8 @@ exponential extra delay of mean ``transport_jitter_s`` -- one draw per sample in
 seeded stream, so the draws do not depend on which samples a fault kept off the bus -- and one
 frame's wire time each, first in first out. A sync frame goes first at its edge and carries the
 kernel-stamp latch jitter of the IMU's clock model; the data frames of that sample follow it. A
-frame's wire time is a classic 8-byte frame's, or the IMU's CAN FD frame's (``_wire_ns``), as
-the live sender paces them.
+frame's wire time is what the live sender paces it by (``hil.runners.pacing.CanWire``: its bits
+at 1 Mbit/s, an FD frame's data at 5 Mbit/s): 135 µs for the classic 8-byte frames.
 """
 
 from __future__ import annotations
@@ -17,15 +17,9 @@ from typing import Any
 
 from hil.nav.scenario import Scenario
 from hil.nodes.base import CanBurst
-from hil.sensor_table import CAN_FRAME_TIME_NS, IMU_FD_FRAME_TIME_NS
+from hil.runners.pacing import CanWire
 from hil.sensors.clock import clock_config_for, device_clock_for
 from hil.sensors.imu import sensor_rng
-
-
-def _wire_ns(frame: Any) -> int:
-    """How long a frame occupies the bus: a classic one ``CAN_FRAME_TIME_NS`` (8 bytes at 1 Mbit/s),
-    the IMU's CAN FD one ``IMU_FD_FRAME_TIME_NS`` (32 bytes, data at 5 Mbit/s)."""
-    return IMU_FD_FRAME_TIME_NS if frame.is_fd else CAN_FRAME_TIME_NS
 
 
 class CanWireModel:
@@ -42,6 +36,8 @@ class CanWireModel:
         self._block_k0 = 0
         self._sync_capture: int | None = None
         self.last_rx_ns = -(2**62)
+        self._bus = CanWire()  # a frame's wire time, as the live sender paces it
+        self._sync_wire_ns = 0
 
     def _extra_ns(self, index: int) -> float:
         if self.jitter_ns <= 0:
@@ -55,20 +51,23 @@ class CanWireModel:
 
     def arrivals(self, burst: CanBurst, t_emit_ns: int) -> list[tuple[int, Any]]:
         """``(rx_ns, frame)`` of each frame of ``burst``, which left at ``t_emit_ns``."""
+        frame_ns = self._bus.frame_ns
+        wires = [frame_ns(f) for f in burst.frames]
         if burst.sync:
             self._sync_capture = burst.capture_ns
-            nominal = [self._latch.latch_ns(burst.capture_ns) + self.latency_ns + _wire_ns(burst.frames[0])]
+            self._sync_wire_ns = wires[0]
+            nominal = [self._latch.latch_ns(burst.capture_ns) + self.latency_ns + wires[0]]
         else:
             t = t_emit_ns + self.latency_ns + round(self._extra_ns(burst.index))
             if self._sync_capture == burst.capture_ns:  # behind its sync frame
-                t += CAN_FRAME_TIME_NS
+                t += self._sync_wire_ns
             nominal = []
-            for frame in burst.frames:
-                t += _wire_ns(frame)
+            for w in wires:
+                t += w
                 nominal.append(t)
         out: list[tuple[int, Any]] = []
-        for nom, frame in zip(nominal, burst.frames, strict=False):
-            rx = max(nom, self.last_rx_ns + _wire_ns(frame))  # the bus is FIFO
+        for nom, w, frame in zip(nominal, wires, burst.frames, strict=False):
+            rx = max(nom, self.last_rx_ns + w)  # the bus is FIFO
             self.last_rx_ns = rx
             frame.timestamp = rx * 1e-9  # python-can's receive stamp (rig seconds here)
             out.append((rx, frame))
